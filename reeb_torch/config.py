@@ -1,0 +1,278 @@
+"""One dataclass that holds every constant of the REEB algorithm.
+
+Each field names the paper section or equation it comes from. Where the printed paper is
+ambiguous or cannot run as printed (``../shared/paper/NOTES.md``), the field documents the
+choice and :meth:`ReebConfig.paper` keeps the printed reading. The package default
+(``ReebConfig()``) is the variant with the best recall measured by
+``benchmarks/ablations.py`` on the 60 KITTI frames in ``../shared/data/kitti``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+__all__ = ["ReebConfig", "PRESETS", "get_preset"]
+
+Grouping = Literal["connected", "cell"]
+ScoreNorm = Literal["perimeter", "area"]
+RoadScore = Literal["reward", "penalize", "none"]
+LocationScore = Literal["paper", "ground", "none"]
+EntropyForm = Literal["printed", "abs-diff"]
+
+
+@dataclass(frozen=True)
+class ReebConfig:
+    """Settings of :class:`reeb_torch.ProposalGenerator`.
+
+    All lengths in pixels refer to the *input* image unless the name says otherwise;
+    ``scale`` sets the working resolution at which edges, groups and windows are computed,
+    and boxes are mapped back to input pixels at the end.
+    """
+
+    # -- working resolution --------------------------------------------------------------
+    scale: float = 0.5
+    """Resize factor applied before edge detection (1.0 = full resolution, as the paper)."""
+
+    # -- Sec. 3.4: denoising and edges ---------------------------------------------------
+    blur_sigma: float = 1.0
+    """Standard deviation of the Gaussian blur, in working pixels (kernel = 2*ceil(2σ)+1)."""
+    edge_threshold: float = 0.05
+    """Sobel magnitude (of a [0, 1] grey image, normalised to [0, 1]) below which a pixel
+    is no edge. The paper gives no value (NOTES #4)."""
+    remove_isolated: bool = True
+    """Drop edge pixels with no edge pixel among their 8 neighbours (Sec. 3.4)."""
+
+    # -- Sec. 3.7: edge groups -----------------------------------------------------------
+    grouping: Grouping = "connected"
+    """``connected``: 8-connected components of edge pixels, as printed. ``cell``: all
+    edge pixels of one ``group_cell``×``group_cell`` tile form one group (fastest)."""
+    group_cell: int | None = 8
+    """Side, in working pixels, of the tiles that bound a group. With ``connected``,
+    components are cut at tile borders (NOTES #2: long chains are rarely enclosed);
+    ``None`` = no bound, plain connected components as printed."""
+
+    # -- Sec. 3.5, eqs. 3-4: road segmentation -------------------------------------------
+    road_samples: int = 300
+    """Random pixels sampled to estimate the road colour ("hundreds", Sec. 3.5)."""
+    road_band: tuple[float, float, float, float] = (0.3, 0.8, 0.7, 1.0)
+    """Where road is likely, as fractions of the image (x1, y1, x2, y2): bottom centre."""
+    road_tolerance: tuple[float, float, float] = (0.5, 0.12, 0.12)
+    """Half-width of the in-range test around the sampled median, per HSV channel
+    (hue in radians, circular; saturation and value in [0, 1]). Not given in the paper."""
+    road_combine: Literal["and", "or"] = "and"
+    """How the three channel masks are combined (eq. 4 prints AND, the text says OR)."""
+    seed: int = 0
+    """Seed of the road pixel sampling; the same pixels are sampled for every image of a
+    given size, so results do not depend on the batch."""
+
+    # -- Sec. 3.6, eqs. 5-8: region division ---------------------------------------------
+    use_regions: bool = True
+    """Region enhancement. ``False`` = one region, the whole image ("Ours*")."""
+    camera_height_m: float = 1.65
+    vertical_fov_deg: float = 35.0
+    horizontal_fov_deg: float = 90.0
+    max_object_width_m: float = 2.55
+    region_overlap: float = 0.5
+    """Stride between regions as a fraction of their width (eq. 8's ``overlap``)."""
+    region_width_round: float | None = 0.125
+    """Round the region width (fraction of image width) up to a multiple of this; the
+    paper rounds 24.7 % to 25 %. ``None`` uses eq. 7 as computed."""
+
+    # -- eqs. 2 and 9: entropy and proposal budget ---------------------------------------
+    entropy_bins: int = 256
+    """Grey levels of the entropy histogram (eq. 2's M). 256 = 8-bit grey, H in [0, 8]."""
+    entropy_sigma: float = 4.0
+    """σ of eq. 9 (the paper's KITTI value)."""
+    entropy_form: EntropyForm = "abs-diff"
+    """``abs-diff``: %P = 1 − |σ − H|/σ (NOTES #9). ``printed``: |σ + H|, which gives
+    no proposals for any H > 0 and is kept only to show that it cannot run."""
+    candidates_per_region: int = 4000
+    """Most windows a region may pass on to ranking (eq. 9's "maximum number of proposals
+    that the user wants to generate in a region"); the region passes share × this."""
+
+    # -- Sec. 3.6: sliding windows (NOTES #13) -------------------------------------------
+    min_window: int = 20
+    """Smallest window side, in input pixels."""
+    size_ratio: float = 1.25
+    """Ratio between consecutive window widths (and heights)."""
+    window_step: float = 0.15
+    """Stride of the sliding windows as a fraction of the window's side."""
+    aspect_range: tuple[float, float] = (0.25, 4.0)
+    """Allowed width/height ratios of the windows."""
+    local_max: bool = True
+    """Keep only windows whose score is a local maximum among the 8 neighbouring
+    positions of the same size before NMS (a fast pre-NMS; neighbours overlap heavily)."""
+
+    # -- eq. 1: edge score ---------------------------------------------------------------
+    score_norm: ScoreNorm = "perimeter"
+    """``area``: divide by 2·area^γ (as printed); ``perimeter``: by (2(w+h))^κ, as Edge
+    Boxes, whose score REEB adopts (NOTES #1)."""
+    gamma: float = 0.75
+    """Exponent of the area normalisation (no value printed; 0.75 ≈ Edge Boxes' κ/2)."""
+    kappa: float = 1.5
+    """Exponent of the perimeter normalisation (Edge Boxes' value)."""
+    center_fraction: float = 0.5
+    """Side of the centre region c relative to the box (eq. 1: half)."""
+
+    # -- eqs. 10-12: road, location and combined score -----------------------------------
+    road_score: RoadScore = "reward"
+    """``reward``: V adds β·R as printed; ``penalize``: β·(1 − R) (NOTES #10); ``none``."""
+    location_score: LocationScore = "paper"
+    """``paper``: L = b_y/(b_w·b_h)·W (eq. 11); ``ground``: how well the box height fits
+    a ground-plane object standing at its bottom row, in [0, 1]; ``none``: L = 1."""
+    horizon: float = 0.47
+    """Horizon row as a fraction of the image height, for ``location_score='ground'``."""
+    alpha: float = 0.6
+    beta: float = 0.4
+    min_edge_score: float = 0.01
+    """Windows with S below this are dropped (Sec. 3.7)."""
+
+    # -- eq. 13: NMS and output ----------------------------------------------------------
+    nms_iou: float = 0.7
+    top_k: int = 2000
+    """Proposals returned per image (at most)."""
+
+    def __post_init__(self) -> None:
+        def check(ok: bool, name: str, expected: str) -> None:
+            if not ok:
+                raise ValueError(
+                    f"ReebConfig.{name} must be {expected}, got {getattr(self, name)!r}"
+                )
+
+        def pos(name: str) -> None:
+            v = getattr(self, name)
+            check(isinstance(v, (int, float)) and math.isfinite(v) and v > 0, name, "> 0")
+
+        for name in ("scale", "blur_sigma", "camera_height_m", "vertical_fov_deg",
+                     "horizontal_fov_deg", "max_object_width_m", "entropy_sigma",
+                     "size_ratio", "window_step", "kappa", "gamma"):
+            pos(name)
+        check(self.scale <= 4, "scale", "in (0, 4]")
+        check(0 <= self.edge_threshold < 1, "edge_threshold", "in [0, 1)")
+        check(self.grouping in ("connected", "cell"), "grouping", "'connected' or 'cell'")
+        check(self.group_cell is None or (isinstance(self.group_cell, int) and self.group_cell >= 2),
+              "group_cell", "None or an int >= 2")
+        check(self.grouping != "cell" or self.group_cell is not None, "group_cell",
+              "set (an int >= 2) when grouping='cell'")
+        check(isinstance(self.road_samples, int) and self.road_samples >= 1, "road_samples", "an int >= 1")
+        x1, y1, x2, y2 = self.road_band
+        check(0 <= x1 < x2 <= 1 and 0 <= y1 < y2 <= 1, "road_band",
+              "fractions (x1, y1, x2, y2) with 0 <= x1 < x2 <= 1 and 0 <= y1 < y2 <= 1")
+        check(len(self.road_tolerance) == 3 and all(t >= 0 for t in self.road_tolerance),
+              "road_tolerance", "three non-negative numbers (hue, saturation, value)")
+        check(self.road_combine in ("and", "or"), "road_combine", "'and' or 'or'")
+        check(self.vertical_fov_deg < 180 and self.horizontal_fov_deg < 180,
+              "vertical_fov_deg", "an angle below 180 degrees (both opening angles)")
+        check(0 < self.region_overlap <= 1, "region_overlap", "in (0, 1]")
+        check(self.region_width_round is None or 0 < self.region_width_round <= 1,
+              "region_width_round", "None or in (0, 1]")
+        check(isinstance(self.entropy_bins, int) and 2 <= self.entropy_bins <= 65536,
+              "entropy_bins", "an int in [2, 65536]")
+        check(self.entropy_form in ("printed", "abs-diff"), "entropy_form", "'printed' or 'abs-diff'")
+        check(isinstance(self.candidates_per_region, int) and self.candidates_per_region >= 1,
+              "candidates_per_region", "an int >= 1")
+        check(isinstance(self.min_window, int) and self.min_window >= 4, "min_window", "an int >= 4")
+        check(self.size_ratio > 1, "size_ratio", "> 1")
+        check(self.window_step <= 1, "window_step", "in (0, 1]")
+        lo, hi = self.aspect_range
+        check(0 < lo <= hi, "aspect_range", "(low, high) with 0 < low <= high")
+        check(self.score_norm in ("perimeter", "area"), "score_norm", "'perimeter' or 'area'")
+        check(0 < self.center_fraction < 1, "center_fraction", "in (0, 1)")
+        check(self.road_score in ("reward", "penalize", "none"), "road_score",
+              "'reward', 'penalize' or 'none'")
+        check(self.location_score in ("paper", "ground", "none"), "location_score",
+              "'paper', 'ground' or 'none'")
+        check(0 < self.horizon < 1, "horizon", "in (0, 1)")
+        check(self.alpha >= 0 and self.beta >= 0, "alpha", "non-negative (alpha and beta)")
+        check(0 < self.nms_iou <= 1, "nms_iou", "in (0, 1]")
+        check(isinstance(self.top_k, int) and self.top_k >= 1, "top_k", "an int >= 1")
+
+    # -- presets -------------------------------------------------------------------------
+    @classmethod
+    def paper(cls, **overrides: object) -> "ReebConfig":
+        """The printed text wherever it can run as printed (see NOTES.md).
+
+        Full resolution, plain connected components, area normalisation (eq. 1), the
+        road score as a reward (eq. 12), L unnormalised (eq. 11), eq. 8 and eq. 9 in
+        their corrected forms (their printed forms give no regions / no proposals), no
+        pre-NMS local-maximum filter.
+        """
+        base = dict(
+            scale=1.0,
+            grouping="connected",
+            group_cell=None,
+            score_norm="area",
+            road_score="reward",
+            location_score="paper",
+            road_combine="and",
+            entropy_form="abs-diff",
+            local_max=False,
+        )
+        base.update(overrides)
+        return cls(**base)  # type: ignore[arg-type]
+
+    def replace(self, **changes: object) -> "ReebConfig":
+        """A copy with ``changes`` applied (validated)."""
+        return dataclasses.replace(self, **changes)  # type: ignore[arg-type]
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ReebConfig":
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ValueError(f"unknown ReebConfig field(s): {', '.join(unknown)}")
+        fixed = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        return cls(**fixed)
+
+    def with_camera(self, fx: float, fy: float, width: int, height: int) -> "ReebConfig":
+        """A copy whose opening angles come from a pinhole camera (focal lengths in pixels).
+
+        θh = 2·atan(W / 2fx), θv = 2·atan(H / 2fy). For KITTI's P2 (fx = fy ≈ 721 px,
+        1242 × 375 px) this gives θh ≈ 81°, θv ≈ 29°.
+        """
+        if not (fx > 0 and fy > 0 and width > 0 and height > 0):
+            raise ValueError(f"with_camera needs positive fx, fy, width, height; got {fx}, {fy}, {width}, {height}")
+        return self.replace(
+            horizontal_fov_deg=math.degrees(2 * math.atan(width / (2 * fx))),
+            vertical_fov_deg=math.degrees(2 * math.atan(height / (2 * fy))),
+        )
+
+    def fingerprint(self) -> str:
+        """A short stable hash of all fields (used to detect stale proposal caches)."""
+        import hashlib
+        import json
+
+        blob = json.dumps(self.to_dict(), sort_keys=True, default=str).encode()
+        return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def _no_regions(cfg: ReebConfig) -> ReebConfig:
+    return cfg.replace(use_regions=False)
+
+
+PRESETS: dict[str, ReebConfig] = {}
+
+
+def _build_presets() -> None:
+    PRESETS["default"] = ReebConfig()
+    PRESETS["default-no-regions"] = _no_regions(ReebConfig())
+    PRESETS["paper"] = ReebConfig.paper()
+    PRESETS["paper-no-regions"] = _no_regions(ReebConfig.paper())
+
+
+_build_presets()
+
+
+def get_preset(name: str) -> ReebConfig:
+    """Look up a named preset: ``default``, ``default-no-regions``, ``paper``,
+    ``paper-no-regions``."""
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(sorted(PRESETS))}") from None

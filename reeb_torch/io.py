@@ -1,0 +1,70 @@
+"""Image decoding: any common image file to an RGB ``uint8`` tensor, or a clear error."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+__all__ = ["ImageReadError", "read_image", "IMAGE_EXTENSIONS"]
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
+
+
+class ImageReadError(ValueError):
+    """An image file could not be read; the message names the file and the reason."""
+
+
+def to_rgb8(array: np.ndarray, name: str = "image") -> np.ndarray:
+    """Convert a decoded OpenCV array (BGR/BGRA/grey, 8 or 16 bit, or float) to RGB uint8.
+
+    Grey is replicated to three channels, the alpha channel is dropped, 16-bit values are
+    scaled by 1/257 (65535 → 255) and floats in [0, 1] by 255.
+    """
+    import cv2
+
+    a = array
+    if a.dtype == np.uint16:
+        a = (a.astype(np.float32) / 257.0 + 0.5).astype(np.uint8)
+    elif a.dtype in (np.float32, np.float64):
+        a = (np.clip(a, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    elif a.dtype != np.uint8:
+        raise ImageReadError(f"{name}: unsupported pixel type {a.dtype}")
+    if a.ndim == 2:
+        return np.ascontiguousarray(np.repeat(a[:, :, None], 3, axis=2))
+    if a.ndim == 3 and a.shape[2] == 1:
+        return np.ascontiguousarray(np.repeat(a, 3, axis=2))
+    if a.ndim == 3 and a.shape[2] == 3:
+        return cv2.cvtColor(a, cv2.COLOR_BGR2RGB)
+    if a.ndim == 3 and a.shape[2] == 4:
+        return cv2.cvtColor(a, cv2.COLOR_BGRA2RGB)
+    raise ImageReadError(f"{name}: unsupported image shape {a.shape}")
+
+
+def read_image(path: str | os.PathLike) -> torch.Tensor:
+    """Read an image file as an RGB ``uint8`` tensor of shape ``(3, H, W)``.
+
+    Grey, RGBA and 16-bit images are converted, not rejected. Raises
+    :class:`ImageReadError` naming the file when it is missing, empty, truncated, corrupt
+    or not an image.
+    """
+    import cv2
+
+    p = Path(path)
+    if not p.exists():
+        raise ImageReadError(f"{p}: no such file")
+    if p.is_dir():
+        raise ImageReadError(f"{p}: is a folder, not an image")
+    try:
+        data = np.fromfile(str(p), dtype=np.uint8)
+    except OSError as e:
+        raise ImageReadError(f"{p}: cannot read ({e.strerror or e})") from e
+    if data.size == 0:
+        raise ImageReadError(f"{p}: empty file")
+    array = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if array is None or array.size == 0:
+        raise ImageReadError(f"{p}: not a readable image (corrupt, truncated or not an image file)")
+    rgb = to_rgb8(array, str(p))
+    return torch.from_numpy(rgb).permute(2, 0, 1).contiguous()
