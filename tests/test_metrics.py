@@ -1,0 +1,213 @@
+"""Tests of reeb_torch.metrics against hand-worked cases and a brute-force loop."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from reeb_torch.metrics import (
+    AR_IOUS,
+    average_recall,
+    best_iou,
+    recall_table,
+    recall_vs_iou,
+    recall_vs_proposals,
+)
+
+T = torch.tensor
+
+# Two GT boxes of area 100; each proposal overlaps one of them with a known IoU.
+GT = T([[0.0, 0.0, 10.0, 10.0], [100.0, 100.0, 110.0, 110.0]])
+PROPS = T(
+    [
+        [0.0, 0.0, 10.0, 4.0],  # IoU 0.4 with GT 0
+        [100.0, 100.0, 110.0, 108.0],  # IoU 0.8 with GT 1
+        [0.0, 0.0, 10.0, 6.0],  # IoU 0.6 with GT 0
+        [0.0, 0.0, 10.0, 9.0],  # IoU 0.9 with GT 0
+    ]
+)
+# best IoU of (GT 0, GT 1) with the top k, k = 1..4
+HAND_BEST = {1: (0.4, 0.0), 2: (0.4, 0.8), 3: (0.6, 0.8), 4: (0.9, 0.8)}
+
+
+def brute_best_iou(props: torch.Tensor, gt: torch.Tensor, k: int) -> list[float]:
+    """Best IoU per GT box with the top k proposals, by plain Python loops."""
+    out = []
+    for g in gt.tolist():
+        best = 0.0
+        for p in props[:k].tolist():
+            iw = max(0.0, min(g[2], p[2]) - max(g[0], p[0]))
+            ih = max(0.0, min(g[3], p[3]) - max(g[1], p[1]))
+            inter = iw * ih
+            union = (g[2] - g[0]) * (g[3] - g[1]) + (p[2] - p[0]) * (p[3] - p[1]) - inter
+            best = max(best, inter / union if union > 0 else 0.0)
+        out.append(best)
+    return out
+
+
+def test_best_iou_hand_case():
+    for k, expected in HAND_BEST.items():
+        torch.testing.assert_close(best_iou(PROPS, GT, top_k=k), T(expected))
+    torch.testing.assert_close(best_iou(PROPS, GT), T([0.9, 0.8]))  # all proposals
+    torch.testing.assert_close(best_iou(PROPS, GT, top_k=100), T([0.9, 0.8]))
+    assert best_iou(PROPS, GT, top_k=0).tolist() == [0.0, 0.0]
+    assert best_iou(torch.zeros(0, 4), GT).tolist() == [0.0, 0.0]
+    assert best_iou(PROPS, torch.zeros(0, 4)).shape == (0,)
+    assert best_iou({"boxes": PROPS, "scores": torch.ones(4)}, GT, top_k=2).tolist() == [
+        pytest.approx(0.4),
+        pytest.approx(0.8),
+    ]
+
+
+def test_best_iou_matches_brute_force():
+    g = torch.Generator().manual_seed(0)
+    xy = torch.rand(300, 2, generator=g) * 200
+    props = torch.cat([xy, xy + 5 + torch.rand(300, 2, generator=g) * 60], dim=1)
+    xy = torch.rand(7, 2, generator=g) * 200
+    gt = torch.cat([xy, xy + 5 + torch.rand(7, 2, generator=g) * 60], dim=1)
+    for k in (1, 10, 77, 300):
+        torch.testing.assert_close(
+            best_iou(props, gt, top_k=k), T(brute_best_iou(props, gt, k)), atol=1e-6, rtol=0
+        )
+
+
+def test_degenerate_boxes_give_zero_not_nan():
+    point = T([[5.0, 5.0, 5.0, 5.0]])
+    assert best_iou(point, point).tolist() == [0.0]
+
+
+def test_recall_table_hand_case():
+    ks, ious = (1, 2, 3, 4, 10), (0.3, 0.5, 0.7)
+    r = recall_table([PROPS], [GT], ks=ks, ious=ious)
+    expected = {  # recall = share of the 2 GT boxes with best IoU >= t
+        1: (0.5, 0.0, 0.0),
+        2: (1.0, 0.5, 0.5),
+        3: (1.0, 1.0, 0.5),
+        4: (1.0, 1.0, 1.0),
+        10: (1.0, 1.0, 1.0),  # fewer proposals than k: all of them
+    }
+    torch.testing.assert_close(r.micro, T([expected[k] for k in ks], dtype=torch.float64))
+    for k in ks:
+        for t, v in zip(ious, expected[k]):
+            assert r.at(k, t) == v
+            # and by brute force
+            assert v == sum(b >= t for b in brute_best_iou(PROPS, GT, k)) / 2
+    assert r.num_objects == 2 and r.num_images == 1
+    assert r.class_names == () and r.per_class.shape == (0, 5, 3)
+    assert math.isnan(r.class_mean[0, 0])
+
+
+def test_recall_table_matches_brute_force_several_images():
+    g = torch.Generator().manual_seed(1)
+    props, gts = [], []
+    for n_prop, n_gt in [(50, 3), (5, 4), (0, 2), (30, 0), (120, 6)]:
+        xy = torch.rand(n_prop, 2, generator=g) * 100
+        props.append(torch.cat([xy, xy + 2 + torch.rand(n_prop, 2, generator=g) * 40], dim=1))
+        xy = torch.rand(n_gt, 2, generator=g) * 100
+        gts.append(torch.cat([xy, xy + 2 + torch.rand(n_gt, 2, generator=g) * 40], dim=1))
+    ks, ious = (1, 7, 50, 100), (0.1, 0.3, 0.5, 0.7)
+    r = recall_table(props, gts, ks=ks, ious=ious)
+    assert r.num_images == 4 and r.num_objects == 15
+    for i, k in enumerate(ks):
+        best = [b for p, gt in zip(props, gts) for b in brute_best_iou(p, gt, k)]
+        for j, t in enumerate(ious):
+            assert r.micro[i, j].item() == pytest.approx(sum(b >= t for b in best) / 15)
+
+
+def test_per_class_and_micro_differ():
+    # image 0: three cars, all matched exactly; image 1: one pedestrian, missed
+    cars = T([[0.0, 0.0, 10.0, 10.0], [20.0, 0.0, 30.0, 10.0], [40.0, 0.0, 50.0, 10.0]])
+    ped = T([[0.0, 50.0, 5.0, 70.0]])
+    props = [cars.flip(0), T([[100.0, 100.0, 120.0, 120.0]])]
+    labels = [T([0, 0, 0]), T([1])]
+    names = ("Car", "Pedestrian", "Cyclist")
+    r = recall_table(props, [cars, ped], labels, names, ks=(1, 3), ious=(0.5,))
+    assert r.at(3, 0.5) == 0.75  # 3 of 4 objects
+    assert r.at(3, 0.5, "Car") == 1.0 and r.at(3, 0.5, "Pedestrian") == 0.0
+    assert math.isnan(r.at(3, 0.5, "Cyclist"))  # no cyclist: left out of the mean
+    assert r.at(3, 0.5, "mean") == 0.5  # (1 + 0) / 2, not / 3
+    assert r.at(1, 0.5) == 0.25 and r.at(1, 0.5, "Car") == pytest.approx(1 / 3)
+    assert r.num_per_class.tolist() == [3, 1, 0]
+
+    d = json.loads(json.dumps(r.to_dict()))  # JSON-able, nan -> null
+    assert d["micro"]["3"]["0.5"] == 0.75 and d["class_mean"]["3"]["0.5"] == 0.5
+    assert d["per_class"]["Cyclist"]["3"]["0.5"] is None
+    assert d["num_per_class"] == {"Car": 3, "Pedestrian": 1, "Cyclist": 0}
+
+    table = r.format_table()
+    lines = table.splitlines()
+    assert "k=3" in table and "class mean" in table and "Car (3)" in table
+    assert lines[-1].startswith("Cyclist (0)") and lines[-1].rstrip().endswith("-")
+    assert "75.0" in next(ln for ln in lines if ln.startswith("all (4)"))
+    assert str(r) == table
+
+
+def test_empty_cases():
+    # no images at all
+    r = recall_table([], [], ks=(5,), ious=(0.5,))
+    assert r.num_objects == 0 and math.isnan(r.micro[0, 0])
+    # images without GT are skipped, images without proposals count as misses
+    r = recall_table(
+        [PROPS, torch.zeros(0, 4), PROPS], [torch.zeros(0, 4), GT, GT], ks=(4,), ious=(0.5,)
+    )
+    assert r.num_images == 2 and r.num_objects == 4 and r.at(4, 0.5) == 0.5
+    # labels of images without GT may be empty
+    r = recall_table(
+        [PROPS, PROPS], [torch.zeros(0, 4), GT], [torch.zeros(0, dtype=torch.int64), T([0, 1])],
+        ("a", "b"), ks=(2,), ious=(0.5,),
+    )
+    assert r.per_class[:, 0, 0].tolist() == [0.0, 1.0]
+
+
+def test_input_checks():
+    with pytest.raises(ValueError, match="proposal sets"):
+        recall_table([PROPS], [GT, GT])
+    with pytest.raises(ValueError, match=r"Tensor\[N, 4\]"):
+        recall_table([PROPS[:, :3]], [GT])
+    with pytest.raises(ValueError, match="labels for 2 boxes"):
+        recall_table([PROPS], [GT], [T([0])], ("a",))
+    with pytest.raises(ValueError, match="class indices"):
+        recall_table([PROPS], [GT], [T([0, 5])], ("a", "b"))
+    with pytest.raises(ValueError, match="ks"):
+        recall_table([PROPS], [GT], ks=(0,))
+    with pytest.raises(ValueError, match="IoU"):
+        recall_table([PROPS], [GT], ious=(1.5,))
+
+
+def test_average_recall_hand_case():
+    # GT 0 best IoU 0.92: recalled at 0.5, 0.55, ..., 0.9 (9 of 10 thresholds)
+    # GT 1 best IoU 0.72: recalled at 0.5, ..., 0.7 (5 of 10 thresholds)
+    props = T([[0.0, 0.0, 10.0, 9.2], [100.0, 100.0, 110.0, 107.2]])
+    assert AR_IOUS == (0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95)
+    ar = average_recall([props], [GT], ks=(1, 2))
+    torch.testing.assert_close(ar, T([0.9 / 2, (0.9 + 0.5) / 2], dtype=torch.float64))
+    # per class: class 0 AR 0.9, class 1 AR 0.5 -> mean 0.7 at k = 2
+    ar_c = average_recall([props], [GT], ks=(2,), gt_labels=[T([0, 1])], average="class")
+    assert ar_c.item() == pytest.approx(0.7)
+    with pytest.raises(ValueError, match="gt_labels"):
+        average_recall([props], [GT], average="class")
+
+
+def test_recall_vs_proposals():
+    ks, recall = recall_vs_proposals([PROPS], [GT], iou=0.7, ks=range(1, 6))
+    assert ks.tolist() == [1, 2, 3, 4, 5]
+    assert recall.tolist() == [0.0, 0.5, 0.5, 1.0, 1.0]
+    ks, recall = recall_vs_proposals([PROPS], [GT], iou=0.5)  # default grid up to 4
+    assert ks.tolist() == [1, 2, 3, 4] and recall.tolist() == [0.0, 0.5, 1.0, 1.0]
+    ks, _ = recall_vs_proposals([PROPS], [GT], max_k=2000, points=20)
+    assert ks[0] == 1 and ks[-1] == 2000 and bool((ks.diff() > 0).all())
+
+
+def test_recall_vs_iou():
+    ious, recall = recall_vs_iou([PROPS], [GT], k=4)
+    assert ious.tolist() == pytest.approx([0.5 + 0.05 * i for i in range(11)])
+    # best IoUs 0.9 and 0.8 (thresholds at the exact values avoided by checking around them)
+    expected = [(0.9 >= t) / 2 + (0.8 >= t) / 2 for t in ious.tolist()]
+    for t, got, want in zip(ious.tolist(), recall.tolist(), expected):
+        if not (math.isclose(t, 0.8) or math.isclose(t, 0.9)):
+            assert got == want
+    ious, recall = recall_vs_iou([PROPS], [GT], k=1, ious=torch.linspace(0, 1, 5))
+    assert recall.tolist() == [1.0, 0.5, 0.0, 0.0, 0.0]  # best IoUs 0.4 and 0
