@@ -70,6 +70,18 @@ def test_selective_search_contract(kitti_image):
     _check_contract(ss(kitti_image), kitti_image, 300)
 
 
+@needs_bing
+def test_bing_rankings_agree_on_the_first_maxbgr_boxes(kitti_image):
+    """Both orders start with the best MAXBGR boxes (rank keys 300 + i < HSV's first, 900)."""
+    a = BingBaseline(ranking="opencv")(kitti_image)
+    b = BingBaseline(ranking="interleaved")(kitti_image)
+    _check_contract(b, kitti_image, 2000)
+    assert torch.equal(a["boxes"][:500], b["boxes"][:500])
+    assert not torch.equal(a["boxes"], b["boxes"])
+    with pytest.raises(ValueError, match="ranking"):
+        BingBaseline(ranking="descending")
+
+
 def test_bing_missing_model_dir_raises(tmp_path):
     with pytest.raises(FileNotFoundError, match="BING model folder"):
         BingBaseline(model_dir=tmp_path / "nope")
