@@ -1,0 +1,594 @@
+"""The ``reeb`` command line: ``propose``, ``show`` and ``eval``.
+
+::
+
+    reeb propose                         # the bundled KITTI sample: top-10 table + reeb_proposals.png
+    reeb propose images/ --out p.jsonl   # a folder (or files, or globs) to JSON Lines / Parquet
+    reeb propose images/ --out p.jsonl --resume   # after an interruption: only what is missing
+    reeb show                            # the bundled sample, explained: reeb_show.png
+    reeb show frame.png --label frame.txt --top 30 --out frame_reeb.png
+    reeb eval ../shared/data/kitti --limit 20     # the paper's Table 3 (benchmarks/table3.py)
+
+Exit codes: 0 success; 1 some images failed (each is named, in the summary and in the
+output with its status) or the command failed; 2 usage error (bad option, no images found,
+output not writable — all checked before any work); 130 interrupted (what was done is
+saved; ``--resume`` continues).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import click
+
+CONTEXT = dict(help_option_names=["-h", "--help"], max_content_width=100)
+SAMPLE_NAME = "kitti_000001.png"
+
+
+class UsageProblem(click.ClickException):
+    """A one-line error with exit code 2 (bad input given on the command line)."""
+
+    exit_code = 2
+
+
+class Failure(click.ClickException):
+    """A one-line error with exit code 1 (the command could not do its work)."""
+
+    exit_code = 1
+
+
+# -- shared helpers ----------------------------------------------------------------------
+
+def repo_root() -> Path:
+    """The source checkout the package is installed from (editable install)."""
+    # this file's package folder, not reeb_torch.__file__: that is None when the package is
+    # imported as a namespace package (an editable install made before __init__.py existed)
+    return Path(__file__).resolve().parent.parent
+
+
+def bundled_sample() -> Path:
+    """The sample KITTI frame that ``reeb propose`` / ``reeb show`` use without arguments."""
+    p = repo_root() / "examples" / "data" / SAMPLE_NAME
+    if not p.is_file():
+        raise UsageProblem(
+            f"the bundled sample image is missing (expected {p}; it ships with the source "
+            "checkout, not with an installed wheel); give an image path instead")
+    return p
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        low = text.strip().lower()
+        if low in ("none", "null"):
+            return None
+        if low in ("true", "false"):
+            return low == "true"
+        return text
+
+
+def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_k: int | None):
+    """The ReebConfig from a preset, then a JSON file of fields, then ``--set`` pairs, then
+    ``--top-k`` (each later source overrides the earlier ones)."""
+    from .config import ReebConfig, get_preset
+
+    d = get_preset(preset).to_dict()
+    if config_file:
+        try:
+            loaded = json.loads(Path(config_file).read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError) as e:
+            raise click.BadParameter(f"{config_file}: cannot read ({e})", param_hint="--config")
+        except json.JSONDecodeError as e:
+            raise click.BadParameter(f"{config_file}: not valid JSON ({e})", param_hint="--config")
+        if isinstance(loaded, dict) and isinstance(loaded.get("config"), dict):
+            loaded = loaded["config"]  # a saved record with a "config" entry
+        if not isinstance(loaded, dict):
+            raise click.BadParameter(f"{config_file}: expected a JSON object of ReebConfig fields",
+                                     param_hint="--config")
+        d.update(loaded)
+    for item in sets:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise click.BadParameter(f"{item!r}: expected FIELD=VALUE, e.g. scale=1.0",
+                                     param_hint="--set")
+        d[key.strip()] = _parse_value(value)
+    if top_k is not None:
+        d["top_k"] = top_k
+    try:
+        return ReebConfig.from_dict(d)
+    except (TypeError, ValueError) as e:
+        raise click.BadParameter(str(e), param_hint="--config/--set/--top-k")
+
+
+def resolve_device(name: str):
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, ValueError):
+        raise click.BadParameter(f"{name!r} is not a device (try cpu, cuda, cuda:1 or auto)",
+                                 param_hint="--device")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise click.BadParameter("CUDA was asked for but is not available here (use --device cpu)",
+                                 param_hint="--device")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise click.BadParameter(f"{name}: only {torch.cuda.device_count()} CUDA device(s)",
+                                 param_hint="--device")
+    return dev
+
+
+def config_options(f):
+    """``--preset``, ``--config``, ``--set``, ``--top-k``, ``--device`` (shared)."""
+    from .config import PRESETS
+
+    options = [
+        click.option("--preset", type=click.Choice(sorted(PRESETS)), default="default",
+                     show_default=True, help="Named settings to start from."),
+        click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False),
+                     help="JSON file of ReebConfig fields applied over the preset."),
+        click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE",
+                     help="Change one ReebConfig field (repeatable), e.g. --set scale=1.0."),
+        click.option("--top-k", type=click.IntRange(min=1), default=None,
+                     help="Proposals kept per image (default: the config's top_k, 2000)."),
+        click.option("--device", default="auto", show_default=True,
+                     help="cpu, cuda, cuda:N, or auto (CUDA when available)."),
+    ]
+    for opt in reversed(options):
+        f = opt(f)
+    return f
+
+
+def _label_for(image: Path) -> Path | None:
+    """A KITTI label file for ``image``: beside it, or in ../labels or ../label_2."""
+    for cand in (image.with_suffix(".txt"),
+                 image.parent.parent / "labels" / f"{image.stem}.txt",
+                 image.parent.parent / "label_2" / f"{image.stem}.txt"):
+        if cand.is_file():
+            return cand
+    return None
+
+
+def _read_labels(path: Path) -> list:
+    from .data import read_kitti_labels
+
+    try:
+        objs = read_kitti_labels(path)
+    except (OSError, ValueError) as e:
+        raise Failure(f"{path}: cannot read the label file ({' '.join(str(e).split())})")
+    return [o for o in objs if o.type != "DontCare"]
+
+
+def _box_table(name: str, size: tuple[int, int], boxes, scores, n: int, total: int) -> str:
+    w, h = size
+    lines = [f"{name}  {w}×{h} px  {total} proposals" + (f" (top {min(n, total)})" if total else "")]
+    if total:
+        lines.append(f"{'rank':>5} {'x1':>8} {'y1':>8} {'x2':>8} {'y2':>8} {'score':>10}")
+        for i, (b, s) in enumerate(zip(boxes[:n].tolist(), scores[:n].tolist()), 1):
+            lines.append(f"{i:>5} {b[0]:8.1f} {b[1]:8.1f} {b[2]:8.1f} {b[3]:8.1f} {s:10.4f}")
+    return "\n".join(lines)
+
+
+def _ms(seconds: float, n: int) -> str:
+    return f"{1000 * seconds / n:.1f} ms/img" if n else "n/a"
+
+
+# -- the command group -------------------------------------------------------------------
+
+@click.group(context_settings=CONTEXT)
+@click.version_option(package_name="reeb-torch", prog_name="reeb")
+def main() -> None:
+    """REEB: training-free object proposals for driving images.
+
+    Run `reeb propose` or `reeb show` with no arguments to see the bundled KITTI sample.
+    """
+
+
+# -- reeb propose ------------------------------------------------------------------------
+
+@main.command(context_settings=CONTEXT)
+@click.argument("paths", nargs=-1, type=click.Path())
+@click.option("-o", "--out", type=click.Path(dir_okay=False),
+              help="Write one row per image here: .jsonl (JSON Lines) or .parquet.")
+@click.option("--resume", is_flag=True,
+              help="Keep the rows already in --out and process only the images missing there "
+                   "(or that failed).")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
+@config_options
+@click.option("-b", "--batch-size", type=click.IntRange(min=1), default=4, show_default=True,
+              help="Images of equal size computed together.")
+@click.option("-j", "--workers", type=click.IntRange(min=0), default=None,
+              help="Decoding processes running alongside the algorithm (0 = decode inline). "
+                   "[default: min(2, CPUs)]")
+@click.option("--viz", "viz_dir", type=click.Path(file_okay=False),
+              help="Write a PNG per image with its top proposals into this folder.")
+@click.option("--viz-top", type=click.IntRange(min=1), default=10, show_default=True,
+              help="Proposals drawn per picture.")
+@click.option("-r", "--recursive", is_flag=True, help="Look for images in sub-folders too.")
+@click.option("--print-top", type=click.IntRange(min=0), default=None,
+              help="Print a table of the top N boxes per image [default: 10 without --out, "
+                   "else 0].")
+@click.option("--summary-json", type=click.Path(dir_okay=False),
+              help="Also write the closing summary as JSON (for scripts and benchmarks).")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar, no per-file messages.")
+def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, device,
+            batch_size, workers, viz_dir, viz_top, recursive, print_top, summary_json, quiet):
+    """Object proposals for images, folders or glob patterns (PATHS).
+
+    With no PATHS, runs on the bundled KITTI sample: prints its top proposals and writes
+    reeb_proposals.png (or into --viz). A file that cannot be processed never stops the
+    run: it gets an "error: ..." status, is named in the summary, and the exit code is 1.
+    The output is written atomically; after Ctrl-C what is done is saved, and --resume
+    continues.
+
+    Output rows: image, width, height, boxes ([x1, y1, x2, y2] in pixels, best first),
+    scores, status ("ok" or "error: <file>: <reason>"), config (settings fingerprint).
+    """
+    from . import batch as B
+
+    cfg = build_config(preset, config_file, sets, top_k)
+    dev = resolve_device(device)
+    fingerprint = cfg.fingerprint()
+    workers = B.default_workers() if workers is None else workers
+    echo_err = (lambda m: None) if quiet else (lambda m: click.echo(m, err=True))
+
+    # 1. inputs ---------------------------------------------------------------------------
+    sample_mode = not paths
+    try:
+        images, notes = B.find_images([bundled_sample()] if sample_mode else paths, recursive)
+    except B.NoImagesError as e:
+        raise UsageProblem(str(e))
+    for n in notes:
+        echo_err(f"note: {n}")
+
+    # 2. outputs, checked before any work ------------------------------------------------------
+    if resume and not out:
+        raise UsageProblem("--resume needs --out (the file to continue)")
+    kept_rows: list[dict] = []
+    if out:
+        try:
+            B.check_output(out)
+        except B.OutputError as e:
+            raise UsageProblem(str(e))
+        exists = Path(out).exists()
+        if exists and not (resume or overwrite):
+            raise UsageProblem(f"{out} exists; add --resume to continue it or --overwrite to "
+                               "replace it")
+        if resume and exists:
+            try:
+                rows, problems = B.read_results(out)
+            except B.OutputError as e:
+                raise UsageProblem(str(e))
+            for p in problems:
+                echo_err(f"warning: {p}")
+            other = {r.get("config") for r in rows if r.get("status") == "ok"} - {fingerprint}
+            if other:
+                raise UsageProblem(
+                    f"{out} was made with different settings (config {', '.join(sorted(map(str, other)))}, "
+                    f"now {fingerprint}); use the same options, another --out, or --overwrite")
+            kept_rows = [r for r in rows if r.get("status") == "ok"]
+            done = {os.path.abspath(r["image"]) for r in kept_rows}
+            before = len(images)
+            images = [p for p in images if os.path.abspath(p) not in done]
+            echo_err(f"resume: {len(kept_rows)} images already in {out}, {before - len(images)} of "
+                     f"them among the inputs; {len(images)} to do")
+            if not images:
+                click.echo(f"Nothing to do: all {before} images are already in {out}.", err=True)
+                return
+    viz_path = Path(viz_dir) if viz_dir else None
+    if viz_path is not None:
+        try:
+            viz_path.mkdir(parents=True, exist_ok=True)
+            B.check_output(viz_path / "probe.jsonl")
+        except (OSError, B.OutputError) as e:
+            raise UsageProblem(f"--viz {viz_path}: cannot write pictures there "
+                               f"({getattr(e, 'strerror', None) or e})")
+    sample_png = Path("reeb_proposals.png") if sample_mode and viz_path is None else None
+    if sample_png is not None and not os.access(sample_png.parent.resolve(), os.W_OK):
+        raise UsageProblem(f"cannot write {sample_png.resolve()}: the current folder is not "
+                           "writable (use --viz DIR)")
+    if print_top is None:
+        print_top = 0 if out else 10
+    if not out and not sample_mode and viz_path is None:
+        echo_err("note: no --out given: proposals are printed, not saved")
+    viz_names = _viz_names(images) if viz_path is not None else {}
+
+    # 3. the run --------------------------------------------------------------------------
+    import torch
+
+    from .generator import ProposalGenerator
+    from .viz import draw_proposals, save_png
+
+    gen = ProposalGenerator(cfg).to(dev).eval()
+    writer = B.open_writer(out) if out else None
+    if writer is not None:
+        writer.write(kept_rows)
+    gt = _read_labels(_label_for(images[0])) if sample_mode and _label_for(images[0]) else None
+
+    stats = dict(images=len(images), ok=0, failed=0, proposals=0, algo_s=0.0)
+    failures: list[str] = []
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(images), unit="img", disable=True if quiet else None, file=sys.stderr,
+               dynamic_ncols=True, desc="reeb propose")
+
+    def fail(item_path: str, message: str, size=None) -> None:
+        stats["failed"] += 1
+        failures.append(message)
+        if writer is not None:
+            writer.write([B.error_row(item_path, message, fingerprint, size)])
+        if not quiet:
+            bar.write(f"error: {message}", file=sys.stderr)
+
+    def finish(item, result, algo_s: float) -> None:
+        h, w = item.image.shape[-2:]
+        boxes, scores = result["boxes"].cpu(), result["scores"].cpu()
+        stats["ok"] += 1
+        stats["proposals"] += len(boxes)
+        if writer is not None:
+            writer.write([B.result_row(item.path, w, h, boxes, scores, fingerprint)])
+        if print_top:
+            bar.write(_box_table(item.path, (w, h), boxes, scores, print_top, len(boxes)) + "\n",
+                      file=sys.stdout)
+        pictures = []
+        if viz_path is not None:
+            pictures.append(viz_path / viz_names[item.path])
+        if sample_png is not None:
+            pictures.append(sample_png)
+        for pic in pictures:
+            title = f"{Path(item.path).name}: top {min(viz_top, len(boxes))} of {len(boxes)} proposals"
+            try:
+                save_png(pic, draw_proposals(item.image, boxes, scores, top=viz_top,
+                                             gt=gt if pic == sample_png else None, title=title))
+            except OSError as e:
+                bar.write(f"warning: {pic}: cannot write picture ({e.strerror or e})", file=sys.stderr)
+
+    def run_batch(items: list) -> None:
+        x = torch.stack([it.image for it in items]).to(dev, non_blocking=True)
+        t0 = time.perf_counter()
+        results = gen(x)
+        results = [{k: v.cpu() for k, v in r.items()} for r in results]
+        dt = time.perf_counter() - t0
+        stats["algo_s"] += dt
+        for it, r in zip(items, results):
+            finish(it, r, dt / len(items))
+
+    previous_term = signal.getsignal(signal.SIGTERM)
+
+    def on_term(signum, frame):  # a polite kill is treated like Ctrl-C
+        raise KeyboardInterrupt
+
+    interrupted = False
+    t_start = time.perf_counter()
+    stream = B.decoded_images(images, workers=workers, min_side=cfg.min_window,
+                              prefetch=batch_size, pin_memory=dev.type == "cuda")
+    try:
+        signal.signal(signal.SIGTERM, on_term)
+        for group in B.size_batches(stream, batch_size):
+            if not group[0].ok:
+                fail(group[0].path, group[0].error)
+            else:
+                try:
+                    run_batch(group)
+                except (ValueError, TypeError, RuntimeError) as e:
+                    # find the culprit(s): one image at a time
+                    for it in group:
+                        try:
+                            run_batch([it])
+                        except (ValueError, TypeError, RuntimeError) as e1:
+                            h, w = it.image.shape[-2:]
+                            fail(it.path, B.file_error(it.path, e1), (w, h))
+            bar.update(len(group))
+            if stats["failed"]:
+                bar.set_postfix(failed=stats["failed"], refresh=False)
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        signal.signal(signal.SIGTERM, previous_term)
+        stream.close()
+        bar.close()
+    wall = time.perf_counter() - t_start
+
+    # 4. save and summarise -----------------------------------------------------------------
+    saved = None
+    if writer is not None:
+        try:
+            saved = writer.commit()
+        except OSError as e:
+            raise Failure(f"{out}: cannot save the results ({e.strerror or e}); the old file, "
+                          "if any, is unchanged")
+    done = stats["ok"] + stats["failed"]
+    summary = dict(images=len(images), processed=done, ok=stats["ok"], failed=stats["failed"],
+                   proposals=stats["proposals"],
+                   ms_per_image=1000 * wall / done if done else None,
+                   algorithm_ms_per_image=1000 * stats["algo_s"] / stats["ok"] if stats["ok"] else None,
+                   workers=workers, batch_size=batch_size, device=str(dev), config=fingerprint,
+                   out=str(saved) if saved else None, rows=writer.rows_written if writer else None,
+                   interrupted=interrupted, failures=failures)
+    lines = [f"{done} image{'s' if done != 1 else ''}: {stats['ok']} ok, {stats['failed']} failed; "
+             f"{stats['proposals']} proposals"
+             + (f" ({stats['proposals'] / stats['ok']:.0f} per image)" if stats["ok"] else "")]
+    if done:
+        lines.append(f"time: {_ms(wall, done)} end to end, {_ms(stats['algo_s'], stats['ok'])} in the "
+                     f"algorithm ({workers} decoding worker{'s' if workers != 1 else ''}, "
+                     f"batch {batch_size}, {dev})")
+    if saved:
+        lines.append(f"wrote {saved} ({writer.rows_written} rows"
+                     + (f", {len(kept_rows)} kept from before" if kept_rows else "") + ")")
+    if viz_path is not None and stats["ok"]:
+        lines.append(f"pictures in {viz_path}/")
+    if sample_png is not None and stats["ok"]:
+        lines.append(f"wrote {sample_png.resolve()} (top {viz_top} proposals"
+                     + (", ground truth in green" if gt else "") + ")")
+    if failures:
+        lines.append(f"failed ({len(failures)}):")
+        lines += [f"  {m}" for m in failures]
+    if summary_json:
+        try:
+            Path(summary_json).write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+        except OSError as e:
+            lines.append(f"warning: {summary_json}: cannot write the summary ({e.strerror or e})")
+    if interrupted:
+        left = len(images) - done
+        if saved:
+            how = f"run the same command with --resume to do the {left} left"
+            if "--resume" in sys.argv:
+                how = f"run the same command again to do the {left} left"
+            lines.append(f"interrupted: {done} of {len(images)} images saved in {saved}; {how}")
+        else:
+            lines.append(f"interrupted after {done} of {len(images)} images; nothing was saved "
+                         "(no --out)")
+    click.echo("\n".join(lines), err=True)
+    if interrupted:
+        sys.exit(130)
+    if stats["failed"]:
+        sys.exit(1)
+
+
+def _viz_names(images: Sequence[Path]) -> dict[str, str]:
+    """A distinct PNG file name per image: ``<stem>.png``, ``<stem>-<n>.png`` on clashes."""
+    from collections import Counter
+
+    stems = Counter(Path(p).stem for p in images)
+    names: dict[str, str] = {}
+    used: set[str] = set()
+    for i, p in enumerate(images):
+        stem = Path(p).stem
+        name = f"{stem}.png" if stems[stem] == 1 else f"{stem}-{i + 1}.png"
+        while name in used:
+            name = f"{stem}-{i + 1}-{len(used)}.png"
+        used.add(name)
+        names[str(p)] = name
+    return names
+
+
+# -- reeb show ---------------------------------------------------------------------------
+
+@main.command(context_settings=CONTEXT)
+@click.argument("image", required=False, type=click.Path())
+@click.option("-l", "--label", type=click.Path(exists=True, dir_okay=False),
+              help="KITTI label_2 file to draw as ground truth [default: <stem>.txt beside the "
+                   "image, or in ../labels or ../label_2, if there].")
+@click.option("--no-label", is_flag=True, help="Do not look for a label file.")
+@click.option("-n", "--top", type=click.IntRange(min=1), default=20, show_default=True,
+              help="Proposals drawn.")
+@click.option("-o", "--out", type=click.Path(dir_okay=False), default="reeb_show.png",
+              show_default=True, help="The PNG to write.")
+@config_options
+def show(image, label, no_label, top, out, preset, config_file, sets, top_k, device):
+    """One picture that explains REEB on IMAGE (default: the bundled KITTI sample).
+
+    Three panels: the edge map and road mask; the region strips with their entropy H and
+    their share of the proposal budget; the top proposals, coloured by rank, with the
+    ground-truth boxes (and each one's best IoU over all proposals).
+    """
+    from .batch import file_error
+    from .io import read_image
+
+    cfg = build_config(preset, config_file, sets, top_k)
+    dev = resolve_device(device)
+    path = Path(image) if image else bundled_sample()
+    if Path(out).suffix.lower() != ".png":
+        raise UsageProblem(f"{out}: the picture is a PNG; give a file name ending in .png")
+    out_p = Path(out)
+    parent = out_p.parent if str(out_p.parent) else Path(".")
+    if out_p.is_dir() or not parent.is_dir() or not os.access(parent, os.W_OK) or (
+            out_p.exists() and not os.access(out_p, os.W_OK)):
+        raise UsageProblem(f"{out}: cannot write there (is the folder there and writable?)")
+    if not path.exists():
+        raise UsageProblem(f"{path}: no such file")
+    label_path = None if no_label else (Path(label) if label else _label_for(path))
+    gt = _read_labels(label_path) if label_path else []
+
+    from .generator import ProposalGenerator
+    from .io import ImageReadError
+    from .viz import inspection_figure, save_figure
+
+    try:
+        img = read_image(path)
+    except ImageReadError as e:
+        raise Failure(str(e))
+    gen = ProposalGenerator(cfg).to(dev).eval()
+    t0 = time.perf_counter()
+    try:
+        insp = gen.inspect(img.to(dev))
+    except (ValueError, TypeError) as e:
+        raise Failure(file_error(path, e))
+    dt = time.perf_counter() - t0
+    h, w = img.shape[-2:]
+    title = (f"REEB on {path.name} ({w}×{h} px): {len(insp.boxes)} proposals in {1000 * dt:.0f} ms "
+             f"on {dev} — preset {preset}, config {cfg.fingerprint()}")
+    fig = inspection_figure(img, insp, gt=gt, top=top, title=title, config=cfg)
+    try:
+        save_figure(fig, out_p)
+    except OSError as e:
+        raise Failure(f"{out}: cannot write ({e.strerror or e})")
+
+    click.echo(_box_table(str(path), (w, h), insp.boxes.cpu(), insp.scores.cpu(), min(top, 10),
+                          len(insp.boxes)))
+    ent = ", ".join(f"R{i + 1} H={float(hv):.2f} {100 * float(s):.0f}%"
+                    for i, (hv, s) in enumerate(zip(insp.entropy.tolist(), insp.share.tolist())))
+    click.echo(f"regions: {ent}")
+    click.echo(f"road: {100 * float(insp.road_mask.float().mean()):.0f} % of pixels; "
+               f"{insp.num_windows} windows scored")
+    if gt:
+        from .viz import _best_match
+
+        boxes = insp.boxes.cpu().numpy()
+        click.echo(f"ground truth ({label_path}):")
+        for o in gt:
+            iou, rank = _best_match(o.box, boxes)
+            where = f"best IoU {iou:.2f} (proposal #{rank})" if iou > 0 else "no proposal overlaps it"
+            click.echo(f"  {o.type:<14} {where}")
+    click.echo(f"wrote {out_p.resolve()}")
+
+
+# -- reeb eval ---------------------------------------------------------------------------
+
+@main.command(context_settings=dict(CONTEXT, ignore_unknown_options=True))
+@click.argument("kitti_dir", type=click.Path(exists=True, file_okay=False))
+@click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames.")
+@click.option("-o", "--out", type=click.Path(file_okay=False), default="runs/table3",
+              show_default=True, help="Folder for the table, CSV/JSON and plots.")
+@click.option("--methods", help="Comma-separated methods (see benchmarks/table3.py --help).")
+@click.argument("extra", nargs=-1, type=click.UNPROCESSED)
+def eval(kitti_dir, limit, out, methods, extra):  # noqa: A001 - the command's name
+    """Recall table (the paper's Table 3) and plots on a KITTI-format folder.
+
+    Runs benchmarks/table3.py from the source checkout; further options (e.g.
+    --max-proposals 1000, --batch 8) are passed on to it.
+    """
+    import importlib.util
+
+    script = repo_root() / "benchmarks" / "table3.py"
+    if not script.is_file():
+        raise Failure(f"reeb eval runs {script}, which is missing (it ships with the source "
+                      "checkout); run it from a clone of the repository")
+    argv = ["--data", str(kitti_dir), "--out", str(out)]
+    if limit:
+        argv += ["--limit", str(limit)]
+    if methods:
+        argv += ["--methods", *[m.strip() for m in methods.split(",") if m.strip()]]
+    argv += list(extra)
+    spec = importlib.util.spec_from_file_location("reeb_benchmarks_table3", script)
+    module = importlib.util.module_from_spec(spec)
+    assert spec.loader is not None
+    spec.loader.exec_module(module)
+    try:
+        module.main(argv)
+    except SystemExit as e:  # argparse errors and --help
+        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
+        sys.exit(code)
+
+
+if __name__ == "__main__":
+    main()

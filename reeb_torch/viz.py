@@ -1,0 +1,378 @@
+"""Pictures of proposals and of the algorithm's intermediate results.
+
+Two pictures, for two uses:
+
+- :func:`draw_proposals` — fast (OpenCV), one image with its top proposals ranked by
+  colour; ``reeb propose --viz`` writes one per image.
+- :func:`inspection_figure` — the explanatory picture of ``reeb show`` (matplotlib): three
+  panels over the same image that follow the paper's pipeline, (1) edges and road mask
+  (Sec. 3.4–3.5), (2) region strips with their entropy H and proposal share (Sec. 3.6,
+  eqs. 2 and 9), (3) the top proposals with the ground-truth boxes (eqs. 1, 10–13).
+
+Images are RGB ``uint8`` tensors ``(3, H, W)`` (as :func:`reeb_torch.read_image` returns)
+or ``(H, W, 3)`` NumPy arrays; boxes are ``Tensor[N, 4]`` ``(x1, y1, x2, y2)`` in input
+pixels, ranked best first. Ground truth is a sequence of ``(label, (x1, y1, x2, y2))``
+pairs (or objects with ``.type`` and ``.box``, as :func:`reeb_torch.data.read_kitti_labels`
+returns).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+__all__ = ["rank_colors", "draw_proposals", "save_png", "inspection_figure", "save_figure",
+           "gt_pairs"]
+
+GT_COLOR = (0, 255, 128)
+"""Ground-truth boxes: spring green, unlike any colour of the proposal ranking."""
+
+
+def _hwc(image: torch.Tensor | np.ndarray) -> np.ndarray:
+    """An RGB ``uint8`` ``(H, W, 3)`` contiguous array from a tensor ``(3, H, W)`` or array."""
+    if isinstance(image, torch.Tensor):
+        t = image.detach().cpu()
+        if t.ndim != 3 or t.shape[0] != 3:
+            raise ValueError(f"expected an image tensor of shape (3, H, W), got {tuple(t.shape)}")
+        if t.dtype != torch.uint8:
+            t = (t.float().clamp(0, 1) * 255 + 0.5).to(torch.uint8)
+        return np.ascontiguousarray(t.permute(1, 2, 0).numpy())
+    a = np.asarray(image)
+    if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8:
+        raise ValueError(f"expected an RGB uint8 array of shape (H, W, 3), got {a.shape} {a.dtype}")
+    return np.ascontiguousarray(a)
+
+
+def _boxes(boxes: Any) -> np.ndarray:
+    if boxes is None:
+        return np.zeros((0, 4), np.float32)
+    if isinstance(boxes, torch.Tensor):
+        boxes = boxes.detach().cpu().float().numpy()
+    a = np.asarray(boxes, dtype=np.float32).reshape(-1, 4)
+    return a
+
+
+def gt_pairs(objects: Sequence[Any] | None) -> list[tuple[str, tuple[float, float, float, float]]]:
+    """Normalise ground truth to ``(label, (x1, y1, x2, y2))`` pairs.
+
+    Accepts pairs already, or objects with ``.type`` and ``.box`` (KITTI labels).
+    """
+    out = []
+    for o in objects or []:
+        if hasattr(o, "box"):
+            label, box = getattr(o, "type", "object"), o.box
+        else:
+            label, box = o
+        out.append((str(label), tuple(float(v) for v in box)))
+    return out
+
+
+def rank_colors(n: int, lo: float = 0.15) -> np.ndarray:
+    """``n`` RGB ``uint8`` colours for ranks 1..n: bright yellow (best) to dim purple.
+
+    Samples the *plasma* colour map from 1.0 (rank 1) down to ``lo`` (rank n).
+    """
+    import cv2
+
+    if n <= 0:
+        return np.zeros((0, 3), np.uint8)
+    pos = np.linspace(1.0, lo, n) if n > 1 else np.array([1.0])
+    lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_PLASMA)[:, 0, ::-1]
+    return lut[np.round(pos * 255).astype(int)].copy()
+
+
+def draw_proposals(
+    image: torch.Tensor | np.ndarray,
+    boxes: Any,
+    scores: Any = None,
+    top: int = 10,
+    gt: Sequence[Any] | None = None,
+    title: str | None = None,
+) -> np.ndarray:
+    """Draw the ``top`` best proposals (and ground truth) over ``image`` with OpenCV.
+
+    Proposals are coloured by rank (rank 1 bright yellow and thickest, the last dim purple,
+    drawn first so that the best lie on top) and the best five carry their rank number.
+    Ground truth boxes are green with their class name. ``title`` goes in a dark band above
+    the image. Returns an RGB ``uint8`` array ``(H', W, 3)``.
+    """
+    import cv2
+
+    canvas = _hwc(image).copy()
+    h, w = canvas.shape[:2]
+    b = _boxes(boxes)[: max(0, top)]
+    colors = rank_colors(len(b))
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    fs = max(0.35, min(w, 2 * h) / 1600)
+    for i in range(len(b) - 1, -1, -1):
+        x1, y1, x2, y2 = (int(round(v)) for v in b[i])
+        c = tuple(int(v) for v in colors[i])
+        thick = 2 if i < 3 else 1
+        cv2.rectangle(canvas, (x1, y1), (x2, y2), c, thick, cv2.LINE_AA)
+        if i < 5:
+            label = str(i + 1)
+            (tw, th), _ = cv2.getTextSize(label, font, fs, 1)
+            ty = max(th + 2, y1 - 2)
+            cv2.rectangle(canvas, (x1, ty - th - 2), (x1 + tw + 2, ty + 1), c, -1)
+            cv2.putText(canvas, label, (x1 + 1, ty - 1), font, fs, (0, 0, 0), 1, cv2.LINE_AA)
+    for label, (x1, y1, x2, y2) in gt_pairs(gt):
+        p1, p2 = (int(round(x1)), int(round(y1))), (int(round(x2)), int(round(y2)))
+        cv2.rectangle(canvas, p1, p2, GT_COLOR, 1, cv2.LINE_AA)
+        cv2.putText(canvas, label, (p1[0], min(h - 3, p2[1] + int(14 * fs / 0.5))), font, fs,
+                    GT_COLOR, 1, cv2.LINE_AA)
+    if title:
+        band = max(18, int(round(30 * fs / 0.5)))
+        head = np.full((band, w, 3), 24, np.uint8)
+        cv2.putText(head, title, (6, band - int(band * 0.3)), font, fs, (235, 235, 235), 1, cv2.LINE_AA)
+        canvas = np.concatenate([head, canvas], axis=0)
+    return canvas
+
+
+def save_png(path: str | os.PathLike, rgb: np.ndarray) -> Path:
+    """Write an RGB ``uint8`` array as PNG, atomically (temporary file, then rename)."""
+    import cv2
+
+    p = Path(path)
+    ok, data = cv2.imencode(".png", np.ascontiguousarray(rgb[:, :, ::-1]))
+    if not ok:  # pragma: no cover - encoding a uint8 array does not fail
+        raise OSError(f"{p}: PNG encoding failed")
+    _atomic_bytes(p, data.tobytes())
+    return p
+
+
+def _atomic_bytes(p: Path, data: bytes) -> None:
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_bytes(data)
+        os.replace(tmp, p)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+# -- the explanatory figure of `reeb show` -----------------------------------------------
+
+def _best_match(gt_box: Sequence[float], boxes: np.ndarray) -> tuple[float, int]:
+    """Best IoU of ``gt_box`` with any of ``boxes`` and the (1-based) rank of that box."""
+    if len(boxes) == 0:
+        return 0.0, 0
+    gx1, gy1, gx2, gy2 = gt_box
+    ix = np.clip(np.minimum(boxes[:, 2], gx2) - np.maximum(boxes[:, 0], gx1), 0, None)
+    iy = np.clip(np.minimum(boxes[:, 3], gy2) - np.maximum(boxes[:, 1], gy1), 0, None)
+    inter = ix * iy
+    area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+    union = area + (gx2 - gx1) * (gy2 - gy1) - inter
+    iou = np.where(union > 0, inter / np.maximum(union, 1e-9), 0.0)
+    j = int(np.argmax(iou))
+    return float(iou[j]), j + 1
+
+
+def inspection_figure(
+    image: torch.Tensor | np.ndarray,
+    inspection: Any,
+    gt: Sequence[Any] | None = None,
+    top: int = 20,
+    title: str | None = None,
+    config: Any = None,
+):
+    """The three-panel picture of ``reeb show`` as a matplotlib Figure.
+
+    ``inspection`` is a :class:`reeb_torch.generator.Inspection` (``boxes``, ``scores``,
+    ``edges`` ``[H, W]`` in [0, 1], ``road_mask`` bool ``[H, W]``, ``regions`` ``[R, 4]``,
+    ``entropy`` ``[R]``, ``share`` ``[R]`` in [0, 1]). ``config`` (a ReebConfig), if given,
+    adds the road sampling band and σ of eq. 9 to the picture.
+
+    1. *Edges and road*: the grey image, darkened, with the edge magnitude in white and the
+       road mask in translucent green; the dashed box is where the road colour is sampled.
+    2. *Regions*: the region strips as brackets over the image, and under it one bar per
+       region whose height is its share of the candidate budget, labelled with its entropy.
+    3. *Proposals*: the ``top`` best proposals coloured by rank (rank 1 bright yellow) and
+       the ground truth in green, each labelled with its best IoU over *all* proposals and
+       the rank of that proposal.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+    from matplotlib import patheffects
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch, Rectangle
+
+    rgb = _hwc(image)
+    h, w = rgb.shape[:2]
+    boxes = _boxes(inspection.boxes)
+    edges = inspection.edges.detach().cpu().float().clamp(0, 1).numpy()
+    road = inspection.road_mask.detach().cpu().bool().numpy()
+    regions = _boxes(inspection.regions)
+    entropy = inspection.entropy.detach().cpu().float().numpy().reshape(-1)
+    share = inspection.share.detach().cpu().float().numpy().reshape(-1)
+    gts = gt_pairs(gt)
+
+    # Layout in inches, top to bottom; images fill the axes width exactly (no letterbox).
+    fig_w, left, right = 15.0, 0.75, 0.2
+    aw = fig_w - left - right
+    img_h = min(aw * h / w, 9.0)
+    bar_h, title_h, gap = 1.5, 0.32, 0.3
+    rows = [("title", 0.7), ("t", title_h), ("edge", img_h), ("g", gap), ("t", title_h),
+            ("reg", img_h), ("g", 0.08), ("bar", bar_h), ("g", gap), ("t", title_h),
+            ("prop", img_h), ("g", 0.15)]
+    fig_h = sum(v for _, v in rows)
+    fig = plt.figure(figsize=(fig_w, fig_h), dpi=100, facecolor="white")
+    axes = {}
+    y = fig_h
+    for name, size in rows:
+        y -= size
+        if name in ("edge", "reg", "bar", "prop"):
+            axes[name] = fig.add_axes((left / fig_w, y / fig_h, aw / fig_w, size / fig_h))
+    ax_edge, ax_reg, ax_bar, ax_prop = (axes[k] for k in ("edge", "reg", "bar", "prop"))
+    for ax in (ax_edge, ax_reg, ax_prop):
+        ax.set_xlim(0, w)
+        ax.set_ylim(h, 0)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    small = dict(fontsize=9)
+
+    # 1. edges and road ----------------------------------------------------------------
+    grey = rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32) / 255.0
+    base = np.repeat((0.35 * grey)[:, :, None], 3, axis=2)
+    e = edges[:, :, None] if edges.shape == (h, w) else np.zeros((h, w, 1), np.float32)
+    e = np.clip(1.5 * e, 0, 1)
+    layer = base * (1 - e) + e * np.array([1.0, 1.0, 1.0])
+    road_rgb = np.array([0.1, 0.85, 0.3])
+    if road.shape == (h, w):
+        layer = np.where(road[:, :, None], 0.55 * layer + 0.45 * road_rgb, layer)
+    ax_edge.imshow(np.clip(layer, 0, 1), extent=(0, w, h, 0), interpolation="antialiased",
+                   aspect="auto")
+    road_pct = 100.0 * float(road.mean()) if road.size else 0.0
+    handles = [Patch(facecolor=road_rgb, alpha=0.6, label=f"road mask ({road_pct:.0f} % of pixels)"),
+               Patch(facecolor="white", edgecolor="0.5", label="edge magnitude")]
+    band = getattr(config, "road_band", None)
+    if band is not None:
+        bx1, by1, bx2, by2 = band[0] * w, band[1] * h, band[2] * w, band[3] * h
+        ax_edge.add_patch(Rectangle((bx1, by1), bx2 - bx1, by2 - by1, fill=False, ls="--",
+                                    lw=1.2, ec="#ffd54f"))
+        handles.append(Line2D([], [], color="#ffd54f", ls="--", label="road colour sampled here"))
+    ax_edge.legend(handles=handles, loc="upper right", framealpha=0.85, **small)
+    ax_edge.set_title("1. Edges (Gaussian blur + Sobel, Sec. 3.4) and road segmentation "
+                      "(HSV range around the sampled road colour, Sec. 3.5)", loc="left", fontsize=11)
+
+    # 2. regions -------------------------------------------------------------------------
+    ax_reg.imshow(rgb, extent=(0, w, h, 0), interpolation="antialiased", aspect="auto")
+    ax_reg.imshow(np.zeros((1, 1, 4)) + [0, 0, 0, 0.3], extent=(0, w, h, 0), aspect="auto")
+    n_reg = len(regions)
+    palette = ["#4fc3f7", "#ff8a65"]
+    levels = 2 if n_reg > 1 else 1
+    outline = [patheffects.withStroke(linewidth=3.5, foreground="black")]
+    inset = 0.004 * w
+    for i, (x1, y1, x2, y2) in enumerate(regions):
+        c = palette[i % 2]
+        lane = i % levels
+        y = y1 + (0.1 + 0.13 * lane) * (y2 - y1)
+        bx1, bx2 = x1 + inset, x2 - inset
+        ax_reg.plot([bx1, bx1, bx2, bx2], [y + 0.05 * h, y, y, y + 0.05 * h], color=c, lw=2.4,
+                    solid_capstyle="butt", path_effects=outline)
+        for x in (bx1, bx2):
+            ax_reg.plot([x, x], [y + 0.05 * h, y2], color=c, lw=1.0, ls=":", alpha=0.9)
+        hv = float(entropy[i]) if i < len(entropy) else float("nan")
+        sv = float(share[i]) if i < len(share) else 0.0
+        ax_reg.text((x1 + x2) / 2, y - 0.015 * h, f"R{i + 1}  H={hv:.2f}  {100 * sv:.0f} %",
+                    color=c, ha="center", va="bottom", fontsize=9.5, fontweight="bold",
+                    path_effects=outline)
+    ax_reg.set_title(f"2. {n_reg} overlapping region strip{'s' if n_reg != 1 else ''} "
+                     "(width from the camera geometry, eqs. 5–8)", loc="left", fontsize=11)
+
+    ax_bar.set_xlim(0, w)
+    sigma = getattr(config, "entropy_sigma", None)
+    if n_reg:
+        stride = (np.min(np.diff(np.sort((regions[:, 0] + regions[:, 2]) / 2)))
+                  if n_reg > 1 else (regions[0, 2] - regions[0, 0]))
+        width = 0.8 * max(float(stride), 1.0)
+        for i, (x1, _, x2, _) in enumerate(regions):
+            cx = (x1 + x2) / 2
+            s = float(share[i]) if i < len(share) else 0.0
+            hv = float(entropy[i]) if i < len(entropy) else float("nan")
+            ax_bar.bar(cx, 100 * s, width=width, color=palette[i % 2], edgecolor="0.3", lw=0.6)
+            ax_bar.text(cx, 100 * s + 3, f"R{i + 1}: H={hv:.2f}\n{100 * s:.0f} %", ha="center",
+                        va="bottom", fontsize=8.5)
+    ax_bar.set_ylim(0, 150)
+    ax_bar.set_yticks([0, 50, 100])
+    ax_bar.set_ylabel("share (%)", fontsize=9)
+    ax_bar.set_xticks([])
+    ax_bar.spines[["top", "right"]].set_visible(False)
+    eq = (f"share = 1 − |σ − H| / σ, σ = {sigma:g}" if sigma is not None else "share from eq. 9")
+    ax_bar.text(0.005, 0.97, f"Entropy H of each strip (eq. 2, bits) sets its share of the "
+                f"sliding-window budget (eq. 9: {eq})", transform=ax_bar.transAxes, ha="left",
+                va="top", fontsize=10)
+
+    # 3. proposals -----------------------------------------------------------------------
+    ax_prop.imshow(rgb, extent=(0, w, h, 0), interpolation="antialiased", aspect="auto")
+    shown = boxes[:top]
+    colors = rank_colors(len(shown)) / 255.0
+    for i in range(len(shown) - 1, -1, -1):
+        x1, y1, x2, y2 = shown[i]
+        lw = 2.6 if i < 3 else (1.6 if i < 10 else 1.0)
+        ax_prop.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, ec=colors[i], lw=lw,
+                                    alpha=1.0 if i < 10 else 0.85))
+        if i < 5:
+            ax_prop.text(x1 + 1, y1 + 1, str(i + 1), color="black", fontsize=8, va="top",
+                         ha="left", fontweight="bold",
+                         bbox=dict(boxstyle="square,pad=0.1", fc=colors[i], ec="none"))
+    gt_hex = "#%02x%02x%02x" % GT_COLOR
+    char_w = 0.62 * 8 / 72 * w / aw  # data units per character of an 8 pt label
+    line_h = 12 / 72 * h / img_h  # data units per line
+    placed: list[tuple[float, float, float, float]] = []
+    for label, (x1, y1, x2, y2) in sorted(gts, key=lambda g: (g[1][3], g[1][0])):
+        iou, rank = _best_match((x1, y1, x2, y2), boxes)
+        ax_prop.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, ec=gt_hex, lw=1.8,
+                                    ls=(0, (4, 2))))
+        note = f"{label}  IoU {iou:.2f} (#{rank})" if iou > 0 else f"{label}  no proposal overlaps"
+        # below the box, moved down a line at a time until it overlaps no earlier label
+        tw = char_w * len(note)
+        tx = min(max(0.0, x1), max(0.0, w - tw))
+        ty = y2 + 2
+        while any(tx < px2 and px1 < tx + tw and ty < py2 and py1 < ty + line_h
+                  for px1, py1, px2, py2 in placed) and ty < h - line_h:
+            ty += line_h
+        if ty > h - line_h:  # no room below: above the box
+            ty = max(0.0, y1 - line_h - 2)
+        placed.append((tx, ty, tx + tw, ty + line_h))
+        ax_prop.text(tx, ty, note, color="black", fontsize=8, va="top", ha="left",
+                     bbox=dict(boxstyle="square,pad=0.15", fc=gt_hex, ec="none", alpha=0.9))
+    handles = []
+    if len(shown):
+        handles.append(Patch(facecolor=colors[0], label="rank 1 (best)"))
+        if len(shown) > 1:
+            handles.append(Patch(facecolor=colors[-1], label=f"rank {len(shown)}"))
+    if gts:
+        handles.append(Line2D([], [], color=gt_hex, ls="--", lw=1.8,
+                              label="ground truth: best IoU over all proposals (#rank)"))
+    if handles:
+        ax_prop.legend(handles=handles, loc="upper right", framealpha=0.85, **small)
+    ax_prop.set_title(f"3. Top {len(shown)} of {len(boxes)} proposals: edge score S (eq. 1) × "
+                      "(α·location L + β·road R) (eqs. 10–12), then NMS (eq. 13)",
+                      loc="left", fontsize=11)
+
+    if title:
+        fig.text(left / fig_w, 1 - 0.3 / fig_h, title, ha="left", va="center", fontsize=13,
+                 fontweight="bold")
+    return fig
+
+
+def save_figure(fig, path: str | os.PathLike, dpi: int = 100) -> Path:
+    """Save a matplotlib figure as PNG, atomically, and close it."""
+    import io
+
+    import matplotlib.pyplot as plt
+
+    p = Path(path)
+    buf = io.BytesIO()
+    try:
+        fig.savefig(buf, format="png", dpi=dpi, facecolor=fig.get_facecolor())
+    finally:
+        plt.close(fig)
+    _atomic_bytes(p, buf.getvalue())
+    return p
