@@ -223,8 +223,16 @@ def _keep(item: Decoded) -> Decoded:
 
 def _init_worker(_: int) -> None:
     # Decoding is one image per worker; leave the cores to the other workers and the
-    # algorithm, and keep OpenCV's warnings (duplicates of our messages) off the terminal.
+    # algorithm. The decoders' own complaints ("libpng error: ...") duplicate the one-line
+    # message each failed file gets, and would break the progress bar: a worker's stderr
+    # goes to /dev/null (every failure reaches the main process as a Decoded record).
     torch.set_num_threads(1)
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 2)
+        os.close(devnull)
+    except OSError:  # pragma: no cover - keep stderr then
+        pass
     try:
         import cv2
 
@@ -346,9 +354,9 @@ def check_output(path: str | os.PathLike) -> None:
     for an hour and then fails to save.
     """
     p = Path(path)
-    output_format(p)
     if p.is_dir():
         raise OutputError(f"{p}: is a folder; give a file name such as {p / 'proposals.jsonl'}")
+    output_format(p)
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise OutputError(f"{p}: cannot write, folder {parent} does not exist")

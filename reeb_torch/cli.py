@@ -197,7 +197,7 @@ def main() -> None:
 
 @main.command(context_settings=CONTEXT)
 @click.argument("paths", nargs=-1, type=click.Path())
-@click.option("-o", "--out", type=click.Path(dir_okay=False),
+@click.option("-o", "--out", type=click.Path(),
               help="Write one row per image here: .jsonl (JSON Lines) or .parquet.")
 @click.option("--resume", is_flag=True,
               help="Keep the rows already in --out and process only the images missing there "
@@ -209,7 +209,7 @@ def main() -> None:
 @click.option("-j", "--workers", type=click.IntRange(min=0), default=None,
               help="Decoding processes running alongside the algorithm (0 = decode inline). "
                    "[default: min(2, CPUs)]")
-@click.option("--viz", "viz_dir", type=click.Path(file_okay=False),
+@click.option("--viz", "viz_dir", type=click.Path(),
               help="Write a PNG per image with its top proposals into this folder.")
 @click.option("--viz-top", type=click.IntRange(min=1), default=10, show_default=True,
               help="Proposals drawn per picture.")
@@ -418,8 +418,8 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
              f"{stats['proposals']} proposals"
              + (f" ({stats['proposals'] / stats['ok']:.0f} per image)" if stats["ok"] else "")]
     if done:
-        lines.append(f"time: {_ms(wall, done)} end to end, {_ms(stats['algo_s'], stats['ok'])} in the "
-                     f"algorithm ({workers} decoding worker{'s' if workers != 1 else ''}, "
+        lines.append(f"time: {wall:.1f} s, {_ms(wall, done)} end to end; {_ms(stats['algo_s'], stats['ok'])} "
+                     f"in the algorithm ({workers} decoding worker{'s' if workers != 1 else ''}, "
                      f"batch {batch_size}, {dev})")
     if saved:
         lines.append(f"wrote {saved} ({writer.rows_written} rows"
@@ -481,7 +481,7 @@ def _viz_names(images: Sequence[Path]) -> dict[str, str]:
 @click.option("--no-label", is_flag=True, help="Do not look for a label file.")
 @click.option("-n", "--top", type=click.IntRange(min=1), default=20, show_default=True,
               help="Proposals drawn.")
-@click.option("-o", "--out", type=click.Path(dir_okay=False), default="reeb_show.png",
+@click.option("-o", "--out", type=click.Path(), default="reeb_show.png",
               show_default=True, help="The PNG to write.")
 @config_options
 def show(image, label, no_label, top, out, preset, config_file, sets, top_k, device):

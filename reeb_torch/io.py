@@ -43,6 +43,28 @@ def to_rgb8(array: np.ndarray, name: str = "image") -> np.ndarray:
     raise ImageReadError(f"{name}: unsupported image shape {a.shape}")
 
 
+_SIGNATURES = (
+    (b"\x89PNG\r\n\x1a\n", "PNG"),
+    (b"\xff\xd8\xff", "JPEG"),
+    (b"BM", "BMP"),
+    (b"II*\x00", "TIFF"),
+    (b"MM\x00*", "TIFF"),
+    (b"GIF8", "GIF"),
+)
+
+
+def _sniff(head: bytes) -> str | None:
+    """The image format named by a file's first bytes, or ``None`` if none is recognised."""
+    for magic, name in _SIGNATURES:
+        if head.startswith(magic):
+            return name
+    if head[:4] == b"RIFF" and head[8:12] == b"WEBP":
+        return "WebP"
+    if len(head) >= 2 and head[:1] == b"P" and head[1:2] in b"123456":
+        return "PNM"
+    return None
+
+
 def read_image(path: str | os.PathLike) -> torch.Tensor:
     """Read an image file as an RGB ``uint8`` tensor of shape ``(3, H, W)``.
 
@@ -65,6 +87,9 @@ def read_image(path: str | os.PathLike) -> torch.Tensor:
         raise ImageReadError(f"{p}: empty file")
     array = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     if array is None or array.size == 0:
-        raise ImageReadError(f"{p}: not a readable image (corrupt, truncated or not an image file)")
+        kind = _sniff(data[:16].tobytes())
+        if kind is None:
+            raise ImageReadError(f"{p}: not an image file (unknown format)")
+        raise ImageReadError(f"{p}: corrupt or truncated {kind} file (cannot decode it)")
     rgb = to_rgb8(array, str(p))
     return torch.from_numpy(rgb).permute(2, 0, 1).contiguous()
