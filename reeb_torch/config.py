@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 __all__ = ["ReebConfig", "PRESETS", "get_preset"]
@@ -42,6 +42,9 @@ class ReebConfig:
     edge_threshold: float = 0.05
     """Sobel magnitude (of a [0, 1] grey image, normalised to [0, 1]) below which a pixel
     is no edge. The paper gives no value (NOTES #4)."""
+    thin_edges: bool = True
+    """Keep only the one-pixel ridge of each edge (non-maximum suppression across the
+    edge, as the edge maps Edge Boxes scores). Not in the paper; measured."""
     remove_isolated: bool = True
     """Drop edge pixels with no edge pixel among their 8 neighbours (Sec. 3.4)."""
 
@@ -77,6 +80,11 @@ class ReebConfig:
     max_object_width_m: float = 2.55
     region_overlap: float = 0.5
     """Stride between regions as a fraction of their width (eq. 8's ``overlap``)."""
+    region_assign: Literal["contained", "nearest"] = "nearest"
+    """Which region's budget a window counts against. ``contained``: every region that
+    wholly contains it (as printed: windows are generated inside regions; a window wider
+    than the region stride can then fall in none). ``nearest``: the region whose centre
+    is nearest to the window's centre (every window no wider than a region has one)."""
     region_width_round: float | None = 0.125
     """Round the region width (fraction of image width) up to a multiple of this; the
     paper rounds 24.7 % to 25 %. ``None`` uses eq. 7 as computed."""
@@ -120,11 +128,16 @@ class ReebConfig:
     # -- eqs. 10-12: road, location and combined score -----------------------------------
     road_score: RoadScore = "reward"
     """``reward``: V adds β·R as printed; ``penalize``: β·(1 − R) (NOTES #10); ``none``."""
-    location_score: LocationScore = "paper"
+    location_score: LocationScore = "ground"
     """``paper``: L = b_y/(b_w·b_h)·W (eq. 11); ``ground``: how well the box height fits
     a ground-plane object standing at its bottom row, in [0, 1]; ``none``: L = 1."""
     horizon: float = 0.47
     """Horizon row as a fraction of the image height, for ``location_score='ground'``."""
+    ground_ratio: float = 1.0
+    """Expected box height / (bottom row − horizon) of an object on the ground; about
+    object height / camera height (cars ≈ 0.9, pedestrians ≈ 1.05 on KITTI)."""
+    ground_log_sigma: float = 0.5
+    """Tolerance (in log units) of that ratio for ``location_score='ground'``."""
     alpha: float = 0.6
     beta: float = 0.4
     min_edge_score: float = 0.01
@@ -183,6 +196,9 @@ class ReebConfig:
         check(0 < self.center_fraction < 1, "center_fraction", "in (0, 1)")
         check(self.road_score in ("reward", "penalize", "none"), "road_score",
               "'reward', 'penalize' or 'none'")
+        check(self.region_assign in ("contained", "nearest"), "region_assign", "'contained' or 'nearest'")
+        pos("ground_ratio")
+        pos("ground_log_sigma")
         check(self.location_score in ("paper", "ground", "none"), "location_score",
               "'paper', 'ground' or 'none'")
         check(0 < self.horizon < 1, "horizon", "in (0, 1)")
@@ -210,6 +226,8 @@ class ReebConfig:
             road_combine="and",
             entropy_form="abs-diff",
             local_max=False,
+            region_assign="contained",
+            thin_edges=False,
         )
         base.update(overrides)
         return cls(**base)  # type: ignore[arg-type]

@@ -1,0 +1,68 @@
+"""Input checks at the door: one call, a message that names what was expected."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+__all__ = ["check_images", "ImageBatch"]
+
+ImageBatch = Tensor | Sequence[Tensor]
+
+
+def _check_one(img: Tensor, where: str) -> Tensor:
+    if not isinstance(img, Tensor):
+        raise TypeError(f"{where}: expected a torch.Tensor, got {type(img).__name__}")
+    if img.ndim != 3:
+        raise ValueError(f"{where}: expected shape (3, H, W), got {tuple(img.shape)}")
+    if img.shape[0] != 3:
+        raise ValueError(f"{where}: expected 3 (RGB) channels in dim 0, got shape {tuple(img.shape)}")
+    if img.dtype == torch.uint8:
+        return img.float().div_(255.0)
+    if not img.is_floating_point():
+        raise TypeError(f"{where}: expected dtype float or uint8, got {img.dtype}")
+    if img.numel() and not bool(torch.isfinite(img).all()):
+        raise ValueError(f"{where}: contains NaN or infinite values")
+    if img.numel():
+        lo, hi = float(img.min()), float(img.max())
+        if lo < 0.0 or hi > 1.0:
+            raise ValueError(
+                f"{where}: float images must hold values in [0, 1], got range [{lo:.4g}, {hi:.4g}]"
+                " (divide uint8 data by 255, or pass the uint8 tensor)"
+            )
+    return img.float()
+
+
+def check_images(images: ImageBatch, min_side: int) -> list[Tensor]:
+    """Validate a batch and return a list of float32 ``(3, H, W)`` images in [0, 1].
+
+    Accepts a ``(B, 3, H, W)`` float/uint8 tensor or a sequence of ``(3, H, W)`` tensors.
+    ``min_side`` is the smallest height/width an image may have (the smallest window).
+    """
+    if isinstance(images, Tensor):
+        if images.ndim == 3:
+            raise ValueError(
+                f"expected a batch (B, 3, H, W) or a list of (3, H, W) images, got one image of shape "
+                f"{tuple(images.shape)}; wrap it as images[None] or [image]"
+            )
+        if images.ndim != 4:
+            raise ValueError(f"expected images of shape (B, 3, H, W), got {tuple(images.shape)}")
+        seq: Sequence[Tensor] = list(images.unbind(0))
+    elif isinstance(images, Sequence) and not isinstance(images, (str, bytes)):
+        seq = images
+    else:
+        raise TypeError(f"expected a Tensor or a list of Tensors, got {type(images).__name__}")
+    if len(seq) == 0:
+        raise ValueError("empty batch: expected at least one image")
+    out = []
+    for i, img in enumerate(seq):
+        x = _check_one(img, f"image {i}")
+        h, w = x.shape[-2:]
+        if h < min_side or w < min_side:
+            raise ValueError(
+                f"image {i}: size {w}x{h} (WxH) is smaller than the smallest window ({min_side} px)"
+            )
+        out.append(x)
+    return out

@@ -1,0 +1,93 @@
+"""Sec. 3.4 — denoising and edge detection: Gaussian blur, Sobel magnitude, isolated
+edge removal.
+
+All functions take and return batched tensors; shapes are stated per function.
+"""
+
+from __future__ import annotations
+
+import math
+
+import kornia
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+__all__ = ["to_gray", "gaussian_blur", "sobel_magnitude", "thin", "remove_isolated", "edge_map"]
+
+# Sobel (kornia, normalized=True) of a unit step is 0.5: dividing by it maps a clean
+# 0 -> 1 step to magnitude 1. Values above 1 (corners) are clipped.
+_SOBEL_UNIT_STEP = 0.5
+
+
+def to_gray(images: Tensor) -> Tensor:
+    """RGB ``(B, 3, H, W)`` in [0, 1] to grey ``(B, 1, H, W)`` in [0, 1] (ITU-R 601 weights,
+    as OpenCV's ``COLOR_RGB2GRAY``)."""
+    return kornia.color.rgb_to_grayscale(images)
+
+
+def gaussian_blur(gray: Tensor, sigma: float) -> Tensor:
+    """Separable Gaussian blur of ``(B, 1, H, W)``; kernel side ``2*ceil(2σ)+1``, reflected
+    borders (OpenCV's ``BORDER_REFLECT_101``)."""
+    k = 2 * math.ceil(2 * sigma) + 1
+    return kornia.filters.gaussian_blur2d(gray, (k, k), (sigma, sigma), border_type="reflect", separable=True)
+
+
+def sobel_gradients(gray: Tensor) -> tuple[Tensor, Tensor]:
+    """Sobel derivatives ``(gx, gy)``, each ``(B, H, W)``, of ``(B, 1, H, W)``, scaled so a
+    unit step gives 1 (kornia's normalised kernels / 0.5), replicated borders."""
+    g = kornia.filters.spatial_gradient(gray, mode="sobel", order=1, normalized=True)  # (B, 1, 2, H, W)
+    return g[:, 0, 0] / _SOBEL_UNIT_STEP, g[:, 0, 1] / _SOBEL_UNIT_STEP
+
+
+def sobel_magnitude(gray: Tensor) -> Tensor:
+    """Sobel gradient magnitude ``(B, H, W)`` of ``(B, 1, H, W)``, scaled so that a unit
+    step edge has magnitude 1, clipped to [0, 1]."""
+    gx, gy = sobel_gradients(gray)
+    return torch.sqrt(gx * gx + gy * gy).clamp_(max=1.0)
+
+
+def thin(mag: Tensor, gx: Tensor, gy: Tensor) -> Tensor:
+    """Non-maximum suppression along the gradient (Canny-style, 4 directions): keep a
+    pixel of ``mag`` ``(B, H, W)`` only where it is not smaller than its two neighbours
+    across the edge. Returns a bool mask ``(B, H, W)``."""
+    p = F.pad(mag[:, None], (1, 1, 1, 1), mode="replicate")[:, 0]
+    c = p[:, 1:-1, 1:-1]
+    right, left = p[:, 1:-1, 2:], p[:, 1:-1, :-2]
+    down, up = p[:, 2:, 1:-1], p[:, :-2, 1:-1]
+    dr, ul = p[:, 2:, 2:], p[:, :-2, :-2]
+    dl, ur = p[:, 2:, :-2], p[:, :-2, 2:]
+    ax, ay = gx.abs(), gy.abs()
+    t = 0.4142135623730951  # tan(22.5°)
+    horiz = ay <= t * ax  # gradient along x: compare left/right
+    vert = ax <= t * ay
+    same = (gx * gy) > 0  # gradient along the main diagonal (down-right in image rows)
+    keep_h = (c >= left) & (c >= right)
+    keep_v = (c >= up) & (c >= down)
+    keep_d1 = (c >= ul) & (c >= dr)
+    keep_d2 = (c >= ur) & (c >= dl)
+    return torch.where(horiz, keep_h, torch.where(vert, keep_v, torch.where(same, keep_d1, keep_d2)))
+
+
+def remove_isolated(mask: Tensor) -> Tensor:
+    """Drop edge pixels that have no edge pixel among their 8 neighbours.
+
+    ``mask``: bool ``(B, H, W)``. Returns a bool tensor of the same shape.
+    """
+    m = mask.to(torch.float32).unsqueeze(1)
+    neighbours = F.avg_pool2d(m, 3, stride=1, padding=1, count_include_pad=True) * 9.0 - m
+    return mask & (neighbours[:, 0] > 0.5)
+
+
+def edge_map(gray: Tensor, sigma: float, threshold: float, isolated: bool, thinning: bool = False) -> Tensor:
+    """Blur, Sobel, threshold and clean: ``(B, 1, H, W)`` grey → ``(B, H, W)`` edge
+    magnitudes in [0, 1], zero where there is no edge. ``thinning`` keeps only the ridge
+    of each edge (one pixel wide), as the thinned edge maps Edge Boxes scores."""
+    gx, gy = sobel_gradients(gaussian_blur(gray, sigma))
+    mag = torch.sqrt(gx * gx + gy * gy).clamp_(max=1.0)
+    mask = mag > threshold
+    if thinning:
+        mask &= thin(mag, gx, gy)
+    if isolated:
+        mask = remove_isolated(mask)
+    return mag * mask

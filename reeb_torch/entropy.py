@@ -1,0 +1,43 @@
+"""Eq. 2 — Shannon entropy of each region, and eq. 9 — the share of the region's
+proposal budget it earns."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["region_entropy", "proposal_share"]
+
+
+def region_entropy(gray: Tensor, bounds: Tensor, bins: int = 256) -> Tensor:
+    """Shannon entropy in bits (eq. 2) of the grey levels of each region.
+
+    Args:
+        gray: ``(B, 1, H, W)`` or ``(B, H, W)`` in [0, 1].
+        bounds: ``int64 [R, 2]`` column ranges (start inclusive, end exclusive), full height.
+        bins: grey levels ``M`` (256 = 8-bit); H lies in [0, log2(bins)].
+
+    Returns: ``float [B, R]``.
+    """
+    g = gray.reshape(gray.shape[0], -1, gray.shape[-1]) if gray.ndim == 4 else gray
+    b, h, w = g.shape
+    level = (g * bins).long().clamp_(0, bins - 1)  # (B, H, W)
+    # per-column histograms, then column prefix sums: a strip's histogram is a difference
+    flat = (torch.arange(b, device=g.device).view(b, 1, 1) * w + torch.arange(w, device=g.device).view(1, 1, w)) * bins + level
+    cols = torch.zeros(b * w * bins, dtype=torch.float32, device=g.device)
+    cols.index_add_(0, flat.reshape(-1), torch.ones(flat.numel(), device=g.device))
+    cum = torch.cat([cols.new_zeros(b, 1, bins), cols.view(b, w, bins).cumsum(1)], 1)  # (B, W+1, bins)
+    bnd = bounds.to(g.device)
+    hist = cum[:, bnd[:, 1]] - cum[:, bnd[:, 0]]  # (B, R, bins)
+    p = hist / hist.sum(-1, keepdim=True).clamp_min(1)
+    return -(p * torch.log2(p.clamp_min(1e-30))).sum(-1)
+
+
+def proposal_share(entropy: Tensor, sigma: float = 4.0, form: str = "abs-diff") -> Tensor:
+    """Eq. 9: the fraction in [0, 1] of a region's maximum number of proposals.
+
+    ``abs-diff`` (NOTES #9): 1 − |σ − H|/σ where |σ − H| ≤ σ, else 0 — highest at H = σ.
+    ``printed``: 1 − |σ + H|/σ where |σ + H| ≤ σ, else 0 — zero for every H > 0.
+    """
+    d = (sigma - entropy).abs() if form == "abs-diff" else (sigma + entropy).abs()
+    return torch.where(d <= sigma, 1.0 - d / sigma, torch.zeros_like(entropy))

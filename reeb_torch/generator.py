@@ -1,0 +1,245 @@
+"""The REEB proposal generator: images in, ranked boxes out (the paper's Table 1).
+
+``ProposalGenerator.forward`` reads top to bottom as the paper's pseudo-code: edge map,
+road mask, regions, entropy and budget per region, dense windows, scores, ranking, NMS.
+A batch of equal-sized images is computed as one batch; a list of images of different
+sizes is split into equal-size batches.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+from torchvision.ops import nms
+
+from . import edges as _edges
+from . import entropy as _entropy
+from . import groups as _groups
+from . import regions as _regions
+from . import road as _road
+from . import scoring as _scoring
+from . import windows as _windows
+from ._checks import ImageBatch, check_images
+from .config import ReebConfig
+
+__all__ = ["ProposalGenerator", "propose", "Inspection"]
+
+
+@dataclass
+class Inspection:
+    """Everything :meth:`ProposalGenerator.inspect` computed for one image, at input
+    resolution (``H × W``).
+
+    Attributes:
+        boxes: ``float32 [N, 4]`` proposals (x1, y1, x2, y2), ranked best first.
+        scores: ``float32 [N]`` their combined scores V (eq. 12), descending.
+        edges: ``float32 [H, W]`` edge magnitudes in [0, 1] after thresholding (Sec. 3.4).
+        road_mask: ``bool [H, W]`` road pixels (eqs. 3–4).
+        regions: ``float32 [R, 4]`` the region strips (x1, y1, x2, y2).
+        entropy: ``float32 [R]`` Shannon entropy of each region in bits (eq. 2).
+        share: ``float32 [R]`` fraction of the region's candidate budget it gets (eq. 9).
+        num_groups: number of edge groups (Sec. 3.7).
+        num_windows: number of sliding windows scored.
+    """
+
+    boxes: Tensor
+    scores: Tensor
+    edges: Tensor
+    road_mask: Tensor
+    regions: Tensor
+    entropy: Tensor
+    share: Tensor
+    num_groups: int
+    num_windows: int
+
+
+class ProposalGenerator(nn.Module):
+    """Region Enhanced Edge-Based (REEB) object proposals; no parameters, no training.
+
+    Args:
+        config: a :class:`ReebConfig` (default: ``ReebConfig()``, the best measured variant).
+        **overrides: fields of the config to change, e.g. ``top_k=500``.
+
+    ``forward(images)`` accepts a float ``(B, 3, H, W)`` tensor of RGB values in [0, 1], a
+    ``uint8`` tensor of the same shape, or a list of ``(3, H, W)`` tensors of any sizes,
+    on any device; it returns one dict per image with
+
+    * ``boxes``: ``float32 [N, 4]`` (x1, y1, x2, y2) in that image's pixels, ranked;
+    * ``scores``: ``float32 [N]``, descending; ``N <= config.top_k``.
+    """
+
+    def __init__(self, config: ReebConfig | None = None, **overrides: object) -> None:
+        super().__init__()
+        cfg = config if config is not None else ReebConfig()
+        if not isinstance(cfg, ReebConfig):
+            raise TypeError(f"config must be a ReebConfig, got {type(cfg).__name__}")
+        self.config = cfg.replace(**overrides) if overrides else cfg
+        self._device_cache: dict = {}
+
+    def extra_repr(self) -> str:
+        c = self.config
+        return f"top_k={c.top_k}, scale={c.scale}, use_regions={c.use_regions}, grouping={c.grouping!r}"
+
+    @property
+    def min_side(self) -> int:
+        """Smallest image height/width accepted, in input pixels (the smallest window)."""
+        return self.config.min_window
+
+    # ------------------------------------------------------------------------------------
+    @torch.no_grad()
+    def forward(self, images: ImageBatch) -> list[dict[str, Tensor]]:
+        imgs = check_images(images, self.min_side)
+        results: list[dict[str, Tensor] | None] = [None] * len(imgs)
+        by_size: dict[tuple, list[int]] = {}
+        for i, im in enumerate(imgs):
+            by_size.setdefault((tuple(im.shape), im.device), []).append(i)
+        for idx in by_size.values():
+            batch = torch.stack([imgs[i] for i in idx]) if len(idx) > 1 else imgs[idx[0]][None]
+            out, _ = self._propose_batch(batch)
+            for i, r in zip(idx, out):
+                results[i] = r
+        return results  # type: ignore[return-value]
+
+    @torch.no_grad()
+    def inspect(self, image: Tensor) -> Inspection:
+        """Run on one ``(3, H, W)`` image and keep the intermediate maps (for pictures)."""
+        (x,) = check_images([image], self.min_side)
+        out, extra = self._propose_batch(x[None], keep=True)
+        h, w = x.shape[-2:]
+        up = lambda t, mode: F.interpolate(t[None].float(), size=(h, w), mode=mode)[0, 0]  # noqa: E731
+        return Inspection(
+            boxes=out[0]["boxes"], scores=out[0]["scores"],
+            edges=up(extra["edges"], "bilinear"),
+            road_mask=up(extra["road"], "nearest") > 0.5,
+            regions=extra["regions"], entropy=extra["entropy"][0], share=extra["share"][0],
+            num_groups=extra["num_groups"], num_windows=extra["num_windows"],
+        )
+
+    # ------------------------------------------------------------------------------------
+    def _propose_batch(self, x: Tensor, keep: bool = False) -> tuple[list[dict[str, Tensor]], dict]:
+        """The algorithm on a batch ``(B, 3, H, W)`` of equal-sized float images."""
+        cfg = self.config
+        b, _, h_in, w_in = x.shape
+        xk = self._working_image(x)
+        hk, wk = xk.shape[-2:]
+        fx, fy = wk / w_in, hk / h_in
+
+        # Sec. 3.4: Edge_Map = Sobel(Gaussian_Blur(I)); Sec. 3.7: edge groups
+        gray = _edges.to_gray(xk)
+        edges = _edges.edge_map(gray, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges)
+        groups = _groups.edge_groups(edges, cfg.grouping, cfg.group_cell)
+        # Sec. 3.5: Road_Mask = Generate_Road_Segmentation(I, HSV)
+        road = _road.road_mask(xk, cfg.road_samples, cfg.road_band, cfg.road_tolerance,
+                               cfg.road_combine, cfg.seed)
+        # Sec. 3.6: Regions = Divide_Image_Into_Regions(I, Camera_Params); eqs. 2, 9
+        bounds = self._region_bounds(wk)
+        if cfg.use_regions:
+            entropy = _entropy.region_entropy(gray, bounds, cfg.entropy_bins)
+            share = _entropy.proposal_share(entropy, cfg.entropy_sigma, cfg.entropy_form)
+        else:  # one region, the whole image: entropy is not applicable (Sec. 4.2)
+            entropy = torch.zeros(b, 1, device=x.device)
+            share = torch.ones(b, 1, device=x.device)
+        # Sec. 3.6: dense sliding windows; Sec. 3.7: scores (eqs. 1, 10-12)
+        grid = _windows.window_grid(hk, wk, bounds, self._min_window_working(fx, fy), cfg.size_ratio,
+                                    cfg.window_step, cfg.aspect_range, cfg.region_assign)
+        scores = self._score_windows(edges, road, groups, grid, fx, fy, h_in, w_in)
+        # rank within each region's budget, then Sec. 3.8: NMS (eq. 13)
+        chosen = self._select(scores, grid, share)
+        boxes_in = self._device_tensor(grid.boxes, x.device) / torch.tensor([fx, fy, fx, fy], device=x.device)
+        results = []
+        for i in range(b):
+            cand = torch.nonzero(chosen[i]).squeeze(1)
+            bx, sc = boxes_in[cand], scores[i, cand]
+            keep_idx = nms(bx, sc, cfg.nms_iou)[: cfg.top_k]
+            results.append({"boxes": bx[keep_idx].contiguous(), "scores": sc[keep_idx].contiguous()})
+        extra: dict = {}
+        if keep:
+            extra = dict(edges=edges, road=road, entropy=entropy, share=share,
+                         regions=torch.stack([bounds[:, 0] / fx, torch.zeros(len(bounds)),
+                                              bounds[:, 1] / fx, torch.full((len(bounds),), float(h_in))], 1).float(),
+                         num_groups=len(groups), num_windows=grid.count)
+        return results, extra
+
+    # -- stages ---------------------------------------------------------------------------
+    def _working_image(self, x: Tensor) -> Tensor:
+        s = self.config.scale
+        if s == 1.0:
+            return x
+        h, w = x.shape[-2:]
+        size = (max(1, int(round(h * s))), max(1, int(round(w * s))))
+        return F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=s < 1)
+
+    def _min_window_working(self, fx: float, fy: float) -> int:
+        return max(3, int(round(self.config.min_window * min(fx, fy))))
+
+    def _region_bounds(self, width: int) -> Tensor:
+        cfg = self.config
+        if not cfg.use_regions:
+            return torch.tensor([[0, width]])
+        frac = _regions.region_width_fraction(cfg.camera_height_m, cfg.vertical_fov_deg, cfg.horizontal_fov_deg,
+                                              cfg.max_object_width_m, cfg.region_width_round)
+        return _regions.region_bounds(width, frac, cfg.region_overlap)
+
+    def _score_windows(self, edges: Tensor, road: Tensor, groups: _groups.EdgeGroups,
+                       grid: _windows.WindowGrid, fx: float, fy: float, h_in: int, w_in: int) -> Tensor:
+        """V (eq. 12) of every window, ``float32 [B, N]``; ``-inf`` where S < min_edge_score
+        (or, with ``local_max``, where a neighbouring position of the same size scores higher)."""
+        cfg = self.config
+        b = edges.shape[0]
+        ii_edges = _scoring.integral_image(edges)
+        ii_road = _scoring.integral_image(road)
+        enclosed = _scoring.enclosed_sums(groups, b, grid.sizes)
+        unit = _scoring.unit_scale(fx, fy)
+        out = torch.full((b, grid.count), -math.inf, dtype=torch.float32, device=edges.device)
+        for s, enc, off in zip(grid.sizes, enclosed, grid.offsets):
+            dx, dy, cw, ch = _scoring.centre_box(s.w, s.h, cfg.center_fraction)
+            centre = _scoring.box_sums(ii_edges, dx, dy, cw, ch, s)
+            bw, bh = s.w / fx, s.h / fy
+            sc = _scoring.edge_score(enc * unit, centre * unit, bw, bh, cfg.score_norm, cfg.kappa, cfg.gamma).float()
+            r = (_scoring.box_sums(ii_road, 0, 0, s.w, s.h, s) / (s.w * s.h)).float()
+            bottom = ((torch.arange(s.ny, device=edges.device, dtype=torch.float32) * s.sy + s.h) / fy).view(1, -1, 1)
+            loc = _scoring.location_score(bottom, bw, bh, float(w_in), float(h_in), cfg.location_score,
+                                          cfg.horizon, cfg.ground_ratio, cfg.ground_log_sigma)
+            v = _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)
+            v = torch.where(sc >= cfg.min_edge_score, v, -math.inf)
+            if cfg.local_max:
+                peak = F.max_pool2d(v[:, None], 3, stride=1, padding=1)[:, 0]
+                v = torch.where(v >= peak, v, -math.inf)
+            out[:, off: off + s.count] = v.reshape(b, -1)
+        return out
+
+    def _select(self, scores: Tensor, grid: _windows.WindowGrid, share: Tensor) -> Tensor:
+        """Each region passes on its best ``share · candidates_per_region`` windows (eq. 9).
+        Returns ``bool [B, N]``."""
+        cfg = self.config
+        b = scores.shape[0]
+        budget = (share * cfg.candidates_per_region).round().long()  # (B, R)
+        chosen = torch.zeros_like(scores, dtype=torch.uint8)
+        for r, idx_cpu in enumerate(grid.region_windows):
+            k = min(int(idx_cpu.numel()), int(budget[:, r].max()))
+            if k == 0:
+                continue
+            idx = self._device_tensor(idx_cpu, scores.device)
+            vals, pos = scores[:, idx].topk(k, dim=1)
+            ok = torch.isfinite(vals) & (torch.arange(k, device=scores.device)[None] < budget[:, r: r + 1])
+            chosen.scatter_add_(1, idx[pos], ok.to(torch.uint8))
+        return chosen > 0
+
+    def _device_tensor(self, t: Tensor, device: torch.device) -> Tensor:
+        if t.device == device:
+            return t
+        key = (id(t), str(device))
+        hit = self._device_cache.get(key)
+        if hit is None or hit[0] is not t:
+            hit = (t, t.to(device))
+            self._device_cache[key] = hit
+        return hit[1]
+
+
+def propose(images: ImageBatch, config: ReebConfig | None = None, **overrides: object) -> list[dict[str, Tensor]]:
+    """Functional form of :class:`ProposalGenerator`: ``propose(images, config)``."""
+    return ProposalGenerator(config, **overrides)(images)

@@ -1,0 +1,151 @@
+"""Sec. 3.7 — scoring every sliding window: edge score S (eq. 1), road score R (eq. 10),
+location score L (eq. 11) and their combination V (eq. 12).
+
+Every window size is scored for all its positions and all images at once:
+
+* the centre term Σ_c m_c and R are box sums read from integral images at strided
+  positions (four strided slices, no gather);
+* the wholly-enclosed term Σ_n w_n m_n is exact: for windows of one size, the positions
+  that wholly contain a group's bounding box form a rectangle ``[i0, i1] × [j0, j1]`` in
+  position space, so the group adds its magnitude to that rectangle with four
+  scatter-adds into a difference array; two cumulative sums then give every window's
+  enclosed mass. All sizes share one scatter (``index_add_``) into one flat buffer.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from .groups import EdgeGroups
+from .windows import WindowSize
+
+__all__ = [
+    "integral_image",
+    "box_sums",
+    "enclosed_sums",
+    "edge_score",
+    "location_score",
+    "combined_score",
+]
+
+# largest (sizes × groups) block handled by one scatter; bounds temporary memory
+_SCATTER_BLOCK = 1 << 22
+
+
+def integral_image(x: Tensor) -> Tensor:
+    """``(B, H, W)`` → ``float32 (B, H + 1, W + 1)`` with ``ii[:, y, x] = Σ x[:, :y, :x]``."""
+    ii = torch.zeros(x.shape[0], x.shape[1] + 1, x.shape[2] + 1, dtype=torch.float32, device=x.device)
+    ii[:, 1:, 1:] = x.to(torch.float32).cumsum(2).cumsum(1)
+    return ii
+
+
+def box_sums(ii: Tensor, dx: int, dy: int, bw: int, bh: int, s: WindowSize) -> Tensor:
+    """Sums of the ``bw × bh`` boxes at ``(i·sx + dx, j·sy + dy)`` for all positions of
+    ``s``: ``(B, ny, nx)`` from an integral image ``(B, H + 1, W + 1)``."""
+
+    def at(oy: int, ox: int) -> Tensor:
+        return ii[:, oy: oy + (s.ny - 1) * s.sy + 1: s.sy, ox: ox + (s.nx - 1) * s.sx + 1: s.sx]
+
+    return at(dy + bh, dx + bw) - at(dy, dx + bw) - at(dy + bh, dx) + at(dy, dx)
+
+
+def _floordiv(a: Tensor, b: Tensor) -> Tensor:
+    return torch.div(a, b, rounding_mode="floor")
+
+
+def enclosed_sums(groups: EdgeGroups, batch: int, sizes: list[WindowSize]) -> list[Tensor]:
+    """Σ_n w_n·m_n of eq. 1 for every window: the magnitude of the groups whose bounding
+    box lies wholly inside the window (window pixels ``[x0, x0 + w)``, group pixels
+    ``[x1, x2]``: enclosed iff ``x0 <= x1`` and ``x2 < x0 + w``, same for y).
+
+    Returns one ``float32 (B, ny, nx)`` tensor per size.
+    """
+    dev = groups.batch.device
+    slab = [batch * (s.ny + 1) * (s.nx + 1) for s in sizes]
+    starts = [0]
+    for n in slab:
+        starts.append(starts[-1] + n)
+    buf = torch.zeros(starts[-1], dtype=torch.float32, device=dev)
+    g = len(groups)
+    if g and sizes:
+        gx1, gx2 = groups.x1[None], groups.x2[None]
+        gy1, gy2 = groups.y1[None], groups.y2[None]
+        gb, gm = groups.batch[None], groups.magnitude.to(torch.float32)[None]
+        per = max(1, _SCATTER_BLOCK // g)
+        for lo in range(0, len(sizes), per):
+            chunk = sizes[lo: lo + per]
+            col = lambda v: torch.tensor(v, device=dev).view(-1, 1)  # noqa: E731
+            w, h = col([s.w for s in chunk]), col([s.h for s in chunk])
+            sx, sy = col([s.sx for s in chunk]), col([s.sy for s in chunk])
+            nx, ny = col([s.nx for s in chunk]), col([s.ny for s in chunk])
+            off = col(starts[lo: lo + len(chunk)])
+            i0 = _floordiv(gx2 + 1 - w + sx - 1, sx).clamp_(min=0)  # ceil((x2 + 1 - w) / sx)
+            i1 = torch.minimum(_floordiv(gx1, sx), nx - 1)
+            j0 = _floordiv(gy2 + 1 - h + sy - 1, sy).clamp_(min=0)
+            j1 = torch.minimum(_floordiv(gy1, sy), ny - 1)
+            ok = (i0 <= i1) & (j0 <= j1)
+            row = nx + 1
+            base = off + gb * (ny + 1) * row
+            idx = torch.stack([base + j0 * row + i0, base + j0 * row + i1 + 1,
+                               base + (j1 + 1) * row + i0, base + (j1 + 1) * row + i1 + 1])  # (4, S, G)
+            m = gm.expand(len(chunk), g)
+            val = torch.stack([m, -m, -m, m])
+            sel = ok.expand(4, -1, -1)
+            buf.index_add_(0, idx[sel], val[sel])
+    out = []
+    for s, a in zip(sizes, starts):
+        d = buf[a: a + batch * (s.ny + 1) * (s.nx + 1)].view(batch, s.ny + 1, s.nx + 1)
+        out.append(d.cumsum(1).cumsum(2)[:, : s.ny, : s.nx])
+    return out
+
+
+def edge_score(enclosed: Tensor, centre: Tensor, w: float, h: float, norm: str, kappa: float,
+               gamma: float) -> Tensor:
+    """Eq. 1: S = (Σ_n w_n m_n − Σ_c m_c) / normaliser, with ``w``, ``h`` the window's size
+    in the units the sums are in. ``perimeter``: (2(w + h))^κ (Edge Boxes);
+    ``area``: 2·(w·h)^γ (as printed)."""
+    denom = (2.0 * (w + h)) ** kappa if norm == "perimeter" else 2.0 * (w * h) ** gamma
+    return (enclosed - centre) / denom
+
+
+def location_score(bottom: Tensor, bw: float, bh: float, img_w: float, img_h: float, mode: str,
+                   horizon: float = 0.47, ratio: float = 1.0, log_sigma: float = 0.5) -> Tensor:
+    """Eq. 11 and variants, for boxes of size ``bw × bh`` whose bottom rows are ``bottom``
+    (input pixels, from the image top).
+
+    ``paper``: L = b_y / (b_w·b_h) · image width (unbounded). ``ground``: a Gaussian in
+    log(b_h / (b_y − horizon·H) / ratio), 0 above the horizon, in [0, 1]. ``none``: 1.
+    """
+    if mode == "paper":
+        return bottom * (img_w / (bw * bh))
+    if mode == "ground":
+        depth = bottom - horizon * img_h
+        r = bh / depth.clamp_min(1e-6) / ratio
+        val = torch.exp(-(torch.log(r) ** 2) / (2 * log_sigma**2))
+        return torch.where(depth > 0, val, torch.zeros_like(val))
+    return torch.ones_like(bottom)
+
+
+def combined_score(s: Tensor, loc: Tensor, road: Tensor, alpha: float, beta: float, road_mode: str) -> Tensor:
+    """Eq. 12: V = S·(α·L + β·R); ``penalize`` uses 1 − R, ``none`` drops the road term."""
+    if road_mode == "penalize":
+        road = 1.0 - road
+    elif road_mode == "none":
+        road = torch.zeros_like(road)
+    return s * (alpha * loc + beta * road)
+
+
+def centre_box(w: int, h: int, fraction: float) -> tuple[int, int, int, int]:
+    """Offset and size ``(dx, dy, cw, ch)`` of the centre region c of a ``w × h`` window
+    (eq. 1: half its width and height, centred)."""
+    cw, ch = max(1, int(round(w * fraction))), max(1, int(round(h * fraction)))
+    return (w - cw) // 2, (h - ch) // 2, cw, ch
+
+
+def unit_scale(scale_x: float, scale_y: float) -> float:
+    """Factor turning a sum of edge magnitudes along a working-resolution contour into
+    input pixels (contours are 1-D, so lengths scale with the mean factor)."""
+    return 2.0 / (scale_x + scale_y) if math.isfinite(scale_x + scale_y) else 1.0

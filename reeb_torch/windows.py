@@ -1,0 +1,123 @@
+"""Sec. 3.6 — dense sliding windows, and the region each window counts against.
+
+Window sizes are a grid of widths × heights, each a geometric series from
+``min_window`` with ratio ``size_ratio``, kept when width/height lies in
+``aspect_range``; the widest window is within one ratio of the region's width (the whole image without
+region enhancement). A window of size ``w × h`` slides with strides
+``max(1, round(step·w))`` and ``max(1, round(step·h))`` from the top-left corner.
+Everything here depends only on the image size and the config, so it is cached.
+
+Coordinates are working-resolution pixels; a window at column ``x0`` covering ``w``
+pixels is the box ``(x0, y0, x0 + w, y0 + h)``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import torch
+from torch import Tensor
+
+__all__ = ["WindowSize", "WindowGrid", "window_sizes", "window_grid"]
+
+
+@dataclass(frozen=True)
+class WindowSize:
+    """One window size and its position grid: positions ``x0 = i·sx`` (``i < nx``),
+    ``y0 = j·sy`` (``j < ny``)."""
+
+    w: int
+    h: int
+    sx: int
+    sy: int
+    nx: int
+    ny: int
+
+    @property
+    def count(self) -> int:
+        return self.nx * self.ny
+
+
+@dataclass
+class WindowGrid:
+    """All windows of one image size.
+
+    Attributes:
+        sizes: the ``S`` window sizes, in scoring order.
+        offsets: ``S + 1`` start indices of each size in the flat window list.
+        boxes: ``float32 [N, 4]`` all windows (x1, y1, x2, y2), working pixels, flat order
+            (size-major, then row-major positions).
+        region_windows: per region, ``int64`` indices of the windows that count against it.
+    """
+
+    sizes: list[WindowSize]
+    offsets: list[int]
+    boxes: Tensor
+    region_windows: list[Tensor]
+
+    @property
+    def count(self) -> int:
+        return self.offsets[-1]
+
+
+def _series(lo: float, hi: float, ratio: float) -> list[int]:
+    out: list[int] = []
+    v = lo
+    while round(v) <= hi:
+        r = int(round(v))
+        if not out or r != out[-1]:
+            out.append(r)
+        v *= ratio
+    if out and hi - out[-1] > 0.5 * (out[-1] * ratio - out[-1]):
+        out.append(int(hi))  # reach the largest allowed size
+    return out
+
+
+def window_sizes(height: int, width: int, max_width: int, min_window: int, ratio: float,
+                 step: float, aspect: tuple[float, float]) -> list[WindowSize]:
+    """The window sizes and strides for a ``height × width`` image (working pixels)."""
+    out = []
+    widths = _series(min_window, min(max_width, width), ratio)
+    heights = _series(min_window, height, ratio)
+    for w in widths:
+        for h in heights:
+            if not (aspect[0] <= w / h <= aspect[1]):
+                continue
+            sx, sy = max(1, round(step * w)), max(1, round(step * h))
+            out.append(WindowSize(w, h, sx, sy, (width - w) // sx + 1, (height - h) // sy + 1))
+    return out
+
+
+@lru_cache(maxsize=32)
+def _grid(height: int, width: int, bounds: tuple[tuple[int, int], ...], min_window: int, ratio: float,
+          step: float, aspect: tuple[float, float], assign: str) -> WindowGrid:
+    region_w = max(b - a for a, b in bounds)
+    sizes = window_sizes(height, width, region_w, min_window, ratio, step, aspect)
+    boxes, offsets = [], [0]
+    for s in sizes:
+        xs = torch.arange(s.nx, dtype=torch.float32) * s.sx
+        ys = torch.arange(s.ny, dtype=torch.float32) * s.sy
+        y0, x0 = torch.meshgrid(ys, xs, indexing="ij")
+        boxes.append(torch.stack([x0, y0, x0 + s.w, y0 + s.h], -1).view(-1, 4))
+        offsets.append(offsets[-1] + s.count)
+    allb = torch.cat(boxes) if boxes else torch.zeros(0, 4)
+    b = torch.tensor(bounds, dtype=torch.float32)  # (R, 2)
+    if assign == "contained":
+        inside = (allb[:, None, 0] >= b[None, :, 0]) & (allb[:, None, 2] <= b[None, :, 1])  # (N, R)
+        region_windows = [torch.nonzero(inside[:, r]).squeeze(1) for r in range(len(bounds))]
+    else:
+        centre = (allb[:, 0] + allb[:, 2]) / 2
+        rc = b.mean(1)
+        nearest = (centre[:, None] - rc[None]).abs().argmin(1)
+        region_windows = [torch.nonzero(nearest == r).squeeze(1) for r in range(len(bounds))]
+    return WindowGrid(sizes, offsets, allb, region_windows)
+
+
+def window_grid(height: int, width: int, bounds: Tensor, min_window: int, ratio: float, step: float,
+                aspect: tuple[float, float], assign: str = "nearest") -> WindowGrid:
+    """The (cached) :class:`WindowGrid` of a ``height × width`` working image whose
+    regions have column ``bounds`` (``int64 [R, 2]``); ``min_window`` in working pixels."""
+    key = tuple((int(a), int(b)) for a, b in bounds.tolist())
+    return _grid(height, width, key, int(min_window), float(ratio), float(step), tuple(aspect), assign)

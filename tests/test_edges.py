@@ -1,0 +1,52 @@
+"""Sec. 3.4 denoising and edges, against OpenCV."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+
+from reeb_torch.edges import edge_map, gaussian_blur, remove_isolated, sobel_magnitude, to_gray
+
+
+def test_sobel_matches_opencv_inside_the_border():
+    gen = torch.Generator().manual_seed(0)
+    g = torch.rand(1, 1, 30, 40, generator=gen)
+    ours = sobel_magnitude(g)[0].numpy()
+    a = g[0, 0].numpy().astype(np.float64)
+    gx = cv2.Sobel(a, cv2.CV_64F, 1, 0, ksize=3) / 4.0  # unit step -> 1
+    gy = cv2.Sobel(a, cv2.CV_64F, 0, 1, ksize=3) / 4.0
+    ref = np.minimum(np.sqrt(gx**2 + gy**2), 1.0)
+    np.testing.assert_allclose(ours[1:-1, 1:-1], ref[1:-1, 1:-1], atol=1e-5)
+
+
+def test_blur_matches_opencv():
+    gen = torch.Generator().manual_seed(0)
+    g = torch.rand(1, 1, 30, 40, generator=gen)
+    ours = gaussian_blur(g, 1.0)[0, 0].numpy()
+    ref = cv2.GaussianBlur(g[0, 0].numpy(), (5, 5), 1.0, borderType=cv2.BORDER_REFLECT_101)
+    np.testing.assert_allclose(ours, ref, atol=1e-5)
+
+
+def test_unit_step_has_magnitude_one_and_thins_to_one_pixel():
+    img = torch.zeros(1, 1, 20, 20)
+    img[..., 10:] = 1.0
+    e = edge_map(img, 0.5, 0.05, isolated=True, thinning=True)[0]
+    cols = torch.nonzero(e[5]).flatten().tolist()
+    assert len(cols) == 1 and cols[0] in (9, 10)
+    thick = edge_map(img, 0.5, 0.05, isolated=True, thinning=False)[0]
+    assert int((thick[5] > 0).sum()) >= 2
+    assert float(sobel_magnitude(gaussian_blur(img, 0.5)).max()) <= 1.0
+
+
+def test_isolated_pixels_are_removed():
+    m = torch.zeros(1, 7, 7, dtype=torch.bool)
+    m[0, 1, 1] = True  # alone
+    m[0, 4, 4] = m[0, 5, 5] = True  # diagonal neighbours: kept
+    out = remove_isolated(m)[0]
+    assert not out[1, 1] and out[4, 4] and out[5, 5]
+
+
+def test_gray_weights():
+    rgb = torch.tensor([1.0, 0.0, 0.0]).view(1, 3, 1, 1)
+    assert abs(float(to_gray(rgb)) - 0.299) < 1e-6

@@ -1,0 +1,43 @@
+"""Eq. 2 entropy and eq. 9 proposal share."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from reeb_torch.entropy import proposal_share, region_entropy
+
+
+def _entropy_ref(values: torch.Tensor, bins: int) -> float:
+    level = (values * bins).long().clamp(0, bins - 1)
+    p = torch.bincount(level.flatten(), minlength=bins).double()
+    p = p[p > 0] / p.sum()
+    return float(-(p * torch.log2(p)).sum())
+
+
+def test_region_entropy_matches_bincount():
+    gen = torch.Generator().manual_seed(0)
+    gray = torch.rand(2, 1, 10, 40, generator=gen) ** 2
+    bounds = torch.tensor([[0, 10], [5, 25], [20, 40]])
+    got = region_entropy(gray, bounds, 256)
+    for b in range(2):
+        for r, (x0, x1) in enumerate(bounds.tolist()):
+            assert float(got[b, r]) == pytest.approx(_entropy_ref(gray[b, 0, :, x0:x1], 256), abs=1e-4)
+
+
+def test_entropy_extremes():
+    flat = torch.full((1, 1, 8, 8), 0.5)
+    assert float(region_entropy(flat, torch.tensor([[0, 8]]), 256)) == pytest.approx(0.0, abs=1e-6)
+    ramp = (torch.arange(256).float() / 256).view(1, 1, 16, 16)
+    assert float(region_entropy(ramp, torch.tensor([[0, 16]]), 256)) == pytest.approx(8.0, abs=1e-5)
+
+
+def test_share_abs_diff_and_printed():
+    h = torch.tensor([0.0, 2.0, 4.0, 6.0, 8.0, 9.0])
+    share = proposal_share(h, 4.0, "abs-diff")
+    assert share.tolist() == pytest.approx([0.0, 0.5, 1.0, 0.5, 0.0, 0.0])
+    printed = proposal_share(h, 4.0, "printed")
+    assert printed.tolist() == [0.0] * 6  # no proposals for any H >= 0 (NOTES #9)
+    assert math.isclose(float(proposal_share(torch.tensor(3.0), 4.0)), 0.75)

@@ -1,0 +1,122 @@
+"""The whole pipeline: shapes, ranking, batching, determinism, input checks, devices."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from reeb_torch import Inspection, ProposalGenerator, ReebConfig, get_preset, propose
+
+SMALL = dict(top_k=300, candidates_per_region=600)
+
+
+@pytest.fixture(scope="module")
+def crop(sample_image):
+    # a 192 x 512 crop of the sample keeps the tests fast
+    return sample_image[:, 160:352, 300:812].contiguous()
+
+
+def _check(out, h, w, top_k):
+    boxes, scores = out["boxes"], out["scores"]
+    assert boxes.dtype == torch.float32 and boxes.ndim == 2 and boxes.shape[1] == 4
+    assert scores.shape == (boxes.shape[0],) and 0 < boxes.shape[0] <= top_k
+    assert bool((boxes[:, 0] >= 0).all() and (boxes[:, 1] >= 0).all())
+    assert bool((boxes[:, 2] <= w + 1e-3).all() and (boxes[:, 3] <= h + 1e-3).all())
+    assert bool((boxes[:, 2] > boxes[:, 0]).all() and (boxes[:, 3] > boxes[:, 1]).all())
+    assert bool((scores[1:] <= scores[:-1]).all())
+
+
+def test_full_frame_default(sample_image):
+    out = ProposalGenerator(top_k=500)([sample_image])
+    _check(out[0], 375, 1242, 500)
+    assert out[0]["boxes"].shape[0] == 500
+
+
+def test_uint8_float_and_batch_forms_agree(crop):
+    gen = ProposalGenerator(**SMALL)
+    a = gen([crop])[0]
+    b = gen(crop[None].float() / 255)[0]
+    c = gen(crop[None])[0]
+    for o in (b, c):
+        assert torch.equal(a["boxes"], o["boxes"]) and torch.equal(a["scores"], o["scores"])
+
+
+def test_same_proposals_alone_or_in_a_batch(crop):
+    gen = ProposalGenerator(**SMALL)
+    other = torch.flip(crop, dims=[2])
+    third = crop[:, :160, :400]  # a different size in the same list
+    alone = gen([crop])[0]
+    batch = gen([other, crop, third, crop])
+    for o in (batch[1], batch[3]):
+        assert torch.equal(alone["boxes"], o["boxes"]) and torch.equal(alone["scores"], o["scores"])
+    _check(batch[2], 160, 400, SMALL["top_k"])
+
+
+def test_deterministic(crop):
+    a = propose([crop], ReebConfig(**SMALL))[0]
+    b = propose([crop], ReebConfig(**SMALL))[0]
+    assert torch.equal(a["boxes"], b["boxes"])
+
+
+def test_inspect(crop):
+    ins = ProposalGenerator(**SMALL).inspect(crop)
+    assert isinstance(ins, Inspection)
+    h, w = crop.shape[-2:]
+    assert ins.edges.shape == (h, w) and ins.road_mask.shape == (h, w) and ins.road_mask.dtype == torch.bool
+    assert ins.regions.shape == (7, 4) and ins.entropy.shape == (7,) and ins.share.shape == (7,)
+    assert float(ins.regions[0, 0]) == 0 and float(ins.regions[-1, 2]) == pytest.approx(w, abs=2)
+    assert bool(((ins.share >= 0) & (ins.share <= 1)).all())
+    assert ins.num_groups > 0 and ins.num_windows > ins.boxes.shape[0]
+
+
+@pytest.mark.parametrize("preset", ["default-no-regions", "paper", "paper-no-regions"])
+def test_presets_run(crop, preset):
+    cfg = get_preset(preset).replace(**SMALL)
+    _check(ProposalGenerator(cfg)([crop])[0], *crop.shape[-2:], SMALL["top_k"])
+
+
+def test_printed_eq9_gives_no_proposals(crop):
+    out = ProposalGenerator(entropy_form="printed", **SMALL)([crop])[0]
+    assert out["boxes"].shape == (0, 4) and out["scores"].shape == (0,)
+
+
+def test_blank_image_gives_empty_result():
+    out = ProposalGenerator(**SMALL)([torch.zeros(3, 64, 64)])[0]
+    assert out["boxes"].shape == (0, 4)
+
+
+@pytest.mark.parametrize(
+    "images, exc, match",
+    [
+        (torch.rand(3, 64, 64), ValueError, "one image"),
+        (torch.rand(2, 64, 64), ValueError, r"\(B, 3, H, W\)"),
+        (torch.rand(1, 4, 64, 64), ValueError, "3 \\(RGB\\) channels"),
+        ([torch.rand(1, 64, 64)], ValueError, "3 \\(RGB\\) channels"),
+        (torch.full((1, 3, 64, 64), float("nan")), ValueError, "NaN"),
+        (torch.rand(1, 3, 64, 64) * 2, ValueError, r"\[0, 1\]"),
+        (torch.zeros(1, 3, 64, 64, dtype=torch.int32), TypeError, "float or uint8"),
+        ([], ValueError, "empty batch"),
+        (torch.zeros(0, 3, 64, 64), ValueError, "empty batch"),
+        (torch.rand(1, 3, 10, 64), ValueError, "smaller than the smallest window"),
+        ("image.png", TypeError, "Tensor"),
+        ([torch.rand(3, 64, 64).numpy()], TypeError, "torch.Tensor"),
+    ],
+)
+def test_bad_input_is_rejected_with_a_clear_message(images, exc, match):
+    with pytest.raises(exc, match=match):
+        ProposalGenerator(**SMALL)(images)
+
+
+def test_config_type_checked():
+    with pytest.raises(TypeError, match="ReebConfig"):
+        ProposalGenerator({"top_k": 3})  # type: ignore[arg-type]
+
+
+@pytest.mark.cuda
+def test_cuda_matches_cpu(crop):
+    gen = ProposalGenerator(**SMALL)
+    cpu = gen([crop])[0]
+    gpu = gen([crop.cuda()])[0]
+    assert gpu["boxes"].is_cuda
+    n = min(50, cpu["boxes"].shape[0])
+    torch.testing.assert_close(gpu["scores"][:n].cpu(), cpu["scores"][:n], rtol=1e-3, atol=1e-4)

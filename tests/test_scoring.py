@@ -1,0 +1,83 @@
+"""Eq. 1 scoring against brute-force loops on random small inputs."""
+
+from __future__ import annotations
+
+import torch
+
+from reeb_torch.groups import EdgeGroups
+from reeb_torch.scoring import box_sums, centre_box, combined_score, edge_score, enclosed_sums, integral_image
+from reeb_torch.windows import WindowSize
+
+
+def _random_groups(b: int, h: int, w: int, n: int, gen: torch.Generator) -> EdgeGroups:
+    x1 = torch.randint(0, w, (n,), generator=gen)
+    y1 = torch.randint(0, h, (n,), generator=gen)
+    x2 = torch.minimum(x1 + torch.randint(0, 6, (n,), generator=gen), torch.tensor(w - 1))
+    y2 = torch.minimum(y1 + torch.randint(0, 6, (n,), generator=gen), torch.tensor(h - 1))
+    return EdgeGroups(batch=torch.randint(0, b, (n,), generator=gen), x1=x1, y1=y1, x2=x2, y2=y2,
+                      magnitude=torch.rand(n, generator=gen) + 0.1)
+
+
+def _brute_enclosed(g: EdgeGroups, b: int, s: WindowSize) -> torch.Tensor:
+    out = torch.zeros(b, s.ny, s.nx, dtype=torch.float64)
+    for j in range(s.ny):
+        for i in range(s.nx):
+            x0, y0 = i * s.sx, j * s.sy
+            for k in range(len(g)):
+                if (x0 <= g.x1[k] and g.x2[k] <= x0 + s.w - 1 and y0 <= g.y1[k] and g.y2[k] <= y0 + s.h - 1):
+                    out[g.batch[k], j, i] += float(g.magnitude[k])
+    return out
+
+
+def test_enclosed_sums_match_brute_force():
+    gen = torch.Generator().manual_seed(0)
+    for trial in range(4):
+        b, h, w = 2, 17 + trial, 23 + 2 * trial
+        g = _random_groups(b, h, w, 40, gen)
+        sizes = []
+        for ww, hh, sx, sy in [(5, 5, 1, 1), (8, 6, 2, 3), (11, 9, 3, 2), (w, h, 1, 1), (7, 12, 4, 1)]:
+            sizes.append(WindowSize(ww, hh, sx, sy, (w - ww) // sx + 1, (h - hh) // sy + 1))
+        got = enclosed_sums(g, b, sizes)
+        for s, e in zip(sizes, got):
+            torch.testing.assert_close(e.double(), _brute_enclosed(g, b, s), rtol=1e-5, atol=1e-4)
+
+
+def test_enclosed_sums_without_groups_are_zero():
+    empty = EdgeGroups(*(torch.zeros(0, dtype=torch.long) for _ in range(5)), magnitude=torch.zeros(0))
+    s = WindowSize(4, 4, 1, 1, 3, 2)
+    (e,) = enclosed_sums(empty, 2, [s])
+    assert e.shape == (2, 2, 3) and bool((e == 0).all())
+
+
+def test_box_sums_match_direct_sums():
+    gen = torch.Generator().manual_seed(1)
+    x = torch.rand(2, 13, 19, generator=gen)
+    ii = integral_image(x)
+    s = WindowSize(6, 4, 2, 3, (19 - 6) // 2 + 1, (13 - 4) // 3 + 1)
+    dx, dy, cw, ch = centre_box(s.w, s.h, 0.5)
+    got = box_sums(ii, dx, dy, cw, ch, s)
+    for j in range(s.ny):
+        for i in range(s.nx):
+            x0, y0 = i * s.sx + dx, j * s.sy + dy
+            ref = x[:, y0: y0 + ch, x0: x0 + cw].sum((1, 2))
+            torch.testing.assert_close(got[:, j, i], ref, rtol=1e-5, atol=1e-5)
+
+
+def test_centre_box_is_half_the_window_and_centred():
+    assert centre_box(20, 10, 0.5) == (5, 2, 10, 5)
+    assert centre_box(7, 7, 0.5) == (1, 1, 4, 4) or centre_box(7, 7, 0.5) == (2, 2, 4, 4)
+
+
+def test_edge_score_hand_worked():
+    enc, ctr = torch.tensor([10.0]), torch.tensor([2.0])
+    # perimeter: (2 (w + h))^1.5 = 40^1.5
+    torch.testing.assert_close(edge_score(enc, ctr, 12.0, 8.0, "perimeter", 1.5, 0.75), torch.tensor([8.0 / 40.0**1.5]))
+    # area: 2 * (w h)^γ
+    torch.testing.assert_close(edge_score(enc, ctr, 12.0, 8.0, "area", 1.5, 0.5), torch.tensor([8.0 / (2 * 96.0**0.5)]))
+
+
+def test_combined_score_eq12():
+    s, loc, road = torch.tensor([2.0]), torch.tensor([0.5]), torch.tensor([0.25])
+    torch.testing.assert_close(combined_score(s, loc, road, 0.6, 0.4, "reward"), torch.tensor([2 * (0.3 + 0.1)]))
+    torch.testing.assert_close(combined_score(s, loc, road, 0.6, 0.4, "penalize"), torch.tensor([2 * (0.3 + 0.3)]))
+    torch.testing.assert_close(combined_score(s, loc, road, 0.6, 0.4, "none"), torch.tensor([2 * 0.3]))
