@@ -171,6 +171,10 @@ def _grid(result, average: str) -> list[float]:
     return [100.0 * result.at(k, t, None if average == "micro" else "mean") for k in KS for t in IOUS]
 
 
+def _style(label: str) -> str:
+    return "--" if "no regions" in label else "-"
+
+
 def _plot(curves: dict[str, dict], out: Path) -> list[str]:
     import matplotlib
 
@@ -180,7 +184,7 @@ def _plot(curves: dict[str, dict], out: Path) -> list[str]:
     files = []
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
     for label, c in curves.items():
-        ax.plot(c["ks"], [100 * r for r in c["recall_vs_k"]], label=label)
+        ax.plot(c["ks"], [100 * r for r in c["recall_vs_k"]], label=label, ls=_style(label))
     ax.set_xscale("log")
     ax.set_xlabel("number of proposals")
     ax.set_ylabel("recall at IoU 0.7 (%)")
@@ -195,7 +199,7 @@ def _plot(curves: dict[str, dict], out: Path) -> list[str]:
 
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
     for label, c in curves.items():
-        ax.plot(c["ious"], [100 * r for r in c["recall_vs_iou"]], label=label)
+        ax.plot(c["ious"], [100 * r for r in c["recall_vs_iou"]], label=label, ls=_style(label))
     ax.set_xlabel("IoU threshold")
     ax.set_ylabel("recall of the top 2000 (%)")
     ax.set_ylim(0, 100)
