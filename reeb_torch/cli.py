@@ -368,6 +368,7 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
         raise KeyboardInterrupt
 
     interrupted = False
+    first_done = None  # (time, images done, algorithm seconds) after the first computed batch
     t_start = time.perf_counter()
     stream = B.decoded_images(images, workers=workers, min_side=cfg.min_window,
                               prefetch=batch_size, pin_memory=dev.type == "cuda")
@@ -388,6 +389,8 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
                             h, w = it.image.shape[-2:]
                             fail(it.path, B.file_error(it.path, e1), (w, h))
             bar.update(len(group))
+            if first_done is None and stats["ok"]:
+                first_done = (time.perf_counter(), stats["ok"] + stats["failed"], stats["algo_s"])
             if stats["failed"]:
                 bar.set_postfix(failed=stats["failed"], refresh=False)
     except KeyboardInterrupt:
@@ -412,6 +415,7 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
                    ms_per_image=1000 * wall / done if done else None,
                    algorithm_ms_per_image=1000 * stats["algo_s"] / stats["ok"] if stats["ok"] else None,
                    workers=workers, batch_size=batch_size, device=str(dev), config=fingerprint,
+                   **_steady(first_done, t_start + wall, done, stats),
                    out=str(saved) if saved else None, rows=writer.rows_written if writer else None,
                    interrupted=interrupted, failures=failures)
     lines = [f"{done} image{'s' if done != 1 else ''}: {stats['ok']} ok, {stats['failed']} failed; "
@@ -452,6 +456,16 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
         sys.exit(130)
     if stats["failed"]:
         sys.exit(1)
+
+
+def _steady(first_done, t_end: float, done: int, stats: dict) -> dict:
+    """Throughput after the first computed batch (which pays the one-off warm-up)."""
+    if first_done is None or done <= first_done[1]:
+        return dict(steady_ms_per_image=None, steady_algorithm_ms_per_image=None)
+    t1, n1, a1 = first_done
+    n = done - n1
+    return dict(steady_ms_per_image=1000 * (t_end - t1) / n,
+                steady_algorithm_ms_per_image=1000 * (stats["algo_s"] - a1) / n)
 
 
 def _viz_names(images: Sequence[Path]) -> dict[str, str]:
@@ -582,12 +596,14 @@ def eval(kitti_dir, limit, out, methods, extra):  # noqa: A001 - the command's n
     spec = importlib.util.spec_from_file_location("reeb_benchmarks_table3", script)
     module = importlib.util.module_from_spec(spec)
     assert spec.loader is not None
+    sys.modules[spec.name] = module  # dataclasses look their module up there
     spec.loader.exec_module(module)
     try:
         module.main(argv)
-    except SystemExit as e:  # argparse errors and --help
-        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
-        sys.exit(code)
+    except SystemExit as e:  # argparse errors (2), --help (0), or a message: exit 1
+        if e.code is None or isinstance(e.code, int):
+            sys.exit(e.code or 0)
+        raise Failure(" ".join(str(e.code).split()))
 
 
 if __name__ == "__main__":

@@ -309,3 +309,16 @@ def test_size_batches_groups_equal_sizes():
              item(3, 20, 30), item(4, 20, 30), item(5, 40, 30)]
     batches = [[it.index for it in b] for b in size_batches(items, 2)]
     assert batches == [[2], [0, 3], [1, 5], [4]]
+
+
+KITTI = REPO.parent / "shared" / "data" / "kitti"
+
+
+@pytest.mark.kitti
+@pytest.mark.skipif(not (KITTI / "images").is_dir(), reason="needs ../shared/data/kitti")
+def test_eval_runs_table3(tmp_path):
+    r = reeb("eval", KITTI, "--limit", "1", "--methods", "reeb-default", "--out", "t3",
+             "--batch", "0", cwd=tmp_path, check_rc=0)  # --batch: passed on to table3.py
+    assert "IoU 0.7" in r.stdout
+    assert (tmp_path / "t3" / "table3.json").is_file()
+    assert list((tmp_path / "t3").glob("*.png"))
