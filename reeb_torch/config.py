@@ -110,6 +110,10 @@ class ReebConfig:
     """Stride of the sliding windows as a fraction of the window's side."""
     aspect_range: tuple[float, float] = (0.25, 4.0)
     """Allowed width/height ratios of the windows."""
+    ground_band: tuple[float, float] | None = (0.45, 3.0)
+    """Keep only windows whose height h and bottom row y_b satisfy
+    r_lo <= h / (y_b − horizon·H) <= r_hi: objects standing on the road (a flat-ground
+    camera prior, in the spirit of eq. 11's "lower boxes are bigger"). ``None`` = all rows."""
     local_max: bool = True
     """Keep only windows whose score is a local maximum among the 8 neighbouring
     positions of the same size before NMS (a fast pre-NMS; neighbours overlap heavily)."""
@@ -202,6 +206,8 @@ class ReebConfig:
         check(self.location_score in ("paper", "ground", "none"), "location_score",
               "'paper', 'ground' or 'none'")
         check(0 < self.horizon < 1, "horizon", "in (0, 1)")
+        check(self.ground_band is None or (len(self.ground_band) == 2 and 0 < self.ground_band[0] < self.ground_band[1]),
+              "ground_band", "None or (r_lo, r_hi) with 0 < r_lo < r_hi")
         check(self.alpha >= 0 and self.beta >= 0, "alpha", "non-negative (alpha and beta)")
         check(0 < self.nms_iou <= 1, "nms_iou", "in (0, 1]")
         check(isinstance(self.top_k, int) and self.top_k >= 1, "top_k", "an int >= 1")
@@ -228,6 +234,7 @@ class ReebConfig:
             local_max=False,
             region_assign="contained",
             thin_edges=False,
+            ground_band=None,
         )
         base.update(overrides)
         return cls(**base)  # type: ignore[arg-type]

@@ -145,7 +145,8 @@ class ProposalGenerator(nn.Module):
             share = torch.ones(b, 1, device=x.device)
         # Sec. 3.6: dense sliding windows; Sec. 3.7: scores (eqs. 1, 10-12)
         grid = _windows.window_grid(hk, wk, bounds, self._min_window_working(fx, fy), cfg.size_ratio,
-                                    cfg.window_step, cfg.aspect_range, cfg.region_assign)
+                                    cfg.window_step, cfg.aspect_range, cfg.region_assign,
+                                    None if cfg.ground_band is None else (cfg.horizon, *cfg.ground_band))
         scores = self._score_windows(edges, road, groups, grid, fx, fy, h_in, w_in)
         # rank within each region's budget, then Sec. 3.8: NMS (eq. 13)
         chosen = self._select(scores, grid, share)
@@ -201,7 +202,7 @@ class ProposalGenerator(nn.Module):
             bw, bh = s.w / fx, s.h / fy
             sc = _scoring.edge_score(enc * unit, centre * unit, bw, bh, cfg.score_norm, cfg.kappa, cfg.gamma).float()
             r = (_scoring.box_sums(ii_road, 0, 0, s.w, s.h, s) / (s.w * s.h)).float()
-            bottom = ((torch.arange(s.ny, device=edges.device, dtype=torch.float32) * s.sy + s.h) / fy).view(1, -1, 1)
+            bottom = ((torch.arange(s.ny, device=edges.device, dtype=torch.float32) * s.sy + s.oy + s.h) / fy).view(1, -1, 1)
             loc = _scoring.location_score(bottom, bw, bh, float(w_in), float(h_in), cfg.location_score,
                                           cfg.horizon, cfg.ground_ratio, cfg.ground_log_sigma)
             v = _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)

@@ -43,12 +43,13 @@ def integral_image(x: Tensor) -> Tensor:
 
 
 def box_sums(ii: Tensor, dx: int, dy: int, bw: int, bh: int, s: WindowSize) -> Tensor:
-    """Sums of the ``bw × bh`` boxes at ``(i·sx + dx, j·sy + dy)`` for all positions of
-    ``s``: ``(B, ny, nx)`` from an integral image ``(B, H + 1, W + 1)``."""
+    """Sums of the ``bw × bh`` boxes at ``(i·sx + dx, oy + j·sy + dy)`` for all positions
+    of ``s``: ``(B, ny, nx)`` from an integral image ``(B, H + 1, W + 1)``."""
 
     def at(oy: int, ox: int) -> Tensor:
         return ii[:, oy: oy + (s.ny - 1) * s.sy + 1: s.sy, ox: ox + (s.nx - 1) * s.sx + 1: s.sx]
 
+    dy += s.oy
     return at(dy + bh, dx + bw) - at(dy, dx + bw) - at(dy + bh, dx) + at(dy, dx)
 
 
@@ -59,7 +60,8 @@ def _floordiv(a: Tensor, b: Tensor) -> Tensor:
 def enclosed_sums(groups: EdgeGroups, batch: int, sizes: list[WindowSize]) -> list[Tensor]:
     """Σ_n w_n·m_n of eq. 1 for every window: the magnitude of the groups whose bounding
     box lies wholly inside the window (window pixels ``[x0, x0 + w)``, group pixels
-    ``[x1, x2]``: enclosed iff ``x0 <= x1`` and ``x2 < x0 + w``, same for y).
+    ``[x1, x2]``: enclosed iff ``x0 <= x1`` and ``x2 < x0 + w``, same for y; window
+    positions ``x0 = i·sx``, ``y0 = oy + j·sy``).
 
     Returns one ``float32 (B, ny, nx)`` tensor per size.
     """
@@ -81,11 +83,12 @@ def enclosed_sums(groups: EdgeGroups, batch: int, sizes: list[WindowSize]) -> li
             w, h = col([s.w for s in chunk]), col([s.h for s in chunk])
             sx, sy = col([s.sx for s in chunk]), col([s.sy for s in chunk])
             nx, ny = col([s.nx for s in chunk]), col([s.ny for s in chunk])
+            oy = col([s.oy for s in chunk])
             off = col(starts[lo: lo + len(chunk)])
             i0 = _floordiv(gx2 + 1 - w + sx - 1, sx).clamp_(min=0)  # ceil((x2 + 1 - w) / sx)
             i1 = torch.minimum(_floordiv(gx1, sx), nx - 1)
-            j0 = _floordiv(gy2 + 1 - h + sy - 1, sy).clamp_(min=0)
-            j1 = torch.minimum(_floordiv(gy1, sy), ny - 1)
+            j0 = _floordiv(gy2 + 1 - h - oy + sy - 1, sy).clamp_(min=0)
+            j1 = torch.minimum(_floordiv(gy1 - oy, sy), ny - 1)
             ok = (i0 <= i1) & (j0 <= j1)
             row = nx + 1
             base = off + gb * (ny + 1) * row

@@ -26,7 +26,7 @@ __all__ = ["WindowSize", "WindowGrid", "window_sizes", "window_grid"]
 @dataclass(frozen=True)
 class WindowSize:
     """One window size and its position grid: positions ``x0 = i·sx`` (``i < nx``),
-    ``y0 = j·sy`` (``j < ny``)."""
+    ``y0 = oy + j·sy`` (``j < ny``)."""
 
     w: int
     h: int
@@ -34,6 +34,7 @@ class WindowSize:
     sy: int
     nx: int
     ny: int
+    oy: int = 0
 
     @property
     def count(self) -> int:
@@ -76,8 +77,15 @@ def _series(lo: float, hi: float, ratio: float) -> list[int]:
 
 
 def window_sizes(height: int, width: int, max_width: int, min_window: int, ratio: float,
-                 step: float, aspect: tuple[float, float]) -> list[WindowSize]:
-    """The window sizes and strides for a ``height × width`` image (working pixels)."""
+                 step: float, aspect: tuple[float, float],
+                 ground: tuple[float, float, float] | None = None) -> list[WindowSize]:
+    """The window sizes and strides for a ``height × width`` image (working pixels).
+
+    ``ground = (horizon, r_lo, r_hi)`` keeps, for each height ``h``, only the rows whose
+    bottom ``y_b`` makes ``h / (y_b − horizon·height)`` lie in ``[r_lo, r_hi]``: an
+    object standing on a flat road has a box height about proportional to how far below
+    the horizon its bottom is (object height / camera height).
+    """
     out = []
     widths = _series(min_window, min(max_width, width), ratio)
     heights = _series(min_window, height, ratio)
@@ -86,19 +94,27 @@ def window_sizes(height: int, width: int, max_width: int, min_window: int, ratio
             if not (aspect[0] <= w / h <= aspect[1]):
                 continue
             sx, sy = max(1, round(step * w)), max(1, round(step * h))
-            out.append(WindowSize(w, h, sx, sy, (width - w) // sx + 1, (height - h) // sy + 1))
+            j_lo, j_hi = 0, (height - h) // sy
+            if ground is not None:
+                yh, r_lo, r_hi = ground[0] * height, ground[1], ground[2]
+                j_lo = max(j_lo, math.ceil((yh + h / r_hi - h) / sy - 1e-9))
+                j_hi = min(j_hi, math.floor((yh + h / r_lo - h) / sy + 1e-9))
+                if j_hi < j_lo:
+                    continue
+            out.append(WindowSize(w, h, sx, sy, (width - w) // sx + 1, j_hi - j_lo + 1, j_lo * sy))
     return out
 
 
 @lru_cache(maxsize=32)
 def _grid(height: int, width: int, bounds: tuple[tuple[int, int], ...], min_window: int, ratio: float,
-          step: float, aspect: tuple[float, float], assign: str) -> WindowGrid:
+          step: float, aspect: tuple[float, float], assign: str,
+          ground: tuple[float, float, float] | None) -> WindowGrid:
     region_w = max(b - a for a, b in bounds)
-    sizes = window_sizes(height, width, region_w, min_window, ratio, step, aspect)
+    sizes = window_sizes(height, width, region_w, min_window, ratio, step, aspect, ground)
     boxes, offsets = [], [0]
     for s in sizes:
         xs = torch.arange(s.nx, dtype=torch.float32) * s.sx
-        ys = torch.arange(s.ny, dtype=torch.float32) * s.sy
+        ys = torch.arange(s.ny, dtype=torch.float32) * s.sy + s.oy
         y0, x0 = torch.meshgrid(ys, xs, indexing="ij")
         boxes.append(torch.stack([x0, y0, x0 + s.w, y0 + s.h], -1).view(-1, 4))
         offsets.append(offsets[-1] + s.count)
@@ -116,8 +132,11 @@ def _grid(height: int, width: int, bounds: tuple[tuple[int, int], ...], min_wind
 
 
 def window_grid(height: int, width: int, bounds: Tensor, min_window: int, ratio: float, step: float,
-                aspect: tuple[float, float], assign: str = "nearest") -> WindowGrid:
+                aspect: tuple[float, float], assign: str = "nearest",
+                ground: tuple[float, float, float] | None = None) -> WindowGrid:
     """The (cached) :class:`WindowGrid` of a ``height × width`` working image whose
-    regions have column ``bounds`` (``int64 [R, 2]``); ``min_window`` in working pixels."""
+    regions have column ``bounds`` (``int64 [R, 2]``); ``min_window`` in working pixels;
+    ``ground`` as in :func:`window_sizes`."""
     key = tuple((int(a), int(b)) for a, b in bounds.tolist())
-    return _grid(height, width, key, int(min_window), float(ratio), float(step), tuple(aspect), assign)
+    g = None if ground is None else tuple(float(v) for v in ground)
+    return _grid(height, width, key, int(min_window), float(ratio), float(step), tuple(aspect), assign, g)

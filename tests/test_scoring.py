@@ -22,7 +22,7 @@ def _brute_enclosed(g: EdgeGroups, b: int, s: WindowSize) -> torch.Tensor:
     out = torch.zeros(b, s.ny, s.nx, dtype=torch.float64)
     for j in range(s.ny):
         for i in range(s.nx):
-            x0, y0 = i * s.sx, j * s.sy
+            x0, y0 = i * s.sx, s.oy + j * s.sy
             for k in range(len(g)):
                 if (x0 <= g.x1[k] and g.x2[k] <= x0 + s.w - 1 and y0 <= g.y1[k] and g.y2[k] <= y0 + s.h - 1):
                     out[g.batch[k], j, i] += float(g.magnitude[k])
@@ -37,6 +37,8 @@ def test_enclosed_sums_match_brute_force():
         sizes = []
         for ww, hh, sx, sy in [(5, 5, 1, 1), (8, 6, 2, 3), (11, 9, 3, 2), (w, h, 1, 1), (7, 12, 4, 1)]:
             sizes.append(WindowSize(ww, hh, sx, sy, (w - ww) // sx + 1, (h - hh) // sy + 1))
+        # a size whose rows start below the top (the ground band) and stop early
+        sizes.append(WindowSize(6, 5, 2, 2, (w - 6) // 2 + 1, 3, oy=4))
         got = enclosed_sums(g, b, sizes)
         for s, e in zip(sizes, got):
             torch.testing.assert_close(e.double(), _brute_enclosed(g, b, s), rtol=1e-5, atol=1e-4)
@@ -53,12 +55,12 @@ def test_box_sums_match_direct_sums():
     gen = torch.Generator().manual_seed(1)
     x = torch.rand(2, 13, 19, generator=gen)
     ii = integral_image(x)
-    s = WindowSize(6, 4, 2, 3, (19 - 6) // 2 + 1, (13 - 4) // 3 + 1)
+    s = WindowSize(6, 4, 2, 3, (19 - 6) // 2 + 1, (13 - 4 - 2) // 3 + 1, oy=2)
     dx, dy, cw, ch = centre_box(s.w, s.h, 0.5)
     got = box_sums(ii, dx, dy, cw, ch, s)
     for j in range(s.ny):
         for i in range(s.nx):
-            x0, y0 = i * s.sx + dx, j * s.sy + dy
+            x0, y0 = i * s.sx + dx, s.oy + j * s.sy + dy
             ref = x[:, y0: y0 + ch, x0: x0 + cw].sum((1, 2))
             torch.testing.assert_close(got[:, j, i], ref, rtol=1e-5, atol=1e-5)
 

@@ -32,3 +32,19 @@ def test_grid_boxes_and_region_assignment():
             assert covered == g.count and sum(i.numel() for i in g.region_windows) == g.count
         else:
             assert covered < g.count  # windows straddling two strips' edges fall in none (NOTES)
+
+
+def test_ground_band_keeps_rows_where_height_fits_the_bottom_row():
+    h_img, horizon, lo, hi = 200, 0.4, 0.5, 2.0
+    sizes = window_sizes(h_img, 300, 300, 10, 1.3, 0.15, (0.25, 4.0), ground=(horizon, lo, hi))
+    full = window_sizes(h_img, 300, 300, 10, 1.3, 0.15, (0.25, 4.0))
+    assert sum(s.count for s in sizes) < sum(s.count for s in full)
+    for s in sizes:
+        for j in range(s.ny):
+            bottom = s.oy + j * s.sy + s.h
+            assert bottom <= h_img
+            ratio = s.h / (bottom - horizon * h_img)
+            assert lo - 1e-6 <= ratio <= hi + 1e-6
+        # the first row excluded above and below breaks the band (or leaves the image)
+        above = s.oy - s.sy + s.h
+        assert above - horizon * h_img <= 0 or s.h / (above - horizon * h_img) > hi - 1e-6 or s.oy - s.sy < 0
