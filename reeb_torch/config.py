@@ -97,6 +97,9 @@ class ReebConfig:
     entropy_form: EntropyForm = "abs-diff"
     """``abs-diff``: %P = 1 − |σ − H|/σ (NOTES #9). ``printed``: |σ + H|, which gives
     no proposals for any H > 0 and is kept only to show that it cannot run."""
+    region_quota: bool = False
+    """Also split the ``top_k`` output among the regions by their shares (eq. 9 applied to
+    the final proposals, not only to the candidates)."""
     candidates_per_region: int = 4000
     """Most windows a region may pass on to ranking (eq. 9's "maximum number of proposals
     that the user wants to generate in a region"); the region passes share × this."""
@@ -114,9 +117,9 @@ class ReebConfig:
     """Keep only windows whose height h and bottom row y_b satisfy
     r_lo <= h / (y_b − horizon·H) <= r_hi: objects standing on the road (a flat-ground
     camera prior, in the spirit of eq. 11's "lower boxes are bigger"). ``None`` = all rows."""
-    local_max: bool = True
+    local_max: bool = False
     """Keep only windows whose score is a local maximum among the 8 neighbouring
-    positions of the same size before NMS (a fast pre-NMS; neighbours overlap heavily)."""
+    positions of the same size before NMS (a cheap pre-NMS; costs recall at IoU 0.7)."""
 
     # -- eq. 1: edge score ---------------------------------------------------------------
     score_norm: ScoreNorm = "perimeter"
@@ -130,8 +133,9 @@ class ReebConfig:
     """Side of the centre region c relative to the box (eq. 1: half)."""
 
     # -- eqs. 10-12: road, location and combined score -----------------------------------
-    road_score: RoadScore = "reward"
-    """``reward``: V adds β·R as printed; ``penalize``: β·(1 − R) (NOTES #10); ``none``."""
+    road_score: RoadScore = "none"
+    """``reward``: V adds β·R as printed (``paper``); ``penalize``: β·(1 − R) (NOTES #10);
+    ``none``: no road term (the default: best measured)."""
     location_score: LocationScore = "ground"
     """``paper``: L = b_y/(b_w·b_h)·W (eq. 11); ``ground``: how well the box height fits
     a ground-plane object standing at its bottom row, in [0, 1]; ``none``: L = 1."""
@@ -144,8 +148,9 @@ class ReebConfig:
     """Tolerance (in log units) of that ratio for ``location_score='ground'``."""
     alpha: float = 0.6
     beta: float = 0.4
-    min_edge_score: float = 0.01
-    """Windows with S below this are dropped (Sec. 3.7)."""
+    min_edge_score: float = 0.0
+    """Windows with S below this are dropped (Sec. 3.7 prints 0.01, kept by ``paper``; the
+    scale of S depends on the edge map's, so the default only drops S <= 0, measured)."""
 
     # -- eq. 13: NMS and output ----------------------------------------------------------
     nms_iou: float = 0.7
@@ -217,10 +222,10 @@ class ReebConfig:
     def paper(cls, **overrides: object) -> "ReebConfig":
         """The printed text wherever it can run as printed (see NOTES.md).
 
-        Full resolution, plain connected components, area normalisation (eq. 1), the
-        road score as a reward (eq. 12), L unnormalised (eq. 11), eq. 8 and eq. 9 in
-        their corrected forms (their printed forms give no regions / no proposals), no
-        pre-NMS local-maximum filter.
+        Full resolution, Sobel edges as they are (no thinning), plain connected components,
+        area normalisation (eq. 1), S >= 0.01, the road score as a reward (eq. 12), L
+        unnormalised (eq. 11), windows inside their regions, every row; eq. 8 and eq. 9 in
+        their corrected forms (their printed forms give no regions / no proposals).
         """
         base = dict(
             scale=1.0,
@@ -235,6 +240,7 @@ class ReebConfig:
             region_assign="contained",
             thin_edges=False,
             ground_band=None,
+            min_edge_score=0.01,
         )
         base.update(overrides)
         return cls(**base)  # type: ignore[arg-type]

@@ -9,7 +9,10 @@ sizes is split into equal-size batches.
 from __future__ import annotations
 
 import math
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Iterator
 
 import torch
 import torch.nn.functional as F
@@ -79,6 +82,22 @@ class ProposalGenerator(nn.Module):
             raise TypeError(f"config must be a ReebConfig, got {type(cfg).__name__}")
         self.config = cfg.replace(**overrides) if overrides else cfg
         self._device_cache: dict = {}
+        self.stage_times: dict[str, float] | None = None
+        """Set to ``{}`` to accumulate wall seconds per stage (edges, groups, road,
+        regions, scoring, nms) over calls; ``None`` (default) records nothing."""
+
+    @contextmanager
+    def _stage(self, name: str, device: torch.device) -> Iterator[None]:
+        if self.stage_times is None:
+            yield
+            return
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        t0 = time.perf_counter()
+        yield
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        self.stage_times[name] = self.stage_times.get(name, 0.0) + time.perf_counter() - t0
 
     def extra_repr(self) -> str:
         c = self.config
@@ -124,39 +143,52 @@ class ProposalGenerator(nn.Module):
         """The algorithm on a batch ``(B, 3, H, W)`` of equal-sized float images."""
         cfg = self.config
         b, _, h_in, w_in = x.shape
-        xk = self._working_image(x)
+        with self._stage("edges", x.device):
+            xk = self._working_image(x)
         hk, wk = xk.shape[-2:]
         fx, fy = wk / w_in, hk / h_in
 
-        # Sec. 3.4: Edge_Map = Sobel(Gaussian_Blur(I)); Sec. 3.7: edge groups
-        gray = _edges.to_gray(xk)
-        edges = _edges.edge_map(gray, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges)
-        groups = _groups.edge_groups(edges, cfg.grouping, cfg.group_cell)
+        dev = x.device
+        # Sec. 3.4: Edge_Map = Sobel(Gaussian_Blur(I))
+        with self._stage("edges", dev):
+            gray = _edges.to_gray(xk)
+            edges = _edges.edge_map(gray, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges)
+        # Sec. 3.7: adjacent edge pixels form edge groups
+        with self._stage("groups", dev):
+            groups = _groups.edge_groups(edges, cfg.grouping, cfg.group_cell)
         # Sec. 3.5: Road_Mask = Generate_Road_Segmentation(I, HSV)
-        road = _road.road_mask(xk, cfg.road_samples, cfg.road_band, cfg.road_tolerance,
-                               cfg.road_combine, cfg.seed)
-        # Sec. 3.6: Regions = Divide_Image_Into_Regions(I, Camera_Params); eqs. 2, 9
-        bounds = self._region_bounds(wk)
-        if cfg.use_regions:
-            entropy = _entropy.region_entropy(gray, bounds, cfg.entropy_bins)
-            share = _entropy.proposal_share(entropy, cfg.entropy_sigma, cfg.entropy_form)
-        else:  # one region, the whole image: entropy is not applicable (Sec. 4.2)
-            entropy = torch.zeros(b, 1, device=x.device)
-            share = torch.ones(b, 1, device=x.device)
-        # Sec. 3.6: dense sliding windows; Sec. 3.7: scores (eqs. 1, 10-12)
-        grid = _windows.window_grid(hk, wk, bounds, self._min_window_working(fx, fy), cfg.size_ratio,
-                                    cfg.window_step, cfg.aspect_range, cfg.region_assign,
-                                    None if cfg.ground_band is None else (cfg.horizon, *cfg.ground_band))
-        scores = self._score_windows(edges, road, groups, grid, fx, fy, h_in, w_in)
-        # rank within each region's budget, then Sec. 3.8: NMS (eq. 13)
-        chosen = self._select(scores, grid, share)
-        boxes_in = self._device_tensor(grid.boxes, x.device) / torch.tensor([fx, fy, fx, fy], device=x.device)
-        results = []
-        for i in range(b):
-            cand = torch.nonzero(chosen[i]).squeeze(1)
-            bx, sc = boxes_in[cand], scores[i, cand]
-            keep_idx = nms(bx, sc, cfg.nms_iou)[: cfg.top_k]
-            results.append({"boxes": bx[keep_idx].contiguous(), "scores": sc[keep_idx].contiguous()})
+        with self._stage("road", dev):
+            road = _road.road_mask(xk, cfg.road_samples, cfg.road_band, cfg.road_tolerance,
+                                   cfg.road_combine, cfg.seed)
+        # Sec. 3.6: Regions = Divide_Image_Into_Regions(I, Camera_Params); eqs. 2 and 9
+        with self._stage("regions", dev):
+            bounds = self._region_bounds(wk)
+            if cfg.use_regions:
+                entropy = _entropy.region_entropy(gray, bounds, cfg.entropy_bins)
+                share = _entropy.proposal_share(entropy, cfg.entropy_sigma, cfg.entropy_form)
+            else:  # one region, the whole image: entropy is not applicable (Sec. 4.2)
+                entropy = torch.zeros(b, 1, device=dev)
+                share = torch.ones(b, 1, device=dev)
+        # Sec. 3.6-3.7: dense sliding windows, scored by eqs. 1, 10-12, ranked per region
+        with self._stage("scoring", dev):
+            ground = None if cfg.ground_band is None else (cfg.horizon, *cfg.ground_band)
+            grid = _windows.window_grid(hk, wk, bounds, self._min_window_working(fx, fy), cfg.size_ratio,
+                                        cfg.window_step, cfg.aspect_range, cfg.region_assign, ground)
+            scores = self._score_windows(edges, road, groups, grid, fx, fy, h_in, w_in)
+            chosen = self._select(scores, grid, share)
+        # Sec. 3.8: Final_Proposals = NMS(Sorted_Proposals) (eq. 13)
+        with self._stage("nms", dev):
+            boxes_in = self._device_tensor(grid.boxes, dev) / torch.tensor([fx, fy, fx, fy], device=dev)
+            region_of = self._device_tensor(grid.region_of, dev)
+            results = []
+            for i in range(b):
+                cand = torch.nonzero(chosen[i]).squeeze(1)
+                bx, sc = boxes_in[cand], scores[i, cand]
+                keep_idx = nms(bx, sc, cfg.nms_iou)
+                if cfg.region_quota and len(bounds) > 1:
+                    keep_idx = self._quota(keep_idx, region_of[cand[keep_idx]], share[i])
+                keep_idx = keep_idx[: cfg.top_k]
+                results.append({"boxes": bx[keep_idx].contiguous(), "scores": sc[keep_idx].contiguous()})
         extra: dict = {}
         if keep:
             extra = dict(edges=edges, road=road, entropy=entropy, share=share,
@@ -229,6 +261,25 @@ class ProposalGenerator(nn.Module):
             ok = torch.isfinite(vals) & (torch.arange(k, device=scores.device)[None] < budget[:, r: r + 1])
             chosen.scatter_add_(1, idx[pos], ok.to(torch.uint8))
         return chosen > 0
+
+    def _quota(self, keep: Tensor, region: Tensor, share: Tensor) -> Tensor:
+        """Eq. 9 on the output: of the ``top_k`` proposals, region r gets up to
+        ``top_k · share_r / Σ share`` (its best after NMS); places a region leaves empty go
+        to the best of the rest. ``keep`` is in descending score order and stays so."""
+        k = self.config.top_k
+        if keep.numel() <= k:
+            return keep
+        total = float(share.sum())
+        if total <= 0:
+            return keep
+        quota = torch.floor(share * (k / total)).long()  # (R,)
+        onehot = torch.nn.functional.one_hot(region, share.numel())
+        rank = (onehot.cumsum(0) * onehot).sum(1)  # 1-based rank within its region
+        first = rank <= quota[region]
+        n_first = int(first.sum())
+        rest = torch.nonzero(~first).squeeze(1)[: max(0, k - n_first)]
+        sel = torch.cat([torch.nonzero(first).squeeze(1), rest]).sort().values
+        return keep[sel]
 
     def _device_tensor(self, t: Tensor, device: torch.device) -> Tensor:
         if t.device == device:

@@ -51,12 +51,14 @@ class WindowGrid:
         boxes: ``float32 [N, 4]`` all windows (x1, y1, x2, y2), working pixels, flat order
             (size-major, then row-major positions).
         region_windows: per region, ``int64`` indices of the windows that count against it.
+        region_of: ``int64 [N]`` the region whose centre is nearest to each window's centre.
     """
 
     sizes: list[WindowSize]
     offsets: list[int]
     boxes: Tensor
     region_windows: list[Tensor]
+    region_of: Tensor
 
     @property
     def count(self) -> int:
@@ -120,15 +122,14 @@ def _grid(height: int, width: int, bounds: tuple[tuple[int, int], ...], min_wind
         offsets.append(offsets[-1] + s.count)
     allb = torch.cat(boxes) if boxes else torch.zeros(0, 4)
     b = torch.tensor(bounds, dtype=torch.float32)  # (R, 2)
+    centre = (allb[:, 0] + allb[:, 2]) / 2
+    nearest = (centre[:, None] - b.mean(1)[None]).abs().argmin(1)
     if assign == "contained":
         inside = (allb[:, None, 0] >= b[None, :, 0]) & (allb[:, None, 2] <= b[None, :, 1])  # (N, R)
         region_windows = [torch.nonzero(inside[:, r]).squeeze(1) for r in range(len(bounds))]
     else:
-        centre = (allb[:, 0] + allb[:, 2]) / 2
-        rc = b.mean(1)
-        nearest = (centre[:, None] - rc[None]).abs().argmin(1)
         region_windows = [torch.nonzero(nearest == r).squeeze(1) for r in range(len(bounds))]
-    return WindowGrid(sizes, offsets, allb, region_windows)
+    return WindowGrid(sizes, offsets, allb, region_windows, nearest)
 
 
 def window_grid(height: int, width: int, bounds: Tensor, min_window: int, ratio: float, step: float,

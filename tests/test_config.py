@@ -9,7 +9,7 @@ from reeb_torch import PRESETS, ReebConfig, get_preset
 
 def test_paper_constants_are_the_defaults():
     c = ReebConfig()
-    assert (c.alpha, c.beta, c.min_edge_score, c.nms_iou, c.top_k) == (0.6, 0.4, 0.01, 0.7, 2000)
+    assert (c.alpha, c.beta, c.nms_iou, c.top_k) == (0.6, 0.4, 0.7, 2000)
     assert (c.camera_height_m, c.vertical_fov_deg, c.horizontal_fov_deg, c.max_object_width_m) == (1.65, 35.0, 90.0, 2.55)
     assert c.entropy_sigma == 4.0 and c.region_overlap == 0.5
 
@@ -19,6 +19,7 @@ def test_paper_preset_follows_the_printed_text():
     assert p.scale == 1.0 and p.grouping == "connected" and p.group_cell is None
     assert p.score_norm == "area" and p.road_score == "reward" and p.location_score == "paper"
     assert p.road_combine == "and" and not p.thin_edges and not p.local_max
+    assert p.min_edge_score == 0.01 and p.ground_band is None and p.region_assign == "contained"
 
 
 def test_presets_and_lookup():

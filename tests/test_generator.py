@@ -120,3 +120,23 @@ def test_cuda_matches_cpu(crop):
     assert gpu["boxes"].is_cuda
     n = min(50, cpu["boxes"].shape[0])
     torch.testing.assert_close(gpu["scores"][:n].cpu(), cpu["scores"][:n], rtol=1e-3, atol=1e-4)
+
+
+def test_region_quota_splits_the_output_by_share():
+    gen = ProposalGenerator(top_k=4)
+    keep = torch.arange(10)  # already in score order
+    region = torch.tensor([0, 0, 0, 0, 0, 1, 1, 0, 1, 2])
+    share = torch.tensor([0.5, 0.5, 0.0])
+    # quota: 2 for region 0, 2 for region 1, none for region 2
+    assert gen._quota(keep, region, share).tolist() == [0, 1, 5, 6]
+    # a region with too few proposals leaves its places to the best of the rest
+    share = torch.tensor([0.25, 0.0, 0.75])
+    assert gen._quota(keep, region, share).tolist() == [0, 1, 2, 9]
+
+
+def test_stage_times_are_recorded(crop):
+    gen = ProposalGenerator(**SMALL)
+    gen.stage_times = {}
+    gen([crop])
+    assert set(gen.stage_times) == {"edges", "groups", "road", "regions", "scoring", "nms"}
+    assert all(v >= 0 for v in gen.stage_times.values())

@@ -1,0 +1,99 @@
+"""Speed of REEB per stage, in the layout of the paper's Table 2, with and without region
+enhancement.
+
+End to end from decoded tensors (uint8, already in memory) to ranked boxes, at a given
+batch size and proposal count, on the frames of a KITTI-format folder. Each configuration
+is warmed up once (window grids are cached per image size), then timed over all frames;
+the median over ``--repeats`` passes is reported.
+
+Rerun: ``python benchmarks/speed.py [--data DIR] [--batch 8] [--top-k 2000] [--threads N]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import default_kitti_dir, environment, rerun_line  # noqa: E402
+
+from reeb_torch import ProposalGenerator, get_preset  # noqa: E402
+from reeb_torch.io import read_image  # noqa: E402
+
+STAGES = [
+    ("Edge detection (resize, blur, Sobel, thinning)", "edges"),
+    ("Edge groups (Sec. 3.7)", "groups"),
+    ("Road segmentation (Sec. 3.5)", "road"),
+    ("Regions and entropy (Sec. 3.6, eqs. 2, 9)", "regions"),
+    ("Proposal scoring (windows, eqs. 1, 10-12, ranking)", "scoring"),
+    ("NMS (eq. 13)", "nms"),
+]
+
+
+def measure(preset: str, images: list[torch.Tensor], batch: int, top_k: int, repeats: int,
+            device: str) -> dict:
+    gen = ProposalGenerator(get_preset(preset), top_k=top_k).to(device)
+    imgs = [im.to(device) for im in images]
+    gen(imgs[:batch])  # warm-up
+    totals, stages = [], []
+    for _ in range(repeats):
+        gen.stage_times = {}
+        t0 = time.perf_counter()
+        for i in range(0, len(imgs), batch):
+            gen(imgs[i: i + batch])
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+        totals.append((time.perf_counter() - t0) * 1000 / len(imgs))
+        stages.append({k: v * 1000 / len(imgs) for k, v in gen.stage_times.items()})
+    best = min(range(repeats), key=lambda r: abs(totals[r] - statistics.median(totals)))
+    return {"total": statistics.median(totals), "stages": stages[best], "all_totals": totals}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=default_kitti_dir())
+    ap.add_argument("--limit", type=int, default=None)
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--top-k", type=int, default=2000)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--presets", nargs="*", default=["default", "default-no-regions"])
+    ap.add_argument("--out", type=Path, default=Path("runs/speed"))
+    args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    print("# rerun:", rerun_line("benchmarks/speed.py", argv if argv is not None else sys.argv[1:]))
+    files = sorted((args.data / "images").glob("*.png")) or sorted((args.data / "image_2").glob("*.png"))
+    if not files:
+        raise SystemExit(f"no images under {args.data}/images or {args.data}/image_2")
+    files = files[: args.limit] if args.limit else files
+    images = [read_image(f) for f in files]
+    print(f"# {len(images)} frames of {args.data}, batch {args.batch}, top-{args.top_k}, device {args.device}, "
+          f"torch threads {torch.get_num_threads()}; median of {args.repeats} passes, ms per image")
+    res = {p: measure(p, images, args.batch, args.top_k, args.repeats, args.device) for p in args.presets}
+    head = f"{'Process':52s}" + "".join(f"{p:>22s}" for p in args.presets)
+    lines = [head, "-" * len(head)]
+    for label, key in STAGES:
+        lines.append(f"{label:52s}" + "".join(f"{res[p]['stages'].get(key, 0.0):22.1f}" for p in args.presets))
+    lines.append("-" * len(head))
+    lines.append(f"{'Total (end to end, median)':52s}" + "".join(f"{res[p]['total']:22.1f}" for p in args.presets))
+    lines.append(f"{'Paper, Table 2 (C++, i7-8750H, Sobel)':52s}" + "".join(
+        f"{(15.0 if 'no-regions' not in p else 40.0):22.1f}" for p in args.presets))
+    table = "\n".join(lines)
+    print(table)
+    args.out.mkdir(parents=True, exist_ok=True)
+    record = {"results": res, "table": table, "args": {k: str(v) for k, v in vars(args).items()}, "env": environment()}
+    (args.out / "speed.json").write_text(json.dumps(record, indent=2))
+    (args.out / "speed.txt").write_text(table + "\n")
+    return record
+
+
+if __name__ == "__main__":
+    main()
