@@ -1,0 +1,427 @@
+"""ReebRPN inside torchvision detectors, the MobileNetV3 builder, the proposal cache.
+
+References computed another way: the ground-truth boxes as torchvision's own transform
+maps them (the RPN's proposals must equal them bit for bit), hand-computed resize
+ratios, and a stub box head that returns its proposals unchanged (so the detections must
+come back equal to the input boxes in input pixels).
+"""
+
+from __future__ import annotations
+
+import copy
+import shutil
+import sys
+import warnings
+from collections import OrderedDict
+from pathlib import Path
+
+import pytest
+import torch
+from torch import nn
+from torchvision.models.detection import FasterRCNN, MaskRCNN
+from torchvision.models.detection.anchor_utils import AnchorGenerator
+
+from reeb_torch import ReebConfig
+from reeb_torch.data import read_kitti_labels
+from reeb_torch.detection import (
+    CACHE_FORMAT,
+    ProposalCache,
+    ReebRPN,
+    StaleCacheError,
+    build_cache,
+    image_digest,
+    map_boxes,
+    reeb_fasterrcnn_mobilenet_v3,
+)
+from reeb_torch.io import read_image
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples" / "data"
+CLASSES = ("Car", "Pedestrian", "Cyclist", "Truck")
+FRAMES = ("kitti_000001", "kitti_000008")
+# Small model input for speed: KITTI's 1242×375 frames become 424×128.
+SMALL = dict(min_size=128, max_size=640, box_batch_size_per_image=64)
+
+
+# -- helpers ----------------------------------------------------------------------------
+
+
+class FixedGenerator(nn.Module):
+    """Stand-in for ProposalGenerator: ``boxes_for(image)`` proposals, ranked as given;
+    records the size of every image it is asked about."""
+
+    def __init__(self, boxes_for) -> None:
+        super().__init__()
+        self.boxes_for = boxes_for
+        self.seen: list[tuple[int, int]] = []
+
+    def forward(self, images):
+        out = []
+        for image in images:
+            self.seen.append(tuple(image.shape[-2:]))
+            b = self.boxes_for(image).float()
+            out.append({"boxes": b, "scores": torch.linspace(1.0, 0.0, len(b))})
+        return out
+
+
+def random_boxes(h: int, w: int, n: int, seed: int) -> torch.Tensor:
+    """``n`` boxes with non-integer corners strictly inside an h×w image."""
+    g = torch.Generator().manual_seed(seed)
+    xy = torch.rand(n, 2, generator=g) * torch.tensor([w * 0.6, h * 0.6]) + 1.3
+    wh = torch.rand(n, 2, generator=g) * torch.tensor([w * 0.3, h * 0.3]) + 4.7
+    return torch.cat([xy, xy + wh], dim=1)
+
+
+class TinyBackbone(nn.Sequential):
+    def __init__(self) -> None:
+        super().__init__(nn.Conv2d(3, 8, 3, stride=4, padding=1), nn.ReLU())
+        self.out_channels = 8
+
+
+def tiny_faster_rcnn(rpn: ReebRPN, **kwargs) -> FasterRCNN:
+    torch.manual_seed(0)
+    model = FasterRCNN(TinyBackbone(), num_classes=3,
+                       rpn_anchor_generator=AnchorGenerator(((32,),), ((1.0,),)), **kwargs)
+    return rpn.attach(model)
+
+
+class PassThroughHeads(nn.Module):
+    """A box head that returns its proposals as detections (label 1, score 1)."""
+
+    def forward(self, features, proposals, image_sizes, targets=None):
+        return [{"boxes": p, "labels": torch.ones(len(p), dtype=torch.int64),
+                 "scores": torch.ones(len(p))} for p in proposals], {}
+
+
+def load_frame(stem: str) -> dict:
+    objects = read_kitti_labels(EXAMPLES / f"{stem}.txt", classes=CLASSES)
+    return {
+        "image": read_image(EXAMPLES / f"{stem}.png"),
+        "boxes": torch.tensor([o.box for o in objects], dtype=torch.float32).reshape(-1, 4),
+        "labels": torch.tensor([CLASSES.index(o.type) for o in objects], dtype=torch.int64),
+        "image_id": stem,
+        "path": str(EXAMPLES / f"{stem}.png"),
+    }
+
+
+def model_inputs(frames: list[dict]) -> tuple[list, list]:
+    images = [f["image"].float() / 255.0 for f in frames]
+    targets = [{"boxes": f["boxes"], "labels": f["labels"] + 1} for f in frames]
+    return images, targets
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[dict]:
+    return [load_frame(s) for s in FRAMES]
+
+
+@pytest.fixture(scope="module")
+def config() -> ReebConfig:
+    return ReebConfig().replace(top_k=300)
+
+
+@pytest.fixture(scope="module")
+def cache(frames, config, tmp_path_factory) -> ProposalCache:
+    """Real REEB proposals of the two example frames, computed once."""
+    path = tmp_path_factory.mktemp("cache") / "proposals.pt"
+    return build_cache(frames, path, config, progress=False)
+
+
+# -- box mapping under resize ---------------------------------------------------------------
+
+
+def test_proposals_map_exactly_like_the_ground_truth():
+    """In training, the transform resizes the targets; proposals that are the same boxes in
+    input pixels must reach the box head identical to the resized targets, bit for bit,
+    for images of different sizes and a random training scale."""
+    sizes = [(100, 300), (120, 200), (97, 331)]
+    gts = {s: random_boxes(*s, n=7, seed=i) for i, s in enumerate(sizes)}
+    rpn = ReebRPN(generator=FixedGenerator(lambda im: gts[tuple(im.shape[-2:])]),
+                  post_nms_top_n_train=100)
+    model = tiny_faster_rcnn(rpn, min_size=(64, 80, 96), max_size=400)
+    seen = {}
+    rpn.register_forward_hook(lambda m, args, out: seen.update(args=args, out=out))
+    images = [torch.rand(3, *s) for s in sizes]
+    targets = [{"boxes": gts[s], "labels": torch.ones(7, dtype=torch.int64)} for s in sizes]
+    model.train()
+    for _ in range(3):  # three draws of the training scale
+        model(images, targets)
+        image_list, _, resized_targets = seen["args"]
+        proposals = seen["out"][0]
+        assert rpn.generator.seen[-3:] == sizes  # REEB saw the input images
+        for i, s in enumerate(sizes):
+            assert torch.equal(proposals[i], resized_targets[i]["boxes"])
+            # hand-computed reference: scale x by w'/W and y by h'/H
+            h, w = image_list.image_sizes[i]
+            ratio = torch.tensor([w / s[1], h / s[0], w / s[1], h / s[0]], dtype=torch.float64)
+            torch.testing.assert_close(proposals[i].double(), gts[s].double() * ratio,
+                                       rtol=0, atol=1e-4)
+
+
+def test_map_boxes_clips_and_drops_degenerate():
+    boxes = torch.tensor([[-5.0, -5.0, 50.0, 40.0], [10.0, 10.0, 10.0, 30.0], [90, 70, 120, 90]])
+    out = map_boxes(boxes, (80, 100), (40, 50))
+    torch.testing.assert_close(out, torch.tensor([[0.0, 0.0, 25.0, 20.0], [45.0, 35.0, 50.0, 40.0]]))
+
+
+def test_detections_come_back_in_input_pixels():
+    """transform → REEB → box head (pass-through) → postprocess returns the input boxes."""
+    sizes = [(150, 480), (91, 203)]
+    gts = {s: random_boxes(*s, n=5, seed=10 + i) for i, s in enumerate(sizes)}
+    rpn = ReebRPN(generator=FixedGenerator(lambda im: gts[tuple(im.shape[-2:])]))
+    model = tiny_faster_rcnn(rpn, min_size=64, max_size=1000)
+    model.roi_heads = PassThroughHeads()
+    model.eval()
+    with torch.no_grad():
+        out = model([torch.rand(3, *s) for s in sizes])
+    for s, det in zip(sizes, out):
+        torch.testing.assert_close(det["boxes"], gts[s], rtol=0, atol=1e-3)
+
+
+def test_post_nms_top_n_in_training_and_evaluation():
+    rpn = ReebRPN(generator=FixedGenerator(lambda im: random_boxes(100, 100, 50, 0)),
+                  post_nms_top_n_train=20, post_nms_top_n_test=7)
+    model = tiny_faster_rcnn(rpn, min_size=100, max_size=100)
+    counts = []
+    rpn.register_forward_hook(lambda m, a, out: counts.append(len(out[0][0])))
+    model.train()
+    model([torch.rand(3, 100, 100)], [{"boxes": torch.tensor([[1.0, 1, 30, 30]]),
+                                        "labels": torch.tensor([1])}])
+    model.eval()
+    with torch.no_grad():
+        model([torch.rand(3, 100, 100)])
+    assert counts == [20, 7]
+
+
+def test_unattached_rpn_warns_and_uses_the_resized_batch():
+    gen = FixedGenerator(lambda im: random_boxes(*im.shape[-2:], n=4, seed=1))
+    torch.manual_seed(0)
+    model = FasterRCNN(TinyBackbone(), num_classes=3, min_size=64, max_size=400,
+                       rpn_anchor_generator=AnchorGenerator(((32,),), ((1.0,),)))
+    model.rpn = ReebRPN(generator=gen)  # plain assignment, no attach
+    model.eval()
+    with pytest.warns(UserWarning, match="not attached"), torch.no_grad():
+        out = model([torch.rand(3, 100, 300)])
+    assert gen.seen == [(64, 192)]  # the resized image, recovered from the batch
+    assert out[0]["boxes"].shape[1] == 4
+
+
+def test_deepcopy_keeps_the_attachment():
+    gen = FixedGenerator(lambda im: random_boxes(*im.shape[-2:], n=4, seed=1))
+    model = tiny_faster_rcnn(ReebRPN(generator=gen), min_size=64, max_size=400)
+    clone = copy.deepcopy(model).eval()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "not attached" warning
+        with torch.no_grad():
+            clone([torch.rand(3, 100, 300)])
+    assert clone.rpn.generator.seen == [(100, 300)]
+    assert gen.seen == []
+
+
+def test_mask_rcnn_with_reeb_rpn():
+    """Any GeneralizedRCNN: Mask R-CNN trains (finite mask loss) and returns masks."""
+    sizes = [(90, 160), (70, 140)]
+    gts = {s: random_boxes(*s, n=3, seed=20 + i) for i, s in enumerate(sizes)}
+    torch.manual_seed(0)
+    model = MaskRCNN(TinyBackbone(), num_classes=3, min_size=64, max_size=200,
+                     rpn_anchor_generator=AnchorGenerator(((32,),), ((1.0,),)))
+    ReebRPN(generator=FixedGenerator(lambda im: gts[tuple(im.shape[-2:])] + 1.0)).attach(model)
+    targets = []
+    for s in sizes:
+        masks = torch.zeros(3, *s, dtype=torch.uint8)
+        for j, (x1, y1, x2, y2) in enumerate(gts[s].round().int().tolist()):
+            masks[j, y1:y2, x1:x2] = 1
+        targets.append({"boxes": gts[s], "labels": torch.tensor([1, 2, 1]), "masks": masks})
+    model.train()
+    losses = model([torch.rand(3, *s) for s in sizes], targets)
+    assert set(losses) == {"loss_classifier", "loss_box_reg", "loss_mask"}
+    assert all(torch.isfinite(v) for v in losses.values())
+    sum(losses.values()).backward()
+    model.eval()
+    with torch.no_grad():
+        out = model([torch.rand(3, *s) for s in sizes])
+    assert all("masks" in o for o in out)
+
+
+# -- the MobileNetV3 detector on real REEB proposals -----------------------------------------
+
+
+def test_training_step_runs_reeb_and_gives_finite_losses(frames, config):
+    torch.manual_seed(0)
+    model = reeb_fasterrcnn_mobilenet_v3(len(CLASSES) + 1, config=config, **SMALL)
+    assert isinstance(model.rpn, ReebRPN)
+    model.train()
+    images, targets = model_inputs(frames)
+    losses = model(images, targets)
+    assert set(losses) == {"loss_classifier", "loss_box_reg"}  # REEB adds no loss
+    assert all(torch.isfinite(v) for v in losses.values())
+    sum(losses.values()).backward()
+    grads = [p.grad for p in model.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+
+
+def test_learned_arm_is_the_same_network_with_torchvision_rpn(frames):
+    torch.manual_seed(0)
+    learned = reeb_fasterrcnn_mobilenet_v3(5, proposals="learned", **SMALL)
+    torch.manual_seed(0)
+    reeb = reeb_fasterrcnn_mobilenet_v3(5, **SMALL)
+    sd_learned, sd_reeb = learned.state_dict(), reeb.state_dict()
+    assert set(sd_reeb) == {k for k in sd_learned if not k.startswith("rpn.")}
+    assert all(torch.equal(sd_reeb[k], sd_learned[k]) for k in sd_reeb)  # same initial weights
+    learned.train()
+    losses = learned(*model_inputs(frames))
+    assert {"loss_objectness", "loss_rpn_box_reg"} <= set(losses)
+
+
+def test_evaluation_returns_detections_in_input_pixels(frames, cache, config):
+    torch.manual_seed(0)
+    model = reeb_fasterrcnn_mobilenet_v3(5, config=config, cache=cache, box_score_thresh=0.0,
+                                         **SMALL).eval()
+    images, _ = model_inputs(frames)
+    with torch.no_grad():
+        out = model(images)
+    for image, det in zip(images, out):
+        h, w = image.shape[-2:]
+        b = det["boxes"]
+        assert b.shape[1] == 4 and len(b) > 0
+        assert (b[:, 0] >= 0).all() and (b[:, 2] <= w).all() and (b[:, 3] <= h).all()
+        assert b[:, 2].max() > 424 or b[:, 3].max() > 128  # not the 424×128 model frame
+        assert set(det) == {"boxes", "labels", "scores"}
+
+
+def test_short_training_on_two_frames_overfits(frames, cache, config):
+    """From scratch, cached REEB proposals: the loss falls by half or more in 20 steps."""
+    torch.manual_seed(0)
+    model = reeb_fasterrcnn_mobilenet_v3(5, config=config, cache=cache, **dict(SMALL, min_size=96))
+    model.train()
+    images, targets = model_inputs(frames)
+    opt = torch.optim.Adam(model.parameters(), lr=3e-4)
+    history = []
+    for _ in range(20):
+        loss = sum(model(images, targets).values())
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        history.append(loss.item())
+    first, last = sum(history[:3]) / 3, sum(history[-3:]) / 3
+    assert last <= 0.5 * first, history
+
+
+# -- cache ----------------------------------------------------------------------------------
+
+
+def test_image_digest_same_for_uint8_and_float(frames):
+    u8 = frames[0]["image"]
+    assert image_digest(u8) == image_digest(u8.float() / 255.0)
+    changed = u8.clone()
+    changed[0, 0, 0] ^= 1
+    assert image_digest(changed) != image_digest(u8)
+
+
+def test_cache_file_round_trip(cache, config, tmp_path):
+    path = tmp_path / "c.pt"
+    cache.save(path)
+    raw = torch.load(path, weights_only=True)
+    assert raw["format"] == CACHE_FORMAT and raw["version"] == 1
+    assert raw["fingerprint"] == config.fingerprint()
+    entry = raw["entries"]["kitti_000001"]
+    assert entry["boxes"].dtype == torch.float32 and entry["boxes"].shape[1] == 4
+    assert entry["size"] == [375, 1242]
+    back = ProposalCache.load(path, config=config)
+    for k in cache.entries:
+        assert torch.equal(back[k].boxes, cache[k].boxes)
+        assert back[k].digest == cache[k].digest
+
+
+def test_cached_proposals_equal_live_reeb(frames, cache, config):
+    """The cache holds exactly what the generator computes (same model output either way)."""
+    live = ReebRPN(config, post_nms_top_n_test=300).eval()
+    cached = ReebRPN(config, post_nms_top_n_test=300, cache=cache).eval()
+    images = [f["image"].float() / 255.0 for f in frames]
+    for a, b in zip(live.propose(images), cached.propose(images)):
+        torch.testing.assert_close(a, b)
+
+
+def test_stale_cache_is_detected(frames, cache, config, tmp_path):
+    path = tmp_path / "c.pt"
+    cache.save(path)
+    other = config.replace(nms_iou=0.6)
+    with pytest.raises(StaleCacheError, match="nms_iou"):
+        ProposalCache.load(path, config=other)
+    with pytest.raises(StaleCacheError):
+        ReebRPN(other, cache=cache)
+    # a modified image is not looked up silently
+    rpn = ReebRPN(config, cache=cache, generator=FixedGenerator(lambda im: random_boxes(50, 50, 3, 0)))
+    modified = frames[0]["image"].clone()
+    modified[:, :10, :10] = 0
+    with pytest.raises(StaleCacheError, match="not in the proposal cache"):
+        rpn.propose([modified])
+    rpn.on_miss = "compute"
+    assert len(rpn.propose([modified])[0]) == 3
+    assert len(rpn.generator.seen) == 1
+
+
+def test_build_cache_reuses_valid_entries(frames, tmp_path):
+    cfg = ReebConfig().replace(top_k=5)
+    path = tmp_path / "c.pt"
+    gen = FixedGenerator(lambda im: random_boxes(*im.shape[-2:], n=5, seed=0))
+    build_cache(frames, path, cfg, generator=gen, progress=False)
+    assert len(gen.seen) == 2
+    build_cache(frames, path, cfg, generator=gen, progress=False)
+    assert len(gen.seen) == 2  # nothing recomputed
+    changed = [dict(frames[0], image=frames[0]["image"].flip(-1)), frames[1]]
+    cache = build_cache(changed, path, cfg, generator=gen, progress=False)
+    assert len(gen.seen) == 3  # only the changed frame
+    assert cache["kitti_000001"].digest == image_digest(changed[0]["image"])
+    build_cache(frames, path, cfg.replace(nms_iou=0.5), generator=gen, progress=False)
+    assert len(gen.seen) == 5  # another config: everything
+
+
+# -- backbone weights --------------------------------------------------------------------------
+
+
+def test_backbone_weights_from_a_local_file(tmp_path):
+    from torchvision.models import mobilenet_v3_large
+
+    torch.manual_seed(1)
+    reference = mobilenet_v3_large(weights=None)
+    path = tmp_path / "mobilenet_v3_large.pt"
+    torch.save(reference.state_dict(), path)
+    torch.manual_seed(2)
+    model = reeb_fasterrcnn_mobilenet_v3(5, backbone_weights=path, **SMALL)
+    body = model.backbone.body.state_dict()
+    ref = reference.features.state_dict()
+    for k, v in body.items():
+        if not k.endswith("num_batches_tracked"):
+            assert torch.equal(v, ref[k]), k
+    torch.save({"something": torch.zeros(3)}, tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match="features"):
+        reeb_fasterrcnn_mobilenet_v3(5, backbone_weights=tmp_path / "bad.pt", **SMALL)
+
+
+# -- the example script -----------------------------------------------------------------------
+
+
+def test_train_script_trains_checkpoints_and_resumes(tmp_path):
+    sys.path.insert(0, str(ROOT / "examples"))
+    try:
+        import train_kitti_detector as script
+    finally:
+        sys.path.pop(0)
+    data = tmp_path / "kitti"
+    for sub in ("images", "labels"):
+        (data / sub).mkdir(parents=True)
+    for i, stem in enumerate(FRAMES + FRAMES[:1]):
+        shutil.copy(EXAMPLES / f"{stem}.png", data / "images" / f"{i:06d}.png")
+        shutil.copy(EXAMPLES / f"{stem}.txt", data / "labels" / f"{i:06d}.txt")
+    common = ["--data", str(data), "--train-frames", "2", "--out", str(tmp_path / "run"),
+              "--min-size", "96", "--max-size", "640", "--box-batch-size", "32", "--proposals-train", "100",
+              "--proposals-test", "50", "--recall-ks", "50,100", "--warmup", "1",
+              "--checkpoint-every", "1", "--preset", "default"]
+    first = script.main(common + ["--iterations", "2"])
+    assert (tmp_path / "run" / "last.pt").exists() and (tmp_path / "run" / "reeb_cache.pt").exists()
+    assert first["val_frames"] == 1 and set(first["AP50_per_class"]) == set(CLASSES)
+    assert 0.0 <= first["recall"]["micro"]["100"]["0.5"] <= 1.0
+    script.main(common + ["--iterations", "3", "--resume"])
+    ckpt = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
+    assert ckpt["iteration"] == 3 and [h["iteration"] for h in ckpt["history"]] == [1, 2, 3]
