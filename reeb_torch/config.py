@@ -18,7 +18,7 @@ __all__ = ["ReebConfig", "PRESETS", "get_preset"]
 
 Grouping = Literal["connected", "cell"]
 ScoreNorm = Literal["perimeter", "area"]
-RoadScore = Literal["reward", "penalize", "none"]
+RoadScore = Literal["reward", "penalize", "none", "flat"]
 LocationScore = Literal["paper", "ground", "none"]
 EntropyForm = Literal["printed", "abs-diff"]
 
@@ -42,6 +42,8 @@ class ReebConfig:
     edge_threshold: float = 0.05
     """Sobel magnitude (of a [0, 1] grey image, normalised to [0, 1]) below which a pixel
     is no edge. The paper gives no value (NOTES #4)."""
+    edge_channels: Literal["gray", "rgb"] = "gray"
+    """Sobel on the grey image (as printed) or on each RGB channel, keeping the strongest."""
     thin_edges: bool = True
     """Keep only the one-pixel ridge of each edge (non-maximum suppression across the
     edge, as the edge maps Edge Boxes scores). Not in the paper; measured."""
@@ -101,6 +103,9 @@ class ReebConfig:
     """Also split the ``top_k`` output among the regions by their shares (eq. 9 applied to
     the final proposals, not only to the candidates)."""
     candidates_per_region: int = 4000
+    candidates_without_regions: int = 8000
+    """Windows passed on to ranking when ``use_regions=False`` (the whole image is one
+    region with share 1); about ``top_k`` of them survive NMS on KITTI."""
     """Most windows a region may pass on to ranking (eq. 9's "maximum number of proposals
     that the user wants to generate in a region"); the region passes share × this."""
 
@@ -135,7 +140,7 @@ class ReebConfig:
     # -- eqs. 10-12: road, location and combined score -----------------------------------
     road_score: RoadScore = "none"
     """``reward``: V adds β·R as printed (``paper``); ``penalize``: β·(1 − R) (NOTES #10);
-    ``none``: no road term (the default: best measured)."""
+    ``none``: no road term (the default: best measured); ``flat``: R = 1, a constant β."""
     location_score: LocationScore = "ground"
     """``paper``: L = b_y/(b_w·b_h)·W (eq. 11); ``ground``: how well the box height fits
     a ground-plane object standing at its bottom row, in [0, 1]; ``none``: L = 1."""
@@ -174,6 +179,7 @@ class ReebConfig:
             pos(name)
         check(self.scale <= 4, "scale", "in (0, 4]")
         check(0 <= self.edge_threshold < 1, "edge_threshold", "in [0, 1)")
+        check(self.edge_channels in ("gray", "rgb"), "edge_channels", "'gray' or 'rgb'")
         check(self.grouping in ("connected", "cell"), "grouping", "'connected' or 'cell'")
         check(self.group_cell is None or (isinstance(self.group_cell, int) and self.group_cell >= 2),
               "group_cell", "None or an int >= 2")
@@ -196,6 +202,8 @@ class ReebConfig:
         check(self.entropy_form in ("printed", "abs-diff"), "entropy_form", "'printed' or 'abs-diff'")
         check(isinstance(self.candidates_per_region, int) and self.candidates_per_region >= 1,
               "candidates_per_region", "an int >= 1")
+        check(isinstance(self.candidates_without_regions, int) and self.candidates_without_regions >= 1,
+              "candidates_without_regions", "an int >= 1")
         check(isinstance(self.min_window, int) and self.min_window >= 4, "min_window", "an int >= 4")
         check(self.size_ratio > 1, "size_ratio", "> 1")
         check(self.window_step <= 1, "window_step", "in (0, 1]")
@@ -203,8 +211,8 @@ class ReebConfig:
         check(0 < lo <= hi, "aspect_range", "(low, high) with 0 < low <= high")
         check(self.score_norm in ("perimeter", "area"), "score_norm", "'perimeter' or 'area'")
         check(0 < self.center_fraction < 1, "center_fraction", "in (0, 1)")
-        check(self.road_score in ("reward", "penalize", "none"), "road_score",
-              "'reward', 'penalize' or 'none'")
+        check(self.road_score in ("reward", "penalize", "none", "flat"), "road_score",
+              "'reward', 'penalize', 'none' or 'flat'")
         check(self.region_assign in ("contained", "nearest"), "region_assign", "'contained' or 'nearest'")
         pos("ground_ratio")
         pos("ground_log_sigma")

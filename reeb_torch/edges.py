@@ -15,11 +15,6 @@ from torch import Tensor
 
 __all__ = ["to_gray", "gaussian_blur", "sobel_magnitude", "thin", "remove_isolated", "edge_map"]
 
-# Sobel (kornia, normalized=True) of a unit step is 0.5: dividing by it maps a clean
-# 0 -> 1 step to magnitude 1. Values above 1 (corners) are clipped.
-_SOBEL_UNIT_STEP = 0.5
-
-
 def to_gray(images: Tensor) -> Tensor:
     """RGB ``(B, 3, H, W)`` in [0, 1] to grey ``(B, 1, H, W)`` in [0, 1] (ITU-R 601 weights,
     as OpenCV's ``COLOR_RGB2GRAY``)."""
@@ -35,9 +30,18 @@ def gaussian_blur(gray: Tensor, sigma: float) -> Tensor:
 
 def sobel_gradients(gray: Tensor) -> tuple[Tensor, Tensor]:
     """Sobel derivatives ``(gx, gy)``, each ``(B, H, W)``, of ``(B, 1, H, W)``, scaled so a
-    unit step gives 1 (kornia's normalised kernels / 0.5), replicated borders."""
-    g = kornia.filters.spatial_gradient(gray, mode="sobel", order=1, normalized=True)  # (B, 1, 2, H, W)
-    return g[:, 0, 0] / _SOBEL_UNIT_STEP, g[:, 0, 1] / _SOBEL_UNIT_STEP
+    unit step gives 1 (the 3×3 Sobel kernels / 4), replicated borders.
+
+    Computed separably with shifted slices (the same numbers as
+    ``kornia.filters.spatial_gradient(..., normalized=True) / 0.5``, several times faster
+    than a one-channel ``conv2d`` on the CPU).
+    """
+    p = F.pad(gray, (1, 1, 1, 1), mode="replicate")[:, 0]
+    dx = p[:, :, 2:] - p[:, :, :-2]  # (B, H + 2, W)
+    dy = p[:, 2:, :] - p[:, :-2, :]  # (B, H, W + 2)
+    gx = (dx[:, :-2] + 2.0 * dx[:, 1:-1] + dx[:, 2:]) * 0.25
+    gy = (dy[:, :, :-2] + 2.0 * dy[:, :, 1:-1] + dy[:, :, 2:]) * 0.25
+    return gx, gy
 
 
 def sobel_magnitude(gray: Tensor) -> Tensor:
@@ -80,10 +84,17 @@ def remove_isolated(mask: Tensor) -> Tensor:
 
 
 def edge_map(gray: Tensor, sigma: float, threshold: float, isolated: bool, thinning: bool = False) -> Tensor:
-    """Blur, Sobel, threshold and clean: ``(B, 1, H, W)`` grey → ``(B, H, W)`` edge
-    magnitudes in [0, 1], zero where there is no edge. ``thinning`` keeps only the ridge
-    of each edge (one pixel wide), as the thinned edge maps Edge Boxes scores."""
-    gx, gy = sobel_gradients(gaussian_blur(gray, sigma))
+    """Blur, Sobel, threshold and clean: ``(B, C, H, W)`` (grey, C = 1, or colour) →
+    ``(B, H, W)`` edge magnitudes in [0, 1], zero where there is no edge. With several
+    channels each pixel takes the gradient of the channel where it is strongest.
+    ``thinning`` keeps only the ridge of each edge (one pixel wide), as the thinned edge
+    maps Edge Boxes scores."""
+    b, c, h, w = gray.shape
+    gx, gy = sobel_gradients(gaussian_blur(gray.reshape(b * c, 1, h, w), sigma))
+    if c > 1:
+        gx, gy = gx.view(b, c, h, w), gy.view(b, c, h, w)
+        pick = (gx * gx + gy * gy).argmax(1, keepdim=True)
+        gx, gy = gx.gather(1, pick)[:, 0], gy.gather(1, pick)[:, 0]
     mag = torch.sqrt(gx * gx + gy * gy).clamp_(max=1.0)
     mask = mag > threshold
     if thinning:

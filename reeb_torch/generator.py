@@ -17,7 +17,6 @@ from typing import Iterator
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
-from torchvision.ops import nms
 
 from . import edges as _edges
 from . import entropy as _entropy
@@ -28,6 +27,7 @@ from . import scoring as _scoring
 from . import windows as _windows
 from ._checks import ImageBatch, check_images
 from .config import ReebConfig
+from .nms import nms_top_k
 
 __all__ = ["ProposalGenerator", "propose", "Inspection"]
 
@@ -152,7 +152,8 @@ class ProposalGenerator(nn.Module):
         # Sec. 3.4: Edge_Map = Sobel(Gaussian_Blur(I))
         with self._stage("edges", dev):
             gray = _edges.to_gray(xk)
-            edges = _edges.edge_map(gray, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges)
+            edges = _edges.edge_map(gray if cfg.edge_channels == "gray" else xk, cfg.blur_sigma,
+                                    cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges)
         # Sec. 3.7: adjacent edge pixels form edge groups
         with self._stage("groups", dev):
             groups = _groups.edge_groups(edges, cfg.grouping, cfg.group_cell)
@@ -184,10 +185,11 @@ class ProposalGenerator(nn.Module):
             for i in range(b):
                 cand = torch.nonzero(chosen[i]).squeeze(1)
                 bx, sc = boxes_in[cand], scores[i, cand]
-                keep_idx = nms(bx, sc, cfg.nms_iou)
                 if cfg.region_quota and len(bounds) > 1:
-                    keep_idx = self._quota(keep_idx, region_of[cand[keep_idx]], share[i])
-                keep_idx = keep_idx[: cfg.top_k]
+                    keep_idx = nms_top_k(bx, sc, cfg.nms_iou, bx.shape[0])
+                    keep_idx = self._quota(keep_idx, region_of[cand[keep_idx]], share[i])[: cfg.top_k]
+                else:
+                    keep_idx = nms_top_k(bx, sc, cfg.nms_iou, cfg.top_k)
                 results.append({"boxes": bx[keep_idx].contiguous(), "scores": sc[keep_idx].contiguous()})
         extra: dict = {}
         if keep:
@@ -250,7 +252,8 @@ class ProposalGenerator(nn.Module):
         Returns ``bool [B, N]``."""
         cfg = self.config
         b = scores.shape[0]
-        budget = (share * cfg.candidates_per_region).round().long()  # (B, R)
+        per_region = cfg.candidates_per_region if cfg.use_regions else cfg.candidates_without_regions
+        budget = (share * per_region).round().long()  # (B, R)
         chosen = torch.zeros_like(scores, dtype=torch.uint8)
         for r, idx_cpu in enumerate(grid.region_windows):
             k = min(int(idx_cpu.numel()), int(budget[:, r].max()))

@@ -31,10 +31,6 @@ __all__ = [
     "combined_score",
 ]
 
-# largest (sizes × groups) block handled by one scatter; bounds temporary memory
-_SCATTER_BLOCK = 1 << 22
-
-
 def integral_image(x: Tensor) -> Tensor:
     """``(B, H, W)`` → ``float32 (B, H + 1, W + 1)`` with ``ii[:, y, x] = Σ x[:, :y, :x]``."""
     ii = torch.zeros(x.shape[0], x.shape[1] + 1, x.shape[2] + 1, dtype=torch.float32, device=x.device)
@@ -63,45 +59,44 @@ def enclosed_sums(groups: EdgeGroups, batch: int, sizes: list[WindowSize]) -> li
     ``[x1, x2]``: enclosed iff ``x0 <= x1`` and ``x2 < x0 + w``, same for y; window
     positions ``x0 = i·sx``, ``y0 = oy + j·sy``).
 
+    For one size, the positions whose window encloses a group form the rectangle
+    ``i0 = ceil((x2 + 1 − w)/sx) <= i <= i1 = floor(x1/sx)`` (same for j), so each group
+    adds its magnitude at four corners of a difference array and two cumulative sums give
+    all windows at once. Only the groups inside the size's band of rows are visited
+    (groups sorted by top row, ``searchsorted``).
+
     Returns one ``float32 (B, ny, nx)`` tensor per size.
     """
     dev = groups.batch.device
-    slab = [batch * (s.ny + 1) * (s.nx + 1) for s in sizes]
-    starts = [0]
-    for n in slab:
-        starts.append(starts[-1] + n)
-    buf = torch.zeros(starts[-1], dtype=torch.float32, device=dev)
-    g = len(groups)
-    if g and sizes:
-        gx1, gx2 = groups.x1[None], groups.x2[None]
-        gy1, gy2 = groups.y1[None], groups.y2[None]
-        gb, gm = groups.batch[None], groups.magnitude.to(torch.float32)[None]
-        per = max(1, _SCATTER_BLOCK // g)
-        for lo in range(0, len(sizes), per):
-            chunk = sizes[lo: lo + per]
-            col = lambda v: torch.tensor(v, device=dev).view(-1, 1)  # noqa: E731
-            w, h = col([s.w for s in chunk]), col([s.h for s in chunk])
-            sx, sy = col([s.sx for s in chunk]), col([s.sy for s in chunk])
-            nx, ny = col([s.nx for s in chunk]), col([s.ny for s in chunk])
-            oy = col([s.oy for s in chunk])
-            off = col(starts[lo: lo + len(chunk)])
-            i0 = _floordiv(gx2 + 1 - w + sx - 1, sx).clamp_(min=0)  # ceil((x2 + 1 - w) / sx)
-            i1 = torch.minimum(_floordiv(gx1, sx), nx - 1)
-            j0 = _floordiv(gy2 + 1 - h - oy + sy - 1, sy).clamp_(min=0)
-            j1 = torch.minimum(_floordiv(gy1 - oy, sy), ny - 1)
-            ok = (i0 <= i1) & (j0 <= j1)
-            row = nx + 1
-            base = off + gb * (ny + 1) * row
-            idx = torch.stack([base + j0 * row + i0, base + j0 * row + i1 + 1,
-                               base + (j1 + 1) * row + i0, base + (j1 + 1) * row + i1 + 1])  # (4, S, G)
-            m = gm.expand(len(chunk), g)
-            val = torch.stack([m, -m, -m, m])
-            sel = ok.expand(4, -1, -1)
-            buf.index_add_(0, idx[sel], val[sel])
+    order = torch.sort(groups.y1, stable=True).indices  # stable: same sums alone or in a batch
+    gy1 = groups.y1[order]
+    gx1, gx2, gy2 = groups.x1[order], groups.x2[order], groups.y2[order]
+    gb, gm = groups.batch[order], groups.magnitude[order].to(torch.float32)
+    if sizes:
+        top = torch.tensor([s.oy for s in sizes], device=dev)
+        bottom = torch.tensor([s.oy + (s.ny - 1) * s.sy + s.h - 1 for s in sizes], device=dev)
+        los = torch.searchsorted(gy1, top).tolist()
+        his = torch.searchsorted(gy1, bottom, right=True).tolist()
     out = []
-    for s, a in zip(sizes, starts):
-        d = buf[a: a + batch * (s.ny + 1) * (s.nx + 1)].view(batch, s.ny + 1, s.nx + 1)
-        out.append(d.cumsum(1).cumsum(2)[:, : s.ny, : s.nx])
+    for k, s in enumerate(sizes):
+        row = s.nx + 1
+        buf = torch.zeros(batch * (s.ny + 1) * row, dtype=torch.float32, device=dev)
+        lo, hi = los[k], his[k]
+        if hi > lo:
+            x1, x2, y1, y2 = gx1[lo:hi], gx2[lo:hi], gy1[lo:hi], gy2[lo:hi]
+            i0 = torch.div(x2 + (s.sx - s.w), s.sx, rounding_mode="floor").clamp_(min=0)  # ceil((x2+1-w)/sx)
+            i1 = torch.div(x1, s.sx, rounding_mode="floor").clamp_(max=s.nx - 1)
+            j0 = torch.div(y2 + (s.sy - s.h - s.oy), s.sy, rounding_mode="floor").clamp_(min=0)
+            j1 = torch.div(y1 - s.oy, s.sy, rounding_mode="floor").clamp_(max=s.ny - 1)
+            ok = torch.nonzero((i0 <= i1) & (j0 <= j1)).squeeze(1)
+            if ok.numel():
+                i0, i1, j0, j1 = i0[ok], i1[ok] + 1, j0[ok] * row, (j1[ok] + 1) * row
+                base = gb[lo:hi][ok] * ((s.ny + 1) * row)
+                m = gm[lo:hi][ok]
+                idx = torch.cat([base + j0 + i0, base + j0 + i1, base + j1 + i0, base + j1 + i1])
+                buf.index_add_(0, idx, torch.cat([m, -m, -m, m]))
+        d = buf.view(batch, s.ny + 1, row)
+        out.append(d.cumsum(2).cumsum(1)[:, : s.ny, : s.nx])
     return out
 
 
@@ -133,11 +128,14 @@ def location_score(bottom: Tensor, bw: float, bh: float, img_w: float, img_h: fl
 
 
 def combined_score(s: Tensor, loc: Tensor, road: Tensor, alpha: float, beta: float, road_mode: str) -> Tensor:
-    """Eq. 12: V = S·(α·L + β·R); ``penalize`` uses 1 − R, ``none`` drops the road term."""
+    """Eq. 12: V = S·(α·L + β·R); ``penalize`` uses 1 − R, ``none`` drops the road term,
+    ``flat`` keeps β with R = 1 (so L only re-weights S partly: V = S·(α·L + β))."""
     if road_mode == "penalize":
         road = 1.0 - road
     elif road_mode == "none":
         road = torch.zeros_like(road)
+    elif road_mode == "flat":
+        road = torch.ones_like(road)
     return s * (alpha * loc + beta * road)
 
 

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import torch
 
-from reeb_torch.edges import edge_map, gaussian_blur, remove_isolated, sobel_magnitude, to_gray
+from reeb_torch.edges import edge_map, gaussian_blur, remove_isolated, sobel_gradients, sobel_magnitude, to_gray
 
 
 def test_sobel_matches_opencv_inside_the_border():
@@ -18,6 +18,16 @@ def test_sobel_matches_opencv_inside_the_border():
     gy = cv2.Sobel(a, cv2.CV_64F, 0, 1, ksize=3) / 4.0
     ref = np.minimum(np.sqrt(gx**2 + gy**2), 1.0)
     np.testing.assert_allclose(ours[1:-1, 1:-1], ref[1:-1, 1:-1], atol=1e-5)
+
+
+def test_separable_sobel_matches_kornia_everywhere():
+    import kornia
+
+    g = torch.rand(2, 1, 17, 23, generator=torch.Generator().manual_seed(2))
+    gx, gy = sobel_gradients(g)
+    ref = kornia.filters.spatial_gradient(g, mode="sobel", order=1, normalized=True) / 0.5
+    torch.testing.assert_close(gx, ref[:, 0, 0])
+    torch.testing.assert_close(gy, ref[:, 0, 1])
 
 
 def test_blur_matches_opencv():
