@@ -18,7 +18,6 @@ saved; ``--resume`` continues).
 from __future__ import annotations
 
 import json
-import math
 import os
 import signal
 import sys
@@ -380,7 +379,7 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
             else:
                 try:
                     run_batch(group)
-                except (ValueError, TypeError, RuntimeError) as e:
+                except (ValueError, TypeError, RuntimeError):
                     # find the culprit(s): one image at a time
                     for it in group:
                         try:

@@ -251,7 +251,6 @@ class ProposalGenerator(nn.Module):
         """Each region passes on its best ``share · candidates_per_region`` windows (eq. 9).
         Returns ``bool [B, N]``."""
         cfg = self.config
-        b = scores.shape[0]
         per_region = cfg.candidates_per_region if cfg.use_regions else cfg.candidates_without_regions
         budget = (share * per_region).round().long()  # (B, R)
         chosen = torch.zeros_like(scores, dtype=torch.uint8)

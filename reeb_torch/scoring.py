@@ -49,10 +49,6 @@ def box_sums(ii: Tensor, dx: int, dy: int, bw: int, bh: int, s: WindowSize) -> T
     return at(dy + bh, dx + bw) - at(dy, dx + bw) - at(dy + bh, dx) + at(dy, dx)
 
 
-def _floordiv(a: Tensor, b: Tensor) -> Tensor:
-    return torch.div(a, b, rounding_mode="floor")
-
-
 def enclosed_sums(groups: EdgeGroups, batch: int, sizes: list[WindowSize]) -> list[Tensor]:
     """Σ_n w_n·m_n of eq. 1 for every window: the magnitude of the groups whose bounding
     box lies wholly inside the window (window pixels ``[x0, x0 + w)``, group pixels

@@ -12,7 +12,6 @@ import copy
 import shutil
 import sys
 import warnings
-from collections import OrderedDict
 from pathlib import Path
 
 import pytest
