@@ -206,7 +206,7 @@ def _wait_for_rows(d: Path, name: str, proc: subprocess.Popen, rows: int = 1,
 
 
 def test_interrupt_kill_and_resume(tmp_path):
-    n = 10
+    n = 60  # enough work (several seconds) that the signals land mid-run
     paths = good_folder(tmp_path / "imgs", n)
     args = ["propose", "imgs", "--out", "out.jsonl", "--batch-size", "1", *FAST]
 
