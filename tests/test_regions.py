@@ -49,3 +49,15 @@ def test_with_camera_from_kitti_p2():
     assert 80 < cfg.horizontal_fov_deg < 82 and 28 < cfg.vertical_fov_deg < 30
     with pytest.raises(ValueError, match="positive"):
         ReebConfig().with_camera(fx=0, fy=1, width=10, height=10)
+
+
+def test_with_kitti_calib_reads_p2(tmp_path):
+    from pathlib import Path
+
+    sample = Path(__file__).resolve().parents[1] / "examples" / "data" / "kitti_000001_calib.txt"
+    cfg = ReebConfig().with_kitti_calib(str(sample), 1242, 375)
+    assert cfg == ReebConfig().with_camera(721.5377, 721.5377, 1242, 375)
+    bad = tmp_path / "calib.txt"
+    bad.write_text("P0: " + " ".join(["1"] * 12) + "\n")
+    with pytest.raises(ValueError, match="no P2"):
+        ReebConfig().with_kitti_calib(str(bad), 1242, 375)
