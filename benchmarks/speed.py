@@ -24,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_kitti_dir, environment, rerun_line  # noqa: E402
 
 from reeb_torch import ProposalGenerator, get_preset  # noqa: E402
+from reeb_torch.data import KittiDataset  # noqa: E402
 from reeb_torch.io import read_image  # noqa: E402
 
 STAGES = [
@@ -70,10 +71,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.threads:
         torch.set_num_threads(args.threads)
     print("# rerun:", rerun_line("benchmarks/speed.py", argv if argv is not None else sys.argv[1:]))
-    files = sorted((args.data / "images").glob("*.png")) or sorted((args.data / "image_2").glob("*.png"))
-    if not files:
-        raise SystemExit(f"no images under {args.data}/images or {args.data}/image_2")
-    files = files[: args.limit] if args.limit else files
+    files = KittiDataset(args.data, limit=args.limit).image_paths  # either KITTI layout
     images = [read_image(f) for f in files]
     print(f"# {len(images)} frames of {args.data}, batch {args.batch}, top-{args.top_k}, device {args.device}, "
           f"torch threads {torch.get_num_threads()}; median of {args.repeats} passes, ms per image")

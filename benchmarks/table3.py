@@ -181,35 +181,29 @@ def _plot(curves: dict[str, dict], out: Path) -> list[str]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    files = []
-    fig, ax = plt.subplots(figsize=(6.4, 4.4))
-    for label, c in curves.items():
-        ax.plot(c["ks"], [100 * r for r in c["recall_vs_k"]], label=label, ls=_style(label))
-    ax.set_xscale("log")
-    ax.set_xlabel("number of proposals")
-    ax.set_ylabel("recall at IoU 0.7 (%)")
-    ax.set_ylim(0, 100)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    ax.set_title("Recall vs number of proposals (KITTI, IoU 0.7)")
-    fig.tight_layout()
-    fig.savefig(out / "recall_vs_proposals_iou0.7.png", dpi=120)
-    plt.close(fig)
-    files.append("recall_vs_proposals_iou0.7.png")
+    files: list[str] = []
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.4))
-    for label, c in curves.items():
-        ax.plot(c["ious"], [100 * r for r in c["recall_vs_iou"]], label=label, ls=_style(label))
-    ax.set_xlabel("IoU threshold")
-    ax.set_ylabel("recall of the top 2000 (%)")
-    ax.set_ylim(0, 100)
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
-    ax.set_title("Recall vs IoU (KITTI, 2000 proposals)")
-    fig.tight_layout()
-    fig.savefig(out / "recall_vs_iou_k2000.png", dpi=120)
-    plt.close(fig)
-    files.append("recall_vs_iou_k2000.png")
+    def line_plot(x: str, y: str, xlabel: str, ylabel: str, title: str, name: str, log: bool) -> None:
+        fig, ax = plt.subplots(figsize=(6.4, 4.4))
+        for label, c in curves.items():
+            ax.plot(c[x], [100 * r for r in c[y]], label=label, ls=_style(label))
+        if log:
+            ax.set_xscale("log")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.set_ylim(0, 100)
+        ax.grid(True, which="both" if log else "major", alpha=0.3)
+        ax.legend(fontsize=8)
+        ax.set_title(title)
+        fig.tight_layout()
+        fig.savefig(out / name, dpi=120)
+        plt.close(fig)
+        files.append(name)
+
+    line_plot("ks", "recall_vs_k", "number of proposals", "recall at IoU 0.7 (%)",
+              "Recall vs number of proposals (KITTI, IoU 0.7)", "recall_vs_proposals_iou0.7.png", log=True)
+    line_plot("ious", "recall_vs_iou", "IoU threshold", "recall of the top 2000 (%)",
+              "Recall vs IoU (KITTI, 2000 proposals)", "recall_vs_iou_k2000.png", log=False)
     return files
 
 
