@@ -289,6 +289,8 @@ class ProposalGenerator(nn.Module):
         key = (id(t), str(device))
         hit = self._device_cache.get(key)
         if hit is None or hit[0] is not t:
+            if len(self._device_cache) >= 256:  # grids of many image sizes: start afresh
+                self._device_cache.clear()
             hit = (t, t.to(device))
             self._device_cache[key] = hit
         return hit[1]
