@@ -143,17 +143,15 @@ class ProposalGenerator(nn.Module):
         """The algorithm on a batch ``(B, 3, H, W)`` of equal-sized float images."""
         cfg = self.config
         b, _, h_in, w_in = x.shape
-        with self._stage("edges", x.device):
-            xk = self._working_image(x)
-        hk, wk = xk.shape[-2:]
-        fx, fy = wk / w_in, hk / h_in
-
         dev = x.device
-        # Sec. 3.4: Edge_Map = Sobel(Gaussian_Blur(I))
+        # Sec. 3.4: Edge_Map = Sobel(Gaussian_Blur(I)), at the working resolution
         with self._stage("edges", dev):
+            xk = self._working_image(x)
             gray = _edges.to_gray(xk)
             edges = _edges.edge_map(gray if cfg.edge_channels == "gray" else xk, cfg.blur_sigma,
                                     cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges)
+        hk, wk = xk.shape[-2:]
+        fx, fy = wk / w_in, hk / h_in
         # Sec. 3.7: adjacent edge pixels form edge groups
         with self._stage("groups", dev):
             groups = _groups.edge_groups(edges, cfg.grouping, cfg.group_cell)
