@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import os
-import platform
 import shlex
-import sys
 import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -27,21 +24,11 @@ def rerun_line(script: str, argv: Sequence[str]) -> str:
 
 
 def environment() -> dict[str, Any]:
-    """Versions, thread counts and CPU of this run, for the JSON record."""
-    import cv2
-    import torch
+    """Versions, thread counts and CPU of this run, for the JSON record
+    (:func:`reeb_torch.eval.common.environment`)."""
+    from reeb_torch.eval.common import environment as _environment
 
-    return {
-        "python": sys.version.split()[0],
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "torch": torch.__version__,
-        "torch_threads": torch.get_num_threads(),
-        "cuda": torch.cuda.is_available(),
-        "opencv": cv2.__version__,
-        "opencv_threads": cv2.getNumThreads(),
-    }
+    return _environment()
 
 
 def timed(fn: Callable[[], Any]) -> tuple[Any, float]:

@@ -572,33 +572,24 @@ def show(image, label, no_label, top, out, preset, config_file, sets, top_k, dev
 @click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames.")
 @click.option("-o", "--out", type=click.Path(file_okay=False), default="runs/table3",
               show_default=True, help="Folder for the table, CSV/JSON and plots.")
-@click.option("--methods", help="Comma-separated methods (see benchmarks/table3.py --help).")
+@click.option("--methods", help="Comma-separated methods (see python -m reeb_torch.eval --help).")
 @click.argument("extra", nargs=-1, type=click.UNPROCESSED)
 def eval(kitti_dir, limit, out, methods, extra):  # noqa: A001 - the command's name
     """Recall table (the paper's Table 3) and plots on a KITTI-format folder.
 
-    Runs benchmarks/table3.py from the source checkout; further options (e.g.
-    --max-proposals 1000, --batch 8) are passed on to it.
+    Runs reeb_torch.eval.table3 (as benchmarks/table3.py does); further options (e.g.
+    --frames 0:39 40:59, --max-proposals 1000, --batch 8) are passed on to it.
     """
-    import importlib.util
+    from .eval import table3 as table3_module
 
-    script = repo_root() / "benchmarks" / "table3.py"
-    if not script.is_file():
-        raise Failure(f"reeb eval runs {script}, which is missing (it ships with the source "
-                      "checkout); run it from a clone of the repository")
     argv = ["--data", str(kitti_dir), "--out", str(out)]
     if limit:
         argv += ["--limit", str(limit)]
     if methods:
         argv += ["--methods", *[m.strip() for m in methods.split(",") if m.strip()]]
     argv += list(extra)
-    spec = importlib.util.spec_from_file_location("reeb_benchmarks_table3", script)
-    module = importlib.util.module_from_spec(spec)
-    assert spec.loader is not None
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
     try:
-        module.main(argv)
+        table3_module.main(argv, prog="python -m reeb_torch.eval")
     except SystemExit as e:  # argparse errors (2), --help (0), or a message: exit 1
         if e.code is None or isinstance(e.code, int):
             sys.exit(e.code or 0)

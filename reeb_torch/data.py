@@ -28,8 +28,8 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch import Tensor
 
+from .camera import camera_intrinsics, read_kitti_calib  # re-exported: moved to .camera
 from .io import IMAGE_EXTENSIONS, read_image
 
 __all__ = [
@@ -53,15 +53,6 @@ _LAYOUTS: tuple[tuple[str, str, str], ...] = (
     ("images", "labels", "calib"),
     ("image_2", "label_2", "calib"),
 )
-
-# Number of values of the calibration matrices whose shape is known.
-_CALIB_SHAPES: dict[str, tuple[int, int]] = {
-    "P": (3, 4),  # P0..P3: 3x4 projection matrices of the four cameras
-    "R0_rect": (3, 3),  # rectifying rotation of the reference camera
-    "R_rect": (3, 3),  # same, as named in KITTI's tracking benchmark
-    "Tr_": (3, 4),  # Tr_velo_to_cam, Tr_imu_to_velo: rigid transforms [R | t]
-}
-
 
 # ---------------------------------------------------------------------------------------
 # labels
@@ -154,80 +145,6 @@ def read_kitti_labels(
             if keep is None or obj.type in keep:
                 objects.append(obj)
     return objects
-
-
-# ---------------------------------------------------------------------------------------
-# calibration
-# ---------------------------------------------------------------------------------------
-
-
-def _calib_shape(key: str) -> tuple[int, int] | None:
-    if len(key) == 2 and key[0] == "P" and key[1].isdigit():
-        return _CALIB_SHAPES["P"]
-    if key in _CALIB_SHAPES:
-        return _CALIB_SHAPES[key]
-    if key.startswith("Tr_"):
-        return _CALIB_SHAPES["Tr_"]
-    return None
-
-
-def read_kitti_calib(path: str | os.PathLike) -> dict[str, Tensor]:
-    """Read a KITTI ``calib`` file: lines ``KEY: v1 v2 ...`` (the colon may be missing).
-
-    Known keys get their matrix shape: ``P0``..``P3`` → ``(3, 4)``, ``R0_rect`` /
-    ``R_rect`` → ``(3, 3)``, ``Tr_*`` (``Tr_velo_to_cam``, ``Tr_imu_to_velo``) → ``(3, 4)``.
-    Other keys are kept as 1-D tensors. Missing keys are simply absent from the result.
-
-    Returns:
-        ``dict`` from key to a ``float64`` tensor, in file order.
-
-    Raises:
-        FileNotFoundError: the file does not exist.
-        ValueError: a line has no values, a non-numeric value, or the wrong number of
-            values for its key; the message names the file and the 1-based line number.
-    """
-    p = Path(path)
-    calib: dict[str, Tensor] = {}
-    with open(p, encoding="utf-8") as f:
-        for lineno, line in enumerate(f, start=1):
-            if not line.strip():
-                continue
-            if ":" in line:
-                key, _, rest = line.partition(":")
-                key, fields = key.strip(), rest.split()
-            else:
-                key, *fields = line.split()
-            if not key or not fields:
-                raise ValueError(f"{p}:{lineno}: expected 'KEY: v1 v2 ...', got {line.strip()!r}")
-            try:
-                values = [float(v) for v in fields]
-            except ValueError as e:
-                raise ValueError(f"{p}:{lineno}: non-numeric value for {key} ({e})") from None
-            t = torch.tensor(values, dtype=torch.float64)
-            shape = _calib_shape(key)
-            if shape is not None:
-                if t.numel() != shape[0] * shape[1]:
-                    raise ValueError(
-                        f"{p}:{lineno}: {key} needs {shape[0] * shape[1]} values "
-                        f"({shape[0]}x{shape[1]}), got {t.numel()}"
-                    )
-                t = t.reshape(shape)
-            calib[key] = t
-    return calib
-
-
-def camera_intrinsics(P: Tensor) -> tuple[float, float, float, float]:
-    """Focal lengths and principal point ``(fx, fy, cx, cy)`` in pixels of a projection matrix.
-
-    Args:
-        P: ``Tensor[3, 4]`` projection matrix (e.g. KITTI's ``P2``, the left colour camera)
-            or ``Tensor[3, 3]`` intrinsic matrix K. ``fx = P[0,0]``, ``fy = P[1,1]``,
-            ``cx = P[0,2]``, ``cy = P[1,2]``.
-    """
-    if not isinstance(P, Tensor) or P.ndim != 2 or P.shape[0] != 3 or P.shape[1] not in (3, 4):
-        shape = tuple(P.shape) if isinstance(P, Tensor) else type(P).__name__
-        raise ValueError(f"camera_intrinsics: expected a 3x4 or 3x3 matrix, got {shape}")
-    return float(P[0, 0]), float(P[1, 1]), float(P[0, 2]), float(P[1, 2])
 
 
 # ---------------------------------------------------------------------------------------

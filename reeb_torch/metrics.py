@@ -22,6 +22,11 @@ proposals ``0..j``, so the best IoU at any k is ``run[g, k - 1]``.
 >>> result = recall_table(proposals, gt_boxes, gt_labels, ("Car", "Pedestrian"))
 >>> print(result.format_table())
 >>> result.to_dict()["micro"]["2000"]["0.7"]
+>>> result.per_class_at(2000, 0.7)                     # {"Car": 0.8, "Pedestrian": 0.5}
+
+KITTI's difficulty levels (the usual protocol of KITTI proposal papers reports the
+*moderate* objects) select objects with :func:`kitti_difficulty_mask` and
+:func:`select_objects` before the recall is computed.
 """
 
 from __future__ import annotations
@@ -43,6 +48,10 @@ __all__ = [
     "average_recall",
     "recall_vs_proposals",
     "recall_vs_iou",
+    "KittiDifficulty",
+    "KITTI_DIFFICULTIES",
+    "kitti_difficulty_mask",
+    "select_objects",
 ]
 
 AR_IOUS: tuple[float, ...] = tuple(round(0.5 + 0.05 * i, 2) for i in range(10))
@@ -207,6 +216,12 @@ class RecallResult:
         if cls == "mean":
             return float(self.class_mean[i, j])
         return float(self.per_class[self.class_names.index(cls), i, j])
+
+    def per_class_at(self, k: int, iou: float) -> dict[str, float]:
+        """Recall of each class at ``k`` proposals and IoU ``iou``, ``{name: recall}``
+        in class order (``nan`` for a class with no object)."""
+        i, j = self.ks.index(k), self._iou_index(iou)
+        return {c: float(self.per_class[ci, i, j]) for ci, c in enumerate(self.class_names)}
 
     def _iou_index(self, iou: float) -> int:
         for j, t in enumerate(self.ious):
@@ -385,6 +400,100 @@ def average_recall(
         raise ValueError(f"average must be 'micro' or 'class', got {average!r}")
     result = recall_table(proposals, gts, gt_labels, class_names, ks=ks, ious=AR_IOUS)
     return result.average_recall(average)
+
+
+# ---------------------------------------------------------------------------------------
+# KITTI difficulty levels
+# ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class KittiDifficulty:
+    """One of KITTI's difficulty levels: an object counts when its 2D box is at least
+    ``min_height`` pixels tall (``y2 - y1``), its ``occluded`` code is at most
+    ``max_occlusion`` and its ``truncated`` fraction at most ``max_truncation`` (all
+    bounds inclusive, as in KITTI's ``evaluate_object.cpp``)."""
+
+    min_height: float
+    max_occlusion: int
+    max_truncation: float
+
+
+KITTI_DIFFICULTIES: dict[str, KittiDifficulty] = {
+    "easy": KittiDifficulty(40.0, 0, 0.15),
+    "moderate": KittiDifficulty(25.0, 1, 0.30),
+    "hard": KittiDifficulty(25.0, 2, 0.50),
+}
+"""KITTI's levels (object devkit; SubCNN's ``compute_recall_simple.m`` for proposals).
+Each level includes the easier ones: every easy object is also moderate and hard."""
+
+_TRUNCATION_TOL = 1e-6  # truncation is read as float32: 0.3 must pass "<= 0.3"
+
+
+def kitti_difficulty_mask(
+    boxes: Tensor,
+    occluded: Tensor,
+    truncated: Tensor,
+    level: str | KittiDifficulty = "moderate",
+) -> Tensor:
+    """Which objects of one image count at a KITTI difficulty level.
+
+    Args:
+        boxes: ``Tensor[N, 4]`` ``(x1, y1, x2, y2)`` pixels; the height is ``y2 - y1``.
+        occluded: ``Tensor[N]`` KITTI occlusion codes (0 visible, 1 partly, 2 largely,
+            3 unknown; 3 never passes ``easy``/``moderate``/``hard``).
+        truncated: ``Tensor[N]`` fractions in [0, 1].
+        level: ``"easy"``, ``"moderate"``, ``"hard"`` (:data:`KITTI_DIFFICULTIES`) or a
+            :class:`KittiDifficulty`.
+
+    Returns:
+        ``bool`` ``Tensor[N]`` on the CPU.
+    """
+    if isinstance(level, str):
+        if level not in KITTI_DIFFICULTIES:
+            raise ValueError(
+                f"unknown KITTI difficulty {level!r}; choose one of {', '.join(KITTI_DIFFICULTIES)}"
+            )
+        level = KITTI_DIFFICULTIES[level]
+    b = _as_boxes(boxes, "boxes").cpu()
+    occ = torch.as_tensor(occluded).reshape(-1).cpu()
+    trunc = torch.as_tensor(truncated).reshape(-1).cpu().to(torch.float64)
+    if not (occ.shape[0] == trunc.shape[0] == b.shape[0]):
+        raise ValueError(
+            f"kitti_difficulty_mask: {b.shape[0]} boxes, {occ.shape[0]} occlusion codes and "
+            f"{trunc.shape[0]} truncations; expected one of each per box"
+        )
+    height = (b[:, 3] - b[:, 1]).to(torch.float64)
+    return (
+        (height >= level.min_height)
+        & (occ <= level.max_occlusion)
+        & (trunc <= level.max_truncation + _TRUNCATION_TOL)
+    )
+
+
+def select_objects(
+    gts: Sequence[Boxes],
+    gt_labels: Sequence[Tensor] | None,
+    masks: Sequence[Tensor],
+) -> tuple[list[Tensor], list[Tensor] | None]:
+    """Keep the objects of each image where ``masks[i]`` (``bool Tensor[G_i]``) is true.
+
+    Returns ``(gts, gt_labels)`` filtered alike (``gt_labels`` stays ``None``), ready for
+    :func:`recall_table`. Images left with no object contribute nothing to recall.
+    """
+    if len(masks) != len(gts):
+        raise ValueError(f"{len(masks)} masks for {len(gts)} ground-truth sets")
+    out_gts: list[Tensor] = []
+    out_labels: list[Tensor] | None = None if gt_labels is None else []
+    for i, (gt, m) in enumerate(zip(gts, masks)):
+        g = _as_boxes(gt, f"gts[{i}]")
+        m = torch.as_tensor(m, dtype=torch.bool).reshape(-1).to(g.device)
+        if m.shape[0] != g.shape[0]:
+            raise ValueError(f"masks[{i}] has {m.shape[0]} entries for {g.shape[0]} boxes")
+        out_gts.append(g[m])
+        if out_labels is not None:
+            out_labels.append(torch.as_tensor(gt_labels[i]).reshape(-1)[m.cpu()])
+    return out_gts, out_labels
 
 
 # ---------------------------------------------------------------------------------------

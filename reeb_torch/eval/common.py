@@ -1,0 +1,165 @@
+"""Helpers of the evaluation: frame ranges, loading a KITTI folder, the rerun line, the machine.
+
+Frame ranges (``--frames``) select frames by their numeric id, both ends included, so the
+halves of the project's 60 frames read as the issue names them::
+
+    --frames 0:39 40:59     # 000000-000039 (choose) and 000040-000059 (confirm)
+    --frames 40:            # 000040 and later;  ":9" = up to 000009;  "7" = 000007 only
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import shlex
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = [
+    "FrameRange",
+    "parse_frame_range",
+    "select_frames",
+    "load_kitti",
+    "add_frames_option",
+    "rerun_line",
+    "environment",
+]
+
+
+@dataclass(frozen=True)
+class FrameRange:
+    """Frames whose numeric id lies in ``[first, last]`` (both included; ``None`` = open)."""
+
+    first: int | None
+    last: int | None
+    text: str
+    """The range as given (e.g. ``"0:39"``), used as its name in the tables."""
+
+    def __contains__(self, frame_id: int) -> bool:
+        return (self.first is None or frame_id >= self.first) and (
+            self.last is None or frame_id <= self.last
+        )
+
+
+def parse_frame_range(text: str) -> FrameRange:
+    """Parse ``"A:B"``, ``"A:"``, ``":B"`` or ``"A"`` (non-negative integers, A <= B).
+
+    Raises:
+        ValueError: anything else; the message quotes the text.
+    """
+    s = str(text).strip()
+    parts = s.split(":")
+    if len(parts) == 1:
+        parts = [parts[0], parts[0]]
+    if len(parts) != 2 or not any(parts):
+        raise ValueError(f"frame range {text!r}: expected A:B, A:, :B or A (frame ids, both ends included)")
+    bounds: list[int | None] = []
+    for p in parts:
+        p = p.strip()
+        if not p:
+            bounds.append(None)
+        elif p.isdigit():
+            bounds.append(int(p))
+        else:
+            raise ValueError(f"frame range {text!r}: {p!r} is not a non-negative integer frame id")
+    first, last = bounds
+    if first is not None and last is not None and first > last:
+        raise ValueError(f"frame range {text!r}: first id {first} is after last id {last}")
+    return FrameRange(first, last, s)
+
+
+def select_frames(ids: Sequence[str], ranges: Sequence[FrameRange]) -> list[str]:
+    """The ids (file stems such as ``"000041"``) that fall in any of ``ranges``, in order.
+
+    Raises:
+        ValueError: an id is not a number (``--frames`` needs numeric KITTI ids).
+    """
+    if not ranges:
+        return list(ids)
+    out = []
+    for i in ids:
+        if not i.isdigit():
+            raise ValueError(f"frame id {i!r} is not numeric; --frames selects KITTI's numeric ids")
+        if any(int(i) in r for r in ranges):
+            out.append(i)
+    return out
+
+
+def load_kitti(
+    root: str | os.PathLike,
+    limit: int | None = None,
+    frames: Sequence[FrameRange] = (),
+    classes: Sequence[str] | None = None,
+) -> tuple[list[dict[str, Any]], tuple[str, ...]]:
+    """Decode the frames of a KITTI-format folder (:class:`reeb_torch.data.KittiDataset`).
+
+    ``frames`` select by id first, then ``limit`` keeps the first N of those.
+
+    Returns:
+        ``(items, class names)``: each item is a dataset sample (``image`` uint8
+        ``Tensor[3, H, W]``, ``boxes`` ``Tensor[N, 4]``, ``labels``, ``truncated``,
+        ``occluded``, ``image_id``, ...).
+
+    Raises:
+        ValueError: not a KITTI folder, no images, a bad id, or no frame in ``frames``.
+    """
+    from ..data import DEFAULT_CLASSES, KittiDataset
+
+    cls = tuple(DEFAULT_CLASSES if classes is None else classes)
+    ds = KittiDataset(root, classes=cls)
+    ids = select_frames(ds.ids, frames)
+    if not ids:
+        raise ValueError(f"{root}: no frame with an id in {' '.join(r.text for r in frames)}")
+    ds = KittiDataset(root, classes=cls, ids=ids, limit=limit)
+    if ds.label_dir is None:
+        raise ValueError(
+            f"{root}: no label folder (labels/ or label_2/ beside {ds.image_dir.name}/): "
+            "recall needs the ground-truth boxes"
+        )
+    return [ds[i] for i in range(len(ds))], ds.classes
+
+
+def rerun_line(prog: str, argv: Sequence[str]) -> str:
+    """The shell command that reruns ``prog`` with ``argv`` (``python prog`` for a script)."""
+    head = ["python", prog] if prog.endswith(".py") else shlex.split(prog)
+    return " ".join([*head, *map(shlex.quote, argv)])
+
+
+def environment() -> dict[str, Any]:
+    """Versions, thread counts and CPU of this run, for the JSON record."""
+    import cv2
+    import torch
+
+    return {
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "cuda": torch.cuda.is_available(),
+        "opencv": cv2.__version__,
+        "opencv_threads": cv2.getNumThreads(),
+    }
+
+
+def _frames_arg(text: str) -> FrameRange:
+    """argparse ``type=`` for ``--frames``."""
+    import argparse
+
+    try:
+        return parse_frame_range(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def add_frames_option(parser: Any) -> None:
+    """Add ``--frames A:B [A:B ...]`` to an ``argparse`` parser."""
+    parser.add_argument(
+        "--frames", nargs="+", type=_frames_arg, default=[], metavar="A:B",
+        help="only frames whose numeric id is in these ranges (both ends included; "
+             "A:, :B and A also work), e.g. --frames 0:39 40:59; with two or more ranges "
+             "the recall is also reported for each range",
+    )

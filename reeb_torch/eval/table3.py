@@ -1,0 +1,582 @@
+"""The paper's Table 3 on a KITTI-format folder: recall of REEB and of the classical baselines.
+
+Rows are methods, columns are recall (%) at IoU 0.3 / 0.5 / 0.7 for the top 500 / 1000 /
+2000 proposals, then milliseconds per image. Methods (``--methods``, keys in brackets):
+
+- BING [bing], Selective Search [selective-search], Edge Boxes [edgeboxes]: OpenCV contrib,
+  see :mod:`reeb_torch.baselines`;
+- Ours* [reeb-default-no-regions], Ours** [reeb-default]: REEB with the package default
+  config, without / with region enhancement;
+- REEB as printed [reeb-paper-no-regions, reeb-paper]: the ``paper`` preset.
+
+Recall counts every non-DontCare object of the four classes (Car, Pedestrian, Cyclist,
+Truck). Tables, for the selected frames:
+
+1. micro recall over all objects (all objects pooled) - the headline, as Table 3;
+2. micro recall over KITTI-*moderate* objects (box height >= 25 px, occlusion <= 1,
+   truncation <= 0.3: the usual protocol of KITTI proposal papers,
+   :data:`reeb_torch.metrics.KITTI_DIFFICULTIES`);
+3. the mean of the per-class recalls (all objects);
+4. per-class recall at 2000 proposals, IoU 0.7, over all and over moderate objects;
+5. average recall (AR, IoU 0.5:0.05:0.95) at each k.
+
+``--frames 0:39 40:59`` selects frames by numeric id (both ends included); with two or more
+ranges, tables 1, 2 and 4 are repeated for each range (the proposals are computed once).
+
+Timing is the wall time of the proposal call alone (images are decoded beforehand), one
+image at a time, after one untimed warm-up call; REEB is also timed in batches of
+``--batch`` images (reported separately, total time / images).
+
+Writes into ``--out`` (default ``runs/table3``): ``table3.txt`` (what is printed),
+``table3.csv`` (one row per method x frames x objects x average), ``table3.json`` (every
+number, the settings and the machine), and ``recall_vs_proposals_iou0.7.png`` /
+``recall_vs_iou_k2000.png`` (with matplotlib, the ``extras``).
+
+Run: ``reeb eval DIR``, ``python -m reeb_torch.eval --data DIR [--limit N] [--frames A:B ...]
+[--methods ...]``, or from code ``main(argv)`` (returns the JSON record).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..metrics import (
+    AR_IOUS,
+    KITTI_DIFFICULTIES,
+    RecallResult,
+    kitti_difficulty_mask,
+    recall_table,
+    recall_vs_iou,
+    recall_vs_proposals,
+    select_objects,
+)
+from .common import add_frames_option, environment, load_kitti, rerun_line
+
+__all__ = [
+    "KS",
+    "IOUS",
+    "HEADLINE",
+    "PAPER_TABLE3",
+    "Method",
+    "METHODS",
+    "run_method",
+    "recall_tables",
+    "format_table",
+    "main",
+]
+
+KS = (500, 1000, 2000)
+IOUS = (0.3, 0.5, 0.7)
+HEADLINE = (2000, 0.7)
+"""``(k, IoU)`` of the per-class table."""
+CURVE_IOUS = tuple(round(0.3 + 0.05 * i, 2) for i in range(15))  # 0.3 .. 1.0
+OBJECT_SETS = ("all", "moderate")
+"""Which objects are counted: every object, or KITTI-moderate ones only."""
+
+# The paper's Table 3 (KITTI training set, all 7481 frames; micro or class mean is not said).
+PAPER_TABLE3: dict[str, tuple[list[float], float]] = {
+    "BING [14]": ([55.5, 41.5, 33.1, 73.3, 58.3, 49.8, 78.7, 66.0, 56.5], 30),
+    "Selective Search [16]": ([73.0, 47.5, 30.0, 84.0, 61.1, 42.2, 89.7, 73.0, 54.8], 4300),
+    "Edge Boxes [20]": ([66.6, 55.8, 48.6, 68.4, 57.0, 49.0, 87.6, 79.4, 70.0], 27),
+    "Ours*": ([54.9, 45.0, 37.8, 68.5, 57.5, 49.8, 80.9, 71.0, 63.4], 40),
+    "Ours**": ([67.3, 53.0, 43.1, 75.2, 61.3, 56.0, 89.5, 81.0, 72.1], 15),
+}
+
+
+@dataclass(frozen=True)
+class Method:
+    """One row of the table."""
+
+    key: str
+    label: str
+    build: Callable[..., Callable[[torch.Tensor], dict]]
+    """``build(max_proposals, **options)`` -> a callable on one uint8 (3, H, W) image."""
+    batched: bool = False
+    """Accepts a list of images (REEB), so batch timing applies."""
+
+
+def _reeb(preset: str) -> Callable[..., Callable]:
+    def build(max_proposals: int, **_: Any) -> Callable:
+        from .. import ProposalGenerator, get_preset
+
+        gen = ProposalGenerator(get_preset(preset), top_k=max_proposals)
+        gen.eval()
+        return gen
+
+    return build
+
+
+def _baseline(name: str) -> Callable[..., Callable]:
+    def build(max_proposals: int, bing_model: str | os.PathLike | None = None, **_: Any) -> Callable:
+        from ..baselines import BASELINES
+
+        if name == "bing" and bing_model is not None:
+            return BASELINES[name](max_proposals=max_proposals, model_dir=bing_model)
+        return BASELINES[name](max_proposals=max_proposals)
+
+    return build
+
+
+METHODS: dict[str, Method] = {
+    m.key: m
+    for m in [
+        Method("bing", "BING", _baseline("bing")),
+        Method("selective-search", "Selective Search", _baseline("selective-search")),
+        Method("edgeboxes", "Edge Boxes (Sobel)", _baseline("edgeboxes")),
+        Method("reeb-default-no-regions", "Ours* (default, no regions)", _reeb("default-no-regions"), True),
+        Method("reeb-default", "Ours** (default)", _reeb("default"), True),
+        Method("reeb-paper-no-regions", "REEB paper preset, no regions", _reeb("paper-no-regions"), True),
+        Method("reeb-paper", "REEB paper preset", _reeb("paper"), True),
+    ]
+}
+
+
+def _call(method: Method, model: Callable, images: list[torch.Tensor]) -> list[dict]:
+    """Proposals for a list of images: one call for REEB, one call per image otherwise."""
+    if method.batched:
+        return model(images)
+    return [model(im) for im in images]
+
+
+def run_method(
+    method: Method,
+    images: list[torch.Tensor],
+    max_proposals: int,
+    batch: int,
+    **options: Any,
+) -> tuple[list[torch.Tensor], dict[str, Any]]:
+    """Run one method over the images; return its ranked boxes per image (``Tensor[N_i, 4]``,
+    CPU, at most ``max_proposals``) and its timings (ms per image)."""
+    from tqdm import tqdm
+
+    model = method.build(max_proposals, **options)
+    _call(method, model, images[:1])  # warm-up, untimed (lazy allocations, caches)
+    boxes: list[torch.Tensor] = []
+    seconds: list[float] = []
+    for im in tqdm(images, desc=f"{method.label:<30}", unit="img", file=sys.stderr, dynamic_ncols=True):
+        t0 = time.perf_counter()
+        (out,) = _call(method, model, [im])
+        seconds.append(time.perf_counter() - t0)
+        boxes.append(out["boxes"].detach().cpu()[:max_proposals])
+    timing: dict[str, Any] = {
+        "ms_per_img": 1000.0 * sum(seconds) / len(seconds),
+        "ms_median": 1000.0 * sorted(seconds)[len(seconds) // 2],
+        "batch_size": 1,
+    }
+    if method.batched and batch > 1 and len(images) > 1:
+        t0 = time.perf_counter()
+        for i in tqdm(range(0, len(images), batch), desc=f"{method.label[:21]:<21} batch {batch}",
+                      unit="batch", file=sys.stderr, dynamic_ncols=True):
+            _call(method, model, images[i : i + batch])
+        timing[f"ms_per_img_batch{batch}"] = 1000.0 * (time.perf_counter() - t0) / len(images)
+    timing["num_proposals_mean"] = sum(b.shape[0] for b in boxes) / len(boxes)
+    return boxes, timing
+
+
+# -- recall ----------------------------------------------------------------------------------
+
+
+def moderate_masks(items: Sequence[dict[str, Any]]) -> list[torch.Tensor]:
+    """Per frame, ``bool Tensor[N_i]``: which objects are KITTI-moderate."""
+    return [kitti_difficulty_mask(it["boxes"], it["occluded"], it["truncated"], "moderate") for it in items]
+
+
+def recall_tables(
+    boxes: Sequence[torch.Tensor],
+    items: Sequence[dict[str, Any]],
+    classes: Sequence[str],
+    objects: str = "all",
+) -> tuple[RecallResult, RecallResult]:
+    """Recall of ranked ``boxes`` (one ``Tensor[P_i, 4]`` per item) against the items'
+    ground truth, over ``objects`` ``"all"`` or ``"moderate"``.
+
+    Returns:
+        ``(table, ar_table)``: recall at :data:`KS` x :data:`IOUS`, and at :data:`KS` x
+        :data:`reeb_torch.metrics.AR_IOUS` (its mean over IoUs is the average recall).
+    """
+    gts = [it["boxes"] for it in items]
+    labels: list[torch.Tensor] | None = [it["labels"] for it in items]
+    if objects == "moderate":
+        gts, labels = select_objects(gts, labels, moderate_masks(items))
+    elif objects != "all":
+        raise ValueError(f"objects must be one of {OBJECT_SETS}, got {objects!r}")
+    table = recall_table(boxes, gts, labels, classes, ks=KS, ious=IOUS)
+    ar = recall_table(boxes, gts, labels, classes, ks=KS, ious=AR_IOUS)
+    return table, ar
+
+
+def _ar_dict(ar: RecallResult) -> dict[str, Any]:
+    """AR per k (``str(k)`` keys): micro, class mean and per class; ``None`` = undefined."""
+
+    def row(t: torch.Tensor) -> dict[str, float | None]:
+        return {str(k): (None if math.isnan(v) else v) for k, v in zip(ar.ks, t.mean(dim=-1).tolist())}
+
+    return {
+        "micro": row(ar.micro),
+        "class_mean": row(ar.class_mean),
+        "per_class": {c: row(ar.per_class[ci]) for ci, c in enumerate(ar.class_names)},
+    }
+
+
+# -- output ----------------------------------------------------------------------------------
+
+
+def _fmt(v: float | None, digits: int = 1) -> str:
+    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
+
+
+def _pct(v: float | None) -> float:
+    return float("nan") if v is None else 100.0 * v
+
+
+def format_table(title: str, rows: list[tuple[str, list[float], str]], note: str = "") -> str:
+    """Plain-text table in Table 3's layout: ``rows`` are (name, 9 recalls in %, time)."""
+    name_w = max([30, *(len(r[0]) for r in rows)])
+    group = " ".join(f"{f'IoU {t:g}':>8}" for t in IOUS)
+    head1 = f"{'':<{name_w}} | " + " | ".join(f"{f'{k} proposals':^{len(group)}}" for k in KS) + " | time"
+    head2 = f"{'Method':<{name_w}} | " + " | ".join(group for _ in KS) + " | ms/img"
+    lines = [title, head1, head2, "-" * len(head2)]
+    for name, vals, t in rows:
+        groups = [" ".join(f"{_fmt(v):>8}" for v in vals[3 * i : 3 * i + 3]) for i in range(len(KS))]
+        lines.append(f"{name:<{name_w}} | " + " | ".join(groups) + f" | {t}")
+    if note:
+        lines.append(note)
+    return "\n".join(lines)
+
+
+def format_per_class(title: str, rows: list[tuple[str, dict[str, dict]]], classes: Sequence[str]) -> str:
+    """Per-class recall at :data:`HEADLINE`: one row per method, for all and moderate
+    objects a column "all" (micro) then one per class. ``rows`` are
+    ``(name, {objects: recall dict})`` with recall dicts as :meth:`RecallResult.to_dict`."""
+    k, t = str(HEADLINE[0]), f"{HEADLINE[1]:g}"
+    first = rows[0][1] if rows else {}
+    cols: list[tuple[str, str, str | None]] = []  # (header, objects, class or None = micro)
+    for objects in OBJECT_SETS:
+        if objects not in first:
+            continue
+        n = first[objects]["num_objects"]
+        cols.append((f"all ({n})", objects, None))
+        for c in classes:
+            cols.append((f"{c} ({first[objects]['num_per_class'].get(c, 0)})", objects, c))
+    width = max(11, *(len(h) for h, _, _ in cols)) if cols else 11
+    name_w = max(30, *(len(r[0]) for r in rows)) if rows else 30
+    groups = []
+    for objects in OBJECT_SETS:
+        n_cols = sum(1 for _, o, _ in cols if o == objects)
+        if n_cols:
+            label = "all objects" if objects == "all" else "KITTI-moderate objects"
+            groups.append(f"{label:^{n_cols * (width + 1) - 1}}")
+    head1 = f"{'':<{name_w}} | " + " | ".join(groups)
+    head2 = f"{'Method':<{name_w}} | " + " | ".join(
+        " ".join(f"{h:>{width}}" for h, o, _ in cols if o == objects) for objects in OBJECT_SETS
+        if any(o == objects for _, o, _ in cols))
+    lines = [title, head1, head2, "-" * len(head2)]
+    for name, rec in rows:
+        cells = []
+        for objects in OBJECT_SETS:
+            if objects not in rec:
+                continue
+            r = rec[objects]
+            vals = [r["micro"][k][t]] + [r["per_class"][c][k][t] for c in classes]
+            cells.append(" ".join(f"{_fmt(_pct(v)):>{width}}" for v in vals))
+        lines.append(f"{name:<{name_w}} | " + " | ".join(cells))
+    return "\n".join(lines)
+
+
+def _style(label: str) -> str:
+    return "--" if "no regions" in label else "-"
+
+
+def _plot(curves: dict[str, dict], out: Path) -> list[str]:
+    try:
+        import matplotlib
+    except ImportError:
+        print("plots skipped: matplotlib is not installed (pip install 'reeb-torch[extras]')", flush=True)
+        return []
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    files: list[str] = []
+
+    def line_plot(x: str, y: str, xlabel: str, ylabel: str, title: str, name: str, log: bool) -> None:
+        fig, ax = plt.subplots(figsize=(6.4, 4.4))
+        for label, c in curves.items():
+            ax.plot(c[x], [100 * r for r in c[y]], label=label, ls=_style(label))
+        if log:
+            ax.set_xscale("log")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.set_ylim(0, 100)
+        ax.grid(True, which="both" if log else "major", alpha=0.3)
+        ax.legend(fontsize=8)
+        ax.set_title(title)
+        fig.tight_layout()
+        fig.savefig(out / name, dpi=120)
+        plt.close(fig)
+        files.append(name)
+
+    line_plot("ks", "recall_vs_k", "number of proposals", "recall at IoU 0.7 (%)",
+              "Recall vs number of proposals (KITTI, IoU 0.7)", "recall_vs_proposals_iou0.7.png", log=True)
+    line_plot("ious", "recall_vs_iou", "IoU threshold", "recall of the top 2000 (%)",
+              "Recall vs IoU (KITTI, 2000 proposals)", "recall_vs_iou_k2000.png", log=False)
+    return files
+
+
+def build_parser(prog: str = "python -m reeb_torch.eval", default_data: Path | None = None) -> argparse.ArgumentParser:
+    """The command line of :func:`main`. ``default_data``: the ``--data`` default (without
+    one, ``--data`` is required)."""
+    p = argparse.ArgumentParser(
+        prog=prog,
+        description="Reproduce the paper's Table 3 (recall vs proposals and IoU, ms/img) on KITTI.",
+    )
+    p.add_argument("--data", type=Path, default=default_data, required=default_data is None,
+                   help="KITTI-format folder (images/ + labels/, or image_2/ + label_2/)"
+                        + ("; default: %(default)s" if default_data is not None else ""))
+    p.add_argument("--limit", type=int, default=None, help="use only the first N frames (after --frames)")
+    add_frames_option(p)
+    p.add_argument("--out", type=Path, default=Path("runs/table3"), help="output folder; default: %(default)s")
+    p.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS), metavar="METHOD",
+                   help=f"methods to run, in table order; choose from {', '.join(METHODS)} (default: all)")
+    p.add_argument("--max-proposals", type=int, default=max(KS), help="proposals per image; default: %(default)s")
+    p.add_argument("--batch", type=int, default=8,
+                   help="also time REEB in batches of this many images (0 or 1: skip); default: %(default)s")
+    p.add_argument("--bing-model", type=Path, default=None,
+                   help="folder of BING's nine ObjNessB2W8*.yml.gz files; default: the package's "
+                        "default (reeb_torch.baselines.default_bing_model_dir), else bing_model/ "
+                        "beside the --data folder")
+    return p
+
+
+def _bing_model(args: argparse.Namespace) -> Path | None:
+    if args.bing_model is not None:
+        return args.bing_model
+    from ..baselines import default_bing_model_dir
+
+    if default_bing_model_dir().is_dir():
+        return None
+    beside = Path(args.data).resolve().parent / "bing_model"
+    return beside if beside.is_dir() else None
+
+
+def _class_counts(labels: list[torch.Tensor], n: int) -> list[int]:
+    if not labels:
+        return [0] * n
+    return torch.bincount(torch.cat(labels).to(torch.int64), minlength=n).tolist()
+
+
+def _frame_span(ids: Sequence[str]) -> str:
+    return f"{ids[0]}-{ids[-1]}" if ids else "none"
+
+
+def main(
+    argv: Sequence[str] | None = None,
+    *,
+    prog: str = "python -m reeb_torch.eval",
+    default_data: Path | None = None,
+) -> dict[str, Any]:
+    """Run the benchmark (``argv`` as on the command line) and return the JSON record.
+
+    ``prog`` names the command in ``--help`` and in the rerun line; ``default_data`` is the
+    ``--data`` default. Bad options or unusable data exit with code 2 and a message.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(prog, default_data)
+    args = parser.parse_args(argv)
+    if args.max_proposals < max(KS):
+        parser.error(f"--max-proposals must be >= {max(KS)} for Table 3's columns, got {args.max_proposals}")
+    if args.limit is not None and args.limit < 1:
+        parser.error(f"--limit must be >= 1, got {args.limit}")
+    rerun = rerun_line(prog, argv)
+    print(f"Rerun: {rerun}   (from {os.getcwd()})", flush=True)
+
+    t0 = time.perf_counter()
+    try:
+        items, classes = load_kitti(args.data, limit=args.limit, frames=args.frames)
+    except (ValueError, FileNotFoundError) as e:
+        parser.error(str(e))
+    images = [it["image"] for it in items]
+    gts = [it["boxes"] for it in items]
+    labels = [it["labels"] for it in items]
+    ids = [it["image_id"] for it in items]
+    n_obj = sum(int(g.shape[0]) for g in gts)
+    if n_obj == 0:
+        parser.error(f"{args.data}: the {len(items)} selected frames hold no object of "
+                     f"{', '.join(classes)}; recall is undefined")
+    print(f"{len(images)} frames from {args.data} ({n_obj} objects of {', '.join(classes)}), "
+          f"decoded in {time.perf_counter() - t0:.1f} s", flush=True)
+
+    # frame splits: the whole selection, then each --frames range when there are several
+    splits: list[tuple[str, list[int]]] = [("all", list(range(len(items))))]
+    if len(args.frames) > 1:
+        for r in args.frames:
+            idx = [i for i, f in enumerate(ids) if int(f) in r]
+            splits.append((r.text, idx))
+    bing_model = _bing_model(args)
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    results: dict[str, Any] = {}
+    curves: dict[str, dict] = {}
+    for key in args.methods:
+        method = METHODS[key]
+        try:
+            boxes, timing = run_method(method, images, args.max_proposals, args.batch, bing_model=bing_model)
+        except (FileNotFoundError, ImportError) as e:  # e.g. the BING model folder is absent
+            print(f"skipped {method.label}: {e}", flush=True)
+            results[key] = {"label": method.label, "skipped": str(e)}
+            continue
+        ks_curve, r_k = recall_vs_proposals(boxes, gts, iou=0.7, max_k=args.max_proposals)
+        ious_curve, r_iou = recall_vs_iou(boxes, gts, k=max(KS), ious=CURVE_IOUS)
+        curves[method.label] = {"ks": ks_curve.tolist(), "recall_vs_k": r_k.tolist(),
+                                "ious": ious_curve.tolist(), "recall_vs_iou": r_iou.tolist()}
+        split_records: dict[str, Any] = {}
+        for name, idx in splits:
+            rec: dict[str, Any] = {"frames": [ids[i] for i in idx]}
+            for objects in OBJECT_SETS:
+                table, ar = recall_tables([boxes[i] for i in idx], [items[i] for i in idx], classes, objects)
+                rec[objects] = {"recall": table.to_dict(), "ar": _ar_dict(ar)}
+            split_records[name] = rec
+        whole = split_records["all"]
+        hk, ht = HEADLINE
+        results[key] = {
+            "label": method.label,
+            # kept as before: all objects of all selected frames
+            "recall": whole["all"]["recall"],
+            "ar_micro": whole["all"]["ar"]["micro"],
+            "ar_class_mean": whole["all"]["ar"]["class_mean"],
+            "recall_moderate": whole["moderate"]["recall"],
+            "per_class_headline": {
+                objects: {c: whole[objects]["recall"]["per_class"][c][str(hk)][f"{ht:g}"] for c in classes}
+                for objects in OBJECT_SETS
+            },
+            "splits": split_records,
+            "timing": timing,
+            "curves": curves[method.label],
+        }
+        mod = whole["moderate"]["recall"]["micro"][str(hk)][f"{ht:g}"]
+        micro = whole["all"]["recall"]["micro"][str(hk)][f"{ht:g}"]
+        print(f"  {method.label}: recall@2000 IoU0.7 micro {_fmt(_pct(micro))} %, "
+              f"moderate {_fmt(_pct(mod))} %, {timing['ms_per_img']:.0f} ms/img", flush=True)
+
+    done = [k for k in args.methods if "recall" in results[k]]
+
+    def time_cell(k: str) -> str:
+        t = results[k]["timing"]
+        s = f"{t['ms_per_img']:.0f}"
+        bk = f"ms_per_img_batch{args.batch}"
+        return s + (f" ({t[bk]:.0f} @b{args.batch})" if bk in t else "")
+
+    def grid_rows(split: str, objects: str, average: str) -> list[tuple[str, list[float], str]]:
+        rows = []
+        for k in done:
+            grid = results[k]["splits"][split][objects]["recall"][average]
+            vals = [_pct(grid[str(kk)][f"{t:g}"]) for kk in KS for t in IOUS]
+            rows.append((results[k]["label"], vals, time_cell(k)))
+        return rows
+
+    mod_rule = KITTI_DIFFICULTIES["moderate"]
+    mod_text = (f"height >= {mod_rule.min_height:g} px, occlusion <= {mod_rule.max_occlusion}, "
+                f"truncation <= {mod_rule.max_truncation:g}")
+    blocks = []
+    for split, idx in splits:
+        span = f"{len(idx)} frames {_frame_span([ids[i] for i in idx])}"
+        where = span if split == "all" else f"frames {split} ({span})"
+        if len(splits) > 1:
+            blocks.append(f"=== {'all selected frames' if split == 'all' else 'frames ' + split}: {span} ===")
+        any_rec = results[done[0]]["splits"][split] if done else None
+        n_all = any_rec["all"]["recall"]["num_objects"] if any_rec else 0
+        n_mod = any_rec["moderate"]["recall"]["num_objects"] if any_rec else 0
+        blocks.append(format_table(
+            f"Recall (%) over all objects (micro, {n_all} objects, {where}) - headline, as Table 3",
+            grid_rows(split, "all", "micro")))
+        blocks.append(format_table(
+            f"Recall (%) over KITTI-moderate objects (micro, {n_mod} objects: {mod_text})",
+            grid_rows(split, "moderate", "micro")))
+        if split == "all":
+            blocks.append(format_table(
+                f"Recall (%), mean of the per-class recalls ({', '.join(classes)}; all objects)",
+                grid_rows(split, "all", "class_mean")))
+        blocks.append(format_per_class(
+            f"Per-class recall (%) at {HEADLINE[0]} proposals, IoU {HEADLINE[1]:g} ({where})",
+            [(results[k]["label"], {o: results[k]["splits"][split][o]["recall"] for o in OBJECT_SETS})
+             for k in done], classes))
+    ar_lines = ["Average recall (%, IoU 0.5:0.05:0.95, all objects)   micro @500 / @1000 / @2000  |  "
+                "class mean @500 / @1000 / @2000"]
+    for k in done:
+        a, c = results[k]["ar_micro"], results[k]["ar_class_mean"]
+        ar_lines.append(f"{results[k]['label']:<30} " + " / ".join(f"{_fmt(_pct(a[str(kk)])):>5}" for kk in KS)
+                        + "  |  " + " / ".join(f"{_fmt(_pct(c[str(kk)])):>5}" for kk in KS))
+    blocks.append("\n".join(ar_lines))
+    blocks.append(format_table(
+        "The paper's Table 3 (7481 KITTI frames, C++ on an i7-8750H; its Edge Boxes uses SE edges)",
+        [(n, v, f"{t:,}") for n, (v, t) in PAPER_TABLE3.items()]))
+    env = environment()
+    counts = ", ".join(f"{c} {n}" for c, n in zip(classes, _class_counts(labels, len(classes))))
+    frames_note = f", --frames {' '.join(r.text for r in args.frames)}" if args.frames else ""
+    header = (f"Table 3 on {len(images)} frames of {args.data} ({_frame_span(ids)}{frames_note}; "
+              f"{n_obj} objects: {counts}).\n"
+              f"Time: wall ms per image of the proposal call only (decoding excluded), batch size 1"
+              f"{f'; REEB also at batch {args.batch} (@b{args.batch})' if args.batch > 1 else ''}; "
+              f"{env['processor']}, {env['cpu_count']} cores, torch threads {env['torch_threads']}, "
+              f"OpenCV threads {env['opencv_threads']}, CUDA {'yes' if env['cuda'] else 'no'}.")
+    text = "\n\n".join([f"Rerun: {rerun}", header, *blocks]) + "\n"
+    print("\n" + text, flush=True)
+    (args.out / "table3.txt").write_text(text)
+
+    with open(args.out / "table3.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["method", "label", "frames", "objects", "average", "num_objects"]
+                   + [f"R@{k}_IoU{t:g}" for k in KS for t in IOUS]
+                   + [f"AR@{k}" for k in KS] + ["ms_per_img", f"ms_per_img_batch{args.batch}"])
+        for k in done:
+            r = results[k]
+            for split, _ in splits:
+                for objects in OBJECT_SETS:
+                    rec = r["splits"][split][objects]
+                    rows = [("micro", rec["recall"]["micro"], rec["ar"]["micro"], rec["recall"]["num_objects"]),
+                            ("class_mean", rec["recall"]["class_mean"], rec["ar"]["class_mean"], "")]
+                    rows += [(c, rec["recall"]["per_class"][c], rec["ar"]["per_class"][c],
+                              rec["recall"]["num_per_class"][c]) for c in classes]
+                    for average, grid, ar, n in rows:
+                        w.writerow([k, r["label"], split, objects, average, n]
+                                   + [_fmt(_pct(grid[str(kk)][f"{t:g}"]), 2) for kk in KS for t in IOUS]
+                                   + [_fmt(_pct(ar[str(kk)]), 2) for kk in KS]
+                                   + [f"{r['timing']['ms_per_img']:.1f}",
+                                      _fmt(r["timing"].get(f"ms_per_img_batch{args.batch}"), 1)])
+
+    plots = _plot(curves, args.out) if curves else []
+    record = {
+        "rerun": rerun,
+        "data": str(args.data),
+        "num_images": len(images),
+        "image_ids": ids,
+        "frames": [r.text for r in args.frames],
+        "splits": {name: [ids[i] for i in idx] for name, idx in splits},
+        "num_objects": n_obj,
+        "classes": list(classes),
+        "ks": list(KS),
+        "ious": list(IOUS),
+        "moderate": {"min_height": mod_rule.min_height, "max_occlusion": mod_rule.max_occlusion,
+                     "max_truncation": mod_rule.max_truncation},
+        "max_proposals": args.max_proposals,
+        "batch": args.batch,
+        "environment": env,
+        "methods": results,
+        "paper_table3": {n: {"recall": v, "ms_per_img": t} for n, (v, t) in PAPER_TABLE3.items()},
+        "plots": plots,
+    }
+    (args.out / "table3.json").write_text(json.dumps(record, indent=1))
+    print(f"wrote {args.out}/table3.txt, table3.csv, table3.json"
+          + (f", {', '.join(plots)}" if plots else ""), flush=True)
+    return record
