@@ -285,13 +285,10 @@ class ReebConfig:
     def with_kitti_calib(self, path: str, width: int, height: int) -> "ReebConfig":
         """A copy whose opening angles come from the ``P2`` matrix of a KITTI ``calib``
         file (the left colour camera) for images of ``width × height`` pixels."""
-        from .data import camera_intrinsics, read_kitti_calib
+        from .camera import Camera
 
-        calib = read_kitti_calib(path)
-        if "P2" not in calib:
-            raise ValueError(f"{path}: no P2 matrix (the left colour camera) in this calib file")
-        fx, fy, _, _ = camera_intrinsics(calib["P2"])
-        return self.with_camera(fx, fy, width, height)
+        cam = Camera.from_kitti_calib(path)  # ValueError naming the file without P2
+        return self.with_camera(cam.fx, cam.fy, width, height)
 
     def fingerprint(self) -> str:
         """A short stable hash of all fields (used to detect stale proposal caches)."""
