@@ -18,9 +18,10 @@ __all__ = ["ReebConfig", "PRESETS", "get_preset"]
 
 Grouping = Literal["connected", "cell"]
 ScoreNorm = Literal["perimeter", "area"]
-RoadScore = Literal["reward", "penalize", "none", "flat"]
+RoadScore = Literal["reward", "penalize", "none", "flat", "stand"]
 LocationScore = Literal["paper", "ground", "none"]
 EntropyForm = Literal["printed", "abs-diff"]
+WindowGeometry = Literal["camera", "grid"]
 
 
 @dataclass(frozen=True)
@@ -102,7 +103,7 @@ class ReebConfig:
     region_quota: bool = False
     """Also split the ``top_k`` output among the regions by their shares (eq. 9 applied to
     the final proposals, not only to the candidates)."""
-    candidates_per_region: int = 4000
+    candidates_per_region: int = 6000
     candidates_without_regions: int = 8000
     """Windows passed on to ranking when ``use_regions=False`` (the whole image is one
     region with share 1); about ``top_k`` of them survive NMS on KITTI."""
@@ -122,6 +123,28 @@ class ReebConfig:
     """Keep only windows whose height h and bottom row y_b satisfy
     r_lo <= h / (y_b − horizon·H) <= r_hi: objects standing on the road (a flat-ground
     camera prior, in the spirit of eq. 11's "lower boxes are bigger"). ``None`` = all rows."""
+    window_geometry: WindowGeometry = "camera"
+    """``camera``: window sizes and rows from the ground plane and ``object_templates``
+    (:func:`reeb_torch.windows.camera_window_sizes`; regions set budgets, not the largest
+    window). ``grid``: every size of the two geometric series within ``aspect_range``, no
+    wider than a region, at the rows ``ground_band`` allows (the first release's grid)."""
+    object_templates: tuple[tuple[float, float, float, float], ...] = (
+        (1.2, 2.6, 1.3, 6.5),   # car / van: height, width of its 2D box at any yaw
+        (2.2, 4.5, 1.8, 16.0),  # truck
+        (0.9, 2.2, 0.3, 1.4),   # pedestrian (children to adults, arms and legs swinging)
+        (1.1, 2.2, 0.4, 2.4),   # cyclist (front to side view)
+    )
+    """Real extents, in metres, of the 2D boxes of each object class standing on the road:
+    ``(height_lo, height_hi, width_lo, width_hi)`` (the box width spans the object's width
+    to its length, by its yaw). With ``window_geometry='camera'``, a window is kept at the
+    rows where some template fits both its height and its width (camera at
+    ``camera_height_m``, horizon at ``horizon``)."""
+    horizon_slack: float = 0.0
+    """With ``window_geometry='camera'``: how far (fraction of the image height) the horizon
+    may stray from ``horizon`` (camera pitch, road slope); widens each template's rows."""
+    border_windows: bool = True
+    """With ``window_geometry='camera'``: also windows flush with the left/right image
+    border at any width (objects cut by the border keep only their height)."""
     local_max: bool = False
     """Keep only windows whose score is a local maximum among the 8 neighbouring
     positions of the same size before NMS (a cheap pre-NMS; costs recall at IoU 0.7)."""
@@ -134,13 +157,25 @@ class ReebConfig:
     """Exponent of the area normalisation (no value printed; 0.75 ≈ Edge Boxes' κ/2)."""
     kappa: float = 1.5
     """Exponent of the perimeter normalisation (Edge Boxes' value)."""
+    straddle_weight: float = 0.0
+    """Weight λ of a straddling term in eq. 1: S = (Σ wₙmₙ − Σ_c m_c − λ·Σ_cut m) / norm,
+    where Σ_cut m is the edge mass that crosses the box's sides (within ``straddle_band``
+    working pixels of each side, weighted by how much the contour runs across that side).
+    A cheap, exact-on-a-grid stand-in for Edge Boxes' affinity-weighted wₙ: a contour that
+    continues out of the box counts against it. 0 = off (as printed)."""
+    straddle_band: int = 1
+    """Half-width, in working pixels, of the band around each box side for ``straddle_weight``."""
     center_fraction: float = 0.5
     """Side of the centre region c relative to the box (eq. 1: half)."""
 
     # -- eqs. 10-12: road, location and combined score -----------------------------------
     road_score: RoadScore = "none"
     """``reward``: V adds β·R as printed (``paper``); ``penalize``: β·(1 − R) (NOTES #10);
-    ``none``: no road term (the default: best measured); ``flat``: R = 1, a constant β."""
+    ``none``: no road term; ``flat``: R = 1, a constant β; ``stand``: objects stand *on* the
+    road: R = (road fraction of the strip just below the box) · (1 − road fraction inside)."""
+    road_strip: float = 0.15
+    """With ``road_score='stand'``: height of the strip just below a box, as a fraction of the
+    box height, whose road fraction says the box stands on the road."""
     location_score: LocationScore = "ground"
     """``paper``: L = b_y/(b_w·b_h)·W (eq. 11); ``ground``: how well the box height fits
     a ground-plane object standing at its bottom row, in [0, 1]; ``none``: L = 1."""
@@ -211,8 +246,8 @@ class ReebConfig:
         check(0 < lo <= hi, "aspect_range", "(low, high) with 0 < low <= high")
         check(self.score_norm in ("perimeter", "area"), "score_norm", "'perimeter' or 'area'")
         check(0 < self.center_fraction < 1, "center_fraction", "in (0, 1)")
-        check(self.road_score in ("reward", "penalize", "none", "flat"), "road_score",
-              "'reward', 'penalize', 'none' or 'flat'")
+        check(self.road_score in ("reward", "penalize", "none", "flat", "stand"), "road_score",
+              "'reward', 'penalize', 'none', 'flat' or 'stand'")
         check(self.region_assign in ("contained", "nearest"), "region_assign", "'contained' or 'nearest'")
         pos("ground_ratio")
         pos("ground_log_sigma")
@@ -248,6 +283,7 @@ class ReebConfig:
             region_assign="contained",
             thin_edges=False,
             ground_band=None,
+            window_geometry="grid",
             min_edge_score=0.01,
         )
         base.update(overrides)

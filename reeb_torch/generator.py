@@ -148,8 +148,10 @@ class ProposalGenerator(nn.Module):
         with self._stage("edges", dev):
             xk = self._working_image(x)
             gray = _edges.to_gray(xk)
-            edges = _edges.edge_map(gray if cfg.edge_channels == "gray" else xk, cfg.blur_sigma,
-                                    cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges)
+            edges, gx, gy = _edges.edge_map(gray if cfg.edge_channels == "gray" else xk, cfg.blur_sigma,
+                                            cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges,
+                                            return_gradients=True)
+            crossing = _edges.crossing_maps(edges, gx, gy) if cfg.straddle_weight > 0 else None
         hk, wk = xk.shape[-2:]
         fx, fy = wk / w_in, hk / h_in
         # Sec. 3.7: adjacent edge pixels form edge groups
@@ -170,10 +172,8 @@ class ProposalGenerator(nn.Module):
                 share = torch.ones(b, 1, device=dev)
         # Sec. 3.6-3.7: dense sliding windows, scored by eqs. 1, 10-12, ranked per region
         with self._stage("scoring", dev):
-            ground = None if cfg.ground_band is None else (cfg.horizon, *cfg.ground_band)
-            grid = _windows.window_grid(hk, wk, bounds, self._min_window_working(fx, fy), cfg.size_ratio,
-                                        cfg.window_step, cfg.aspect_range, cfg.region_assign, ground)
-            scores = self._score_windows(edges, road, groups, grid, fx, fy, h_in, w_in)
+            grid = self._window_grid(hk, wk, bounds, fx, fy)
+            scores = self._score_windows(edges, road, groups, grid, fx, fy, h_in, w_in, crossing)
             chosen = self._select(scores, grid, share)
         # Sec. 3.8: Final_Proposals = NMS(Sorted_Proposals) (eq. 13)
         with self._stage("nms", dev):
@@ -209,6 +209,19 @@ class ProposalGenerator(nn.Module):
     def _min_window_working(self, fx: float, fy: float) -> int:
         return max(3, int(round(self.config.min_window * min(fx, fy))))
 
+    def _window_grid(self, hk: int, wk: int, bounds: Tensor, fx: float, fy: float) -> _windows.WindowGrid:
+        cfg = self.config
+        ground = None if cfg.ground_band is None else (cfg.horizon, *cfg.ground_band)
+        camera = None
+        if cfg.window_geometry == "camera":
+            # template extents (metres) over the camera height: the ratios box side / (y_b − y_h)
+            ratios = tuple((hl / cfg.camera_height_m, hh / cfg.camera_height_m,
+                            wl / cfg.camera_height_m * fx / fy, wh / cfg.camera_height_m * fx / fy)
+                           for hl, hh, wl, wh in cfg.object_templates)
+            camera = (cfg.horizon, ratios, cfg.border_windows, cfg.horizon_slack)
+        return _windows.window_grid(hk, wk, bounds, self._min_window_working(fx, fy), cfg.size_ratio,
+                                    cfg.window_step, cfg.aspect_range, cfg.region_assign, ground, camera)
+
     def _region_bounds(self, width: int) -> Tensor:
         cfg = self.config
         if not cfg.use_regions:
@@ -218,22 +231,40 @@ class ProposalGenerator(nn.Module):
         return _regions.region_bounds(width, frac, cfg.region_overlap)
 
     def _score_windows(self, edges: Tensor, road: Tensor, groups: _groups.EdgeGroups,
-                       grid: _windows.WindowGrid, fx: float, fy: float, h_in: int, w_in: int) -> Tensor:
+                       grid: _windows.WindowGrid, fx: float, fy: float, h_in: int, w_in: int,
+                       crossing: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """V (eq. 12) of every window, ``float32 [B, N]``; ``-inf`` where S < min_edge_score
         (or, with ``local_max``, where a neighbouring position of the same size scores higher)."""
         cfg = self.config
         b = edges.shape[0]
         ii_edges = _scoring.integral_image(edges)
         ii_road = _scoring.integral_image(road)
+        ii_road_below = None
+        if cfg.road_score == "stand":  # rows past the bottom hold no road
+            hk = road.shape[1]
+            ii_road_below = torch.cat([ii_road, ii_road[:, -1:].expand(-1, hk, -1)], 1)
         enclosed = _scoring.enclosed_sums(groups, b, grid.sizes)
+        band = cfg.straddle_band
+        if crossing is not None:  # padded by the band so sides at the image border read zeros
+            ii_cols = _scoring.integral_image(F.pad(crossing[0], (band, band, band, band)))
+            ii_rows = _scoring.integral_image(F.pad(crossing[1], (band, band, band, band)))
         unit = _scoring.unit_scale(fx, fy)
         out = torch.full((b, grid.count), -math.inf, dtype=torch.float32, device=edges.device)
         for s, enc, off in zip(grid.sizes, enclosed, grid.offsets):
             dx, dy, cw, ch = _scoring.centre_box(s.w, s.h, cfg.center_fraction)
             centre = _scoring.box_sums(ii_edges, dx, dy, cw, ch, s)
+            if crossing is not None:  # contours cut by the box's sides (straddling edges)
+                r2 = 2 * band
+                cut = (_scoring.box_sums(ii_cols, 0, band, r2, s.h, s) + _scoring.box_sums(ii_cols, s.w, band, r2, s.h, s)
+                       + _scoring.box_sums(ii_rows, band, 0, s.w, r2, s) + _scoring.box_sums(ii_rows, band, s.h, s.w, r2, s))
+                centre = centre + cfg.straddle_weight * cut
             bw, bh = s.w / fx, s.h / fy
             sc = _scoring.edge_score(enc * unit, centre * unit, bw, bh, cfg.score_norm, cfg.kappa, cfg.gamma).float()
             r = (_scoring.box_sums(ii_road, 0, 0, s.w, s.h, s) / (s.w * s.h)).float()
+            if cfg.road_score == "stand":  # road just below the box, little road inside it
+                sh = max(1, int(round(cfg.road_strip * s.h)))
+                below = _scoring.box_sums(ii_road_below, 0, s.h, s.w, sh, s) / (s.w * sh)
+                r = (below.float() * (1.0 - r)).clamp_(0, 1)
             bottom = ((torch.arange(s.ny, device=edges.device, dtype=torch.float32) * s.sy + s.oy + s.h) / fy).view(1, -1, 1)
             loc = _scoring.location_score(bottom, bw, bh, float(w_in), float(h_in), cfg.location_score,
                                           cfg.horizon, cfg.ground_ratio, cfg.ground_log_sigma)

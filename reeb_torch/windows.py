@@ -20,7 +20,7 @@ from functools import lru_cache
 import torch
 from torch import Tensor
 
-__all__ = ["WindowSize", "WindowGrid", "window_sizes", "window_grid"]
+__all__ = ["WindowSize", "WindowGrid", "window_sizes", "camera_window_sizes", "window_grid"]
 
 
 @dataclass(frozen=True)
@@ -107,12 +107,110 @@ def window_sizes(height: int, width: int, max_width: int, min_window: int, ratio
     return out
 
 
+def _merge(intervals: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    out: list[tuple[float, float]] = []
+    for lo, hi in sorted(intervals):
+        if out and lo <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], hi))
+        else:
+            out.append((lo, hi))
+    return out
+
+
+def camera_window_sizes(height: int, width: int, min_window: int, ratio: float, step: float,
+                        horizon: float, templates: tuple[tuple[float, float, float, float], ...],
+                        border: bool = True, slack: float = 0.0) -> list[WindowSize]:
+    """Window sizes and rows derived from the ground plane and class templates (working pixels).
+
+    A camera at height ``h_c`` above a flat road, looking along it, sees an object of real
+    height ``H`` and width ``W`` (metres) standing at depth ``Z`` with its bottom row
+    ``y_b = y_h + f·h_c/Z`` (``y_h``: the horizon row) and a box of ``f·H/Z × f·W/Z`` pixels:
+
+        box height / (y_b − y_h) = H / h_c,    box width / (y_b − y_h) = W / h_c,
+
+    whatever the focal length (the paper's eqs. 5–7 carried through to the windows, and how
+    Mono3D / 3DOP place their candidates). ``templates`` holds, per class, the ranges of
+    those two ratios ``(h_lo, h_hi, w_lo, w_hi)`` (real extents divided by the camera
+    height). A ``w × h`` window is kept at the rows whose depth ``d = y_b − y_h`` fits a
+    template in both height and width: ``d ∈ [max(h/h_hi, w/w_hi), min(h/h_lo, w/w_lo)]``,
+    one :class:`WindowSize` per band of rows (the union over templates).
+
+    With ``border``, windows flush with the left or right image border are added at every
+    width down to ``min_window`` (height still from the templates): objects cut by the image
+    border keep their height but not their width. Such a size has ``sx = width − w``, so its
+    two columns are ``x0 = 0`` and ``x0 = width − w``.
+
+    ``slack`` (a fraction of the image height) widens every band of rows by that much on
+    both sides: the horizon moves with the camera's pitch and the road's slope, which
+    matters most for far objects, whose depth ``d`` is a few pixels.
+
+    Sizes run over geometric series from ``min_window`` (ratio ``ratio``) up to the image
+    height and width; strides are ``max(1, round(step·side))``.
+    """
+    yh = horizon * height
+    out: list[WindowSize] = []
+    widths = _series(min_window, width, ratio)
+    heights = _series(min_window, height, ratio)
+
+    pad = slack * height
+
+    def rows(h: int, sy: int, lo: float, hi: float) -> tuple[int, int] | None:
+        lo, hi = lo - pad, hi + pad
+        j_lo = max(0, math.ceil((yh + lo - h) / sy - 1e-9))
+        j_hi = min((height - h) // sy, math.floor((yh + hi - h) / sy + 1e-9))
+        return (j_lo, j_hi) if j_hi >= j_lo else None
+
+    for w in widths:
+        for h in heights:
+            sx, sy = max(1, round(step * w)), max(1, round(step * h))
+            full = _merge([(max(h / hh, w / wh), min(h / hl, w / wl)) for hl, hh, wl, wh in templates
+                           if max(h / hh, w / wh) <= min(h / hl, w / wl)])
+            for lo, hi in full:
+                r = rows(h, sy, lo, hi)
+                if r is not None:
+                    out.append(WindowSize(w, h, sx, sy, (width - w) // sx + 1, r[1] - r[0] + 1, r[0] * sy))
+            if not border or w >= width:
+                continue
+            # cut by the image border: the width may be anything up to the template's
+            cut = _merge([(max(h / hh, w / wh), h / hl) for hl, hh, wl, wh in templates
+                          if max(h / hh, w / wh) <= h / hl])
+            for lo, hi in cut:
+                # leave out the rows the full-width windows already cover at the border
+                for a, b in _subtract((lo, hi), full):
+                    r = rows(h, sy, a, b)
+                    if r is not None:
+                        out.append(WindowSize(w, h, width - w, sy, 2, r[1] - r[0] + 1, r[0] * sy))
+    return out
+
+
+def _subtract(iv: tuple[float, float], minus: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Parts of interval ``iv`` outside the (sorted, disjoint) intervals ``minus``."""
+    parts = [iv]
+    for a, b in minus:
+        nxt = []
+        for lo, hi in parts:
+            if b < lo or a > hi:
+                nxt.append((lo, hi))
+                continue
+            if lo < a:
+                nxt.append((lo, a - 1e-6))
+            if b < hi:
+                nxt.append((b + 1e-6, hi))
+        parts = nxt
+    return parts
+
+
 @lru_cache(maxsize=32)
 def _grid(height: int, width: int, bounds: tuple[tuple[int, int], ...], min_window: int, ratio: float,
           step: float, aspect: tuple[float, float], assign: str,
-          ground: tuple[float, float, float] | None) -> WindowGrid:
-    region_w = max(b - a for a, b in bounds)
-    sizes = window_sizes(height, width, region_w, min_window, ratio, step, aspect, ground)
+          ground: tuple[float, float, float] | None,
+          camera: tuple | None = None) -> WindowGrid:
+    if camera is not None:
+        horizon, templates, border, slack = camera
+        sizes = camera_window_sizes(height, width, min_window, ratio, step, horizon, templates, border, slack)
+    else:
+        region_w = max(b - a for a, b in bounds)
+        sizes = window_sizes(height, width, region_w, min_window, ratio, step, aspect, ground)
     boxes, offsets = [], [0]
     for s in sizes:
         xs = torch.arange(s.nx, dtype=torch.float32) * s.sx
@@ -134,10 +232,18 @@ def _grid(height: int, width: int, bounds: tuple[tuple[int, int], ...], min_wind
 
 def window_grid(height: int, width: int, bounds: Tensor, min_window: int, ratio: float, step: float,
                 aspect: tuple[float, float], assign: str = "nearest",
-                ground: tuple[float, float, float] | None = None) -> WindowGrid:
+                ground: tuple[float, float, float] | None = None,
+                camera: tuple[float, tuple[tuple[float, float, float, float], ...], bool, float] | None = None,
+                ) -> WindowGrid:
     """The (cached) :class:`WindowGrid` of a ``height × width`` working image whose
     regions have column ``bounds`` (``int64 [R, 2]``); ``min_window`` in working pixels;
-    ``ground`` as in :func:`window_sizes`."""
+    ``ground`` as in :func:`window_sizes`. With ``camera = (horizon, templates, border, slack)``
+    (and ``slack``) the sizes come from :func:`camera_window_sizes` instead (``aspect`` and ``ground`` are
+    then unused, and a window may be wider than its region: regions only set budgets)."""
     key = tuple((int(a), int(b)) for a, b in bounds.tolist())
     g = None if ground is None else tuple(float(v) for v in ground)
-    return _grid(height, width, key, int(min_window), float(ratio), float(step), tuple(aspect), assign, g)
+    cam = None
+    if camera is not None:
+        cam = (float(camera[0]), tuple(tuple(float(v) for v in t) for t in camera[1]), bool(camera[2]),
+               float(camera[3]))
+    return _grid(height, width, key, int(min_window), float(ratio), float(step), tuple(aspect), assign, g, cam)
