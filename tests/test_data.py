@@ -270,3 +270,41 @@ def test_real_kitti_folder():
     assert item["image"].shape[0] == 3 and 370 <= item["image"].shape[1] <= 376
     vans = KittiDataset(KITTI, classes=("Van",))
     assert sum(len(vans.load_target(i)["boxes"]) for i in range(len(vans))) == 18
+
+
+# -- camera (reeb_torch.camera; data re-exports the readers) ------------------------------
+
+
+def test_camera_module_is_the_source_of_the_readers():
+    from reeb_torch import camera, data
+
+    assert data.read_kitti_calib is camera.read_kitti_calib
+    assert data.camera_intrinsics is camera.camera_intrinsics
+
+
+def test_camera_from_kitti_calib_and_fov(tmp_path):
+    import math
+
+    from reeb_torch.camera import Camera
+
+    cam = Camera.from_kitti_calib(EXAMPLES / "kitti_000001_calib.txt")
+    assert cam == Camera(721.5377, 721.5377, 609.5593, 172.854)
+    assert Camera.from_matrix(read_kitti_calib(EXAMPLES / "kitti_000001_calib.txt")["P2"]) == cam
+    # θ = 2·atan(W / 2f), checked against the README's ≈ 81° × 29° for 1242 × 375 px
+    h, v = cam.fov_deg(1242, 375)
+    assert h == pytest.approx(2 * math.degrees(math.atan(621 / 721.5377)))
+    assert round(h) == 81 and round(v) == 29
+    p = tmp_path / "no_p2.txt"
+    p.write_text("P0: 1 0 2 0 0 3 4 0 0 0 1 0\n")
+    with pytest.raises(ValueError, match=r"no_p2\.txt: no P2 matrix"):
+        Camera.from_kitti_calib(p)
+    assert Camera.from_kitti_calib(p, key="P0") == Camera(1.0, 3.0, 2.0, 4.0)
+
+
+@pytest.mark.parametrize("fields", [dict(fx=0.0), dict(fy=-1.0), dict(cx=float("nan")), dict(cy="1")])
+def test_camera_rejects_bad_values(fields):
+    from reeb_torch.camera import Camera
+
+    values = dict(fx=700.0, fy=700.0, cx=600.0, cy=170.0) | fields
+    with pytest.raises(ValueError, match="Camera"):
+        Camera(**values)

@@ -10,11 +10,15 @@ import torch
 
 from reeb_torch.metrics import (
     AR_IOUS,
+    KITTI_DIFFICULTIES,
+    KittiDifficulty,
     average_recall,
     best_iou,
+    kitti_difficulty_mask,
     recall_table,
     recall_vs_iou,
     recall_vs_proposals,
+    select_objects,
 )
 
 T = torch.tensor
@@ -211,3 +215,84 @@ def test_recall_vs_iou():
             assert got == want
     ious, recall = recall_vs_iou([PROPS], [GT], k=1, ious=torch.linspace(0, 1, 5))
     assert recall.tolist() == [1.0, 0.5, 0.0, 0.0, 0.0]  # best IoUs 0.4 and 0
+
+
+# -- KITTI difficulty and per-class recall ------------------------------------------------
+
+# (box, occluded, truncated, moderate?, easy?) worked by hand from KITTI's rules:
+# moderate = height y2 - y1 >= 25, occluded <= 1, truncated <= 0.30; easy = 40, 0, 0.15.
+DIFFICULTY_CASES = [
+    ([0.0, 100.0, 10.0, 125.0], 1, 0.30, True, False),  # exactly on every moderate bound
+    ([0.0, 100.0, 10.0, 124.9], 0, 0.00, False, False),  # 24.9 px: too small
+    ([0.0, 100.0, 10.0, 140.0], 2, 0.00, False, False),  # largely occluded
+    ([0.0, 100.0, 10.0, 140.0], 0, 0.31, False, False),  # truncated too much
+    ([0.0, 100.0, 10.0, 150.0], 3, 0.00, False, False),  # occlusion unknown
+    ([0.0, 100.0, 10.0, 140.0], 0, 0.15, True, True),  # 40 px, visible: easy too
+    ([0.0, 100.0, 10.0, 139.0], 0, 0.00, True, False),  # 39 px: moderate, not easy
+]
+
+
+def test_kitti_difficulty_mask_hand_cases():
+    boxes = T([c[0] for c in DIFFICULTY_CASES])
+    occ = T([c[1] for c in DIFFICULTY_CASES])
+    trunc = T([c[2] for c in DIFFICULTY_CASES], dtype=torch.float32)  # as the dataset reads it
+    moderate = kitti_difficulty_mask(boxes, occ, trunc)  # default level: moderate
+    assert moderate.dtype == torch.bool
+    assert moderate.tolist() == [c[3] for c in DIFFICULTY_CASES]
+    assert kitti_difficulty_mask(boxes, occ, trunc, "easy").tolist() == [c[4] for c in DIFFICULTY_CASES]
+    # every easy object is moderate, every moderate one hard
+    hard = kitti_difficulty_mask(boxes, occ, trunc, "hard")
+    assert bool((moderate <= hard).all())
+    custom = KittiDifficulty(min_height=0.0, max_occlusion=3, max_truncation=1.0)
+    assert kitti_difficulty_mask(boxes, occ, trunc, custom).all()
+    assert KITTI_DIFFICULTIES["moderate"] == KittiDifficulty(25.0, 1, 0.30)
+
+
+def test_kitti_difficulty_mask_checks():
+    with pytest.raises(ValueError, match="unknown KITTI difficulty 'medium'"):
+        kitti_difficulty_mask(GT, T([0, 0]), T([0.0, 0.0]), "medium")
+    with pytest.raises(ValueError, match="2 boxes, 1 occlusion codes"):
+        kitti_difficulty_mask(GT, T([0]), T([0.0, 0.0]))
+    assert kitti_difficulty_mask(torch.zeros(0, 4), T([]), T([])).shape == (0,)
+
+
+def test_per_class_and_moderate_recall_hand_case():
+    # image A: a car (GT 0) and a pedestrian (GT 1) against PROPS; top 2 at IoU 0.7:
+    #   car best IoU 0.4 (missed), pedestrian 0.8 (hit).
+    # image B: one car, matched with IoU 0.8 (hit), but largely occluded (not moderate).
+    gt_b = T([[0.0, 0.0, 10.0, 10.0]])
+    props_b = T([[0.0, 0.0, 10.0, 8.0]])
+    gts, labels = [GT, gt_b], [T([0, 1]), T([0])]
+    names = ("Car", "Pedestrian")
+    r = recall_table([PROPS, props_b], gts, labels, names, ks=(2,), ious=(0.7,))
+    assert r.per_class_at(2, 0.7) == {"Car": 0.5, "Pedestrian": 1.0}  # 1 of 2 cars, 1 of 1
+    assert r.at(2, 0.7) == pytest.approx(2 / 3)  # micro: 2 of 3 objects
+    assert r.at(2, 0.7, "mean") == 0.75
+
+    # the moderate filter; boxes 10 px tall would fail the height rule, so use a
+    # level with the KITTI occlusion/truncation bounds and no minimum height
+    level = KittiDifficulty(min_height=0.0, max_occlusion=1, max_truncation=0.3)
+    masks = [kitti_difficulty_mask(GT, T([0, 1]), T([0.0, 0.3]), level),
+             kitti_difficulty_mask(gt_b, T([2]), T([0.0]), level)]
+    assert [m.tolist() for m in masks] == [[True, True], [False]]
+    gts_m, labels_m = select_objects(gts, labels, masks)
+    assert [g.shape[0] for g in gts_m] == [2, 0] and labels_m[1].numel() == 0
+    rm = recall_table([PROPS, props_b], gts_m, labels_m, names, ks=(2,), ious=(0.7,))
+    assert rm.per_class_at(2, 0.7) == {"Car": 0.0, "Pedestrian": 1.0}
+    assert rm.at(2, 0.7) == 0.5 and rm.num_objects == 2 and rm.num_images == 1
+
+    # brute force: the same numbers from plain loops over brute_best_iou
+    for (props, g, lab, m) in ((PROPS, GT, [0, 1], [True, True]), (props_b, gt_b, [0], [False])):
+        best = brute_best_iou(props, g, 2)
+        for b, c, keep in zip(best, lab, m):
+            if keep:
+                assert (b >= 0.7) == (rm.per_class_at(2, 0.7)[names[c]] == 1.0)
+
+
+def test_select_objects_checks():
+    with pytest.raises(ValueError, match="1 masks for 2"):
+        select_objects([GT, GT], None, [T([True, True])])
+    with pytest.raises(ValueError, match=r"masks\[0\] has 1 entries for 2 boxes"):
+        select_objects([GT], None, [T([True])])
+    gts, labels = select_objects([GT], None, [T([False, True])])
+    assert labels is None and gts[0].tolist() == [GT[1].tolist()]

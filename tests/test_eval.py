@@ -1,0 +1,190 @@
+"""Tests of reeb_torch.eval: Table 3 from the package (no checkout needed), frame ranges,
+the KITTI-moderate and per-class tables, and that the package never imports ``benchmarks``."""
+
+from __future__ import annotations
+
+import ast
+import csv
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from reeb_torch.eval import table3
+from reeb_torch.eval.common import FrameRange, parse_frame_range, select_frames
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = REPO / "reeb_torch"
+EXAMPLES = REPO / "examples" / "data"
+FRAMES = ("000001", "000008")
+
+
+def _example_kitti(root: Path, layout: str = "project") -> Path:
+    """The bundled frames in a KITTI-format folder (KittiDataset's two layouts)."""
+    img, lab = ("images", "labels") if layout == "project" else ("image_2", "label_2")
+    for sub in (img, lab, "calib"):
+        (root / sub).mkdir(parents=True)
+    for i in FRAMES:
+        shutil.copy(EXAMPLES / f"kitti_{i}.png", root / img / f"{i}.png")
+        shutil.copy(EXAMPLES / f"kitti_{i}.txt", root / lab / f"{i}.txt")
+        shutil.copy(EXAMPLES / f"kitti_{i}_calib.txt", root / "calib" / f"{i}.txt")
+    return root
+
+
+def _count_by_hand() -> tuple[dict[str, int], dict[str, int]]:
+    """Objects per class, all and KITTI-moderate, read from the label files with plain Python."""
+    classes = ("Car", "Pedestrian", "Cyclist", "Truck")
+    every, moderate = dict.fromkeys(classes, 0), dict.fromkeys(classes, 0)
+    for i in FRAMES:
+        for line in (EXAMPLES / f"kitti_{i}.txt").read_text().splitlines():
+            f = line.split()
+            if not f or f[0] not in classes:
+                continue
+            every[f[0]] += 1
+            trunc, occ, y1, y2 = float(f[1]), int(f[2]), float(f[5]), float(f[7])
+            if y2 - y1 >= 25 and occ <= 1 and trunc <= 0.3:
+                moderate[f[0]] += 1
+    return every, moderate
+
+
+def test_package_never_imports_benchmarks():
+    offenders = []
+    for path in PACKAGE.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            offenders += [f"{path.relative_to(REPO)}: {n}" for n in names if n.split(".")[0] == "benchmarks"]
+        text = path.read_text()
+        if "benchmarks/table3.py\"" in text or "spec_from_file_location" in text:
+            offenders.append(f"{path.relative_to(REPO)}: loads a file from the checkout")
+    assert not offenders, offenders
+    assert Path(table3.__file__).resolve().parent == PACKAGE / "eval"
+
+
+@pytest.mark.parametrize(
+    "text, first, last",
+    [("0:39", 0, 39), ("40:59", 40, 59), ("40:", 40, None), (":9", None, 9), ("7", 7, 7), (" 000040:000059 ", 40, 59)],
+)
+def test_parse_frame_range(text, first, last):
+    r = parse_frame_range(text)
+    assert (r.first, r.last) == (first, last)
+
+
+@pytest.mark.parametrize("bad", ["", ":", "a:3", "3:1", "1:2:3", "-1:4", "1.5"])
+def test_parse_frame_range_rejects(bad):
+    with pytest.raises(ValueError, match="frame range"):
+        parse_frame_range(bad)
+
+
+def test_select_frames_inclusive_and_numeric():
+    ids = [f"{i:06d}" for i in range(60)]
+    halves = [parse_frame_range("0:39"), parse_frame_range("40:59")]
+    assert select_frames(ids, halves[:1]) == ids[:40]
+    assert select_frames(ids, halves[1:]) == ids[40:]
+    assert select_frames(ids, halves) == ids
+    assert select_frames(ids, []) == ids
+    assert select_frames(ids, [FrameRange(58, None, "58:")]) == ["000058", "000059"]
+    with pytest.raises(ValueError, match="'kitti_000001' is not numeric"):
+        select_frames(["kitti_000001"], halves)
+
+
+@pytest.mark.parametrize("layout", ["project", "kitti"])
+def test_table3_on_bundled_frames(tmp_path, monkeypatch, layout):
+    data = _example_kitti(tmp_path / "kitti", layout)
+    captured: dict[str, list[torch.Tensor]] = {}
+    run_method = table3.run_method
+
+    def spy(method, images, *args, **kwargs):
+        boxes, timing = run_method(method, images, *args, **kwargs)
+        captured[method.key] = boxes
+        return boxes, timing
+
+    monkeypatch.setattr(table3, "run_method", spy)
+    monkeypatch.chdir(tmp_path)  # nothing is read from the checkout
+    out = tmp_path / "t3"
+    record = table3.main(["--data", str(data), "--methods", "reeb-default", "--batch", "0",
+                          "--out", str(out), "--frames", "1", "8"])
+
+    every, moderate = _count_by_hand()
+    assert record["num_images"] == 2 and record["image_ids"] == list(FRAMES)
+    assert record["num_objects"] == sum(every.values()) == 9
+    assert record["splits"] == {"all": list(FRAMES), "1": ["000001"], "8": ["000008"]}
+    res = record["methods"]["reeb-default"]
+    assert res["recall"]["num_per_class"] == every
+    assert res["recall_moderate"]["num_per_class"] == moderate
+    assert sum(moderate.values()) == 5  # frame 1: the truck; frame 8: 4 of 6 cars
+
+    # the recalls, another way: plain IoU loops over the captured proposals
+    from reeb_torch.data import KittiDataset
+
+    ds = KittiDataset(data)
+    boxes = captured["reeb-default"]
+    hits = {"all": [0, 0], "moderate": [0, 0]}
+    per_class_hits: dict[str, list[int]] = {}
+    for i, item in enumerate(ds[j] for j in range(len(ds))):
+        props = boxes[i][:2000].tolist()
+        for g, name, occ, trunc in zip(item["boxes"].tolist(), item["class_names"],
+                                       item["occluded"].tolist(), item["truncated"].tolist()):
+            best = max((_iou(g, p) for p in props), default=0.0)
+            hit = best >= 0.7
+            hits["all"][0] += hit
+            hits["all"][1] += 1
+            per_class_hits.setdefault(name, [0, 0])
+            per_class_hits[name][0] += hit
+            per_class_hits[name][1] += 1
+            if g[3] - g[1] >= 25 and occ <= 1 and trunc <= 0.3 + 1e-6:
+                hits["moderate"][0] += hit
+                hits["moderate"][1] += 1
+    assert res["recall"]["micro"]["2000"]["0.7"] == pytest.approx(hits["all"][0] / hits["all"][1])
+    assert res["recall_moderate"]["micro"]["2000"]["0.7"] == pytest.approx(
+        hits["moderate"][0] / hits["moderate"][1])
+    for name, (h, n) in per_class_hits.items():
+        assert res["per_class_headline"]["all"][name] == pytest.approx(h / n)
+    assert res["per_class_headline"]["all"]["Pedestrian"] is None  # no pedestrian: undefined
+
+    text = (out / "table3.txt").read_text()
+    assert "over all objects (micro" in text and "headline" in text
+    assert "KITTI-moderate objects (micro, 5 objects" in text
+    assert "Per-class recall (%) at 2000 proposals, IoU 0.7" in text
+    assert "=== frames 1:" in text and "=== frames 8:" in text
+    assert json.loads((out / "table3.json").read_text())["methods"]["reeb-default"]["label"] == "Ours** (default)"
+    rows = list(csv.DictReader(open(out / "table3.csv")))
+    # 3 frame sets (all, 1, 8) x 2 object sets x (micro, class mean, 4 classes)
+    assert len(rows) == 3 * 2 * 6
+    row = next(r for r in rows if r["frames"] == "all" and r["objects"] == "moderate" and r["average"] == "micro")
+    assert float(row["R@2000_IoU0.7"]) == pytest.approx(100 * hits["moderate"][0] / hits["moderate"][1], abs=0.006)
+    assert row["num_objects"] == "5"
+
+
+def _iou(a: list[float], b: list[float]) -> float:
+    iw = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    ih = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = iw * ih
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return inter / union if union > 0 else 0.0
+
+
+def test_table3_usage_errors_exit_2(tmp_path, capsys):
+    empty = tmp_path / "empty"
+    (empty / "images").mkdir(parents=True)
+    no_labels = tmp_path / "nolabels"
+    (no_labels / "images").mkdir(parents=True)
+    shutil.copy(EXAMPLES / "kitti_000001.png", no_labels / "images" / "000001.png")
+    data = _example_kitti(tmp_path / "kitti")
+    cases = [
+        (["--data", str(empty)], "no images"),
+        (["--data", str(no_labels)], "no label folder"),
+        (["--data", str(data), "--frames", "20:30"], "no frame with an id in 20:30"),
+        (["--data", str(data), "--frames", "9:3"], "first id 9 is after last id 3"),
+        (["--data", str(data), "--max-proposals", "100"], "--max-proposals must be >= 2000"),
+    ]
+    for argv, message in cases:
+        with pytest.raises(SystemExit) as e:
+            table3.main(argv + ["--out", str(tmp_path / "o")])
+        assert e.value.code == 2, argv
+        assert message in capsys.readouterr().err, argv
