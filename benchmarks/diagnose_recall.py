@@ -1,16 +1,21 @@
-"""Where REEB loses objects: recall after each stage of the pipeline.
+"""Where REEB loses objects: recall after each stage of the pipeline, per class.
 
-For each ground-truth object, the best IoU with (1) every sliding window of the grid,
-(2) the windows with a valid score (S above ``min_edge_score``), (3) the candidates the
-regions pass on (eq. 9 budgets), (4) the final ``top_k`` after NMS. Recall at IoU 0.5 and
-0.7 over all objects (micro), on the frames of a KITTI-format folder.
+For each ground-truth object, the best IoU with (1) every sliding window of the grid
+(coverage), (2) the windows with a valid score (S above ``min_edge_score``), (3) the
+candidates the regions pass on (each region's top-k, eq. 9 budgets), (4) the final
+``top_k`` after NMS. Recall at IoU 0.5 and 0.7 over all objects (micro) and over
+KITTI-moderate objects (height >= 25 px, occlusion <= 1, truncation <= 0.3), and recall at
+IoU 0.7 of each class, on the frames of a KITTI-format folder. ``--frames 0:39 40:59``
+(numeric ids, both ends included) also reports each range on its own.
 
-Rerun: ``python benchmarks/diagnose_recall.py [--data DIR] [--limit N] [--preset NAME]``
+Rerun: ``python benchmarks/diagnose_recall.py [--data DIR] [--limit N] [--preset NAME]
+[--frames A:B ...] [--json PATH]``
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -21,7 +26,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_kitti_dir, rerun_line  # noqa: E402
 
 from reeb_torch import ProposalGenerator, get_preset  # noqa: E402
-from reeb_torch.data import KittiDataset  # noqa: E402
+from reeb_torch.eval.common import add_frames_option, load_kitti  # noqa: E402
+from reeb_torch.metrics import kitti_difficulty_mask  # noqa: E402
+
+STAGES = ("all windows", "valid score", "region candidates", "final top-k")
 
 
 def stage_ious(gen: ProposalGenerator, image: torch.Tensor, gt: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -56,28 +64,84 @@ def stage_ious(gen: ProposalGenerator, image: torch.Tensor, gt: torch.Tensor) ->
     }
 
 
-def main(argv: list[str] | None = None) -> None:
+def _pct(hit: torch.Tensor) -> float:
+    return 100.0 * float(hit.float().mean()) if hit.numel() else float("nan")
+
+
+def stage_table(best: dict[str, torch.Tensor], labels: torch.Tensor, moderate: torch.Tensor,
+                classes: tuple[str, ...]) -> dict[str, dict[str, float]]:
+    """Per stage: recall (%) at IoU 0.5 / 0.7 over all objects, at 0.7 over moderate ones
+    and at 0.7 per class (``nan`` where there is no object)."""
+    out: dict[str, dict[str, float]] = {}
+    for stage, b in best.items():
+        row = {"R@0.5": _pct(b >= 0.5), "R@0.7": _pct(b >= 0.7), "moderate R@0.7": _pct(b[moderate] >= 0.7)}
+        for ci, c in enumerate(classes):
+            row[f"{c} R@0.7"] = _pct(b[labels == ci] >= 0.7)
+        out[stage] = row
+    return out
+
+
+def format_stage_table(title: str, table: dict[str, dict[str, float]], labels: torch.Tensor,
+                       moderate: torch.Tensor, classes: tuple[str, ...]) -> str:
+    heads = ["R@0.5", "R@0.7", f"moderate ({int(moderate.sum())})"]
+    heads += [f"{c} ({int((labels == ci).sum())})" for ci, c in enumerate(classes)]
+    keys = ["R@0.5", "R@0.7", "moderate R@0.7"] + [f"{c} R@0.7" for c in classes]
+    w = max(7, *(len(h) for h in heads))
+    lines = [title, f"{'stage':20s} " + " ".join(f"{h:>{w}}" for h in heads)]
+    for stage, row in table.items():
+        cells = ["-" if v != v else f"{v:.1f}" for v in (row[k] for k in keys)]
+        lines.append(f"{stage:20s} " + " ".join(f"{c:>{w}}" for c in cells))
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=default_kitti_dir())
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--preset", default="default")
+    add_frames_option(ap)
+    ap.add_argument("--json", type=Path, default=None, help="also write the numbers to this JSON file")
     args = ap.parse_args(argv)
     print("# rerun:", rerun_line("benchmarks/diagnose_recall.py", argv if argv is not None else sys.argv[1:]))
-    ds = KittiDataset(args.data, limit=args.limit)
+    try:
+        items, classes = load_kitti(args.data, limit=args.limit, frames=args.frames)
+    except ValueError as e:
+        ap.error(str(e))
     gen = ProposalGenerator(get_preset(args.preset))
-    acc: dict[str, list[torch.Tensor]] = {}
-    for i in range(len(ds)):
-        item = ds[i]
+    acc: dict[str, list[torch.Tensor]] = {s: [] for s in STAGES}
+    labels, moderate, frame_of = [], [], []
+    for item in items:
         if len(item["boxes"]) == 0:
             continue
         for k, v in stage_ious(gen, item["image"], item["boxes"]).items():
-            acc.setdefault(k, []).append(v)
-    n = sum(len(v) for v in acc["all windows"])
-    print(f"# {len(ds)} frames, {n} objects, preset {args.preset}")
-    print(f"{'stage':20s} {'R@0.5':>7s} {'R@0.7':>7s}")
-    for k, v in acc.items():
-        b = torch.cat(v)
-        print(f"{k:20s} {100 * float((b >= 0.5).float().mean()):7.1f} {100 * float((b >= 0.7).float().mean()):7.1f}")
+            acc[k].append(v)
+        labels.append(item["labels"])
+        moderate.append(kitti_difficulty_mask(item["boxes"], item["occluded"], item["truncated"]))
+        frame_of += [int(item["image_id"]) if item["image_id"].isdigit() else -1] * len(item["boxes"])
+    best = {k: torch.cat(v) if v else torch.zeros(0) for k, v in acc.items()}
+    lab = torch.cat(labels) if labels else torch.zeros(0, dtype=torch.int64)
+    mod = torch.cat(moderate) if moderate else torch.zeros(0, dtype=torch.bool)
+    frames = torch.tensor(frame_of, dtype=torch.int64)
+    n = len(lab)
+    print(f"# {len(items)} frames, {n} objects ({int(mod.sum())} moderate), preset {args.preset}; "
+          "recall (%) at IoU 0.7 unless named")
+    splits = [("all", torch.ones(n, dtype=torch.bool))]
+    if len(args.frames) > 1:
+        for r in args.frames:
+            splits.append((r.text, torch.tensor([int(f) in r for f in frame_of], dtype=torch.bool)))
+    record: dict = {"rerun": rerun_line("benchmarks/diagnose_recall.py", argv if argv is not None else sys.argv[1:]),
+                    "preset": args.preset, "classes": list(classes), "splits": {}}
+    for name, m in splits:
+        table = stage_table({k: b[m] for k, b in best.items()}, lab[m], mod[m], classes)
+        title = f"# frames {name}: {int(m.sum())} objects" if name != "all" else f"# all frames: {n} objects"
+        print(format_stage_table(title, table, lab[m], mod[m], classes))
+        record["splits"][name] = {"num_objects": int(m.sum()), "frames": sorted({int(f) for f in frames[m].tolist()}),
+                                  "stages": table}
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(record, indent=1))
+        print(f"wrote {args.json}")
+    return record
 
 
 if __name__ == "__main__":
