@@ -2,9 +2,13 @@
 
 Each row changes one switch of the package default (``ReebConfig()``), or starts from
 the ``paper`` preset, and reports recall of the top 2000 proposals at IoU 0.5 and 0.7
-(micro, all objects of the four classes), AR, and ms/img, on the same KITTI frames.
+(micro, all objects of the four classes), recall at 0.7 of KITTI-moderate objects, AR, and
+ms/img, on the same KITTI frames; the JSON rows add the per-class recall at 0.7.
+``--frames 0:39 40:59`` (numeric ids, both ends included) adds R@0.7 of each range, to
+choose on one half and confirm on the other.
 
-Rerun: ``python benchmarks/ablations.py [--data DIR] [--limit N] [--only NAME ...]``
+Rerun: ``python benchmarks/ablations.py [--data DIR] [--limit N] [--frames A:B ...]
+[--only NAME ...]``
 """
 
 from __future__ import annotations
@@ -21,8 +25,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_kitti_dir, environment, rerun_line  # noqa: E402
 
 from reeb_torch import ProposalGenerator, ReebConfig  # noqa: E402
-from reeb_torch.data import KittiDataset  # noqa: E402
-from reeb_torch.metrics import average_recall, recall_table  # noqa: E402
+from reeb_torch.eval.common import add_frames_option, load_kitti  # noqa: E402
+from reeb_torch.eval.table3 import moderate_masks  # noqa: E402
+from reeb_torch.metrics import average_recall, recall_table, select_objects  # noqa: E402
 
 D = ReebConfig()
 P = ReebConfig.paper()
@@ -65,10 +70,9 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
 }
 
 
-def load(root: Path, limit: int | None):
-    ds = KittiDataset(root, limit=limit)
-    items = [ds[i] for i in range(len(ds))]
-    return [it["image"] for it in items], [it["boxes"] for it in items], [it["labels"] for it in items], ds.classes
+def load(root: Path, limit: int | None, frames=()):
+    items, classes = load_kitti(root, limit=limit, frames=frames)
+    return [it["image"] for it in items], [it["boxes"] for it in items], [it["labels"] for it in items], classes, items
 
 
 def run(cfg: ReebConfig, images, batch: int) -> tuple[list[torch.Tensor], float]:
@@ -87,13 +91,21 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--only", nargs="*", default=None, help="variant names (substring match)")
+    add_frames_option(ap)
     ap.add_argument("--out", type=Path, default=Path("runs/ablations"))
     args = ap.parse_args(argv)
     print("# rerun:", rerun_line("benchmarks/ablations.py", argv if argv is not None else sys.argv[1:]))
-    images, gts, labels, classes = load(args.data, args.limit)
-    print(f"# {len(images)} images from {args.data}, {sum(len(g) for g in gts)} objects, "
-          f"torch threads {torch.get_num_threads()}")
-    print(f"{'variant':34s} {'NOTES':6s} {'R@.5':>6s} {'R@.7':>6s} {'AR':>6s} {'ms/img':>7s}")
+    try:
+        images, gts, labels, classes, items = load(args.data, args.limit, args.frames)
+    except ValueError as e:
+        ap.error(str(e))
+    gts_mod, labels_mod = select_objects(gts, labels, moderate_masks(items))
+    ranges = args.frames if len(args.frames) > 1 else []
+    in_range = [[i for i, it in enumerate(items) if int(it["image_id"]) in r] for r in ranges]
+    print(f"# {len(images)} images from {args.data}, {sum(len(g) for g in gts)} objects "
+          f"({sum(len(g) for g in gts_mod)} moderate), torch threads {torch.get_num_threads()}")
+    print(f"{'variant':34s} {'NOTES':6s} {'R@.5':>6s} {'R@.7':>6s} {'mod.7':>6s} {'AR':>6s} {'ms/img':>7s}"
+          + "".join(f" {'.7 ' + r.text:>9s}" for r in ranges))
     rows = []
     for name, (cfg, note) in VARIANTS.items():
         if args.only and not any(s in name for s in args.only):
@@ -102,8 +114,16 @@ def main(argv: list[str] | None = None) -> list[dict]:
         res = recall_table(boxes, gts, labels, classes, ks=(2000,), ious=(0.5, 0.7))
         ar = float(average_recall(boxes, gts, ks=(2000,))[0])
         r5, r7 = res.at(2000, 0.5), res.at(2000, 0.7)
-        print(f"{name:34s} {note:6s} {100 * r5:6.1f} {100 * r7:6.1f} {100 * ar:6.1f} {ms:7.1f}", flush=True)
-        rows.append(dict(variant=name, notes=note, recall_05=r5, recall_07=r7, ar=ar, ms_per_img=ms))
+        mod7 = recall_table(boxes, gts_mod, labels_mod, classes, ks=(2000,), ious=(0.7,)).at(2000, 0.7)
+        per_range = {r.text: recall_table([boxes[i] for i in idx], [gts[i] for i in idx],
+                                          ks=(2000,), ious=(0.7,)).at(2000, 0.7)
+                     for r, idx in zip(ranges, in_range)}
+        print(f"{name:34s} {note:6s} {100 * r5:6.1f} {100 * r7:6.1f} {100 * mod7:6.1f} {100 * ar:6.1f} {ms:7.1f}"
+              + "".join(f" {100 * v:9.1f}" for v in per_range.values()), flush=True)
+        per_class = {c: (None if v != v else v) for c, v in res.per_class_at(2000, 0.7).items()}  # nan: no object
+        rows.append(dict(variant=name, notes=note, recall_05=r5, recall_07=r7, ar=ar, ms_per_img=ms,
+                         recall_07_moderate=mod7, recall_07_per_class=per_class,
+                         recall_07_per_range=per_range))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "ablations.json").write_text(json.dumps({"rows": rows, "env": environment()}, indent=2))
     return rows
