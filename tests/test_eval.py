@@ -188,3 +188,48 @@ def test_table3_usage_errors_exit_2(tmp_path, capsys):
             table3.main(argv + ["--out", str(tmp_path / "o")])
         assert e.value.code == 2, argv
         assert message in capsys.readouterr().err, argv
+
+
+def test_reeb_eval_from_a_wheel_outside_the_checkout(tmp_path):
+    """``pip install`` of a built wheel (not editable) into a fresh environment, then
+    ``reeb eval`` from a folder outside the checkout. The fresh environment reuses this
+    one's dependencies through a ``.pth`` line (no torch download); the package itself
+    comes from the wheel only."""
+    import site
+    import subprocess
+    import sys
+    import sysconfig
+
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(REPO / name, src / name)
+    shutil.copytree(PACKAGE, src / "reeb_torch", ignore=shutil.ignore_patterns("__pycache__"))
+    wheels = tmp_path / "wheels"
+    build = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation",
+                            "-w", str(wheels), str(src)], capture_output=True, text=True)
+    if build.returncode != 0:
+        pytest.skip(f"cannot build a wheel here: {build.stderr.strip()[-300:]}")
+    env_dir = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(env_dir)], check=True)
+    py = env_dir / "bin" / "python"
+    purelib = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                             capture_output=True, text=True, check=True).stdout.strip()
+    # this environment's packages (torch, ...) after the fresh one's own site-packages
+    deps = [p for p in [*site.getsitepackages(), sysconfig.get_paths()["purelib"]] if Path(p).is_dir()]
+    Path(purelib, "deps.pth").write_text("\n".join(dict.fromkeys(deps)) + "\n")
+    (wheel,) = wheels.glob("reeb_torch-*.whl")
+    subprocess.run([sys.executable, "-m", "pip", "--python", str(py), "install", "-q", "--no-deps", str(wheel)],
+                   check=True, capture_output=True)
+
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+    data = _example_kitti(tmp_path / "kitti")
+    where = subprocess.run([str(py), "-c", "import reeb_torch.eval as e; print(e.__file__)"], cwd=work,
+                           capture_output=True, text=True, check=True).stdout.strip()
+    assert Path(where).is_relative_to(purelib), where  # the wheel's copy, not the checkout
+    r = subprocess.run([str(env_dir / "bin" / "reeb"), "eval", str(data), "--methods", "reeb-default",
+                        "--frames", "1", "--batch", "0", "-o", "t3"], cwd=work, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "KITTI-moderate objects" in r.stdout and "Per-class recall" in r.stdout
+    assert json.loads((work / "t3" / "table3.json").read_text())["num_objects"] == 3
