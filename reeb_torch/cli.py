@@ -7,7 +7,7 @@
     reeb propose images/ --out p.jsonl --resume   # after an interruption: only what is missing
     reeb show                            # the bundled sample, explained: reeb_show.png
     reeb show frame.png --label frame.txt --top 30 --out frame_reeb.png
-    reeb eval ../shared/data/kitti --limit 20     # the paper's Table 3 (benchmarks/table3.py)
+    reeb eval ../shared/data/kitti --limit 20     # the paper's Table 3 (reeb_torch.eval.table3)
 
 Exit codes: 0 success; 1 some images failed (each is named, in the summary and in the
 output with its status) or the command failed; 2 usage error (bad option, no images found,

@@ -1,4 +1,6 @@
-"""KITTI 2D object data: label and calibration readers and a ``torch`` dataset.
+"""KITTI 2D object data: the label reader and a ``torch`` dataset (the calibration reader
+lives in :mod:`reeb_torch.camera`; ``read_kitti_calib`` and ``camera_intrinsics`` are
+re-exported here).
 
 Box convention, kept everywhere in this package: ``Tensor[N, 4]`` of ``float32``,
 ``(x1, y1, x2, y2)`` in pixels of the full-resolution image, 0-based, ``x1 <= x2``,
