@@ -165,6 +165,9 @@ class ReebConfig:
     continues out of the box counts against it. 0 = off (as printed)."""
     straddle_band: int = 1
     """Half-width, in working pixels, of the band around each box side for ``straddle_weight``."""
+    refine: bool = False
+    """Edge Boxes' refinement: before NMS, move each side of every candidate by halving
+    steps while its score V improves (:mod:`reeb_torch.refinement`). Not in the paper."""
     center_fraction: float = 0.5
     """Side of the centre region c relative to the box (eq. 1: half)."""
 

@@ -21,6 +21,7 @@ from torch import Tensor, nn
 from . import edges as _edges
 from . import entropy as _entropy
 from . import groups as _groups
+from . import refinement as _refinement
 from . import regions as _regions
 from . import road as _road
 from . import scoring as _scoring
@@ -175,14 +176,24 @@ class ProposalGenerator(nn.Module):
             grid = self._window_grid(hk, wk, bounds, fx, fy)
             scores = self._score_windows(edges, road, groups, grid, fx, fy, h_in, w_in, crossing)
             chosen = self._select(scores, grid, share)
+        # Edge Boxes' refinement of the candidates (not in the paper; ``ReebConfig.refine``)
+        cand_boxes = cand_scores = None
+        if cfg.refine:
+            with self._stage("refine", dev):
+                cand_boxes, cand_scores = self._refine(chosen, scores, grid, edges, road, groups, crossing,
+                                                       fx, fy, h_in, w_in)
         # Sec. 3.8: Final_Proposals = NMS(Sorted_Proposals) (eq. 13)
         with self._stage("nms", dev):
-            boxes_in = self._device_tensor(grid.boxes, dev) / torch.tensor([fx, fy, fx, fy], device=dev)
+            to_input = torch.tensor([fx, fy, fx, fy], device=dev)
+            boxes_in = self._device_tensor(grid.boxes, dev) / to_input
             region_of = self._device_tensor(grid.region_of, dev)
             results = []
             for i in range(b):
                 cand = torch.nonzero(chosen[i]).squeeze(1)
-                bx, sc = boxes_in[cand], scores[i, cand]
+                if cand_boxes is not None:
+                    bx, sc = cand_boxes[i] / to_input, cand_scores[i]
+                else:
+                    bx, sc = boxes_in[cand], scores[i, cand]
                 if cfg.region_quota and len(bounds) > 1:
                     keep_idx = nms_top_k(bx, sc, cfg.nms_iou, bx.shape[0])
                     keep_idx = self._quota(keep_idx, region_of[cand[keep_idx]], share[i])[: cfg.top_k]
@@ -275,6 +286,80 @@ class ProposalGenerator(nn.Module):
                 v = torch.where(v >= peak, v, -math.inf)
             out[:, off: off + s.count] = v.reshape(b, -1)
         return out
+
+    def _box_scorer(self, edges: Tensor, road: Tensor, groups: _groups.EdgeGroups,
+                    crossing: tuple[Tensor, Tensor] | None, fx: float, fy: float, h_in: int, w_in: int):
+        """V (eq. 12) of arbitrary boxes: returns ``(score_fn, min_side)`` where
+        ``score_fn(boxes, b)`` takes int64 ``[K, 4]`` working-pixel boxes (x1, y1 exclusive)
+        and their image indices ``[K]`` and gives ``float64 [K]``, the same numbers
+        :meth:`_score_windows` gives a window of the grid; exact for boxes at least
+        ``min_side`` wide and tall."""
+        cfg = self.config
+        b, hk, wk = edges.shape
+        tables = _refinement.enclosed_tables(groups, b, hk, wk)
+        ii_edges = _scoring.integral_image(edges).double()
+        ii_road = _scoring.integral_image(road).double()
+        ii_road_below = torch.cat([ii_road, ii_road[:, -1:].expand(-1, hk, -1)], 1)
+        band = cfg.straddle_band
+        if crossing is not None:
+            ii_cols = _scoring.integral_image(F.pad(crossing[0], (band, band, band, band))).double()
+            ii_rows = _scoring.integral_image(F.pad(crossing[1], (band, band, band, band))).double()
+        unit = _scoring.unit_scale(fx, fy)
+        at = _refinement.box_sum_at
+
+        def score_fn(boxes: Tensor, bi: Tensor) -> Tensor:
+            x0, y0, x1, y1 = boxes.unbind(1)
+            w, h = x1 - x0, y1 - y0
+            cw = (w * cfg.center_fraction).round().long().clamp_(min=1)
+            ch = (h * cfg.center_fraction).round().long().clamp_(min=1)
+            cx0 = x0 + torch.div(w - cw, 2, rounding_mode="floor")
+            cy0 = y0 + torch.div(h - ch, 2, rounding_mode="floor")
+            centre = at(ii_edges, bi, cx0, cy0, cx0 + cw, cy0 + ch)
+            if crossing is not None:
+                r2 = 2 * band
+                cut = (at(ii_cols, bi, x0, y0 + band, x0 + r2, y1 + band)
+                       + at(ii_cols, bi, x1, y0 + band, x1 + r2, y1 + band)
+                       + at(ii_rows, bi, x0 + band, y0, x1 + band, y0 + r2)
+                       + at(ii_rows, bi, x0 + band, y1, x1 + band, y1 + r2))
+                centre = centre + cfg.straddle_weight * cut
+            enc = _refinement.enclosed_at(tables, bi, x0, y0, x1, y1)
+            bw, bh = w.double() / fx, h.double() / fy
+            sc = _scoring.edge_score(enc * unit, centre * unit, bw, bh, cfg.score_norm, cfg.kappa, cfg.gamma)
+            area = (w * h).double()
+            r = at(ii_road, bi, x0, y0, x1, y1) / area
+            if cfg.road_score == "stand":
+                sh = (h * cfg.road_strip).round().long().clamp_(min=1)
+                below = at(ii_road_below, bi, x0, y1, x1, y1 + sh) / (w * sh).double()
+                r = (below * (1.0 - r)).clamp_(0, 1)
+            loc = _scoring.location_score(y1.double() / fy, bw, bh, float(w_in), float(h_in), cfg.location_score,
+                                          cfg.horizon, cfg.ground_ratio, cfg.ground_log_sigma)
+            return _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)
+
+        return score_fn, tables.max_extent + 1
+
+    def _refine(self, chosen: Tensor, scores: Tensor, grid: _windows.WindowGrid, edges: Tensor, road: Tensor,
+                groups: _groups.EdgeGroups, crossing: tuple[Tensor, Tensor] | None, fx: float, fy: float,
+                h_in: int, w_in: int) -> tuple[list[Tensor], list[Tensor]]:
+        """Edge Boxes' refinement of every chosen window (:func:`reeb_torch.refinement.refine_boxes`);
+        per image, ``float32 [K, 4]`` working-pixel boxes and ``float32 [K]`` scores, in the order of
+        ``nonzero(chosen[i])``. Boxes narrower or shorter than the exact-sum limit stay as they are."""
+        cfg = self.config
+        b, hk, wk = edges.shape
+        bi, ni = torch.nonzero(chosen, as_tuple=True)
+        boxes = self._device_tensor(grid.boxes, edges.device)[ni].round().long()
+        vals = scores[bi, ni]
+        score_fn, exact_side = self._box_scorer(edges, road, groups, crossing, fx, fy, h_in, w_in)
+        min_side = max(exact_side, self._min_window_working(fx, fy))
+        wh = boxes[:, 2:] - boxes[:, :2]
+        movable = torch.nonzero((wh >= min_side).all(1)).squeeze(1)
+        if movable.numel():
+            rb, rs = _refinement.refine_boxes(boxes[movable], bi[movable], score_fn, wk, hk, min_side,
+                                              cfg.window_step)
+            boxes[movable] = rb
+            vals = vals.clone()
+            vals[movable] = torch.maximum(vals[movable], rs.float())
+        counts = torch.bincount(bi, minlength=b).tolist()
+        return list(boxes.float().split(counts)), list(vals.split(counts))
 
     def _select(self, scores: Tensor, grid: _windows.WindowGrid, share: Tensor) -> Tensor:
         """Each region passes on its best ``share · candidates_per_region`` windows (eq. 9).
