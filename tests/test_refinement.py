@@ -48,8 +48,11 @@ def test_refine_climbs_to_the_best_box():
 
     start = torch.tensor([[4, 4, 48, 36], [16, 16, 30, 26]])
     out, sc = refine_boxes(start, torch.zeros(2, dtype=torch.long), score, 64, 48, 4, 0.6)
-    assert out.tolist() == [target.tolist()] * 2
-    assert sc.tolist() == [0.0, 0.0]
+    assert out[0].tolist() == target.tolist() and float(sc[0]) == 0.0
+    # one move per side and step size (as Edge Boxes): x2 of the small box can climb
+    # 4 + 2 + 1 pixels of the 10 it needs, and the score only goes up
+    assert out[1].tolist() == [10, 12, 37, 30]
+    assert float(sc[1]) == -3.0 > float(score(start[1:], None)[0])
 
 
 def test_box_scorer_equals_grid_scores(sample_image):
