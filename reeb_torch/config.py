@@ -19,7 +19,7 @@ __all__ = ["ReebConfig", "PRESETS", "get_preset"]
 Grouping = Literal["connected", "cell"]
 ScoreNorm = Literal["perimeter", "area"]
 RoadScore = Literal["reward", "penalize", "none", "flat", "stand"]
-LocationScore = Literal["paper", "ground", "none"]
+LocationScore = Literal["paper", "ground", "classes", "none"]
 EntropyForm = Literal["printed", "abs-diff"]
 WindowGeometry = Literal["camera", "grid"]
 
@@ -111,7 +111,7 @@ class ReebConfig:
     that the user wants to generate in a region"); the region passes share × this."""
 
     # -- Sec. 3.6: sliding windows (NOTES #13) -------------------------------------------
-    min_window: int = 20
+    min_window: int = 16
     """Smallest window side, in input pixels."""
     size_ratio: float = 1.25
     """Ratio between consecutive window widths (and heights)."""
@@ -179,16 +179,24 @@ class ReebConfig:
     road_strip: float = 0.15
     """With ``road_score='stand'``: height of the strip just below a box, as a fraction of the
     box height, whose road fraction says the box stands on the road."""
-    location_score: LocationScore = "ground"
+    location_score: LocationScore = "classes"
     """``paper``: L = b_y/(b_w·b_h)·W (eq. 11); ``ground``: how well the box height fits
     a ground-plane object standing at its bottom row, in [0, 1]; ``none``: L = 1."""
     horizon: float = 0.47
-    """Horizon row as a fraction of the image height, for ``location_score='ground'``."""
+    """Horizon row as a fraction of the image height, for ``location_score='ground'`` /
+    ``'classes'`` and ``window_geometry='camera'`` (KITTI: the principal point, cy/H ≈ 0.46–0.47)."""
     ground_ratio: float = 1.0
     """Expected box height / (bottom row − horizon) of an object on the ground; about
     object height / camera height (cars ≈ 0.9, pedestrians ≈ 1.05 on KITTI)."""
-    ground_log_sigma: float = 0.5
-    """Tolerance (in log units) of that ratio for ``location_score='ground'``."""
+    class_heights_m: tuple[float, ...] = (1.5, 3.2, 1.72, 1.72)
+    """Typical real heights (metres) of car, truck, pedestrian and cyclist, for
+    ``location_score='classes'``: L is the best fit over the classes of a Gaussian in
+    log(b_h / (b_y − horizon·H) / (height / camera_height_m))."""
+    class_weights: tuple[float, ...] = (1.0, 0.7, 1.0, 1.0)
+    """Weight of each class's fit in ``location_score='classes'`` (same order as
+    ``class_heights_m``): rarer classes weigh less, so their windows don't crowd the budget."""
+    ground_log_sigma: float = 0.3
+    """Tolerance (in log units) of that ratio for ``location_score='ground'`` or ``'classes'``."""
     alpha: float = 0.6
     beta: float = 0.4
     min_edge_score: float = 0.0
@@ -254,8 +262,8 @@ class ReebConfig:
         check(self.region_assign in ("contained", "nearest"), "region_assign", "'contained' or 'nearest'")
         pos("ground_ratio")
         pos("ground_log_sigma")
-        check(self.location_score in ("paper", "ground", "none"), "location_score",
-              "'paper', 'ground' or 'none'")
+        check(self.location_score in ("paper", "ground", "classes", "none"), "location_score",
+              "'paper', 'ground', 'classes' or 'none'")
         check(0 < self.horizon < 1, "horizon", "in (0, 1)")
         check(self.ground_band is None or (len(self.ground_band) == 2 and 0 < self.ground_band[0] < self.ground_band[1]),
               "ground_band", "None or (r_lo, r_hi) with 0 < r_lo < r_hi")

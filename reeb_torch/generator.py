@@ -233,6 +233,18 @@ class ProposalGenerator(nn.Module):
         return _windows.window_grid(hk, wk, bounds, self._min_window_working(fx, fy), cfg.size_ratio,
                                     cfg.window_step, cfg.aspect_range, cfg.region_assign, ground, camera)
 
+    def _ground_ratios(self) -> float | tuple[float, ...]:
+        """Box height / (bottom row − horizon) of the objects the location score expects:
+        one ratio (``ground``) or one per class (``classes``: typical height / camera height)."""
+        cfg = self.config
+        if cfg.location_score == "classes":
+            return tuple(h / cfg.camera_height_m for h in cfg.class_heights_m)
+        return cfg.ground_ratio
+
+    def _class_weights(self) -> tuple[float, ...] | None:
+        cfg = self.config
+        return tuple(cfg.class_weights) if cfg.location_score == "classes" else None
+
     def _region_bounds(self, width: int) -> Tensor:
         cfg = self.config
         if not cfg.use_regions:
@@ -278,7 +290,8 @@ class ProposalGenerator(nn.Module):
                 r = (below.float() * (1.0 - r)).clamp_(0, 1)
             bottom = ((torch.arange(s.ny, device=edges.device, dtype=torch.float32) * s.sy + s.oy + s.h) / fy).view(1, -1, 1)
             loc = _scoring.location_score(bottom, bw, bh, float(w_in), float(h_in), cfg.location_score,
-                                          cfg.horizon, cfg.ground_ratio, cfg.ground_log_sigma)
+                                          cfg.horizon, self._ground_ratios(), cfg.ground_log_sigma,
+                                          self._class_weights())
             v = _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)
             v = torch.where(sc >= cfg.min_edge_score, v, -math.inf)
             if cfg.local_max:
@@ -332,7 +345,8 @@ class ProposalGenerator(nn.Module):
                 below = at(ii_road_below, bi, x0, y1, x1, y1 + sh) / (w * sh).double()
                 r = (below * (1.0 - r)).clamp_(0, 1)
             loc = _scoring.location_score(y1.double() / fy, bw, bh, float(w_in), float(h_in), cfg.location_score,
-                                          cfg.horizon, cfg.ground_ratio, cfg.ground_log_sigma)
+                                          cfg.horizon, self._ground_ratios(), cfg.ground_log_sigma,
+                                          self._class_weights())
             return _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)
 
         return score_fn, tables.max_extent + 1

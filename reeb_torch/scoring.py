@@ -105,20 +105,28 @@ def edge_score(enclosed: Tensor, centre: Tensor, w: float, h: float, norm: str, 
     return (enclosed - centre) / denom
 
 
-def location_score(bottom: Tensor, bw: float, bh: float, img_w: float, img_h: float, mode: str,
-                   horizon: float = 0.47, ratio: float = 1.0, log_sigma: float = 0.5) -> Tensor:
+def location_score(bottom: Tensor, bw: float | Tensor, bh: float | Tensor, img_w: float, img_h: float, mode: str,
+                   horizon: float = 0.47, ratio: float | tuple[float, ...] = 1.0, log_sigma: float = 0.5,
+                   weights: tuple[float, ...] | None = None) -> Tensor:
     """Eq. 11 and variants, for boxes of size ``bw × bh`` whose bottom rows are ``bottom``
     (input pixels, from the image top).
 
     ``paper``: L = b_y / (b_w·b_h) · image width (unbounded). ``ground``: a Gaussian in
-    log(b_h / (b_y − horizon·H) / ratio), 0 above the horizon, in [0, 1]. ``none``: 1.
+    log(b_h / (b_y − horizon·H) / ratio), 0 above the horizon, in [0, 1]. ``classes``: the
+    same with one ``ratio`` per object class (a tuple), taking the best fitting class, each
+    class's Gaussian scaled by its ``weights`` (a max-mixture over the class templates). ``none``: 1.
     """
     if mode == "paper":
         return bottom * (img_w / (bw * bh))
-    if mode == "ground":
+    if mode in ("ground", "classes"):
         depth = bottom - horizon * img_h
-        r = bh / depth.clamp_min(1e-6) / ratio
-        val = torch.exp(-(torch.log(r) ** 2) / (2 * log_sigma**2))
+        log_r = torch.log(bh / depth.clamp_min(1e-6))
+        ratios = ratio if isinstance(ratio, tuple) else (ratio,)
+        weights = (1.0,) * len(ratios) if weights is None else weights
+        val = None
+        for c, wc in zip(ratios, weights):
+            fit = wc * torch.exp(-((log_r - math.log(c)) ** 2) / (2 * log_sigma**2))
+            val = fit if val is None else torch.maximum(val, fit)
         return torch.where(depth > 0, val, torch.zeros_like(val))
     return torch.ones_like(bottom)
 
