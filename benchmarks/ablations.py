@@ -33,9 +33,29 @@ D = ReebConfig()
 P = ReebConfig.paper()
 
 # name -> (config, NOTES item it settles)
+V01 = D.replace(window_geometry="grid", location_score="ground", ground_log_sigma=0.5, min_window=20,
+                kappa=1.5, candidates_per_region=4000)
+"""The package default of release 0.1 (before the camera windows and the class mixture)."""
+
 VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "default": (D, "package default"),
     "paper": (P, "printed text"),
+    "0.1 default (grid windows)": (V01, "0.1"),
+    "window_geometry=grid": (D.replace(window_geometry="grid"), "#13"),
+    "border_windows=off": (D.replace(border_windows=False), "#13"),
+    "horizon_slack=0.02": (D.replace(horizon_slack=0.02), "#13"),
+    "min_window=12": (D.replace(min_window=12), "#13"),
+    "min_window=20": (D.replace(min_window=20), "#13"),
+    "location=ground (one ratio, σ .5)": (D.replace(location_score="ground", ground_log_sigma=0.5), "#11"),
+    "location=classes, σ .5": (D.replace(ground_log_sigma=0.5), "#11"),
+    "class_weights=1,1,1,1": (D.replace(class_weights=(1.0, 1.0, 1.0, 1.0)), "#11"),
+    "refine=on": (D.replace(refine=True), "#1"),
+    "straddle_weight=0.5": (D.replace(straddle_weight=0.5), "#1"),
+    "straddle_weight=1": (D.replace(straddle_weight=1.0), "#1"),
+    "road_score=stand": (D.replace(road_score="stand"), "#10"),
+    "kappa=1.5 (Edge Boxes)": (D.replace(kappa=1.5), "#1"),
+    "nms_iou=0.75": (D.replace(nms_iou=0.75), "#14"),
+    "candidates_per_region=4000": (D.replace(candidates_per_region=4000), "eq. 9"),
     "default, no regions": (D.replace(use_regions=False), "Ours* vs Ours**"),
     "norm=area (γ=0.75)": (D.replace(score_norm="area"), "#1"),
     "kappa=1.25": (D.replace(kappa=1.25), "#1"),
@@ -58,7 +78,7 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "location=none": (D.replace(location_score="none"), "#11"),
     "min_edge_score=0.01": (D.replace(min_edge_score=0.01), "#12"),
     "region_assign=contained": (D.replace(region_assign="contained"), "#13"),
-    "ground_band=off": (D.replace(ground_band=None), "#13"),
+    "grid, ground_band=off": (D.replace(window_geometry="grid", ground_band=None), "#13"),
     "local_max=on": (D.replace(local_max=True), "#13"),
     "window_step=0.1": (D.replace(window_step=0.1), "#13"),
     "window_step=0.2": (D.replace(window_step=0.2), "#13"),

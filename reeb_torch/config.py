@@ -155,7 +155,7 @@ class ReebConfig:
     Boxes, whose score REEB adopts (NOTES #1)."""
     gamma: float = 0.75
     """Exponent of the area normalisation (no value printed; 0.75 ≈ Edge Boxes' κ/2)."""
-    kappa: float = 1.5
+    kappa: float = 1.6
     """Exponent of the perimeter normalisation (Edge Boxes' value)."""
     straddle_weight: float = 0.0
     """Weight λ of a straddling term in eq. 1: S = (Σ wₙmₙ − Σ_c m_c − λ·Σ_cut m) / norm,
