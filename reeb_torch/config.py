@@ -316,26 +316,35 @@ class ReebConfig:
         fixed = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
         return cls(**fixed)
 
-    def with_camera(self, fx: float, fy: float, width: int, height: int) -> "ReebConfig":
-        """A copy whose opening angles come from a pinhole camera (focal lengths in pixels).
+    def with_camera(self, fx: float, fy: float, width: int, height: int,
+                    cy: float | None = None) -> "ReebConfig":
+        """A copy whose opening angles (and, given the principal row ``cy``, the horizon)
+        come from a pinhole camera (focal lengths and ``cy`` in pixels).
 
         θh = 2·atan(W / 2fx), θv = 2·atan(H / 2fy). For KITTI's P2 (fx = fy ≈ 721 px,
-        1242 × 375 px) this gives θh ≈ 81°, θv ≈ 29°.
+        1242 × 375 px) this gives θh ≈ 81°, θv ≈ 29°. A camera looking level along a flat
+        road sees the horizon at its principal row: ``horizon = cy / H`` (KITTI ≈ 0.46).
         """
         if not (fx > 0 and fy > 0 and width > 0 and height > 0):
             raise ValueError(f"with_camera needs positive fx, fy, width, height; got {fx}, {fy}, {width}, {height}")
-        return self.replace(
+        changes: dict = dict(
             horizontal_fov_deg=math.degrees(2 * math.atan(width / (2 * fx))),
             vertical_fov_deg=math.degrees(2 * math.atan(height / (2 * fy))),
         )
+        if cy is not None:
+            if not 0 < cy < height:
+                raise ValueError(f"with_camera: the principal row cy={cy} must lie inside the image height {height}")
+            changes["horizon"] = cy / height
+        return self.replace(**changes)
 
     def with_kitti_calib(self, path: str, width: int, height: int) -> "ReebConfig":
-        """A copy whose opening angles come from the ``P2`` matrix of a KITTI ``calib``
-        file (the left colour camera) for images of ``width × height`` pixels."""
+        """A copy whose opening angles and horizon row come from the ``P2`` matrix of a
+        KITTI ``calib`` file (the left colour camera) for images of ``width × height`` pixels
+        (:meth:`with_camera`; the camera height stays ``camera_height_m``)."""
         from .camera import Camera
 
         cam = Camera.from_kitti_calib(path)  # ValueError naming the file without P2
-        return self.with_camera(cam.fx, cam.fy, width, height)
+        return self.with_camera(cam.fx, cam.fy, width, height, cy=cam.cy)
 
     def fingerprint(self) -> str:
         """A short stable hash of all fields (used to detect stale proposal caches)."""

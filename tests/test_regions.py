@@ -56,7 +56,11 @@ def test_with_kitti_calib_reads_p2(tmp_path):
 
     sample = Path(__file__).resolve().parents[1] / "examples" / "data" / "kitti_000001_calib.txt"
     cfg = ReebConfig().with_kitti_calib(str(sample), 1242, 375)
-    assert cfg == ReebConfig().with_camera(721.5377, 721.5377, 1242, 375)
+    # P2 of KITTI frame 000001: fx = fy = 721.5377, cy = 172.854 -> horizon at row 172.854 / 375
+    assert cfg == ReebConfig().with_camera(721.5377, 721.5377, 1242, 375, cy=172.854)
+    assert cfg.horizon == pytest.approx(172.854 / 375)
+    with pytest.raises(ValueError, match="principal row"):
+        ReebConfig().with_camera(721.5, 721.5, 1242, 375, cy=400.0)
     bad = tmp_path / "calib.txt"
     bad.write_text("P0: " + " ".join(["1"] * 12) + "\n")
     with pytest.raises(ValueError, match="no P2"):
