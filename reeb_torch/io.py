@@ -10,7 +10,11 @@ import torch
 
 __all__ = ["ImageReadError", "read_image", "IMAGE_EXTENSIONS"]
 
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
+#: The file extensions a folder scan picks up: exactly the formats :func:`read_image` decodes
+#: (OpenCV's readers), so that a file named on the command line and one found in a folder
+#: are treated alike.
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm",
+                    ".pnm", ".gif")
 
 
 class ImageReadError(ValueError):
@@ -68,7 +72,9 @@ def _sniff(head: bytes) -> str | None:
 def read_image(path: str | os.PathLike) -> torch.Tensor:
     """Read an image file as an RGB ``uint8`` tensor of shape ``(3, H, W)``.
 
-    Grey, RGBA and 16-bit images are converted, not rejected. Raises
+    Grey, RGBA and 16-bit images are converted, not rejected. The EXIF orientation of a
+    JPEG (or TIFF, WebP) is applied as image viewers do, so ``H, W`` are the size as the
+    image is viewed (a phone picture with orientation 6 comes out upright). Raises
     :class:`ImageReadError` naming the file when it is missing, empty, truncated, corrupt
     or not an image.
     """
@@ -85,7 +91,9 @@ def read_image(path: str | os.PathLike) -> torch.Tensor:
         raise ImageReadError(f"{p}: cannot read ({e.strerror or e})") from e
     if data.size == 0:
         raise ImageReadError(f"{p}: empty file")
-    array = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    # IMREAD_UNCHANGED would skip the EXIF orientation; ANYDEPTH|ANYCOLOR keeps 16-bit and
+    # grey pixels as they are, drops alpha (as to_rgb8 does) and applies the orientation
+    array = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     if array is None or array.size == 0:
         kind = _sniff(data[:16].tobytes())
         if kind is None:

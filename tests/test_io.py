@@ -104,3 +104,20 @@ def test_truncated_jpeg_is_rejected(tmp_path, bgr):
     p.write_bytes(data[: len(data) // 2])
     with pytest.raises(ImageReadError, match="t.jpg"):
         read_image(p)
+
+
+def test_exif_orientation_is_applied_as_viewers_do(tmp_path, bgr):
+    # a JPEG stored 53 wide, 37 high, with EXIF orientation 6 ("rotate 90° clockwise to view")
+    Image = pytest.importorskip("PIL.Image")
+    ImageOps = pytest.importorskip("PIL.ImageOps")
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    p = tmp_path / "o6.jpg"
+    Image.fromarray(bgr[:, :, ::-1]).save(p, quality=95, exif=exif.tobytes())
+    t = read_image(p)
+    assert t.shape == (3, 53, 37)  # the viewer's width and height
+    with Image.open(p) as im:  # the reference: PIL's own decoder and transpose
+        ref = np.asarray(ImageOps.exif_transpose(im).convert("RGB"))
+    assert ref.shape == (53, 37, 3)
+    diff = np.abs(t.permute(1, 2, 0).numpy().astype(int) - ref.astype(int))
+    assert diff.mean() < 2.0  # two JPEG decoders; a wrong rotation differs by ~80

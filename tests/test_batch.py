@@ -1,0 +1,279 @@
+"""Hardening of ``reeb propose`` and its batch output (issue 10): concurrent writers, resume
+from other folders, stale temporary files, row order, ``--set`` booleans, the row schema.
+
+Subprocess tests drive the command as a user would; small 160×48 images and --top-k 100
+keep them fast.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import click
+import cv2
+import numpy as np
+import pytest
+
+from test_cli import FAST, _start, _wait_for_rows, good_folder, no_temp_files, read_jsonl, reeb, small_frame
+
+ROW_FIELDS = {"format_version", "image", "resolved", "width", "height", "boxes", "scores",
+              "status", "config"}
+
+
+# -- 1. concurrent writers ---------------------------------------------------------------
+
+def test_second_writer_fails_at_once_and_loses_nothing(tmp_path):
+    good_folder(tmp_path / "A", 40)
+    good_folder(tmp_path / "B", 2)
+    first = _start(["propose", "A", "-o", "cc.jsonl", "-b", "1", *FAST], tmp_path)
+    _wait_for_rows(tmp_path, "cc.jsonl", first)
+    t0 = time.monotonic()
+    r = reeb("propose", "B", "-o", "cc.jsonl", *FAST, cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    assert time.monotonic() - t0 < 30
+    assert "another reeb run" in r.stderr and f"pid {first.pid}" in r.stderr, r.stderr
+    r = reeb("propose", "B", "-o", "cc.jsonl", "--resume", *FAST, cwd=tmp_path)  # same with --resume
+    assert r.returncode == 2 and "another reeb run" in r.stderr
+    _, err = first.communicate(timeout=120)
+    assert first.returncode == 0, err
+    rows = read_jsonl(tmp_path / "cc.jsonl")
+    assert len(rows) == 40 and all(r["image"].startswith("A") for r in rows)
+    assert not (tmp_path / ".cc.jsonl.lock").exists() and no_temp_files(tmp_path)
+    # after the first one, the second runs
+    reeb("propose", "B", "-o", "cc.jsonl", "--resume", *FAST, cwd=tmp_path, check_rc=0)
+    assert len(read_jsonl(tmp_path / "cc.jsonl")) == 42
+
+
+def test_lock_of_a_dead_run_is_taken_over(tmp_path):
+    from reeb_torch.batch import OutputBusyError, lock_output
+
+    out = tmp_path / "o.jsonl"
+    (tmp_path / ".o.jsonl.lock").write_text("999999\n")  # left by a killed run: not locked
+    with lock_output(out):
+        assert (tmp_path / ".o.jsonl.lock").read_text().strip() == str(os.getpid())
+        code = ("import sys; from reeb_torch.batch import lock_output, OutputBusyError\n"
+                f"try:\n    lock_output({str(out)!r})\nexcept OutputBusyError as e:\n"
+                "    print(e); sys.exit(3)\n")
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+        assert r.returncode == 3 and str(os.getpid()) in r.stdout
+    assert not (tmp_path / ".o.jsonl.lock").exists()
+    assert issubclass(OutputBusyError, OSError)
+
+
+# -- 2. resume matches the resolved file ---------------------------------------------------
+
+def test_resume_from_another_folder_symlink_and_absolute_path(tmp_path):
+    paths = good_folder(tmp_path / "set", 5)
+    names = [p.name for p in paths]
+    reeb("propose", *[f"set/{n}" for n in names[:3]], "-o", "cwd.jsonl", *FAST, cwd=tmp_path,
+         check_rc=0)
+    r = reeb("propose", *names[:4], "-o", "../cwd.jsonl", "--resume", *FAST, cwd=tmp_path / "set",
+             check_rc=0)
+    assert "1 to do" in r.stderr, r.stderr
+    rows = read_jsonl(tmp_path / "cwd.jsonl")
+    assert [r["image"] for r in rows] == [f"set/{n}" for n in names[:3]] + [names[3]]  # as given
+    for row in rows:
+        assert row["resolved"] == os.path.realpath(tmp_path / "set" / Path(row["image"]).name)
+    # through a symlinked folder, and by absolute path: nothing to do
+    (tmp_path / "link").symlink_to(tmp_path / "set")
+    r = reeb("propose", *[f"link/{n}" for n in names[:4]], "-o", "cwd.jsonl", "--resume", *FAST,
+             cwd=tmp_path, check_rc=0)
+    assert "Nothing to do" in r.stderr
+    r = reeb("propose", *[str(p) for p in paths[:4]], "-o", str(tmp_path / "cwd.jsonl"), "--resume",
+             *FAST, cwd="/", check_rc=0)
+    assert "Nothing to do" in r.stderr
+    # duplicate rows (a hand-merged file) are dropped on resume
+    with open(tmp_path / "cwd.jsonl", "a") as f:
+        f.write(json.dumps(rows[0]) + "\n")
+    reeb("propose", "link", "-o", "cwd.jsonl", "--resume", *FAST, cwd=tmp_path, check_rc=0)
+    rows = read_jsonl(tmp_path / "cwd.jsonl")
+    assert sorted(r["resolved"] for r in rows) == sorted(os.path.realpath(p) for p in paths)
+
+
+# -- 3. --set booleans, config errors --------------------------------------------------------
+
+@pytest.mark.parametrize("word, value", [("true", True), ("False", False), ("yes", True),
+                                         ("no", False), ("on", True), ("OFF", False),
+                                         ("1", True), ("0", False), ('"false"', False)])
+def test_set_parses_boolean_words(word, value):
+    from reeb_torch.cli import build_config
+
+    assert build_config("default", None, [f"use_regions={word}"], None).use_regions is value
+    assert build_config("default", None, [f"refine={word}"], None).refine is value
+
+
+@pytest.mark.parametrize("word", ["maybe", "2", "", "none", "[]", "offf"])
+def test_set_rejects_other_boolean_words(word):
+    from reeb_torch.cli import build_config
+
+    with pytest.raises(click.ClickException) as info:
+        build_config("default", None, [f"use_regions={word}"], None)
+    assert info.value.exit_code == 2 and "use_regions" in info.value.format_message()
+
+
+def test_config_errors_are_usage_errors_before_any_work(tmp_path):
+    good_folder(tmp_path / "imgs", 1)
+    for bad in ("use_regions=maybe", "top_k=0", "no_such_field=1"):
+        r = reeb("propose", "imgs", "-o", "o.jsonl", "--set", bad, "--device", "cpu", cwd=tmp_path)
+        assert r.returncode == 2, (bad, r.stderr)
+        assert bad.split("=")[0] in r.stderr and "Traceback" not in r.stderr
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["imgs"]  # nothing written
+
+
+# -- 6, 7. kill -9 and Ctrl-C ------------------------------------------------------------------
+
+def test_rows_of_a_killed_run_are_recovered_by_resume(tmp_path):
+    n = 40
+    paths = good_folder(tmp_path / "imgs", n)
+    args = ["propose", "imgs", "--out", "out.jsonl", "--batch-size", "1", *FAST]
+    proc = _start(args, tmp_path)
+    tmp = _wait_for_rows(tmp_path, "out.jsonl", proc, rows=3)
+    proc.kill()
+    proc.communicate(timeout=30)
+    finished = len(read_jsonl_lenient(tmp))
+    assert finished >= 3
+    # without --resume or --overwrite the finished rows are not thrown away silently
+    r = reeb(*args, cwd=tmp_path, check_rc=2)
+    assert "--resume" in r.stderr and tmp.name in r.stderr, r.stderr
+    r = reeb(*args, "--resume", cwd=tmp_path, check_rc=0)
+    assert f"{n - finished} to do" in r.stderr, r.stderr
+    rows = read_jsonl(tmp_path / "out.jsonl")
+    assert [r["image"] for r in rows] == [str(p.relative_to(tmp_path)) for p in paths]
+    assert no_temp_files(tmp_path)
+
+
+def read_jsonl_lenient(p: Path) -> list[dict]:
+    rows = []
+    for line in p.read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            pass
+    return rows
+
+
+def test_interrupt_summary_counts_the_rows_in_the_file(tmp_path):
+    import re
+
+    good_folder(tmp_path / "imgs", 40)
+    proc = _start(["propose", "imgs", "--out", "out.jsonl", "--batch-size", "1", *FAST], tmp_path)
+    _wait_for_rows(tmp_path, "out.jsonl", proc, rows=2)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    m = re.search(r"interrupted: (\d+) of 40 images saved", err)
+    assert m, err
+    assert int(m.group(1)) == len(read_jsonl(tmp_path / "out.jsonl"))
+
+
+def test_interrupt_is_deferred_while_a_row_is_written():
+    from reeb_torch.batch import CriticalSection
+
+    cs = CriticalSection()
+    with pytest.raises(KeyboardInterrupt):
+        with cs:
+            cs.interrupt()  # what the signal handler calls
+            done = True  # the write finishes first
+    assert done
+    with pytest.raises(KeyboardInterrupt):
+        cs.interrupt()  # outside a write: at once
+
+
+# -- 8, 9, 12. row order, .json, sizes in error rows ---------------------------------------------
+
+def test_rows_in_input_order_with_error_rows_and_sizes(tmp_path):
+    d = tmp_path / "mix"
+    d.mkdir()
+    base = small_frame()
+    cv2.imwrite(str(d / "a1.png"), base)
+    (d / "a2.png").write_bytes(b"not an image")
+    cv2.imwrite(str(d / "a3.png"), small_frame((96, 48)))
+    cv2.imwrite(str(d / "a4.png"), base[:10, :12])  # smaller than the smallest window
+    cv2.imwrite(str(d / "a5.png"), np.roll(base, 5, axis=1))
+    r = reeb("propose", "mix", "-o", "o.jsonl", "-b", "2", *FAST, cwd=tmp_path, check_rc=1)
+    rows = read_jsonl(tmp_path / "o.jsonl")
+    assert [Path(r["image"]).name for r in rows] == ["a1.png", "a2.png", "a3.png", "a4.png", "a5.png"]
+    assert [r["status"] == "ok" for r in rows] == [True, False, True, False, True]
+    assert (rows[3]["width"], rows[3]["height"]) == (12, 10)  # the tiny image's size is known
+    assert rows[1]["width"] is None
+    for row in rows:
+        assert set(row) == ROW_FIELDS and row["format_version"] == 1
+    assert "3 ok, 2 failed" in r.stderr
+
+
+def test_json_output_is_refused_with_a_hint(tmp_path):
+    good_folder(tmp_path / "imgs", 1)
+    r = reeb("propose", "imgs", "-o", "x.json", *FAST, cwd=tmp_path, check_rc=2)
+    assert ".jsonl" in r.stderr and "x.json" in r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["imgs"]
+
+
+def test_parquet_rows_carry_the_schema(tmp_path):
+    pq = pytest.importorskip("pyarrow.parquet")
+    good_folder(tmp_path / "imgs", 1)
+    (tmp_path / "imgs" / "bad.png").write_bytes(b"x")
+    reeb("propose", "imgs", "-o", "p.parquet", *FAST, cwd=tmp_path, check_rc=1)
+    rows = pq.read_table(tmp_path / "p.parquet").to_pylist()
+    assert [Path(r["image"]).name for r in rows] == ["bad.png", "frame_000.png"]
+    assert set(rows[0]) == ROW_FIELDS and {r["format_version"] for r in rows} == {1}
+
+
+# -- 11. folder scan and reader agree ---------------------------------------------------------
+
+def test_folder_scan_finds_every_format_the_reader_reads(tmp_path):
+    from PIL import Image
+
+    from reeb_torch.batch import find_images
+    from reeb_torch.io import IMAGE_EXTENSIONS, read_image
+
+    rgb = np.random.default_rng(0).integers(0, 256, (20, 30, 3), dtype=np.uint8)
+    Image.fromarray(rgb).save(tmp_path / "a.gif")
+    assert ".gif" in IMAGE_EXTENSIONS
+    images, _ = find_images([tmp_path])
+    assert [p.name for p in images] == ["a.gif"]
+    assert read_image(images[0]).shape == (3, 20, 30)
+    for ext in IMAGE_EXTENSIONS:  # every listed extension decodes
+        ok, buf = cv2.imencode(".pgm" if ext == ".pbm" else ext, rgb[:, :, :1] if ext in (".pgm", ".pbm") else rgb)
+        if ok:
+            (tmp_path / f"b{ext}").write_bytes(buf.tobytes())
+            assert read_image(tmp_path / f"b{ext}").shape == (3, 20, 30), ext
+
+
+# -- 15. reeb eval without data ---------------------------------------------------------------
+
+def test_eval_without_frames_or_labels_is_a_usage_error(tmp_path):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "nolab" / "images").mkdir(parents=True)
+    cv2.imwrite(str(tmp_path / "nolab" / "images" / "000001.png"), small_frame())
+    for folder, words in (("empty", "not a KITTI folder"), ("nolab", "label")):
+        r = reeb("eval", folder, "--limit", "1", cwd=tmp_path, check_rc=2)
+        assert words in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+# -- 13. reeb show keeps the aspect ratio ------------------------------------------------------
+
+@pytest.mark.parametrize("h, w", [(400, 60), (60, 400)])
+def test_show_picture_keeps_the_aspect_ratio(h, w):
+    pytest.importorskip("matplotlib")
+    import torch
+
+    from reeb_torch.generator import Inspection
+    from reeb_torch.viz import inspection_figure
+
+    insp = Inspection(boxes=torch.tensor([[1.0, 2.0, 30.0, 40.0]]), scores=torch.tensor([1.0]),
+                      edges=torch.zeros(h, w), road_mask=torch.zeros(h, w, dtype=torch.bool),
+                      regions=torch.tensor([[0.0, 0.0, float(w), float(h)]]),
+                      entropy=torch.tensor([1.0]), share=torch.tensor([1.0]), num_groups=1, num_windows=1)
+    fig = inspection_figure(torch.zeros(3, h, w, dtype=torch.uint8), insp)
+    fig.canvas.draw()
+    images = [ax for ax in fig.axes if ax.images]
+    assert len(images) == 3
+    for ax in images:
+        box = ax.get_window_extent()
+        assert box.width / box.height == pytest.approx(w / h, rel=0.02)
