@@ -1,4 +1,4 @@
-"""The ``reeb`` command line: ``propose``, ``show`` and ``eval``.
+"""The ``reeb`` command line: ``propose``, ``show``, ``eval`` and ``export``.
 
 ::
 
@@ -219,8 +219,20 @@ def main() -> None:
 @click.option("--summary-json", type=click.Path(dir_okay=False),
               help="Also write the closing summary as JSON (for scripts and benchmarks).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar, no per-file messages.")
+@click.option("--engine", type=click.Choice(["local", "ray"]), default="local", show_default=True,
+              help="local: this process; ray: Ray Data actors (a folder of Parquet files; "
+                   "pip install 'reeb-torch[ray]').")
+@click.option("--address", default=None,
+              help="--engine ray: the Ray cluster (auto, ray://HOST:PORT) [default: a local Ray "
+                   "instance sized to this machine].")
+@click.option("--actors", type=click.IntRange(min=1), default=1, show_default=True,
+              help="--engine ray: actors, each holding one proposal generator.")
+@click.option("--cpus-per-actor", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="--engine ray: CPUs each actor reserves (and its torch threads) "
+                   "[default: leaves one CPU to Ray's read/write tasks].")
 def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, device,
-            batch_size, workers, viz_dir, viz_top, recursive, print_top, summary_json, quiet):
+            batch_size, workers, viz_dir, viz_top, recursive, print_top, summary_json, quiet,
+            engine, address, actors, cpus_per_actor):
     """Object proposals for images, folders or glob patterns (PATHS).
 
     With no PATHS, runs on the bundled KITTI sample: prints its top proposals and writes
@@ -232,6 +244,14 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
     Output rows: image, width, height, boxes ([x1, y1, x2, y2] in pixels, best first),
     scores, status ("ok" or "error: <file>: <reason>"), config (settings fingerprint).
     """
+    if engine == "ray":
+        from .distributed import cli_propose
+
+        return cli_propose(paths, out=out, resume=resume, overwrite=overwrite, preset=preset,
+                           config_file=config_file, sets=sets, top_k=top_k, device=device,
+                           batch_size=batch_size, recursive=recursive, summary_json=summary_json,
+                           quiet=quiet, address=address, actors=actors,
+                           cpus_per_actor=cpus_per_actor, viz_dir=viz_dir)
     from . import batch as B
 
     cfg = build_config(preset, config_file, sets, top_k)
@@ -594,6 +614,48 @@ def eval(kitti_dir, limit, out, methods, extra):  # noqa: A001 - the command's n
         if e.code is None or isinstance(e.code, int):
             sys.exit(e.code or 0)
         raise Failure(" ".join(str(e.code).split()))
+
+
+# -- reeb export -------------------------------------------------------------------------
+
+@main.command(context_settings=CONTEXT)
+@click.argument("results", type=click.Path(exists=True))
+@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False),
+              help="The file to write (detectron2: a .pkl pickle).")
+@click.option("--format", "fmt", type=click.Choice(["detectron2"]), default="detectron2",
+              show_default=True, help="Target framework's precomputed-proposals format.")
+@click.option("--ids", "ids_file", type=click.Path(exists=True, dir_okay=False),
+              help="Image → id mapping (JSON object, or CSV/TSV 'image,id'); keys may be the "
+                   "path as written, the file name or the stem. [default: file stems]")
+@click.option("--id-type", type=click.Choice(["str", "int"]), default="str", show_default=True,
+              help="int: ids such as 000123 become 123 (datasets with numeric image_id).")
+def export(results, out, fmt, ids_file, id_type):
+    """Convert RESULTS of `reeb propose` (a .jsonl/.parquet file, or the Parquet folder of
+    --engine ray) into a detector framework's proposal file.
+
+    detectron2: a pickle with ids, boxes (N×4 float32, XYXY_ABS, best first),
+    objectness_logits (the scores) and bbox_mode, for MODEL.LOAD_PROPOSALS with
+    DATASETS.PROPOSAL_FILES_TRAIN/TEST. Failed images are left out and named.
+    """
+    from . import export as E
+
+    try:
+        id_map = E.read_id_map(ids_file) if ids_file else None
+        rows = E.read_rows(results)
+        proposals, failed = E.detectron2_proposals(rows, id_map, id_type)
+    except E.ExportError as e:
+        raise UsageProblem(str(e))
+    if not proposals["ids"]:
+        raise Failure(f"{results}: no image with status ok; nothing to export")
+    try:
+        saved = E.write_detectron2(proposals, out)
+    except E.ExportError as e:
+        raise Failure(str(e))
+    n = sum(len(b) for b in proposals["boxes"])
+    for m in failed:
+        click.echo(f"warning: left out (failed): {m}", err=True)
+    click.echo(f"wrote {saved}: {len(proposals['ids'])} images, {n} proposals ({fmt}, XYXY_ABS)"
+               + (f"; {len(failed)} failed images left out" if failed else ""), err=True)
 
 
 if __name__ == "__main__":
