@@ -1,37 +1,144 @@
 """Sec. 3.8, eq. 13 — non-maximum suppression, stopped once enough boxes are kept.
 
-Greedy NMS decides each box from the boxes ranked above it only, so running it on the
-best ``p`` candidates gives exactly the decisions of a run on all of them for those
-``p``. :func:`nms_top_k` therefore runs torchvision's NMS on a prefix of the ranking and,
-if that keeps fewer than ``k`` boxes, on all candidates: the same
-result as ``torchvision.ops.nms(boxes, scores, iou)[:k]`` (ties broken by input order),
-at a fraction of the cost when there are many more candidates than ``k``.
+Greedy NMS decides each box from the better-ranked boxes it kept only. :func:`nms_top_k`
+returns exactly ``torchvision.ops.nms(boxes, scores, iou)[:k]`` (equal scores keep input
+order, as torchvision's CPU kernel does), by one of two paths:
+
+* **CPU, ``iou >= 0.5``: a grid-bucketed greedy NMS compiled with numba.** If the IoU of
+  two boxes exceeds 0.5, their intersection spans more than half of each box's width and
+  height, so each box contains the other's centre. Every kept box is registered in the
+  grid cells it covers (with a small margin against rounding), and a candidate is tested
+  only against the kept boxes registered in its centre's cell, with torchvision's IoU
+  arithmetic in the boxes' dtype; the loop stops once ``k`` boxes are kept. The first call
+  in a fresh environment compiles the kernel (about a second); ``cache=True`` stores the
+  machine code beside the package so later processes load it.
+* **Otherwise** (CUDA tensors, ``iou < 0.5``, dtypes other than float32/float64, boxes
+  with NaN/inf or negative width or height): torchvision's ``nms`` on a growing prefix of
+  the ranking (a box's fate depends only on the boxes ranked above it).
 """
 
 from __future__ import annotations
 
+import numba
+import numpy as np
 import torch
 from torch import Tensor
 from torchvision.ops import nms
 
 __all__ = ["nms_top_k"]
 
+_GRID_CELLS = 64
+"""Cells along the longer side of the boxes' extent in the grid-bucketed kernel."""
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")  # 0/0 -> NaN, as in C++
+def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pragma: no cover - compiled
+    """Rows of ``boxes`` (``[N, 4]`` x1, y1, x2, y2, best first, finite, x1 <= x2, y1 <= y2)
+    that greedy NMS keeps at threshold ``iou >= 0.5``, the first ``k`` of them, in order."""
+    n = boxes.shape[0]
+    keep = np.empty(min(n, k), np.int64)
+    if n == 0 or k <= 0:
+        return keep[:0]
+    x1 = boxes[:, 0].copy()
+    y1 = boxes[:, 1].copy()
+    x2 = boxes[:, 2].copy()
+    y2 = boxes[:, 3].copy()
+    areas = (x2 - x1) * (y2 - y1)  # as torchvision: in the boxes' dtype
+    zero = areas[0] - areas[0]  # 0 in the boxes' dtype (max(float32, 0) would widen)
+    x0 = float(x1.min())
+    y0 = float(y1.min())
+    ext = max(float(x2.max()) - x0, float(y2.max()) - y0, 1e-6)
+    cs = ext / _GRID_CELLS
+    gw = min(int((float(x2.max()) - x0) / cs) + 1, _GRID_CELLS + 1)
+    gh = min(int((float(y2.max()) - y0) / cs) + 1, _GRID_CELLS + 1)
+    head = np.full(gw * gh, -1, np.int64)  # per cell: last entry of a linked list
+    cap = 4 * n + 64
+    ent_box = np.empty(cap, np.int64)
+    ent_next = np.empty(cap, np.int64)
+    used = 0
+    nk = 0
+    for i in range(n):
+        cx = int((0.5 * (float(x1[i]) + float(x2[i])) - x0) / cs)
+        cy = int((0.5 * (float(y1[i]) + float(y2[i])) - y0) / cs)
+        cx = min(max(cx, 0), gw - 1)
+        cy = min(max(cy, 0), gh - 1)
+        e = head[cy * gw + cx]
+        dead = False
+        ix1, iy1, ix2, iy2, ia = x1[i], y1[i], x2[i], y2[i], areas[i]
+        while e >= 0:
+            j = ent_box[e]
+            w = max(min(x2[j], ix2) - max(x1[j], ix1), zero)
+            h = max(min(y2[j], iy2) - max(y1[j], iy1), zero)
+            inter = w * h
+            ovr = inter / (areas[j] + ia - inter)
+            if ovr > iou:
+                dead = True
+                break
+            e = ent_next[e]
+        if dead:
+            continue
+        keep[nk] = i
+        nk += 1
+        if nk == k:
+            break
+        # register box i in every cell it covers, with a margin for rounding
+        mx = 0.01 * (float(ix2) - float(ix1)) + 1e-6 * (abs(float(ix1)) + abs(float(ix2)) + cs)
+        my = 0.01 * (float(iy2) - float(iy1)) + 1e-6 * (abs(float(iy1)) + abs(float(iy2)) + cs)
+        ca = min(max(int((float(ix1) - mx - x0) / cs), 0), gw - 1)
+        cb = min(max(int((float(ix2) + mx - x0) / cs), 0), gw - 1)
+        ra = min(max(int((float(iy1) - my - y0) / cs), 0), gh - 1)
+        rb = min(max(int((float(iy2) + my - y0) / cs), 0), gh - 1)
+        need = used + (cb - ca + 1) * (rb - ra + 1)
+        if need > cap:
+            cap = max(2 * cap, need)
+            nb = np.empty(cap, np.int64)
+            nn = np.empty(cap, np.int64)
+            nb[:used] = ent_box[:used]
+            nn[:used] = ent_next[:used]
+            ent_box, ent_next = nb, nn
+        for r in range(ra, rb + 1):
+            for c in range(ca, cb + 1):
+                cell = r * gw + c
+                ent_box[used] = i
+                ent_next[used] = head[cell]
+                head[cell] = used
+                used += 1
+    return keep[:nk]
+
+
+def _grid_ok(boxes: Tensor, iou: float) -> bool:
+    """Whether the compiled grid kernel applies (else torchvision's ``nms``)."""
+    if boxes.device.type != "cpu" or boxes.dtype not in (torch.float32, torch.float64) or not iou >= 0.5:
+        return False
+    if not bool(torch.isfinite(boxes).all()):
+        return False
+    return bool((boxes[:, 2] >= boxes[:, 0]).all() and (boxes[:, 3] >= boxes[:, 1]).all())
+
 
 def nms_top_k(boxes: Tensor, scores: Tensor, iou: float, k: int, first: int | None = None) -> Tensor:
     """Indices (into ``boxes``) of the first ``k`` boxes greedy NMS keeps, best first.
 
+    Equal to ``torchvision.ops.nms(boxes, scores, iou)[:k]``, ties included.
+
     Args:
-        boxes: ``float [N, 4]`` (x1, y1, x2, y2).
+        boxes: ``float [N, 4]`` (x1, y1, x2, y2), CPU or CUDA.
         scores: ``float [N]``; higher is better; ties keep input order.
         iou: suppress a box whose IoU with a kept, better box exceeds this (eq. 13).
         k: number of boxes wanted.
-        first: initial prefix length (default ``2k``).
+        first: initial prefix length on the torchvision path (default ``2k``); the
+            compiled CPU path stops at ``k`` kept by itself and ignores it.
+
+    Returns:
+        ``int64 [min(k, kept)]`` on ``boxes``' device.
     """
     n = scores.numel()
     if n == 0:
         return torch.zeros(0, dtype=torch.long, device=boxes.device)
     order = torch.sort(scores, descending=True, stable=True).indices
     sboxes = boxes[order]
+    if _grid_ok(sboxes, iou):
+        keep = _grid_nms_sorted(sboxes.contiguous().numpy(), float(iou), int(k))
+        return order[torch.from_numpy(keep)]
     rank_score = torch.arange(n, 0, -1, device=boxes.device, dtype=torch.float32)  # strict order
     p = min(n, first or 2 * k)
     while True:

@@ -30,3 +30,122 @@ def test_ties_keep_input_order_and_empty_input():
     s = torch.tensor([1.0, 1.0, 1.0])
     assert nms_top_k(b, s, 0.5, 5).tolist() == [0, 2]
     assert nms_top_k(torch.zeros(0, 4), torch.zeros(0), 0.5, 5).numel() == 0
+
+
+# -- the compiled grid-bucketed CPU path (reeb_torch.nms._grid_nms_sorted) ----------------
+import pytest  # noqa: E402
+
+from reeb_torch.nms import _grid_ok  # noqa: E402
+
+THRESHOLDS = (0.5, 0.55, 0.6, 0.7, 0.8, 0.9, 0.95)
+
+
+def _messy_boxes(n: int, gen: torch.Generator, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """Boxes on an integer lattice (exact duplicates, shared edges), zero-width/height ones,
+    and scores with many ties."""
+    xy = torch.randint(0, 80, (n, 2), generator=gen).to(dtype)
+    wh = torch.randint(0, 40, (n, 2), generator=gen).to(dtype)
+    wh[torch.rand(n, generator=gen) < 0.05] = 0  # degenerate points
+    b = torch.cat([xy, xy + wh], 1)
+    dup = torch.randint(0, n, (n // 4,), generator=gen)
+    b[torch.randint(0, n, (n // 4,), generator=gen)] = b[dup]  # identical boxes
+    s = torch.randint(0, 6, (n,), generator=gen).to(dtype)  # ties
+    return b, s
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_grid_path_equals_torchvision_on_random_boxes_with_ties(dtype):
+    gen = torch.Generator().manual_seed(1)
+    for seed in range(60):
+        n = int(torch.randint(1, 600, (1,), generator=gen))
+        if seed % 2:
+            b, s = _messy_boxes(n, gen, dtype)
+        else:
+            b, s = _boxes(n, gen).to(dtype), torch.rand(n, generator=gen).to(dtype)
+        assert _grid_ok(b, 0.5)
+        for thr in THRESHOLDS:
+            ref = nms(b, s, thr)
+            assert torch.equal(nms_top_k(b, s, thr, n), ref), (seed, thr)
+            assert torch.equal(nms_top_k(b, s, thr, 7), ref[:7]), (seed, thr)
+
+
+def test_grid_path_at_iou_just_above_half_on_shifted_copies():
+    # pairs whose IoU sits at and around 0.5, where centre containment is tight
+    base = torch.tensor([[0.0, 0, 10, 10]])
+    shifts = torch.linspace(0, 6, 241)
+    b = torch.cat([base.expand(len(shifts), 4) + torch.stack([shifts, 0 * shifts, shifts, 0 * shifts], 1),
+                   base * 3 + 100], 0)
+    s = torch.ones(len(b))
+    for thr in (0.5, 0.5 + 1e-7, 0.6):
+        assert torch.equal(nms_top_k(b, s, thr, len(b)), nms(b, s, thr))
+
+
+def test_fallback_below_half_and_on_invalid_boxes():
+    gen = torch.Generator().manual_seed(2)
+    b, s = _messy_boxes(300, gen, torch.float32)
+    for thr in (0.0, 0.1, 0.3, 0.49):
+        assert not _grid_ok(b, thr)
+        assert torch.equal(nms_top_k(b, s, thr, 300), nms(b, s, thr))
+    flipped = b.clone()
+    flipped[0] = torch.tensor([10.0, 10, 0, 0])  # x2 < x1: torchvision's path
+    assert not _grid_ok(flipped, 0.7)
+    assert torch.equal(nms_top_k(flipped, s, 0.7, 300), nms(flipped, s, 0.7))
+    assert not _grid_ok(b.half(), 0.7)
+
+
+def test_top_k_early_stop_equals_truncation():
+    gen = torch.Generator().manual_seed(3)
+    b, s = _boxes(4000, gen), torch.rand(4000, generator=gen)
+    ref = nms(b, s, 0.7)
+    for k in (0, 1, 2, 50, len(ref) - 1, len(ref), len(ref) + 1, 10**6):
+        assert torch.equal(nms_top_k(b, s, 0.7, k), ref[:k]), k
+
+
+def test_empty_input_on_both_paths():
+    for thr in (0.3, 0.7):
+        out = nms_top_k(torch.zeros(0, 4), torch.zeros(0), thr, 5)
+        assert out.dtype == torch.long and out.numel() == 0
+
+
+def test_generator_candidates_equal_torchvision():
+    """Real candidates: the boxes the generator hands to NMS on a bundled KITTI frame."""
+    from pathlib import Path
+
+    import reeb_torch.generator as G
+    from reeb_torch import ProposalGenerator, get_preset
+    from reeb_torch.io import read_image
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "data" / "kitti_000001.png"
+    caught = []
+
+    def spy(boxes, scores, iou, k, first=None):
+        caught.append((boxes, scores, iou, k))
+        return nms_top_k(boxes, scores, iou, k, first)
+
+    orig, G.nms_top_k = G.nms_top_k, spy
+    try:
+        ProposalGenerator(get_preset("default-no-regions"))([read_image(path)])
+    finally:
+        G.nms_top_k = orig
+    assert caught
+    for boxes, scores, iou, k in caught:
+        assert boxes.shape[0] > k and _grid_ok(boxes, iou)
+        assert torch.equal(nms_top_k(boxes, scores, iou, k), nms(boxes, scores, iou)[:k])
+
+
+try:
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+except ImportError:  # hypothesis is in the dev extra
+    pass
+else:
+
+    @settings(max_examples=150, deadline=None)
+    @given(st.lists(st.tuples(st.integers(0, 30), st.integers(0, 30), st.integers(0, 12), st.integers(0, 12),
+                              st.integers(0, 3)), min_size=1, max_size=60),
+           st.sampled_from(THRESHOLDS), st.integers(1, 70))
+    def test_hypothesis_equals_torchvision(rows, thr, k):
+        t = torch.tensor(rows, dtype=torch.float32)
+        b = torch.cat([t[:, :2], t[:, :2] + t[:, 2:4]], 1) / 4  # quarter-pixel lattice
+        s = t[:, 4]
+        assert torch.equal(nms_top_k(b, s, thr, k), nms(b, s, thr)[:k])
