@@ -23,9 +23,26 @@ def to_gray(images: Tensor) -> Tensor:
 
 def gaussian_blur(gray: Tensor, sigma: float) -> Tensor:
     """Separable Gaussian blur of ``(B, 1, H, W)``; kernel side ``2*ceil(2σ)+1``, reflected
-    borders (OpenCV's ``BORDER_REFLECT_101``)."""
+    borders (OpenCV's ``BORDER_REFLECT_101``), kornia's kernel weights.
+
+    Computed as a fixed-order sum of shifted slices rather than a convolution: a
+    convolution backend may block a batch differently from one image, which changes the
+    float rounding, and every later stage would then depend on the batch."""
     k = 2 * math.ceil(2 * sigma) + 1
-    return kornia.filters.gaussian_blur2d(gray, (k, k), (sigma, sigma), border_type="reflect", separable=True)
+    r = k // 2
+    _, _, h, w = gray.shape
+    if r >= h or r >= w:  # reflection needs more pixels than the kernel radius
+        raise ValueError(f"blur_sigma={sigma} needs an image of at least {r + 1}×{r + 1} working "
+                         f"pixels, got {h}×{w}")
+    wts = kornia.filters.get_gaussian_kernel1d(k, sigma, device=gray.device, dtype=gray.dtype)[0].tolist()
+    p = F.pad(gray, (r, r, r, r), mode="reflect")[:, 0]
+    rows = wts[0] * p[:, :, 0:w]
+    for i in range(1, k):
+        rows = rows + wts[i] * p[:, :, i: i + w]
+    out = wts[0] * rows[:, 0:h]
+    for i in range(1, k):
+        out = out + wts[i] * rows[:, i: i + h]
+    return out[:, None]
 
 
 def sobel_gradients(gray: Tensor) -> tuple[Tensor, Tensor]:

@@ -28,7 +28,7 @@ class EdgeGroups:
     Attributes (``G`` groups in total):
         batch: ``int64 [G]`` image index of each group.
         x1, y1, x2, y2: ``int64 [G]`` inclusive pixel bounds of the group's pixels.
-        magnitude: ``float [G]`` sum of the edge magnitudes of the group's pixels.
+        magnitude: ``float64 [G]`` sum of the edge magnitudes of the group's pixels (exact).
     """
 
     batch: Tensor
@@ -117,7 +117,9 @@ def _stats(labels: Tensor, mag: Tensor, xs: Tensor, ys: Tensor, per_image: int) 
     root = labels[fg]
     numel = labels.numel()
     dev = labels.device
-    mass = torch.zeros(numel, dtype=mag.dtype, device=dev).index_add_(0, root, mag[fg])
+    # float64: sums of float32 magnitudes >= the edge threshold are exact, so the same in
+    # any order (a batch or one image alone gives the same groups)
+    mass = torch.zeros(numel, dtype=torch.float64, device=dev).index_add_(0, root, mag[fg].double())
     big = torch.iinfo(torch.long).max
     x = xs[fg]
     y = ys[fg]
@@ -153,7 +155,7 @@ def cell_groups(edges: Tensor, cell: int) -> EdgeGroups:
     big = float(max(h, w) + 1)
     tx = _tile(xs.to(edges.dtype), cell, 0.0)
     ty = _tile(ys.to(edges.dtype), cell, 0.0)
-    mass = te.sum((3, 4)).view(-1)
+    mass = te.double().sum((3, 4)).view(-1)
     x1 = torch.where(m, tx, big).amin((3, 4)).view(-1)
     y1 = torch.where(m, ty, big).amin((3, 4)).view(-1)
     x2 = torch.where(m, tx, -1.0).amax((3, 4)).view(-1)

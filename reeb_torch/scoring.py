@@ -32,9 +32,12 @@ __all__ = [
 ]
 
 def integral_image(x: Tensor) -> Tensor:
-    """``(B, H, W)`` → ``float32 (B, H + 1, W + 1)`` with ``ii[:, y, x] = Σ x[:, :y, :x]``."""
-    ii = torch.zeros(x.shape[0], x.shape[1] + 1, x.shape[2] + 1, dtype=torch.float32, device=x.device)
-    ii[:, 1:, 1:] = x.to(torch.float32).cumsum(2).cumsum(1)
+    """``(B, H, W)`` → ``float64 (B, H + 1, W + 1)`` with ``ii[:, y, x] = Σ x[:, :y, :x]``.
+
+    float64 holds the sums of float32 edge magnitudes exactly (an image's whole edge mass
+    needs well under 53 bits), so box sums do not depend on summation order or batch."""
+    ii = torch.zeros(x.shape[0], x.shape[1] + 1, x.shape[2] + 1, dtype=torch.float64, device=x.device)
+    ii[:, 1:, 1:] = x.to(torch.float64).cumsum(2).cumsum(1)
     return ii
 
 
@@ -61,13 +64,14 @@ def enclosed_sums(groups: EdgeGroups, batch: int, sizes: list[WindowSize]) -> li
     all windows at once. Only the groups inside the size's band of rows are visited
     (groups sorted by top row, ``searchsorted``).
 
-    Returns one ``float32 (B, ny, nx)`` tensor per size.
+    Returns one ``float64 (B, ny, nx)`` tensor per size (exact: float64 sums of the groups'
+    float64 masses, so the same whatever the order of the scatter or the batch).
     """
     dev = groups.batch.device
     order = torch.sort(groups.y1, stable=True).indices  # stable: same sums alone or in a batch
     gy1 = groups.y1[order]
     gx1, gx2, gy2 = groups.x1[order], groups.x2[order], groups.y2[order]
-    gb, gm = groups.batch[order], groups.magnitude[order].to(torch.float32)
+    gb, gm = groups.batch[order], groups.magnitude[order].to(torch.float64)  # exact sums, any order
     if sizes:
         top = torch.tensor([s.oy for s in sizes], device=dev)
         bottom = torch.tensor([s.oy + (s.ny - 1) * s.sy + s.h - 1 for s in sizes], device=dev)
@@ -76,7 +80,7 @@ def enclosed_sums(groups: EdgeGroups, batch: int, sizes: list[WindowSize]) -> li
     out = []
     for k, s in enumerate(sizes):
         row = s.nx + 1
-        buf = torch.zeros(batch * (s.ny + 1) * row, dtype=torch.float32, device=dev)
+        buf = torch.zeros(batch * (s.ny + 1) * row, dtype=torch.float64, device=dev)
         lo, hi = los[k], his[k]
         if hi > lo:
             x1, x2, y1, y2 = gx1[lo:hi], gx2[lo:hi], gy1[lo:hi], gy2[lo:hi]

@@ -61,7 +61,7 @@ def test_box_sums_match_direct_sums():
     for j in range(s.ny):
         for i in range(s.nx):
             x0, y0 = i * s.sx + dx, s.oy + j * s.sy + dy
-            ref = x[:, y0: y0 + ch, x0: x0 + cw].sum((1, 2))
+            ref = x[:, y0: y0 + ch, x0: x0 + cw].double().sum((1, 2))
             torch.testing.assert_close(got[:, j, i], ref, rtol=1e-5, atol=1e-5)
 
 
