@@ -158,10 +158,12 @@ class ProposalGenerator(nn.Module):
         # Sec. 3.7: adjacent edge pixels form edge groups
         with self._stage("groups", dev):
             groups = _groups.edge_groups(edges, cfg.grouping, cfg.group_cell)
-        # Sec. 3.5: Road_Mask = Generate_Road_Segmentation(I, HSV)
-        with self._stage("road", dev):
-            road = _road.road_mask(xk, cfg.road_samples, cfg.road_band, cfg.road_tolerance,
-                                   cfg.road_combine, cfg.seed)
+        # Sec. 3.5: Road_Mask = Generate_Road_Segmentation(I, HSV); skipped when no score reads it
+        road = None
+        if keep or cfg.refine or cfg.road_score not in ("none", "flat"):
+            with self._stage("road", dev):
+                road = _road.road_mask(xk, cfg.road_samples, cfg.road_band, cfg.road_tolerance,
+                                       cfg.road_combine, cfg.seed)
         # Sec. 3.6: Regions = Divide_Image_Into_Regions(I, Camera_Params); eqs. 2 and 9
         with self._stage("regions", dev):
             bounds = self._region_bounds(wk)
@@ -253,7 +255,7 @@ class ProposalGenerator(nn.Module):
                                               cfg.max_object_width_m, cfg.region_width_round)
         return _regions.region_bounds(width, frac, cfg.region_overlap)
 
-    def _score_windows(self, edges: Tensor, road: Tensor, groups: _groups.EdgeGroups,
+    def _score_windows(self, edges: Tensor, road: Tensor | None, groups: _groups.EdgeGroups,
                        grid: _windows.WindowGrid, fx: float, fy: float, h_in: int, w_in: int,
                        crossing: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """V (eq. 12) of every window, ``float32 [B, N]``; ``-inf`` where S < min_edge_score
@@ -261,7 +263,7 @@ class ProposalGenerator(nn.Module):
         cfg = self.config
         b = edges.shape[0]
         ii_edges = _scoring.integral_image(edges)
-        ii_road = _scoring.integral_image(road)
+        ii_road = _scoring.integral_image(road) if road is not None else None  # None: no road term
         ii_road_below = None
         if cfg.road_score == "stand":  # rows past the bottom hold no road
             hk = road.shape[1]
@@ -283,7 +285,8 @@ class ProposalGenerator(nn.Module):
                 centre = centre + cfg.straddle_weight * cut
             bw, bh = s.w / fx, s.h / fy
             sc = _scoring.edge_score(enc * unit, centre * unit, bw, bh, cfg.score_norm, cfg.kappa, cfg.gamma).float()
-            r = (_scoring.box_sums(ii_road, 0, 0, s.w, s.h, s) / (s.w * s.h)).float()
+            r = (_scoring.box_sums(ii_road, 0, 0, s.w, s.h, s) / (s.w * s.h)).float() if ii_road is not None \
+                else torch.zeros_like(sc)
             if cfg.road_score == "stand":  # road just below the box, little road inside it
                 sh = max(1, int(round(cfg.road_strip * s.h)))
                 below = _scoring.box_sums(ii_road_below, 0, s.h, s.w, sh, s) / (s.w * sh)
