@@ -2,19 +2,34 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
-__all__ = ["check_images", "ImageBatch"]
+if TYPE_CHECKING:
+    from .config import ReebConfig
+
+__all__ = ["check_images", "check_fits", "ImageBatch"]
 
 ImageBatch = Tensor | Sequence[Tensor]
+
+
+def _check_storage(t: Tensor, where: str) -> None:
+    """TypeError for tensors that hold no readable values: meta device, sparse layouts."""
+    if t.device.type == "meta":
+        raise TypeError(f"{where}: a meta-device tensor holds no values; expected a tensor on a real device "
+                        "(CPU or CUDA)")
+    if t.layout != torch.strided:
+        raise TypeError(f"{where}: expected a dense (strided) tensor, got layout {t.layout}; call .to_dense() first")
 
 
 def _check_one(img: Tensor, where: str) -> Tensor:
     if not isinstance(img, Tensor):
         raise TypeError(f"{where}: expected a torch.Tensor, got {type(img).__name__}")
+    _check_storage(img, where)
     if img.ndim != 3:
         raise ValueError(f"{where}: expected shape (3, H, W), got {tuple(img.shape)}")
     if img.shape[0] != 3:
@@ -35,11 +50,30 @@ def _check_one(img: Tensor, where: str) -> Tensor:
     return img.float()
 
 
-def check_images(images: ImageBatch, min_side: int) -> list[Tensor]:
+def check_fits(height: int, width: int, config: ReebConfig, where: str = "image") -> None:
+    """Raise ValueError when ``config`` cannot run on a ``height × width`` image: at the
+    working resolution (``scale``) the Gaussian blur (``blur_sigma``; kernel side
+    ``2*ceil(2σ)+1``, reflected borders) needs more than ``ceil(2σ)`` pixels per side.
+    The message names the image size and both settings."""
+    s, sigma = config.scale, config.blur_sigma
+    hk, wk = max(1, int(round(height * s))), max(1, int(round(width * s)))
+    reach = math.ceil(2 * sigma)
+    if reach >= min(hk, wk):
+        raise ValueError(
+            f"{where}: size {width}x{height} (WxH) is {wk}x{hk} pixels at ReebConfig.scale={s!r}, too small "
+            f"for ReebConfig.blur_sigma={sigma!r}, whose kernel reaches {reach} px on each side (the working "
+            f"image needs more than {reach} px per side): lower blur_sigma, raise scale, or pass a larger image"
+        )
+
+
+def check_images(images: ImageBatch, min_side: int, config: ReebConfig | None = None) -> list[Tensor]:
     """Validate a batch and return a list of float32 ``(3, H, W)`` images in [0, 1].
 
-    Accepts a ``(B, 3, H, W)`` float/uint8 tensor or a sequence of ``(3, H, W)`` tensors.
-    ``min_side`` is the smallest height/width an image may have (the smallest window).
+    Accepts a ``(B, 3, H, W)`` float/uint8 tensor or a sequence of ``(3, H, W)`` tensors,
+    dense, on a real device (a meta tensor is a TypeError). ``min_side`` is the smallest
+    height/width an image may have (the smallest window); with ``config``, each image must
+    also fit its working resolution (:func:`check_fits`). Wrong types raise TypeError,
+    wrong shapes, values or sizes ValueError.
     """
     if isinstance(images, Tensor):
         if images.ndim == 3:
@@ -47,6 +81,7 @@ def check_images(images: ImageBatch, min_side: int) -> list[Tensor]:
                 f"expected a batch (B, 3, H, W) or a list of (3, H, W) images, got one image of shape "
                 f"{tuple(images.shape)}; wrap it as images[None] or [image]"
             )
+        _check_storage(images, "images")
         if images.ndim != 4:
             raise ValueError(f"expected images of shape (B, 3, H, W), got {tuple(images.shape)}")
         seq: Sequence[Tensor] = list(images.unbind(0))
@@ -64,5 +99,7 @@ def check_images(images: ImageBatch, min_side: int) -> list[Tensor]:
             raise ValueError(
                 f"image {i}: size {w}x{h} (WxH) is smaller than the smallest window ({min_side} px)"
             )
+        if config is not None:
+            check_fits(h, w, config, f"image {i}")
         out.append(x)
     return out

@@ -11,8 +11,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
+import types
+import typing
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Callable, Literal
 
 __all__ = ["ReebConfig", "PRESETS", "get_preset"]
 
@@ -22,6 +25,225 @@ RoadScore = Literal["reward", "penalize", "none", "flat", "stand"]
 LocationScore = Literal["paper", "ground", "classes", "none"]
 EntropyForm = Literal["printed", "abs-diff"]
 WindowGeometry = Literal["camera", "grid"]
+
+
+# -- validation (ReebConfig.__post_init__) ---------------------------------------------------
+# The type of every field is checked from its annotation, so a new field is checked as soon
+# as it is declared; its range goes into _RANGES (one line), joint conditions into _JOINT.
+
+
+class _Mismatch(Exception):
+    """A value does not fit an annotation; ``kind`` is TypeError (wrong type) or ValueError
+    (right type, value not allowed: not finite, not a choice, wrong tuple length)."""
+
+    def __init__(self, kind: type[Exception]) -> None:
+        super().__init__()
+        self.kind = kind
+
+
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def _field_hints(cls: type) -> dict[str, Any]:
+    """The resolved annotations of ``cls``'s fields (cached; the module postpones them)."""
+    if cls not in _HINTS:
+        _HINTS[cls] = typing.get_type_hints(cls)
+    return _HINTS[cls]
+
+
+def _conform(value: Any, hint: Any) -> Any:
+    """``value`` checked against the annotation ``hint`` and normalised (float fields hold
+    floats, tuple fields tuples); raises :class:`_Mismatch`.
+
+    Understood: ``bool`` (only ``True``/``False``), ``int`` (not a bool), ``float`` (a finite
+    real, not a bool), ``str``, ``Literal[...]``, ``X | None`` / unions, ``tuple[X, Y]`` and
+    ``tuple[X, ...]`` (a tuple or list), plain classes. Other annotations are not checked.
+    """
+    if hint is Any:
+        return value
+    if hint is bool:
+        if isinstance(value, bool):
+            return value
+        raise _Mismatch(TypeError)
+    if hint is int:
+        if isinstance(value, numbers.Integral) and not isinstance(value, bool):
+            return value if type(value) is int else int(value)
+        raise _Mismatch(TypeError)
+    if hint is float:
+        if not isinstance(value, numbers.Real) or isinstance(value, bool):
+            raise _Mismatch(TypeError)
+        try:
+            x = float(value)
+        except OverflowError:  # an int beyond the float range
+            raise _Mismatch(ValueError) from None
+        if not math.isfinite(x):
+            raise _Mismatch(ValueError)
+        return value if type(value) is float else x
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin is Literal:
+        for choice in args:
+            if type(value) is type(choice) and value == choice:
+                return value
+        raise _Mismatch(ValueError if any(type(value) is type(c) for c in args) else TypeError)
+    if origin is typing.Union or origin is types.UnionType:
+        if value is None and type(None) in args:
+            return None
+        kind: type[Exception] = TypeError
+        for alt in args:
+            if alt is type(None):
+                continue
+            try:
+                return _conform(value, alt)
+            except _Mismatch as e:
+                if e.kind is ValueError:
+                    kind = ValueError
+        raise _Mismatch(kind)
+    if origin is tuple:
+        if not isinstance(value, (tuple, list)):
+            raise _Mismatch(TypeError)
+        if len(args) == 2 and args[1] is Ellipsis:
+            items = [_conform(v, args[0]) for v in value]
+        elif args == ((),) or not args:  # tuple[()] / bare tuple
+            return tuple(value)
+        else:
+            if len(value) != len(args):
+                raise _Mismatch(ValueError)
+            items = [_conform(v, a) for v, a in zip(value, args)]
+        if type(value) is tuple and all(a is b for a, b in zip(items, value)):
+            return value
+        return tuple(items)
+    if isinstance(hint, type):
+        if isinstance(value, hint):
+            return value
+        raise _Mismatch(TypeError)
+    return value  # an annotation this checker does not know: left to _RANGES
+
+
+def _describe(hint: Any, plural: bool = False) -> str:
+    """What ``hint`` expects, in words (``"a tuple of 2 finite numbers"``)."""
+    if hint is bool:
+        return "bools (True or False)" if plural else "True or False (a bool)"
+    if hint is int:
+        return "ints" if plural else "an int (not a bool)"
+    if hint is float:
+        return "finite numbers" if plural else "a finite number"
+    if hint is str:
+        return "strings" if plural else "a string"
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin is Literal:
+        return "one of " + ", ".join(repr(a) for a in args)
+    if origin is typing.Union or origin is types.UnionType:
+        alts = [_describe(a) for a in args if a is not type(None)]
+        return ("None or " if type(None) in args else "") + " or ".join(alts)
+    if origin is tuple:
+        head = "tuples" if plural else "a tuple"
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"{head} of {_describe(args[0], plural=True)}"
+        if args and all(a == args[0] for a in args):
+            return f"{head} of {len(args)} {_describe(args[0], plural=True)}"
+        return f"{head} ({', '.join(_describe(a) for a in args)})"
+    return getattr(hint, "__name__", repr(hint))
+
+
+def _show(value: Any, limit: int = 80) -> str:
+    """``repr(value)``, shortened to ``limit`` characters for messages."""
+    r = repr(value)
+    return r if len(r) <= limit else r[: limit - 4] + " ..."
+
+
+def _in(lo: float, hi: float, lo_open: bool = False, hi_open: bool = False) -> tuple[Callable[[Any], bool], str]:
+    """A range check for :data:`_RANGES` and its words (``"in (0, 4]"``)."""
+    def ok(v: Any) -> bool:
+        return (lo < v if lo_open else lo <= v) and (v < hi if hi_open else v <= hi)
+    text = f"in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    return ok, text
+
+
+def _positive() -> tuple[Callable[[Any], bool], str]:
+    return (lambda v: v > 0), "> 0"
+
+
+def _at_least(lo: float) -> tuple[Callable[[Any], bool], str]:
+    return (lambda v: v >= lo), f">= {lo:g}"
+
+
+def _frac_box(b: tuple[float, ...]) -> bool:
+    x1, y1, x2, y2 = b
+    return 0 <= x1 < x2 <= 1 and 0 <= y1 < y2 <= 1
+
+
+def _templates_ok(ts: tuple[tuple[float, float, float, float], ...]) -> bool:
+    return len(ts) > 0 and all(0 < hl <= hh and 0 < wl <= wh for hl, hh, wl, wh in ts)
+
+
+_MAX_REGIONS = 1024
+"""Most region strips a camera setting may give (eq. 8); more is a setting error."""
+
+
+def _region_count(c: "ReebConfig") -> int:
+    from .regions import region_count, region_width_fraction
+
+    frac = region_width_fraction(c.camera_height_m, c.vertical_fov_deg, c.horizontal_fov_deg,
+                                 c.max_object_width_m, c.region_width_round)
+    return region_count(frac, c.region_overlap) if frac > 0 else _MAX_REGIONS + 1
+
+
+_RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
+    # Range of each field once its type is right (its annotation). Numbers are finite here.
+    "scale": _in(0, 4, lo_open=True),
+    "blur_sigma": _positive(),  # too large for an image: ValueError at the door (_checks)
+    "edge_threshold": _in(0, 1, hi_open=True),
+    "group_cell": ((lambda v: v is None or v >= 2), "None or an int >= 2"),
+    "road_samples": _in(1, 1_000_000),
+    "road_band": (_frac_box, "fractions (x1, y1, x2, y2) with 0 <= x1 < x2 <= 1 and 0 <= y1 < y2 <= 1"),
+    "road_tolerance": ((lambda t: all(x >= 0 for x in t)), "three non-negative numbers (hue, saturation, value)"),
+    "seed": ((lambda v: -2**63 <= v < 2**64), "in [-2**63, 2**64) (what torch.Generator.manual_seed takes)"),
+    "camera_height_m": _positive(),
+    "vertical_fov_deg": _in(0, 180, lo_open=True, hi_open=True),
+    "horizontal_fov_deg": _in(0, 180, lo_open=True, hi_open=True),
+    "max_object_width_m": _positive(),
+    "region_overlap": _in(0, 1, lo_open=True),
+    "region_width_round": ((lambda v: v is None or 0 < v <= 1), "None or in (0, 1]"),
+    "entropy_bins": _in(2, 65536),
+    "entropy_sigma": _positive(),
+    "candidates_per_region": _at_least(1),
+    "candidates_without_regions": _at_least(1),
+    "min_window": _at_least(4),
+    "size_ratio": ((lambda v: 1 < v <= 16), "in (1, 16]"),
+    "window_step": _in(0, 1, lo_open=True),
+    "aspect_range": ((lambda a: 0 < a[0] <= a[1]), "(low, high) with 0 < low <= high"),
+    "ground_band": ((lambda g: g is None or 0 < g[0] < g[1]), "None or (r_lo, r_hi) with 0 < r_lo < r_hi"),
+    "object_templates": (_templates_ok, "a non-empty tuple of (height_lo, height_hi, width_lo, width_hi) "
+                                        "in metres with 0 < height_lo <= height_hi and 0 < width_lo <= width_hi"),
+    "horizon_slack": _in(0, 1, hi_open=True),
+    "gamma": _in(0, 4, lo_open=True),  # (area)^gamma: larger overflows, and means nothing
+    "kappa": _in(0, 8, lo_open=True),  # (perimeter)^kappa: Edge Boxes uses 1.5
+    "straddle_weight": _at_least(0),
+    "straddle_band": _in(0, 64),
+    "center_fraction": _in(0, 1, lo_open=True, hi_open=True),
+    "road_strip": _in(0, 1, lo_open=True),
+    "horizon": _in(0, 1, lo_open=True, hi_open=True),
+    "ground_ratio": _positive(),
+    "class_heights_m": ((lambda t: len(t) > 0 and all(x > 0 for x in t)), "a non-empty tuple of heights > 0"),
+    "class_weights": ((lambda t: all(x >= 0 for x in t) and any(x > 0 for x in t)),
+                      "weights >= 0, not all 0"),
+    "ground_log_sigma": _positive(),
+    "alpha": _at_least(0),
+    "beta": _at_least(0),
+    "nms_iou": _in(0, 1, lo_open=True),
+    "top_k": _at_least(1),
+}
+
+_JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
+    # Conditions between fields: (the fields, the check, what is expected).
+    (("grouping", "group_cell"), lambda c: c.grouping != "cell" or c.group_cell is not None,
+     "an int >= 2 for group_cell when grouping='cell'"),
+    (("class_heights_m", "class_weights"), lambda c: len(c.class_weights) == len(c.class_heights_m),
+     "of the same length (one weight per class)"),
+    (("camera_height_m", "vertical_fov_deg", "horizontal_fov_deg", "max_object_width_m",
+      "region_width_round", "region_overlap"), lambda c: _region_count(c) <= _MAX_REGIONS,
+     f"a camera and overlap giving at most {_MAX_REGIONS} regions (eqs. 5-8)"),
+]
 
 
 @dataclass(frozen=True)
@@ -209,67 +431,34 @@ class ReebConfig:
     """Proposals returned per image (at most)."""
 
     def __post_init__(self) -> None:
-        def check(ok: bool, name: str, expected: str) -> None:
-            if not ok:
-                raise ValueError(
-                    f"ReebConfig.{name} must be {expected}, got {getattr(self, name)!r}"
-                )
+        """Check every field: its type from the annotation (:func:`_conform`, so new fields
+        are checked too), then its range (:data:`_RANGES`), then the fields that go together.
 
-        def pos(name: str) -> None:
-            v = getattr(self, name)
-            check(isinstance(v, (int, float)) and math.isfinite(v) and v > 0, name, "> 0")
-
-        for name in ("scale", "blur_sigma", "camera_height_m", "vertical_fov_deg",
-                     "horizontal_fov_deg", "max_object_width_m", "entropy_sigma",
-                     "size_ratio", "window_step", "kappa", "gamma"):
-            pos(name)
-        check(self.scale <= 4, "scale", "in (0, 4]")
-        check(0 <= self.edge_threshold < 1, "edge_threshold", "in [0, 1)")
-        check(self.edge_channels in ("gray", "rgb"), "edge_channels", "'gray' or 'rgb'")
-        check(self.grouping in ("connected", "cell"), "grouping", "'connected' or 'cell'")
-        check(self.group_cell is None or (isinstance(self.group_cell, int) and self.group_cell >= 2),
-              "group_cell", "None or an int >= 2")
-        check(self.grouping != "cell" or self.group_cell is not None, "group_cell",
-              "set (an int >= 2) when grouping='cell'")
-        check(isinstance(self.road_samples, int) and self.road_samples >= 1, "road_samples", "an int >= 1")
-        x1, y1, x2, y2 = self.road_band
-        check(0 <= x1 < x2 <= 1 and 0 <= y1 < y2 <= 1, "road_band",
-              "fractions (x1, y1, x2, y2) with 0 <= x1 < x2 <= 1 and 0 <= y1 < y2 <= 1")
-        check(len(self.road_tolerance) == 3 and all(t >= 0 for t in self.road_tolerance),
-              "road_tolerance", "three non-negative numbers (hue, saturation, value)")
-        check(self.road_combine in ("and", "or"), "road_combine", "'and' or 'or'")
-        check(self.vertical_fov_deg < 180 and self.horizontal_fov_deg < 180,
-              "vertical_fov_deg", "an angle below 180 degrees (both opening angles)")
-        check(0 < self.region_overlap <= 1, "region_overlap", "in (0, 1]")
-        check(self.region_width_round is None or 0 < self.region_width_round <= 1,
-              "region_width_round", "None or in (0, 1]")
-        check(isinstance(self.entropy_bins, int) and 2 <= self.entropy_bins <= 65536,
-              "entropy_bins", "an int in [2, 65536]")
-        check(self.entropy_form in ("printed", "abs-diff"), "entropy_form", "'printed' or 'abs-diff'")
-        check(isinstance(self.candidates_per_region, int) and self.candidates_per_region >= 1,
-              "candidates_per_region", "an int >= 1")
-        check(isinstance(self.candidates_without_regions, int) and self.candidates_without_regions >= 1,
-              "candidates_without_regions", "an int >= 1")
-        check(isinstance(self.min_window, int) and self.min_window >= 4, "min_window", "an int >= 4")
-        check(self.size_ratio > 1, "size_ratio", "> 1")
-        check(self.window_step <= 1, "window_step", "in (0, 1]")
-        lo, hi = self.aspect_range
-        check(0 < lo <= hi, "aspect_range", "(low, high) with 0 < low <= high")
-        check(self.score_norm in ("perimeter", "area"), "score_norm", "'perimeter' or 'area'")
-        check(0 < self.center_fraction < 1, "center_fraction", "in (0, 1)")
-        check(self.road_score in ("reward", "penalize", "none", "flat", "stand"), "road_score",
-              "'reward', 'penalize', 'none', 'flat' or 'stand'")
-        check(self.region_assign in ("contained", "nearest"), "region_assign", "'contained' or 'nearest'")
-        pos("ground_ratio")
-        pos("ground_log_sigma")
-        check(self.location_score in ("paper", "ground", "classes", "none"), "location_score",
-              "'paper', 'ground', 'classes' or 'none'")
-        check(0 < self.horizon < 1, "horizon", "in (0, 1)")
-        check(self.ground_band is None or (len(self.ground_band) == 2 and 0 < self.ground_band[0] < self.ground_band[1]),
-              "ground_band", "None or (r_lo, r_hi) with 0 < r_lo < r_hi")
-        check(self.alpha >= 0 and self.beta >= 0, "alpha", "non-negative (alpha and beta)")
-        check(0 < self.nms_iou <= 1, "nms_iou", "in (0, 1]")
-        check(isinstance(self.top_k, int) and self.top_k >= 1, "top_k", "an int >= 1")
+        Raises TypeError for a value of the wrong type (``top_k=True``, ``seed="a"``) and
+        ValueError for one of the right type out of range (``kappa=200``), both as
+        ``ReebConfig.<name> must be <expected>, got <value>``. Lists given for tuple fields
+        become tuples and ints given for float fields become floats, so equal settings give
+        equal, hashable configs with equal fingerprints (JSON round trips included).
+        """
+        hints = _field_hints(type(self))
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            hint = hints.get(f.name)
+            if hint is None:
+                continue
+            try:
+                fixed = _conform(value, hint)
+            except _Mismatch as e:
+                raise e.kind(f"ReebConfig.{f.name} must be {_describe(hint)}, got {_show(value)}") from None
+            if fixed is not value:
+                object.__setattr__(self, f.name, fixed)
+        for name, (ok, expected) in _RANGES.items():
+            if name in hints and not ok(getattr(self, name)):
+                raise ValueError(f"ReebConfig.{name} must be {expected}, got {_show(getattr(self, name))}")
+        for names, ok, expected in _JOINT:
+            if all(n in hints for n in names) and not ok(self):
+                got = ", ".join(f"{n}={_show(getattr(self, n))}" for n in names)
+                raise ValueError(f"ReebConfig.{' / '.join(names)} must be {expected}, got {got}")
 
     # -- presets -------------------------------------------------------------------------
     @classmethod

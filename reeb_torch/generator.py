@@ -112,7 +112,7 @@ class ProposalGenerator(nn.Module):
     # ------------------------------------------------------------------------------------
     @torch.no_grad()
     def forward(self, images: ImageBatch) -> list[dict[str, Tensor]]:
-        imgs = check_images(images, self.min_side)
+        imgs = check_images(images, self.min_side, self.config)
         results: list[dict[str, Tensor] | None] = [None] * len(imgs)
         by_size: dict[tuple, list[int]] = {}
         for i, im in enumerate(imgs):
@@ -127,7 +127,7 @@ class ProposalGenerator(nn.Module):
     @torch.no_grad()
     def inspect(self, image: Tensor) -> Inspection:
         """Run on one ``(3, H, W)`` image and keep the intermediate maps (for pictures)."""
-        (x,) = check_images([image], self.min_side)
+        (x,) = check_images([image], self.min_side, self.config)
         out, extra = self._propose_batch(x[None], keep=True)
         h, w = x.shape[-2:]
         up = lambda t, mode: F.interpolate(t[None].float(), size=(h, w), mode=mode)[0, 0]  # noqa: E731

@@ -2,9 +2,19 @@
 
 from __future__ import annotations
 
-import pytest
+import dataclasses
+import json
+import math
+import typing
+from dataclasses import dataclass
+from typing import Literal
 
-from reeb_torch import PRESETS, ReebConfig, get_preset
+import numpy as np
+import pytest
+import torch
+
+from reeb_torch import PRESETS, ProposalGenerator, ReebConfig, get_preset
+from reeb_torch import config as _config
 
 
 def test_paper_constants_are_the_defaults():
@@ -47,3 +57,137 @@ def test_dict_round_trip_and_fingerprint():
     assert c.fingerprint() == ReebConfig(top_k=100).fingerprint() != ReebConfig().fingerprint()
     with pytest.raises(ValueError, match="unknown ReebConfig field"):
         ReebConfig.from_dict({"speed": 3})
+
+
+# -- strict types and ranges (issue 10, items 3 and 5) ------------------------------------
+
+BOOL_FIELDS = [f.name for f in dataclasses.fields(ReebConfig) if isinstance(getattr(ReebConfig(), f.name), bool)]
+
+
+@pytest.mark.parametrize("field", BOOL_FIELDS)
+@pytest.mark.parametrize("value", [None, "off", "false", "no", "", 0, 1, [True], 1.0, np.bool_(True)])
+def test_bool_fields_take_only_bools(field, value):
+    with pytest.raises(TypeError, match=rf"^ReebConfig\.{field} must be True or False \(a bool\), got "):
+        ReebConfig(**{field: value})
+    assert getattr(ReebConfig(**{field: False}), field) is False
+
+
+@pytest.mark.parametrize(
+    "field, value, error, expected",
+    [
+        ("top_k", True, TypeError, "an int (not a bool)"),  # bool is not an int
+        ("kappa", 200, ValueError, "in (0, 8]"),  # used to overflow in (2(w+h))**kappa
+        ("seed", None, TypeError, "an int"),
+        ("seed", "a", TypeError, "an int"),
+        ("seed", 1.5, TypeError, "an int"),
+        ("seed", 2**64, ValueError, "in [-2**63, 2**64)"),
+        ("entropy_sigma", True, TypeError, "a finite number"),
+        ("min_edge_score", "x", TypeError, "a finite number"),
+        ("min_edge_score", float("nan"), ValueError, "a finite number"),
+        ("scale", 10**400, ValueError, "a finite number"),
+        ("group_cell", 8.0, TypeError, "None or an int (not a bool)"),
+        ("grouping", 3, TypeError, "one of 'connected', 'cell'"),
+        ("road_band", (0.3, 0.8, 0.7), ValueError, "a tuple of 4 finite numbers"),
+        ("road_band", "0.3,0.8,0.7,1", TypeError, "a tuple of 4 finite numbers"),
+        ("aspect_range", (0.5, None), TypeError, "a tuple of 2 finite numbers"),
+        ("object_templates", ((1.0, 2.0, 3.0),), ValueError, "a tuple of tuples of 4 finite numbers"),
+        ("object_templates", ((2.0, 1.0, 0.3, 0.4),), ValueError, "a non-empty tuple of (height_lo"),
+        ("class_heights_m", (), ValueError, "a non-empty tuple of heights > 0"),
+        ("vertical_fov_deg", 180, ValueError, "in (0, 180)"),
+        ("alpha", -1, ValueError, ">= 0"),
+        ("beta", -1, ValueError, ">= 0"),
+    ],
+)
+def test_wrong_types_and_ranges_say_what_was_expected(field, value, error, expected):
+    with pytest.raises(error) as info:
+        ReebConfig(**{field: value})
+    msg = str(info.value)
+    assert msg.startswith(f"ReebConfig.{field} must be {expected}"), msg
+    assert type(info.value) is error
+
+
+def test_every_field_is_type_checked_from_its_annotation():
+    """No field escapes the checker: an object of no known type is a TypeError naming it."""
+    for f in dataclasses.fields(ReebConfig):
+        with pytest.raises(TypeError, match=rf"^ReebConfig\.{f.name} must be "):
+            ReebConfig(**{f.name: object()})
+
+
+def test_numeric_fields_have_a_range():
+    """Each int/float field has a line in the range table (or is free by design): a new
+    numeric field must say its range in config._RANGES."""
+    free = {"min_edge_score"}  # a threshold on S: any finite number (negative keeps all)
+    hints = typing.get_type_hints(ReebConfig)
+    numeric = {n for n, h in hints.items()
+               if h in (int, float) or set(typing.get_args(h)) - {type(None)} in ({int}, {float})}
+    missing = sorted(numeric - set(_config._RANGES) - free)
+    assert not missing, f"add a range for {missing} to reeb_torch.config._RANGES"
+    assert set(_config._RANGES) <= set(hints), "range table names a field ReebConfig no longer has"
+
+
+def test_joint_conditions_name_all_their_fields():
+    with pytest.raises(ValueError, match=r"^ReebConfig\.class_heights_m / class_weights must be of the same length"):
+        ReebConfig(class_weights=(1.0,))
+    with pytest.raises(ValueError, match=r"ReebConfig\.grouping / group_cell .*grouping='cell'"):
+        ReebConfig(grouping="cell", group_cell=None)
+    # eq. 7 with a tiny object: region strips far narrower than a pixel would be thousands
+    with pytest.raises(ValueError, match=r"max_object_width_m .* at most 1024 regions"):
+        ReebConfig(max_object_width_m=1e-3, region_width_round=None)
+
+
+def test_new_fields_are_checked_from_their_annotations():
+    """A subclass (as the next release's new fields) gets type checks without new code."""
+
+    @dataclass(frozen=True)
+    class Extended(ReebConfig):
+        flag: bool = False
+        mode: Literal["a", "b"] = "a"
+        size: tuple[float, float] = (1.0, 2.0)
+        count: int | None = None
+        many: tuple[tuple[float, float], ...] = ((1.0, 2.0),)
+
+    assert Extended(size=[3, 4], many=[[1, 2]]).size == (3.0, 4.0)
+    for field, value, error in [("flag", "no", TypeError), ("mode", "c", ValueError), ("mode", 1, TypeError),
+                                ("size", (1.0,), ValueError), ("count", 1.0, TypeError),
+                                ("many", ((1.0, "x"),), TypeError)]:
+        with pytest.raises(error, match=rf"^ReebConfig\.{field} must be "):
+            Extended(**{field: value})
+    with pytest.raises(ValueError, match=r"^ReebConfig\.top_k must be >= 1"):
+        Extended(top_k=0)  # the range table still applies
+
+
+def test_values_are_normalised_so_equal_settings_are_equal():
+    a = ReebConfig(scale=1, road_band=[0.3, 0.8, 0.7, 1], top_k=np.int64(5), kappa=np.float32(1.5))
+    b = ReebConfig(scale=1.0, road_band=(0.3, 0.8, 0.7, 1.0), top_k=5, kappa=1.5)
+    assert a == b and hash(a) == hash(b) and a.fingerprint() == b.fingerprint()
+    assert type(a.scale) is float and type(a.top_k) is int and type(a.road_band) is tuple
+    assert all(type(v) is float for v in a.road_band)
+
+
+def test_json_round_trip_with_nested_tuples():
+    c = ReebConfig(object_templates=((1.0, 2.0, 0.5, 4.0), (0.9, 2.2, 0.3, 1.4)), ground_band=None)
+    back = ReebConfig.from_dict(json.loads(json.dumps(c.to_dict())))
+    assert back == c and hash(back) == hash(c) and back.fingerprint() == c.fingerprint()
+    assert back.object_templates == ((1.0, 2.0, 0.5, 4.0), (0.9, 2.2, 0.3, 1.4))
+
+
+@pytest.mark.parametrize("overrides, size, words", [
+    (dict(blur_sigma=1000.0), (100, 120), ["blur_sigma=1000.0", "120x100", "scale=0.5"]),
+    (dict(scale=0.01), (100, 120), ["scale=0.01", "120x100", "1x1 pixels", "blur_sigma=1.0"]),
+    (dict(scale=0.05, blur_sigma=1.0), (40, 300), ["scale=0.05", "300x40", "15x2 pixels"]),
+])
+def test_a_config_too_large_for_the_image_is_a_value_error_at_the_door(overrides, size, words):
+    """Item 5: the kernel that cannot fit is reported with the image size, not as a padding
+    RuntimeError from inside the blur; ``inspect`` checks the same."""
+    g = ProposalGenerator(**overrides)
+    x = torch.rand(1, 3, *size)
+    for call in (lambda: g(x), lambda: g([x[0]]), lambda: g.inspect(x[0])):
+        with pytest.raises(ValueError) as info:
+            call()
+        assert all(w in str(info.value) for w in words), str(info.value)
+    # the boundary: σ = 1 reaches ceil(2σ) = 2 px, so a side of 3 working px runs and 2 does not
+    reach = math.ceil(2 * 1.0)
+    g = ProposalGenerator(min_window=4)  # scale 0.5: 2 input px per working px
+    assert len(g(torch.rand(1, 3, 2 * (reach + 1), 40))) == 1
+    with pytest.raises(ValueError, match="blur_sigma"):
+        g(torch.rand(1, 3, 2 * reach, 40))
