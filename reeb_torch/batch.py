@@ -15,27 +15,38 @@ The pipeline that ``reeb propose`` runs over a folder reads top to bottom:
    or a complete new one, never a partial one. Rows carried over by ``--resume`` come from
    :func:`read_results`.
 
-Row schema (one row per image, JSON Lines or Parquet):
+Rows are written in input order (error rows included). While a run writes an output, it
+holds a lock beside it (:func:`lock_output`): a second run on the same output fails at once
+with :class:`OutputBusyError`. Rows left in a temporary file by a killed run are found by
+:func:`stale_temp_files` and recovered by ``--resume``.
 
-=========  ==========================  ==============================================
-field      type                        meaning
-=========  ==========================  ==============================================
-image      str                         the path as found (relative paths stay relative)
-width      int or null                 image width in pixels (null if undecodable)
-height     int or null                 image height in pixels
-boxes      list of [x1, y1, x2, y2]    proposals in input pixels, ranked best first
-scores     list of float               one score per box, descending
-status     str                         ``"ok"`` or ``"error: <file>: <reason>"``
-config     str                         :meth:`ReebConfig.fingerprint` of the settings used
-=========  ==========================  ==============================================
+Row schema (one row per image, JSON Lines or Parquet; :data:`FORMAT_VERSION` 1):
+
+==============  ==========================  =============================================
+field           type                        meaning
+==============  ==========================  =============================================
+format_version  int                         :data:`FORMAT_VERSION` of this schema
+image           str                         the path as given (relative paths stay relative)
+resolved        str                         absolute path, symlinks resolved
+                                            (``os.path.realpath``); ``--resume`` matches on it
+width           int or null                 image width in pixels as viewed (EXIF orientation
+                                            applied); null if the file could not be decoded
+height          int or null                 image height in pixels, likewise
+boxes           list of [x1, y1, x2, y2]    proposals in image pixels, ranked best first
+scores          list of float               one score per box, descending
+status          str                         ``"ok"`` or ``"error: <file>: <reason>"``
+config          str                         :meth:`ReebConfig.fingerprint` of the settings used
+==============  ==========================  =============================================
 """
 
 from __future__ import annotations
 
+import errno
 import glob
 import json
 import os
 import re
+import signal
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,8 +57,15 @@ import torch
 from .io import IMAGE_EXTENSIONS, read_image
 
 __all__ = [
+    "FORMAT_VERSION",
     "NoImagesError",
     "OutputError",
+    "OutputBusyError",
+    "OutputLock",
+    "lock_output",
+    "stale_temp_files",
+    "resolved_path",
+    "CriticalSection",
     "find_images",
     "Decoded",
     "ImageFileDataset",
@@ -72,6 +90,19 @@ class NoImagesError(ValueError):
 
 class OutputError(OSError):
     """The output file cannot be written (checked before any work is done)."""
+
+
+class OutputBusyError(OutputError):
+    """Another process is writing the same output file (it holds the lock beside it)."""
+
+
+#: Version of the row schema (see the module docstring); written in every row.
+FORMAT_VERSION = 1
+
+
+def resolved_path(path: str | os.PathLike) -> str:
+    """The absolute path of ``path`` with symbolic links resolved (what rows are matched on)."""
+    return os.path.realpath(path)
 
 
 # -- 1. finding images -------------------------------------------------------------------
@@ -99,7 +130,7 @@ def find_images(paths: Sequence[str | os.PathLike], recursive: bool = False) -> 
       glob (``**`` matches sub-folders); matched folders are expanded as above.
 
     Returns ``(images, notes)``: the images, sorted naturally within each argument and with
-    duplicates removed, and one line per argument that contributed nothing (an empty
+    duplicates (the same resolved file) removed, and one line per argument that contributed nothing (an empty
     folder, a pattern that matched no image). Raises :class:`NoImagesError` when a path
     does not exist or when no image is found at all.
     """
@@ -108,7 +139,7 @@ def find_images(paths: Sequence[str | os.PathLike], recursive: bool = False) -> 
     seen: set[str] = set()
 
     def add(p: Path) -> int:
-        key = os.path.abspath(p)
+        key = resolved_path(p)  # one file reached by two paths (a symlink) is listed once
         if key in seen:
             return 0
         seen.add(key)
@@ -161,12 +192,14 @@ class Decoded:
 
     ``image`` is an RGB ``uint8`` tensor ``(3, H, W)`` or ``None``; ``error`` is ``None``
     or a one-line message that names the file. ``index`` is the position in the input list.
+    ``size`` is ``(width, height)`` when known (also for an image rejected as too small).
     """
 
     index: int
     path: str
     image: torch.Tensor | None = None
     error: str | None = None
+    size: tuple[int, int] | None = None
 
     @property
     def ok(self) -> bool:
@@ -211,10 +244,10 @@ class ImageFileDataset(torch.utils.data.Dataset):
             return Decoded(index, path, error=file_error(path, e))
         h, w = image.shape[-2:]
         if self.min_side is not None and min(h, w) < self.min_side:
-            return Decoded(index, path, error=file_error(
+            return Decoded(index, path, size=(int(w), int(h)), error=file_error(
                 path, f"image is {w}×{h} px, smaller than the smallest window "
                       f"({self.min_side} px; see ReebConfig.min_window)"))
-        return Decoded(index, path, image=image)
+        return Decoded(index, path, image=image, size=(int(w), int(h)))
 
 
 def _keep(item: Decoded) -> Decoded:
@@ -284,17 +317,24 @@ def decoded_images(
             shutdown()
 
 
-def size_batches(items: Iterable[Decoded], batch_size: int) -> Iterator[list[Decoded]]:
+def size_batches(items: Iterable[Decoded], batch_size: int,
+                 max_lag: int | None = None) -> Iterator[list[Decoded]]:
     """Group decoded images of equal size into batches of at most ``batch_size``.
 
     A failed record is yielded at once as a batch of one. Images wait in a group until it
-    is full; groups that never fill are yielded at the end, largest first. Batches may
-    therefore come out of input order (use :attr:`Decoded.index` to restore it).
+    is full; groups that never fill are yielded at the end, largest first. With
+    ``max_lag``, a group is also yielded (not full) once its first image is more than
+    ``max_lag`` inputs behind the newest one, which bounds how long results wait to be
+    written in input order. Batches may come out of input order (use
+    :attr:`Decoded.index` to restore it).
     """
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     pending: dict[tuple[int, int], list[Decoded]] = {}
     for item in items:
+        if max_lag is not None:
+            for key in [k for k, g in pending.items() if item.index - g[0].index > max_lag]:
+                yield pending.pop(key)
         if not item.ok:
             yield [item]
             continue
@@ -315,7 +355,9 @@ def result_row(path: str, width: int, height: int, boxes: torch.Tensor, scores: 
     b = boxes.detach().to("cpu", torch.float64)
     s = scores.detach().to("cpu", torch.float64)
     return {
+        "format_version": FORMAT_VERSION,
         "image": str(path),
+        "resolved": resolved_path(path),
         "width": int(width),
         "height": int(height),
         "boxes": [[round(v, decimals) for v in row] for row in b.tolist()],
@@ -327,18 +369,25 @@ def result_row(path: str, width: int, height: int, boxes: torch.Tensor, scores: 
 
 def error_row(path: str, message: str, config: str, size: tuple[int, int] | None = None) -> dict:
     """The output row of an image that failed; ``message`` names the file."""
-    w, h = size if size is not None else (None, None)
-    return {"image": str(path), "width": w, "height": h, "boxes": [], "scores": [],
+    w, h = (int(size[0]), int(size[1])) if size is not None else (None, None)
+    return {"format_version": FORMAT_VERSION, "image": str(path), "resolved": resolved_path(path),
+            "width": w, "height": h, "boxes": [], "scores": [],
             "status": f"error: {_one_line(message)}", "config": config}
 
 
-OUTPUT_FORMATS = {".jsonl": "jsonl", ".ndjson": "jsonl", ".json": "jsonl",
-                  ".parquet": "parquet", ".pq": "parquet"}
+OUTPUT_FORMATS = {".jsonl": "jsonl", ".ndjson": "jsonl", ".parquet": "parquet", ".pq": "parquet"}
 
 
 def output_format(path: str | os.PathLike) -> str:
-    """``"jsonl"`` or ``"parquet"`` from the file extension; :class:`OutputError` otherwise."""
+    """``"jsonl"`` or ``"parquet"`` from the file extension; :class:`OutputError` otherwise.
+
+    ``.json`` is refused rather than written as JSON Lines under a name that promises one
+    JSON document (``json.load`` would fail on it): the message suggests ``.jsonl``.
+    """
     ext = Path(path).suffix.lower()
+    if ext == ".json":
+        raise OutputError(f"{path}: the output is JSON Lines (one row per line), not a single "
+                          f"JSON document; name it {Path(path).with_suffix('.jsonl')}")
     try:
         return OUTPUT_FORMATS[ext]
     except KeyError:
@@ -515,7 +564,9 @@ class ParquetWriter(ResultWriter):
         import pyarrow as pa
 
         return pa.schema([
+            ("format_version", pa.int32()),
             ("image", pa.string()),
+            ("resolved", pa.string()),
             ("width", pa.int32()),
             ("height", pa.int32()),
             ("boxes", pa.list_(pa.list_(pa.float32(), 4))),
@@ -565,3 +616,172 @@ def open_writer(path: str | os.PathLike) -> ResultWriter:
                               "(pip install 'reeb-torch[extras]'), or use a .jsonl file") from None
         return ParquetWriter(path)
     return JsonlWriter(path)
+
+
+# -- 5. one writer per output, and what a killed run left ------------------------------------
+
+def _lock_path(path: str | os.PathLike) -> Path:
+    p = Path(path)
+    return p.with_name(f".{p.name}.lock")
+
+
+class OutputLock:
+    """An exclusive lock on an output file, held by this process (see :func:`lock_output`).
+
+    The lock is ``fcntl.flock`` on a hidden ``.<name>.lock`` file beside the output, which
+    holds the owner's process id. The operating system drops the lock when its process
+    ends in any way (also ``kill -9``), so a lock file left behind by a dead run is simply
+    taken over: there is no stale lock to clear by hand. :meth:`release` removes the file.
+    """
+
+    def __init__(self, path: Path, fd: int) -> None:
+        self.path = path
+        self._fd: int | None = fd
+
+    def release(self) -> None:
+        """Remove the lock file and drop the lock (idempotent)."""
+        if self._fd is None:
+            return
+        try:
+            self.path.unlink(missing_ok=True)  # unlink while locked: no one can take a stale inode
+        finally:
+            os.close(self._fd)  # closing the descriptor drops the flock
+            self._fd = None
+
+    def __enter__(self) -> "OutputLock":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+def lock_output(path: str | os.PathLike) -> OutputLock:
+    """Take the lock of output ``path``, or raise :class:`OutputBusyError` at once.
+
+    The error names the process that holds it. A second ``reeb propose`` on the same output
+    therefore fails before any work (it does not wait), and never overwrites the first
+    one's rows. Raises :class:`OutputError` when the lock file cannot be created.
+    """
+    import fcntl
+
+    lock = _lock_path(path)
+    while True:
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as e:
+            raise OutputError(f"{path}: cannot create the lock file {lock} ({e.strerror or e})") from e
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            try:
+                owner = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "unknown"
+            finally:
+                os.close(fd)
+            if e.errno in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                raise OutputBusyError(
+                    f"{path}: another reeb run (pid {owner}) is writing this output; wait for it "
+                    f"to finish, or choose another --out (lock file: {lock})") from None
+            raise OutputError(f"{path}: cannot lock {lock} ({e.strerror or e})") from e
+        # the holder before us may have removed the file between our open and our flock:
+        # then we locked an orphan inode; start again on the current file
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(lock))
+        except FileNotFoundError:
+            same = False
+        if not same:
+            os.close(fd)
+            continue
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        return OutputLock(lock, fd)
+
+
+def stale_temp_files(path: str | os.PathLike) -> list[Path]:
+    """The temporary files of ``path`` left by runs that were killed (``kill -9``, power cut).
+
+    These are ``.<name>.<8 random characters>.tmp`` beside the output, as
+    :class:`ResultWriter` makes them. Call it while holding :func:`lock_output`: then no
+    live run owns any of them. Sorted oldest first.
+    """
+    p = Path(path)
+    parent = p.parent if str(p.parent) else Path(".")
+    pattern = re.compile(rf"^\.{re.escape(p.name)}\.[a-z0-9_]{{8}}\.tmp$")
+    try:
+        found = [q for q in parent.iterdir() if pattern.match(q.name) and q.is_file()]
+    except OSError:
+        return []
+    return sorted(found, key=lambda q: (q.stat().st_mtime, q.name))
+
+
+def read_partial_results(path: str | os.PathLike, fmt: str) -> tuple[list[dict], list[str]]:
+    """The complete rows in a killed run's temporary file (see :func:`stale_temp_files`).
+
+    A JSON Lines file loses at most its last, unfinished line (not reported); a Parquet
+    file without its footer cannot be read and gives no rows, with a line in ``problems``.
+    """
+    rows: list[dict] = []
+    problems: list[str] = []
+    p = Path(path)
+    if fmt == "jsonl":
+        try:
+            text = p.read_text(encoding="utf-8", errors="replace")
+        except OSError as e:
+            return [], [f"{p}: cannot read ({e.strerror or e}); its rows are not recovered"]
+        for line in text.splitlines():
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if isinstance(row, dict) and "image" in row:
+                rows.append(row)
+        return rows, problems
+    try:
+        import pyarrow.parquet as pq
+
+        rows = pq.read_table(p).to_pylist()
+    except Exception as e:  # noqa: BLE001 - an unfinished Parquet file has no footer
+        problems.append(f"{p}: an unfinished Parquet file, its rows cannot be recovered "
+                        f"({_one_line(e)})")
+    return rows, problems
+
+
+class CriticalSection:
+    """Defers Ctrl-C (and SIGTERM) while a row is being written, so that a row is either
+    wholly in the output or not at all, and the counts in the summary match the file.
+
+    Install :meth:`handler` for SIGINT/SIGTERM; outside a ``with`` block it raises
+    :class:`KeyboardInterrupt` at once, inside it the interrupt is raised when the block
+    ends.
+    """
+
+    def __init__(self) -> None:
+        self._depth = 0
+        self._pending = False
+
+    def interrupt(self) -> None:
+        """What the signal handler does: interrupt now, or at the end of the write."""
+        if self._depth:
+            self._pending = True
+        else:
+            raise KeyboardInterrupt
+
+    def handler(self, signum: int, frame: object) -> None:
+        self.interrupt()
+
+    def install(self) -> dict:
+        """Install :meth:`handler` for SIGINT and SIGTERM; return the previous handlers."""
+        previous = {}
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.getsignal(sig)
+            signal.signal(sig, self.handler)
+        return previous
+
+    def __enter__(self) -> "CriticalSection":
+        self._depth += 1
+        return self
+
+    def __exit__(self, exc_type, *exc: object) -> None:
+        self._depth -= 1
+        if not self._depth and self._pending and exc_type is None:
+            self._pending = False
+            raise KeyboardInterrupt

@@ -74,9 +74,43 @@ def _parse_value(text: str) -> Any:
         return text
 
 
+#: The words ``--set`` takes for a bool field of ReebConfig (case-insensitive).
+BOOL_WORDS = {"true": True, "yes": True, "on": True, "1": True,
+              "false": False, "no": False, "off": False, "0": False}
+
+
+def _parse_bool(field: str, text: str) -> bool:
+    """``--set FIELD=WORD`` for a bool field: one of :data:`BOOL_WORDS`, else a usage error."""
+    word = text.strip()
+    if len(word) >= 2 and word[0] == word[-1] and word[0] in "\"'":
+        word = word[1:-1].strip()  # --set 'use_regions="false"'
+    try:
+        return BOOL_WORDS[word.lower()]
+    except KeyError:
+        raise click.BadParameter(
+            f"{field}={text!r}: {field} is a yes/no setting; use true/false, yes/no, on/off "
+            "or 1/0", param_hint="--set") from None
+
+
+def _bool_fields() -> set[str]:
+    """Names of the ReebConfig fields whose type is ``bool`` (from the dataclass)."""
+    import dataclasses
+    import typing
+
+    from .config import ReebConfig
+
+    hints = typing.get_type_hints(ReebConfig)
+    return {f.name for f in dataclasses.fields(ReebConfig) if hints.get(f.name) is bool}
+
+
 def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_k: int | None):
     """The ReebConfig from a preset, then a JSON file of fields, then ``--set`` pairs, then
-    ``--top-k`` (each later source overrides the earlier ones)."""
+    ``--top-k`` (each later source overrides the earlier ones).
+
+    A bool field given with ``--set`` takes true/false, yes/no, on/off or 1/0; other fields
+    take JSON (``3``, ``1.5``, ``[1, 2]``, ``null``) or a bare string. Any error (a bad
+    word, an unknown field, a value ReebConfig rejects) is a usage error, exit code 2.
+    """
     from .config import ReebConfig, get_preset
 
     d = get_preset(preset).to_dict()
@@ -93,18 +127,21 @@ def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_
             raise click.BadParameter(f"{config_file}: expected a JSON object of ReebConfig fields",
                                      param_hint="--config")
         d.update(loaded)
+    bools = _bool_fields() if sets else set()
     for item in sets:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
             raise click.BadParameter(f"{item!r}: expected FIELD=VALUE, e.g. scale=1.0",
                                      param_hint="--set")
-        d[key.strip()] = _parse_value(value)
+        name = key.strip()
+        d[name] = _parse_bool(name, value) if name in bools else _parse_value(value)
     if top_k is not None:
         d["top_k"] = top_k
     try:
         return ReebConfig.from_dict(d)
-    except (TypeError, ValueError) as e:
-        raise click.BadParameter(str(e), param_hint="--config/--set/--top-k")
+    except (TypeError, ValueError, ArithmeticError) as e:
+        raise click.BadParameter(" ".join(str(e).split()) or type(e).__name__,
+                                 param_hint="--config/--set/--top-k")
 
 
 def resolve_device(name: str):
@@ -272,35 +309,62 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
     # 2. outputs, checked before any work ------------------------------------------------------
     if resume and not out:
         raise UsageProblem("--resume needs --out (the file to continue)")
-    kept_rows: list[dict] = []
+    # rows are written in input order: ``slots`` maps an input position to its row (kept
+    # from before, or computed), ``first_rows`` are kept rows of images not among the inputs
+    plan = _ResumePlan(images)
+    stale: list[Path] = []
     if out:
         try:
             B.check_output(out)
+            # one writer per output: a second run fails here, before any work (exit 2)
+            lock = B.lock_output(out)
         except B.OutputError as e:
             raise UsageProblem(str(e))
+        click.get_current_context().call_on_close(lock.release)
         exists = Path(out).exists()
         if exists and not (resume or overwrite):
             raise UsageProblem(f"{out} exists; add --resume to continue it or --overwrite to "
                                "replace it")
-        if resume and exists:
-            try:
-                rows, problems = B.read_results(out)
-            except B.OutputError as e:
-                raise UsageProblem(str(e))
-            for p in problems:
-                echo_err(f"warning: {p}")
-            other = {r.get("config") for r in rows if r.get("status") == "ok"} - {fingerprint}
+        stale = B.stale_temp_files(out)  # left by killed runs (we hold the lock: none is live)
+        stale_rows: list[dict] = []
+        if stale and not overwrite:
+            for t in stale:
+                got, problems = B.read_partial_results(t, B.output_format(out))
+                stale_rows += got
+                for p in problems:
+                    echo_err(f"warning: {p}")
+            if stale_rows and not resume:
+                raise UsageProblem(
+                    f"{', '.join(t.name for t in stale)} beside {out} hold{'s' if len(stale) == 1 else ''} "
+                    f"{len(stale_rows)} finished rows of a run that was killed; add --resume to use "
+                    "them, or --overwrite to discard them")
+        if overwrite or not stale_rows:
+            for t in stale:  # nothing in them to keep
+                t.unlink(missing_ok=True)
+            stale = []
+        if resume and (exists or stale_rows):
+            rows: list[dict] = []
+            if exists:
+                try:
+                    rows, problems = B.read_results(out)
+                except B.OutputError as e:
+                    raise UsageProblem(str(e))
+                for p in problems:
+                    echo_err(f"warning: {p}")
+            other = {r.get("config") for r in rows + stale_rows
+                     if r.get("status") == "ok"} - {fingerprint}
             if other:
                 raise UsageProblem(
                     f"{out} was made with different settings (config {', '.join(sorted(map(str, other)))}, "
                     f"now {fingerprint}); use the same options, another --out, or --overwrite")
-            kept_rows = [r for r in rows if r.get("status") == "ok"]
-            done = {os.path.abspath(r["image"]) for r in kept_rows}
             before = len(images)
-            images = [p for p in images if os.path.abspath(p) not in done]
-            echo_err(f"resume: {len(kept_rows)} images already in {out}, {before - len(images)} of "
-                     f"them among the inputs; {len(images)} to do")
-            if not images:
+            plan.keep(rows + stale_rows)
+            images = plan.todo_paths()
+            echo_err(f"resume: {plan.kept} images already in {out}"
+                     + (f" ({len(stale_rows)} rows recovered from a killed run)" if stale_rows else "")
+                     + (f", {plan.duplicates} duplicate rows dropped" if plan.duplicates else "")
+                     + f", {before - len(images)} of them among the inputs; {len(images)} to do")
+            if not images and not stale and not plan.duplicates:
                 click.echo(f"Nothing to do: all {before} images are already in {out}.", err=True)
                 return
     viz_path = Path(viz_dir) if viz_dir else None
@@ -327,10 +391,28 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
     from .generator import ProposalGenerator
     from .viz import draw_proposals, save_png
 
-    gen = ProposalGenerator(cfg).to(dev).eval()
-    writer = B.open_writer(out) if out else None
+    try:
+        gen = ProposalGenerator(cfg).to(dev).eval()
+    except (TypeError, ValueError, ArithmeticError) as e:
+        raise UsageProblem(f"the settings are not usable: {' '.join(str(e).split())}")
+    try:
+        writer = B.open_writer(out) if out else None
+    except B.OutputError as e:
+        raise UsageProblem(str(e))
     if writer is not None:
-        writer.write(kept_rows)
+        # an unexpected error or exit must not leave the temporary file behind
+        click.get_current_context().call_on_close(writer.discard)
+        writer.write(plan.first_rows)
+    cs = B.CriticalSection()  # a row is written whole, and counted, or not at all
+    saved_now = [0]  # rows of this run in the writer
+
+    def emit(todo_pos: int, row: dict | None) -> None:
+        """Place this run's row for input ``todo_pos`` and write what is next in input order."""
+        plan.put(todo_pos, row)
+        if writer is not None:
+            rows = plan.ready()
+            writer.write(r for r, _ in rows)
+            saved_now[0] += sum(new for _, new in rows)
     gt = _read_labels(_label_for(images[0])) if sample_mode and _label_for(images[0]) else None
 
     stats = dict(images=len(images), ok=0, failed=0, proposals=0, algo_s=0.0)
@@ -340,21 +422,22 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
     bar = tqdm(total=len(images), unit="img", disable=True if quiet else None, file=sys.stderr,
                dynamic_ncols=True, desc="reeb propose")
 
-    def fail(item_path: str, message: str, size=None) -> None:
-        stats["failed"] += 1
-        failures.append(message)
-        if writer is not None:
-            writer.write([B.error_row(item_path, message, fingerprint, size)])
+    def fail(item, message: str, size=None) -> None:
+        with cs:
+            stats["failed"] += 1
+            failures.append(message)
+            emit(item.index, B.error_row(item.path, message, fingerprint, size or item.size))
         if not quiet:
             bar.write(f"error: {message}", file=sys.stderr)
 
     def finish(item, result, algo_s: float) -> None:
         h, w = item.image.shape[-2:]
         boxes, scores = result["boxes"].cpu(), result["scores"].cpu()
-        stats["ok"] += 1
-        stats["proposals"] += len(boxes)
-        if writer is not None:
-            writer.write([B.result_row(item.path, w, h, boxes, scores, fingerprint)])
+        with cs:
+            stats["ok"] += 1
+            stats["proposals"] += len(boxes)
+            emit(item.index, B.result_row(item.path, w, h, boxes, scores, fingerprint)
+                 if writer is not None else None)
         if print_top:
             bar.write(_box_table(item.path, (w, h), boxes, scores, print_top, len(boxes)) + "\n",
                       file=sys.stdout)
@@ -381,21 +464,18 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
         for it, r in zip(items, results):
             finish(it, r, dt / len(items))
 
-    previous_term = signal.getsignal(signal.SIGTERM)
-
-    def on_term(signum, frame):  # a polite kill is treated like Ctrl-C
-        raise KeyboardInterrupt
-
     interrupted = False
     first_done = None  # (time, images done, algorithm seconds) after the first computed batch
     t_start = time.perf_counter()
     stream = B.decoded_images(images, workers=workers, min_side=cfg.min_window,
                               prefetch=batch_size, pin_memory=dev.type == "cuda")
+    previous_handlers = cs.install()  # Ctrl-C, and a polite kill (SIGTERM) treated like it
     try:
-        signal.signal(signal.SIGTERM, on_term)
-        for group in B.size_batches(stream, batch_size):
+        # max_lag: a group of a rare size waits at most this many inputs, which bounds the
+        # rows held back to be written in input order
+        for group in B.size_batches(stream, batch_size, max_lag=max(64, 4 * batch_size)):
             if not group[0].ok:
-                fail(group[0].path, group[0].error)
+                fail(group[0], group[0].error)
             else:
                 try:
                     run_batch(group)
@@ -405,8 +485,7 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
                         try:
                             run_batch([it])
                         except (ValueError, TypeError, RuntimeError) as e1:
-                            h, w = it.image.shape[-2:]
-                            fail(it.path, B.file_error(it.path, e1), (w, h))
+                            fail(it, B.file_error(it.path, e1))
             bar.update(len(group))
             if first_done is None and stats["ok"]:
                 first_done = (time.perf_counter(), stats["ok"] + stats["failed"], stats["algo_s"])
@@ -415,19 +494,29 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
     except KeyboardInterrupt:
         interrupted = True
     finally:
-        signal.signal(signal.SIGTERM, previous_term)
+        for sig in previous_handlers:  # a second Ctrl-C must not break the saving
+            signal.signal(sig, signal.SIG_IGN)
         stream.close()
         bar.close()
     wall = time.perf_counter() - t_start
 
     # 4. save and summarise -----------------------------------------------------------------
     saved = None
-    if writer is not None:
-        try:
-            saved = writer.commit()
-        except OSError as e:
-            raise Failure(f"{out}: cannot save the results ({e.strerror or e}); the old file, "
-                          "if any, is unchanged")
+    try:
+        if writer is not None:
+            rows = plan.rest()  # after an interrupt: the rows held back, still in input order
+            writer.write(r for r, _ in rows)
+            saved_now[0] += sum(new for _, new in rows)
+            try:
+                saved = writer.commit()
+            except OSError as e:
+                raise Failure(f"{out}: cannot save the results ({e.strerror or e}); the old file, "
+                              "if any, is unchanged")
+            for t in stale:  # their rows are in the output now
+                t.unlink(missing_ok=True)
+    finally:
+        for sig, h in previous_handlers.items():
+            signal.signal(sig, h)
     done = stats["ok"] + stats["failed"]
     summary = dict(images=len(images), processed=done, ok=stats["ok"], failed=stats["failed"],
                    proposals=stats["proposals"],
@@ -436,6 +525,7 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
                    workers=workers, batch_size=batch_size, device=str(dev), config=fingerprint,
                    **_steady(first_done, t_start + wall, done, stats),
                    out=str(saved) if saved else None, rows=writer.rows_written if writer else None,
+                   saved=saved_now[0] if writer else None,
                    interrupted=interrupted, failures=failures)
     lines = [f"{done} image{'s' if done != 1 else ''}: {stats['ok']} ok, {stats['failed']} failed; "
              f"{stats['proposals']} proposals"
@@ -446,7 +536,7 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
                      f"batch {batch_size}, {dev})")
     if saved:
         lines.append(f"wrote {saved} ({writer.rows_written} rows"
-                     + (f", {len(kept_rows)} kept from before" if kept_rows else "") + ")")
+                     + (f", {plan.kept_written} kept from before" if plan.kept_written else "") + ")")
     if viz_path is not None and stats["ok"]:
         lines.append(f"pictures in {viz_path}/")
     if sample_png is not None and stats["ok"]:
@@ -461,12 +551,12 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
         except OSError as e:
             lines.append(f"warning: {summary_json}: cannot write the summary ({e.strerror or e})")
     if interrupted:
-        left = len(images) - done
         if saved:
+            left = len(images) - saved_now[0]  # counted as written: the summary matches the file
             how = f"run the same command with --resume to do the {left} left"
             if "--resume" in sys.argv:
                 how = f"run the same command again to do the {left} left"
-            lines.append(f"interrupted: {done} of {len(images)} images saved in {saved}; {how}")
+            lines.append(f"interrupted: {saved_now[0]} of {len(images)} images saved in {saved}; {how}")
         else:
             lines.append(f"interrupted after {done} of {len(images)} images; nothing was saved "
                          "(no --out)")
@@ -475,6 +565,85 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
         sys.exit(130)
     if stats["failed"]:
         sys.exit(1)
+
+
+class _ResumePlan:
+    """Which inputs to compute, and the output rows in input order.
+
+    Rows are matched on the resolved file (:func:`reeb_torch.batch.resolved_path`, stored
+    in each row as ``resolved``; rows of older files without it are resolved against the
+    current folder), so a run from another folder, through a symlink or with an absolute
+    path finds them. Per file the first ``ok`` row is kept, and other rows of it dropped;
+    an ``error`` row is kept only for a file that is not among the inputs (the others are
+    computed again). Kept rows of files not among the inputs come first in the output, in
+    their old order; then one row per input, in input order.
+    """
+
+    def __init__(self, images: Sequence[Path]) -> None:
+        from .batch import resolved_path
+
+        self.images = list(images)
+        self.keys = [resolved_path(p) for p in self.images]
+        self.first_rows: list[dict] = []
+        self.slots: dict[int, tuple[dict, bool]] = {}  # input position -> (row, new in this run)
+        self.todo = list(range(len(self.images)))  # input positions to compute
+        self.kept = self.duplicates = self.kept_written = 0
+        self._next = 0
+
+    def keep(self, rows: Sequence[dict]) -> None:
+        """Take the rows of an earlier run (the output, then a killed run's temp files)."""
+        from .batch import resolved_path
+
+        def key(r: dict) -> str:
+            return str(r.get("resolved") or resolved_path(str(r["image"])))
+
+        best: dict[str, dict] = {}
+        order: list[str] = []
+        for r in rows:
+            k = key(r)
+            if k not in best:
+                best[k] = r
+                order.append(k)
+            else:
+                self.duplicates += 1
+                if best[k].get("status") != "ok" and r.get("status") == "ok":
+                    best[k] = r
+        position = {k: i for i, k in enumerate(self.keys)}
+        for k in order:
+            r = best[k]
+            ok = r.get("status") == "ok"
+            self.kept += ok
+            if k not in position:
+                self.first_rows.append(r)
+            elif ok:
+                self.slots[position[k]] = (r, False)
+        self.todo = [i for i in range(len(self.images)) if i not in self.slots]
+        self.kept_written = len(self.first_rows)  # written first, before this run's rows
+
+    def todo_paths(self) -> list[Path]:
+        return [self.images[i] for i in self.todo]
+
+    def put(self, todo_pos: int, row: dict | None) -> None:
+        """This run's row for ``todo_paths()[todo_pos]`` (None: no output, only count)."""
+        self.slots[self.todo[todo_pos]] = (row, True)
+
+    def ready(self) -> list[tuple[dict, bool]]:
+        """Rows that can be written now: the next ones in input order, no gap before them."""
+        out = []
+        while self._next in self.slots:
+            out.append(self.slots.pop(self._next))
+            self._next += 1
+        return self._count([o for o in out if o[0] is not None])
+
+    def rest(self) -> list[tuple[dict, bool]]:
+        """All rows still held back, in input order (at the end, or after an interrupt)."""
+        out = [self.slots.pop(i) for i in sorted(self.slots)]
+        self._next = len(self.images)
+        return self._count([o for o in out if o[0] is not None])
+
+    def _count(self, rows: list[tuple[dict, bool]]) -> list[tuple[dict, bool]]:
+        self.kept_written += sum(not new for _, new in rows)
+        return rows
 
 
 def _steady(first_done, t_end: float, done: int, stats: dict) -> dict:

@@ -212,10 +212,12 @@ def inspection_figure(
     share = inspection.share.detach().cpu().float().numpy().reshape(-1)
     gts = gt_pairs(gt)
 
-    # Layout in inches, top to bottom; images fill the axes width exactly (no letterbox).
+    # Layout in inches, top to bottom; images fill their axes exactly (no letterbox) at the
+    # image's own aspect ratio: a tall image is capped at 9 in high and made narrower, not
+    # stretched. The bars share the image's width so that they line up with its regions.
     fig_w, left, right = 15.0, 0.75, 0.2
-    aw = fig_w - left - right
-    img_h = min(aw * h / w, 9.0)
+    img_h = min((fig_w - left - right) * h / w, 9.0)
+    aw = img_h * w / h
     bar_h, title_h, gap = 1.5, 0.32, 0.3
     rows = [("title", 0.7), ("t", title_h), ("edge", img_h), ("g", gap), ("t", title_h),
             ("reg", img_h), ("g", 0.08), ("bar", bar_h), ("g", gap), ("t", title_h),
