@@ -313,7 +313,8 @@ def read_result_dir(out_dir: str | os.PathLike) -> list[dict]:
 
 def prune_rows(out_dir: str | os.PathLike, drop: set[str], keep_new: set[Path]) -> int:
     """Remove, from the files of ``out_dir`` not in ``keep_new``, the error rows of images
-    in ``drop`` (:func:`row_key` values): after ``--resume`` redid them, one row per image is left.
+    in ``drop`` (:func:`row_key` values): after ``--resume`` redid them (with a new ``ok`` or
+    ``error:`` row), one row per image is left.
 
     Each file is rewritten to a temporary file and renamed into place. Returns the number
     of rows removed.
@@ -493,9 +494,9 @@ def cli_propose(paths: Sequence[str], *, out: str | None, resume: bool, overwrit
                     raise
         ok = [r for r in rows if r.get("status") == "ok"]
         failures = [r["status"][len("error: "):] for r in rows if r.get("status") != "ok"]
-        redone_ok = {row_key(r) for r in ok}
+        redone = {row_key(r) for r in rows}  # tried again: the new row replaces the old error row
         if resume and existing:
-            prune_rows(out_dir, redone_ok, new_files)
+            prune_rows(out_dir, redone, new_files)
         done = len(rows)
         proposals = sum(len(r["boxes"]) for r in ok)
         summary = dict(engine="ray", images=len(images), processed=done, ok=len(ok),

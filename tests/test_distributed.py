@@ -141,6 +141,15 @@ def test_bad_files_give_error_rows_and_exit_1(local_ray, small_images, tmp_path)
         row = got[str(small_images / f"{i}.png")]
         np.testing.assert_array_equal(b, np.asarray(row["boxes"], np.float32))
 
+    # the text file is fixed: --resume redoes it and drops its old error row
+    (bad / "notes.png").write_bytes((small_images / "b_small.png").read_bytes())
+    res = _run(*good, bad / "corrupt.png", bad / "notes.png", "--engine", "ray", "-o", out, "-q",
+               "--resume")
+    assert res.exit_code == 1, res.output          # corrupt.png still fails
+    got = _by_image(read_result_dir(out))          # still one row per image
+    assert len(got) == 4 and got[str(bad / "notes.png")]["status"] == "ok"
+    assert got[str(bad / "corrupt.png")]["status"].startswith("error: ")
+
 
 def test_resume_adds_only_the_missing_images(local_ray, small_images, tmp_path):
     images = sorted(small_images.glob("*.png"))
