@@ -10,9 +10,9 @@
     reeb eval ../shared/data/kitti --limit 20     # the paper's Table 3 (reeb_torch.eval.table3)
 
 Exit codes: 0 success; 1 some images failed (each is named, in the summary and in the
-output with its status) or the command failed; 2 usage error (bad option, no images found,
-output not writable — all checked before any work); 130 interrupted (what was done is
-saved; ``--resume`` continues).
+output with its status) or the command failed; 2 usage error (bad option or setting, no
+images found, output not writable, or being written by another run — all checked before
+any work); 130 interrupted (what was done is saved; ``--resume`` continues).
 """
 
 from __future__ import annotations
@@ -278,8 +278,12 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
     The output is written atomically; after Ctrl-C what is done is saved, and --resume
     continues.
 
-    Output rows: image, width, height, boxes ([x1, y1, x2, y2] in pixels, best first),
-    scores, status ("ok" or "error: <file>: <reason>"), config (settings fingerprint).
+    Output rows, in input order: format_version, image (as given), resolved (the
+    absolute file, symlinks resolved), width, height, boxes ([x1, y1, x2, y2] in pixels,
+    best first), scores, status ("ok" or "error: <file>: <reason>"), config (settings
+    fingerprint). A run locks its output: a second run on it fails at once (exit 2).
+    --resume matches rows on the resolved file, and also takes the finished rows a killed
+    run left in a hidden .NAME.*.tmp file.
     """
     if engine == "ray":
         from .distributed import cli_propose

@@ -106,7 +106,8 @@ def test_jsonl_and_parquet_outputs(tmp_path):
     reeb("propose", "imgs", "--out", "p.jsonl", "--viz", "viz", *FAST, cwd=tmp_path, check_rc=0)
     rows = read_jsonl(tmp_path / "p.jsonl")
     assert sorted(r["image"] for r in rows) == sorted(str(p.relative_to(tmp_path)) for p in paths)
-    assert set(rows[0]) == {"image", "width", "height", "boxes", "scores", "status", "config"}
+    assert set(rows[0]) == {"format_version", "image", "resolved", "width", "height", "boxes",
+                            "scores", "status", "config"}
     for row in rows:
         check_ok_row(row, 160, 48)
     assert sorted(p.name for p in (tmp_path / "viz").iterdir()) == ["frame_000.png", "frame_001.png"]
@@ -115,7 +116,7 @@ def test_jsonl_and_parquet_outputs(tmp_path):
 
     reeb("propose", "imgs/*.png", "--out", "p.parquet", *FAST, cwd=tmp_path, check_rc=0)
     table = pq.read_table(tmp_path / "p.parquet")
-    assert set(table.column_names) == {"image", "width", "height", "boxes", "scores", "status", "config"}
+    assert set(table.column_names) == set(rows[0])
     prow = {r["image"]: r for r in table.to_pylist()}
     for row in rows:  # same proposals in both formats (JSONL rounds to 0.01 px)
         check_ok_row(prow[row["image"]], 160, 48)
