@@ -64,6 +64,7 @@ __all__ = [
     "OutputLock",
     "lock_output",
     "stale_temp_files",
+    "read_partial_results",
     "resolved_path",
     "CriticalSection",
     "find_images",
