@@ -458,7 +458,8 @@ class ReebConfig:
         for names, ok, expected in _JOINT:
             if all(n in hints for n in names) and not ok(self):
                 got = ", ".join(f"{n}={_show(getattr(self, n))}" for n in names)
-                raise ValueError(f"ReebConfig.{' / '.join(names)} must be {expected}, got {got}")
+                fields = ", ".join(f"ReebConfig.{n}" for n in names[:-1]) + f" and ReebConfig.{names[-1]}"
+                raise ValueError(f"{fields} must be {expected}, got {got}")
 
     # -- presets -------------------------------------------------------------------------
     @classmethod

@@ -126,12 +126,12 @@ def test_numeric_fields_have_a_range():
 
 
 def test_joint_conditions_name_all_their_fields():
-    with pytest.raises(ValueError, match=r"^ReebConfig\.class_heights_m / class_weights must be of the same length"):
+    with pytest.raises(ValueError, match=r"^ReebConfig\.class_heights_m and ReebConfig\.class_weights must be of the same length"):
         ReebConfig(class_weights=(1.0,))
-    with pytest.raises(ValueError, match=r"ReebConfig\.grouping / group_cell .*grouping='cell'"):
+    with pytest.raises(ValueError, match=r"^ReebConfig\.grouping and ReebConfig\.group_cell must be .*grouping='cell'"):
         ReebConfig(grouping="cell", group_cell=None)
     # eq. 7 with a tiny object: region strips far narrower than a pixel would be thousands
-    with pytest.raises(ValueError, match=r"max_object_width_m .* at most 1024 regions"):
+    with pytest.raises(ValueError, match=r"ReebConfig\.max_object_width_m, .* at most 1024 regions"):
         ReebConfig(max_object_width_m=1e-3, region_width_round=None)
 
 
