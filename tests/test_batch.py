@@ -28,18 +28,20 @@ ROW_FIELDS = {"format_version", "image", "resolved", "width", "height", "boxes",
 # -- 1. concurrent writers ---------------------------------------------------------------
 
 def test_second_writer_fails_at_once_and_loses_nothing(tmp_path):
-    n = 120  # enough work that the second run starts while the first one is writing
+    n = 300  # enough work that the other runs start while the first one is writing
     good_folder(tmp_path / "A", n)
     good_folder(tmp_path / "B", 2)
     first = _start(["propose", "A", "-o", "cc.jsonl", "-b", "1", *FAST], tmp_path)
     _wait_for_rows(tmp_path, "cc.jsonl", first)
-    r = reeb("propose", "B", "-o", "cc.jsonl", *FAST, cwd=tmp_path)
-    assert r.returncode == 2, r.stderr
-    assert " ok, " not in r.stderr  # failed before any work, without waiting
-    assert "another reeb run" in r.stderr and f"pid {first.pid}" in r.stderr, r.stderr
-    r = reeb("propose", "B", "-o", "cc.jsonl", "--resume", *FAST, cwd=tmp_path)  # same with --resume
-    assert r.returncode == 2 and "another reeb run" in r.stderr
-    _, err = first.communicate(timeout=120)
+    others = [_start(["propose", "B", "-o", "cc.jsonl", *extra, *FAST], tmp_path)
+              for extra in ([], ["--resume"])]
+    for other in others:
+        _, err = other.communicate(timeout=120)
+        assert other.returncode == 2, err
+        assert " ok, " not in err  # failed before any work, without waiting
+        assert "another reeb run" in err and f"pid {first.pid}" in err, err
+    assert first.poll() is None, "the first run ended too early for this test"
+    _, err = first.communicate(timeout=300)
     assert first.returncode == 0, err
     rows = read_jsonl(tmp_path / "cc.jsonl")
     assert len(rows) == n and all(r["image"].startswith("A") for r in rows)
