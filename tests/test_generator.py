@@ -138,8 +138,13 @@ def test_stage_times_are_recorded(crop):
     gen = ProposalGenerator(**SMALL)
     gen.stage_times = {}
     gen([crop])
-    assert set(gen.stage_times) == {"edges", "groups", "road", "regions", "scoring", "nms"}
+    # no road term in the default score: the road mask is not computed at all
+    assert set(gen.stage_times) == {"edges", "groups", "regions", "scoring", "nms"}
     assert all(v >= 0 for v in gen.stage_times.values())
+    gen = ProposalGenerator(**SMALL, road_score="reward", refine=True)
+    gen.stage_times = {}
+    gen([crop])
+    assert set(gen.stage_times) == {"edges", "groups", "road", "regions", "scoring", "refine", "nms"}
 
 
 def test_batch_equals_single_on_odd_crops(sample_image):
