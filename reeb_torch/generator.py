@@ -313,13 +313,13 @@ class ProposalGenerator(nn.Module):
         cfg = self.config
         b, hk, wk = edges.shape
         tables = _refinement.enclosed_tables(groups, b, hk, wk)
-        ii_edges = _scoring.integral_image(edges).double()
-        ii_road = _scoring.integral_image(road).double()
+        ii_edges = _scoring.integral_image(edges)
+        ii_road = _scoring.integral_image(road)
         ii_road_below = torch.cat([ii_road, ii_road[:, -1:].expand(-1, hk, -1)], 1)
         band = cfg.straddle_band
         if crossing is not None:
-            ii_cols = _scoring.integral_image(F.pad(crossing[0], (band, band, band, band))).double()
-            ii_rows = _scoring.integral_image(F.pad(crossing[1], (band, band, band, band))).double()
+            ii_cols = _scoring.integral_image(F.pad(crossing[0], (band, band, band, band)))
+            ii_rows = _scoring.integral_image(F.pad(crossing[1], (band, band, band, band)))
         unit = _scoring.unit_scale(fx, fy)
         at = _refinement.box_sum_at
 
