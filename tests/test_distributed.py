@@ -176,3 +176,17 @@ def test_usage_errors_before_any_work(tmp_path):
     assert res.exit_code == 2 and "folder of Parquet files" in res.output
     res = _run(EXAMPLES, "--engine", "ray")
     assert res.exit_code == 2 and "--out" in res.output
+
+
+def test_api_takes_an_existing_dataset(local_ray, small_images):
+    from reeb_torch import ReebConfig
+    from reeb_torch.batch import ParquetWriter
+    from reeb_torch.distributed import propose_dataset
+
+    path = str(small_images / "b_small.png")
+    ds = ray.data.from_items([{"image": path}, {"image": str(small_images / "missing.png")}])
+    rows = propose_dataset(ds, ReebConfig(), actors=1).take_all()   # default sizing: finishes
+    got = _by_image(rows)
+    assert set(got[path]) == set(ParquetWriter.schema().names)
+    assert got[path]["status"] == "ok" and (got[path]["width"], got[path]["height"]) == (320, 97)
+    assert got[str(small_images / "missing.png")]["status"].startswith("error: ")
