@@ -8,7 +8,8 @@ order, as torchvision's CPU kernel does), by one of two paths:
   two boxes exceeds 0.5, their intersection spans more than half of each box's width and
   height, so each box contains the other's centre. Every kept box is registered in the
   grid cells it covers (with a small margin against rounding), and a candidate is tested
-  only against the kept boxes registered in its centre's cell, with torchvision's IoU
+  only against the kept boxes registered in its centre's cell and in the adjacent
+  log-width/log-height bins (IoU > t also needs width and height ratios > t), with torchvision's IoU
   arithmetic in the boxes' dtype; the loop stops once ``k`` boxes are kept. The first call
   in a fresh environment compiles the kernel (about a second); ``cache=True`` stores the
   machine code beside the package so later processes load it.
@@ -27,8 +28,10 @@ from torchvision.ops import nms
 
 __all__ = ["nms_top_k"]
 
-_GRID_CELLS = 64
+_GRID_CELLS = 32
 """Cells along the longer side of the boxes' extent in the grid-bucketed kernel."""
+_SIZE_BINS = 12
+"""Most log-width (and log-height) bins per cell: IoU > t needs width and height ratios > t."""
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")  # 0/0 -> NaN, as in C++
@@ -51,7 +54,14 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pr
     cs = ext / _GRID_CELLS
     gw = min(int((float(x2.max()) - x0) / cs) + 1, _GRID_CELLS + 1)
     gh = min(int((float(y2.max()) - y0) / cs) + 1, _GRID_CELLS + 1)
-    head = np.full(gw * gh, -1, np.int64)  # per cell: last entry of a linked list
+    # size bins: IoU > t implies min/max width > t and min/max height > t, so with bins of
+    # log-size at least -log(t) wide (a margin against rounding), partners sit in adjacent bins
+    wmax = max(float((x2 - x1).max()), float((y2 - y1).max()), 1e-6)
+    floor_ = wmax * 1e-4
+    span = np.log(wmax / floor_)
+    bw = max(-np.log(min(iou, 0.999)) * 1.01 + 1e-9, span / (_SIZE_BINS - 0.5))
+    nb = min(int(span / bw) + 1, _SIZE_BINS)
+    head = np.full(gw * gh * nb * nb, -1, np.int64)  # per cell and size bin: a linked list
     cap = 4 * n + 64
     ent_box = np.empty(cap, np.int64)
     ent_next = np.empty(cap, np.int64)
@@ -62,19 +72,28 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pr
         cy = int((0.5 * (float(y1[i]) + float(y2[i])) - y0) / cs)
         cx = min(max(cx, 0), gw - 1)
         cy = min(max(cy, 0), gh - 1)
-        e = head[cy * gw + cx]
-        dead = False
         ix1, iy1, ix2, iy2, ia = x1[i], y1[i], x2[i], y2[i], areas[i]
-        while e >= 0:
-            j = ent_box[e]
-            w = max(min(x2[j], ix2) - max(x1[j], ix1), zero)
-            h = max(min(y2[j], iy2) - max(y1[j], iy1), zero)
-            inter = w * h
-            ovr = inter / (areas[j] + ia - inter)
-            if ovr > iou:
-                dead = True
+        bx = min(int(np.log(max(float(ix2) - float(ix1), floor_) / floor_) / bw), nb - 1)
+        by = min(int(np.log(max(float(iy2) - float(iy1), floor_) / floor_) / bw), nb - 1)
+        base = (cy * gw + cx) * nb * nb
+        dead = False
+        for bb in range(max(by - 1, 0), min(by + 2, nb)):
+            for ba in range(max(bx - 1, 0), min(bx + 2, nb)):
+                e = head[base + bb * nb + ba]
+                while e >= 0:
+                    j = ent_box[e]
+                    w = max(min(x2[j], ix2) - max(x1[j], ix1), zero)
+                    h = max(min(y2[j], iy2) - max(y1[j], iy1), zero)
+                    inter = w * h
+                    ovr = inter / (areas[j] + ia - inter)
+                    if ovr > iou:
+                        dead = True
+                        break
+                    e = ent_next[e]
+                if dead:
+                    break
+            if dead:
                 break
-            e = ent_next[e]
         if dead:
             continue
         keep[nk] = i
@@ -91,14 +110,14 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pr
         need = used + (cb - ca + 1) * (rb - ra + 1)
         if need > cap:
             cap = max(2 * cap, need)
-            nb = np.empty(cap, np.int64)
-            nn = np.empty(cap, np.int64)
-            nb[:used] = ent_box[:used]
-            nn[:used] = ent_next[:used]
-            ent_box, ent_next = nb, nn
+            new_box = np.empty(cap, np.int64)
+            new_next = np.empty(cap, np.int64)
+            new_box[:used] = ent_box[:used]
+            new_next[:used] = ent_next[:used]
+            ent_box, ent_next = new_box, new_next
         for r in range(ra, rb + 1):
             for c in range(ca, cb + 1):
-                cell = r * gw + c
+                cell = (r * gw + c) * nb * nb + by * nb + bx
                 ent_box[used] = i
                 ent_next[used] = head[cell]
                 head[cell] = used
