@@ -268,7 +268,8 @@ class ProposalGenerator(nn.Module):
         if cfg.road_score == "stand":  # rows past the bottom hold no road
             hk = road.shape[1]
             ii_road_below = torch.cat([ii_road, ii_road[:, -1:].expand(-1, hk, -1)], 1)
-        enclosed = _scoring.enclosed_sums(groups, b, grid.sizes)
+        enclosed = self._enclosed(groups, b, edges.shape[1], edges.shape[2], grid)
+        loc_cache: dict = {}  # L depends on the window height and rows only (not on ``paper``'s b_w)
         band = cfg.straddle_band
         if crossing is not None:  # padded by the band so sides at the image border read zeros
             ii_cols = _scoring.integral_image(F.pad(crossing[0], (band, band, band, band)))
@@ -291,10 +292,16 @@ class ProposalGenerator(nn.Module):
                 sh = max(1, int(round(cfg.road_strip * s.h)))
                 below = _scoring.box_sums(ii_road_below, 0, s.h, s.w, sh, s) / (s.w * sh)
                 r = (below.float() * (1.0 - r)).clamp_(0, 1)
-            bottom = ((torch.arange(s.ny, device=edges.device, dtype=torch.float32) * s.sy + s.oy + s.h) / fy).view(1, -1, 1)
-            loc = _scoring.location_score(bottom, bw, bh, float(w_in), float(h_in), cfg.location_score,
-                                          cfg.horizon, self._ground_ratios(), cfg.ground_log_sigma,
-                                          self._class_weights())
+            key = (s.h, s.oy, s.sy, s.ny) if cfg.location_score != "paper" else None  # L ignores b_w
+            loc = loc_cache.get(key) if key is not None else None
+            if loc is None:
+                bottom = ((torch.arange(s.ny, device=edges.device, dtype=torch.float32) * s.sy + s.oy + s.h)
+                          / fy).view(1, -1, 1)
+                loc = _scoring.location_score(bottom, bw, bh, float(w_in), float(h_in), cfg.location_score,
+                                              cfg.horizon, self._ground_ratios(), cfg.ground_log_sigma,
+                                              self._class_weights())
+                if key is not None:
+                    loc_cache[key] = loc
             v = _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)
             v = torch.where(sc >= cfg.min_edge_score, v, -math.inf)
             if cfg.local_max:
@@ -302,6 +309,20 @@ class ProposalGenerator(nn.Module):
                 v = torch.where(v >= peak, v, -math.inf)
             out[:, off: off + s.count] = v.reshape(b, -1)
         return out
+
+    @staticmethod
+    def _enclosed(groups: _groups.EdgeGroups, b: int, hk: int, wk: int, grid: _windows.WindowGrid) -> list[Tensor]:
+        """Eq. 1's enclosed sums of every window, per size. Groups bounded to tiles smaller
+        than every window: four prefix tables built once, then strided slices per size
+        (:func:`reeb_torch.refinement.enclosed_grid`); otherwise one scatter per size
+        (:func:`reeb_torch.scoring.enclosed_sums`). Both are exact float64 sums: the same numbers."""
+        if not grid.sizes:
+            return []
+        ext = int(torch.maximum(groups.x2 - groups.x1, groups.y2 - groups.y1).max()) if len(groups) else 0
+        if ext < min(min(s.w, s.h) for s in grid.sizes):
+            tables = _refinement.enclosed_tables(groups, b, hk, wk)
+            return [_refinement.enclosed_grid(tables, s) for s in grid.sizes]
+        return _scoring.enclosed_sums(groups, b, grid.sizes)
 
     def _box_scorer(self, edges: Tensor, road: Tensor, groups: _groups.EdgeGroups,
                     crossing: tuple[Tensor, Tensor] | None, fx: float, fy: float, h_in: int, w_in: int):

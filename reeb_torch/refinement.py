@@ -30,7 +30,7 @@ from torch import Tensor
 
 from .groups import EdgeGroups
 
-__all__ = ["EnclosedTables", "enclosed_tables", "box_sum_at", "refine_boxes"]
+__all__ = ["EnclosedTables", "enclosed_tables", "box_sum_at", "enclosed_at", "enclosed_grid", "refine_boxes"]
 
 
 @dataclass
@@ -102,6 +102,21 @@ def enclosed_at(t: EnclosedTables, b: Tensor, x0: Tensor, y0: Tensor, x1: Tensor
     col = _at(t.cut_col, b, y1, x1) - _at(t.cut_col, b, y0, x1)
     row = _at(t.cut_row, b, y1, x1) - _at(t.cut_row, b, y1, x0)
     return a - col - row + _at(t.corner, b, y1, x1)
+
+
+def enclosed_grid(t: EnclosedTables, s) -> Tensor:
+    """Σ of eq. 1 for every position of the window size ``s`` (a
+    :class:`reeb_torch.windows.WindowSize`), ``float64 (B, ny, nx)``, from strided slices of
+    the tables (no scatter per size). Exact, and equal to
+    :func:`reeb_torch.scoring.enclosed_sums`, when ``s.w`` and ``s.h`` exceed ``max_extent``."""
+    def at(table: Tensor, dy: int, dx: int) -> Tensor:
+        oy, ox = s.oy + dy, dx
+        return table[:, oy: oy + (s.ny - 1) * s.sy + 1: s.sy, ox: ox + (s.nx - 1) * s.sx + 1: s.sx]
+
+    a = at(t.anchor, s.h, s.w) - at(t.anchor, 0, s.w) - at(t.anchor, s.h, 0) + at(t.anchor, 0, 0)
+    col = at(t.cut_col, s.h, s.w) - at(t.cut_col, 0, s.w)
+    row = at(t.cut_row, s.h, s.w) - at(t.cut_row, s.h, 0)
+    return a - col - row + at(t.corner, s.h, s.w)
 
 
 def refine_boxes(boxes: Tensor, b: Tensor, score_fn, width: int, height: int, min_side: int,
