@@ -531,9 +531,7 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
                    out=str(saved) if saved else None, rows=writer.rows_written if writer else None,
                    saved=saved_now[0] if writer else None,
                    interrupted=interrupted, failures=failures)
-    lines = [f"{done} image{'s' if done != 1 else ''}: {stats['ok']} ok, {stats['failed']} failed; "
-             f"{stats['proposals']} proposals"
-             + (f" ({stats['proposals'] / stats['ok']:.0f} per image)" if stats["ok"] else "")]
+    lines = [_count_line(done, stats["ok"], stats["failed"], stats["proposals"])]
     if done:
         lines.append(f"time: {wall:.1f} s, {_ms(wall, done)} end to end; {_ms(stats['algo_s'], stats['ok'])} "
                      f"in the algorithm ({workers} decoding worker{'s' if workers != 1 else ''}, "
@@ -546,14 +544,7 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
     if sample_png is not None and stats["ok"]:
         lines.append(f"wrote {sample_png.resolve()} (top {viz_top} proposals"
                      + (", ground truth in green" if gt else "") + ")")
-    if failures:
-        lines.append(f"failed ({len(failures)}):")
-        lines += [f"  {m}" for m in failures]
-    if summary_json:
-        try:
-            Path(summary_json).write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-        except OSError as e:
-            lines.append(f"warning: {summary_json}: cannot write the summary ({e.strerror or e})")
+    lines += _failures_and_summary(failures, summary_json, summary)
     if interrupted:
         if saved:
             left = len(images) - saved_now[0]  # counted as written: the summary matches the file
@@ -648,6 +639,27 @@ class _ResumePlan:
     def _count(self, rows: list[tuple[dict, bool]]) -> list[tuple[dict, bool]]:
         self.kept_written += sum(not new for _, new in rows)
         return rows
+
+
+def _count_line(done: int, ok: int, failed: int, proposals: int) -> str:
+    """The first line of a run's closing summary (local and Ray engines)."""
+    return (f"{done} image{'s' if done != 1 else ''}: {ok} ok, {failed} failed; {proposals} proposals"
+            + (f" ({proposals / ok:.0f} per image)" if ok else ""))
+
+
+def _failures_and_summary(failures: Sequence[str], summary_json: str | None, summary: dict) -> list[str]:
+    """Closing-summary lines naming the failed images; writes ``summary`` to ``summary_json``
+    (a warning line instead if it cannot be written). Shared by the local and Ray engines."""
+    lines = []
+    if failures:
+        lines.append(f"failed ({len(failures)}):")
+        lines += [f"  {m}" for m in failures]
+    if summary_json:
+        try:
+            Path(summary_json).write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+        except OSError as e:
+            lines.append(f"warning: {summary_json}: cannot write the summary ({e.strerror or e})")
+    return lines
 
 
 def _steady(first_done, t_end: float, done: int, stats: dict) -> dict:

@@ -354,14 +354,13 @@ def cli_propose(paths: Sequence[str], *, out: str | None, resume: bool, overwrit
     Usage errors (exit 2) are raised as :class:`reeb_torch.cli.UsageProblem` before any
     work; the process exits 1 when an image failed, 130 when interrupted.
     """
-    import json
     import sys
     import time
 
     import click
 
     from . import batch as B
-    from .cli import Failure, UsageProblem, _ms, build_config, resolve_device
+    from .cli import Failure, UsageProblem, _count_line, _failures_and_summary, _ms, build_config, resolve_device
 
     echo_err = (lambda m: None) if quiet else (lambda m: click.echo(m, err=True))
     try:
@@ -506,9 +505,7 @@ def cli_propose(paths: Sequence[str], *, out: str | None, resume: bool, overwrit
                        cpus_per_actor=cpus, batch_size=batch_size, device=str(dev),
                        address=address, config=fingerprint, out=str(out_dir), rows=done,
                        interrupted=interrupted, failures=failures)
-        lines = [f"{done} image{'s' if done != 1 else ''}: {len(ok)} ok, {len(failures)} failed; "
-                 f"{proposals} proposals"
-                 + (f" ({proposals / len(ok):.0f} per image)" if ok else "")]
+        lines = [_count_line(done, len(ok), len(failures), proposals)]
         if done:
             lines.append(f"time: {wall:.1f} s, {_ms(wall, done)} end to end ({actors} Ray actor"
                          f"{'s' if actors != 1 else ''} × {cpus:g} CPU, batch {batch_size}, {dev}); "
@@ -516,14 +513,7 @@ def cli_propose(paths: Sequence[str], *, out: str | None, resume: bool, overwrit
             lines.append(f"wrote {out_dir}/ ({done} rows in {len(new_files)} new Parquet file"
                          f"{'s' if len(new_files) != 1 else ''}"
                          + (f", {kept} kept from before" if kept else "") + ")")
-        if failures:
-            lines.append(f"failed ({len(failures)}):")
-            lines += [f"  {m}" for m in failures]
-        if summary_json:
-            try:
-                Path(summary_json).write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-            except OSError as e:
-                lines.append(f"warning: {summary_json}: cannot write the summary ({e.strerror or e})")
+        lines += _failures_and_summary(failures, summary_json, summary)
         if interrupted:
             lines.append(f"interrupted: {done} of {len(images)} images saved in {out_dir}/; run the "
                          "same command with --resume to do the rest")
