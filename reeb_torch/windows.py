@@ -238,7 +238,7 @@ def window_grid(height: int, width: int, bounds: Tensor, min_window: int, ratio:
     """The (cached) :class:`WindowGrid` of a ``height × width`` working image whose
     regions have column ``bounds`` (``int64 [R, 2]``); ``min_window`` in working pixels;
     ``ground`` as in :func:`window_sizes`. With ``camera = (horizon, templates, border, slack)``
-    (and ``slack``) the sizes come from :func:`camera_window_sizes` instead (``aspect`` and ``ground`` are
+    the sizes come from :func:`camera_window_sizes` instead (``aspect`` and ``ground`` are
     then unused, and a window may be wider than its region: regions only set budgets)."""
     key = tuple((int(a), int(b)) for a, b in bounds.tolist())
     g = None if ground is None else tuple(float(v) for v in ground)
