@@ -14,6 +14,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Iterator
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -83,6 +84,7 @@ class ProposalGenerator(nn.Module):
             raise TypeError(f"config must be a ReebConfig, got {type(cfg).__name__}")
         self.config = cfg.replace(**overrides) if overrides else cfg
         self._device_cache: dict = {}
+        self._plan_cache: dict = {}
         self.stage_times: dict[str, float] | None = None
         """Set to ``{}`` to accumulate wall seconds per stage (edges, groups, road,
         regions, scoring, nms) over calls; ``None`` (default) records nothing."""
@@ -259,7 +261,86 @@ class ProposalGenerator(nn.Module):
                        grid: _windows.WindowGrid, fx: float, fy: float, h_in: int, w_in: int,
                        crossing: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """V (eq. 12) of every window, ``float32 [B, N]``; ``-inf`` where S < min_edge_score
-        (or, with ``local_max``, where a neighbouring position of the same size scores higher)."""
+        (or, with ``local_max``, where a neighbouring position of the same size scores higher).
+
+        On the CPU, when no term needs per-window maps (no road fraction, straddling or
+        local maxima) and every window is wider and taller than every edge group, one
+        compiled pass (:func:`reeb_torch.scoring.score_grid_cpu`) scores all windows;
+        otherwise one batch of tensor ops per window size. Both give the same numbers."""
+        cfg = self.config
+        if self._compiled_scoring_applies(edges, groups, grid, crossing):
+            return self._score_windows_compiled(edges, groups, grid, fx, fy, h_in, w_in)
+        return self._score_windows_torch(edges, road, groups, grid, fx, fy, h_in, w_in, crossing)
+
+    def _compiled_scoring_applies(self, edges: Tensor, groups: _groups.EdgeGroups, grid: _windows.WindowGrid,
+                                  crossing: tuple[Tensor, Tensor] | None) -> bool:
+        cfg = self.config
+        if (edges.device.type != "cpu" or crossing is not None or cfg.local_max
+                or cfg.road_score not in ("none", "flat") or not grid.sizes):
+            return False
+        return groups.max_extent < min(min(s.w, s.h) for s in grid.sizes)
+
+    def _score_plan(self, grid: _windows.WindowGrid, fx: float, fy: float, h_in: int,
+                    w_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per-size constants of the compiled scoring pass (cached per grid and input size):
+        the ``int64 [S, 13]`` size table, eq. 1's normalisers ``float64 [S]`` and L of every
+        size's rows ``float32 [Σ ny]`` (computed by the same tensor code as the torch path)."""
+        cfg = self.config
+        key = (id(grid), fx, fy, h_in, w_in, cfg)
+        hit = self._plan_cache.get(key)
+        if hit is not None and hit[0] is grid:
+            return hit[1]
+        rows, denoms, locs = [], [], []
+        loc_cache: dict = {}
+        loc_offset = 0
+        for s, off in zip(grid.sizes, grid.offsets):
+            dx, dy, cw, ch = _scoring.centre_box(s.w, s.h, cfg.center_fraction)
+            bw, bh = s.w / fx, s.h / fy
+            denom = (2.0 * (bw + bh)) ** cfg.kappa if cfg.score_norm == "perimeter" else 2.0 * (bw * bh) ** cfg.gamma
+            lkey = (s.h, s.oy, s.sy, s.ny) if cfg.location_score != "paper" else None
+            start = loc_cache.get(lkey) if lkey is not None else None
+            if start is None:
+                start = loc_offset
+                locs.append(self._location_rows(s, bw, bh, fy, h_in, w_in, torch.device("cpu")).reshape(-1))
+                loc_offset += s.ny
+                if lkey is not None:
+                    loc_cache[lkey] = start
+            rows.append((s.w, s.h, s.sx, s.sy, s.nx, s.ny, s.oy, off, dx, dy, cw, ch, start))
+            denoms.append(denom)
+        plan = (np.asarray(rows, dtype=np.int64).reshape(-1, len(_scoring.PLAN_COLUMNS)),
+                np.asarray(denoms, dtype=np.float64),
+                torch.cat(locs).numpy() if locs else np.zeros(0, np.float32))
+        if len(self._plan_cache) >= 32:
+            self._plan_cache.clear()
+        self._plan_cache[key] = (grid, plan)
+        return plan
+
+    def _location_rows(self, s: _windows.WindowSize, bw: float, bh: float, fy: float, h_in: int, w_in: int,
+                       device: torch.device) -> Tensor:
+        """L (eq. 11 or its variants) of the rows of window size ``s``: ``float32 (1, ny, 1)``."""
+        cfg = self.config
+        bottom = ((torch.arange(s.ny, device=device, dtype=torch.float32) * s.sy + s.oy + s.h) / fy).view(1, -1, 1)
+        return _scoring.location_score(bottom, bw, bh, float(w_in), float(h_in), cfg.location_score,
+                                       cfg.horizon, self._ground_ratios(), cfg.ground_log_sigma,
+                                       self._class_weights())
+
+    def _score_windows_compiled(self, edges: Tensor, groups: _groups.EdgeGroups, grid: _windows.WindowGrid,
+                                fx: float, fy: float, h_in: int, w_in: int) -> Tensor:
+        cfg = self.config
+        b, hk, wk = edges.shape
+        plan, denom, loc = self._score_plan(grid, fx, fy, h_in, w_in)
+        tables = _refinement.enclosed_tables(groups, b, hk, wk)
+        ii_edges = _scoring.integral_image(edges)
+        out = torch.full((b, grid.count), -math.inf, dtype=torch.float32)
+        road = 1.0 if cfg.road_score == "flat" else 0.0
+        _scoring.score_grid_cpu(ii_edges, tables, plan, denom, loc, _scoring.unit_scale(fx, fy), cfg.alpha,
+                                cfg.beta * road, cfg.min_edge_score, out)
+        return out
+
+    def _score_windows_torch(self, edges: Tensor, road: Tensor | None, groups: _groups.EdgeGroups,
+                             grid: _windows.WindowGrid, fx: float, fy: float, h_in: int, w_in: int,
+                             crossing: tuple[Tensor, Tensor] | None = None) -> Tensor:
+        """:meth:`_score_windows` as tensor ops, one batch of them per window size (any device, any config)."""
         cfg = self.config
         b = edges.shape[0]
         ii_edges = _scoring.integral_image(edges)
@@ -295,11 +376,7 @@ class ProposalGenerator(nn.Module):
             key = (s.h, s.oy, s.sy, s.ny) if cfg.location_score != "paper" else None  # L ignores b_w
             loc = loc_cache.get(key) if key is not None else None
             if loc is None:
-                bottom = ((torch.arange(s.ny, device=edges.device, dtype=torch.float32) * s.sy + s.oy + s.h)
-                          / fy).view(1, -1, 1)
-                loc = _scoring.location_score(bottom, bw, bh, float(w_in), float(h_in), cfg.location_score,
-                                              cfg.horizon, self._ground_ratios(), cfg.ground_log_sigma,
-                                              self._class_weights())
+                loc = self._location_rows(s, bw, bh, fy, h_in, w_in, edges.device)
                 if key is not None:
                     loc_cache[key] = loc
             v = _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)
@@ -318,7 +395,7 @@ class ProposalGenerator(nn.Module):
         (:func:`reeb_torch.scoring.enclosed_sums`). Both are exact float64 sums: the same numbers."""
         if not grid.sizes:
             return []
-        ext = int(torch.maximum(groups.x2 - groups.x1, groups.y2 - groups.y1).max()) if len(groups) else 0
+        ext = groups.max_extent
         if ext < min(min(s.w, s.h) for s in grid.sizes):
             tables = _refinement.enclosed_tables(groups, b, hk, wk)
             return [_refinement.enclosed_grid(tables, s) for s in grid.sizes]

@@ -81,8 +81,7 @@ def enclosed_tables(groups: EdgeGroups, batch: int, height: int, width: int) -> 
     cut_row[:, :, 1:] = d.cumsum(2)
     corner = scatter((h + 2, w + 2), [y1 + 1, y1 + 1, y2 + 1, y2 + 1], [x1 + 1, x2 + 1, x1 + 1, x2 + 1],
                      [1.0, -1.0, -1.0, 1.0]).cumsum(2).cumsum(1)
-    ext = int(torch.maximum(x2 - x1, y2 - y1).max()) if len(groups) else 0
-    return EnclosedTables(anchor, cut_col, cut_row, corner, ext)
+    return EnclosedTables(anchor, cut_col, cut_row, corner, groups.max_extent)
 
 
 def _at(t: Tensor, b: Tensor, y: Tensor, x: Tensor) -> Tensor:

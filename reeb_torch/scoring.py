@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import math
 
+import numba
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -29,6 +31,7 @@ __all__ = [
     "edge_score",
     "location_score",
     "combined_score",
+    "score_grid_cpu",
 ]
 
 def integral_image(x: Tensor) -> Tensor:
@@ -158,3 +161,65 @@ def unit_scale(scale_x: float, scale_y: float) -> float:
     """Factor turning a sum of edge magnitudes along a working-resolution contour into
     input pixels (contours are 1-D, so lengths scale with the mean factor)."""
     return 2.0 / (scale_x + scale_y) if math.isfinite(scale_x + scale_y) else 1.0
+
+
+# ---------------------------------------------------------------------------------------
+# compiled CPU path: every window of every size in one pass
+# ---------------------------------------------------------------------------------------
+PLAN_COLUMNS = ("w", "h", "sx", "sy", "nx", "ny", "oy", "offset", "dx", "dy", "cw", "ch", "loc_offset")
+"""Columns of the ``int64 [S, 13]`` size table :func:`score_grid_cpu` reads, one row per size."""
+
+
+@numba.njit(cache=True, nogil=True)
+def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, cut_row: np.ndarray,
+                       corner: np.ndarray, plan: np.ndarray, denom: np.ndarray, loc: np.ndarray,
+                       unit: float, alpha: np.float32, beta_r: np.float32, min_edge: np.float32,
+                       out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """V of every window (the torch path's arithmetic, operation for operation, so the same
+    float32 numbers): eq. 1 from the edge integral image and the enclosed-sum prefix
+    tables, times ``alpha·L + beta_r`` (``beta_r`` = β·R for a constant R)."""
+    neg_inf = np.float32(-np.inf)
+    for b in range(ii.shape[0]):
+        for k in range(plan.shape[0]):
+            w, h, sx, sy, nx, ny, oy, off, dx, dy, cw, ch, lo = plan[k]
+            d = denom[k]
+            for j in range(ny):
+                y0 = oy + j * sy
+                y1 = y0 + h
+                cy0 = y0 + dy
+                cy1 = cy0 + ch
+                wl = alpha * loc[lo + j] + beta_r
+                row = off + j * nx
+                for i in range(nx):
+                    x0 = i * sx
+                    x1 = x0 + w
+                    cx0 = x0 + dx
+                    cx1 = cx0 + cw
+                    centre = ((ii[b, cy1, cx1] - ii[b, cy0, cx1]) - ii[b, cy1, cx0]) + ii[b, cy0, cx0]
+                    a = ((anchor[b, y1, x1] - anchor[b, y0, x1]) - anchor[b, y1, x0]) + anchor[b, y0, x0]
+                    col = cut_col[b, y1, x1] - cut_col[b, y0, x1]
+                    rw = cut_row[b, y1, x1] - cut_row[b, y1, x0]
+                    enc = ((a - col) - rw) + corner[b, y1, x1]
+                    s = np.float32((enc * unit - centre * unit) / d)
+                    out[b, row + i] = s * wl if s >= min_edge else neg_inf
+
+
+def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc: np.ndarray, unit: float,
+                   alpha: float, beta_r: float, min_edge: float, out: Tensor) -> None:
+    """Fill ``out`` (``float32 [B, N]``, CPU) with V of every window, compiled (numba).
+
+    Args:
+        ii: ``float64 (B, H + 1, W + 1)`` integral image of the edge map.
+        tables: :class:`reeb_torch.refinement.EnclosedTables` of the groups (every window
+            wider and taller than their ``max_extent``).
+        plan: ``int64 [S, 13]``, one row per window size (:data:`PLAN_COLUMNS`).
+        denom: ``float64 [S]``, eq. 1's normaliser of each size (input-pixel units).
+        loc: ``float32 [Σ ny]``, L of each size's rows, at ``plan[:, 12]``.
+        unit, alpha: as in :func:`edge_score` and :func:`combined_score`.
+        beta_r: β·R for a constant road term R (0 for ``road_score='none'``).
+        min_edge: windows with S below this get ``-inf``.
+    """
+    f32 = np.float32
+    _score_grid_kernel(ii.numpy(), tables.anchor.numpy(), tables.cut_col.numpy(), tables.cut_row.numpy(),
+                       tables.corner.numpy(), plan, denom, loc, float(unit), f32(alpha), f32(beta_r),
+                       f32(min_edge), out.numpy())

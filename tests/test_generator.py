@@ -162,3 +162,50 @@ def test_batch_equals_single_on_odd_crops(sample_image):
         one = gen(x[i: i + 1])[0]
         assert torch.equal(both[i]["boxes"], one["boxes"])
         assert torch.equal(both[i]["scores"], one["scores"])
+
+
+@pytest.mark.parametrize("overrides", [
+    {},
+    {"road_score": "flat"},
+    {"location_score": "paper", "score_norm": "area", "min_edge_score": 0.01},
+    {"window_geometry": "grid", "location_score": "ground", "use_regions": False},
+])
+def test_compiled_scoring_equals_the_tensor_path(sample_image, overrides):
+    # issue 9: the compiled CPU pass gives every window the very same float32 score as the
+    # per-size tensor ops, -inf included (so the same candidates, boxes and ranking)
+    from reeb_torch import generator as G
+
+    gen = ProposalGenerator(**overrides)
+    seen = {}
+    real = G.ProposalGenerator._score_windows
+
+    def spy(self, *args):
+        out = real(self, *args)
+        seen["applies"] = self._compiled_scoring_applies(args[0], args[2], args[3], args[-1])
+        seen["equal"] = torch.equal(out, self._score_windows_torch(*args))
+        seen["finite"] = int(torch.isfinite(out).sum())
+        return out
+
+    crops = torch.stack([sample_image[:, 100:290, 200:800], sample_image[:, 150:340, 500:1100]])
+    G.ProposalGenerator._score_windows = spy
+    try:
+        gen(crops)
+    finally:
+        G.ProposalGenerator._score_windows = real
+    assert seen["applies"] and seen["equal"] and seen["finite"] > 1000
+
+
+def test_scoring_falls_back_to_tensor_ops_when_a_term_needs_maps(crop):
+    from reeb_torch.groups import connected_groups
+
+    e = torch.rand(1, 64, 96)
+    g = connected_groups(e, 8)  # groups inside 8-px tiles: every window (>= 16 px) encloses them exactly
+    default = ProposalGenerator(**SMALL)
+    grid = default._window_grid(64, 96, default._region_bounds(96), 1.0, 1.0)
+    assert default._compiled_scoring_applies(e, g, grid, None)
+    for overrides in ({"road_score": "reward"}, {"road_score": "stand"}, {"local_max": True}):
+        gen = ProposalGenerator(**SMALL, **overrides)
+        assert not gen._compiled_scoring_applies(e, g, grid, None), overrides
+        assert gen([crop])[0]["boxes"].shape[0] > 0
+    unbounded = connected_groups(e, None)  # one big component: no exact prefix-table sums
+    assert not default._compiled_scoring_applies(e, unbounded, grid, None)

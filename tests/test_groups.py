@@ -76,3 +76,32 @@ def test_cell_groups():
     i = int(torch.argmin(g.magnitude))
     assert abs(float(g.magnitude[i]) - 0.5) < 1e-6
     assert (int(g.x1[i]), int(g.y1[i]), int(g.x2[i]), int(g.y2[i])) == (1, 1, 3, 2)
+
+
+def _tensor_path(edges: torch.Tensor, cell: int | None):
+    from reeb_torch.groups import _coords, _stats
+
+    b, h, w = edges.shape
+    xs, ys = _coords(b, h, w, edges.device)
+    labels = label_components(edges > 0, cell).view(-1)
+    return _stats(labels, edges.reshape(-1), xs.reshape(-1), ys.reshape(-1), h * w)
+
+
+def test_compiled_groups_equal_the_tensor_path(sample_image):
+    # the CPU union-find gives the FastSV tensor path's groups: same order, same bounds,
+    # same float64 masses, on random masks and on the sample's edge map, tiles or not
+    from reeb_torch import edges as E
+
+    gen = torch.Generator().manual_seed(3)
+    cases = [torch.rand(3, 29, 47, generator=gen) * (torch.rand(3, 29, 47, generator=gen) < d)
+             for d in (0.1, 0.4, 0.7)]
+    cases.append(E.edge_map(E.to_gray(sample_image[None, :, :160, :480].float() / 255), 1.0, 0.05, True, True))
+    nan = cases[0].clone()
+    nan[0, 3, 4] = float("nan")  # NaN is background, as edges > 0 says
+    cases.append(nan)
+    for e in cases:
+        for cell in (None, 8, 3):
+            got, ref = connected_groups(e, cell), _tensor_path(e, cell)
+            assert len(got) == len(ref) > 0
+            for f in ("batch", "x1", "y1", "x2", "y2", "magnitude"):
+                assert torch.equal(getattr(got, f), getattr(ref, f)), (f, cell)

@@ -77,11 +77,12 @@ def test_box_scorer_equals_grid_scores(sample_image):
 
 
 def test_enclosed_grid_equals_the_per_size_scatter(sample_image):
-    # the generator's fast path (prefix tables + strided slices) gives the very same
-    # float64 numbers as the per-size scatter of scoring.enclosed_sums
+    # the tensor path's enclosed sums (prefix tables + strided slices) are the very same
+    # float64 numbers as the per-size scatter of scoring.enclosed_sums; a road term keeps
+    # the generator on the tensor path (the compiled pass reads the same tables)
     from reeb_torch import scoring
 
-    gen = ProposalGenerator()
+    gen = ProposalGenerator(road_score="reward")
     seen = {}
     real = ProposalGenerator._enclosed
 
