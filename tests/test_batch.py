@@ -33,14 +33,20 @@ def test_second_writer_fails_at_once_and_loses_nothing(tmp_path):
     good_folder(tmp_path / "B", 2)
     first = _start(["propose", "A", "-o", "cc.jsonl", "-b", "1", *FAST], tmp_path)
     _wait_for_rows(tmp_path, "cc.jsonl", first)
-    others = [_start(["propose", "B", "-o", "cc.jsonl", *extra, *FAST], tmp_path)
-              for extra in ([], ["--resume"])]
-    for other in others:
-        _, err = other.communicate(timeout=120)
-        assert other.returncode == 2, err
-        assert " ok, " not in err  # failed before any work, without waiting
-        assert "another reeb run" in err and f"pid {first.pid}" in err, err
-    assert first.poll() is None, "the first run ended too early for this test"
+    # the first run is paused mid-run (SIGSTOP; it still holds the output) while the others
+    # start, however fast it would otherwise finish
+    first.send_signal(signal.SIGSTOP)
+    try:
+        others = [_start(["propose", "B", "-o", "cc.jsonl", *extra, *FAST], tmp_path)
+                  for extra in ([], ["--resume"])]
+        for other in others:
+            _, err = other.communicate(timeout=120)
+            assert other.returncode == 2, err
+            assert " ok, " not in err  # failed before any work, without waiting
+            assert "another reeb run" in err and f"pid {first.pid}" in err, err
+        assert first.poll() is None, "the first run ended too early for this test"
+    finally:
+        first.send_signal(signal.SIGCONT)
     _, err = first.communicate(timeout=300)
     assert first.returncode == 0, err
     rows = read_jsonl(tmp_path / "cc.jsonl")
