@@ -28,10 +28,13 @@ from torchvision.ops import nms
 
 __all__ = ["nms_top_k"]
 
-_GRID_CELLS = 32
+_GRID_CELLS = 16
 """Cells along the longer side of the boxes' extent in the grid-bucketed kernel."""
-_SIZE_BINS = 12
-"""Most log-width (and log-height) bins per cell: IoU > t needs width and height ratios > t."""
+_SIZE_BINS = 32
+"""Most log-width (and log-height) bins per cell: IoU > t needs width and height ratios > t.
+In practice the bins' width (at least −log t) caps them first (~26 at t = 0.7): on KITTI's
+candidates, fine size bins halve the kernel's time (3.3 → 1.8 ms/img) and coarse cells
+keep the table small; the result is the same whatever these two constants are."""
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")  # 0/0 -> NaN, as in C++
