@@ -25,6 +25,7 @@ RoadScore = Literal["reward", "penalize", "none", "flat", "stand"]
 LocationScore = Literal["paper", "ground", "classes", "none"]
 EntropyForm = Literal["printed", "abs-diff"]
 WindowGeometry = Literal["camera", "grid"]
+ShadowScore = Literal["underneath", "none"]
 
 
 # -- validation (ReebConfig.__post_init__) ---------------------------------------------------
@@ -222,6 +223,10 @@ _RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "straddle_band": _in(0, 64),
     "center_fraction": _in(0, 1, lo_open=True, hi_open=True),
     "road_strip": _in(0, 1, lo_open=True),
+    "shadow_strip": _in(0, 1, lo_open=True),
+    "shadow_margin": _in(0, 0.5, hi_open=True),
+    "shadow_power": _in(0, 8, lo_open=True),
+    "shadow_floor": _in(0, 1, lo_open=True),
     "horizon": _in(0, 1, lo_open=True, hi_open=True),
     "ground_ratio": _positive(),
     "class_heights_m": ((lambda t: len(t) > 0 and all(x > 0 for x in t)), "a non-empty tuple of heights > 0"),
@@ -401,6 +406,22 @@ class ReebConfig:
     road_strip: float = 0.15
     """With ``road_score='stand'``: height of the strip just below a box, as a fraction of the
     box height, whose road fraction says the box stands on the road."""
+    shadow_score: ShadowScore = "underneath"
+    """``underneath``: V is multiplied by (``shadow_floor`` + U)^``shadow_power``, where U in
+    [0, 1] is how much darker the bottom strip of the box is than the road just below it,
+    U = clamp((g_below − g_inside) / g_below, 0, 1) on the grey image (the shadow a vehicle
+    casts on the road under itself, a classic training-free vehicle cue; not in the paper).
+    A box with no image row below it gets U = 0. ``none``: no such term (as printed)."""
+    shadow_strip: float = 0.2
+    """With ``shadow_score='underneath'``: height of the two strips (the box's bottom rows
+    and the rows just below it) as a fraction of the box height (at least one pixel)."""
+    shadow_margin: float = 0.15
+    """With ``shadow_score='underneath'``: fraction of the box width left out of both strips
+    on each side (wheels and the background beside a vehicle)."""
+    shadow_power: float = 0.5
+    """Exponent of the shadow factor (0.5: a square root, so it re-ranks without dominating S)."""
+    shadow_floor: float = 0.001
+    """Added to U before the power, so a box without a shadow keeps a small score (> 0)."""
     location_score: LocationScore = "classes"
     """``paper``: L = b_y/(b_w·b_h)·W (eq. 11); ``ground``: how well the box height fits
     a ground-plane object standing at its bottom row, in [0, 1]; ``none``: L = 1."""
@@ -477,6 +498,7 @@ class ReebConfig:
             group_cell=None,
             score_norm="area",
             road_score="reward",
+            shadow_score="none",
             location_score="paper",
             road_combine="and",
             entropy_form="abs-diff",

@@ -178,14 +178,15 @@ class ProposalGenerator(nn.Module):
         # Sec. 3.6-3.7: dense sliding windows, scored by eqs. 1, 10-12, ranked per region
         with self._stage("scoring", dev):
             grid = self._window_grid(hk, wk, bounds, fx, fy)
-            scores = self._score_windows(edges, road, groups, grid, fx, fy, h_in, w_in, crossing)
+            grey = gray[:, 0] if cfg.shadow_score != "none" else None
+            scores = self._score_windows(edges, road, groups, grid, fx, fy, h_in, w_in, crossing, grey)
             chosen = self._select(scores, grid, share)
         # Edge Boxes' refinement of the candidates (not in the paper; ``ReebConfig.refine``)
         cand_boxes = cand_scores = None
         if cfg.refine:
             with self._stage("refine", dev):
                 cand_boxes, cand_scores = self._refine(chosen, scores, grid, edges, road, groups, crossing,
-                                                       fx, fy, h_in, w_in)
+                                                       fx, fy, h_in, w_in, grey)
         # Sec. 3.8: Final_Proposals = NMS(Sorted_Proposals) (eq. 13)
         with self._stage("nms", dev):
             to_input = torch.tensor([fx, fy, fx, fy], device=dev)
@@ -259,7 +260,7 @@ class ProposalGenerator(nn.Module):
 
     def _score_windows(self, edges: Tensor, road: Tensor | None, groups: _groups.EdgeGroups,
                        grid: _windows.WindowGrid, fx: float, fy: float, h_in: int, w_in: int,
-                       crossing: tuple[Tensor, Tensor] | None = None) -> Tensor:
+                       crossing: tuple[Tensor, Tensor] | None = None, grey: Tensor | None = None) -> Tensor:
         """V (eq. 12) of every window, ``float32 [B, N]``; ``-inf`` where S < min_edge_score
         (or, with ``local_max``, where a neighbouring position of the same size scores higher).
 
@@ -269,8 +270,8 @@ class ProposalGenerator(nn.Module):
         otherwise one batch of tensor ops per window size. Both give the same numbers."""
         cfg = self.config
         if self._compiled_scoring_applies(edges, groups, grid, crossing):
-            return self._score_windows_compiled(edges, groups, grid, fx, fy, h_in, w_in)
-        return self._score_windows_torch(edges, road, groups, grid, fx, fy, h_in, w_in, crossing)
+            return self._score_windows_compiled(edges, groups, grid, fx, fy, h_in, w_in, grey)
+        return self._score_windows_torch(edges, road, groups, grid, fx, fy, h_in, w_in, crossing, grey)
 
     def _compiled_scoring_applies(self, edges: Tensor, groups: _groups.EdgeGroups, grid: _windows.WindowGrid,
                                   crossing: tuple[Tensor, Tensor] | None) -> bool:
@@ -305,7 +306,8 @@ class ProposalGenerator(nn.Module):
                 loc_offset += s.ny
                 if lkey is not None:
                     loc_cache[lkey] = start
-            rows.append((s.w, s.h, s.sx, s.sy, s.nx, s.ny, s.oy, off, dx, dy, cw, ch, start))
+            sh, mx = _scoring.shadow_strips(s.w, s.h, cfg.shadow_strip, cfg.shadow_margin)
+            rows.append((s.w, s.h, s.sx, s.sy, s.nx, s.ny, s.oy, off, dx, dy, cw, ch, start, sh, mx))
             denoms.append(denom)
         plan = (np.asarray(rows, dtype=np.int64).reshape(-1, len(_scoring.PLAN_COLUMNS)),
                 np.asarray(denoms, dtype=np.float64),
@@ -325,7 +327,7 @@ class ProposalGenerator(nn.Module):
                                        self._class_weights())
 
     def _score_windows_compiled(self, edges: Tensor, groups: _groups.EdgeGroups, grid: _windows.WindowGrid,
-                                fx: float, fy: float, h_in: int, w_in: int) -> Tensor:
+                                fx: float, fy: float, h_in: int, w_in: int, grey: Tensor | None = None) -> Tensor:
         cfg = self.config
         b, hk, wk = edges.shape
         plan, denom, loc = self._score_plan(grid, fx, fy, h_in, w_in)
@@ -333,13 +335,19 @@ class ProposalGenerator(nn.Module):
         ii_edges = _scoring.integral_image(edges)
         out = torch.full((b, grid.count), -math.inf, dtype=torch.float32)
         road = 1.0 if cfg.road_score == "flat" else 0.0
+        ii_grey = shadow = None
+        if cfg.shadow_score != "none":
+            ii_grey = _scoring.integral_image(grey)
+            shadow = torch.zeros((b, grid.count), dtype=torch.float64)
         _scoring.score_grid_cpu(ii_edges, tables, plan, denom, loc, _scoring.unit_scale(fx, fy), cfg.alpha,
-                                cfg.beta * road, cfg.min_edge_score, out)
+                                cfg.beta * road, cfg.min_edge_score, out, ii_grey, shadow)
+        if shadow is not None:
+            out = _scoring.apply_shadow(out, shadow, cfg.shadow_floor, cfg.shadow_power)
         return out
 
     def _score_windows_torch(self, edges: Tensor, road: Tensor | None, groups: _groups.EdgeGroups,
                              grid: _windows.WindowGrid, fx: float, fy: float, h_in: int, w_in: int,
-                             crossing: tuple[Tensor, Tensor] | None = None) -> Tensor:
+                             crossing: tuple[Tensor, Tensor] | None = None, grey: Tensor | None = None) -> Tensor:
         """:meth:`_score_windows` as tensor ops, one batch of them per window size (any device, any config)."""
         cfg = self.config
         b = edges.shape[0]
@@ -357,6 +365,12 @@ class ProposalGenerator(nn.Module):
             ii_rows = _scoring.integral_image(F.pad(crossing[1], (band, band, band, band)))
         unit = _scoring.unit_scale(fx, fy)
         out = torch.full((b, grid.count), -math.inf, dtype=torch.float32, device=edges.device)
+        shadow = ii_grey_below = None
+        if cfg.shadow_score != "none":  # rows past the bottom add nothing to the strip below
+            hk = grey.shape[1]
+            ii_grey = _scoring.integral_image(grey)
+            ii_grey_below = torch.cat([ii_grey, ii_grey[:, -1:].expand(-1, hk, -1)], 1)
+            shadow = torch.zeros((b, grid.count), dtype=torch.float64, device=edges.device)
         for s, enc, off in zip(grid.sizes, enclosed, grid.offsets):
             dx, dy, cw, ch = _scoring.centre_box(s.w, s.h, cfg.center_fraction)
             centre = _scoring.box_sums(ii_edges, dx, dy, cw, ch, s)
@@ -381,10 +395,22 @@ class ProposalGenerator(nn.Module):
                     loc_cache[key] = loc
             v = _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)
             v = torch.where(sc >= cfg.min_edge_score, v, -math.inf)
-            if cfg.local_max:
-                peak = F.max_pool2d(v[:, None], 3, stride=1, padding=1)[:, 0]
-                v = torch.where(v >= peak, v, -math.inf)
             out[:, off: off + s.count] = v.reshape(b, -1)
+            if shadow is not None:  # the darker bottom strip of a vehicle over the road below it
+                sh, mx = _scoring.shadow_strips(s.w, s.h, cfg.shadow_strip, cfg.shadow_margin)
+                inside = _scoring.box_sums(ii_grey_below, mx, s.h - sh, s.w - 2 * mx, sh, s)
+                below = _scoring.box_sums(ii_grey_below, mx, s.h, s.w - 2 * mx, sh, s)
+                y1 = torch.arange(s.ny, device=edges.device) * s.sy + s.oy + s.h
+                rows = (grey.shape[1] - y1).clamp(0, sh).view(1, -1, 1)
+                u = _scoring.shadow_fraction(inside, below, sh * (s.w - 2 * mx), rows * (s.w - 2 * mx))
+                shadow[:, off: off + s.count] = u.reshape(b, -1)
+        if shadow is not None:  # one call on the whole score tensor, as the compiled path
+            out = _scoring.apply_shadow(out, shadow, cfg.shadow_floor, cfg.shadow_power)
+        if cfg.local_max:
+            for s, off in zip(grid.sizes, grid.offsets):
+                v = out[:, off: off + s.count].view(b, s.ny, s.nx)
+                peak = F.max_pool2d(v[:, None], 3, stride=1, padding=1)[:, 0]
+                out[:, off: off + s.count] = torch.where(v >= peak, v, -math.inf).reshape(b, -1)
         return out
 
     @staticmethod
@@ -402,7 +428,8 @@ class ProposalGenerator(nn.Module):
         return _scoring.enclosed_sums(groups, b, grid.sizes)
 
     def _box_scorer(self, edges: Tensor, road: Tensor, groups: _groups.EdgeGroups,
-                    crossing: tuple[Tensor, Tensor] | None, fx: float, fy: float, h_in: int, w_in: int):
+                    crossing: tuple[Tensor, Tensor] | None, fx: float, fy: float, h_in: int, w_in: int,
+                    grey: Tensor | None = None):
         """V (eq. 12) of arbitrary boxes: returns ``(score_fn, min_side)`` where
         ``score_fn(boxes, b)`` takes int64 ``[K, 4]`` working-pixel boxes (x1, y1 exclusive)
         and their image indices ``[K]`` and gives ``float64 [K]``, the same numbers
@@ -420,6 +447,9 @@ class ProposalGenerator(nn.Module):
             ii_rows = _scoring.integral_image(F.pad(crossing[1], (band, band, band, band)))
         unit = _scoring.unit_scale(fx, fy)
         at = _refinement.box_sum_at
+        if cfg.shadow_score != "none":
+            ii_grey = _scoring.integral_image(grey)
+            ii_grey_below = torch.cat([ii_grey, ii_grey[:, -1:].expand(-1, hk, -1)], 1)
 
         def score_fn(boxes: Tensor, bi: Tensor) -> Tensor:
             x0, y0, x1, y1 = boxes.unbind(1)
@@ -448,13 +478,22 @@ class ProposalGenerator(nn.Module):
             loc = _scoring.location_score(y1.double() / fy, bw, bh, float(w_in), float(h_in), cfg.location_score,
                                           cfg.horizon, self._ground_ratios(), cfg.ground_log_sigma,
                                           self._class_weights())
-            return _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)
+            v = _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)
+            if cfg.shadow_score != "none":
+                sh = (h.double() * cfg.shadow_strip).round().long().clamp_(min=1)
+                mx = torch.minimum((w.double() * cfg.shadow_margin).floor().long(), torch.div(w - 1, 2, rounding_mode="floor"))
+                inside = at(ii_grey_below, bi, x0 + mx, y1 - sh, x1 - mx, y1)
+                below = at(ii_grey_below, bi, x0 + mx, y1, x1 - mx, y1 + sh)
+                rows = torch.minimum((hk - y1).clamp(min=0), sh)
+                u = _scoring.shadow_fraction(inside, below, (sh * (w - 2 * mx)).double(), rows * (w - 2 * mx))
+                v = _scoring.apply_shadow(v, u, cfg.shadow_floor, cfg.shadow_power)
+            return v
 
         return score_fn, tables.max_extent + 1
 
     def _refine(self, chosen: Tensor, scores: Tensor, grid: _windows.WindowGrid, edges: Tensor, road: Tensor,
                 groups: _groups.EdgeGroups, crossing: tuple[Tensor, Tensor] | None, fx: float, fy: float,
-                h_in: int, w_in: int) -> tuple[list[Tensor], list[Tensor]]:
+                h_in: int, w_in: int, grey: Tensor | None = None) -> tuple[list[Tensor], list[Tensor]]:
         """Edge Boxes' refinement of every chosen window (:func:`reeb_torch.refinement.refine_boxes`);
         per image, ``float32 [K, 4]`` working-pixel boxes and ``float32 [K]`` scores, in the order of
         ``nonzero(chosen[i])``. Boxes narrower or shorter than the exact-sum limit stay as they are."""
@@ -463,7 +502,7 @@ class ProposalGenerator(nn.Module):
         bi, ni = torch.nonzero(chosen, as_tuple=True)
         boxes = self._device_tensor(grid.boxes, edges.device)[ni].round().long()
         vals = scores[bi, ni]
-        score_fn, exact_side = self._box_scorer(edges, road, groups, crossing, fx, fy, h_in, w_in)
+        score_fn, exact_side = self._box_scorer(edges, road, groups, crossing, fx, fy, h_in, w_in, grey)
         min_side = max(exact_side, self._min_window_working(fx, fy))
         wh = boxes[:, 2:] - boxes[:, :2]
         movable = torch.nonzero((wh >= min_side).all(1)).squeeze(1)

@@ -32,6 +32,9 @@ __all__ = [
     "location_score",
     "combined_score",
     "score_grid_cpu",
+    "shadow_strips",
+    "shadow_fraction",
+    "apply_shadow",
 ]
 
 def integral_image(x: Tensor) -> Tensor:
@@ -166,22 +169,26 @@ def unit_scale(scale_x: float, scale_y: float) -> float:
 # ---------------------------------------------------------------------------------------
 # compiled CPU path: every window of every size in one pass
 # ---------------------------------------------------------------------------------------
-PLAN_COLUMNS = ("w", "h", "sx", "sy", "nx", "ny", "oy", "offset", "dx", "dy", "cw", "ch", "loc_offset")
-"""Columns of the ``int64 [S, 13]`` size table :func:`score_grid_cpu` reads, one row per size."""
+PLAN_COLUMNS = ("w", "h", "sx", "sy", "nx", "ny", "oy", "offset", "dx", "dy", "cw", "ch", "loc_offset",
+                "shadow_rows", "shadow_margin")
+"""Columns of the ``int64 [S, 15]`` size table :func:`score_grid_cpu` reads, one row per size."""
 
 
 @numba.njit(cache=True, nogil=True)
 def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, cut_row: np.ndarray,
                        corner: np.ndarray, plan: np.ndarray, denom: np.ndarray, loc: np.ndarray,
                        unit: float, alpha: np.float32, beta_r: np.float32, min_edge: np.float32,
-                       out: np.ndarray) -> None:  # pragma: no cover - compiled
+                       out: np.ndarray, grey: np.ndarray, shadow: np.ndarray) -> None:  # pragma: no cover - compiled
     """V of every window (the torch path's arithmetic, operation for operation, so the same
     float32 numbers): eq. 1 from the edge integral image and the enclosed-sum prefix
-    tables, times ``alpha·L + beta_r`` (``beta_r`` = β·R for a constant R)."""
+    tables, times ``alpha·L + beta_r`` (``beta_r`` = β·R for a constant R). With a grey
+    integral image (``grey.shape[0] > 0``), also U of :func:`shadow_fraction` into ``shadow``."""
     neg_inf = np.float32(-np.inf)
+    with_shadow = grey.shape[0] > 0
+    hmax = ii.shape[1] - 1
     for b in range(ii.shape[0]):
         for k in range(plan.shape[0]):
-            w, h, sx, sy, nx, ny, oy, off, dx, dy, cw, ch, lo = plan[k]
+            w, h, sx, sy, nx, ny, oy, off, dx, dy, cw, ch, lo, sh, mx = plan[k]
             d = denom[k]
             for j in range(ny):
                 y0 = oy + j * sy
@@ -190,6 +197,9 @@ def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, 
                 cy1 = cy0 + ch
                 wl = alpha * loc[lo + j] + beta_r
                 row = off + j * nx
+                yb = min(y1 + sh, hmax)
+                n_in = float(sh * (w - 2 * mx))
+                n_below = float(max(yb - y1, 1) * (w - 2 * mx))
                 for i in range(nx):
                     x0 = i * sx
                     x1 = x0 + w
@@ -202,11 +212,26 @@ def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, 
                     enc = ((a - col) - rw) + corner[b, y1, x1]
                     s = np.float32((enc * unit - centre * unit) / d)
                     out[b, row + i] = s * wl if s >= min_edge else neg_inf
+                    if with_shadow:
+                        ax0 = x0 + mx
+                        ax1 = x1 - mx
+                        g_in = (((grey[b, y1, ax1] - grey[b, y1 - sh, ax1]) - grey[b, y1, ax0])
+                                + grey[b, y1 - sh, ax0]) / n_in
+                        u = 0.0
+                        if yb > y1:
+                            g_below = (((grey[b, yb, ax1] - grey[b, y1, ax1]) - grey[b, yb, ax0])
+                                       + grey[b, y1, ax0]) / n_below
+                            u = min(max((g_below - g_in) / max(g_below, 1e-3), 0.0), 1.0)
+                        shadow[b, row + i] = u
 
 
 def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc: np.ndarray, unit: float,
-                   alpha: float, beta_r: float, min_edge: float, out: Tensor) -> None:
-    """Fill ``out`` (``float32 [B, N]``, CPU) with V of every window, compiled (numba).
+                   alpha: float, beta_r: float, min_edge: float, out: Tensor, grey: Tensor | None = None,
+                   shadow: Tensor | None = None) -> None:
+    """Fill ``out`` (``float32 [B, N]``, CPU) with V of every window, compiled (numba);
+    given ``grey`` (``float64 (B, H + 1, W + 1)`` integral image of the grey image), also
+    ``shadow`` (``float64 [B, N]``) with U of :func:`shadow_fraction` (the factor is applied
+    by :func:`apply_shadow`, in torch, for both paths).
 
     Args:
         ii: ``float64 (B, H + 1, W + 1)`` integral image of the edge map.
@@ -220,6 +245,36 @@ def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc:
         min_edge: windows with S below this get ``-inf``.
     """
     f32 = np.float32
+    if grey is None or shadow is None:
+        g, u = np.zeros((0, 1, 1)), np.zeros((0, 1))
+    else:
+        g, u = grey.numpy(), shadow.numpy()
     _score_grid_kernel(ii.numpy(), tables.anchor.numpy(), tables.cut_col.numpy(), tables.cut_row.numpy(),
                        tables.corner.numpy(), plan, denom, loc, float(unit), f32(alpha), f32(beta_r),
-                       f32(min_edge), out.numpy())
+                       f32(min_edge), out.numpy(), g, u)
+
+
+def shadow_strips(w: int, h: int, strip: float, margin: float) -> tuple[int, int]:
+    """Rows ``sh`` of the two shadow strips and columns ``mx`` left out on each side, for a
+    ``w × h`` box (``ReebConfig.shadow_strip`` / ``shadow_margin``): ``sh >= 1`` and at
+    least one column stays."""
+    return max(1, int(round(strip * h))), min(int(margin * w), (w - 1) // 2)
+
+
+def shadow_fraction(inside_sum: Tensor, below_sum: Tensor, inside_n: Tensor | float,
+                    below_n: Tensor) -> Tensor:
+    """U of ``ReebConfig.shadow_score='underneath'``: how much darker a box's bottom strip
+    is than the strip just below it, ``clamp((g_below − g_inside) / g_below, 0, 1)``, from
+    the grey sums and pixel counts of the two strips (``float64``); 0 where no pixel lies
+    below (``below_n == 0``). Same shape as the sums, in [0, 1]."""
+    g_in = inside_sum / inside_n
+    g_below = below_sum / below_n.clamp(min=1)
+    u = ((g_below - g_in) / g_below.clamp(min=1e-3)).clamp(0.0, 1.0)
+    return torch.where(below_n > 0, u, torch.zeros_like(u))
+
+
+def apply_shadow(v: Tensor, u: Tensor, floor: float, power: float) -> Tensor:
+    """V·(floor + U)^power where V is finite (``-inf`` stays), ``float32``; ``u`` is ``float64``
+    of V's shape."""
+    f = (u + floor).pow(power).float()
+    return torch.where(torch.isfinite(v), v * f, v)

@@ -169,6 +169,8 @@ def test_batch_equals_single_on_odd_crops(sample_image):
     {"road_score": "flat"},
     {"location_score": "paper", "score_norm": "area", "min_edge_score": 0.01},
     {"window_geometry": "grid", "location_score": "ground", "use_regions": False},
+    {"shadow_score": "underneath", "shadow_strip": 0.2},
+    {"shadow_score": "underneath", "shadow_power": 0.7, "shadow_margin": 0.3, "road_score": "flat"},
 ])
 def test_compiled_scoring_equals_the_tensor_path(sample_image, overrides):
     # issue 9: the compiled CPU pass gives every window the very same float32 score as the
@@ -181,7 +183,7 @@ def test_compiled_scoring_equals_the_tensor_path(sample_image, overrides):
 
     def spy(self, *args):
         out = real(self, *args)
-        seen["applies"] = self._compiled_scoring_applies(args[0], args[2], args[3], args[-1])
+        seen["applies"] = self._compiled_scoring_applies(args[0], args[2], args[3], args[8])
         seen["equal"] = torch.equal(out, self._score_windows_torch(*args))
         seen["finite"] = int(torch.isfinite(out).sum())
         return out
