@@ -83,3 +83,40 @@ def test_combined_score_eq12():
     torch.testing.assert_close(combined_score(s, loc, road, 0.6, 0.4, "reward"), torch.tensor([2 * (0.3 + 0.1)]))
     torch.testing.assert_close(combined_score(s, loc, road, 0.6, 0.4, "penalize"), torch.tensor([2 * (0.3 + 0.3)]))
     torch.testing.assert_close(combined_score(s, loc, road, 0.6, 0.4, "none"), torch.tensor([2 * 0.3]))
+
+
+def test_shadow_strips_and_fraction_on_a_synthetic_road():
+    from reeb_torch.scoring import apply_shadow, shadow_fraction, shadow_strips
+
+    # a 20 x 20 box over a grey road (0.5) whose bottom 4 rows are dark (0.1) between its wheels
+    sh, mx = shadow_strips(20, 20, 0.2, 0.15)
+    assert (sh, mx) == (4, 3)
+    assert shadow_strips(3, 2, 0.01, 0.49) == (1, 1)  # at least one row, at least one column
+    grey = torch.full((1, 60, 40), 0.5)
+    grey[0, 30:34, 10:30] = 0.1  # the box is x in [10, 30), y in [14, 34)
+    ii = integral_image(grey)
+    s = WindowSize(20, 20, 1, 1, 1, 1, oy=14)
+    crop = ii[:, :, 10:]  # the box starts at column 0 of the crop
+    cols = s.w - 2 * mx
+    inside = box_sums(crop - crop[:, :, :1], mx, s.h - sh, cols, sh, s)
+    below = box_sums(crop - crop[:, :, :1], mx, s.h, cols, sh, s)
+    u = shadow_fraction(inside, below, sh * cols, torch.tensor([[[sh * cols]]]))
+    torch.testing.assert_close(u, torch.tensor([[[0.8]]], dtype=torch.float64))
+    # no pixel below the box (it ends at the image bottom): U = 0; lighter inside: U = 0
+    assert float(shadow_fraction(inside, below, sh * cols, torch.tensor([[[0]]]))) == 0.0
+    assert float(shadow_fraction(below, inside, sh * cols, torch.tensor([[[sh * cols]]]))) == 0.0
+    # the factor: (floor + U)^p on finite scores; -inf stays -inf
+    v = torch.tensor([2.0, -float("inf")])
+    out = apply_shadow(v, torch.tensor([0.8, 0.5], dtype=torch.float64), 0.2, 0.5)
+    assert out.dtype == torch.float32 and out[0] == 2.0 and out[1] == -float("inf")
+
+
+def test_shadow_fraction_is_a_fraction():
+    from reeb_torch.scoring import shadow_fraction
+
+    gen = torch.Generator().manual_seed(7)
+    n = torch.randint(1, 50, (500,), generator=gen)
+    rows = torch.randint(0, 50, (500,), generator=gen)
+    u = shadow_fraction(torch.rand(500, generator=gen, dtype=torch.float64) * n,
+                        torch.rand(500, generator=gen, dtype=torch.float64) * rows, n.double(), rows)
+    assert bool(((u >= 0) & (u <= 1)).all()) and bool((u[rows == 0] == 0).all())
