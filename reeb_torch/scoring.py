@@ -1,7 +1,10 @@
 """Sec. 3.7 — scoring every sliding window: edge score S (eq. 1), road score R (eq. 10),
-location score L (eq. 11) and their combination V (eq. 12).
+location score L (eq. 11), their combination V (eq. 12), and the shadow term (not in the
+paper; :func:`shadow_fraction`).
 
-Every window size is scored for all its positions and all images at once:
+On the CPU, :func:`score_grid_cpu` scores every window of every size in one compiled
+(numba) pass, with the same arithmetic as the tensor ops below. The tensor path (any
+device, any config) scores each window size for all its positions and all images at once:
 
 * the centre term Σ_c m_c and R are box sums read from integral images at strided
   positions (four strided slices, no gather);
