@@ -335,12 +335,15 @@ class ProposalGenerator(nn.Module):
         ii_edges = _scoring.integral_image(edges)
         out = torch.full((b, grid.count), -math.inf, dtype=torch.float32)
         road = 1.0 if cfg.road_score == "flat" else 0.0
-        ii_grey = shadow = None
+        ii_grey = shadow = sqrt_floor = None
         if cfg.shadow_score != "none":
             ii_grey = _scoring.integral_image(grey)
-            shadow = torch.zeros((b, grid.count), dtype=torch.float64)
+            if cfg.shadow_power == 0.5:  # the factor in the kernel: sqrt rounds alike everywhere
+                sqrt_floor = cfg.shadow_floor
+            else:
+                shadow = torch.zeros((b, grid.count), dtype=torch.float64)
         _scoring.score_grid_cpu(ii_edges, tables, plan, denom, loc, _scoring.unit_scale(fx, fy), cfg.alpha,
-                                cfg.beta * road, cfg.min_edge_score, out, ii_grey, shadow)
+                                cfg.beta * road, cfg.min_edge_score, out, ii_grey, shadow, sqrt_floor)
         if shadow is not None:
             out = _scoring.apply_shadow(out, shadow, cfg.shadow_floor, cfg.shadow_power)
         return out

@@ -181,11 +181,14 @@ PLAN_COLUMNS = ("w", "h", "sx", "sy", "nx", "ny", "oy", "offset", "dx", "dy", "c
 def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, cut_row: np.ndarray,
                        corner: np.ndarray, plan: np.ndarray, denom: np.ndarray, loc: np.ndarray,
                        unit: float, alpha: np.float32, beta_r: np.float32, min_edge: np.float32,
-                       out: np.ndarray, grey: np.ndarray, shadow: np.ndarray) -> None:  # pragma: no cover - compiled
+                       out: np.ndarray, grey: np.ndarray, shadow: np.ndarray,
+                       sqrt_floor: float) -> None:  # pragma: no cover - compiled
     """V of every window (the torch path's arithmetic, operation for operation, so the same
     float32 numbers): eq. 1 from the edge integral image and the enclosed-sum prefix
     tables, times ``alpha·L + beta_r`` (``beta_r`` = β·R for a constant R). With a grey
-    integral image (``grey.shape[0] > 0``), also U of :func:`shadow_fraction` into ``shadow``."""
+    integral image (``grey.shape[0] > 0``), also U of :func:`shadow_fraction`: into ``shadow``,
+    or, with ``sqrt_floor >= 0`` (a power of 0.5), straight into V as :func:`apply_shadow`
+    does it (sqrt is correctly rounded in both, so the numbers are the same)."""
     neg_inf = np.float32(-np.inf)
     with_shadow = grey.shape[0] > 0
     hmax = ii.shape[1] - 1
@@ -225,16 +228,20 @@ def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, 
                             g_below = (((grey[b, yb, ax1] - grey[b, y1, ax1]) - grey[b, yb, ax0])
                                        + grey[b, y1, ax0]) / n_below
                             u = min(max((g_below - g_in) / max(g_below, 1e-3), 0.0), 1.0)
-                        shadow[b, row + i] = u
+                        if sqrt_floor < 0:
+                            shadow[b, row + i] = u
+                        elif s >= min_edge:
+                            out[b, row + i] = out[b, row + i] * np.float32(np.sqrt(u + sqrt_floor))
 
 
 def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc: np.ndarray, unit: float,
                    alpha: float, beta_r: float, min_edge: float, out: Tensor, grey: Tensor | None = None,
-                   shadow: Tensor | None = None) -> None:
+                   shadow: Tensor | None = None, sqrt_floor: float | None = None) -> None:
     """Fill ``out`` (``float32 [B, N]``, CPU) with V of every window, compiled (numba);
     given ``grey`` (``float64 (B, H + 1, W + 1)`` integral image of the grey image), also
     ``shadow`` (``float64 [B, N]``) with U of :func:`shadow_fraction` (the factor is applied
-    by :func:`apply_shadow`, in torch, for both paths).
+    by :func:`apply_shadow`, in torch, for both paths), or with ``sqrt_floor`` (the shadow
+    floor, for a shadow power of 0.5) V times sqrt(floor + U) directly (``shadow`` unused).
 
     Args:
         ii: ``float64 (B, H + 1, W + 1)`` integral image of the edge map.
@@ -248,13 +255,11 @@ def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc:
         min_edge: windows with S below this get ``-inf``.
     """
     f32 = np.float32
-    if grey is None or shadow is None:
-        g, u = np.zeros((0, 1, 1)), np.zeros((0, 1))
-    else:
-        g, u = grey.numpy(), shadow.numpy()
+    g = np.zeros((0, 1, 1)) if grey is None else grey.numpy()
+    u = np.zeros((0, 1)) if shadow is None else shadow.numpy()
     _score_grid_kernel(ii.numpy(), tables.anchor.numpy(), tables.cut_col.numpy(), tables.cut_row.numpy(),
                        tables.corner.numpy(), plan, denom, loc, float(unit), f32(alpha), f32(beta_r),
-                       f32(min_edge), out.numpy(), g, u)
+                       f32(min_edge), out.numpy(), g, u, -1.0 if sqrt_floor is None else float(sqrt_floor))
 
 
 def shadow_strips(w: int, h: int, strip: float, margin: float) -> tuple[int, int]:
@@ -278,6 +283,6 @@ def shadow_fraction(inside_sum: Tensor, below_sum: Tensor, inside_n: Tensor | fl
 
 def apply_shadow(v: Tensor, u: Tensor, floor: float, power: float) -> Tensor:
     """V·(floor + U)^power where V is finite (``-inf`` stays), ``float32``; ``u`` is ``float64``
-    of V's shape."""
+    of V's shape. (torch computes a power of 0.5 as a square root, correctly rounded.)"""
     f = (u + floor).pow(power).float()
     return torch.where(torch.isfinite(v), v * f, v)
