@@ -520,17 +520,41 @@ class ProposalGenerator(nn.Module):
 
     def _select(self, scores: Tensor, grid: _windows.WindowGrid, share: Tensor) -> Tensor:
         """Each region passes on its best ``share · candidates_per_region`` windows (eq. 9).
-        Returns ``bool [B, N]``."""
+        Returns ``bool [B, N]``; ties at the cut go to the lower window index. On the CPU one
+        compiled pass (:func:`reeb_torch.scoring.select_per_region_cpu`), elsewhere a stable sort."""
         cfg = self.config
         per_region = cfg.candidates_per_region if cfg.use_regions else cfg.candidates_without_regions
         budget = (share * per_region).round().long()  # (B, R)
+        if scores.device.type == "cpu":
+            members, starts = self._region_members(grid)
+            return _scoring.select_per_region_cpu(scores, members, starts, budget)
+        return self._select_torch(scores, grid, budget)
+
+    def _region_members(self, grid: _windows.WindowGrid) -> tuple[np.ndarray, np.ndarray]:
+        """The windows of every region, concatenated (``int64``), and where each region starts."""
+        hit = self._plan_cache.get(("members", id(grid)))
+        if hit is not None and hit[0] is grid:
+            return hit[1]
+        lists = [t.numpy().astype(np.int64) for t in grid.region_windows]
+        starts = np.cumsum([0] + [len(x) for x in lists]).astype(np.int64)
+        out = (np.concatenate(lists) if lists else np.zeros(0, np.int64), starts)
+        if len(self._plan_cache) >= 32:
+            self._plan_cache.clear()
+        self._plan_cache[("members", id(grid))] = (grid, out)
+        return out
+
+    def _select_torch(self, scores: Tensor, grid: _windows.WindowGrid, budget: Tensor) -> Tensor:
+        """:meth:`_select` as one stable sort per region (any device). Ties at the cut go to
+        the lower window index, as in the CPU pass (``topk`` leaves their order unspecified,
+        and windows without edges all score 0, so ties are common)."""
         chosen = torch.zeros_like(scores, dtype=torch.uint8)
         for r, idx_cpu in enumerate(grid.region_windows):
             k = min(int(idx_cpu.numel()), int(budget[:, r].max()))
             if k == 0:
                 continue
             idx = self._device_tensor(idx_cpu, scores.device)
-            vals, pos = scores[:, idx].topk(k, dim=1)
+            vals, pos = scores[:, idx].sort(dim=1, descending=True, stable=True)  # ties: lower index first
+            vals, pos = vals[:, :k], pos[:, :k]
             ok = torch.isfinite(vals) & (torch.arange(k, device=scores.device)[None] < budget[:, r: r + 1])
             chosen.scatter_add_(1, idx[pos], ok.to(torch.uint8))
         return chosen > 0

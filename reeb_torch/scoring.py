@@ -18,6 +18,7 @@ device, any config) scores each window size for all its positions and all images
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
@@ -257,9 +258,16 @@ def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc:
     f32 = np.float32
     g = np.zeros((0, 1, 1)) if grey is None else grey.numpy()
     u = np.zeros((0, 1)) if shadow is None else shadow.numpy()
-    _score_grid_kernel(ii.numpy(), tables.anchor.numpy(), tables.cut_col.numpy(), tables.cut_row.numpy(),
-                       tables.corner.numpy(), plan, denom, loc, float(unit), f32(alpha), f32(beta_r),
-                       f32(min_edge), out.numpy(), g, u, -1.0 if sqrt_floor is None else float(sqrt_floor))
+    per_image = [ii.numpy(), tables.anchor.numpy(), tables.cut_col.numpy(), tables.cut_row.numpy(),
+                 tables.corner.numpy()]
+    consts = (plan, denom, loc, float(unit), f32(alpha), f32(beta_r), f32(min_edge))
+    sq = -1.0 if sqrt_floor is None else float(sqrt_floor)
+
+    def run(lo: int, hi: int) -> None:
+        _score_grid_kernel(*(a[lo:hi] for a in per_image), *consts, out.numpy()[lo:hi],
+                           g[lo:hi] if g.shape[0] else g, u[lo:hi] if u.shape[0] else u, sq)
+
+    _on_two_cores(run, ii.shape[0])
 
 
 def shadow_strips(w: int, h: int, strip: float, margin: float) -> tuple[int, int]:
@@ -286,3 +294,67 @@ def apply_shadow(v: Tensor, u: Tensor, floor: float, power: float) -> Tensor:
     of V's shape. (torch computes a power of 0.5 as a square root, correctly rounded.)"""
     f = (u + floor).pow(power).float()
     return torch.where(torch.isfinite(v), v * f, v)
+
+
+@numba.njit(cache=True, nogil=True)
+def _select_kernel(scores: np.ndarray, members: np.ndarray, starts: np.ndarray, budget: np.ndarray,
+                   chosen: np.ndarray) -> None:  # pragma: no cover - compiled
+    """For each image and region, mark the ``budget`` best finite scores among the region's
+    windows (``members[starts[r]:starts[r + 1]]``, ascending); ties at the cut go to the
+    lower window index."""
+    for i in range(scores.shape[0]):
+        for r in range(starts.shape[0] - 1):
+            idx = members[starts[r]: starts[r + 1]]
+            n = idx.shape[0]
+            k = min(budget[i, r], n)
+            if k <= 0:
+                continue
+            vals = np.empty(n, np.float32)
+            finite = 0
+            for j in range(n):
+                vals[j] = scores[i, idx[j]]
+                if np.isfinite(vals[j]):
+                    finite += 1
+            if finite <= k:
+                for j in range(n):
+                    if np.isfinite(vals[j]):
+                        chosen[i, idx[j]] = True
+                continue
+            t = -np.partition(-vals, k - 1)[k - 1]  # the k-th largest (finite: more than k are)
+            left = k
+            for j in range(n):
+                if vals[j] > t:
+                    chosen[i, idx[j]] = True
+                    left -= 1
+            for j in range(n):
+                if left == 0:
+                    break
+                if vals[j] == t:
+                    chosen[i, idx[j]] = True
+                    left -= 1
+
+
+def select_per_region_cpu(scores: Tensor, members: np.ndarray, starts: np.ndarray, budget: Tensor) -> Tensor:
+    """Eq. 9's per-region selection on the CPU, compiled: ``bool [B, N]`` marking, for each
+    image ``b`` and region ``r``, the ``budget[b, r]`` best finite scores among the region's
+    windows ``members[starts[r]:starts[r + 1]]`` (ascending window indices; the lower index
+    wins a tie at the cut). ``scores``: ``float32 [B, N]``; ``budget``: ``int64 [B, R]``."""
+    chosen = np.zeros(tuple(scores.shape), np.bool_)
+    sc, bu = scores.contiguous().numpy(), budget.contiguous().numpy()
+    _on_two_cores(lambda lo, hi: _select_kernel(sc[lo:hi], members, starts, bu[lo:hi], chosen[lo:hi]),
+                  sc.shape[0])
+    return torch.from_numpy(chosen)
+
+
+def _on_two_cores(run, b: int) -> None:
+    """``run(lo, hi)`` over images ``[0, b)``: a compiled kernel that releases the GIL runs
+    on the two halves of the batch at once (the images are independent, so the numbers are
+    the same as in one call)."""
+    if b < 2:
+        run(0, b)
+        return
+    half = (b + 1) // 2
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        other = pool.submit(run, half, b)
+        run(0, half)
+        other.result()

@@ -211,3 +211,28 @@ def test_scoring_falls_back_to_tensor_ops_when_a_term_needs_maps(crop):
         assert gen([crop])[0]["boxes"].shape[0] > 0
     unbounded = connected_groups(e, None)  # one big component: no exact prefix-table sums
     assert not default._compiled_scoring_applies(e, unbounded, grid, None)
+
+
+def test_compiled_selection_equals_the_tensor_path(sample_image):
+    # eq. 9's per-region top-k: the compiled CPU pass and the stable sort choose the same windows
+    from reeb_torch import generator as G
+
+    for overrides in ({}, {"use_regions": False}, {"region_assign": "contained"}):
+        gen = ProposalGenerator(**overrides)
+        seen = {}
+        real = G.ProposalGenerator._select
+
+        def spy(self, scores, grid, share):
+            out = real(self, scores, grid, share)
+            cfg = self.config
+            per = cfg.candidates_per_region if cfg.use_regions else cfg.candidates_without_regions
+            seen["equal"] = torch.equal(out, self._select_torch(scores, grid, (share * per).round().long()))
+            seen["n"] = int(out.sum())
+            return out
+
+        G.ProposalGenerator._select = spy
+        try:
+            gen([sample_image[:, 100:300, 100:900]])
+        finally:
+            G.ProposalGenerator._select = real
+        assert seen["equal"] and seen["n"] > 1000, overrides
