@@ -120,8 +120,7 @@ class ProposalGenerator(nn.Module):
         for i, im in enumerate(imgs):
             by_size.setdefault((tuple(im.shape), im.device), []).append(i)
         for idx in by_size.values():
-            batch = torch.stack([imgs[i] for i in idx]) if len(idx) > 1 else imgs[idx[0]][None]
-            out, _ = self._propose_batch(batch)
+            out, _ = self._propose_batch([imgs[i] for i in idx])
             for i, r in zip(idx, out):
                 results[i] = r
         return results  # type: ignore[return-value]
@@ -130,7 +129,7 @@ class ProposalGenerator(nn.Module):
     def inspect(self, image: Tensor) -> Inspection:
         """Run on one ``(3, H, W)`` image and keep the intermediate maps (for pictures)."""
         (x,) = check_images([image], self.min_side, self.config)
-        out, extra = self._propose_batch(x[None], keep=True)
+        out, extra = self._propose_batch([x], keep=True)
         h, w = x.shape[-2:]
         up = lambda t, mode: F.interpolate(t[None].float(), size=(h, w), mode=mode)[0, 0]  # noqa: E731
         return Inspection(
@@ -142,14 +141,15 @@ class ProposalGenerator(nn.Module):
         )
 
     # ------------------------------------------------------------------------------------
-    def _propose_batch(self, x: Tensor, keep: bool = False) -> tuple[list[dict[str, Tensor]], dict]:
-        """The algorithm on a batch ``(B, 3, H, W)`` of equal-sized float images."""
+    def _propose_batch(self, images: list[Tensor], keep: bool = False) -> tuple[list[dict[str, Tensor]], dict]:
+        """The algorithm on a batch of equal-sized float ``(3, H, W)`` images."""
         cfg = self.config
-        b, _, h_in, w_in = x.shape
-        dev = x.device
+        b = len(images)
+        _, h_in, w_in = images[0].shape
+        dev = images[0].device
         # Sec. 3.4: Edge_Map = Sobel(Gaussian_Blur(I)), at the working resolution
         with self._stage("edges", dev):
-            xk = self._working_image(x)
+            xk = self._working_batch(images)
             gray = _edges.to_gray(xk)
             edges, gx, gy = _edges.edge_map(gray if cfg.edge_channels == "gray" else xk, cfg.blur_sigma,
                                             cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges,
@@ -214,13 +214,17 @@ class ProposalGenerator(nn.Module):
         return results, extra
 
     # -- stages ---------------------------------------------------------------------------
-    def _working_image(self, x: Tensor) -> Tensor:
+    def _working_batch(self, images: list[Tensor]) -> Tensor:
+        """``(B, 3, h, w)``: the images at the working resolution, each resized on its own and
+        then stacked (stacking the full-resolution images first would copy 4× the data)."""
         s = self.config.scale
         if s == 1.0:
-            return x
-        h, w = x.shape[-2:]
+            return torch.stack(images) if len(images) > 1 else images[0][None]
+        h, w = images[0].shape[-2:]
         size = (max(1, int(round(h * s))), max(1, int(round(w * s))))
-        return F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=s < 1)
+        small = [F.interpolate(x[None], size=size, mode="bilinear", align_corners=False, antialias=s < 1)
+                 for x in images]
+        return torch.cat(small) if len(small) > 1 else small[0]
 
     def _min_window_working(self, fx: float, fy: float) -> int:
         return max(3, int(round(self.config.min_window * min(fx, fy))))
