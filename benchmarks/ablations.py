@@ -120,7 +120,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
     add_frames_option(ap)
     ap.add_argument("--out", type=Path, default=Path("runs/ablations"))
     args = ap.parse_args(argv)
-    print("# rerun:", rerun_line("benchmarks/ablations.py", argv if argv is not None else sys.argv[1:]))
+    lines: list[str] = []
+
+    def say(text: str) -> None:  # printed as it comes, and kept for ablations.txt
+        print(text, flush=True)
+        lines.append(text)
+
+    say("# rerun: " + rerun_line("benchmarks/ablations.py", argv if argv is not None else sys.argv[1:]))
     try:
         images, gts, labels, classes, items = load(args.data, args.limit, args.frames)
     except ValueError as e:
@@ -128,10 +134,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
     gts_mod, labels_mod = select_objects(gts, labels, moderate_masks(items))
     ranges = args.frames if len(args.frames) > 1 else []
     in_range = [[i for i, it in enumerate(items) if int(it["image_id"]) in r] for r in ranges]
-    print(f"# {len(images)} images from {args.data}, {sum(len(g) for g in gts)} objects "
-          f"({sum(len(g) for g in gts_mod)} moderate), torch threads {torch.get_num_threads()}")
-    print(f"{'variant':34s} {'NOTES':6s} {'R@.5':>6s} {'R@.7':>6s} {'mod.7':>6s} {'AR':>6s} {'ms/img':>7s}"
-          + "".join(f" {'.7 ' + r.text:>9s}" for r in ranges))
+    say(f"# {len(images)} images from {args.data}, {sum(len(g) for g in gts)} objects "
+        f"({sum(len(g) for g in gts_mod)} moderate), torch threads {torch.get_num_threads()}")
+    say(f"{'variant':34s} {'NOTES':6s} {'R@.5':>6s} {'R@.7':>6s} {'mod.7':>6s} {'AR':>6s} {'ms/img':>7s}"
+        + "".join(f" {'.7 ' + r.text:>9s}" for r in ranges))
     rows = []
     for name, (cfg, note) in VARIANTS.items():
         if args.only and not any(s in name for s in args.only):
@@ -144,14 +150,15 @@ def main(argv: list[str] | None = None) -> list[dict]:
         per_range = {r.text: recall_table([boxes[i] for i in idx], [gts[i] for i in idx],
                                           ks=(2000,), ious=(0.7,)).at(2000, 0.7)
                      for r, idx in zip(ranges, in_range)}
-        print(f"{name:34s} {note:6s} {100 * r5:6.1f} {100 * r7:6.1f} {100 * mod7:6.1f} {100 * ar:6.1f} {ms:7.1f}"
-              + "".join(f" {100 * v:9.1f}" for v in per_range.values()), flush=True)
+        say(f"{name:34s} {note:6s} {100 * r5:6.1f} {100 * r7:6.1f} {100 * mod7:6.1f} {100 * ar:6.1f} {ms:7.1f}"
+            + "".join(f" {100 * v:9.1f}" for v in per_range.values()))
         per_class = {c: (None if v != v else v) for c, v in res.per_class_at(2000, 0.7).items()}  # nan: no object
         rows.append(dict(variant=name, notes=note, recall_05=r5, recall_07=r7, ar=ar, ms_per_img=ms,
                          recall_07_moderate=mod7, recall_07_per_class=per_class,
                          recall_07_per_range=per_range))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "ablations.json").write_text(json.dumps({"rows": rows, "env": environment()}, indent=2))
+    (args.out / "ablations.txt").write_text("\n".join(lines) + "\n")
     return rows
 
 
