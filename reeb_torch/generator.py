@@ -151,10 +151,15 @@ class ProposalGenerator(nn.Module):
         with self._stage("edges", dev):
             xk = self._working_batch(images)
             gray = _edges.to_gray(xk)
-            edges, gx, gy = _edges.edge_map(gray if cfg.edge_channels == "gray" else xk, cfg.blur_sigma,
-                                            cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges,
-                                            return_gradients=True)
-            crossing = _edges.crossing_maps(edges, gx, gy) if cfg.straddle_weight > 0 else None
+            src = gray if cfg.edge_channels == "gray" else xk
+            crossing = None
+            if cfg.straddle_weight > 0:  # edge orientations for the straddling term
+                edges, gx, gy = _edges.edge_map(src, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated,
+                                                cfg.thin_edges, return_gradients=True)
+                crossing = _edges.crossing_maps(edges, gx, gy)
+            else:
+                edges = _edges.edge_map(src, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated,
+                                        cfg.thin_edges)
         hk, wk = xk.shape[-2:]
         fx, fy = wk / w_in, hk / h_in
         # Sec. 3.7: adjacent edge pixels form edge groups

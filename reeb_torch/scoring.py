@@ -18,13 +18,13 @@ device, any config) scores each window size for all its positions and all images
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
 import torch
 from torch import Tensor
 
+from ._threads import on_two_cores
 from .groups import EdgeGroups
 from .windows import WindowSize
 
@@ -267,7 +267,7 @@ def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc:
         _score_grid_kernel(*(a[lo:hi] for a in per_image), *consts, out.numpy()[lo:hi],
                            g[lo:hi] if g.shape[0] else g, u[lo:hi] if u.shape[0] else u, sq)
 
-    _on_two_cores(run, ii.shape[0])
+    on_two_cores(run, ii.shape[0])
 
 
 def shadow_strips(w: int, h: int, strip: float, margin: float) -> tuple[int, int]:
@@ -346,20 +346,6 @@ def select_per_region_cpu(scores: Tensor, members: np.ndarray, starts: np.ndarra
     wins a tie at the cut). ``scores``: ``float32 [B, N]``; ``budget``: ``int64 [B, R]``."""
     chosen = np.zeros(tuple(scores.shape), np.bool_)
     sc, bu = scores.contiguous().numpy(), budget.contiguous().numpy()
-    _on_two_cores(lambda lo, hi: _select_kernel(sc[lo:hi], members, starts, bu[lo:hi], chosen[lo:hi]),
+    on_two_cores(lambda lo, hi: _select_kernel(sc[lo:hi], members, starts, bu[lo:hi], chosen[lo:hi]),
                   sc.shape[0])
     return torch.from_numpy(chosen)
-
-
-def _on_two_cores(run, b: int) -> None:
-    """``run(lo, hi)`` over images ``[0, b)``: a compiled kernel that releases the GIL runs
-    on the two halves of the batch at once (the images are independent, so the numbers are
-    the same as in one call)."""
-    if b < 2:
-        run(0, b)
-        return
-    half = (b + 1) // 2
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        other = pool.submit(run, half, b)
-        run(0, half)
-        other.result()
