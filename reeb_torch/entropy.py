@@ -3,6 +3,8 @@ proposal budget it earns."""
 
 from __future__ import annotations
 
+import numba
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -22,15 +24,40 @@ def region_entropy(gray: Tensor, bounds: Tensor, bins: int = 256) -> Tensor:
     g = gray.reshape(gray.shape[0], -1, gray.shape[-1]) if gray.ndim == 4 else gray
     b, h, w = g.shape
     level = (g * bins).long().clamp_(0, bins - 1)  # (B, H, W)
+    if g.device.type == "cpu":  # one compiled pass over each strip (the same integer counts)
+        hist_np = np.zeros((b, bounds.shape[0], bins), np.float32)
+        _strip_histograms(level.contiguous().numpy(), bounds.to(torch.int64).contiguous().numpy(), hist_np)
+        return _entropy_bits(torch.from_numpy(hist_np))
+    return _entropy_bits(_strip_histograms_tensor(level, bounds, bins))
+
+
+def _strip_histograms_tensor(level: Tensor, bounds: Tensor, bins: int) -> Tensor:
+    """Grey-level counts ``(B, R, bins)`` of the strips, as tensor ops (any device)."""
+    b, h, w = level.shape
+    dev = level.device
     # per-column histograms, then column prefix sums: a strip's histogram is a difference
-    flat = (torch.arange(b, device=g.device).view(b, 1, 1) * w + torch.arange(w, device=g.device).view(1, 1, w)) * bins + level
-    cols = torch.zeros(b * w * bins, dtype=torch.float32, device=g.device)
-    cols.index_add_(0, flat.reshape(-1), torch.ones(flat.numel(), device=g.device))
+    flat = (torch.arange(b, device=dev).view(b, 1, 1) * w + torch.arange(w, device=dev).view(1, 1, w)) * bins + level
+    cols = torch.zeros(b * w * bins, dtype=torch.float32, device=dev)
+    cols.index_add_(0, flat.reshape(-1), torch.ones(flat.numel(), device=dev))
     cum = torch.cat([cols.new_zeros(b, 1, bins), cols.view(b, w, bins).cumsum(1)], 1)  # (B, W+1, bins)
-    bnd = bounds.to(g.device)
-    hist = cum[:, bnd[:, 1]] - cum[:, bnd[:, 0]]  # (B, R, bins)
+    bnd = bounds.to(dev)
+    return cum[:, bnd[:, 1]] - cum[:, bnd[:, 0]]  # (B, R, bins)
+
+
+def _entropy_bits(hist: Tensor) -> Tensor:
+    """Eq. 2 from grey-level counts ``(B, R, bins)``: ``float [B, R]``, bits."""
     p = hist / hist.sum(-1, keepdim=True).clamp_min(1)
     return -(p * torch.log2(p.clamp_min(1e-30))).sum(-1)
+
+
+@numba.njit(cache=True, nogil=True)
+def _strip_histograms(level: np.ndarray, bounds: np.ndarray, hist: np.ndarray) -> None:  # pragma: no cover
+    """Counts of each grey level in each column strip ``[bounds[r, 0], bounds[r, 1])``."""
+    for b in range(level.shape[0]):
+        for r in range(bounds.shape[0]):
+            for y in range(level.shape[1]):
+                for x in range(bounds[r, 0], bounds[r, 1]):
+                    hist[b, r, level[b, y, x]] += 1.0
 
 
 def proposal_share(entropy: Tensor, sigma: float = 4.0, form: str = "abs-diff") -> Tensor:

@@ -41,3 +41,18 @@ def test_share_abs_diff_and_printed():
     printed = proposal_share(h, 4.0, "printed")
     assert printed.tolist() == [0.0] * 6  # no proposals for any H >= 0 (NOTES #9)
     assert math.isclose(float(proposal_share(torch.tensor(3.0), 4.0)), 0.75)
+
+
+def test_compiled_strip_histograms_equal_the_tensor_path():
+    # the CPU pass counts the same grey levels per strip as the per-column tensor histograms
+    import numpy as np
+
+    from reeb_torch.entropy import _strip_histograms, _strip_histograms_tensor
+
+    gen = torch.Generator().manual_seed(4)
+    level = (torch.rand(3, 17, 40, generator=gen) * 16).long()
+    bounds = torch.tensor([[0, 10], [5, 25], [20, 40], [0, 40]])
+    hist = np.zeros((3, 4, 16), np.float32)
+    _strip_histograms(level.numpy(), bounds.numpy(), hist)
+    assert torch.equal(torch.from_numpy(hist), _strip_histograms_tensor(level, bounds, 16))
+    assert float(hist[:, 3].sum()) == 3 * 17 * 40
