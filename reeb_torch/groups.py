@@ -21,6 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ._threads import on_two_cores
+
 __all__ = ["EdgeGroups", "edge_groups", "connected_groups", "cell_groups", "label_components"]
 
 
@@ -229,8 +231,16 @@ def connected_groups(edges: Tensor, cell: int | None = None) -> EdgeGroups:
     """
     b, h, w = edges.shape
     if edges.device.type == "cpu" and edges.dtype in (torch.float32, torch.float64):
-        out = _connected_groups_kernel(edges.contiguous().numpy(), 0 if cell is None else int(cell))
-        return EdgeGroups(*(torch.from_numpy(a) for a in out))
+        e, c = edges.contiguous().numpy(), 0 if cell is None else int(cell)
+        parts: dict[int, tuple] = {}
+
+        def run(lo: int, hi: int) -> None:
+            parts[lo] = _connected_groups_kernel(e[lo:hi], c)
+
+        on_two_cores(run, b)  # images are independent: halves in order, batch index shifted
+        cols = [torch.cat([torch.from_numpy(parts[lo][i]) + (lo if i == 0 else 0) for lo in sorted(parts)])
+                for i in range(6)]
+        return EdgeGroups(*cols)
     xs, ys = _coords(b, h, w, edges.device)
     labels = label_components(edges > 0, cell).view(-1)
     return _stats(labels, edges.reshape(-1), xs.reshape(-1), ys.reshape(-1), h * w)
