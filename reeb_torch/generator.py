@@ -29,7 +29,7 @@ from . import scoring as _scoring
 from . import windows as _windows
 from ._checks import ImageBatch, check_images
 from .config import ReebConfig
-from .nms import nms_top_k
+from .nms import nms_top_k_many
 
 __all__ = ["ProposalGenerator", "propose", "Inspection"]
 
@@ -197,18 +197,20 @@ class ProposalGenerator(nn.Module):
             to_input = torch.tensor([fx, fy, fx, fy], device=dev)
             boxes_in = self._device_tensor(grid.boxes, dev) / to_input
             region_of = self._device_tensor(grid.region_of, dev)
-            results = []
+            cands, pairs = [], []
             for i in range(b):
                 cand = torch.nonzero(chosen[i]).squeeze(1)
                 if cand_boxes is not None:
-                    bx, sc = cand_boxes[i] / to_input, cand_scores[i]
+                    pairs.append((cand_boxes[i] / to_input, cand_scores[i]))
                 else:
-                    bx, sc = boxes_in[cand], scores[i, cand]
-                if cfg.region_quota and len(bounds) > 1:
-                    keep_idx = nms_top_k(bx, sc, cfg.nms_iou, bx.shape[0])
+                    pairs.append((boxes_in[cand], scores[i, cand]))
+                cands.append(cand)
+            quota = cfg.region_quota and len(bounds) > 1
+            keeps = nms_top_k_many(pairs, cfg.nms_iou, max(len(p[1]) for p in pairs) if quota else cfg.top_k)
+            results = []
+            for i, ((bx, sc), cand, keep_idx) in enumerate(zip(pairs, cands, keeps)):
+                if quota:
                     keep_idx = self._quota(keep_idx, region_of[cand[keep_idx]], share[i])[: cfg.top_k]
-                else:
-                    keep_idx = nms_top_k(bx, sc, cfg.nms_iou, cfg.top_k)
                 results.append({"boxes": bx[keep_idx].contiguous(), "scores": sc[keep_idx].contiguous()})
         extra: dict = {}
         if keep:

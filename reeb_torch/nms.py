@@ -26,7 +26,9 @@ import torch
 from torch import Tensor
 from torchvision.ops import nms
 
-__all__ = ["nms_top_k"]
+from ._threads import on_two_cores
+
+__all__ = ["nms_top_k", "nms_top_k_many"]
 
 _GRID_CELLS = 16
 """Cells along the longer side of the boxes' extent in the grid-bucketed kernel."""
@@ -168,3 +170,31 @@ def nms_top_k(boxes: Tensor, scores: Tensor, iou: float, k: int, first: int | No
         if keep.numel() >= k or p == n:
             return order[keep[:k]]
         p = n
+
+
+def nms_top_k_many(pairs: list[tuple[Tensor, Tensor]], iou: float, k: int) -> list[Tensor]:
+    """:func:`nms_top_k` of each ``(boxes, scores)`` pair (the images of a batch): the same
+    indices, but the compiled CPU kernels of the images run two at a time (they release
+    the GIL) after the sorting, which stays in torch."""
+    out: list[Tensor | None] = [None] * len(pairs)
+    todo: list[tuple[int, Tensor, np.ndarray]] = []
+    for i, (boxes, scores) in enumerate(pairs):
+        if scores.numel() == 0:
+            out[i] = torch.zeros(0, dtype=torch.long, device=boxes.device)
+            continue
+        order = torch.sort(scores, descending=True, stable=True).indices
+        sboxes = boxes[order]
+        if _grid_ok(sboxes, iou):
+            todo.append((i, order, sboxes.contiguous().numpy()))
+        else:
+            out[i] = nms_top_k(boxes, scores, iou, k)
+    kept: list[np.ndarray | None] = [None] * len(todo)
+
+    def run(lo: int, hi: int) -> None:
+        for j in range(lo, hi):
+            kept[j] = _grid_nms_sorted(todo[j][2], float(iou), int(k))
+
+    on_two_cores(run, len(todo))
+    for (i, order, _), keep in zip(todo, kept):
+        out[i] = order[torch.from_numpy(keep)]
+    return out  # type: ignore[return-value]

@@ -118,15 +118,15 @@ def test_generator_candidates_equal_torchvision():
     path = Path(__file__).resolve().parents[1] / "examples" / "data" / "kitti_000001.png"
     caught = []
 
-    def spy(boxes, scores, iou, k, first=None):
-        caught.append((boxes, scores, iou, k))
-        return nms_top_k(boxes, scores, iou, k, first)
+    def spy(pairs, iou, k):
+        caught.extend((boxes, scores, iou, k) for boxes, scores in pairs)
+        return [nms_top_k(boxes, scores, iou, k) for boxes, scores in pairs]
 
-    orig, G.nms_top_k = G.nms_top_k, spy
+    orig, G.nms_top_k_many = G.nms_top_k_many, spy
     try:
         ProposalGenerator(get_preset("default-no-regions"))([read_image(path)])
     finally:
-        G.nms_top_k = orig
+        G.nms_top_k_many = orig
     assert caught
     for boxes, scores, iou, k in caught:
         assert boxes.shape[0] > k and _grid_ok(boxes, iou)
@@ -149,3 +149,18 @@ else:
         b = torch.cat([t[:, :2], t[:, :2] + t[:, 2:4]], 1) / 4  # quarter-pixel lattice
         s = t[:, 4]
         assert torch.equal(nms_top_k(b, s, thr, k), nms(b, s, thr)[:k])
+
+
+def test_nms_top_k_many_equals_one_image_at_a_time():
+    from reeb_torch.nms import nms_top_k, nms_top_k_many
+
+    gen = torch.Generator().manual_seed(9)
+    pairs = []
+    for n in (300, 0, 57, 1000, 1):
+        xy = torch.rand(n, 2, generator=gen) * 200
+        wh = torch.rand(n, 2, generator=gen) * 60 + 1
+        pairs.append((torch.cat([xy, xy + wh], 1), torch.rand(n, generator=gen).round(decimals=1)))  # ties
+    for iou, k in ((0.7, 50), (0.5, 1000), (0.3, 20)):  # 0.3: the torchvision path
+        got = nms_top_k_many(pairs, iou, k)
+        for (b, s), g in zip(pairs, got):
+            assert torch.equal(g, nms_top_k(b, s, iou, k))
