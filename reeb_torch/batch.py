@@ -746,6 +746,19 @@ def read_partial_results(path: str | os.PathLike, fmt: str) -> tuple[list[dict],
     return rows, problems
 
 
+def caused_by_interrupt(e: BaseException) -> bool:
+    """Whether ``e`` is, or was raised while handling, a :class:`KeyboardInterrupt`: a
+    Ctrl-C that lands inside a library's own Python code can come out wrapped (numba,
+    loading a cached kernel, turns it into a ``SystemError``)."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__  # type: ignore[assignment]
+    return False
+
+
 class CriticalSection:
     """Defers Ctrl-C (and SIGTERM) while a row is being written, so that a row is either
     wholly in the output or not at all, and the counts in the summary match the file.

@@ -483,12 +483,16 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
             else:
                 try:
                     run_batch(group)
-                except (ValueError, TypeError, RuntimeError):
+                except (ValueError, TypeError, RuntimeError) as e0:
+                    if B.caused_by_interrupt(e0):
+                        raise
                     # find the culprit(s): one image at a time
                     for it in group:
                         try:
                             run_batch([it])
                         except (ValueError, TypeError, RuntimeError) as e1:
+                            if B.caused_by_interrupt(e1):
+                                raise
                             fail(it, B.file_error(it.path, e1))
             bar.update(len(group))
             if first_done is None and stats["ok"]:
@@ -496,6 +500,10 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
             if stats["failed"]:
                 bar.set_postfix(failed=stats["failed"], refresh=False)
     except KeyboardInterrupt:
+        interrupted = True
+    except Exception as e:  # a Ctrl-C that a library wrapped on its way out (B.caused_by_interrupt)
+        if not B.caused_by_interrupt(e):
+            raise
         interrupted = True
     finally:
         for sig in previous_handlers:  # a second Ctrl-C must not break the saving

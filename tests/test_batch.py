@@ -295,3 +295,28 @@ def test_show_picture_keeps_the_aspect_ratio(h, w):
     for ax in images:
         box = ax.get_window_extent()
         assert box.width / box.height == pytest.approx(w / h, rel=0.02)
+
+
+def test_an_interrupt_wrapped_by_a_library_is_still_an_interrupt():
+    # numba, loading a cached kernel when Ctrl-C lands, re-raises it as a SystemError
+    from reeb_torch.batch import caused_by_interrupt
+
+    def wrapped() -> None:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as e:
+            raise SystemError("returned a result with an exception set") from e
+
+    try:
+        wrapped()
+    except SystemError as e:
+        assert caused_by_interrupt(e)
+    assert caused_by_interrupt(KeyboardInterrupt())
+    assert not caused_by_interrupt(ValueError("a bad image"))
+    try:
+        try:
+            raise ValueError("inner")
+        except ValueError:
+            raise RuntimeError("outer")  # noqa: B904 - chained by context only
+    except RuntimeError as e:
+        assert not caused_by_interrupt(e)
