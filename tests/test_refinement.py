@@ -96,3 +96,23 @@ def test_enclosed_grid_equals_the_per_size_scatter(sample_image):
     gen._enclosed = spy  # type: ignore[method-assign]
     gen([sample_image[:, :200, :600]])
     assert seen["n"] > 50 and seen["equal"]
+
+
+def test_compiled_tables_equal_the_tensor_tables(sample_image):
+    # the CPU kernel fills the very same float64 tables as the tensor scatters + cumsums
+    from reeb_torch import edges as E
+    from reeb_torch.groups import connected_groups
+    from reeb_torch.refinement import _enclosed_tables_torch, enclosed_tables
+
+    gen = torch.Generator().manual_seed(5)
+    crops = torch.stack([sample_image[:, :180, :500], sample_image[:, 100:280, 300:800]]).float() / 255
+    e = E.edge_map(E.to_gray(crops), 1.0, 0.05, True, True)
+    rnd = torch.rand(3, 31, 45, generator=gen) * (torch.rand(3, 31, 45, generator=gen) < 0.4)
+    empty = torch.zeros(2, 20, 30)
+    for edges, cell in ((e, 8), (e, None), (rnd, 5), (empty, 8)):
+        g = connected_groups(edges, cell)
+        b, h, w = edges.shape
+        got, ref = enclosed_tables(g, b, h, w), _enclosed_tables_torch(g, b, h, w)
+        assert got.max_extent == ref.max_extent
+        for f in ("anchor", "cut_col", "cut_row", "corner"):
+            assert torch.equal(getattr(got, f), getattr(ref, f)), f
