@@ -279,7 +279,6 @@ class ProposalGenerator(nn.Module):
         local maxima) and every window is wider and taller than every edge group, one
         compiled pass (:func:`reeb_torch.scoring.score_grid_cpu`) scores all windows;
         otherwise one batch of tensor ops per window size. Both give the same numbers."""
-        cfg = self.config
         if self._compiled_scoring_applies(edges, groups, grid, crossing):
             return self._score_windows_compiled(edges, groups, grid, fx, fy, h_in, w_in, grey)
         return self._score_windows_torch(edges, road, groups, grid, fx, fy, h_in, w_in, crossing, grey)
@@ -290,25 +289,26 @@ class ProposalGenerator(nn.Module):
         if (edges.device.type != "cpu" or crossing is not None or cfg.local_max
                 or cfg.road_score not in ("none", "flat") or not grid.sizes):
             return False
-        return groups.max_extent < min(min(s.w, s.h) for s in grid.sizes)
+        return _tables_exact(groups, grid)
 
     def _score_plan(self, grid: _windows.WindowGrid, fx: float, fy: float, h_in: int,
                     w_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per-size constants of the compiled scoring pass (cached per grid and input size):
-        the ``int64 [S, 13]`` size table, eq. 1's normalisers ``float64 [S]`` and L of every
+        the ``int64 [S, 15]`` size table, eq. 1's normalisers ``float64 [S]`` and L of every
         size's rows ``float32 [Σ ny]`` (computed by the same tensor code as the torch path)."""
+        return self._grid_cached(("plan", fx, fy, h_in, w_in, self.config), grid,
+                                 lambda: self._build_score_plan(grid, fx, fy, h_in, w_in))
+
+    def _build_score_plan(self, grid: _windows.WindowGrid, fx: float, fy: float, h_in: int,
+                          w_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         cfg = self.config
-        key = (id(grid), fx, fy, h_in, w_in, cfg)
-        hit = self._plan_cache.get(key)
-        if hit is not None and hit[0] is grid:
-            return hit[1]
         rows, denoms, locs = [], [], []
         loc_cache: dict = {}
         loc_offset = 0
         for s, off in zip(grid.sizes, grid.offsets):
             dx, dy, cw, ch = _scoring.centre_box(s.w, s.h, cfg.center_fraction)
             bw, bh = s.w / fx, s.h / fy
-            denom = (2.0 * (bw + bh)) ** cfg.kappa if cfg.score_norm == "perimeter" else 2.0 * (bw * bh) ** cfg.gamma
+            denom = _scoring.edge_norm(bw, bh, cfg.score_norm, cfg.kappa, cfg.gamma)
             lkey = (s.h, s.oy, s.sy, s.ny) if cfg.location_score != "paper" else None
             start = loc_cache.get(lkey) if lkey is not None else None
             if start is None:
@@ -320,13 +320,22 @@ class ProposalGenerator(nn.Module):
             sh, mx = _scoring.shadow_strips(s.w, s.h, cfg.shadow_strip, cfg.shadow_margin)
             rows.append((s.w, s.h, s.sx, s.sy, s.nx, s.ny, s.oy, off, dx, dy, cw, ch, start, sh, mx))
             denoms.append(denom)
-        plan = (np.asarray(rows, dtype=np.int64).reshape(-1, len(_scoring.PLAN_COLUMNS)),
+        return (np.asarray(rows, dtype=np.int64).reshape(-1, len(_scoring.PLAN_COLUMNS)),
                 np.asarray(denoms, dtype=np.float64),
                 torch.cat(locs).numpy() if locs else np.zeros(0, np.float32))
-        if len(self._plan_cache) >= 32:
+
+    def _grid_cached(self, key: tuple, grid: _windows.WindowGrid, build):
+        """``build()``, cached per ``key`` and window grid (grids are cached themselves, so
+        one is recognised by identity; the entry keeps it alive so its id is not reused)."""
+        key = (id(grid), *key)
+        hit = self._plan_cache.get(key)
+        if hit is not None and hit[0] is grid:
+            return hit[1]
+        value = build()
+        if len(self._plan_cache) >= 32:  # grids of many image sizes: start afresh
             self._plan_cache.clear()
-        self._plan_cache[key] = (grid, plan)
-        return plan
+        self._plan_cache[key] = (grid, value)
+        return value
 
     def _location_rows(self, s: _windows.WindowSize, bw: float, bh: float, fy: float, h_in: int, w_in: int,
                        device: torch.device) -> Tensor:
@@ -367,10 +376,7 @@ class ProposalGenerator(nn.Module):
         b = edges.shape[0]
         ii_edges = _scoring.integral_image(edges)
         ii_road = _scoring.integral_image(road) if road is not None else None  # None: no road term
-        ii_road_below = None
-        if cfg.road_score == "stand":  # rows past the bottom hold no road
-            hk = road.shape[1]
-            ii_road_below = torch.cat([ii_road, ii_road[:, -1:].expand(-1, hk, -1)], 1)
+        ii_road_below = _scoring.extend_below(ii_road) if cfg.road_score == "stand" else None  # none past the bottom
         enclosed = self._enclosed(groups, b, edges.shape[1], edges.shape[2], grid)
         loc_cache: dict = {}  # L depends on the window height and rows only (not on ``paper``'s b_w)
         band = cfg.straddle_band
@@ -381,9 +387,7 @@ class ProposalGenerator(nn.Module):
         out = torch.full((b, grid.count), -math.inf, dtype=torch.float32, device=edges.device)
         shadow = ii_grey_below = None
         if cfg.shadow_score != "none":  # rows past the bottom add nothing to the strip below
-            hk = grey.shape[1]
-            ii_grey = _scoring.integral_image(grey)
-            ii_grey_below = torch.cat([ii_grey, ii_grey[:, -1:].expand(-1, hk, -1)], 1)
+            ii_grey_below = _scoring.extend_below(_scoring.integral_image(grey))
             shadow = torch.zeros((b, grid.count), dtype=torch.float64, device=edges.device)
         for s, enc, off in zip(grid.sizes, enclosed, grid.offsets):
             dx, dy, cw, ch = _scoring.centre_box(s.w, s.h, cfg.center_fraction)
@@ -435,8 +439,7 @@ class ProposalGenerator(nn.Module):
         (:func:`reeb_torch.scoring.enclosed_sums`). Both are exact float64 sums: the same numbers."""
         if not grid.sizes:
             return []
-        ext = groups.max_extent
-        if ext < min(min(s.w, s.h) for s in grid.sizes):
+        if _tables_exact(groups, grid):
             tables = _refinement.enclosed_tables(groups, b, hk, wk)
             return [_refinement.enclosed_grid(tables, s) for s in grid.sizes]
         return _scoring.enclosed_sums(groups, b, grid.sizes)
@@ -454,7 +457,7 @@ class ProposalGenerator(nn.Module):
         tables = _refinement.enclosed_tables(groups, b, hk, wk)
         ii_edges = _scoring.integral_image(edges)
         ii_road = _scoring.integral_image(road)
-        ii_road_below = torch.cat([ii_road, ii_road[:, -1:].expand(-1, hk, -1)], 1)
+        ii_road_below = _scoring.extend_below(ii_road)
         band = cfg.straddle_band
         if crossing is not None:
             ii_cols = _scoring.integral_image(F.pad(crossing[0], (band, band, band, band)))
@@ -462,8 +465,7 @@ class ProposalGenerator(nn.Module):
         unit = _scoring.unit_scale(fx, fy)
         at = _refinement.box_sum_at
         if cfg.shadow_score != "none":
-            ii_grey = _scoring.integral_image(grey)
-            ii_grey_below = torch.cat([ii_grey, ii_grey[:, -1:].expand(-1, hk, -1)], 1)
+            ii_grey_below = _scoring.extend_below(_scoring.integral_image(grey))
 
         def score_fn(boxes: Tensor, bi: Tensor) -> Tensor:
             x0, y0, x1, y1 = boxes.unbind(1)
@@ -543,16 +545,12 @@ class ProposalGenerator(nn.Module):
 
     def _region_members(self, grid: _windows.WindowGrid) -> tuple[np.ndarray, np.ndarray]:
         """The windows of every region, concatenated (``int64``), and where each region starts."""
-        hit = self._plan_cache.get(("members", id(grid)))
-        if hit is not None and hit[0] is grid:
-            return hit[1]
-        lists = [t.numpy().astype(np.int64) for t in grid.region_windows]
-        starts = np.cumsum([0] + [len(x) for x in lists]).astype(np.int64)
-        out = (np.concatenate(lists) if lists else np.zeros(0, np.int64), starts)
-        if len(self._plan_cache) >= 32:
-            self._plan_cache.clear()
-        self._plan_cache[("members", id(grid))] = (grid, out)
-        return out
+        def build() -> tuple[np.ndarray, np.ndarray]:
+            lists = [t.numpy().astype(np.int64) for t in grid.region_windows]
+            starts = np.cumsum([0] + [len(x) for x in lists]).astype(np.int64)
+            return (np.concatenate(lists) if lists else np.zeros(0, np.int64), starts)
+
+        return self._grid_cached(("members",), grid, build)
 
     def _select_torch(self, scores: Tensor, grid: _windows.WindowGrid, budget: Tensor) -> Tensor:
         """:meth:`_select` as one stable sort per region (any device). Ties at the cut go to
@@ -600,6 +598,12 @@ class ProposalGenerator(nn.Module):
             hit = (t, t.to(device))
             self._device_cache[key] = hit
         return hit[1]
+
+
+def _tables_exact(groups: _groups.EdgeGroups, grid: _windows.WindowGrid) -> bool:
+    """Whether the prefix tables give eq. 1's enclosed sums exactly for every window of
+    ``grid``: every window is wider and taller than every edge group."""
+    return groups.max_extent < min(min(s.w, s.h) for s in grid.sizes)
 
 
 def propose(images: ImageBatch, config: ReebConfig | None = None, **overrides: object) -> list[dict[str, Tensor]]:

@@ -51,6 +51,13 @@ def integral_image(x: Tensor) -> Tensor:
     return ii
 
 
+def extend_below(ii: Tensor) -> Tensor:
+    """An integral image ``(B, H + 1, W + 1)`` extended by ``H`` rows that repeat its last
+    row, ``(B, 2H + 1, W + 1)``: box sums that reach past the image bottom count the rows
+    past it as zeros (for the strips just below a box)."""
+    return torch.cat([ii, ii[:, -1:].expand(-1, ii.shape[1] - 1, -1)], 1)
+
+
 def box_sums(ii: Tensor, dx: int, dy: int, bw: int, bh: int, s: WindowSize) -> Tensor:
     """Sums of the ``bw × bh`` boxes at ``(i·sx + dx, oy + j·sy + dy)`` for all positions
     of ``s``: ``(B, ny, nx)`` from an integral image ``(B, H + 1, W + 1)``."""
@@ -115,8 +122,13 @@ def edge_score(enclosed: Tensor, centre: Tensor, w: float, h: float, norm: str, 
     """Eq. 1: S = (Σ_n w_n m_n − Σ_c m_c) / normaliser, with ``w``, ``h`` the window's size
     in the units the sums are in. ``perimeter``: (2(w + h))^κ (Edge Boxes);
     ``area``: 2·(w·h)^γ (as printed)."""
-    denom = (2.0 * (w + h)) ** kappa if norm == "perimeter" else 2.0 * (w * h) ** gamma
-    return (enclosed - centre) / denom
+    return (enclosed - centre) / edge_norm(w, h, norm, kappa, gamma)
+
+
+def edge_norm(w, h, norm: str, kappa: float, gamma: float):
+    """Eq. 1's normaliser of a ``w × h`` window (floats or tensors): ``perimeter``:
+    (2(w + h))^κ; ``area``: 2·(w·h)^γ."""
+    return (2.0 * (w + h)) ** kappa if norm == "perimeter" else 2.0 * (w * h) ** gamma
 
 
 def location_score(bottom: Tensor, bw: float | Tensor, bh: float | Tensor, img_w: float, img_h: float, mode: str,
@@ -248,7 +260,7 @@ def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc:
         ii: ``float64 (B, H + 1, W + 1)`` integral image of the edge map.
         tables: :class:`reeb_torch.refinement.EnclosedTables` of the groups (every window
             wider and taller than their ``max_extent``).
-        plan: ``int64 [S, 13]``, one row per window size (:data:`PLAN_COLUMNS`).
+        plan: ``int64 [S, 15]``, one row per window size (:data:`PLAN_COLUMNS`).
         denom: ``float64 [S]``, eq. 1's normaliser of each size (input-pixel units).
         loc: ``float32 [Σ ny]``, L of each size's rows, at ``plan[:, 12]``.
         unit, alpha: as in :func:`edge_score` and :func:`combined_score`.
