@@ -155,15 +155,22 @@ def nms_top_k(boxes: Tensor, scores: Tensor, iou: float, k: int, first: int | No
     Returns:
         ``int64 [min(k, kept)]`` on ``boxes``' device.
     """
-    n = scores.numel()
-    if n == 0:
+    if scores.numel() == 0:
         return torch.zeros(0, dtype=torch.long, device=boxes.device)
     order = torch.sort(scores, descending=True, stable=True).indices
     sboxes = boxes[order]
     if _grid_ok(sboxes, iou):
         keep = _grid_nms_sorted(sboxes.contiguous().numpy(), float(iou), int(k))
         return order[torch.from_numpy(keep)]
-    rank_score = torch.arange(n, 0, -1, device=boxes.device, dtype=torch.float32)  # strict order
+    return _torchvision_sorted(order, sboxes, iou, k, first)
+
+
+def _torchvision_sorted(order: Tensor, sboxes: Tensor, iou: float, k: int, first: int | None = None) -> Tensor:
+    """The torchvision path of :func:`nms_top_k` on boxes already sorted by ``order``:
+    ``nms`` on a growing prefix of the ranking (a box's fate depends only on the boxes
+    ranked above it)."""
+    n = sboxes.shape[0]
+    rank_score = torch.arange(n, 0, -1, device=sboxes.device, dtype=torch.float32)  # strict order
     p = min(n, first or 2 * k)
     while True:
         keep = nms(sboxes[:p], rank_score[:p], iou)
@@ -187,7 +194,7 @@ def nms_top_k_many(pairs: list[tuple[Tensor, Tensor]], iou: float, k: int) -> li
         if _grid_ok(sboxes, iou):
             todo.append((i, order, sboxes.contiguous().numpy()))
         else:
-            out[i] = nms_top_k(boxes, scores, iou, k)
+            out[i] = _torchvision_sorted(order, sboxes, iou, k)
     kept: list[np.ndarray | None] = [None] * len(todo)
 
     def run(lo: int, hi: int) -> None:
