@@ -32,13 +32,9 @@ def gaussian_blur(gray: Tensor, sigma: float) -> Tensor:
     Computed as a fixed-order sum of shifted slices rather than a convolution: a
     convolution backend may block a batch differently from one image, which changes the
     float rounding, and every later stage would then depend on the batch."""
-    k = 2 * math.ceil(2 * sigma) + 1
-    r = k // 2
     _, _, h, w = gray.shape
-    if r >= h or r >= w:  # reflection needs more pixels than the kernel radius
-        raise ValueError(f"blur_sigma={sigma} needs an image of at least {r + 1}×{r + 1} working "
-                         f"pixels, got {h}×{w}")
-    wts = kornia.filters.get_gaussian_kernel1d(k, sigma, device=gray.device, dtype=gray.dtype)[0].tolist()
+    wts = _blur_weights(sigma, h, w, gray).tolist()
+    k, r = len(wts), len(wts) // 2
     p = F.pad(gray, (r, r, r, r), mode="reflect")[:, 0]
     rows = wts[0] * p[:, :, 0:w]
     for i in range(1, k):
@@ -47,6 +43,17 @@ def gaussian_blur(gray: Tensor, sigma: float) -> Tensor:
     for i in range(1, k):
         out = out + wts[i] * rows[:, i: i + h]
     return out[:, None]
+
+
+def _blur_weights(sigma: float, h: int, w: int, like: Tensor) -> Tensor:
+    """kornia's Gaussian weights for :func:`gaussian_blur` (side ``2*ceil(2σ)+1``, ``like``'s
+    device and dtype), after checking that an ``h × w`` image can be reflected that far."""
+    k = 2 * math.ceil(2 * sigma) + 1
+    r = k // 2
+    if r >= h or r >= w:  # reflection needs more pixels than the kernel radius
+        raise ValueError(f"blur_sigma={sigma} needs an image of at least {r + 1}×{r + 1} working "
+                         f"pixels, got {h}×{w}")
+    return kornia.filters.get_gaussian_kernel1d(k, sigma, device=like.device, dtype=like.dtype)[0]
 
 
 def sobel_gradients(gray: Tensor) -> tuple[Tensor, Tensor]:
@@ -113,9 +120,9 @@ def edge_map(gray: Tensor, sigma: float, threshold: float, isolated: bool, thinn
     maps Edge Boxes scores. With ``return_gradients`` also returns the Sobel ``gx, gy``
     ``(B, H, W)`` the magnitudes came from (for edge orientations).
 
-    On the CPU the default path (grey, thinned, isolated pixels removed) runs as one
-    compiled pass (numba) with the same float32 arithmetic, operation for operation, as
-    the tensor ops (tested equal bit for bit)."""
+    On the CPU the default path (grey, thinned, isolated pixels removed) runs as two
+    compiled passes (numba) around torch's magnitude, with the same float32 arithmetic,
+    operation for operation, as the tensor ops (tested equal bit for bit)."""
     b, c, h, w = gray.shape
     if (c == 1 and thinning and isolated and not return_gradients and gray.device.type == "cpu"
             and gray.dtype == torch.float32):
@@ -239,10 +246,7 @@ def _edge_map_cpu(gray: Tensor, sigma: float, threshold: float) -> Tensor:
     Blur and Sobel, then thinning and isolated pixels, are compiled passes; the magnitude
     between them stays a tensor op (torch's vectorised sqrt is the reference's)."""
     b, _, h, w = gray.shape
-    k = 2 * math.ceil(2 * sigma) + 1
-    if k // 2 >= h or k // 2 >= w:
-        gaussian_blur(gray[:1], sigma)  # raises the ValueError naming the sizes
-    wts = kornia.filters.get_gaussian_kernel1d(k, sigma, device=gray.device, dtype=gray.dtype)[0]
+    wts = _blur_weights(sigma, h, w, gray)
     gx, gy = np.empty((b, h, w), np.float32), np.empty((b, h, w), np.float32)
     g, wt = gray[:, 0].contiguous().numpy(), wts.contiguous().numpy()
     on_two_cores(lambda lo, hi: _blur_sobel_kernel(g[lo:hi], wt, gx[lo:hi], gy[lo:hi]), b)
