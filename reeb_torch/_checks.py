@@ -26,7 +26,7 @@ def _check_storage(t: Tensor, where: str) -> None:
         raise TypeError(f"{where}: expected a dense (strided) tensor, got layout {t.layout}; call .to_dense() first")
 
 
-def _check_one(img: Tensor, where: str) -> Tensor:
+def _check_one(img: Tensor, where: str, keep_uint8: bool = False) -> Tensor:
     if not isinstance(img, Tensor):
         raise TypeError(f"{where}: expected a torch.Tensor, got {type(img).__name__}")
     _check_storage(img, where)
@@ -35,7 +35,7 @@ def _check_one(img: Tensor, where: str) -> Tensor:
     if img.shape[0] != 3:
         raise ValueError(f"{where}: expected 3 (RGB) channels in dim 0, got shape {tuple(img.shape)}")
     if img.dtype == torch.uint8:
-        return img.float().div_(255.0)
+        return img if keep_uint8 else img.float().div_(255.0)
     if not img.is_floating_point():
         raise TypeError(f"{where}: expected dtype float or uint8, got {img.dtype}")
     if img.numel() and not bool(torch.isfinite(img).all()):
@@ -66,8 +66,11 @@ def check_fits(height: int, width: int, config: ReebConfig, where: str = "image"
         )
 
 
-def check_images(images: ImageBatch, min_side: int, config: ReebConfig | None = None) -> list[Tensor]:
-    """Validate a batch and return a list of float32 ``(3, H, W)`` images in [0, 1].
+def check_images(images: ImageBatch, min_side: int, config: ReebConfig | None = None,
+                 keep_uint8: bool = False) -> list[Tensor]:
+    """Validate a batch and return a list of float32 ``(3, H, W)`` images in [0, 1]
+    (with ``keep_uint8``, uint8 images are returned as they are, for a caller that
+    converts them itself: ``x.float().div_(255.0)``).
 
     Accepts a ``(B, 3, H, W)`` float/uint8 tensor or a sequence of ``(3, H, W)`` tensors,
     dense, on a real device (a meta tensor is a TypeError). ``min_side`` is the smallest
@@ -93,7 +96,7 @@ def check_images(images: ImageBatch, min_side: int, config: ReebConfig | None = 
         raise ValueError("empty batch: expected at least one image")
     out = []
     for i, img in enumerate(seq):
-        x = _check_one(img, f"image {i}")
+        x = _check_one(img, f"image {i}", keep_uint8)
         h, w = x.shape[-2:]
         if h < min_side or w < min_side:
             raise ValueError(

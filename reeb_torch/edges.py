@@ -8,21 +8,149 @@ from __future__ import annotations
 
 import math
 
+import functools
+
 import kornia
 import numba
 import numpy as np
 import torch
 import torch.nn.functional as F
+from numba.core import types as _nbtypes
+from numba.extending import intrinsic, overload
 from torch import Tensor
 
 from ._threads import on_two_cores
 
-__all__ = ["to_gray", "gaussian_blur", "sobel_magnitude", "thin", "remove_isolated", "edge_map"]
+__all__ = ["to_gray", "working_gray", "gaussian_blur", "sobel_magnitude", "thin", "remove_isolated", "edge_map"]
 
 def to_gray(images: Tensor) -> Tensor:
     """RGB ``(B, 3, H, W)`` in [0, 1] to grey ``(B, 1, H, W)`` in [0, 1] (ITU-R 601 weights,
     as OpenCV's ``COLOR_RGB2GRAY``)."""
     return kornia.color.rgb_to_grayscale(images)
+
+
+def working_gray(images: list[Tensor], scale: float) -> Tensor | None:
+    """Grey images at the working resolution, ``(B, 1, h, w)`` float32 with ``h, w`` =
+    ``round(H·scale), round(W·scale)``, from equal-sized ``(3, H, W)`` images (uint8, or
+    float32 in [0, 1]); ``None`` where this compiled path does not apply (then resize with
+    ``F.interpolate`` and use :func:`to_gray`).
+
+    It is the same computation as ``to_gray(F.interpolate(x / 255, antialias=True))``,
+    operation for operation and bit for bit (tested): torch's antialiased bilinear
+    weights (read off torch itself, per image size), its horizontal-then-vertical passes
+    with fused multiply-adds, and kornia's ``addcmul`` grey, in one compiled pass per
+    image (numba) that never writes the colour image at either resolution. It applies on
+    the CPU for ``0.5 <= scale < 1`` (filters of at most four taps; torch sums longer
+    ones in another order) where torch's kernels are the fused multiply-add builds (x86
+    AVX2/AVX-512); elsewhere it returns ``None``."""
+    x0 = images[0]
+    if not (0 < scale < 1) or x0.device.type != "cpu" or x0.dtype not in (torch.uint8, torch.float32):
+        return None
+    if torch.backends.cpu.get_cpu_capability() not in ("AVX2", "AVX512"):
+        return None
+    _, h, w = x0.shape
+    ho, wo = max(1, int(round(h * scale))), max(1, int(round(w * scale)))
+    xlo, xn, xw = _aa_weights(w, wo)
+    ylo, yn, yw = _aa_weights(h, ho)
+    if max(xw.shape[1], yw.shape[1]) > 4:  # scale < 0.5: torch sums longer filters in another order
+        return None
+    arrays = [im.contiguous().numpy() for im in images]
+    out = np.empty((len(images), 1, ho, wo), np.float32)
+
+    def run(lo: int, hi: int) -> None:
+        for i in range(lo, hi):
+            _working_gray_kernel(arrays[i], _UNIT_LUT, xlo, xn, xw, ylo, yn, yw, out[i, 0])
+
+    on_two_cores(run, len(images))
+    return torch.from_numpy(out)
+
+
+# uint8 → float32 in [0, 1] exactly as ``x.float().div_(255.0)``
+_UNIT_LUT = torch.arange(256, dtype=torch.uint8).float().div_(255.0).numpy()
+
+
+@functools.lru_cache(maxsize=16)
+def _aa_weights(n_in: int, n_out: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """torch's antialiased bilinear weights from ``n_in`` to ``n_out`` samples, read off
+    ``F.interpolate`` of one-hot rows (a weight times 1.0 is exact): each output's first
+    input index, count and float32 weights ``(n_out, k)``."""
+    eye = torch.eye(n_in, dtype=torch.float32)[None, None]
+    wts = F.interpolate(eye, size=(n_in, n_out), mode="bilinear", align_corners=False, antialias=True)[0, 0].T
+    nz = wts != 0
+    first = nz.to(torch.uint8).argmax(1)
+    last = n_in - 1 - nz.flip(1).to(torch.uint8).argmax(1)
+    count = last - first + 1
+    cols = first[:, None] + torch.arange(int(count.max()))[None]
+    tab = wts.gather(1, cols.clamp_(max=n_in - 1)) * (cols <= last[:, None])
+    return first.numpy().astype(np.int64), count.numpy().astype(np.int64), tab.contiguous().numpy()
+
+
+@intrinsic
+def _fma(typingctx, a, b, c):  # pragma: no cover - compiled
+    """``a·b + c`` rounded once (llvm.fma), as torch's AVX2/AVX-512 kernels compute it."""
+    sig = _nbtypes.float32(_nbtypes.float32, _nbtypes.float32, _nbtypes.float32)
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+
+    return sig, codegen
+
+
+def _unit(v, lut):  # pragma: no cover - replaced by the overload below in compiled code
+    raise NotImplementedError
+
+
+@overload(_unit)
+def _unit_overload(v, lut):  # pragma: no cover - compiled
+    if isinstance(v, _nbtypes.Integer):
+        return lambda v, lut: lut[v]
+    return lambda v, lut: v
+
+
+@numba.njit(cache=True, nogil=True)
+def _working_gray_kernel(img: np.ndarray, lut: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: np.ndarray,
+                         ylo: np.ndarray, yn: np.ndarray, yw: np.ndarray,
+                         out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """:func:`working_gray` of one ``(3, H, W)`` image into ``out`` ``(h, w)``: the
+    horizontal pass for the three channels together, then the vertical pass a whole
+    output row at a time, then the grey."""
+    _, h, _ = img.shape
+    wo, ho = xlo.shape[0], ylo.shape[0]
+    rows = np.empty((3, h, wo), np.float32)
+    for y in range(h):
+        sr, sg, sb = img[0, y], img[1, y], img[2, y]
+        dr, dg, db = rows[0, y], rows[1, y], rows[2, y]
+        for i in range(wo):
+            a = xlo[i]
+            w0 = xw[i, 0]
+            r = _unit(sr[a], lut) * w0
+            g = _unit(sg[a], lut) * w0
+            b = _unit(sb[a], lut) * w0
+            for j in range(1, xn[i]):
+                wj = xw[i, j]
+                r = _fma(_unit(sr[a + j], lut), wj, r)
+                g = _fma(_unit(sg[a + j], lut), wj, g)
+                b = _fma(_unit(sb[a + j], lut), wj, b)
+            dr[i], dg[i], db[i] = r, g, b
+    wr, wg, wb = np.float32(0.299), np.float32(0.587), np.float32(0.114)
+    lr, lg, lb = np.empty(wo, np.float32), np.empty(wo, np.float32), np.empty(wo, np.float32)
+    for yo in range(ho):
+        a, n = ylo[yo], yn[yo]
+        w0 = yw[yo, 0]
+        for i in range(wo):
+            lr[i] = rows[0, a, i] * w0
+            lg[i] = rows[1, a, i] * w0
+            lb[i] = rows[2, a, i] * w0
+        for j in range(1, n):
+            wj = yw[yo, j]
+            r0, g0, b0 = rows[0, a + j], rows[1, a + j], rows[2, a + j]
+            for i in range(wo):
+                lr[i] = _fma(r0[i], wj, lr[i])
+                lg[i] = _fma(g0[i], wj, lg[i])
+                lb[i] = _fma(b0[i], wj, lb[i])
+        line = out[yo]
+        for i in range(wo):
+            line[i] = _fma(lb[i], wb, _fma(lg[i], wg, lr[i] * wr))
 
 
 def gaussian_blur(gray: Tensor, sigma: float) -> Tensor:

@@ -114,7 +114,7 @@ class ProposalGenerator(nn.Module):
     # ------------------------------------------------------------------------------------
     @torch.no_grad()
     def forward(self, images: ImageBatch) -> list[dict[str, Tensor]]:
-        imgs = check_images(images, self.min_side, self.config)
+        imgs = check_images(images, self.min_side, self.config, keep_uint8=True)
         results: list[dict[str, Tensor] | None] = [None] * len(imgs)
         by_size: dict[tuple, list[int]] = {}
         for i, im in enumerate(imgs):
@@ -142,15 +142,22 @@ class ProposalGenerator(nn.Module):
 
     # ------------------------------------------------------------------------------------
     def _propose_batch(self, images: list[Tensor], keep: bool = False) -> tuple[list[dict[str, Tensor]], dict]:
-        """The algorithm on a batch of equal-sized float ``(3, H, W)`` images."""
+        """The algorithm on a batch of equal-sized ``(3, H, W)`` images, float32 in [0, 1]
+        or uint8."""
         cfg = self.config
         b = len(images)
         _, h_in, w_in = images[0].shape
         dev = images[0].device
+        needs_road = keep or cfg.refine or cfg.road_score not in ("none", "flat")
         # Sec. 3.4: Edge_Map = Sobel(Gaussian_Blur(I)), at the working resolution
         with self._stage("edges", dev):
-            xk = self._working_batch(images)
-            gray = _edges.to_gray(xk)
+            xk = None  # the colour image at the working resolution, only where a stage reads it
+            gray = None
+            if cfg.edge_channels == "gray" and not needs_road:
+                gray = _edges.working_gray(images, cfg.scale)
+            if gray is None:
+                xk = self._working_batch(images)
+                gray = _edges.to_gray(xk)
             src = gray if cfg.edge_channels == "gray" else xk
             crossing = None
             if cfg.straddle_weight > 0:  # edge orientations for the straddling term
@@ -160,14 +167,14 @@ class ProposalGenerator(nn.Module):
             else:
                 edges = _edges.edge_map(src, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated,
                                         cfg.thin_edges)
-        hk, wk = xk.shape[-2:]
+        hk, wk = gray.shape[-2:]
         fx, fy = wk / w_in, hk / h_in
         # Sec. 3.7: adjacent edge pixels form edge groups
         with self._stage("groups", dev):
             groups = _groups.edge_groups(edges, cfg.grouping, cfg.group_cell)
         # Sec. 3.5: Road_Mask = Generate_Road_Segmentation(I, HSV); skipped when no score reads it
         road = None
-        if keep or cfg.refine or cfg.road_score not in ("none", "flat"):
+        if needs_road:
             with self._stage("road", dev):
                 road = _road.road_mask(xk, cfg.road_samples, cfg.road_band, cfg.road_tolerance,
                                        cfg.road_combine, cfg.seed)
@@ -222,8 +229,10 @@ class ProposalGenerator(nn.Module):
 
     # -- stages ---------------------------------------------------------------------------
     def _working_batch(self, images: list[Tensor]) -> Tensor:
-        """``(B, 3, h, w)``: the images at the working resolution, each resized on its own and
-        then stacked (stacking the full-resolution images first would copy 4× the data)."""
+        """``(B, 3, h, w)`` float32: the images at the working resolution, each resized on its
+        own and then stacked (stacking the full-resolution images first would copy 4× the
+        data); uint8 images are converted to [0, 1] first."""
+        images = [x.float().div_(255.0) if x.dtype == torch.uint8 else x for x in images]
         s = self.config.scale
         if s == 1.0:
             return torch.stack(images) if len(images) > 1 else images[0][None]

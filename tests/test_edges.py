@@ -79,3 +79,40 @@ def test_compiled_edge_map_equals_the_tensor_ops(sample_image):
             got = E.edge_map(g, sigma, threshold, True, True)
             assert torch.equal(got, tensor_ops(g, sigma, threshold)), (sigma, threshold)
             assert int((got > 0).sum()) > 0
+
+
+def _interpolate_then_grey(images, scale):
+    import torch.nn.functional as F
+
+    h, w = images[0].shape[-2:]
+    size = (max(1, int(round(h * scale))), max(1, int(round(w * scale))))
+    unit = [x.float().div_(255.0) if x.dtype == torch.uint8 else x for x in images]
+    return to_gray(torch.cat([F.interpolate(x[None], size=size, mode="bilinear", align_corners=False,
+                                            antialias=True) for x in unit]))
+
+
+def test_compiled_working_gray_equals_interpolate_then_grey(sample_image):
+    # issue 9: the CPU front end (antialiased resize + grey in one compiled pass, from uint8)
+    # gives torch's interpolate + kornia's grey bit for bit, where it applies
+    from reeb_torch.edges import working_gray
+
+    if torch.backends.cpu.get_cpu_capability() not in ("AVX2", "AVX512"):
+        assert working_gray([sample_image], 0.5) is None
+        return
+    gen = torch.Generator().manual_seed(3)
+    crops = [sample_image[:, :150, :400], sample_image[:, 20:170, 100:500]]
+    noise = [torch.randint(0, 256, (3, 31, 47), dtype=torch.uint8, generator=gen) for _ in range(3)]
+    for images in (crops, noise, [x.float() / 255 for x in noise]):
+        for scale in (0.5, 0.51, 0.7, 0.9):
+            got = working_gray(images, scale)
+            assert got is not None and got.dtype == torch.float32
+            assert torch.equal(got, _interpolate_then_grey(images, scale)), (images[0].dtype, scale)
+
+
+def test_compiled_working_gray_declines_where_it_would_differ(sample_image):
+    # longer filters (scale < 0.5), no resize, upsampling: the caller takes the tensor ops
+    from reeb_torch.edges import working_gray
+
+    for scale in (0.3, 0.49, 1.0, 1.5):
+        assert working_gray([sample_image], scale) is None
+    assert working_gray([sample_image.double() / 255], 0.5) is None

@@ -144,3 +144,12 @@ def test_select_per_region_cpu_matches_a_stable_sort_with_ties():
             take = pos[: int(budget[i, r])][torch.isfinite(vals[: int(budget[i, r])])]
             want[i, idx[take]] = True
     assert torch.equal(got, want)
+
+
+def test_compiled_integral_image_equals_the_cumulative_sums():
+    # issue 9: the CPU pass sums in the tensor ops' order (rows, then columns): equal bit for bit
+    gen = torch.Generator().manual_seed(4)
+    for x in (torch.rand(3, 20, 31, generator=gen) ** 8, torch.rand(1, 1, 1, generator=gen), torch.zeros(2, 4, 0)):
+        ref = torch.zeros(x.shape[0], x.shape[1] + 1, x.shape[2] + 1, dtype=torch.float64)
+        ref[:, 1:, 1:] = x.double().cumsum(2).cumsum(1)
+        assert torch.equal(integral_image(x), ref)
