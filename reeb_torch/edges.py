@@ -203,8 +203,17 @@ def sobel_gradients(gray: Tensor) -> tuple[Tensor, Tensor]:
 def sobel_magnitude(gray: Tensor) -> Tensor:
     """Sobel gradient magnitude ``(B, H, W)`` of ``(B, 1, H, W)``, scaled so that a unit
     step edge has magnitude 1, clipped to [0, 1]."""
-    gx, gy = sobel_gradients(gray)
-    return torch.sqrt(gx * gx + gy * gy).clamp_(max=1.0)
+    return gradient_magnitude(*sobel_gradients(gray))
+
+
+def gradient_magnitude(gx: Tensor, gy: Tensor) -> Tensor:
+    """``sqrt(gx² + gy²)`` clipped to [0, 1], float32 ``(B, H, W)``. The squares and their
+    sum are float32 ops; the root is correctly rounded (taken in float64, which rounds to
+    the nearest float32 exactly), as a compiled ``sqrt`` computes it. torch's vectorised
+    float32 ``sqrt`` is not correctly rounded (about one result in seven is an ulp off),
+    so it could not be matched by a compiled pass."""
+    g2 = gx * gx + gy * gy
+    return torch.sqrt(g2.double()).to(g2.dtype).clamp_(max=1.0)
 
 
 def thin(mag: Tensor, gx: Tensor, gy: Tensor) -> Tensor:
@@ -249,8 +258,8 @@ def edge_map(gray: Tensor, sigma: float, threshold: float, isolated: bool, thinn
     ``(B, H, W)`` the magnitudes came from (for edge orientations).
 
     On the CPU the default path (grey, thinned, isolated pixels removed) runs as two
-    compiled passes (numba) around torch's magnitude, with the same float32 arithmetic,
-    operation for operation, as the tensor ops (tested equal bit for bit)."""
+    compiled passes (numba) with the same float32 arithmetic, operation for operation, as
+    the tensor ops (tested equal bit for bit)."""
     b, c, h, w = gray.shape
     if (c == 1 and thinning and isolated and not return_gradients and gray.device.type == "cpu"
             and gray.dtype == torch.float32):
@@ -260,7 +269,7 @@ def edge_map(gray: Tensor, sigma: float, threshold: float, isolated: bool, thinn
         gx, gy = gx.view(b, c, h, w), gy.view(b, c, h, w)
         pick = (gx * gx + gy * gy).argmax(1, keepdim=True)
         gx, gy = gx.gather(1, pick)[:, 0], gy.gather(1, pick)[:, 0]
-    mag = torch.sqrt(gx * gx + gy * gy).clamp_(max=1.0)
+    mag = gradient_magnitude(gx, gy)
     mask = mag > threshold
     if thinning:
         mask &= thin(mag, gx, gy)
@@ -283,15 +292,17 @@ def crossing_maps(edges: Tensor, gx: Tensor, gy: Tensor) -> tuple[Tensor, Tensor
 
 
 @numba.njit(cache=True, nogil=True)
-def _blur_sobel_kernel(gray: np.ndarray, wts: np.ndarray, gx: np.ndarray,
-                       gy: np.ndarray) -> None:  # pragma: no cover - compiled
-    """:func:`sobel_gradients` of :func:`gaussian_blur` for ``gray`` ``(B, H, W)``: reflected
-    borders for the blur, replicated for Sobel, the same float32 operations in the same order."""
+def _blur_sobel_kernel(gray: np.ndarray, wts: np.ndarray, gx: np.ndarray, gy: np.ndarray,
+                       mag: np.ndarray) -> None:  # pragma: no cover - compiled
+    """:func:`sobel_gradients` of :func:`gaussian_blur` for ``gray`` ``(B, H, W)``, and their
+    :func:`gradient_magnitude`: reflected borders for the blur, replicated for Sobel, the
+    same float32 operations in the same order."""
     nb, h, w = gray.shape
     k = wts.shape[0]
     r = k // 2
     quarter = np.float32(0.25)
     two = np.float32(2.0)
+    one = np.float32(1.0)
     rows = np.empty((h + 2 * r, w), np.float32)
     blur = np.empty((h, w), np.float32)
     line = np.empty(w + 2 * r, np.float32)
@@ -304,17 +315,25 @@ def _blur_sobel_kernel(gray: np.ndarray, wts: np.ndarray, gx: np.ndarray,
                 xs = xi - r
                 xs = -xs if xs < 0 else (2 * (w - 1) - xs if xs >= w else xs)
                 line[xi] = img[y, xs]
+            dst = rows[yy]  # tap by tap over the whole row (vectorised), the same sum per pixel
+            w0 = wts[0]
             for x in range(w):
-                acc = wts[0] * line[x]
-                for i in range(1, k):
-                    acc = acc + wts[i] * line[x + i]
-                rows[yy, x] = acc
+                dst[x] = w0 * line[x]
+            for i in range(1, k):
+                wi = wts[i]
+                for x in range(w):
+                    dst[x] = dst[x] + wi * line[x + i]
         for y in range(h):
+            dst = blur[y]
+            w0 = wts[0]
+            src = rows[y]
             for x in range(w):
-                acc = wts[0] * rows[y, x]
-                for i in range(1, k):
-                    acc = acc + wts[i] * rows[y + i, x]
-                blur[y, x] = acc
+                dst[x] = w0 * src[x]
+            for i in range(1, k):
+                wi = wts[i]
+                src = rows[y + i]
+                for x in range(w):
+                    dst[x] = dst[x] + wi * src[x]
         for y in range(h):
             ym, yp = max(y - 1, 0), min(y + 1, h - 1)
             for x in range(w):
@@ -322,11 +341,14 @@ def _blur_sobel_kernel(gray: np.ndarray, wts: np.ndarray, gx: np.ndarray,
                 d0 = blur[ym, xp] - blur[ym, xm]
                 d1 = blur[y, xp] - blur[y, xm]
                 d2 = blur[yp, xp] - blur[yp, xm]
-                gx[b, y, x] = ((d0 + two * d1) + d2) * quarter
+                u = ((d0 + two * d1) + d2) * quarter
+                gx[b, y, x] = u
                 e0 = blur[yp, xm] - blur[ym, xm]
                 e1 = blur[yp, x] - blur[ym, x]
                 e2 = blur[yp, xp] - blur[ym, xp]
-                gy[b, y, x] = ((e0 + two * e1) + e2) * quarter
+                v = ((e0 + two * e1) + e2) * quarter
+                gy[b, y, x] = v
+                mag[b, y, x] = min(np.sqrt(u * u + v * v), one)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -371,15 +393,13 @@ def _thin_isolated_kernel(mag: np.ndarray, gx: np.ndarray, gy: np.ndarray, thres
 
 def _edge_map_cpu(gray: Tensor, sigma: float, threshold: float) -> Tensor:
     """:func:`edge_map`'s default path on the CPU: ``(B, 1, H, W)`` float32 → ``(B, H, W)``.
-    Blur and Sobel, then thinning and isolated pixels, are compiled passes; the magnitude
-    between them stays a tensor op (torch's vectorised sqrt is the reference's)."""
+    Blur, Sobel and the magnitude, then thinning and isolated pixels, are two compiled
+    passes."""
     b, _, h, w = gray.shape
     wts = _blur_weights(sigma, h, w, gray)
-    gx, gy = np.empty((b, h, w), np.float32), np.empty((b, h, w), np.float32)
+    gx, gy, mag = (np.empty((b, h, w), np.float32) for _ in range(3))
     g, wt = gray[:, 0].contiguous().numpy(), wts.contiguous().numpy()
-    on_two_cores(lambda lo, hi: _blur_sobel_kernel(g[lo:hi], wt, gx[lo:hi], gy[lo:hi]), b)
-    tx, ty = torch.from_numpy(gx), torch.from_numpy(gy)
-    mag = torch.sqrt(tx * tx + ty * ty).clamp_(max=1.0).numpy()
+    on_two_cores(lambda lo, hi: _blur_sobel_kernel(g[lo:hi], wt, gx[lo:hi], gy[lo:hi], mag[lo:hi]), b)
     out = np.empty((b, h, w), np.float32)
     t = np.float32(threshold)
     on_two_cores(lambda lo, hi: _thin_isolated_kernel(mag[lo:hi], gx[lo:hi], gy[lo:hi], t, out[lo:hi]), b)
