@@ -29,7 +29,7 @@ from . import scoring as _scoring
 from . import windows as _windows
 from ._checks import ImageBatch, check_images
 from .config import ReebConfig
-from .nms import nms_top_k_many
+from .nms import nms_top_k_many, nms_windows_cpu
 
 __all__ = ["ProposalGenerator", "propose", "Inspection"]
 
@@ -204,20 +204,29 @@ class ProposalGenerator(nn.Module):
             to_input = torch.tensor([fx, fy, fx, fy], device=dev)
             boxes_in = self._device_tensor(grid.boxes, dev) / to_input
             region_of = self._device_tensor(grid.region_of, dev)
-            cands, pairs = [], []
-            for i in range(b):
-                cand = torch.nonzero(chosen[i]).squeeze(1)
-                if cand_boxes is not None:
-                    pairs.append((cand_boxes[i] / to_input, cand_scores[i]))
-                else:
-                    pairs.append((boxes_in[cand], scores[i, cand]))
-                cands.append(cand)
             quota = cfg.region_quota and len(bounds) > 1
-            keeps = nms_top_k_many(pairs, cfg.nms_iou, max(len(p[1]) for p in pairs) if quota else cfg.top_k)
+            kept = None
+            if cand_boxes is None:  # the windows themselves: gathered, sorted and suppressed compiled
+                kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, grid.count if quota else cfg.top_k)
+            if kept is not None:
+                pairs = [(boxes_in, scores[i]) for i in range(b)]
+                windows = kept
+            else:
+                cands, pairs = [], []
+                for i in range(b):
+                    cand = torch.nonzero(chosen[i]).squeeze(1)
+                    if cand_boxes is not None:
+                        pairs.append((cand_boxes[i] / to_input, cand_scores[i]))
+                    else:
+                        pairs.append((boxes_in[cand], scores[i, cand]))
+                    cands.append(cand)
+                keeps = nms_top_k_many(pairs, cfg.nms_iou, max(len(p[1]) for p in pairs) if quota else cfg.top_k)
+                windows = [c[k] for c, k in zip(cands, keeps)]
+                kept = keeps
             results = []
-            for i, ((bx, sc), cand, keep_idx) in enumerate(zip(pairs, cands, keeps)):
+            for i, ((bx, sc), keep_idx, win) in enumerate(zip(pairs, kept, windows)):
                 if quota:
-                    keep_idx = self._quota(keep_idx, region_of[cand[keep_idx]], share[i])[: cfg.top_k]
+                    keep_idx = keep_idx[self._quota(torch.arange(len(keep_idx)), region_of[win], share[i])[: cfg.top_k]]
                 results.append({"boxes": bx[keep_idx].contiguous(), "scores": sc[keep_idx].contiguous()})
         extra: dict = {}
         if keep:

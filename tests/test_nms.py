@@ -118,19 +118,23 @@ def test_generator_candidates_equal_torchvision():
     path = Path(__file__).resolve().parents[1] / "examples" / "data" / "kitti_000001.png"
     caught = []
 
-    def spy(pairs, iou, k):
-        caught.extend((boxes, scores, iou, k) for boxes, scores in pairs)
-        return [nms_top_k(boxes, scores, iou, k) for boxes, scores in pairs]
+    def spy(chosen, boxes, scores, iou, k):
+        for i in range(chosen.shape[0]):
+            cand = chosen[i].nonzero().squeeze(1)
+            caught.append((boxes[cand], scores[i, cand], iou, k))
+        return orig(chosen, boxes, scores, iou, k)
 
-    orig, G.nms_top_k_many = G.nms_top_k_many, spy
+    orig, G.nms_windows_cpu = G.nms_windows_cpu, spy
     try:
-        ProposalGenerator(get_preset("default-no-regions"))([read_image(path)])
+        out = ProposalGenerator(get_preset("default-no-regions"))([read_image(path)])
     finally:
-        G.nms_top_k_many = orig
+        G.nms_windows_cpu = orig
     assert caught
     for boxes, scores, iou, k in caught:
         assert boxes.shape[0] > k and _grid_ok(boxes, iou)
-        assert torch.equal(nms_top_k(boxes, scores, iou, k), nms(boxes, scores, iou)[:k])
+        ref = nms(boxes, scores, iou)[:k]
+        assert torch.equal(nms_top_k(boxes, scores, iou, k), ref)
+        assert torch.equal(out[0]["boxes"], boxes[ref])
 
 
 try:
@@ -164,3 +168,42 @@ def test_nms_top_k_many_equals_one_image_at_a_time():
         got = nms_top_k_many(pairs, iou, k)
         for (b, s), g in zip(pairs, got):
             assert torch.equal(g, nms_top_k(b, s, iou, k))
+
+
+def test_nms_windows_cpu_equals_nms_top_k_on_the_chosen_windows():
+    # issue 9: gathering, radix sort and NMS compiled per image give nms_top_k's windows,
+    # ties (and -0.0 against 0.0) included; NaN scores and bad boxes take the checked path
+    from reeb_torch.nms import nms_windows_cpu
+
+    gen = torch.Generator().manual_seed(11)
+    b, s = _messy_boxes(3000, gen, torch.float32)
+    scores = torch.stack([s, -s, torch.rand(3000, generator=gen), s * 0, (s - 3).clamp(max=0) * 0.5])
+    scores[3, ::3] = -0.0
+    scores[4, :5] = float("nan")
+    chosen = torch.rand(5, 3000, generator=gen) < 0.6
+    chosen[2] = False  # an image without candidates
+    bad = b.clone()
+    bad[chosen[1].nonzero()[0, 0]] = torch.tensor([5.0, 5.0, 1.0, 9.0])  # x2 < x1
+    for boxes in (b, bad):
+        for iou, k in ((0.5, 3000), (0.7, 100), (0.95, 1)):
+            got = nms_windows_cpu(chosen, boxes, scores, iou, k)
+            for i in range(5):
+                cand = chosen[i].nonzero().squeeze(1)
+                assert torch.equal(got[i], cand[nms_top_k(boxes[cand], scores[i, cand], iou, k)]), (i, iou, k)
+    assert nms_windows_cpu(chosen, b, scores, 0.3, 10) is None  # the torchvision path
+    assert nms_windows_cpu(chosen, b.double(), scores, 0.7, 10) is None
+
+
+def test_descending_radix_order_equals_torch_stable_sort():
+    from reeb_torch.nms import _descending_order
+
+    gen = torch.Generator().manual_seed(12)
+    for n in (0, 1, 5, 4097):
+        v = torch.randn(n, generator=gen)
+        if n > 4:
+            v[torch.randint(0, n, (n // 3,), generator=gen)] = 0.5  # ties
+            v[torch.randint(0, n, (n // 5,), generator=gen)] = -0.0
+            v[torch.randint(0, n, (n // 5,), generator=gen)] = 0.0
+            v[:2] = torch.tensor([float("inf"), float("-inf")])
+        ref = torch.sort(v, descending=True, stable=True).indices
+        assert torch.equal(torch.from_numpy(_descending_order(v.numpy())), ref), n
