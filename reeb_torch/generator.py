@@ -202,7 +202,8 @@ class ProposalGenerator(nn.Module):
         # Sec. 3.8: Final_Proposals = NMS(Sorted_Proposals) (eq. 13)
         with self._stage("nms", dev):
             to_input = torch.tensor([fx, fy, fx, fy], device=dev)
-            boxes_in = self._device_tensor(grid.boxes, dev) / to_input
+            boxes_in = self._grid_cached(("boxes_in", fx, fy, str(dev)), grid,
+                                         lambda: self._device_tensor(grid.boxes, dev) / to_input)
             region_of = self._device_tensor(grid.region_of, dev)
             quota = cfg.region_quota and len(bounds) > 1
             kept = None
