@@ -26,6 +26,7 @@ LocationScore = Literal["paper", "ground", "classes", "none"]
 EntropyForm = Literal["printed", "abs-diff"]
 WindowGeometry = Literal["camera", "grid"]
 ShadowScore = Literal["underneath", "none"]
+VegetationScore = Literal["green", "none"]
 
 
 # -- validation (ReebConfig.__post_init__) ---------------------------------------------------
@@ -227,6 +228,7 @@ _RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "shadow_margin": _in(0, 0.5, hi_open=True),
     "shadow_power": _in(0, 8, lo_open=True),
     "shadow_floor": _in(0, 1, lo_open=True),
+    "vegetation_power": _in(1, 16),
     "horizon": _in(0, 1, lo_open=True, hi_open=True),
     "ground_ratio": _positive(),
     "class_heights_m": ((lambda t: len(t) > 0 and all(x > 0 for x in t)), "a non-empty tuple of heights > 0"),
@@ -422,6 +424,14 @@ class ReebConfig:
     """Exponent of the shadow factor (0.5: a square root, so it re-ranks without dominating S)."""
     shadow_floor: float = 0.001
     """Added to U before the power, so a box without a shadow keeps a small score (> 0)."""
+    vegetation_score: VegetationScore = "green"
+    """``green``: V is multiplied by (1 − G)^``vegetation_power``, where G is the fraction of
+    the window's pixels that are green-dominant (G > R and G > B at the working
+    resolution): trees, hedges and verges, the main clutter of road scenes, rank below
+    objects (not in the paper). ``none``: no such term (as printed)."""
+    vegetation_power: int = 3
+    """With ``vegetation_score='green'``: the exponent, a whole number (the factor is a
+    product, so every path computes the same numbers)."""
     location_score: LocationScore = "classes"
     """``paper``: L = b_y/(b_w·b_h)·W (eq. 11); ``ground``: how well the box height fits
     a ground-plane object standing at its bottom row, in [0, 1]; ``none``: L = 1."""
@@ -499,6 +509,7 @@ class ReebConfig:
             score_norm="area",
             road_score="reward",
             shadow_score="none",
+            vegetation_score="none",
             location_score="paper",
             road_combine="and",
             entropy_form="abs-diff",

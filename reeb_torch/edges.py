@@ -21,7 +21,7 @@ from torch import Tensor
 
 from ._threads import on_two_cores
 
-__all__ = ["to_gray", "working_gray", "gaussian_blur", "sobel_magnitude", "thin", "remove_isolated", "edge_map"]
+__all__ = ["to_gray", "working_gray", "green_mask", "gaussian_blur", "sobel_magnitude", "thin", "remove_isolated", "edge_map"]
 
 def to_gray(images: Tensor) -> Tensor:
     """RGB ``(B, 3, H, W)`` in [0, 1] to grey ``(B, 1, H, W)`` in [0, 1] (ITU-R 601 weights,
@@ -29,11 +29,13 @@ def to_gray(images: Tensor) -> Tensor:
     return kornia.color.rgb_to_grayscale(images)
 
 
-def working_gray(images: list[Tensor], scale: float) -> Tensor | None:
+def working_gray(images: list[Tensor], scale: float,
+                 with_green: bool = False) -> Tensor | tuple[Tensor, Tensor] | None:
     """Grey images at the working resolution, ``(B, 1, h, w)`` float32 with ``h, w`` =
     ``round(H·scale), round(W·scale)``, from equal-sized ``(3, H, W)`` images (uint8, or
     float32 in [0, 1]); ``None`` where this compiled path does not apply (then resize with
-    ``F.interpolate`` and use :func:`to_gray`).
+    ``F.interpolate`` and use :func:`to_gray`). With ``with_green``, also
+    :func:`green_mask` of the resized colour image, ``(B, h, w)``: ``(grey, green)``.
 
     It is the same computation as ``to_gray(F.interpolate(x / 255, antialias=True))``,
     operation for operation and bit for bit (tested): torch's antialiased bilinear
@@ -56,13 +58,23 @@ def working_gray(images: list[Tensor], scale: float) -> Tensor | None:
         return None
     arrays = [im.contiguous().numpy() for im in images]
     out = np.empty((len(images), 1, ho, wo), np.float32)
+    green = np.empty((len(images), ho, wo) if with_green else (len(images), 0, 0), np.float32)
 
     def run(lo: int, hi: int) -> None:
         for i in range(lo, hi):
-            _working_gray_kernel(arrays[i], _UNIT_LUT, xlo, xn, xw, ylo, yn, yw, out[i, 0])
+            _working_gray_kernel(arrays[i], _UNIT_LUT, xlo, xn, xw, ylo, yn, yw, out[i, 0], green[i])
 
     on_two_cores(run, len(images))
+    if with_green:
+        return torch.from_numpy(out), torch.from_numpy(green)
     return torch.from_numpy(out)
+
+
+def green_mask(images: Tensor) -> Tensor:
+    """Green-dominant pixels of RGB ``(B, 3, H, W)``: ``float32 (B, H, W)``, 1 where G > R
+    and G > B, else 0 (vegetation, for ``ReebConfig.vegetation_score``)."""
+    r, g, b = images.unbind(1)
+    return ((g > r) & (g > b)).float()
 
 
 # uint8 → float32 in [0, 1] exactly as ``x.float().div_(255.0)``
@@ -110,10 +122,11 @@ def _unit_overload(v, lut):  # pragma: no cover - compiled
 @numba.njit(cache=True, nogil=True)
 def _working_gray_kernel(img: np.ndarray, lut: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: np.ndarray,
                          ylo: np.ndarray, yn: np.ndarray, yw: np.ndarray,
-                         out: np.ndarray) -> None:  # pragma: no cover - compiled
+                         out: np.ndarray, green: np.ndarray) -> None:  # pragma: no cover - compiled
     """:func:`working_gray` of one ``(3, H, W)`` image into ``out`` ``(h, w)``: the
     horizontal pass for the three channels together, then the vertical pass a whole
-    output row at a time, then the grey."""
+    output row at a time, then the grey (and :func:`green_mask` into ``green`` unless it
+    is empty)."""
     _, h, _ = img.shape
     wo, ho = xlo.shape[0], ylo.shape[0]
     rows = np.empty((3, h, wo), np.float32)
@@ -151,6 +164,10 @@ def _working_gray_kernel(img: np.ndarray, lut: np.ndarray, xlo: np.ndarray, xn: 
         line = out[yo]
         for i in range(wo):
             line[i] = _fma(lb[i], wb, _fma(lg[i], wg, lr[i] * wr))
+        if green.shape[0] > 0:
+            mask = green[yo]
+            for i in range(wo):
+                mask[i] = np.float32(1.0) if lg[i] > lr[i] and lg[i] > lb[i] else np.float32(0.0)
 
 
 def gaussian_blur(gray: Tensor, sigma: float) -> Tensor:

@@ -152,12 +152,16 @@ class ProposalGenerator(nn.Module):
         # Sec. 3.4: Edge_Map = Sobel(Gaussian_Blur(I)), at the working resolution
         with self._stage("edges", dev):
             xk = None  # the colour image at the working resolution, only where a stage reads it
-            gray = None
+            gray = green = None
+            want_green = cfg.vegetation_score != "none"
             if cfg.edge_channels == "gray" and not needs_road:
-                gray = _edges.working_gray(images, cfg.scale)
+                front = _edges.working_gray(images, cfg.scale, with_green=want_green)
+                if front is not None:
+                    gray, green = front if want_green else (front, None)
             if gray is None:
                 xk = self._working_batch(images)
                 gray = _edges.to_gray(xk)
+                green = _edges.green_mask(xk) if want_green else None
             src = gray if cfg.edge_channels == "gray" else xk
             crossing = None
             if cfg.straddle_weight > 0:  # edge orientations for the straddling term
@@ -191,14 +195,14 @@ class ProposalGenerator(nn.Module):
         with self._stage("scoring", dev):
             grid = self._window_grid(hk, wk, bounds, fx, fy)
             grey = gray[:, 0] if cfg.shadow_score != "none" else None
-            scores = self._score_windows(edges, road, groups, grid, fx, fy, h_in, w_in, crossing, grey)
+            scores = self._score_windows(edges, road, groups, grid, fx, fy, h_in, w_in, crossing, grey, green)
             chosen = self._select(scores, grid, share)
         # Edge Boxes' refinement of the candidates (not in the paper; ``ReebConfig.refine``)
         cand_boxes = cand_scores = None
         if cfg.refine:
             with self._stage("refine", dev):
                 cand_boxes, cand_scores = self._refine(chosen, scores, grid, edges, road, groups, crossing,
-                                                       fx, fy, h_in, w_in, grey)
+                                                       fx, fy, h_in, w_in, grey, green)
         # Sec. 3.8: Final_Proposals = NMS(Sorted_Proposals) (eq. 13)
         with self._stage("nms", dev):
             to_input = torch.tensor([fx, fy, fx, fy], device=dev)
@@ -290,7 +294,8 @@ class ProposalGenerator(nn.Module):
 
     def _score_windows(self, edges: Tensor, road: Tensor | None, groups: _groups.EdgeGroups,
                        grid: _windows.WindowGrid, fx: float, fy: float, h_in: int, w_in: int,
-                       crossing: tuple[Tensor, Tensor] | None = None, grey: Tensor | None = None) -> Tensor:
+                       crossing: tuple[Tensor, Tensor] | None = None, grey: Tensor | None = None,
+                       green: Tensor | None = None) -> Tensor:
         """V (eq. 12) of every window, ``float32 [B, N]``; ``-inf`` where S < min_edge_score
         (or, with ``local_max``, where a neighbouring position of the same size scores higher).
 
@@ -299,8 +304,8 @@ class ProposalGenerator(nn.Module):
         compiled pass (:func:`reeb_torch.scoring.score_grid_cpu`) scores all windows;
         otherwise one batch of tensor ops per window size. Both give the same numbers."""
         if self._compiled_scoring_applies(edges, groups, grid, crossing):
-            return self._score_windows_compiled(edges, groups, grid, fx, fy, h_in, w_in, grey)
-        return self._score_windows_torch(edges, road, groups, grid, fx, fy, h_in, w_in, crossing, grey)
+            return self._score_windows_compiled(edges, groups, grid, fx, fy, h_in, w_in, grey, green)
+        return self._score_windows_torch(edges, road, groups, grid, fx, fy, h_in, w_in, crossing, grey, green)
 
     def _compiled_scoring_applies(self, edges: Tensor, groups: _groups.EdgeGroups, grid: _windows.WindowGrid,
                                   crossing: tuple[Tensor, Tensor] | None) -> bool:
@@ -366,7 +371,8 @@ class ProposalGenerator(nn.Module):
                                        self._class_weights())
 
     def _score_windows_compiled(self, edges: Tensor, groups: _groups.EdgeGroups, grid: _windows.WindowGrid,
-                                fx: float, fy: float, h_in: int, w_in: int, grey: Tensor | None = None) -> Tensor:
+                                fx: float, fy: float, h_in: int, w_in: int, grey: Tensor | None = None,
+                                green: Tensor | None = None) -> Tensor:
         cfg = self.config
         b, hk, wk = edges.shape
         plan, denom, loc = self._score_plan(grid, fx, fy, h_in, w_in)
@@ -381,15 +387,18 @@ class ProposalGenerator(nn.Module):
                 sqrt_floor = cfg.shadow_floor
             else:
                 shadow = torch.zeros((b, grid.count), dtype=torch.float64)
+        ii_green = _scoring.integral_image(green) if green is not None else None
         _scoring.score_grid_cpu(ii_edges, tables, plan, denom, loc, _scoring.unit_scale(fx, fy), cfg.alpha,
-                                cfg.beta * road, cfg.min_edge_score, out, ii_grey, shadow, sqrt_floor)
+                                cfg.beta * road, cfg.min_edge_score, out, ii_grey, shadow, sqrt_floor,
+                                ii_green, cfg.vegetation_power)
         if shadow is not None:
             out = _scoring.apply_shadow(out, shadow, cfg.shadow_floor, cfg.shadow_power)
         return out
 
     def _score_windows_torch(self, edges: Tensor, road: Tensor | None, groups: _groups.EdgeGroups,
                              grid: _windows.WindowGrid, fx: float, fy: float, h_in: int, w_in: int,
-                             crossing: tuple[Tensor, Tensor] | None = None, grey: Tensor | None = None) -> Tensor:
+                             crossing: tuple[Tensor, Tensor] | None = None, grey: Tensor | None = None,
+                             green: Tensor | None = None) -> Tensor:
         """:meth:`_score_windows` as tensor ops, one batch of them per window size (any device, any config)."""
         cfg = self.config
         b = edges.shape[0]
@@ -404,6 +413,7 @@ class ProposalGenerator(nn.Module):
             ii_rows = _scoring.integral_image(F.pad(crossing[1], (band, band, band, band)))
         unit = _scoring.unit_scale(fx, fy)
         out = torch.full((b, grid.count), -math.inf, dtype=torch.float32, device=edges.device)
+        ii_green = _scoring.integral_image(green) if green is not None else None
         shadow = ii_grey_below = None
         if cfg.shadow_score != "none":  # rows past the bottom add nothing to the strip below
             ii_grey_below = _scoring.extend_below(_scoring.integral_image(grey))
@@ -431,6 +441,10 @@ class ProposalGenerator(nn.Module):
                 if key is not None:
                     loc_cache[key] = loc
             v = _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)
+            if ii_green is not None:  # trees and verges: the green-dominant share of the window
+                f = _scoring.vegetation_factor(_scoring.box_sums(ii_green, 0, 0, s.w, s.h, s), float(s.w * s.h),
+                                               cfg.vegetation_power)
+                v = v * f.float()
             v = torch.where(sc >= cfg.min_edge_score, v, -math.inf)
             out[:, off: off + s.count] = v.reshape(b, -1)
             if shadow is not None:  # the darker bottom strip of a vehicle over the road below it
@@ -465,7 +479,7 @@ class ProposalGenerator(nn.Module):
 
     def _box_scorer(self, edges: Tensor, road: Tensor, groups: _groups.EdgeGroups,
                     crossing: tuple[Tensor, Tensor] | None, fx: float, fy: float, h_in: int, w_in: int,
-                    grey: Tensor | None = None):
+                    grey: Tensor | None = None, green: Tensor | None = None):
         """V (eq. 12) of arbitrary boxes: returns ``(score_fn, min_side)`` where
         ``score_fn(boxes, b)`` takes int64 ``[K, 4]`` working-pixel boxes (x1, y1 exclusive)
         and their image indices ``[K]`` and gives ``float64 [K]``, the same numbers
@@ -485,6 +499,7 @@ class ProposalGenerator(nn.Module):
         at = _refinement.box_sum_at
         if cfg.shadow_score != "none":
             ii_grey_below = _scoring.extend_below(_scoring.integral_image(grey))
+        ii_green = _scoring.integral_image(green) if green is not None else None
 
         def score_fn(boxes: Tensor, bi: Tensor) -> Tensor:
             x0, y0, x1, y1 = boxes.unbind(1)
@@ -514,6 +529,8 @@ class ProposalGenerator(nn.Module):
                                           cfg.horizon, self._ground_ratios(), cfg.ground_log_sigma,
                                           self._class_weights())
             v = _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)
+            if ii_green is not None:
+                v = v * _scoring.vegetation_factor(at(ii_green, bi, x0, y0, x1, y1), area, cfg.vegetation_power)
             if cfg.shadow_score != "none":
                 sh = (h.double() * cfg.shadow_strip).round().long().clamp_(min=1)
                 mx = torch.minimum((w.double() * cfg.shadow_margin).floor().long(), torch.div(w - 1, 2, rounding_mode="floor"))
@@ -528,7 +545,8 @@ class ProposalGenerator(nn.Module):
 
     def _refine(self, chosen: Tensor, scores: Tensor, grid: _windows.WindowGrid, edges: Tensor, road: Tensor,
                 groups: _groups.EdgeGroups, crossing: tuple[Tensor, Tensor] | None, fx: float, fy: float,
-                h_in: int, w_in: int, grey: Tensor | None = None) -> tuple[list[Tensor], list[Tensor]]:
+                h_in: int, w_in: int, grey: Tensor | None = None,
+                green: Tensor | None = None) -> tuple[list[Tensor], list[Tensor]]:
         """Edge Boxes' refinement of every chosen window (:func:`reeb_torch.refinement.refine_boxes`);
         per image, ``float32 [K, 4]`` working-pixel boxes and ``float32 [K]`` scores, in the order of
         ``nonzero(chosen[i])``. Boxes narrower or shorter than the exact-sum limit stay as they are."""
@@ -537,7 +555,7 @@ class ProposalGenerator(nn.Module):
         bi, ni = torch.nonzero(chosen, as_tuple=True)
         boxes = self._device_tensor(grid.boxes, edges.device)[ni].round().long()
         vals = scores[bi, ni]
-        score_fn, exact_side = self._box_scorer(edges, road, groups, crossing, fx, fy, h_in, w_in, grey)
+        score_fn, exact_side = self._box_scorer(edges, road, groups, crossing, fx, fy, h_in, w_in, grey, green)
         min_side = max(exact_side, self._min_window_working(fx, fy))
         wh = boxes[:, 2:] - boxes[:, :2]
         movable = torch.nonzero((wh >= min_side).all(1)).squeeze(1)

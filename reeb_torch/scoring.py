@@ -39,6 +39,7 @@ __all__ = [
     "shadow_strips",
     "shadow_fraction",
     "apply_shadow",
+    "vegetation_factor",
 ]
 
 def integral_image(x: Tensor) -> Tensor:
@@ -221,15 +222,18 @@ def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, 
                        corner: np.ndarray, plan: np.ndarray, denom: np.ndarray, loc: np.ndarray,
                        unit: float, alpha: np.float32, beta_r: np.float32, min_edge: np.float32,
                        out: np.ndarray, grey: np.ndarray, shadow: np.ndarray,
-                       sqrt_floor: float) -> None:  # pragma: no cover - compiled
+                       sqrt_floor: float, green: np.ndarray, veg_power: int) -> None:  # pragma: no cover - compiled
     """V of every window (the torch path's arithmetic, operation for operation, so the same
     float32 numbers): eq. 1 from the edge integral image and the enclosed-sum prefix
     tables, times ``alpha·L + beta_r`` (``beta_r`` = β·R for a constant R). With a grey
     integral image (``grey.shape[0] > 0``), also U of :func:`shadow_fraction`: into ``shadow``,
     or, with ``sqrt_floor >= 0`` (a power of 0.5), straight into V as :func:`apply_shadow`
-    does it (sqrt is correctly rounded in both, so the numbers are the same)."""
+    does it (sqrt is correctly rounded in both, so the numbers are the same). With a green
+    integral image (``green.shape[0] > 0``), V is first multiplied by
+    :func:`vegetation_factor`."""
     neg_inf = np.float32(-np.inf)
     with_shadow = grey.shape[0] > 0
+    with_green = green.shape[0] > 0
     hmax = ii.shape[1] - 1
     for b in range(ii.shape[0]):
         for k in range(plan.shape[0]):
@@ -245,6 +249,7 @@ def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, 
                 yb = min(y1 + sh, hmax)
                 n_in = float(sh * (w - 2 * mx))
                 n_below = float(max(yb - y1, 1) * (w - 2 * mx))
+                area = float(w * h)
                 for i in range(nx):
                     x0 = i * sx
                     x1 = x0 + w
@@ -257,6 +262,13 @@ def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, 
                     enc = ((a - col) - rw) + corner[b, y1, x1]
                     s = np.float32((enc * unit - centre * unit) / d)
                     out[b, row + i] = s * wl if s >= min_edge else neg_inf
+                    if with_green and s >= min_edge:
+                        gs = ((green[b, y1, x1] - green[b, y0, x1]) - green[b, y1, x0]) + green[b, y0, x0]
+                        q = 1.0 - gs / area
+                        f = q
+                        for _ in range(veg_power - 1):
+                            f = f * q
+                        out[b, row + i] = out[b, row + i] * np.float32(f)
                     if with_shadow:
                         ax0 = x0 + mx
                         ax1 = x1 - mx
@@ -275,7 +287,8 @@ def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, 
 
 def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc: np.ndarray, unit: float,
                    alpha: float, beta_r: float, min_edge: float, out: Tensor, grey: Tensor | None = None,
-                   shadow: Tensor | None = None, sqrt_floor: float | None = None) -> None:
+                   shadow: Tensor | None = None, sqrt_floor: float | None = None,
+                   green: Tensor | None = None, veg_power: int = 1) -> None:
     """Fill ``out`` (``float32 [B, N]``, CPU) with V of every window, compiled (numba);
     given ``grey`` (``float64 (B, H + 1, W + 1)`` integral image of the grey image), also
     ``shadow`` (``float64 [B, N]``) with U of :func:`shadow_fraction` (the factor is applied
@@ -292,9 +305,12 @@ def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc:
         unit, alpha: as in :func:`edge_score` and :func:`combined_score`.
         beta_r: β·R for a constant road term R (0 for ``road_score='none'``).
         min_edge: windows with S below this get ``-inf``.
+        green, veg_power: ``float64 (B, H + 1, W + 1)`` integral image of the green mask
+            and the power of :func:`vegetation_factor` (``None``: no vegetation term).
     """
     f32 = np.float32
     g = np.zeros((0, 1, 1)) if grey is None else grey.numpy()
+    gr = np.zeros((0, 1, 1)) if green is None else green.numpy()
     u = np.zeros((0, 1)) if shadow is None else shadow.numpy()
     per_image = [ii.numpy(), tables.anchor.numpy(), tables.cut_col.numpy(), tables.cut_row.numpy(),
                  tables.corner.numpy()]
@@ -303,7 +319,8 @@ def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc:
 
     def run(lo: int, hi: int) -> None:
         _score_grid_kernel(*(a[lo:hi] for a in per_image), *consts, out.numpy()[lo:hi],
-                           g[lo:hi] if g.shape[0] else g, u[lo:hi] if u.shape[0] else u, sq)
+                           g[lo:hi] if g.shape[0] else g, u[lo:hi] if u.shape[0] else u, sq,
+                           gr[lo:hi] if gr.shape[0] else gr, int(veg_power))
 
     on_two_cores(run, ii.shape[0])
 
@@ -325,6 +342,17 @@ def shadow_fraction(inside_sum: Tensor, below_sum: Tensor, inside_n: Tensor | fl
     g_below = below_sum / below_n.clamp(min=1)
     u = ((g_below - g_in) / g_below.clamp(min=1e-3)).clamp(0.0, 1.0)
     return torch.where(below_n > 0, u, torch.zeros_like(u))
+
+
+def vegetation_factor(green_sum: Tensor, area: Tensor | float, power: int) -> Tensor:
+    """(1 − G)^power with G = ``green_sum / area``, the green-dominant fraction of a box
+    (``ReebConfig.vegetation_score='green'``), ``float64``, as a product of ``power``
+    factors (the compiled pass computes the same numbers)."""
+    q = 1.0 - green_sum / area
+    f = q
+    for _ in range(power - 1):
+        f = f * q
+    return f
 
 
 def apply_shadow(v: Tensor, u: Tensor, floor: float, power: float) -> Tensor:

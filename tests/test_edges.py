@@ -91,6 +91,25 @@ def _interpolate_then_grey(images, scale):
                                             antialias=True) for x in unit]))
 
 
+def _interpolated_green(images, scale):
+    import torch.nn.functional as F
+
+    from reeb_torch.edges import green_mask
+
+    h, w = images[0].shape[-2:]
+    size = (max(1, int(round(h * scale))), max(1, int(round(w * scale))))
+    unit = [x.float().div_(255.0) if x.dtype == torch.uint8 else x for x in images]
+    return green_mask(torch.cat([F.interpolate(x[None], size=size, mode="bilinear", align_corners=False,
+                                               antialias=True) for x in unit]))
+
+
+def test_green_mask_marks_green_dominant_pixels():
+    rgb = torch.tensor([[0.2, 0.5, 0.1], [0.5, 0.5, 0.1], [0.1, 0.5, 0.6], [0.0, 0.0, 0.0]]).T.reshape(1, 3, 1, 4)
+    from reeb_torch.edges import green_mask
+
+    assert green_mask(rgb).tolist() == [[[1.0, 0.0, 0.0, 0.0]]]
+
+
 def test_compiled_working_gray_equals_interpolate_then_grey(sample_image):
     # issue 9: the CPU front end (antialiased resize + grey in one compiled pass, from uint8)
     # gives torch's interpolate + kornia's grey bit for bit, where it applies
@@ -107,6 +126,9 @@ def test_compiled_working_gray_equals_interpolate_then_grey(sample_image):
             got = working_gray(images, scale)
             assert got is not None and got.dtype == torch.float32
             assert torch.equal(got, _interpolate_then_grey(images, scale)), (images[0].dtype, scale)
+            grey, green = working_gray(images, scale, with_green=True)
+            assert torch.equal(grey, got)
+            assert torch.equal(green, _interpolated_green(images, scale)), (images[0].dtype, scale)
 
 
 def test_compiled_working_gray_declines_where_it_would_differ(sample_image):

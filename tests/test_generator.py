@@ -171,6 +171,9 @@ def test_batch_equals_single_on_odd_crops(sample_image):
     {"window_geometry": "grid", "location_score": "ground", "use_regions": False},
     {"shadow_score": "underneath", "shadow_strip": 0.2},
     {"shadow_score": "underneath", "shadow_power": 0.7, "shadow_margin": 0.3, "road_score": "flat"},
+    {"vegetation_score": "none"},
+    {"vegetation_score": "green", "vegetation_power": 1, "shadow_power": 0.7},
+    {"vegetation_score": "green", "vegetation_power": 6, "shadow_score": "none"},
 ])
 def test_compiled_scoring_equals_the_tensor_path(sample_image, overrides):
     # issue 9: the compiled CPU pass gives every window the very same float32 score as the
@@ -236,3 +239,22 @@ def test_compiled_selection_equals_the_tensor_path(sample_image):
         finally:
             G.ProposalGenerator._select = real
         assert seen["equal"] and seen["n"] > 1000, overrides
+
+
+@pytest.mark.parametrize("overrides", [{}, {"vegetation_score": "none"}, {"scale": 0.7}])
+def test_compiled_front_end_gives_the_tensor_front_ends_proposals(sample_image, overrides):
+    # issue 9: the uint8 → grey (and green mask) compiled pass changes nothing downstream
+    from reeb_torch import edges as E
+
+    crops = [sample_image[:, 100:290, 200:800], sample_image[:, 150:340, 500:1100]]
+    gen = ProposalGenerator(**overrides)
+    fast = gen(crops)
+    real = E.working_gray
+    E.working_gray = lambda *a, **k: None
+    try:
+        slow = gen(crops)
+    finally:
+        E.working_gray = real
+    for a, b in zip(fast, slow):
+        assert torch.equal(a["boxes"], b["boxes"]) and torch.equal(a["scores"], b["scores"])
+        assert a["boxes"].shape[0] > 100

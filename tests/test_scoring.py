@@ -153,3 +153,11 @@ def test_compiled_integral_image_equals_the_cumulative_sums():
         ref = torch.zeros(x.shape[0], x.shape[1] + 1, x.shape[2] + 1, dtype=torch.float64)
         ref[:, 1:, 1:] = x.double().cumsum(2).cumsum(1)
         assert torch.equal(integral_image(x), ref)
+
+
+def test_vegetation_factor_is_one_minus_the_green_share_to_the_power():
+    from reeb_torch.scoring import vegetation_factor
+
+    sums = torch.tensor([0.0, 50.0, 100.0], dtype=torch.float64)
+    assert vegetation_factor(sums, 100.0, 3).tolist() == [1.0, 0.125, 0.0]
+    assert vegetation_factor(sums, 100.0, 1).tolist() == [1.0, 0.5, 0.0]
