@@ -19,7 +19,8 @@ from reeb_torch import config as _config
 
 def test_paper_constants_are_the_defaults():
     c = ReebConfig()
-    assert (c.alpha, c.beta, c.nms_iou, c.top_k) == (0.6, 0.4, 0.7, 2000)
+    assert (c.alpha, c.beta, c.top_k) == (0.6, 0.4, 2000)
+    assert get_preset("paper").nms_iou == 0.7 and c.nms_iou == 0.75  # eq. 13 as printed / Edge Boxes' β
     assert (c.camera_height_m, c.vertical_fov_deg, c.horizontal_fov_deg, c.max_object_width_m) == (1.65, 35.0, 90.0, 2.55)
     assert c.entropy_sigma == 4.0 and c.region_overlap == 0.5
 
