@@ -387,7 +387,7 @@ class ProposalGenerator(nn.Module):
                 sqrt_floor = cfg.shadow_floor
             else:
                 shadow = torch.zeros((b, grid.count), dtype=torch.float64)
-        ii_green = _scoring.integral_image(green) if green is not None else None
+        ii_green = _scoring.count_integral(green) if green is not None else None
         _scoring.score_grid_cpu(ii_edges, tables, plan, denom, loc, _scoring.unit_scale(fx, fy), cfg.alpha,
                                 cfg.beta * road, cfg.min_edge_score, out, ii_grey, shadow, sqrt_floor,
                                 ii_green, cfg.vegetation_power)

@@ -161,3 +161,12 @@ def test_vegetation_factor_is_one_minus_the_green_share_to_the_power():
     sums = torch.tensor([0.0, 50.0, 100.0], dtype=torch.float64)
     assert vegetation_factor(sums, 100.0, 3).tolist() == [1.0, 0.125, 0.0]
     assert vegetation_factor(sums, 100.0, 1).tolist() == [1.0, 0.5, 0.0]
+
+
+def test_count_integral_equals_the_float_integral_image():
+    from reeb_torch.scoring import count_integral
+
+    gen = torch.Generator().manual_seed(5)
+    for m in ((torch.rand(3, 17, 29, generator=gen) > 0.6).float(), torch.zeros(2, 1, 1), torch.ones(1, 4, 6)):
+        got = count_integral(m)
+        assert got.dtype == torch.int32 and torch.equal(got.double(), integral_image(m))
