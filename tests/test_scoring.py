@@ -170,3 +170,25 @@ def test_count_integral_equals_the_float_integral_image():
     for m in ((torch.rand(3, 17, 29, generator=gen) > 0.6).float(), torch.zeros(2, 1, 1), torch.ones(1, 4, 6)):
         got = count_integral(m)
         assert got.dtype == torch.int32 and torch.equal(got.double(), integral_image(m))
+
+
+def test_kth_largest_radix_selection_equals_a_sort():
+    import numpy as np
+
+    from reeb_torch.scoring import _kth_largest
+
+    rng = np.random.default_rng(0)
+    for t in range(200):
+        n = int(rng.integers(1, 2000))
+        v = rng.standard_normal(n).astype(np.float32)
+        if t % 3 == 0:
+            v = np.round(v, 1).astype(np.float32)  # ties
+        if t % 5 == 0:
+            v[rng.integers(0, n, n // 4)] = -np.inf
+        if t % 7 == 0:
+            v[rng.integers(0, n, n // 5)] = -0.0
+        if t % 11 == 0:
+            v[rng.integers(0, n, n // 6)] = np.nan
+        k = int(rng.integers(1, n + 1))
+        ref = -np.sort(-np.where(np.isnan(v), -np.inf, v))[k - 1]
+        assert _kth_largest(v, k) == ref, t
