@@ -34,7 +34,8 @@ P = ReebConfig.paper()
 
 # name -> (config, NOTES item it settles)
 V01 = D.replace(window_geometry="grid", location_score="ground", ground_log_sigma=0.5, min_window=20,
-                kappa=1.5, candidates_per_region=4000)
+                kappa=1.5, candidates_per_region=4000, shadow_score="none", vegetation_score="none",
+                nms_iou=0.7)
 """The package default of release 0.1 (before the camera windows and the class mixture)."""
 
 VARIANTS: dict[str, tuple[ReebConfig, str]] = {
@@ -55,12 +56,17 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "shadow_power=0.25": (D.replace(shadow_power=0.25), "shadow"),
     "shadow_power=1": (D.replace(shadow_power=1.0), "shadow"),
     "shadow_margin=0.05": (D.replace(shadow_margin=0.05), "shadow"),
+    "vegetation_score=none": (D.replace(vegetation_score="none"), "vegetation"),
+    "vegetation_power=2": (D.replace(vegetation_power=2), "vegetation"),
+    "vegetation_power=4": (D.replace(vegetation_power=4), "vegetation"),
+    "vegetation=none, nms_iou=0.7": (D.replace(vegetation_score="none", nms_iou=0.7), "vegetation, #14"),
     "refine=on": (D.replace(refine=True), "#1"),
     "straddle_weight=0.5": (D.replace(straddle_weight=0.5), "#1"),
     "straddle_weight=1": (D.replace(straddle_weight=1.0), "#1"),
     "road_score=stand": (D.replace(road_score="stand"), "#10"),
     "kappa=1.5 (Edge Boxes)": (D.replace(kappa=1.5), "#1"),
-    "nms_iou=0.75": (D.replace(nms_iou=0.75), "#14"),
+    "nms_iou=0.7 (eq. 13 as printed)": (D.replace(nms_iou=0.7), "#14"),
+    "nms_iou=0.72": (D.replace(nms_iou=0.72), "#14"),
     "candidates_per_region=4000": (D.replace(candidates_per_region=4000), "eq. 9"),
     "default, no regions": (D.replace(use_regions=False), "Ours* vs Ours**"),
     "norm=area (γ=0.75)": (D.replace(score_norm="area"), "#1"),
