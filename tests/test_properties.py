@@ -314,4 +314,3 @@ def test_any_valid_config_runs_or_stops_at_the_door(frame, changes, h, w, y, x):
         return
     event("ran")
     _assert_valid(out[0], h, w, cfg.top_k)
-
