@@ -354,9 +354,11 @@ def inspection_figure(
                               label="ground truth: best IoU over all proposals (#rank)"))
     if handles:
         ax_prop.legend(handles=handles, loc="upper right", framealpha=0.85, **small)
-    shadow = " × shadow underneath" if getattr(config, "shadow_score", "none") != "none" else ""
+    extra = " × shadow underneath" if getattr(config, "shadow_score", "none") != "none" else ""
+    if getattr(config, "vegetation_score", "none") != "none":
+        extra += " × (1 − green share)^p"
     ax_prop.set_title(f"3. Top {len(shown)} of {len(boxes)} proposals: edge score S (eq. 1) × "
-                      f"(α·location L + β·road R) (eqs. 10–12){shadow}, then NMS (eq. 13)",
+                      f"(α·location L + β·road R) (eqs. 10–12){extra}, then NMS (eq. 13)",
                       loc="left", fontsize=11)
 
     if title:
