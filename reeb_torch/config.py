@@ -229,6 +229,7 @@ _RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "shadow_power": _in(0, 8, lo_open=True),
     "shadow_floor": _in(0, 1, lo_open=True),
     "vegetation_power": _in(1, 16),
+    "vegetation_box": _in(0, 1, lo_open=True),
     "horizon": _in(0, 1, lo_open=True, hi_open=True),
     "ground_ratio": _positive(),
     "class_heights_m": ((lambda t: len(t) > 0 and all(x > 0 for x in t)), "a non-empty tuple of heights > 0"),
@@ -426,10 +427,15 @@ class ReebConfig:
     """Added to U before the power, so a box without a shadow keeps a small score (> 0)."""
     vegetation_score: VegetationScore = "green"
     """``green``: V is multiplied by (1 − G)^``vegetation_power``, where G is the fraction of
-    the window's pixels that are green-dominant (G > R and G > B at the working
-    resolution): trees, hedges and verges, the main clutter of road scenes, rank below
-    objects (not in the paper). ``none``: no such term (as printed)."""
-    vegetation_power: int = 3
+    the pixels of the window's centre (``vegetation_box``) that are green-dominant (G > R
+    and G > B at the working resolution): trees, hedges and verges, the main clutter of
+    road scenes, rank below objects (not in the paper). ``none``: no such term (as
+    printed)."""
+    vegetation_box: float = 0.7
+    """With ``vegetation_score='green'``: G is measured in the centred part of the window
+    this fraction of its width and height (1: the whole window; 0.7 keeps the trees
+    behind a vehicle's edges from counting against it)."""
+    vegetation_power: int = 5
     """With ``vegetation_score='green'``: the exponent, a whole number (the factor is a
     product, so every path computes the same numbers)."""
     location_score: LocationScore = "classes"

@@ -318,7 +318,7 @@ class ProposalGenerator(nn.Module):
     def _score_plan(self, grid: _windows.WindowGrid, fx: float, fy: float, h_in: int,
                     w_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per-size constants of the compiled scoring pass (cached per grid and input size):
-        the ``int64 [S, 15]`` size table, eq. 1's normalisers ``float64 [S]`` and L of every
+        the ``int64 [S, 19]`` size table, eq. 1's normalisers ``float64 [S]`` and L of every
         size's rows ``float32 [Σ ny]`` (computed by the same tensor code as the torch path)."""
         return self._grid_cached(("plan", fx, fy, h_in, w_in, self.config), grid,
                                  lambda: self._build_score_plan(grid, fx, fy, h_in, w_in))
@@ -342,7 +342,8 @@ class ProposalGenerator(nn.Module):
                 if lkey is not None:
                     loc_cache[lkey] = start
             sh, mx = _scoring.shadow_strips(s.w, s.h, cfg.shadow_strip, cfg.shadow_margin)
-            rows.append((s.w, s.h, s.sx, s.sy, s.nx, s.ny, s.oy, off, dx, dy, cw, ch, start, sh, mx))
+            gdx, gdy, gw, gh = _scoring.centre_box(s.w, s.h, cfg.vegetation_box)
+            rows.append((s.w, s.h, s.sx, s.sy, s.nx, s.ny, s.oy, off, dx, dy, cw, ch, start, sh, mx, gdx, gdy, gw, gh))
             denoms.append(denom)
         return (np.asarray(rows, dtype=np.int64).reshape(-1, len(_scoring.PLAN_COLUMNS)),
                 np.asarray(denoms, dtype=np.float64),
@@ -442,7 +443,8 @@ class ProposalGenerator(nn.Module):
                     loc_cache[key] = loc
             v = _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)
             if ii_green is not None:  # trees and verges: the green-dominant share of the window
-                f = _scoring.vegetation_factor(_scoring.box_sums(ii_green, 0, 0, s.w, s.h, s), float(s.w * s.h),
+                gdx, gdy, gw, gh = _scoring.centre_box(s.w, s.h, cfg.vegetation_box)
+                f = _scoring.vegetation_factor(_scoring.box_sums(ii_green, gdx, gdy, gw, gh, s), float(gw * gh),
                                                cfg.vegetation_power)
                 v = v * f.float()
             v = torch.where(sc >= cfg.min_edge_score, v, -math.inf)
@@ -530,7 +532,12 @@ class ProposalGenerator(nn.Module):
                                           self._class_weights())
             v = _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)
             if ii_green is not None:
-                v = v * _scoring.vegetation_factor(at(ii_green, bi, x0, y0, x1, y1), area, cfg.vegetation_power)
+                gw = (w * cfg.vegetation_box).round().long().clamp_(min=1)
+                gh = (h * cfg.vegetation_box).round().long().clamp_(min=1)
+                gx0 = x0 + torch.div(w - gw, 2, rounding_mode="floor")
+                gy0 = y0 + torch.div(h - gh, 2, rounding_mode="floor")
+                v = v * _scoring.vegetation_factor(at(ii_green, bi, gx0, gy0, gx0 + gw, gy0 + gh),
+                                                   (gw * gh).double(), cfg.vegetation_power)
             if cfg.shadow_score != "none":
                 sh = (h.double() * cfg.shadow_strip).round().long().clamp_(min=1)
                 mx = torch.minimum((w.double() * cfg.shadow_margin).floor().long(), torch.div(w - 1, 2, rounding_mode="floor"))

@@ -243,8 +243,8 @@ def unit_scale(scale_x: float, scale_y: float) -> float:
 # compiled CPU path: every window of every size in one pass
 # ---------------------------------------------------------------------------------------
 PLAN_COLUMNS = ("w", "h", "sx", "sy", "nx", "ny", "oy", "offset", "dx", "dy", "cw", "ch", "loc_offset",
-                "shadow_rows", "shadow_margin")
-"""Columns of the ``int64 [S, 15]`` size table :func:`score_grid_cpu` reads, one row per size."""
+                "shadow_rows", "shadow_margin", "green_dx", "green_dy", "green_w", "green_h")
+"""Columns of the ``int64 [S, 19]`` size table :func:`score_grid_cpu` reads, one row per size."""
 
 
 @numba.njit(cache=True, nogil=True)
@@ -267,7 +267,7 @@ def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, 
     hmax = ii.shape[1] - 1
     for b in range(ii.shape[0]):
         for k in range(plan.shape[0]):
-            w, h, sx, sy, nx, ny, oy, off, dx, dy, cw, ch, lo, sh, mx = plan[k]
+            w, h, sx, sy, nx, ny, oy, off, dx, dy, cw, ch, lo, sh, mx, gdx, gdy, gw, gh = plan[k]
             d = denom[k]
             for j in range(ny):
                 y0 = oy + j * sy
@@ -279,7 +279,9 @@ def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, 
                 yb = min(y1 + sh, hmax)
                 n_in = float(sh * (w - 2 * mx))
                 n_below = float(max(yb - y1, 1) * (w - 2 * mx))
-                inv_area = 1.0 / float(w * h)
+                inv_area = 1.0 / float(gw * gh)
+                gy0 = y0 + gdy
+                gy1 = gy0 + gh
                 for i in range(nx):
                     x0 = i * sx
                     x1 = x0 + w
@@ -293,7 +295,9 @@ def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, 
                     s = np.float32((enc * unit - centre * unit) / d)
                     out[b, row + i] = s * wl if s >= min_edge else neg_inf
                     if with_green and s >= min_edge:
-                        gs = ((green[b, y1, x1] - green[b, y0, x1]) - green[b, y1, x0]) + green[b, y0, x0]
+                        gx0 = x0 + gdx
+                        gx1 = gx0 + gw
+                        gs = ((green[b, gy1, gx1] - green[b, gy0, gx1]) - green[b, gy1, gx0]) + green[b, gy0, gx0]
                         q = 1.0 - float(gs) * inv_area
                         f = q
                         for _ in range(veg_power - 1):
@@ -329,7 +333,7 @@ def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc:
         ii: ``float64 (B, H + 1, W + 1)`` integral image of the edge map.
         tables: :class:`reeb_torch.refinement.EnclosedTables` of the groups (every window
             wider and taller than their ``max_extent``).
-        plan: ``int64 [S, 15]``, one row per window size (:data:`PLAN_COLUMNS`).
+        plan: ``int64 [S, 19]``, one row per window size (:data:`PLAN_COLUMNS`).
         denom: ``float64 [S]``, eq. 1's normaliser of each size (input-pixel units).
         loc: ``float32 [Σ ny]``, L of each size's rows, at ``plan[:, 12]``.
         unit, alpha: as in :func:`edge_score` and :func:`combined_score`.

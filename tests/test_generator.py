@@ -174,6 +174,8 @@ def test_batch_equals_single_on_odd_crops(sample_image):
     {"vegetation_score": "none"},
     {"vegetation_score": "green", "vegetation_power": 1, "shadow_power": 0.7},
     {"vegetation_score": "green", "vegetation_power": 6, "shadow_score": "none"},
+    {"vegetation_box": 1.0, "vegetation_power": 3},
+    {"vegetation_box": 0.33},
 ])
 def test_compiled_scoring_equals_the_tensor_path(sample_image, overrides):
     # issue 9: the compiled CPU pass gives every window the very same float32 score as the
