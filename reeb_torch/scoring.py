@@ -73,38 +73,23 @@ def count_integral(mask: Tensor) -> Tensor:
     src = (mask != 0).contiguous().numpy()
     b, h, w = src.shape
     out = np.empty((b, h + 1, w + 1), np.int32)
-    on_two_cores(lambda lo, hi: _count_kernel(src[lo:hi], out[lo:hi]), b)
+    on_two_cores(lambda lo, hi: _integral_kernel(src[lo:hi], out[lo:hi]), b)
     return torch.from_numpy(out)
-
-
-@numba.njit(cache=True, nogil=True)
-def _count_kernel(x: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
-    """:func:`count_integral` of the bool ``x`` ``(B, H, W)`` into ``out``."""
-    nb, h, w = x.shape
-    for b in range(nb):
-        for j in range(w + 1):
-            out[b, 0, j] = 0
-        for i in range(h):
-            out[b, i + 1, 0] = 0
-            run = 0
-            for j in range(w):
-                run += 1 if x[b, i, j] else 0
-                out[b, i + 1, j + 1] = out[b, i, j + 1] + run
 
 
 @numba.njit(cache=True, nogil=True)
 def _integral_kernel(x: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
     """:func:`integral_image` of ``x`` ``float32 (B, H, W)`` into ``out`` ``float64
-    (B, H + 1, W + 1)``: each row's running sum, added to the row above's table entry."""
+    (B, H + 1, W + 1)`` (or :func:`count_integral` of a bool ``x`` into ``int32``): each
+    row's running sum, in ``out``'s type, added to the row above's table entry."""
     nb, h, w = x.shape
     for b in range(nb):
-        for j in range(w + 1):
-            out[b, 0, j] = 0.0
+        out[b, 0, :] = 0
         for i in range(h):
-            out[b, i + 1, 0] = 0.0
-            run = 0.0
+            out[b, i + 1, 0] = 0
+            run = out[b, i + 1, 0]  # 0 in out's type
             for j in range(w):
-                run += np.float64(x[b, i, j])
+                run += x[b, i, j]
                 out[b, i + 1, j + 1] = out[b, i, j + 1] + run
 
 

@@ -6,7 +6,8 @@ import cv2
 import numpy as np
 import torch
 
-from reeb_torch.edges import edge_map, gaussian_blur, remove_isolated, sobel_gradients, sobel_magnitude, to_gray
+from reeb_torch.edges import (edge_map, gaussian_blur, green_mask, remove_isolated, sobel_gradients, sobel_magnitude,
+                              to_gray)
 
 
 def test_sobel_matches_opencv_inside_the_border():
@@ -81,32 +82,19 @@ def test_compiled_edge_map_equals_the_tensor_ops(sample_image):
             assert int((got > 0).sum()) > 0
 
 
-def _interpolate_then_grey(images, scale):
+def _interpolated(images, scale):
+    """The tensor ops the compiled front end replaces: [0, 1] floats, antialiased resize."""
     import torch.nn.functional as F
 
     h, w = images[0].shape[-2:]
     size = (max(1, int(round(h * scale))), max(1, int(round(w * scale))))
     unit = [x.float().div_(255.0) if x.dtype == torch.uint8 else x for x in images]
-    return to_gray(torch.cat([F.interpolate(x[None], size=size, mode="bilinear", align_corners=False,
-                                            antialias=True) for x in unit]))
-
-
-def _interpolated_green(images, scale):
-    import torch.nn.functional as F
-
-    from reeb_torch.edges import green_mask
-
-    h, w = images[0].shape[-2:]
-    size = (max(1, int(round(h * scale))), max(1, int(round(w * scale))))
-    unit = [x.float().div_(255.0) if x.dtype == torch.uint8 else x for x in images]
-    return green_mask(torch.cat([F.interpolate(x[None], size=size, mode="bilinear", align_corners=False,
-                                               antialias=True) for x in unit]))
+    return torch.cat([F.interpolate(x[None], size=size, mode="bilinear", align_corners=False, antialias=True)
+                      for x in unit])
 
 
 def test_green_mask_marks_green_dominant_pixels():
     rgb = torch.tensor([[0.2, 0.5, 0.1], [0.5, 0.5, 0.1], [0.1, 0.5, 0.6], [0.0, 0.0, 0.0]]).T.reshape(1, 3, 1, 4)
-    from reeb_torch.edges import green_mask
-
     assert green_mask(rgb).tolist() == [[[1.0, 0.0, 0.0, 0.0]]]
 
 
@@ -125,10 +113,10 @@ def test_compiled_working_gray_equals_interpolate_then_grey(sample_image):
         for scale in (0.5, 0.51, 0.7, 0.9):
             got = working_gray(images, scale)
             assert got is not None and got.dtype == torch.float32
-            assert torch.equal(got, _interpolate_then_grey(images, scale)), (images[0].dtype, scale)
+            assert torch.equal(got, to_gray(_interpolated(images, scale))), (images[0].dtype, scale)
             grey, green = working_gray(images, scale, with_green=True)
             assert torch.equal(grey, got)
-            assert torch.equal(green, _interpolated_green(images, scale)), (images[0].dtype, scale)
+            assert torch.equal(green, green_mask(_interpolated(images, scale))), (images[0].dtype, scale)
 
 
 def test_compiled_working_gray_declines_where_it_would_differ(sample_image):
