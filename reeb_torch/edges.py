@@ -21,7 +21,8 @@ from torch import Tensor
 
 from ._threads import on_two_cores
 
-__all__ = ["to_gray", "working_gray", "green_mask", "gaussian_blur", "sobel_magnitude", "thin", "remove_isolated", "edge_map"]
+__all__ = ["to_gray", "working_gray", "green_mask", "gaussian_blur", "sobel_magnitude", "gradient_magnitude", "thin",
+           "remove_isolated", "edge_map"]
 
 def to_gray(images: Tensor) -> Tensor:
     """RGB ``(B, 3, H, W)`` in [0, 1] to grey ``(B, 1, H, W)`` in [0, 1] (ITU-R 601 weights,
