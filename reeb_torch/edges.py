@@ -35,8 +35,10 @@ def working_gray(images: list[Tensor], scale: float,
     """Grey images at the working resolution, ``(B, 1, h, w)`` float32 with ``h, w`` =
     ``round(H·scale), round(W·scale)``, from equal-sized ``(3, H, W)`` images (uint8, or
     float32 in [0, 1]); ``None`` where this compiled path does not apply (then resize with
-    ``F.interpolate`` and use :func:`to_gray`). With ``with_green``, also
-    :func:`green_mask` of the resized colour image, ``(B, h, w)``: ``(grey, green)``.
+    ``F.interpolate`` and use :func:`to_gray`). With ``with_green``, also the pixel counts of
+    :func:`green_mask` of the resized colour image, ``int32 (B, h + 1, w + 1)``, the same
+    table as ``scoring.count_integral(green_mask(...))``, counted as the rows come out:
+    ``(grey, green_counts)``.
 
     It is the same computation as ``to_gray(F.interpolate(x / 255, antialias=True))``,
     operation for operation and bit for bit (tested): torch's antialiased bilinear
@@ -59,7 +61,7 @@ def working_gray(images: list[Tensor], scale: float,
         return None
     arrays = [im.contiguous().numpy() for im in images]
     out = np.empty((len(images), 1, ho, wo), np.float32)
-    green = np.empty((len(images), ho, wo) if with_green else (len(images), 0, 0), np.float32)
+    green = np.empty((len(images), ho + 1, wo + 1) if with_green else (len(images), 0, 0), np.int32)
 
     def run(lo: int, hi: int) -> None:
         for i in range(lo, hi):
@@ -126,8 +128,8 @@ def _working_gray_kernel(img: np.ndarray, lut: np.ndarray, xlo: np.ndarray, xn: 
                          out: np.ndarray, green: np.ndarray) -> None:  # pragma: no cover - compiled
     """:func:`working_gray` of one ``(3, H, W)`` image into ``out`` ``(h, w)``: the
     horizontal pass for the three channels together, then the vertical pass a whole
-    output row at a time, then the grey (and :func:`green_mask` into ``green`` unless it
-    is empty)."""
+    output row at a time, then the grey (and the running counts of :func:`green_mask` into
+    ``green`` ``(h + 1, w + 1)`` unless it is empty)."""
     _, h, _ = img.shape
     wo, ho = xlo.shape[0], ylo.shape[0]
     rows = np.empty((3, h, wo), np.float32)
@@ -166,9 +168,15 @@ def _working_gray_kernel(img: np.ndarray, lut: np.ndarray, xlo: np.ndarray, xn: 
         for i in range(wo):
             line[i] = _fma(lb[i], wb, _fma(lg[i], wg, lr[i] * wr))
         if green.shape[0] > 0:
-            mask = green[yo]
+            if yo == 0:
+                green[0, :] = 0
+            above, below = green[yo], green[yo + 1]
+            below[0] = 0
+            run = 0
             for i in range(wo):
-                mask[i] = np.float32(1.0) if lg[i] > lr[i] and lg[i] > lb[i] else np.float32(0.0)
+                if lg[i] > lr[i] and lg[i] > lb[i]:
+                    run += 1
+                below[i + 1] = above[i + 1] + run
 
 
 def gaussian_blur(gray: Tensor, sigma: float) -> Tensor:

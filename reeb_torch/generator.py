@@ -161,7 +161,7 @@ class ProposalGenerator(nn.Module):
             if gray is None:
                 xk = self._working_batch(images)
                 gray = _edges.to_gray(xk)
-                green = _edges.green_mask(xk) if want_green else None
+                green = _scoring.count_integral(_edges.green_mask(xk)) if want_green else None
             src = gray if cfg.edge_channels == "gray" else xk
             crossing = None
             if cfg.straddle_weight > 0:  # edge orientations for the straddling term
@@ -298,6 +298,8 @@ class ProposalGenerator(nn.Module):
                        green: Tensor | None = None) -> Tensor:
         """V (eq. 12) of every window, ``float32 [B, N]``; ``-inf`` where S < min_edge_score
         (or, with ``local_max``, where a neighbouring position of the same size scores higher).
+        ``green``: the pixel counts of the green mask, ``(B, h + 1, w + 1)``, for the
+        vegetation term.
 
         On the CPU, when no term needs per-window maps (no road fraction, straddling or
         local maxima) and every window is wider and taller than every edge group, one
@@ -388,10 +390,9 @@ class ProposalGenerator(nn.Module):
                 sqrt_floor = cfg.shadow_floor
             else:
                 shadow = torch.zeros((b, grid.count), dtype=torch.float64)
-        ii_green = _scoring.count_integral(green) if green is not None else None
         _scoring.score_grid_cpu(ii_edges, tables, plan, denom, loc, _scoring.unit_scale(fx, fy), cfg.alpha,
                                 cfg.beta * road, cfg.min_edge_score, out, ii_grey, shadow, sqrt_floor,
-                                ii_green, cfg.vegetation_power)
+                                green, cfg.vegetation_power)
         if shadow is not None:
             out = _scoring.apply_shadow(out, shadow, cfg.shadow_floor, cfg.shadow_power)
         return out
@@ -414,7 +415,7 @@ class ProposalGenerator(nn.Module):
             ii_rows = _scoring.integral_image(F.pad(crossing[1], (band, band, band, band)))
         unit = _scoring.unit_scale(fx, fy)
         out = torch.full((b, grid.count), -math.inf, dtype=torch.float32, device=edges.device)
-        ii_green = _scoring.integral_image(green) if green is not None else None
+        ii_green = green  # the pixel counts of the green mask (None: no vegetation term)
         shadow = ii_grey_below = None
         if cfg.shadow_score != "none":  # rows past the bottom add nothing to the strip below
             ii_grey_below = _scoring.extend_below(_scoring.integral_image(grey))
@@ -501,7 +502,7 @@ class ProposalGenerator(nn.Module):
         at = _refinement.box_sum_at
         if cfg.shadow_score != "none":
             ii_grey_below = _scoring.extend_below(_scoring.integral_image(grey))
-        ii_green = _scoring.integral_image(green) if green is not None else None
+        ii_green = green  # the pixel counts of the green mask (None: no vegetation term)
 
         def score_fn(boxes: Tensor, bi: Tensor) -> Tensor:
             x0, y0, x1, y1 = boxes.unbind(1)

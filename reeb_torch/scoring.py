@@ -368,7 +368,7 @@ def vegetation_factor(green_sum: Tensor, area: Tensor | float, power: int) -> Te
     """(1 − G)^power with G = ``green_sum · (1 / area)``, the green-dominant fraction of a
     box (``ReebConfig.vegetation_score='green'``), ``float64``, as a product of ``power``
     factors (the compiled pass computes the same numbers)."""
-    q = 1.0 - green_sum * (1.0 / area)
+    q = 1.0 - green_sum.to(torch.float64) * (1.0 / area)
     f = q
     for _ in range(power - 1):
         f = f * q
