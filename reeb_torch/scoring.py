@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ._radix import kth_largest
 from ._threads import on_two_cores
 from .groups import EdgeGroups
 from .windows import WindowSize
@@ -388,42 +389,6 @@ def apply_shadow(v: Tensor, u: Tensor, floor: float, power: float) -> Tensor:
 
 
 @numba.njit(cache=True, nogil=True)
-def _kth_largest(vals: np.ndarray, k: int) -> np.float32:  # pragma: no cover - compiled
-    """The ``k``-th largest of float32 ``vals`` (``1 <= k <= len``; NaN counts as ``-inf``,
-    ``-0.0`` as ``0.0``), by radix selection on the floats' order-preserving 32-bit keys:
-    three counting passes of 11, 11 and 10 bits, each keeping the bucket that holds it."""
-    n = vals.shape[0]
-    keys = np.empty(n, np.uint32)
-    sign = np.uint32(0x80000000)
-    for i in range(n):
-        v = vals[i]
-        if np.isnan(v):
-            v = np.float32(-np.inf)
-        u = np.float32(v + np.float32(0.0)).view(np.uint32)
-        u = ~u if u & sign else u | sign  # ascending order of the floats
-        keys[i] = ~u  # descending: the k-th largest value has the k-th smallest key
-    count = np.empty(2048, np.int64)
-    prefix = np.uint32(0)
-    mask = np.uint32(0)
-    for shift, bits in ((21, 11), (10, 11), (0, 10)):
-        count[:] = 0
-        top = np.uint32((1 << bits) - 1)
-        for i in range(n):
-            kk = keys[i]
-            if kk & mask == prefix:
-                count[(kk >> shift) & top] += 1
-        d = 0
-        while count[d] < k:
-            k -= count[d]
-            d += 1
-        prefix |= np.uint32(d) << np.uint32(shift)
-        mask |= top << np.uint32(shift)
-    u = ~prefix
-    u = u & ~sign if u & sign else ~u
-    return np.array([u], np.uint32).view(np.float32)[0]
-
-
-@numba.njit(cache=True, nogil=True)
 def _select_kernel(scores: np.ndarray, members: np.ndarray, starts: np.ndarray, budget: np.ndarray,
                    chosen: np.ndarray) -> None:  # pragma: no cover - compiled
     """For each image and region, mark the ``budget`` best finite scores among the region's
@@ -447,7 +412,7 @@ def _select_kernel(scores: np.ndarray, members: np.ndarray, starts: np.ndarray, 
                     if np.isfinite(vals[j]):
                         chosen[i, idx[j]] = True
                 continue
-            t = _kth_largest(vals, k)  # finite: more than k are
+            t = kth_largest(vals, k)  # finite: more than k are
             left = k
             for j in range(n):
                 if vals[j] > t:

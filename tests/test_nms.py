@@ -195,7 +195,7 @@ def test_nms_windows_cpu_equals_nms_top_k_on_the_chosen_windows():
 
 
 def test_descending_radix_order_equals_torch_stable_sort():
-    from reeb_torch.nms import _descending_order
+    from reeb_torch._radix import descending_order
 
     gen = torch.Generator().manual_seed(12)
     for n in (0, 1, 5, 4097):
@@ -206,4 +206,4 @@ def test_descending_radix_order_equals_torch_stable_sort():
             v[torch.randint(0, n, (n // 5,), generator=gen)] = 0.0
             v[:2] = torch.tensor([float("inf"), float("-inf")])
         ref = torch.sort(v, descending=True, stable=True).indices
-        assert torch.equal(torch.from_numpy(_descending_order(v.numpy())), ref), n
+        assert torch.equal(torch.from_numpy(descending_order(v.numpy())), ref), n
