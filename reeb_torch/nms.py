@@ -158,14 +158,7 @@ def nms_top_k(boxes: Tensor, scores: Tensor, iou: float, k: int, first: int | No
     Returns:
         ``int64 [min(k, kept)]`` on ``boxes``' device.
     """
-    if scores.numel() == 0:
-        return torch.zeros(0, dtype=torch.long, device=boxes.device)
-    order = torch.sort(scores, descending=True, stable=True).indices
-    sboxes = boxes[order]
-    if _grid_ok(sboxes, iou):
-        keep = _grid_nms_sorted(sboxes.contiguous().numpy(), float(iou), int(k))
-        return order[torch.from_numpy(keep)]
-    return _torchvision_sorted(order, sboxes, iou, k, first)
+    return nms_top_k_many([(boxes, scores)], iou, k, first)[0]
 
 
 def _torchvision_sorted(order: Tensor, sboxes: Tensor, iou: float, k: int, first: int | None = None) -> Tensor:
@@ -182,10 +175,11 @@ def _torchvision_sorted(order: Tensor, sboxes: Tensor, iou: float, k: int, first
         p = n
 
 
-def nms_top_k_many(pairs: list[tuple[Tensor, Tensor]], iou: float, k: int) -> list[Tensor]:
-    """:func:`nms_top_k` of each ``(boxes, scores)`` pair (the images of a batch): the same
-    indices, but the compiled CPU kernels of the images run two at a time (they release
-    the GIL) after the sorting, which stays in torch."""
+def nms_top_k_many(pairs: list[tuple[Tensor, Tensor]], iou: float, k: int,
+                   first: int | None = None) -> list[Tensor]:
+    """:func:`nms_top_k` of each ``(boxes, scores)`` pair (the images of a batch): the
+    compiled CPU kernels of the images run two at a time (they release the GIL) after the
+    sorting, which stays in torch."""
     out: list[Tensor | None] = [None] * len(pairs)
     todo: list[tuple[int, Tensor, np.ndarray]] = []
     for i, (boxes, scores) in enumerate(pairs):
@@ -197,7 +191,7 @@ def nms_top_k_many(pairs: list[tuple[Tensor, Tensor]], iou: float, k: int) -> li
         if _grid_ok(sboxes, iou):
             todo.append((i, order, sboxes.contiguous().numpy()))
         else:
-            out[i] = _torchvision_sorted(order, sboxes, iou, k)
+            out[i] = _torchvision_sorted(order, sboxes, iou, k, first)
     kept: list[np.ndarray | None] = [None] * len(todo)
 
     def run(lo: int, hi: int) -> None:
@@ -231,7 +225,7 @@ def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k
     ch = chosen.contiguous().numpy()
     bx = boxes.contiguous().numpy()
     sc = scores.contiguous().numpy()
-    out: list[np.ndarray | None] = [None] * ch.shape[0]
+    out: list[np.ndarray] = [np.empty(0, np.int64)] * ch.shape[0]
 
     def run(lo: int, hi: int) -> None:
         for i in range(lo, hi):
@@ -240,7 +234,7 @@ def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k
     on_two_cores(run, ch.shape[0])
     result = []
     for i, keep in enumerate(out):
-        if keep is None or (len(keep) == 1 and keep[0] < 0):  # NaN or bad boxes: the checked path
+        if len(keep) == 1 and keep[0] < 0:  # NaN or bad boxes: the checked path
             cand = torch.nonzero(chosen[i]).squeeze(1)
             result.append(cand[nms_top_k(boxes[cand], scores[i, cand], iou, k)])
         else:
