@@ -217,21 +217,17 @@ class ProposalGenerator(nn.Module):
                 pairs = [(boxes_in, scores[i]) for i in range(b)]
                 windows = kept
             else:
-                cands, pairs = [], []
-                for i in range(b):
-                    cand = torch.nonzero(chosen[i]).squeeze(1)
-                    if cand_boxes is not None:
-                        pairs.append((cand_boxes[i] / to_input, cand_scores[i]))
-                    else:
-                        pairs.append((boxes_in[cand], scores[i, cand]))
-                    cands.append(cand)
-                keeps = nms_top_k_many(pairs, cfg.nms_iou, max(len(p[1]) for p in pairs) if quota else cfg.top_k)
-                windows = [c[k] for c, k in zip(cands, keeps)]
-                kept = keeps
+                cands = [torch.nonzero(chosen[i]).squeeze(1) for i in range(b)]
+                if cand_boxes is not None:
+                    pairs = [(cand_boxes[i] / to_input, cand_scores[i]) for i in range(b)]
+                else:
+                    pairs = [(boxes_in[c], scores[i, c]) for i, c in enumerate(cands)]
+                kept = nms_top_k_many(pairs, cfg.nms_iou, max(len(p[1]) for p in pairs) if quota else cfg.top_k)
+                windows = [c[k] for c, k in zip(cands, kept)]
             results = []
             for i, ((bx, sc), keep_idx, win) in enumerate(zip(pairs, kept, windows)):
                 if quota:
-                    keep_idx = keep_idx[self._quota(torch.arange(len(keep_idx)), region_of[win], share[i])[: cfg.top_k]]
+                    keep_idx = self._quota(keep_idx, region_of[win], share[i])[: cfg.top_k]
                 results.append({"boxes": bx[keep_idx].contiguous(), "scores": sc[keep_idx].contiguous()})
         extra: dict = {}
         if keep:
@@ -415,7 +411,6 @@ class ProposalGenerator(nn.Module):
             ii_rows = _scoring.integral_image(F.pad(crossing[1], (band, band, band, band)))
         unit = _scoring.unit_scale(fx, fy)
         out = torch.full((b, grid.count), -math.inf, dtype=torch.float32, device=edges.device)
-        ii_green = green  # the pixel counts of the green mask (None: no vegetation term)
         shadow = ii_grey_below = None
         if cfg.shadow_score != "none":  # rows past the bottom add nothing to the strip below
             ii_grey_below = _scoring.extend_below(_scoring.integral_image(grey))
@@ -443,9 +438,9 @@ class ProposalGenerator(nn.Module):
                 if key is not None:
                     loc_cache[key] = loc
             v = _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)
-            if ii_green is not None:  # trees and verges: the green-dominant share of the window
+            if green is not None:  # trees and verges: the green-dominant share of the window
                 gdx, gdy, gw, gh = _scoring.centre_box(s.w, s.h, cfg.vegetation_box)
-                f = _scoring.vegetation_factor(_scoring.box_sums(ii_green, gdx, gdy, gw, gh, s), float(gw * gh),
+                f = _scoring.vegetation_factor(_scoring.box_sums(green, gdx, gdy, gw, gh, s), float(gw * gh),
                                                cfg.vegetation_power)
                 v = v * f.float()
             v = torch.where(sc >= cfg.min_edge_score, v, -math.inf)
@@ -502,16 +497,19 @@ class ProposalGenerator(nn.Module):
         at = _refinement.box_sum_at
         if cfg.shadow_score != "none":
             ii_grey_below = _scoring.extend_below(_scoring.integral_image(grey))
-        ii_green = green  # the pixel counts of the green mask (None: no vegetation term)
+
+        def centred(x0: Tensor, y0: Tensor, w: Tensor, h: Tensor, fraction: float) -> tuple[Tensor, ...]:
+            """The centred ``fraction`` of each box, as :func:`scoring.centre_box` places it."""
+            cw = (w * fraction).round().long().clamp_(min=1)
+            ch = (h * fraction).round().long().clamp_(min=1)
+            cx0 = x0 + torch.div(w - cw, 2, rounding_mode="floor")
+            cy0 = y0 + torch.div(h - ch, 2, rounding_mode="floor")
+            return cx0, cy0, cx0 + cw, cy0 + ch
 
         def score_fn(boxes: Tensor, bi: Tensor) -> Tensor:
             x0, y0, x1, y1 = boxes.unbind(1)
             w, h = x1 - x0, y1 - y0
-            cw = (w * cfg.center_fraction).round().long().clamp_(min=1)
-            ch = (h * cfg.center_fraction).round().long().clamp_(min=1)
-            cx0 = x0 + torch.div(w - cw, 2, rounding_mode="floor")
-            cy0 = y0 + torch.div(h - ch, 2, rounding_mode="floor")
-            centre = at(ii_edges, bi, cx0, cy0, cx0 + cw, cy0 + ch)
+            centre = at(ii_edges, bi, *centred(x0, y0, w, h, cfg.center_fraction))
             if crossing is not None:
                 r2 = 2 * band
                 cut = (at(ii_cols, bi, x0, y0 + band, x0 + r2, y1 + band)
@@ -532,13 +530,10 @@ class ProposalGenerator(nn.Module):
                                           cfg.horizon, self._ground_ratios(), cfg.ground_log_sigma,
                                           self._class_weights())
             v = _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)
-            if ii_green is not None:
-                gw = (w * cfg.vegetation_box).round().long().clamp_(min=1)
-                gh = (h * cfg.vegetation_box).round().long().clamp_(min=1)
-                gx0 = x0 + torch.div(w - gw, 2, rounding_mode="floor")
-                gy0 = y0 + torch.div(h - gh, 2, rounding_mode="floor")
-                v = v * _scoring.vegetation_factor(at(ii_green, bi, gx0, gy0, gx0 + gw, gy0 + gh),
-                                                   (gw * gh).double(), cfg.vegetation_power)
+            if green is not None:
+                gx0, gy0, gx1, gy1 = centred(x0, y0, w, h, cfg.vegetation_box)
+                v = v * _scoring.vegetation_factor(at(green, bi, gx0, gy0, gx1, gy1),
+                                                   ((gx1 - gx0) * (gy1 - gy0)).double(), cfg.vegetation_power)
             if cfg.shadow_score != "none":
                 sh = (h.double() * cfg.shadow_strip).round().long().clamp_(min=1)
                 mx = torch.minimum((w.double() * cfg.shadow_margin).floor().long(), torch.div(w - 1, 2, rounding_mode="floor"))
