@@ -12,7 +12,7 @@ from torch import Tensor
 if TYPE_CHECKING:
     from .config import ReebConfig
 
-__all__ = ["check_images", "check_fits", "ImageBatch"]
+__all__ = ["check_images", "check_fits", "working_size", "ImageBatch"]
 
 ImageBatch = Tensor | Sequence[Tensor]
 
@@ -50,13 +50,20 @@ def _check_one(img: Tensor, where: str, keep_uint8: bool = False) -> Tensor:
     return img.float()
 
 
+def working_size(height: int, width: int, scale: float) -> tuple[int, int]:
+    """``(h, w)`` of a ``height × width`` image at the working resolution ``scale``
+    (rounded, at least one pixel): the one rule the resize, the compiled front end and the
+    size check share."""
+    return max(1, int(round(height * scale))), max(1, int(round(width * scale)))
+
+
 def check_fits(height: int, width: int, config: ReebConfig, where: str = "image") -> None:
     """Raise ValueError when ``config`` cannot run on a ``height × width`` image: at the
     working resolution (``scale``) the Gaussian blur (``blur_sigma``; kernel side
     ``2*ceil(2σ)+1``, reflected borders) needs more than ``ceil(2σ)`` pixels per side.
     The message names the image size and both settings."""
     s, sigma = config.scale, config.blur_sigma
-    hk, wk = max(1, int(round(height * s))), max(1, int(round(width * s)))
+    hk, wk = working_size(height, width, s)
     reach = math.ceil(2 * sigma)
     if reach >= min(hk, wk):
         raise ValueError(

@@ -6,9 +6,8 @@ All functions take and return batched tensors; shapes are stated per function.
 
 from __future__ import annotations
 
-import math
-
 import functools
+import math
 
 import kornia
 import numba
@@ -19,6 +18,7 @@ from numba.core import types as _nbtypes
 from numba.extending import intrinsic, overload
 from torch import Tensor
 
+from ._checks import working_size
 from ._threads import on_two_cores
 
 __all__ = ["to_gray", "working_gray", "green_mask", "gaussian_blur", "sobel_magnitude", "gradient_magnitude", "thin",
@@ -31,14 +31,14 @@ def to_gray(images: Tensor) -> Tensor:
 
 
 def working_gray(images: list[Tensor], scale: float,
-                 with_green: bool = False) -> Tensor | tuple[Tensor, Tensor] | None:
-    """Grey images at the working resolution, ``(B, 1, h, w)`` float32 with ``h, w`` =
-    ``round(H·scale), round(W·scale)``, from equal-sized ``(3, H, W)`` images (uint8, or
-    float32 in [0, 1]); ``None`` where this compiled path does not apply (then resize with
-    ``F.interpolate`` and use :func:`to_gray`). With ``with_green``, also the pixel counts of
-    :func:`green_mask` of the resized colour image, ``int32 (B, h + 1, w + 1)``, the same
-    table as ``scoring.count_integral(green_mask(...))``, counted as the rows come out:
-    ``(grey, green_counts)``.
+                 with_green: bool = False) -> tuple[Tensor, Tensor | None] | None:
+    """``(grey, green_counts)`` at the working resolution from equal-sized ``(3, H, W)``
+    images (uint8, or float32 in [0, 1]): grey ``(B, 1, h, w)`` float32 with ``h, w`` =
+    :func:`working_size`, and with ``with_green`` the pixel counts of :func:`green_mask`
+    of the resized colour image, ``int32 (B, h + 1, w + 1)``, the same table as
+    ``scoring.count_integral(green_mask(...))``, counted as the rows come out (else
+    ``None``). ``None`` where this compiled path does not apply (then resize with
+    ``F.interpolate`` and use :func:`to_gray`).
 
     It is the same computation as ``to_gray(F.interpolate(x / 255, antialias=True))``,
     operation for operation and bit for bit (tested): torch's antialiased bilinear
@@ -54,7 +54,7 @@ def working_gray(images: list[Tensor], scale: float,
     if torch.backends.cpu.get_cpu_capability() not in ("AVX2", "AVX512"):
         return None
     _, h, w = x0.shape
-    ho, wo = max(1, int(round(h * scale))), max(1, int(round(w * scale)))
+    ho, wo = working_size(h, w, scale)
     xlo, xn, xw = _aa_weights(w, wo)
     ylo, yn, yw = _aa_weights(h, ho)
     if max(xw.shape[1], yw.shape[1]) > 4:  # scale < 0.5: torch sums longer filters in another order
@@ -68,9 +68,7 @@ def working_gray(images: list[Tensor], scale: float,
             _working_gray_kernel(arrays[i], _UNIT_LUT, xlo, xn, xw, ylo, yn, yw, out[i, 0], green[i])
 
     on_two_cores(run, len(images))
-    if with_green:
-        return torch.from_numpy(out), torch.from_numpy(green)
-    return torch.from_numpy(out)
+    return torch.from_numpy(out), torch.from_numpy(green) if with_green else None
 
 
 def green_mask(images: Tensor) -> Tensor:

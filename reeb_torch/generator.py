@@ -27,7 +27,7 @@ from . import regions as _regions
 from . import road as _road
 from . import scoring as _scoring
 from . import windows as _windows
-from ._checks import ImageBatch, check_images
+from ._checks import ImageBatch, check_images, working_size
 from .config import ReebConfig
 from .nms import nms_top_k_many, nms_windows_cpu
 
@@ -157,7 +157,7 @@ class ProposalGenerator(nn.Module):
             if cfg.edge_channels == "gray" and not needs_road:
                 front = _edges.working_gray(images, cfg.scale, with_green=want_green)
                 if front is not None:
-                    gray, green = front if want_green else (front, None)
+                    gray, green = front
             if gray is None:
                 xk = self._working_batch(images)
                 gray = _edges.to_gray(xk)
@@ -246,8 +246,7 @@ class ProposalGenerator(nn.Module):
         s = self.config.scale
         if s == 1.0:
             return torch.stack(images) if len(images) > 1 else images[0][None]
-        h, w = images[0].shape[-2:]
-        size = (max(1, int(round(h * s))), max(1, int(round(w * s))))
+        size = working_size(*images[0].shape[-2:], s)
         small = [F.interpolate(x[None], size=size, mode="bilinear", align_corners=False, antialias=s < 1)
                  for x in images]
         return torch.cat(small) if len(small) > 1 else small[0]

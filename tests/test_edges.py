@@ -112,8 +112,8 @@ def test_compiled_working_gray_equals_interpolate_then_grey(sample_image):
     noise = [torch.randint(0, 256, (3, 31, 47), dtype=torch.uint8, generator=gen) for _ in range(3)]
     for images in (crops, noise, [x.float() / 255 for x in noise]):
         for scale in (0.5, 0.51, 0.7, 0.9):
-            got = working_gray(images, scale)
-            assert got is not None and got.dtype == torch.float32
+            got, none = working_gray(images, scale)
+            assert got.dtype == torch.float32 and none is None
             assert torch.equal(got, to_gray(_interpolated(images, scale))), (images[0].dtype, scale)
             grey, green = working_gray(images, scale, with_green=True)
             assert torch.equal(grey, got)
