@@ -7,6 +7,13 @@ ms/img, on the same KITTI frames; the JSON rows add the per-class recall at 0.7.
 ``--frames 0:39 40:59`` (numeric ids, both ends included) adds R@0.7 of each range, to
 choose on one half and confirm on the other.
 
+Each row is also paired with the default on the same objects (R@2000, IoU 0.7): ``+g/-l``
+counts the objects it finds that the default misses and the other way round, and ``p`` is
+the two-sided exact sign test of that split (:func:`reeb_torch.metrics.compare_recall`).
+On 60 frames a one- or two-object difference is p ≈ 0.5-1: not a finding. The default's
+row gives its recall's 95 % frame-bootstrap interval instead
+(:func:`reeb_torch.metrics.recall_interval`).
+
 Rerun: ``python benchmarks/ablations.py [--data DIR] [--limit N] [--frames A:B ...]
 [--only NAME ...]``
 """
@@ -27,7 +34,14 @@ from _common import default_kitti_dir, environment, rerun_line  # noqa: E402
 from reeb_torch import ProposalGenerator, ReebConfig  # noqa: E402
 from reeb_torch.eval.common import add_frames_option, load_kitti  # noqa: E402
 from reeb_torch.eval.table3 import moderate_masks  # noqa: E402
-from reeb_torch.metrics import average_recall, recall_table, select_objects  # noqa: E402
+from reeb_torch.metrics import (  # noqa: E402
+    average_recall,
+    compare_recall,
+    object_hits,
+    recall_interval,
+    recall_table,
+    select_objects,
+)
 
 D = ReebConfig()
 P = ReebConfig.paper()
@@ -147,12 +161,24 @@ def main(argv: list[str] | None = None) -> list[dict]:
     say(f"# {len(images)} images from {args.data}, {sum(len(g) for g in gts)} objects "
         f"({sum(len(g) for g in gts_mod)} moderate), torch threads {torch.get_num_threads()}")
     say(f"{'variant':34s} {'NOTES':6s} {'R@.5':>6s} {'R@.7':>6s} {'mod.7':>6s} {'AR':>6s} {'ms/img':>7s}"
-        + "".join(f" {'.7 ' + r.text:>9s}" for r in ranges))
+        + "".join(f" {'.7 ' + r.text:>9s}" for r in ranges) + "  vs default (+g/-l, p)")
     rows = []
+    base_hits = None
+    if args.only and not any(s in "default" for s in args.only):  # the pairing needs the default
+        base_hits = object_hits(run(D, images, args.batch)[0], gts)
     for name, (cfg, note) in VARIANTS.items():
         if args.only and not any(s in name for s in args.only):
             continue
         boxes, ms = run(cfg, images, args.batch)
+        hits = object_hits(boxes, gts)
+        if base_hits is None:  # the first row is the default itself
+            base_hits = hits
+            ci = recall_interval(hits)
+            versus, pair = f"95 % interval {100 * ci.low:.1f}-{100 * ci.high:.1f}", None
+        else:
+            cmp = compare_recall(base_hits, hits)
+            versus = f"+{cmp.gained}/-{cmp.lost}, p {cmp.p_value:.2f}"
+            pair = dict(gained=cmp.gained, lost=cmp.lost, p_value=cmp.p_value)
         res = recall_table(boxes, gts, labels, classes, ks=(2000,), ious=(0.5, 0.7))
         ar = float(average_recall(boxes, gts, ks=(2000,))[0])
         r5, r7 = res.at(2000, 0.5), res.at(2000, 0.7)
@@ -161,11 +187,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
                                           ks=(2000,), ious=(0.7,)).at(2000, 0.7)
                      for r, idx in zip(ranges, in_range)}
         say(f"{name:34s} {note:6s} {100 * r5:6.1f} {100 * r7:6.1f} {100 * mod7:6.1f} {100 * ar:6.1f} {ms:7.1f}"
-            + "".join(f" {100 * v:9.1f}" for v in per_range.values()))
+            + "".join(f" {100 * v:9.1f}" for v in per_range.values()) + f"  {versus}")
         per_class = {c: (None if v != v else v) for c, v in res.per_class_at(2000, 0.7).items()}  # nan: no object
         rows.append(dict(variant=name, notes=note, recall_05=r5, recall_07=r7, ar=ar, ms_per_img=ms,
                          recall_07_moderate=mod7, recall_07_per_class=per_class,
-                         recall_07_per_range=per_range))
+                         recall_07_per_range=per_range, versus_default=pair))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "ablations.json").write_text(json.dumps({"rows": rows, "env": environment()}, indent=2))
     (args.out / "ablations.txt").write_text("\n".join(lines) + "\n")

@@ -52,6 +52,12 @@ __all__ = [
     "KITTI_DIFFICULTIES",
     "kitti_difficulty_mask",
     "select_objects",
+    "object_hits",
+    "RecallInterval",
+    "recall_interval",
+    "RecallComparison",
+    "sign_test",
+    "compare_recall",
 ]
 
 AR_IOUS: tuple[float, ...] = tuple(round(0.5 + 0.05 * i, 2) for i in range(10))
@@ -559,3 +565,130 @@ def recall_vs_iou(
         ious = ious.tolist()
     result = recall_table(proposals, gts, ks=(k,), ious=ious)
     return torch.tensor(result.ious, dtype=torch.float64), result.micro[0]
+
+
+# ---------------------------------------------------------------------------------------
+# how sure a recall figure is: frame bootstrap, paired comparison
+# ---------------------------------------------------------------------------------------
+
+
+def object_hits(proposals: Sequence[Boxes], gts: Sequence[Boxes], k: int = 2000, iou: float = 0.7) -> list[Tensor]:
+    """Per image, which ground-truth objects the top ``k`` proposals recall at IoU ``iou``:
+    ``bool Tensor[G_i]`` each (the hits :func:`recall_table` counts)."""
+    if len(proposals) != len(gts):
+        raise ValueError(f"got {len(proposals)} proposal lists for {len(gts)} ground-truth lists")
+    k = _check_ks(k)[0]
+    iou = _check_ious(iou)[0]
+    return [best_iou(p, g, k) >= iou for p, g in zip(proposals, gts)]
+
+
+@dataclass(frozen=True)
+class RecallInterval:
+    """Micro recall and a bootstrap interval for it (fractions in [0, 1]).
+
+    Attributes:
+        recall: micro recall of all objects.
+        low, high: the percentile interval of the recall of frames drawn with replacement.
+        level: the interval's coverage (e.g. 0.95).
+        num_objects, num_images: what was counted (images with at least one object).
+    """
+
+    recall: float
+    low: float
+    high: float
+    level: float
+    num_objects: int
+    num_images: int
+
+    def __str__(self) -> str:
+        return (f"{100 * self.recall:.1f} % ({100 * self.level:g} % interval {100 * self.low:.1f}-"
+                f"{100 * self.high:.1f}, {self.num_objects} objects in {self.num_images} frames)")
+
+
+def recall_interval(hits: Sequence[Tensor], level: float = 0.95, samples: int = 4000,
+                    seed: int = 0) -> RecallInterval:
+    """Micro recall of ``hits`` (per image, ``bool Tensor[G_i]``, as :func:`object_hits`
+    gives) with a frame-bootstrap percentile interval.
+
+    Frames, not objects, are drawn with replacement (``samples`` times): the objects of one
+    frame share its lighting, clutter and crowding, so treating them as independent would
+    make the interval too narrow. Images with no object are left out. With 60 KITTI frames
+    and ~70 % recall the 95 % interval is about ±6 points (±10 on 20 frames): two settings
+    whose recall differs by less than that are not told apart by it (compare them with
+    :func:`compare_recall` instead, which pairs the objects).
+
+    Raises:
+        ValueError: ``level`` outside (0, 1), ``samples < 1``, or no object at all.
+    """
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+    if samples < 1:
+        raise ValueError(f"samples must be >= 1, got {samples}")
+    found = torch.tensor([int(h.sum()) for h in hits if h.numel()], dtype=torch.float64)
+    counts = torch.tensor([h.numel() for h in hits if h.numel()], dtype=torch.float64)
+    if counts.numel() == 0:
+        raise ValueError("no ground-truth object: recall is undefined")
+    gen = torch.Generator().manual_seed(seed)
+    draw = torch.randint(counts.numel(), (samples, counts.numel()), generator=gen)
+    boot = found[draw].sum(1) / counts[draw].sum(1)
+    q = torch.tensor([(1.0 - level) / 2, (1.0 + level) / 2], dtype=torch.float64)
+    low, high = torch.quantile(boot, q).tolist()
+    return RecallInterval(float(found.sum() / counts.sum()), low, high, level, int(counts.sum()), counts.numel())
+
+
+@dataclass(frozen=True)
+class RecallComparison:
+    """Two settings on the same objects: what the second finds that the first does not.
+
+    Attributes:
+        gained: objects recalled by ``b`` and not by ``a``.
+        lost: objects recalled by ``a`` and not by ``b``.
+        num_objects: objects compared.
+        p_value: two-sided exact sign test (McNemar's exact test) of ``gained`` against
+            ``lost``: the chance of a split at least this uneven if the two settings were
+            equally good. 1.0 when nothing changed.
+    """
+
+    gained: int
+    lost: int
+    num_objects: int
+    p_value: float
+
+    @property
+    def net(self) -> int:
+        return self.gained - self.lost
+
+    def __str__(self) -> str:
+        return f"+{self.gained} / -{self.lost} of {self.num_objects} objects (p = {self.p_value:.2g})"
+
+
+def sign_test(gained: int, lost: int) -> float:
+    """Two-sided exact sign test: ``P(|X - n/2| >= |gained - n/2|)`` for ``X ~ Bin(n, 1/2)``,
+    ``n = gained + lost`` (1.0 when ``n == 0``)."""
+    if gained < 0 or lost < 0:
+        raise ValueError(f"counts must be >= 0, got {gained} and {lost}")
+    n = gained + lost
+    if n == 0:
+        return 1.0
+    tail = sum(math.comb(n, i) for i in range(min(gained, lost) + 1)) / 2.0**n
+    return min(1.0, 2.0 * tail)
+
+
+def compare_recall(hits_a: Sequence[Tensor], hits_b: Sequence[Tensor]) -> RecallComparison:
+    """Pair two settings' hits on the same objects (per image, ``bool Tensor[G_i]`` from
+    :func:`object_hits`): counts of objects only one of them recalls, and the sign test.
+
+    Raises:
+        ValueError: the two do not cover the same images and objects.
+    """
+    if len(hits_a) != len(hits_b):
+        raise ValueError(f"got hits for {len(hits_a)} and {len(hits_b)} images")
+    gained = lost = total = 0
+    for i, (a, b) in enumerate(zip(hits_a, hits_b)):
+        if a.shape != b.shape:
+            raise ValueError(f"image {i}: {tuple(a.shape)} objects against {tuple(b.shape)}")
+        a, b = a.bool(), b.bool()
+        gained += int((b & ~a).sum())
+        lost += int((a & ~b).sum())
+        total += a.numel()
+    return RecallComparison(gained, lost, total, sign_test(gained, lost))

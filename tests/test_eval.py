@@ -146,12 +146,16 @@ def test_table3_on_bundled_frames(tmp_path, monkeypatch, layout):
     for name, (h, n) in per_class_hits.items():
         assert res["per_class_headline"]["all"][name] == pytest.approx(h / n)
     assert res["per_class_headline"]["all"]["Pedestrian"] is None  # no pedestrian: undefined
+    ci = res["splits"]["all"]["headline_interval"]  # the headline, with a frame-bootstrap interval
+    assert ci["recall"] == pytest.approx(hits["all"][0] / hits["all"][1])
+    assert ci["low"] <= ci["recall"] <= ci["high"] and ci["level"] == 0.95
 
     text = (out / "table3.txt").read_text()
     assert "over all objects (micro" in text and "headline" in text
     assert "KITTI-moderate objects (micro, 5 objects" in text
     assert "Per-class recall (%) at 2000 proposals, IoU 0.7" in text
     assert "=== frames 1:" in text and "=== frames 8:" in text
+    assert "with its 95 % interval" in text
     assert json.loads((out / "table3.json").read_text())["methods"]["reeb-default"]["label"] == "Ours** (default)"
     rows = list(csv.DictReader(open(out / "table3.csv")))
     # 3 frame sets (all, 1, 8) x 2 object sets x (micro, class mean, 4 classes)

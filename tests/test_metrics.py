@@ -14,11 +14,15 @@ from reeb_torch.metrics import (
     KittiDifficulty,
     average_recall,
     best_iou,
+    compare_recall,
     kitti_difficulty_mask,
+    object_hits,
+    recall_interval,
     recall_table,
     recall_vs_iou,
     recall_vs_proposals,
     select_objects,
+    sign_test,
 )
 
 T = torch.tensor
@@ -296,3 +300,64 @@ def test_select_objects_checks():
         select_objects([GT], None, [T([True])])
     gts, labels = select_objects([GT], None, [T([False, True])])
     assert labels is None and gts[0].tolist() == [GT[1].tolist()]
+
+
+# -- how sure a recall figure is --------------------------------------------------------
+
+
+def test_object_hits_agree_with_recall_table():
+    torch.manual_seed(0)
+    gts = [torch.rand(n, 2).mul(200).repeat(1, 2) + T([0.0, 0.0, 30.0, 40.0]) for n in (3, 0, 5)]
+    props = [torch.rand(300, 2).mul(200).repeat(1, 2) + T([0.0, 0.0, 30.0, 40.0]) for _ in gts]
+    hits = object_hits(props, gts, k=100, iou=0.5)
+    assert [h.shape[0] for h in hits] == [3, 0, 5] and all(h.dtype == torch.bool for h in hits)
+    found = sum(int(h.sum()) for h in hits)
+    assert found / 8 == pytest.approx(recall_table(props, gts, ks=(100,), ious=(0.5,)).at(100, 0.5))
+    with pytest.raises(ValueError, match="2 proposal lists for 3"):
+        object_hits(props[:2], gts)
+
+
+def test_sign_test_hand_values():
+    assert sign_test(0, 0) == 1.0
+    assert sign_test(5, 0) == pytest.approx(2 / 32)  # both tails of Bin(5, 1/2)
+    assert sign_test(0, 5) == sign_test(5, 0)
+    assert sign_test(10, 2) == pytest.approx(2 * (1 + 12 + 66) / 4096)
+    assert sign_test(3, 3) == 1.0  # capped: the two tails overlap in the middle
+    with pytest.raises(ValueError, match=">= 0"):
+        sign_test(-1, 2)
+
+
+def test_compare_recall_counts_each_side():
+    a = [T([True, False, True]), T([], dtype=torch.bool), T([False, False])]
+    b = [T([True, True, False]), T([], dtype=torch.bool), T([True, False])]
+    c = compare_recall(a, b)
+    assert (c.gained, c.lost, c.num_objects, c.net) == (2, 1, 5, 1)
+    assert c.p_value == pytest.approx(sign_test(2, 1))
+    assert compare_recall(a, a).p_value == 1.0 and compare_recall(a, a).net == 0
+    with pytest.raises(ValueError, match="image 0"):
+        compare_recall(a, [T([True]), a[1], a[2]])
+
+
+def test_recall_interval_brackets_the_recall_and_narrows_with_more_frames():
+    gen = torch.Generator().manual_seed(1)
+    small = [torch.rand(4, generator=gen) < 0.7 for _ in range(20)]
+    big = small * 9  # the same frames nine times: same recall, a narrower interval
+    a, b = recall_interval(small), recall_interval(big)
+    assert a.recall == pytest.approx(b.recall)
+    assert a.low <= a.recall <= a.high and b.low <= b.recall <= b.high
+    assert (b.high - b.low) < 0.6 * (a.high - a.low)  # ~1/3 as wide in theory
+    assert (a.num_objects, a.num_images) == (80, 20)
+    assert recall_interval(small, seed=3) == recall_interval(small, seed=3)  # seeded
+    assert "95 % interval" in str(a)
+
+
+def test_recall_interval_edge_cases():
+    every = [T([True, True]), T([True])]
+    r = recall_interval(every + [T([], dtype=torch.bool)])
+    assert (r.recall, r.low, r.high, r.num_images) == (1.0, 1.0, 1.0, 2)  # the empty frame is left out
+    with pytest.raises(ValueError, match="no ground-truth object"):
+        recall_interval([T([], dtype=torch.bool)])
+    with pytest.raises(ValueError, match="level"):
+        recall_interval(every, level=1.0)
+    with pytest.raises(ValueError, match="samples"):
+        recall_interval(every, samples=0)
