@@ -21,7 +21,10 @@ Truck). Tables, for the selected frames:
 5. average recall (AR, IoU 0.5:0.05:0.95) at each k;
 6. the headline (2000 proposals, IoU 0.7, all objects) with its 95 % frame-bootstrap
    interval (:func:`reeb_torch.metrics.recall_interval`): on 60 frames about ±6 points,
-   on 20 about ±10, so the paper's 72.1 % is told apart only from figures well outside it.
+   on 20 about ±10, so the paper's 72.1 % is told apart only from figures well outside it;
+   and each method paired with the package default (``reeb-default``, or the first method
+   run) on the same objects: objects only it recalls, objects only the default recalls,
+   and the exact sign test (:func:`reeb_torch.metrics.compare_recall`).
 
 ``--frames 0:39 40:59`` selects frames by numeric id (both ends included); with two or more
 ranges, tables 1, 2, 4 and 6 are repeated for each range (the proposals are computed once).
@@ -59,6 +62,7 @@ from ..metrics import (
     AR_IOUS,
     KITTI_DIFFICULTIES,
     RecallResult,
+    compare_recall,
     kitti_difficulty_mask,
     object_hits,
     recall_interval,
@@ -433,6 +437,7 @@ def main(
     args.out.mkdir(parents=True, exist_ok=True)
     results: dict[str, Any] = {}
     curves: dict[str, dict] = {}
+    hits: dict[str, dict[str, list[torch.Tensor]]] = {}  # method -> split -> per-frame headline hits
     for key in args.methods:
         method = METHODS[key]
         try:
@@ -451,7 +456,8 @@ def main(
             for objects in OBJECT_SETS:
                 table, ar = recall_tables([boxes[i] for i in idx], [items[i] for i in idx], classes, objects)
                 rec[objects] = {"recall": table.to_dict(), "ar": _ar_dict(ar)}
-            ci = recall_interval(object_hits([boxes[i] for i in idx], [gts[i] for i in idx], *HEADLINE))
+            hits.setdefault(key, {})[name] = object_hits([boxes[i] for i in idx], [gts[i] for i in idx], *HEADLINE)
+            ci = recall_interval(hits[key][name])
             rec["headline_interval"] = {"recall": ci.recall, "low": ci.low, "high": ci.high, "level": ci.level}
             split_records[name] = rec
         whole = split_records["all"]
@@ -477,6 +483,13 @@ def main(
               f"moderate {_fmt(_pct(mod))} %, {timing['ms_per_img']:.0f} ms/img", flush=True)
 
     done = [k for k in args.methods if "recall" in results[k]]
+    # every row paired with the package default (or the first row run) on the same objects
+    reference = "reeb-default" if "reeb-default" in done else (done[0] if done else None)
+    for k in done:
+        for split, _ in splits:
+            c = compare_recall(hits[reference][split], hits[k][split])
+            results[k]["splits"][split]["versus_reference"] = {
+                "reference": reference, "gained": c.gained, "lost": c.lost, "p_value": c.p_value}
 
     def time_cell(k: str) -> str:
         t = results[k]["timing"]
@@ -519,8 +532,15 @@ def main(
             ci = results[k]["splits"][split]["headline_interval"]
             ci_rows.append(f"{results[k]['label']:<30} {100 * ci['recall']:5.1f}   {100 * ci['low']:5.1f} - "
                            f"{100 * ci['high']:5.1f}")
+        for k in done:
+            if k != reference:
+                v = results[k]["splits"][split]["versus_reference"]
+                ci_rows.append(f"{results[k]['label']:<30} vs {results[reference]['label']}: +{v['gained']} / "
+                               f"-{v['lost']} objects, p = {v['p_value']:.2g}")
         blocks.append("\n".join([f"Recall (%) at {HEADLINE[0]} proposals, IoU {HEADLINE[1]:g}, all objects, with its "
-                                 "95 % interval (frames drawn with replacement, 4000 draws)", *ci_rows]))
+                                 "95 % interval (frames drawn with replacement, 4000 draws); each row paired with "
+                                 "the reference on the same objects (+ found by the row only / - by the reference "
+                                 "only, exact two-sided sign test)", *ci_rows]))
         blocks.append(format_per_class(
             f"Per-class recall (%) at {HEADLINE[0]} proposals, IoU {HEADLINE[1]:g} ({where})",
             [(results[k]["label"], {o: results[k]["splits"][split][o]["recall"] for o in OBJECT_SETS})
