@@ -9,7 +9,8 @@ IoU 0.7 of each class, on the frames of a KITTI-format folder. ``--frames 0:39 4
 (numeric ids, both ends included) also reports each range on its own.
 
 Rerun: ``python benchmarks/diagnose_recall.py [--data DIR] [--limit N] [--preset NAME]
-[--frames A:B ...] [--json PATH]``
+[--set FIELD=VALUE ...] [--frames A:B ...] [--json PATH]`` (``--set`` as in ``reeb propose``,
+e.g. ``--set min_window=12``)
 """
 
 from __future__ import annotations
@@ -19,13 +20,15 @@ import json
 import sys
 from pathlib import Path
 
+import click
 import torch
 from torchvision.ops import box_iou
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_kitti_dir, rerun_line  # noqa: E402
 
-from reeb_torch import ProposalGenerator, get_preset  # noqa: E402
+from reeb_torch import ProposalGenerator  # noqa: E402
+from reeb_torch.cli import build_config  # noqa: E402
 from reeb_torch.eval.common import add_frames_option, load_kitti  # noqa: E402
 from reeb_torch.metrics import kitti_difficulty_mask  # noqa: E402
 
@@ -99,6 +102,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--data", type=Path, default=default_kitti_dir())
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--preset", default="default")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="FIELD=VALUE",
+                    help="override a config field of the preset (repeatable)")
     add_frames_option(ap)
     ap.add_argument("--json", type=Path, default=None, help="also write the numbers to this JSON file")
     args = ap.parse_args(argv)
@@ -107,7 +112,11 @@ def main(argv: list[str] | None = None) -> dict:
         items, classes = load_kitti(args.data, limit=args.limit, frames=args.frames)
     except ValueError as e:
         ap.error(str(e))
-    gen = ProposalGenerator(get_preset(args.preset))
+    try:
+        config = build_config(args.preset, None, args.sets, None)
+    except click.ClickException as e:  # an unknown field, a bad value
+        ap.error(e.format_message())
+    gen = ProposalGenerator(config)
     acc: dict[str, list[torch.Tensor]] = {s: [] for s in STAGES}
     labels, moderate, frame_of = [], [], []
     for item in items:
@@ -123,14 +132,15 @@ def main(argv: list[str] | None = None) -> dict:
     mod = torch.cat(moderate) if moderate else torch.zeros(0, dtype=torch.bool)
     frames = torch.tensor(frame_of, dtype=torch.int64)
     n = len(lab)
-    print(f"# {len(items)} frames, {n} objects ({int(mod.sum())} moderate), preset {args.preset}; "
+    preset = args.preset + "".join(f", {kv}" for kv in args.sets)
+    print(f"# {len(items)} frames, {n} objects ({int(mod.sum())} moderate), preset {preset}; "
           "recall (%) at IoU 0.7 unless named")
     splits = [("all", torch.ones(n, dtype=torch.bool))]
     if len(args.frames) > 1:
         for r in args.frames:
             splits.append((r.text, torch.tensor([int(f) in r for f in frame_of], dtype=torch.bool)))
     record: dict = {"rerun": rerun_line("benchmarks/diagnose_recall.py", argv if argv is not None else sys.argv[1:]),
-                    "preset": args.preset, "classes": list(classes), "splits": {}}
+                    "preset": args.preset, "sets": args.sets, "classes": list(classes), "splits": {}}
     for name, m in splits:
         table = stage_table({k: b[m] for k, b in best.items()}, lab[m], mod[m], classes)
         title = f"# frames {name}: {int(m.sum())} objects" if name != "all" else f"# all frames: {n} objects"
