@@ -163,15 +163,19 @@ def main(argv: list[str] | None = None) -> list[dict]:
     say(f"{'variant':34s} {'NOTES':6s} {'R@.5':>6s} {'R@.7':>6s} {'mod.7':>6s} {'AR':>6s} {'ms/img':>7s}"
         + "".join(f" {'.7 ' + r.text:>9s}" for r in ranges) + "  vs default (+g/-l, p)")
     rows = []
+
+    def selected(name: str) -> bool:
+        return not args.only or any(s in name for s in args.only)
+
     base_hits = None
-    if args.only and not any(s in "default" for s in args.only):  # the pairing needs the default
+    if not selected("default"):  # every row is paired with the default: run it unlisted
         base_hits = object_hits(run(D, images, args.batch)[0], gts)
     for name, (cfg, note) in VARIANTS.items():
-        if args.only and not any(s in name for s in args.only):
+        if not selected(name):
             continue
         boxes, ms = run(cfg, images, args.batch)
         hits = object_hits(boxes, gts)
-        if base_hits is None:  # the first row is the default itself
+        if name == "default":
             base_hits = hits
             ci = recall_interval(hits)
             versus, pair = f"95 % interval {100 * ci.low:.1f}-{100 * ci.high:.1f}", None

@@ -437,7 +437,7 @@ def main(
     args.out.mkdir(parents=True, exist_ok=True)
     results: dict[str, Any] = {}
     curves: dict[str, dict] = {}
-    hits: dict[str, dict[str, list[torch.Tensor]]] = {}  # method -> split -> per-frame headline hits
+    hits: dict[str, list[torch.Tensor]] = {}  # method -> per-frame headline hits
     for key in args.methods:
         method = METHODS[key]
         try:
@@ -451,13 +451,13 @@ def main(
         curves[method.label] = {"ks": ks_curve.tolist(), "recall_vs_k": r_k.tolist(),
                                 "ious": ious_curve.tolist(), "recall_vs_iou": r_iou.tolist()}
         split_records: dict[str, Any] = {}
+        hits[key] = object_hits(boxes, gts, *HEADLINE)  # once; each split takes its frames' hits
         for name, idx in splits:
             rec: dict[str, Any] = {"frames": [ids[i] for i in idx]}
             for objects in OBJECT_SETS:
                 table, ar = recall_tables([boxes[i] for i in idx], [items[i] for i in idx], classes, objects)
                 rec[objects] = {"recall": table.to_dict(), "ar": _ar_dict(ar)}
-            hits.setdefault(key, {})[name] = object_hits([boxes[i] for i in idx], [gts[i] for i in idx], *HEADLINE)
-            ci = recall_interval(hits[key][name])
+            ci = recall_interval([hits[key][i] for i in idx])
             rec["headline_interval"] = {"recall": ci.recall, "low": ci.low, "high": ci.high, "level": ci.level}
             split_records[name] = rec
         whole = split_records["all"]
@@ -486,8 +486,8 @@ def main(
     # every row paired with the package default (or the first row run) on the same objects
     reference = "reeb-default" if "reeb-default" in done else (done[0] if done else None)
     for k in done:
-        for split, _ in splits:
-            c = compare_recall(hits[reference][split], hits[k][split])
+        for split, idx in splits:
+            c = compare_recall([hits[reference][i] for i in idx], [hits[k][i] for i in idx])
             results[k]["splits"][split]["versus_reference"] = {
                 "reference": reference, "gained": c.gained, "lost": c.lost, "p_value": c.p_value}
 
