@@ -62,11 +62,17 @@ def bundled_sample() -> Path:
     return p
 
 
-def _parse_value(text: str) -> Any:
+def _parse_value(text: str, choices: tuple[str, ...] = ()) -> Any:
+    """A ``--set`` value: one of the field's ``choices`` (the words of a ``Literal`` field,
+    kept as written even where they read as JSON, such as ``none``), else JSON, else
+    ``none``/``null`` as None, ``true``/``false``, or the bare string."""
+    word = text.strip()
+    if word in choices:
+        return word
     try:
         return json.loads(text)
     except json.JSONDecodeError:
-        low = text.strip().lower()
+        low = word.lower()
         if low in ("none", "null"):
             return None
         if low in ("true", "false"):
@@ -92,23 +98,32 @@ def _parse_bool(field: str, text: str) -> bool:
             "or 1/0", param_hint="--set") from None
 
 
-def _bool_fields() -> set[str]:
-    """Names of the ReebConfig fields whose type is ``bool`` (from the dataclass)."""
+def _field_kinds() -> tuple[set[str], dict[str, tuple[str, ...]]]:
+    """Names of the ReebConfig fields whose type is ``bool``, and the words of each field
+    whose type is a ``Literal`` of strings (from the dataclass)."""
     import dataclasses
     import typing
 
     from .config import ReebConfig
 
     hints = typing.get_type_hints(ReebConfig)
-    return {f.name for f in dataclasses.fields(ReebConfig) if hints.get(f.name) is bool}
+    bools = {f.name for f in dataclasses.fields(ReebConfig) if hints.get(f.name) is bool}
+    words = {}
+    for f in dataclasses.fields(ReebConfig):
+        hint = hints.get(f.name)
+        if typing.get_origin(hint) is typing.Literal:
+            words[f.name] = tuple(a for a in typing.get_args(hint) if isinstance(a, str))
+    return bools, words
 
 
 def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_k: int | None):
     """The ReebConfig from a preset, then a JSON file of fields, then ``--set`` pairs, then
     ``--top-k`` (each later source overrides the earlier ones).
 
-    A bool field given with ``--set`` takes true/false, yes/no, on/off or 1/0; other fields
-    take JSON (``3``, ``1.5``, ``[1, 2]``, ``null``) or a bare string. Any error (a bad
+    A bool field given with ``--set`` takes true/false, yes/no, on/off or 1/0; a field of
+    named choices takes one of its words as written (``shadow_score=none`` is the word
+    ``'none'``, not None); other fields take JSON (``3``, ``1.5``, ``[1, 2]``, ``null``) or a
+    bare string. Any error (a bad
     word, an unknown field, a value ReebConfig rejects) is a usage error, exit code 2.
     """
     from .config import ReebConfig, get_preset
@@ -127,14 +142,14 @@ def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_
             raise click.BadParameter(f"{config_file}: expected a JSON object of ReebConfig fields",
                                      param_hint="--config")
         d.update(loaded)
-    bools = _bool_fields() if sets else set()
+    bools, words = _field_kinds() if sets else (set(), {})
     for item in sets:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
             raise click.BadParameter(f"{item!r}: expected FIELD=VALUE, e.g. scale=1.0",
                                      param_hint="--set")
         name = key.strip()
-        d[name] = _parse_bool(name, value) if name in bools else _parse_value(value)
+        d[name] = _parse_bool(name, value) if name in bools else _parse_value(value, words.get(name, ()))
     if top_k is not None:
         d["top_k"] = top_k
     try:

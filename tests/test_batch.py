@@ -135,6 +135,25 @@ def test_set_rejects_other_boolean_words(word):
     assert info.value.exit_code == 2 and "use_regions" in info.value.format_message()
 
 
+@pytest.mark.parametrize("field", ["shadow_score", "vegetation_score", "location_score", "road_score"])
+def test_set_keeps_the_word_none_of_a_choice_field(field):
+    # 'none' is one of these fields' words (the term off), not JSON null
+    from reeb_torch.cli import build_config
+
+    assert getattr(build_config("default", None, [f"{field}=none"], None), field) == "none"
+    assert getattr(build_config("default", None, [f"{field}= none "], None), field) == "none"
+
+
+def test_set_still_reads_none_as_null_where_none_is_not_a_word():
+    from reeb_torch.cli import build_config
+
+    cfg = build_config("default", None, ["ground_band=none", "group_cell=null", "window_geometry=grid"], None)
+    assert cfg.ground_band is None and cfg.group_cell is None and cfg.window_geometry == "grid"
+    with pytest.raises(click.ClickException) as info:  # a word that is not a choice still fails
+        build_config("default", None, ["shadow_score=None"], None)
+    assert "shadow_score" in info.value.format_message()
+
+
 def test_config_errors_are_usage_errors_before_any_work(tmp_path):
     good_folder(tmp_path / "imgs", 1)
     for bad in ("use_regions=maybe", "top_k=0", "no_such_field=1"):
