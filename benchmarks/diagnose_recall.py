@@ -9,8 +9,9 @@ IoU 0.7 of each class, on the frames of a KITTI-format folder. ``--frames 0:39 4
 (numeric ids, both ends included) also reports each range on its own.
 
 Rerun: ``python benchmarks/diagnose_recall.py [--data DIR] [--limit N] [--preset NAME]
-[--set FIELD=VALUE ...] [--frames A:B ...] [--json PATH]`` (``--set`` as in ``reeb propose``,
-e.g. ``--set min_window=12``)
+[--set FIELD=VALUE ...] [--frames A:B ...] [--lost] [--json PATH]`` (``--set`` as in
+``reeb propose``, e.g. ``--set min_window=12``; ``--lost`` lists each missed object with the
+stage that lost it)
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from pathlib import Path
 
 import click
 import torch
-from torchvision.ops import box_iou
+from torchvision.ops import box_iou, nms
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_kitti_dir, rerun_line  # noqa: E402
@@ -35,14 +36,16 @@ from reeb_torch.metrics import kitti_difficulty_mask  # noqa: E402
 STAGES = ("all windows", "valid score", "region candidates", "final top-k")
 
 
-def stage_ious(gen: ProposalGenerator, image: torch.Tensor, gt: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Best IoU of each object in ``gt`` at each stage, for one uint8 image."""
+def stage_ious(gen: ProposalGenerator, image: torch.Tensor, gt: torch.Tensor,
+               lost_detail: bool = False) -> tuple[dict[str, torch.Tensor], list[dict]]:
+    """Best IoU of each object in ``gt`` at each stage, for one uint8 image; with
+    ``lost_detail``, also :func:`lost_details` of the objects the final top-k misses."""
     captured: dict = {}
     orig_select = gen._select
 
     def select(scores, grid, share):  # record what the pipeline saw
         chosen = orig_select(scores, grid, share)
-        captured.update(scores=scores, grid=grid, chosen=chosen)
+        captured.update(scores=scores, grid=grid, chosen=chosen, share=share)
         return chosen
 
     gen._select = select  # type: ignore[method-assign]
@@ -59,12 +62,58 @@ def stage_ious(gen: ProposalGenerator, image: torch.Tensor, gt: torch.Tensor) ->
     chosen = captured["chosen"][0][None]
     final = box_iou(gt, out["boxes"]) if len(out["boxes"]) else torch.zeros(len(gt), 1)
     zero = torch.zeros(())
-    return {
+    best = {
         "all windows": iou.max(1).values,
         "valid score": torch.where(valid, iou, zero).max(1).values,
         "region candidates": torch.where(chosen, iou, zero).max(1).values,
         "final top-k": final.max(1).values,
     }
+    details = lost_details(gen, best, iou, boxes, captured) if lost_detail else []
+    return best, details
+
+
+def lost_details(gen: ProposalGenerator, best: dict[str, torch.Tensor], iou: torch.Tensor,
+                 boxes: torch.Tensor, captured: dict) -> list[dict]:
+    """Why each object with no final proposal at IoU >= 0.7 was lost, one dict per such object
+    (``index`` into the frame's objects): ``lost_at``, the first stage without a window at
+    IoU >= 0.7 (``"nms"`` / ``"top-k"`` split the last stage: a good candidate suppressed by
+    a better-scored box, or surviving NMS but ranked past ``top_k``); ``best_iou`` per stage;
+    for objects with a valid good window, ``region_rank`` (windows of its region scoring
+    higher than its best-scored good window) against ``region_budget``; after the region cut,
+    ``nms_rank`` (0-based, among the candidates that survive NMS) or ``suppressed_by_iou``
+    (the suppressing box's IoU with the object). The NMS is recomputed with torchvision's
+    ``nms`` on the windows (not reported with ``refine`` or ``region_quota``)."""
+    cfg = gen.config
+    scores, grid, chosen = captured["scores"][0], captured["grid"], captured["chosen"][0]
+    per_region = cfg.candidates_per_region if cfg.use_regions else cfg.candidates_without_regions
+    budget = (captured["share"][0] * per_region).round().long()
+    lost = torch.nonzero(best["final top-k"] < 0.7).squeeze(1).tolist()
+    nms_detail = not cfg.refine and not cfg.region_quota
+    cand = torch.nonzero(chosen).squeeze(1)
+    kept = cand[nms(boxes[cand], scores[cand].float(), cfg.nms_iou)] if lost and nms_detail else None
+    out = []
+    for g in lost:
+        d: dict = {"index": g, "best_iou": {k: round(float(v[g]), 3) for k, v in best.items()}}
+        d["lost_at"] = next((k for k in STAGES if float(best[k][g]) < 0.7), "final top-k")
+        good = torch.nonzero((iou[g] >= 0.7) & torch.isfinite(scores)).squeeze(1)
+        if len(good):
+            top = good[scores[good].argmax()]
+            r = int(grid.region_of[top])
+            d["region_rank"] = int((scores[grid.region_windows[r]] > scores[top]).sum())
+            d["region_budget"] = int(budget[r])
+        if d["lost_at"] == "final top-k" and kept is not None:
+            hit = torch.nonzero(iou[g, kept] >= 0.7).squeeze(1)
+            if len(hit):
+                d["lost_at"], d["nms_rank"] = "top-k", int(hit[0])
+            else:
+                good_c = cand[iou[g, cand] >= 0.7]
+                top_c = good_c[scores[good_c].argmax()]
+                over = torch.nonzero(box_iou(boxes[top_c][None], boxes[kept])[0] > cfg.nms_iou).squeeze(1)
+                d["lost_at"] = "nms"
+                if len(over):  # the first (best-scored) kept box over the threshold suppressed it
+                    d["suppressed_by_iou"] = round(float(iou[g, kept[over[0]]]), 3)
+        out.append(d)
+    return out
 
 
 def _pct(hit: torch.Tensor) -> float:
@@ -97,6 +146,30 @@ def format_stage_table(title: str, table: dict[str, dict[str, float]], labels: t
     return "\n".join(lines)
 
 
+LOST_AT = ("all windows", "valid score", "region candidates", "nms", "top-k", "final top-k")
+
+
+def format_lost(lost: list[dict]) -> str:
+    """The objects the final top-k misses, one line each, after a count per stage."""
+    counts = {k: sum(d["lost_at"] == k for d in lost) for k in LOST_AT}
+    lines = [f"# {len(lost)} objects without a final proposal at IoU 0.7; lost at: "
+             + ", ".join(f"{k} {n}" for k, n in counts.items() if n),
+             f"{'frame':8s} {'class':10s} {'w x h':>9s} occ trunc {'lost at':17s} {'grid':>5s} {'final':>5s}  detail"]
+    for d in lost:
+        x1, y1, x2, y2 = d["box"]
+        detail = []
+        if "region_rank" in d:
+            detail.append(f"region rank {d['region_rank']} / budget {d['region_budget']}")
+        if "nms_rank" in d:
+            detail.append(f"survives NMS at rank {d['nms_rank']}")
+        if "suppressed_by_iou" in d:
+            detail.append(f"suppressed by a box at IoU {d['suppressed_by_iou']:.2f}")
+        lines.append(f"{d['frame']:8s} {d['class']:10s} {f'{x2 - x1:.0f}x{y2 - y1:.0f}':>9s} {d['occluded']:3d} "
+                     f"{d['truncated']:5.2f} {d['lost_at']:17s} {d['best_iou']['all windows']:5.2f} "
+                     f"{d['best_iou']['final top-k']:5.2f}  {'; '.join(detail)}")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=default_kitti_dir())
@@ -105,6 +178,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="FIELD=VALUE",
                     help="override a config field of the preset (repeatable)")
     add_frames_option(ap)
+    ap.add_argument("--lost", action="store_true",
+                    help="also list every object the final top-k misses: the stage that lost it, its best "
+                         "window's rank in its region against the region's budget, its NMS fate")
     ap.add_argument("--json", type=Path, default=None, help="also write the numbers to this JSON file")
     args = ap.parse_args(argv)
     print("# rerun:", rerun_line("benchmarks/diagnose_recall.py", argv if argv is not None else sys.argv[1:]))
@@ -118,12 +194,19 @@ def main(argv: list[str] | None = None) -> dict:
         ap.error(e.format_message())
     gen = ProposalGenerator(config)
     acc: dict[str, list[torch.Tensor]] = {s: [] for s in STAGES}
-    labels, moderate, frame_of = [], [], []
+    labels, moderate, frame_of, lost = [], [], [], []
     for item in items:
         if len(item["boxes"]) == 0:
             continue
-        for k, v in stage_ious(gen, item["image"], item["boxes"]).items():
+        best_item, details = stage_ious(gen, item["image"], item["boxes"], lost_detail=args.lost)
+        for k, v in best_item.items():
             acc[k].append(v)
+        for d in details:
+            g = d.pop("index")
+            lost.append({"frame": item["image_id"], "class": classes[int(item["labels"][g])],
+                         "box": [round(float(v), 1) for v in item["boxes"][g]],
+                         "occluded": int(item["occluded"][g]), "truncated": round(float(item["truncated"][g]), 2),
+                         **d})
         labels.append(item["labels"])
         moderate.append(kitti_difficulty_mask(item["boxes"], item["occluded"], item["truncated"]))
         frame_of += [int(item["image_id"]) if item["image_id"].isdigit() else -1] * len(item["boxes"])
@@ -147,6 +230,9 @@ def main(argv: list[str] | None = None) -> dict:
         print(format_stage_table(title, table, lab[m], mod[m], classes))
         record["splits"][name] = {"num_objects": int(m.sum()), "frames": sorted({int(f) for f in frames[m].tolist()}),
                                   "stages": table}
+    if args.lost:
+        print(format_lost(lost))
+        record["lost"] = lost
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(record, indent=1))

@@ -1,0 +1,79 @@
+"""benchmarks/diagnose_recall.py: the per-stage recall and the list of lost objects agree
+with each other and with the generator's own output (bundled frames, no shared data)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from torchvision.ops import box_iou
+
+from reeb_torch import ProposalGenerator, ReebConfig
+from reeb_torch.eval.common import load_kitti
+
+from test_eval import _example_kitti
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def diagnose():
+    spec = importlib.util.spec_from_file_location("diagnose_recall", REPO / "benchmarks" / "diagnose_recall.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def run(diagnose, tmp_path_factory):
+    """--lost with a small top_k, so that objects are lost at NMS and at the top-k cut too."""
+    root = _example_kitti(tmp_path_factory.mktemp("kitti"))
+    out = root / "d.json"
+    record = diagnose.main(["--data", str(root), "--lost", "--set", "top_k=150", "--json", str(out)])
+    return root, record, json.loads(out.read_text())
+
+
+def test_lost_objects_are_those_without_a_final_proposal(run):
+    root, record, saved = run
+    items, _ = load_kitti(root)
+    gen = ProposalGenerator(ReebConfig(top_k=150))
+    missed = []
+    for it in items:
+        boxes = gen([it["image"]])[0]["boxes"]
+        best = box_iou(it["boxes"], boxes).max(1).values
+        missed += [(it["image_id"], [round(float(v), 1) for v in it["boxes"][g]])
+                   for g in torch.nonzero(best < 0.7).squeeze(1).tolist()]
+    assert sorted((d["frame"], d["box"]) for d in record["lost"]) == sorted(missed)
+    assert len(missed) > 0 and saved["lost"] == record["lost"]
+    final = record["splits"]["all"]["stages"]["final top-k"]["R@0.7"]
+    assert final == pytest.approx(100.0 * (1 - len(missed) / record["splits"]["all"]["num_objects"]))
+
+
+def test_each_lost_object_names_a_stage_its_ious_bear_out(run, diagnose):
+    _, record, _ = run
+    stages = {d["lost_at"] for d in record["lost"]}
+    assert stages <= set(diagnose.LOST_AT) and {"nms", "top-k"} & stages
+    for d in record["lost"]:
+        best = d["best_iou"]
+        assert best["final top-k"] < 0.7
+        if d["lost_at"] in diagnose.STAGES:  # the first stage whose best window is below 0.7
+            i = diagnose.STAGES.index(d["lost_at"])
+            assert best[diagnose.STAGES[i]] < 0.7 and all(best[s] >= 0.7 for s in diagnose.STAGES[:i])
+        else:  # nms / top-k: a good window was among the region candidates
+            assert best["region candidates"] >= 0.7
+        if d["lost_at"] == "region candidates":
+            assert d["region_rank"] >= d["region_budget"]  # its best good window ranked past the cut
+        if d["lost_at"] == "top-k":
+            assert d["nms_rank"] >= 150  # it survived NMS, ranked past the output
+        if d["lost_at"] == "nms" and "suppressed_by_iou" in d:
+            assert d["suppressed_by_iou"] < 0.7
+
+
+def test_lost_table_prints_every_object(run, diagnose):
+    _, record, _ = run
+    text = diagnose.format_lost(record["lost"])
+    assert text.count("\n") == len(record["lost"]) + 1
+    assert f"{len(record['lost'])} objects without a final proposal" in text
