@@ -14,8 +14,13 @@ On 60 frames a one- or two-object difference is p ≈ 0.5-1: not a finding. The 
 row gives its recall's 95 % frame-bootstrap interval instead
 (:func:`reeb_torch.metrics.recall_interval`).
 
+``--variant "FIELD=VALUE;FIELD=VALUE"`` (repeatable; fields and values as ``reeb propose
+--set``) adds a row for any setting of the default: with it, only the default and these
+rows run (plus the named rows ``--only`` picks). To check a choice on frames of your own,
+e.g. ``--data HELD_OUT --variant refine=on --variant blur_sigma=1.5``.
+
 Rerun: ``python benchmarks/ablations.py [--data DIR] [--limit N] [--frames A:B ...]
-[--only NAME ...]``
+[--only NAME ...] [--variant SETTINGS ...]``
 """
 
 from __future__ import annotations
@@ -26,12 +31,14 @@ import sys
 import time
 from pathlib import Path
 
+import click
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_kitti_dir, environment, rerun_line  # noqa: E402
 
 from reeb_torch import ProposalGenerator, ReebConfig  # noqa: E402
+from reeb_torch.cli import build_config  # noqa: E402
 from reeb_torch.eval.common import add_frames_option, load_kitti  # noqa: E402
 from reeb_torch.eval.table3 import moderate_masks  # noqa: E402
 from reeb_torch.metrics import (  # noqa: E402
@@ -141,9 +148,19 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--only", nargs="*", default=None, help="variant names (substring match)")
+    ap.add_argument("--variant", action="append", default=[], metavar="SETTINGS",
+                    help="a row of its own: FIELD=VALUE pairs on the default, separated by ';' "
+                         "(as reeb propose --set), e.g. 'blur_sigma=1.5;kappa=1.5'; repeatable")
     add_frames_option(ap)
     ap.add_argument("--out", type=Path, default=Path("runs/ablations"))
     args = ap.parse_args(argv)
+    extra = {}
+    for text in args.variant:
+        pairs = [p.strip() for p in text.split(";") if p.strip()]
+        try:
+            extra[", ".join(pairs)] = (build_config("default", None, pairs, None), "set")
+        except click.ClickException as e:  # an unknown field, a bad value: before any work
+            ap.error(f"--variant {text!r}: {e.format_message()}")
     lines: list[str] = []
 
     def say(text: str) -> None:  # printed as it comes, and kept for ablations.txt
@@ -165,12 +182,16 @@ def main(argv: list[str] | None = None) -> list[dict]:
     rows = []
 
     def selected(name: str) -> bool:
+        if name in extra:
+            return True
+        if args.only is None:  # with --variant: the default and those rows, not every named row
+            return not extra or name == "default"
         return not args.only or any(s in name for s in args.only)
 
     base_hits = None
     if not selected("default"):  # every row is paired with the default: run it unlisted
         base_hits = object_hits(run(D, images, args.batch)[0], gts)
-    for name, (cfg, note) in VARIANTS.items():
+    for name, (cfg, note) in {**VARIANTS, **extra}.items():
         if not selected(name):
             continue
         boxes, ms = run(cfg, images, args.batch)

@@ -1,5 +1,6 @@
-"""benchmarks/diagnose_recall.py: the per-stage recall and the list of lost objects agree
-with each other and with the generator's own output (bundled frames, no shared data)."""
+"""The benchmark scripts on the bundled frames (no shared data): diagnose_recall.py's
+per-stage recall and list of lost objects agree with each other and with the generator's
+own output; ablations.py's --variant rows are configs of the default, paired with it."""
 
 from __future__ import annotations
 
@@ -19,12 +20,16 @@ from test_eval import _example_kitti
 REPO = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(scope="module")
-def diagnose():
-    spec = importlib.util.spec_from_file_location("diagnose_recall", REPO / "benchmarks" / "diagnose_recall.py")
+def _script(name: str):
+    spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+@pytest.fixture(scope="module")
+def diagnose():
+    return _script("diagnose_recall")
 
 
 @pytest.fixture(scope="module")
@@ -77,3 +82,28 @@ def test_lost_table_prints_every_object(run, diagnose):
     text = diagnose.format_lost(record["lost"])
     assert text.count("\n") == len(record["lost"]) + 1
     assert f"{len(record['lost'])} objects without a final proposal" in text
+
+
+def test_ablation_variants_run_beside_the_default_only(tmp_path):
+    ablations = _script("ablations")
+    root = _example_kitti(tmp_path / "kitti")
+    rows = ablations.main(["--data", str(root), "--batch", "2", "--out", str(tmp_path / "out"),
+                           "--variant", "top_k=100; shadow_score=none", "--variant", "top_k=100"])
+    assert [r["variant"] for r in rows] == ["default", "top_k=100, shadow_score=none", "top_k=100"]
+    assert rows[0]["versus_default"] is None
+    # top_k=100 keeps a prefix of the default's 2000 proposals: it finds nothing new, and its
+    # recall is the default's less the objects it loses
+    items, _ = load_kitti(root)
+    n = sum(len(it["boxes"]) for it in items)
+    pair = rows[2]["versus_default"]
+    assert pair["gained"] == 0 and pair["lost"] > 0
+    assert rows[2]["recall_07"] == pytest.approx(rows[0]["recall_07"] - pair["lost"] / n)
+
+
+def test_a_bad_ablation_variant_is_a_usage_error_before_any_work(tmp_path, capsys):
+    ablations = _script("ablations")
+    with pytest.raises(SystemExit) as info:
+        ablations.main(["--data", str(tmp_path / "absent"), "--out", str(tmp_path / "out"),
+                        "--variant", "kappa=1.5;no_such_field=1"])
+    assert info.value.code == 2
+    assert "no_such_field" in capsys.readouterr().err and not (tmp_path / "out").exists()
