@@ -148,7 +148,7 @@ class ProposalGenerator(nn.Module):
         b = len(images)
         _, h_in, w_in = images[0].shape
         dev = images[0].device
-        needs_road = keep or cfg.refine or cfg.road_score not in ("none", "flat")
+        needs_road = keep or cfg.road_score not in ("none", "flat")
         # Sec. 3.4: Edge_Map = Sobel(Gaussian_Blur(I)), at the working resolution
         with self._stage("edges", dev):
             xk = None  # the colour image at the working resolution, only where a stage reads it
@@ -474,7 +474,7 @@ class ProposalGenerator(nn.Module):
             return [_refinement.enclosed_grid(tables, s) for s in grid.sizes]
         return _scoring.enclosed_sums(groups, b, grid.sizes)
 
-    def _box_scorer(self, edges: Tensor, road: Tensor, groups: _groups.EdgeGroups,
+    def _box_scorer(self, edges: Tensor, road: Tensor | None, groups: _groups.EdgeGroups,
                     crossing: tuple[Tensor, Tensor] | None, fx: float, fy: float, h_in: int, w_in: int,
                     grey: Tensor | None = None, green: Tensor | None = None):
         """V (eq. 12) of arbitrary boxes: returns ``(score_fn, min_side)`` where
@@ -486,8 +486,9 @@ class ProposalGenerator(nn.Module):
         b, hk, wk = edges.shape
         tables = _refinement.enclosed_tables(groups, b, hk, wk)
         ii_edges = _scoring.integral_image(edges)
-        ii_road = _scoring.integral_image(road)
-        ii_road_below = _scoring.extend_below(ii_road)
+        if road is not None:  # else a road term that does not read the mask (none, flat)
+            ii_road = _scoring.integral_image(road)
+            ii_road_below = _scoring.extend_below(ii_road)
         band = cfg.straddle_band
         if crossing is not None:
             ii_cols = _scoring.integral_image(F.pad(crossing[0], (band, band, band, band)))
@@ -520,7 +521,10 @@ class ProposalGenerator(nn.Module):
             bw, bh = w.double() / fx, h.double() / fy
             sc = _scoring.edge_score(enc * unit, centre * unit, bw, bh, cfg.score_norm, cfg.kappa, cfg.gamma)
             area = (w * h).double()
-            r = at(ii_road, bi, x0, y0, x1, y1) / area
+            if road is None:
+                r = torch.zeros_like(area)
+            else:
+                r = at(ii_road, bi, x0, y0, x1, y1) / area
             if cfg.road_score == "stand":
                 sh = (h * cfg.road_strip).round().long().clamp_(min=1)
                 below = at(ii_road_below, bi, x0, y1, x1, y1 + sh) / (w * sh).double()
@@ -545,7 +549,34 @@ class ProposalGenerator(nn.Module):
 
         return score_fn, tables.max_extent + 1
 
-    def _refine(self, chosen: Tensor, scores: Tensor, grid: _windows.WindowGrid, edges: Tensor, road: Tensor,
+    def _compiled_refine_applies(self, edges: Tensor, crossing: tuple[Tensor, Tensor] | None) -> bool:
+        """Whether :func:`reeb_torch.refinement.refine_boxes_cpu` computes this config's box
+        score: on the CPU, without the straddling and road terms, with a location score
+        tabulated by box height and bottom row, and a square-root shadow factor (or none)."""
+        cfg = self.config
+        return (edges.device.type == "cpu" and crossing is None and cfg.road_score in ("none", "flat")
+                and cfg.location_score in ("ground", "classes", "none")
+                and (cfg.shadow_score == "none" or cfg.shadow_power == 0.5))
+
+    def _box_tables(self, grid: _windows.WindowGrid, hk: int, wk: int, fx: float, fy: float, h_in: int,
+                    w_in: int) -> tuple[Tensor, Tensor]:
+        """``loc[y1, h]`` (the location score of a box ``h`` working pixels tall whose bottom is
+        working row ``y1``) and ``norm[w, h]`` (eq. 1's normaliser of a ``w × h`` box), from the
+        tensor functions the box scorer calls, cached with the window grid of the image size."""
+        cfg = self.config
+
+        def build() -> tuple[Tensor, Tensor]:
+            rows = torch.arange(hk + 1, dtype=torch.float64)
+            bottom, bh = rows[:, None] / fy, rows[None, :] / fy
+            loc = _scoring.location_score(bottom, bh, bh, float(w_in), float(h_in), cfg.location_score, cfg.horizon,
+                                          self._ground_ratios(), cfg.ground_log_sigma, self._class_weights())
+            bw = torch.arange(wk + 1, dtype=torch.float64)[:, None] / fx
+            norm = _scoring.edge_norm(bw, bh, cfg.score_norm, cfg.kappa, cfg.gamma)
+            return loc.expand(hk + 1, hk + 1).contiguous(), norm.contiguous()
+
+        return self._grid_cached(("box_tables", fx, fy, h_in, w_in), grid, build)
+
+    def _refine(self, chosen: Tensor, scores: Tensor, grid: _windows.WindowGrid, edges: Tensor, road: Tensor | None,
                 groups: _groups.EdgeGroups, crossing: tuple[Tensor, Tensor] | None, fx: float, fy: float,
                 h_in: int, w_in: int, grey: Tensor | None = None,
                 green: Tensor | None = None) -> tuple[list[Tensor], list[Tensor]]:
@@ -557,13 +588,30 @@ class ProposalGenerator(nn.Module):
         bi, ni = torch.nonzero(chosen, as_tuple=True)
         boxes = self._device_tensor(grid.boxes, edges.device)[ni].round().long()
         vals = scores[bi, ni]
-        score_fn, exact_side = self._box_scorer(edges, road, groups, crossing, fx, fy, h_in, w_in, grey, green)
+        compiled = self._compiled_refine_applies(edges, crossing)
+        if compiled:
+            tables = _refinement.enclosed_tables(groups, b, hk, wk)
+            exact_side = tables.max_extent + 1
+        else:
+            score_fn, exact_side = self._box_scorer(edges, road, groups, crossing, fx, fy, h_in, w_in, grey, green)
         min_side = max(exact_side, self._min_window_working(fx, fy))
         wh = boxes[:, 2:] - boxes[:, :2]
         movable = torch.nonzero((wh >= min_side).all(1)).squeeze(1)
         if movable.numel():
-            rb, rs = _refinement.refine_boxes(boxes[movable], bi[movable], score_fn, wk, hk, min_side,
-                                              cfg.window_step)
+            if compiled:
+                rb, rs = _refinement.refine_boxes_cpu(
+                    boxes[movable], bi[movable], tables, _scoring.integral_image(edges),
+                    *self._box_tables(grid, hk, wk, fx, fy, h_in, w_in), green,
+                    _scoring.extend_below(_scoring.integral_image(grey)) if cfg.shadow_score != "none" else None,
+                    dict(unit=_scoring.unit_scale(fx, fy), alpha=cfg.alpha,
+                         beta_road=cfg.beta if cfg.road_score == "flat" else 0.0,
+                         center_fraction=cfg.center_fraction, vegetation_box=cfg.vegetation_box,
+                         vegetation_power=cfg.vegetation_power, shadow_strip=cfg.shadow_strip,
+                         shadow_margin=cfg.shadow_margin, shadow_floor=cfg.shadow_floor),
+                    wk, hk, min_side, cfg.window_step)
+            else:
+                rb, rs = _refinement.refine_boxes(boxes[movable], bi[movable], score_fn, wk, hk, min_side,
+                                                  cfg.window_step)
             boxes[movable] = rb
             vals = vals.clone()
             vals[movable] = torch.maximum(vals[movable], rs.float())

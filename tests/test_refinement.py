@@ -1,8 +1,9 @@
-"""Edge Boxes' refinement: exact enclosed sums at arbitrary boxes, and the box scorer
-agrees with the grid's scores."""
+"""Edge Boxes' refinement: exact enclosed sums at arbitrary boxes, the box scorer agrees
+with the grid's scores, and the compiled refinement with the tensor one."""
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from reeb_torch import ProposalGenerator, ReebConfig
@@ -116,3 +117,42 @@ def test_compiled_tables_equal_the_tensor_tables(sample_image):
         assert got.max_extent == ref.max_extent
         for f in ("anchor", "cut_col", "cut_row", "corner"):
             assert torch.equal(getattr(got, f), getattr(ref, f)), f
+
+
+@pytest.mark.parametrize("overrides", [
+    {},  # the package default: vegetation, shadow (square root), class location score
+    dict(shadow_score="none", vegetation_score="none", location_score="ground", road_score="flat"),
+    dict(score_norm="area", location_score="none", center_fraction=0.4, vegetation_box=0.9, vegetation_power=2),
+])
+def test_compiled_refinement_equals_the_tensor_refinement(sample_image, overrides):
+    # the compiled pass makes the very same moves and scores, bit for bit, as the tensor
+    # scorer's refine_boxes (same float64 operations; the location score and the
+    # normaliser are tabulated by the tensor functions themselves)
+    gen = ProposalGenerator(ReebConfig(refine=True, **overrides))
+    seen = {}
+    real = gen._refine
+
+    def spy(*args, **kwargs):
+        assert gen._compiled_refine_applies(args[3], args[6])
+        seen["compiled"] = real(*args, **kwargs)
+        gen._compiled_refine_applies = lambda *a: False  # type: ignore[method-assign]
+        try:
+            seen["tensor"] = real(*args, **kwargs)
+        finally:
+            del gen._compiled_refine_applies
+        return seen["compiled"]
+
+    gen._refine = spy  # type: ignore[method-assign]
+    gen([sample_image])
+    (cb, cs), (tb, ts) = seen["compiled"], seen["tensor"]
+    assert cb[0].shape[0] > 1000
+    moved = (cb[0] != tb[0]).any(1)
+    assert not moved.any() and torch.equal(cs[0], ts[0])
+
+
+@pytest.mark.parametrize("overrides", [dict(straddle_weight=0.5), dict(road_score="stand"),
+                                       dict(location_score="paper"), dict(shadow_power=0.25)])
+def test_refinement_of_other_scores_takes_the_tensor_path(overrides):
+    gen = ProposalGenerator(ReebConfig(refine=True, **overrides))
+    crossing = (torch.zeros(1), torch.zeros(1)) if overrides.get("straddle_weight") else None
+    assert not gen._compiled_refine_applies(torch.zeros(1, 4, 4), crossing)
