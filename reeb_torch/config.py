@@ -397,7 +397,9 @@ class ReebConfig:
     """Half-width, in working pixels, of the band around each box side for ``straddle_weight``."""
     refine: bool = False
     """Edge Boxes' refinement: before NMS, move each side of every candidate by halving
-    steps while its score V improves (:mod:`reeb_torch.refinement`). Not in the paper."""
+    steps while its score V improves (:mod:`reeb_torch.refinement`; compiled on the CPU
+    unless the straddling or a road term is on, about twice the default's time). Not in
+    the paper."""
     center_fraction: float = 0.5
     """Side of the centre region c relative to the box (eq. 1: half)."""
 
