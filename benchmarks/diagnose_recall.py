@@ -9,9 +9,9 @@ IoU 0.7 of each class, on the frames of a KITTI-format folder. ``--frames 0:39 4
 (numeric ids, both ends included) also reports each range on its own.
 
 Rerun: ``python benchmarks/diagnose_recall.py [--data DIR] [--limit N] [--preset NAME]
-[--set FIELD=VALUE ...] [--frames A:B ...] [--lost] [--json PATH]`` (``--set`` as in
-``reeb propose``, e.g. ``--set min_window=12``; ``--lost`` lists each missed object with the
-stage that lost it)
+[--set FIELD=VALUE ...] [--frames A:B ...] [--lost [--show IMAGE]] [--json PATH]`` (``--set``
+as in ``reeb propose``, e.g. ``--set min_window=12``; ``--lost`` lists each missed object with
+the stage that lost it, ``--show`` draws them all in one picture)
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ from reeb_torch import ProposalGenerator  # noqa: E402
 from reeb_torch.cli import build_config  # noqa: E402
 from reeb_torch.eval.common import add_frames_option, load_kitti  # noqa: E402
 from reeb_torch.metrics import kitti_difficulty_mask  # noqa: E402
+from reeb_torch.viz import crop_sheet, save_png  # noqa: E402
 
 STAGES = ("all windows", "valid score", "region candidates", "final top-k")
 
@@ -69,6 +70,10 @@ def stage_ious(gen: ProposalGenerator, image: torch.Tensor, gt: torch.Tensor,
         "final top-k": final.max(1).values,
     }
     details = lost_details(gen, best, iou, boxes, captured) if lost_detail else []
+    for d in details:  # the final proposal of best IoU with the object
+        g = d["index"]
+        d["nearest"] = ([round(float(v), 1) for v in out["boxes"][int(final[g].argmax())]]
+                        if len(out["boxes"]) else None)
     return best, details
 
 
@@ -149,6 +154,22 @@ def format_stage_table(title: str, table: dict[str, dict[str, float]], labels: t
 LOST_AT = ("all windows", "valid score", "region candidates", "nms", "top-k", "final top-k")
 
 
+SHORT = {"all windows": "no window", "valid score": "invalid", "region candidates": "region",
+         "nms": "NMS", "top-k": "top-k", "final top-k": "final"}
+
+
+def _caption(d: dict, cls: str, frame: str) -> str:
+    """One line under an object's crop: frame, class, stage that lost it, its detail."""
+    text = f"{frame} {cls[:3]} {SHORT[d['lost_at']]}"
+    if d["lost_at"] == "region candidates":
+        text += f" {d['region_rank']}/{d['region_budget']}"
+    elif "nms_rank" in d:
+        text += f" #{d['nms_rank']}"
+    elif "suppressed_by_iou" in d:
+        text += f" by {d['suppressed_by_iou']:.2f}"
+    return text + f" iou {d['best_iou']['final top-k']:.2f}"
+
+
 def format_lost(lost: list[dict]) -> str:
     """The objects the final top-k misses, one line each, after a count per stage."""
     counts = {k: sum(d["lost_at"] == k for d in lost) for k in LOST_AT}
@@ -181,8 +202,13 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--lost", action="store_true",
                     help="also list every object the final top-k misses: the stage that lost it, its best "
                          "window's rank in its region against the region's budget, its NMS fate")
+    ap.add_argument("--show", type=Path, default=None, metavar="IMAGE",
+                    help="with --lost: draw every missed object (its box green, the nearest proposal "
+                         "orange, the stage that lost it below) in one picture (.png, or .jpg)")
     ap.add_argument("--json", type=Path, default=None, help="also write the numbers to this JSON file")
     args = ap.parse_args(argv)
+    if args.show is not None and not args.lost:
+        ap.error("--show draws the objects --lost lists: give --lost too")
     print("# rerun:", rerun_line("benchmarks/diagnose_recall.py", argv if argv is not None else sys.argv[1:]))
     try:
         items, classes = load_kitti(args.data, limit=args.limit, frames=args.frames)
@@ -194,7 +220,7 @@ def main(argv: list[str] | None = None) -> dict:
         ap.error(e.format_message())
     gen = ProposalGenerator(config)
     acc: dict[str, list[torch.Tensor]] = {s: [] for s in STAGES}
-    labels, moderate, frame_of, lost = [], [], [], []
+    labels, moderate, frame_of, lost, crops = [], [], [], [], []
     for item in items:
         if len(item["boxes"]) == 0:
             continue
@@ -203,6 +229,10 @@ def main(argv: list[str] | None = None) -> dict:
             acc[k].append(v)
         for d in details:
             g = d.pop("index")
+            if args.show is not None:
+                cls = classes[int(item["labels"][g])]
+                crops.append((item["image"], item["boxes"][g].tolist(), d["nearest"],
+                              _caption(d, cls, item["image_id"])))
             lost.append({"frame": item["image_id"], "class": classes[int(item["labels"][g])],
                          "box": [round(float(v), 1) for v in item["boxes"][g]],
                          "occluded": int(item["occluded"][g]), "truncated": round(float(item["truncated"][g]), 2),
@@ -233,6 +263,18 @@ def main(argv: list[str] | None = None) -> dict:
     if args.lost:
         print(format_lost(lost))
         record["lost"] = lost
+    if args.show is not None:
+        order = sorted(range(len(crops)), key=lambda i: LOST_AT.index(lost[i]["lost_at"]))
+        args.show.parent.mkdir(parents=True, exist_ok=True)
+        sheet = crop_sheet([crops[i] for i in order], columns=8)
+        if args.show.suffix.lower() in (".jpg", ".jpeg"):  # a fifth of the PNG's bytes for photos
+            import cv2
+
+            ok, data = cv2.imencode(".jpg", sheet[:, :, ::-1].copy(), [cv2.IMWRITE_JPEG_QUALITY, 85])
+            args.show.write_bytes(data.tobytes())
+        else:
+            save_png(args.show, sheet)
+        print(f"wrote {args.show}")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(record, indent=1))

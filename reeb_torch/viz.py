@@ -1,9 +1,12 @@
 """Pictures of proposals and of the algorithm's intermediate results.
 
-Two pictures, for two uses:
+Three pictures, for three uses:
 
 - :func:`draw_proposals` — fast (OpenCV), one image with its top proposals ranked by
   colour; ``reeb propose --viz`` writes one per image.
+- :func:`crop_sheet` — many objects at a glance: a crop around each with its ground truth
+  and the proposal nearest to it, and a caption (``benchmarks/diagnose_recall.py --show``
+  lays out every object the proposals miss).
 - :func:`inspection_figure` — the explanatory picture of ``reeb show`` (matplotlib): three
   panels over the same image that follow the paper's pipeline, (1) edges and road mask
   (Sec. 3.4–3.5), (2) region strips with their entropy H and proposal share (Sec. 3.6,
@@ -25,11 +28,13 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-__all__ = ["rank_colors", "draw_proposals", "save_png", "inspection_figure", "save_figure",
+__all__ = ["rank_colors", "draw_proposals", "crop_sheet", "save_png", "inspection_figure", "save_figure",
            "gt_pairs"]
 
 GT_COLOR = (0, 255, 128)
 """Ground-truth boxes: spring green, unlike any colour of the proposal ranking."""
+NEAREST_COLOR = (255, 96, 32)
+"""The proposal nearest to a ground-truth box in :func:`crop_sheet`: orange."""
 
 
 def _hwc(image: torch.Tensor | np.ndarray) -> np.ndarray:
@@ -130,6 +135,69 @@ def draw_proposals(
         cv2.putText(head, title, (6, band - int(band * 0.3)), font, fs, (235, 235, 235), 1, cv2.LINE_AA)
         canvas = np.concatenate([head, canvas], axis=0)
     return canvas
+
+
+def crop_sheet(
+    crops: Sequence[tuple[Any, Sequence[float], Sequence[float] | None, str]],
+    columns: int = 6,
+    tile: tuple[int, int] = (200, 150),
+    context: float = 0.6,
+) -> np.ndarray:
+    """A contact sheet of objects: one tile per ``(image, box, nearest, caption)``.
+
+    Each tile is the part of ``image`` around ``box`` (``(x1, y1, x2, y2)``, input pixels;
+    ``context`` × its width and height added on each side, at least 24 px), scaled to fit
+    ``tile = (width, height)`` pixels without changing its aspect; ``box`` is drawn in
+    green and ``nearest`` (another box, e.g. the proposal of best IoU; or None) in orange,
+    and ``caption`` is written in a dark band under the crop. Tiles fill ``columns`` per
+    row. Returns an RGB ``uint8`` array (an empty ``(0, 0, 3)`` one for no crops).
+    """
+    import cv2
+
+    if columns < 1 or tile[0] < 16 or tile[1] < 16:
+        raise ValueError(f"crop_sheet needs columns >= 1 and tiles of at least 16 px, got {columns}, {tile}")
+    if not crops:
+        return np.zeros((0, 0, 3), np.uint8)
+    tw, th = tile
+    band = 16
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    tiles = []
+    for image, box, nearest, caption in crops:
+        img = _hwc(image)
+        h, w = img.shape[:2]
+        x1, y1, x2, y2 = (float(v) for v in box)
+        mx, my = max(24.0, context * (x2 - x1)), max(24.0, context * (y2 - y1))
+        cx1, cy1 = int(max(0, np.floor(x1 - mx))), int(max(0, np.floor(y1 - my)))
+        cx2, cy2 = int(min(w, np.ceil(x2 + mx))), int(min(h, np.ceil(y2 + my)))
+        crop = img[cy1:cy2, cx1:cx2]
+        f = min(tw / max(1, crop.shape[1]), th / max(1, crop.shape[0]))
+        crop = cv2.resize(crop, (max(1, int(crop.shape[1] * f)), max(1, int(crop.shape[0] * f))),
+                          interpolation=cv2.INTER_AREA if f < 1 else cv2.INTER_LINEAR)
+        cell = np.full((th + band, tw, 3), 24, np.uint8)
+        oy, ox = (th - crop.shape[0]) // 2, (tw - crop.shape[1]) // 2
+        cell[oy: oy + crop.shape[0], ox: ox + crop.shape[1]] = crop
+
+        def draw(b: Sequence[float], color: tuple[int, int, int]) -> None:
+            p = [(float(b[0]) - cx1) * f + ox, (float(b[1]) - cy1) * f + oy,
+                 (float(b[2]) - cx1) * f + ox, (float(b[3]) - cy1) * f + oy]
+            cv2.rectangle(cell, (int(round(p[0])), int(round(p[1]))), (int(round(p[2])), int(round(p[3]))),
+                          color, 1, cv2.LINE_AA)
+
+        if nearest is not None:
+            draw(nearest, NEAREST_COLOR)
+        draw(box, GT_COLOR)
+        fs = 0.36
+        text = caption
+        while len(text) > 4 and cv2.getTextSize(text, font, fs, 1)[0][0] > tw - 4:
+            text = text[:-2]
+        cv2.putText(cell, text, (2, th + band - 4), font, fs, (235, 235, 235), 1, cv2.LINE_AA)
+        tiles.append(cell)
+    rows = []
+    for r in range(0, len(tiles), columns):
+        row = tiles[r: r + columns]
+        row += [np.full_like(tiles[0], 0)] * (columns - len(row))
+        rows.append(np.concatenate(row, axis=1))
+    return np.concatenate(rows, axis=0)
 
 
 def save_png(path: str | os.PathLike, rgb: np.ndarray) -> Path:

@@ -77,6 +77,24 @@ def test_each_lost_object_names_a_stage_its_ious_bear_out(run, diagnose):
             assert d["suppressed_by_iou"] < 0.7
 
 
+def test_show_draws_every_lost_object(run, diagnose, tmp_path):
+    root, record, _ = run
+    png = tmp_path / "lost.png"
+    diagnose.main(["--data", str(root), "--lost", "--set", "top_k=150", "--show", str(png)])
+    import cv2
+
+    sheet = cv2.imread(str(png))
+    rows = -(-len(record["lost"]) // 8)
+    assert sheet.shape == (rows * (150 + 16), 8 * 200, 3)
+    assert all(d["nearest"] is None or len(d["nearest"]) == 4 for d in record["lost"])
+
+
+def test_show_needs_lost(diagnose, tmp_path):
+    with pytest.raises(SystemExit) as info:
+        diagnose.main(["--data", str(tmp_path), "--show", str(tmp_path / "x.png")])
+    assert info.value.code == 2
+
+
 def test_lost_table_prints_every_object(run, diagnose):
     _, record, _ = run
     text = diagnose.format_lost(record["lost"])
