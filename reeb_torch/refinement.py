@@ -220,6 +220,23 @@ def refine_boxes(boxes: Tensor, b: Tensor, score_fn, width: int, height: int, mi
 # ---------------------------------------------------------------------------------------
 # compiled CPU path: the whole refinement of every box in one pass
 # ---------------------------------------------------------------------------------------
+@numba.njit(cache=True, nogil=True, inline="always")
+def _sum(t: np.ndarray, i: int, x0: int, y0: int, x1: int, y1: int) -> float:  # pragma: no cover - compiled
+    """:func:`box_sum_at` of one box (the same operations in the same order)."""
+    return ((t[i, y1, x1] - t[i, y0, x1]) - t[i, y1, x0]) + t[i, y0, x0]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _centred(x0: int, y0: int, w: int, h: int, fraction: np.float32) -> tuple[int, int, int, int]:  # pragma: no cover
+    """The centred ``fraction`` of a box as the tensor scorer places it (float32 products,
+    rounded half to even, at least one pixel)."""
+    cw = max(1, int(np.rint(np.float32(w) * fraction)))
+    ch = max(1, int(np.rint(np.float32(h) * fraction)))
+    cx0 = x0 + (w - cw) // 2
+    cy0 = y0 + (h - ch) // 2
+    return cx0, cy0, cx0 + cw, cy0 + ch
+
+
 @numba.njit(cache=True, nogil=True)
 def _box_score(i: int, x0: int, y0: int, x1: int, y1: int, anchor: np.ndarray, cut_col: np.ndarray,
                cut_row: np.ndarray, corner: np.ndarray, ii: np.ndarray, loc: np.ndarray, norm: np.ndarray,
@@ -232,26 +249,18 @@ def _box_score(i: int, x0: int, y0: int, x1: int, y1: int, anchor: np.ndarray, c
     beta_road, veg_power, with_green, with_shadow, hk = params[7], iparams[0], iparams[1], iparams[2], iparams[3]
     w = x1 - x0
     h = y1 - y0
-    cw = max(1, int(np.rint(np.float32(w) * centre_f)))
-    ch = max(1, int(np.rint(np.float32(h) * centre_f)))
-    cx0 = x0 + (w - cw) // 2
-    cy0 = y0 + (h - ch) // 2
-    cx1, cy1 = cx0 + cw, cy0 + ch
-    centre = ((ii[i, cy1, cx1] - ii[i, cy0, cx1]) - ii[i, cy1, cx0]) + ii[i, cy0, cx0]
-    a = ((anchor[i, y1, x1] - anchor[i, y0, x1]) - anchor[i, y1, x0]) + anchor[i, y0, x0]
+    cx0, cy0, cx1, cy1 = _centred(x0, y0, w, h, centre_f)
+    centre = _sum(ii, i, cx0, cy0, cx1, cy1)
+    a = _sum(anchor, i, x0, y0, x1, y1)
     col = cut_col[i, y1, x1] - cut_col[i, y0, x1]
     row = cut_row[i, y1, x1] - cut_row[i, y1, x0]
     enc = ((a - col) - row) + corner[i, y1, x1]
     s = (enc * unit - centre * unit) / norm[w, h]
     v = s * (alpha_loc_road * loc[y1, h] + beta_road)
     if with_green:
-        gw = max(1, int(np.rint(np.float32(w) * veg_f)))
-        gh = max(1, int(np.rint(np.float32(h) * veg_f)))
-        gx0 = x0 + (w - gw) // 2
-        gy0 = y0 + (h - gh) // 2
-        gx1, gy1 = gx0 + gw, gy0 + gh
-        gs = ((green[i, gy1, gx1] - green[i, gy0, gx1]) - green[i, gy1, gx0]) + green[i, gy0, gx0]
-        q = 1.0 - float(gs) * (1.0 / float(gw * gh))
+        gx0, gy0, gx1, gy1 = _centred(x0, y0, w, h, veg_f)
+        gs = _sum(green, i, gx0, gy0, gx1, gy1)
+        q = 1.0 - float(gs) * (1.0 / float((gx1 - gx0) * (gy1 - gy0)))
         f = q
         for _ in range(veg_power - 1):
             f = f * q
@@ -260,8 +269,8 @@ def _box_score(i: int, x0: int, y0: int, x1: int, y1: int, anchor: np.ndarray, c
         sh = max(1, int(np.rint(float(h) * strip)))
         mx = min(int(np.floor(float(w) * margin)), (w - 1) // 2)
         ax0, ax1 = x0 + mx, x1 - mx
-        inside = ((grey[i, y1, ax1] - grey[i, y1 - sh, ax1]) - grey[i, y1, ax0]) + grey[i, y1 - sh, ax0]
-        below = ((grey[i, y1 + sh, ax1] - grey[i, y1, ax1]) - grey[i, y1 + sh, ax0]) + grey[i, y1, ax0]
+        inside = _sum(grey, i, ax0, y1 - sh, ax1, y1)
+        below = _sum(grey, i, ax0, y1, ax1, y1 + sh)
         rows = min(max(hk - y1, 0), sh)
         n_below = rows * (ax1 - ax0)
         u = 0.0
