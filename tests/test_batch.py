@@ -144,6 +144,23 @@ def test_set_keeps_the_word_none_of_a_choice_field(field):
     assert getattr(build_config("default", None, [f"{field}= none "], None), field) == "none"
 
 
+def test_set_takes_every_word_of_every_choice_field():
+    # each Literal field of ReebConfig, each of its words, as --set writes it
+    import dataclasses
+    import typing
+
+    from reeb_torch.cli import build_config
+    from reeb_torch.config import ReebConfig
+
+    hints = typing.get_type_hints(ReebConfig)
+    pairs = [(f.name, w) for f in dataclasses.fields(ReebConfig) if typing.get_origin(hints[f.name]) is typing.Literal
+             for w in typing.get_args(hints[f.name])]
+    assert len(pairs) >= 20
+    for name, word in pairs:
+        cfg = build_config("default", None, [f"{name}={word}"], None)
+        assert getattr(cfg, name) == word, (name, word)
+
+
 def test_set_still_reads_none_as_null_where_none_is_not_a_word():
     from reeb_torch.cli import build_config
 
