@@ -109,3 +109,40 @@ def test_engine_ray_without_ray_says_how_to_install(monkeypatch, tmp_path):
                                     "-o", str(tmp_path / "o.parquet")])
     assert res.exit_code == 2
     assert 'pip install "reeb-torch[ray]"' in res.output
+
+
+def _adversarial(rng: np.random.Generator) -> np.ndarray:
+    """Values at and around decimal ties, powers of ten, zeros, signs, scales."""
+    ties = np.arange(-2000, 2000) / 200.0  # x.xx5 and x.xx0: ties of round(v, 2) in decimal
+    near = np.concatenate([ties + d for d in (0.0, 1e-12, -1e-12, 1e-9, -1e-9, 5e-7, -5e-7)])
+    powers = np.array([10.0 ** k for k in range(-12, 8)])
+    edges = np.concatenate([powers * f for f in (1.0, 0.9999995, 0.99999949999, 1.0000005, 0.99999950001)])
+    ulps = np.concatenate([np.nextafter(x, np.inf) for x in (ties, edges)] + [np.nextafter(x, -np.inf) for x in (ties, edges)])
+    specials = np.array([0.0, -0.0, 1e-300, -1e-300, 1e15, 1e22, 1e300, 2.675, 1.005, 0.125, 0.375, 1234.565, 0.0012345650])
+    rand = np.concatenate([rng.uniform(-1300, 1300, 20000), 10.0 ** rng.uniform(-12, 6, 20000),
+                           rng.integers(0, 2500, 5000) / 8.0, rng.integers(0, 2500, 5000) / 3.0])
+    return np.concatenate([near, edges, -edges, ulps, specials, rand]).astype(np.float64)
+
+
+def test_vectorised_rounding_is_pythons_bit_for_bit():
+    vals = _adversarial(np.random.default_rng(7))
+    for d in (0, 1, 2, 3, 6):
+        got = B.round_like_python(vals, d)
+        want = np.array([round(float(v), d) for v in vals])
+        assert np.array_equal(got.view(np.int64), want.view(np.int64)), d  # -0.0 and 0.0 told apart too
+    for digits in (3, 6, 9):
+        got = B.significant_like_python(vals, digits)
+        want = np.array([float(f"{float(v):.{digits}g}") for v in vals])
+        assert np.array_equal(got.view(np.int64), want.view(np.int64)), digits
+
+
+def test_result_row_numbers_are_those_of_round_and_format(sample_image):
+    from reeb_torch import ProposalGenerator
+
+    out = ProposalGenerator(top_k=500)([sample_image])[0]
+    row = B.result_row("x.png", 1242, 375, out["boxes"], out["scores"], "cfg")
+    assert row["boxes"] == [[round(v, 2) for v in r] for r in out["boxes"].double().tolist()]
+    assert row["scores"] == [float(f"{v:.6g}") for v in out["scores"].double().tolist()]
+    assert all(type(v) is float for r in row["boxes"] for v in r) and all(type(v) is float for v in row["scores"])
+    empty = B.result_row("x.png", 4, 4, torch.zeros(0, 4), torch.zeros(0), "cfg")
+    assert empty["boxes"] == [] and empty["scores"] == []
