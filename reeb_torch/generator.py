@@ -481,7 +481,8 @@ class ProposalGenerator(nn.Module):
         ``score_fn(boxes, b)`` takes int64 ``[K, 4]`` working-pixel boxes (x1, y1 exclusive)
         and their image indices ``[K]`` and gives ``float64 [K]``, the same numbers
         :meth:`_score_windows` gives a window of the grid; exact for boxes at least
-        ``min_side`` wide and tall."""
+        ``min_side`` wide and tall. ``road`` is None where the road term does not read the
+        mask (``none``, ``flat``)."""
         cfg = self.config
         b, hk, wk = edges.shape
         tables = _refinement.enclosed_tables(groups, b, hk, wk)
@@ -580,9 +581,11 @@ class ProposalGenerator(nn.Module):
                 groups: _groups.EdgeGroups, crossing: tuple[Tensor, Tensor] | None, fx: float, fy: float,
                 h_in: int, w_in: int, grey: Tensor | None = None,
                 green: Tensor | None = None) -> tuple[list[Tensor], list[Tensor]]:
-        """Edge Boxes' refinement of every chosen window (:func:`reeb_torch.refinement.refine_boxes`);
-        per image, ``float32 [K, 4]`` working-pixel boxes and ``float32 [K]`` scores, in the order of
-        ``nonzero(chosen[i])``. Boxes narrower or shorter than the exact-sum limit stay as they are."""
+        """Edge Boxes' refinement of every chosen window (:func:`reeb_torch.refinement.refine_boxes_cpu`,
+        compiled, where :meth:`_compiled_refine_applies`; else :func:`reeb_torch.refinement.refine_boxes`
+        with :meth:`_box_scorer`: the same boxes and scores); per image, ``float32 [K, 4]`` working-pixel
+        boxes and ``float32 [K]`` scores, in the order of ``nonzero(chosen[i])``. Boxes narrower or
+        shorter than the exact-sum limit stay as they are."""
         cfg = self.config
         b, hk, wk = edges.shape
         bi, ni = torch.nonzero(chosen, as_tuple=True)
