@@ -362,8 +362,8 @@ def round_like_python(values: np.ndarray, decimals: int) -> np.ndarray:
     if not 0 <= decimals <= 15:
         return np.array([round(float(x), decimals) for x in v.ravel()]).reshape(v.shape)
     scale = 10.0 ** decimals
-    t = v * scale
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", over="ignore"):  # huge values overflow: taken by round below
+        t = v * scale
         out = np.rint(t) / scale
         risky = ~(np.abs(t) < 1e9) | (np.abs(t - np.floor(t) - 0.5) < 1e-6)
     if risky.any():

@@ -314,3 +314,22 @@ def test_any_valid_config_runs_or_stops_at_the_door(frame, changes, h, w, y, x):
         return
     event("ran")
     _assert_valid(out[0], h, w, cfg.top_k)
+
+
+# -- output rows: the vectorised rounding is Python's --------------------------------------
+
+_decimal_ties = st.builds(lambda n, d, e: n / 10.0 ** d + e, st.integers(-10**7, 10**7), st.integers(0, 6),
+                          st.sampled_from([0.0, 1e-13, -1e-13, 4e-7, -4e-7]))
+
+
+@settings(max_examples=300, **SETTINGS)
+@given(values=st.lists(st.floats(allow_nan=False, allow_infinity=False) | _decimal_ties, min_size=1, max_size=64),
+       decimals=st.integers(0, 4), digits=st.integers(1, 9))
+def test_row_rounding_is_pythons_for_any_floats(values, decimals, digits):
+    from reeb_torch.batch import round_like_python, significant_like_python
+
+    v = np.array(values, np.float64)
+    want = np.array([round(x, decimals) for x in values], np.float64)
+    assert np.array_equal(round_like_python(v, decimals).view(np.int64), want.view(np.int64))
+    want = np.array([float(f"{x:.{digits}g}") for x in values], np.float64)
+    assert np.array_equal(significant_like_python(v, digits).view(np.int64), want.view(np.int64))
