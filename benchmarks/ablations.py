@@ -86,6 +86,7 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "vegetation_power=6": (D.replace(vegetation_power=6), "vegetation"),
     "vegetation=none, nms_iou=0.7": (D.replace(vegetation_score="none", nms_iou=0.7), "vegetation, #14"),
     "refine=on": (D.replace(refine=True), "#1"),
+    "refine=on, min aspect 0.6": (D.replace(refine=True, refine_min_aspect=0.6), "#1"),
     "straddle_weight=0.5": (D.replace(straddle_weight=0.5), "#1"),
     "straddle_weight=1": (D.replace(straddle_weight=1.0), "#1"),
     "road_score=stand": (D.replace(road_score="stand"), "#10"),

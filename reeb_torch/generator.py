@@ -585,7 +585,8 @@ class ProposalGenerator(nn.Module):
         compiled, where :meth:`_compiled_refine_applies`; else :func:`reeb_torch.refinement.refine_boxes`
         with :meth:`_box_scorer`: the same boxes and scores); per image, ``float32 [K, 4]`` working-pixel
         boxes and ``float32 [K]`` scores, in the order of ``nonzero(chosen[i])``. Boxes narrower or
-        shorter than the exact-sum limit stay as they are."""
+        shorter than the exact-sum limit, or narrower than ``refine_min_aspect`` times their height,
+        stay as they are."""
         cfg = self.config
         b, hk, wk = edges.shape
         bi, ni = torch.nonzero(chosen, as_tuple=True)
@@ -599,7 +600,7 @@ class ProposalGenerator(nn.Module):
             score_fn, exact_side = self._box_scorer(edges, road, groups, crossing, fx, fy, h_in, w_in, grey, green)
         min_side = max(exact_side, self._min_window_working(fx, fy))
         wh = boxes[:, 2:] - boxes[:, :2]
-        movable = torch.nonzero((wh >= min_side).all(1)).squeeze(1)
+        movable = torch.nonzero((wh >= min_side).all(1) & (wh[:, 0] >= cfg.refine_min_aspect * wh[:, 1])).squeeze(1)
         if movable.numel():
             if compiled:
                 rb, rs = _refinement.refine_boxes_cpu(

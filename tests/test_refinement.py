@@ -156,3 +156,28 @@ def test_refinement_of_other_scores_takes_the_tensor_path(overrides):
     gen = ProposalGenerator(ReebConfig(refine=True, **overrides))
     crossing = (torch.zeros(1), torch.zeros(1)) if overrides.get("straddle_weight") else None
     assert not gen._compiled_refine_applies(torch.zeros(1, 4, 4), crossing)
+
+
+def test_refine_min_aspect_keeps_narrow_boxes_where_they_are(sample_image):
+    seen = {}
+    for aspect in (0.0, 0.6):
+        gen = ProposalGenerator(ReebConfig(refine=True, refine_min_aspect=aspect))
+        real = gen._refine
+
+        def spy(chosen, scores, grid, *args, **kwargs):
+            out = real(chosen, scores, grid, *args, **kwargs)
+            ni = torch.nonzero(chosen[0]).squeeze(1)
+            seen[aspect] = (grid.boxes[ni].round(), out[0][0])
+            return out
+
+        gen._refine = spy  # type: ignore[method-assign]
+        gen([sample_image])
+    start, moved_all = seen[0.0]
+    start6, moved6 = seen[0.6]
+    assert torch.equal(start, start6)
+    narrow = (start[:, 2] - start[:, 0]) < 0.6 * (start[:, 3] - start[:, 1])
+    changed_all = (moved_all != start).any(1)
+    changed6 = (moved6 != start).any(1)
+    assert narrow.any() and (changed_all & narrow).any()  # refining every box moves narrow ones too
+    assert not (changed6 & narrow).any()  # with 0.6 they stay
+    assert torch.equal(moved6[~narrow], moved_all[~narrow])  # the others move as before
