@@ -195,14 +195,16 @@ class ProposalGenerator(nn.Module):
         with self._stage("scoring", dev):
             grid = self._window_grid(hk, wk, bounds, fx, fy)
             grey = gray[:, 0] if cfg.shadow_score != "none" else None
-            scores = self._score_windows(edges, road, groups, grid, fx, fy, h_in, w_in, crossing, grey, green)
+            tabs: dict = {}  # prefix tables of this batch, built once for scoring and refinement
+            scores = self._score_windows(edges, road, groups, grid, fx, fy, h_in, w_in, crossing, grey, green,
+                                         tabs=tabs)
             chosen = self._select(scores, grid, share)
         # Edge Boxes' refinement of the candidates (not in the paper; ``ReebConfig.refine``)
         cand_boxes = cand_scores = None
         if cfg.refine:
             with self._stage("refine", dev):
                 cand_boxes, cand_scores = self._refine(chosen, scores, grid, edges, road, groups, crossing,
-                                                       fx, fy, h_in, w_in, grey, green)
+                                                       fx, fy, h_in, w_in, grey, green, tabs=tabs)
         # Sec. 3.8: Final_Proposals = NMS(Sorted_Proposals) (eq. 13)
         with self._stage("nms", dev):
             to_input = torch.tensor([fx, fy, fx, fy], device=dev)
@@ -290,18 +292,19 @@ class ProposalGenerator(nn.Module):
     def _score_windows(self, edges: Tensor, road: Tensor | None, groups: _groups.EdgeGroups,
                        grid: _windows.WindowGrid, fx: float, fy: float, h_in: int, w_in: int,
                        crossing: tuple[Tensor, Tensor] | None = None, grey: Tensor | None = None,
-                       green: Tensor | None = None) -> Tensor:
+                       green: Tensor | None = None, *, tabs: dict | None = None) -> Tensor:
         """V (eq. 12) of every window, ``float32 [B, N]``; ``-inf`` where S < min_edge_score
         (or, with ``local_max``, where a neighbouring position of the same size scores higher).
         ``green``: the pixel counts of the green mask, ``(B, h + 1, w + 1)``, for the
-        vegetation term.
+        vegetation term. ``tabs`` keeps the batch's prefix tables (:meth:`_tables`) for the
+        refinement.
 
         On the CPU, when no term needs per-window maps (no road fraction, straddling or
         local maxima) and every window is wider and taller than every edge group, one
         compiled pass (:func:`reeb_torch.scoring.score_grid_cpu`) scores all windows;
         otherwise one batch of tensor ops per window size. Both give the same numbers."""
         if self._compiled_scoring_applies(edges, groups, grid, crossing):
-            return self._score_windows_compiled(edges, groups, grid, fx, fy, h_in, w_in, grey, green)
+            return self._score_windows_compiled(edges, groups, grid, fx, fy, h_in, w_in, grey, green, tabs=tabs)
         return self._score_windows_torch(edges, road, groups, grid, fx, fy, h_in, w_in, crossing, grey, green)
 
     def _compiled_scoring_applies(self, edges: Tensor, groups: _groups.EdgeGroups, grid: _windows.WindowGrid,
@@ -370,17 +373,16 @@ class ProposalGenerator(nn.Module):
 
     def _score_windows_compiled(self, edges: Tensor, groups: _groups.EdgeGroups, grid: _windows.WindowGrid,
                                 fx: float, fy: float, h_in: int, w_in: int, grey: Tensor | None = None,
-                                green: Tensor | None = None) -> Tensor:
+                                green: Tensor | None = None, *, tabs: dict | None = None) -> Tensor:
         cfg = self.config
-        b, hk, wk = edges.shape
         plan, denom, loc = self._score_plan(grid, fx, fy, h_in, w_in)
-        tables = _refinement.enclosed_tables(groups, b, hk, wk)
-        ii_edges = _scoring.integral_image(edges)
+        b = edges.shape[0]
+        tables, ii_edges = self._tables(tabs, edges, groups)
         out = torch.full((b, grid.count), -math.inf, dtype=torch.float32)
         road = 1.0 if cfg.road_score == "flat" else 0.0
         ii_grey = shadow = sqrt_floor = None
         if cfg.shadow_score != "none":
-            ii_grey = _scoring.integral_image(grey)
+            ii_grey = self._grey_integral(tabs, grey)
             if cfg.shadow_power == 0.5:  # the factor in the kernel: sqrt rounds alike everywhere
                 sqrt_floor = cfg.shadow_floor
             else:
@@ -550,6 +552,28 @@ class ProposalGenerator(nn.Module):
 
         return score_fn, tables.max_extent + 1
 
+    @staticmethod
+    def _tables(tabs: dict | None, edges: Tensor, groups: _groups.EdgeGroups
+                ) -> tuple[_refinement.EnclosedTables, Tensor]:
+        """The groups' :class:`~reeb_torch.refinement.EnclosedTables` and the edge map's integral
+        image of a batch, built on first use and kept in ``tabs`` (when given) for the next."""
+        if tabs is None or "tables" not in tabs:
+            b, hk, wk = edges.shape
+            built = (_refinement.enclosed_tables(groups, b, hk, wk), _scoring.integral_image(edges))
+            if tabs is None:
+                return built
+            tabs["tables"] = built
+        return tabs["tables"]
+
+    @staticmethod
+    def _grey_integral(tabs: dict | None, grey: Tensor) -> Tensor:
+        """The grey image's integral image (shadow term), kept in ``tabs`` like :meth:`_tables`."""
+        if tabs is None:
+            return _scoring.integral_image(grey)
+        if "grey" not in tabs:
+            tabs["grey"] = _scoring.integral_image(grey)
+        return tabs["grey"]
+
     def _compiled_refine_applies(self, edges: Tensor, crossing: tuple[Tensor, Tensor] | None) -> bool:
         """Whether :func:`reeb_torch.refinement.refine_boxes_cpu` computes this config's box
         score: on the CPU, without the straddling and road terms, with a location score
@@ -579,14 +603,14 @@ class ProposalGenerator(nn.Module):
 
     def _refine(self, chosen: Tensor, scores: Tensor, grid: _windows.WindowGrid, edges: Tensor, road: Tensor | None,
                 groups: _groups.EdgeGroups, crossing: tuple[Tensor, Tensor] | None, fx: float, fy: float,
-                h_in: int, w_in: int, grey: Tensor | None = None,
-                green: Tensor | None = None) -> tuple[list[Tensor], list[Tensor]]:
+                h_in: int, w_in: int, grey: Tensor | None = None, green: Tensor | None = None, *,
+                tabs: dict | None = None) -> tuple[list[Tensor], list[Tensor]]:
         """Edge Boxes' refinement of every chosen window (:func:`reeb_torch.refinement.refine_boxes_cpu`,
         compiled, where :meth:`_compiled_refine_applies`; else :func:`reeb_torch.refinement.refine_boxes`
         with :meth:`_box_scorer`: the same boxes and scores); per image, ``float32 [K, 4]`` working-pixel
         boxes and ``float32 [K]`` scores, in the order of ``nonzero(chosen[i])``. Boxes narrower or
         shorter than the exact-sum limit, or narrower than ``refine_min_aspect`` times their height,
-        stay as they are."""
+        stay as they are. ``tabs``: the prefix tables the compiled scoring built (else built here)."""
         cfg = self.config
         b, hk, wk = edges.shape
         bi, ni = torch.nonzero(chosen, as_tuple=True)
@@ -594,7 +618,7 @@ class ProposalGenerator(nn.Module):
         vals = scores[bi, ni]
         compiled = self._compiled_refine_applies(edges, crossing)
         if compiled:
-            tables = _refinement.enclosed_tables(groups, b, hk, wk)
+            tables, ii_edges = self._tables(tabs, edges, groups)
             exact_side = tables.max_extent + 1
         else:
             score_fn, exact_side = self._box_scorer(edges, road, groups, crossing, fx, fy, h_in, w_in, grey, green)
@@ -604,9 +628,9 @@ class ProposalGenerator(nn.Module):
         if movable.numel():
             if compiled:
                 rb, rs = _refinement.refine_boxes_cpu(
-                    boxes[movable], bi[movable], tables, _scoring.integral_image(edges),
-                    *self._box_tables(grid, hk, wk, fx, fy, h_in, w_in), green,
-                    _scoring.extend_below(_scoring.integral_image(grey)) if cfg.shadow_score != "none" else None,
+                    boxes[movable], bi[movable], tables, ii_edges, *self._box_tables(grid, hk, wk, fx, fy, h_in, w_in),
+                    green,
+                    _scoring.extend_below(self._grey_integral(tabs, grey)) if cfg.shadow_score != "none" else None,
                     dict(unit=_scoring.unit_scale(fx, fy), alpha=cfg.alpha,
                          beta_road=cfg.beta if cfg.road_score == "flat" else 0.0,
                          center_fraction=cfg.center_fraction, vegetation_box=cfg.vegetation_box,

@@ -186,8 +186,8 @@ def test_compiled_scoring_equals_the_tensor_path(sample_image, overrides):
     seen = {}
     real = G.ProposalGenerator._score_windows
 
-    def spy(self, *args):
-        out = real(self, *args)
+    def spy(self, *args, **kwargs):
+        out = real(self, *args, **kwargs)
         seen["applies"] = self._compiled_scoring_applies(args[0], args[2], args[3], args[8])
         seen["equal"] = torch.equal(out, self._score_windows_torch(*args))
         seen["finite"] = int(torch.isfinite(out).sum())

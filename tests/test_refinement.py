@@ -61,14 +61,15 @@ def test_box_scorer_equals_grid_scores(sample_image):
     seen = {}
     real = gen._refine
 
-    def spy(chosen, scores, grid, edges, road, groups, crossing, fx, fy, h_in, w_in, grey=None, green=None):
+    def spy(chosen, scores, grid, edges, road, groups, crossing, fx, fy, h_in, w_in, grey=None, green=None, *,
+            tabs=None):
         fn, side = gen._box_scorer(edges, road, groups, crossing, fx, fy, h_in, w_in, grey, green)
         bi, ni = torch.nonzero(chosen, as_tuple=True)
         boxes = grid.boxes[ni].round().long()
         ok = ((boxes[:, 2:] - boxes[:, :2]) >= side).all(1)
         seen["got"] = fn(boxes[ok], bi[ok])
         seen["ref"] = scores[bi, ni][ok].double()
-        return real(chosen, scores, grid, edges, road, groups, crossing, fx, fy, h_in, w_in, grey, green)
+        return real(chosen, scores, grid, edges, road, groups, crossing, fx, fy, h_in, w_in, grey, green, tabs=tabs)
 
     gen._refine = spy  # type: ignore[method-assign]
     out = gen([sample_image])[0]
