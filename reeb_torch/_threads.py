@@ -1,4 +1,4 @@
-"""Running a compiled (numba, ``nogil``) kernel on the two halves of a batch at once."""
+"""Running a compiled (numba, ``nogil``) kernel on the two halves of its work at once."""
 
 from __future__ import annotations
 
@@ -35,9 +35,9 @@ if hasattr(os, "register_at_fork"):
 
 
 def on_two_cores(run: Callable[[int, int], None], b: int) -> None:
-    """``run(lo, hi)`` over images ``[0, b)``: a compiled kernel that releases the GIL runs
-    on the two halves of the batch at once (the images are independent, so the numbers are
-    the same as in one call). Calls from several threads share the helper thread (their
+    """``run(lo, hi)`` over items ``[0, b)`` (the images of a batch, or the boxes of the
+    refinement): a compiled kernel that releases the GIL runs on the two halves at once
+    (the items are independent, so the numbers are the same as in one call). Calls from several threads share the helper thread (their
     second halves queue); a call from the helper thread itself runs serially."""
     if b < 2 or getattr(_inside, "worker", False):
         run(0, b)

@@ -107,11 +107,13 @@ def _field_kinds() -> tuple[set[str], dict[str, tuple[str, ...]]]:
     from .config import ReebConfig
 
     hints = typing.get_type_hints(ReebConfig)
-    bools = {f.name for f in dataclasses.fields(ReebConfig) if hints.get(f.name) is bool}
-    words = {}
+    bools: set[str] = set()
+    words: dict[str, tuple[str, ...]] = {}
     for f in dataclasses.fields(ReebConfig):
         hint = hints.get(f.name)
-        if typing.get_origin(hint) is typing.Literal:
+        if hint is bool:
+            bools.add(f.name)
+        elif typing.get_origin(hint) is typing.Literal:
             words[f.name] = tuple(a for a in typing.get_args(hint) if isinstance(a, str))
     return bools, words
 
@@ -123,8 +125,8 @@ def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_
     A bool field given with ``--set`` takes true/false, yes/no, on/off or 1/0; a field of
     named choices takes one of its words as written (``shadow_score=none`` is the word
     ``'none'``, not None); other fields take JSON (``3``, ``1.5``, ``[1, 2]``, ``null``) or a
-    bare string. Any error (a bad
-    word, an unknown field, a value ReebConfig rejects) is a usage error, exit code 2.
+    bare string. Any error (a bad word, an unknown field, a value ReebConfig rejects) is a
+    usage error, exit code 2.
     """
     from .config import ReebConfig, get_preset
 
