@@ -23,7 +23,7 @@ from pathlib import Path
 
 import click
 import torch
-from torchvision.ops import box_iou, nms
+from torchvision.ops import box_iou
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_kitti_dir, rerun_line  # noqa: E402
@@ -32,6 +32,7 @@ from reeb_torch import ProposalGenerator  # noqa: E402
 from reeb_torch.cli import build_config  # noqa: E402
 from reeb_torch.eval.common import add_frames_option, load_kitti  # noqa: E402
 from reeb_torch.metrics import kitti_difficulty_mask  # noqa: E402
+from reeb_torch.nms import nms_top_k  # noqa: E402
 from reeb_torch.viz import crop_sheet, save_png  # noqa: E402
 
 STAGES = ("all windows", "valid score", "region candidates", "final top-k")
@@ -86,16 +87,16 @@ def lost_details(gen: ProposalGenerator, best: dict[str, torch.Tensor], iou: tor
     for objects with a valid good window, ``region_rank`` (windows of its region scoring
     higher than its best-scored good window) against ``region_budget``; after the region cut,
     ``nms_rank`` (0-based, among the candidates that survive NMS) or ``suppressed_by_iou``
-    (the suppressing box's IoU with the object). The NMS is recomputed with torchvision's
-    ``nms`` on the windows (not reported with ``refine`` or ``region_quota``)."""
+    (the suppressing box's IoU with the object). The NMS is recomputed with the pipeline's
+    own :func:`reeb_torch.nms.nms_top_k` on the candidates, without the top-k cut (not
+    reported with ``refine`` or ``region_quota``)."""
     cfg = gen.config
     scores, grid, chosen = captured["scores"][0], captured["grid"], captured["chosen"][0]
-    per_region = cfg.candidates_per_region if cfg.use_regions else cfg.candidates_without_regions
-    budget = (captured["share"][0] * per_region).round().long()
+    budget = gen._region_budget(captured["share"][0])
     lost = torch.nonzero(best["final top-k"] < 0.7).squeeze(1).tolist()
     nms_detail = not cfg.refine and not cfg.region_quota
     cand = torch.nonzero(chosen).squeeze(1)
-    kept = cand[nms(boxes[cand], scores[cand].float(), cfg.nms_iou)] if lost and nms_detail else None
+    kept = cand[nms_top_k(boxes[cand], scores[cand], cfg.nms_iou, len(cand))] if lost and nms_detail else None
     out = []
     for g in lost:
         d: dict = {"index": g, "best_iou": {k: round(float(v[g]), 3) for k, v in best.items()}}

@@ -650,13 +650,17 @@ class ProposalGenerator(nn.Module):
         """Each region passes on its best ``share · candidates_per_region`` windows (eq. 9).
         Returns ``bool [B, N]``; ties at the cut go to the lower window index. On the CPU one
         compiled pass (:func:`reeb_torch.scoring.select_per_region_cpu`), elsewhere a stable sort."""
-        cfg = self.config
-        per_region = cfg.candidates_per_region if cfg.use_regions else cfg.candidates_without_regions
-        budget = (share * per_region).round().long()  # (B, R)
+        budget = self._region_budget(share)
         if scores.device.type == "cpu":
             members, starts = self._region_members(grid)
             return _scoring.select_per_region_cpu(scores, members, starts, budget)
         return self._select_torch(scores, grid, budget)
+
+    def _region_budget(self, share: Tensor) -> Tensor:
+        """Eq. 9: the windows each region may pass on, ``int64 (B, R)`` from its ``share``."""
+        cfg = self.config
+        per_region = cfg.candidates_per_region if cfg.use_regions else cfg.candidates_without_regions
+        return (share * per_region).round().long()
 
     def _region_members(self, grid: _windows.WindowGrid) -> tuple[np.ndarray, np.ndarray]:
         """The windows of every region, concatenated (``int64``), and where each region starts."""
