@@ -179,6 +179,13 @@ def enclosed_grid(t: EnclosedTables, s) -> Tensor:
     return a - col - row + at(t.corner, s.h, s.w)
 
 
+def _first_steps(boxes: Tensor, step_fraction: float) -> Tensor:
+    """The first step of each box's sides, ``int64 [K, 2]`` (x, y): half the window stride,
+    ``step_fraction · side / 2``, rounded, at least one pixel."""
+    wh = (boxes[:, 2:] - boxes[:, :2]).to(torch.float64)
+    return torch.clamp((wh * (step_fraction / 2)).round().long(), min=1)
+
+
 def refine_boxes(boxes: Tensor, b: Tensor, score_fn, width: int, height: int, min_side: int,
                  step_fraction: float) -> tuple[Tensor, Tensor]:
     """Move each side of ``boxes`` (int64 ``[K, 4]``, working pixels, ``x1, y1`` exclusive)
@@ -191,8 +198,7 @@ def refine_boxes(boxes: Tensor, b: Tensor, score_fn, width: int, height: int, mi
     """
     boxes = boxes.clone()
     best = score_fn(boxes, b)
-    wh = (boxes[:, 2:] - boxes[:, :2]).to(torch.float64)
-    step = torch.clamp((wh * (step_fraction / 2)).round().long(), min=1)  # (K, 2): x, y
+    step = _first_steps(boxes, step_fraction)
     limit = torch.tensor([width, height, width, height], device=boxes.device)
     for _ in range(int(math.ceil(math.log2(max(2, int(step.max()))))) + 1):
         for side in range(4):
@@ -336,8 +342,7 @@ def refine_boxes_cpu(boxes: Tensor, b: Tensor, tables: EnclosedTables, ii_edges:
     ``unit, alpha, beta_road, center_fraction, vegetation_box, vegetation_power,
     shadow_strip, shadow_margin, shadow_floor``."""
     boxes = boxes.clone().contiguous()
-    wh = (boxes[:, 2:] - boxes[:, :2]).to(torch.float64)
-    steps = torch.clamp((wh * (step_fraction / 2)).round().long(), min=1).contiguous()
+    steps = _first_steps(boxes, step_fraction).contiguous()
     best = torch.empty(len(boxes), dtype=torch.float64)
     p = np.array([params["unit"], params["alpha"], params["center_fraction"], params["vegetation_box"],
                   params["shadow_strip"], params["shadow_margin"], params["shadow_floor"], params["beta_road"]],
