@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-__all__ = ["REPO_ROOT", "default_kitti_dir", "rerun_line", "environment", "timed"]
+__all__ = ["REPO_ROOT", "default_kitti_dir", "rerun_line", "environment", "timed", "run_captured"]
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 """The repository root (the folder holding ``benchmarks/``)."""
@@ -29,6 +29,27 @@ def environment() -> dict[str, Any]:
     from reeb_torch.eval.common import environment as _environment
 
     return _environment()
+
+
+def run_captured(gen: Any, image: Any) -> tuple[dict, dict]:
+    """Run ``gen`` (a :class:`~reeb_torch.ProposalGenerator`) on one image and return its
+    output and what its per-region cut saw: ``scores`` (``[1, N]``, every window), ``grid``
+    (the :class:`~reeb_torch.windows.WindowGrid`), ``chosen`` (``bool [1, N]``, the
+    candidates) and ``share`` (eq. 9's region shares)."""
+    captured: dict = {}
+    orig_select = gen._select
+
+    def select(scores, grid, share):  # record what the pipeline saw
+        chosen = orig_select(scores, grid, share)
+        captured.update(scores=scores, grid=grid, chosen=chosen, share=share)
+        return chosen
+
+    gen._select = select
+    try:
+        out = gen([image])[0]
+    finally:
+        del gen._select
+    return out, captured
 
 
 def timed(fn: Callable[[], Any]) -> tuple[Any, float]:

@@ -26,7 +26,7 @@ import torch
 from torchvision.ops import box_iou
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import default_kitti_dir, rerun_line  # noqa: E402
+from _common import default_kitti_dir, rerun_line, run_captured  # noqa: E402
 
 from reeb_torch import ProposalGenerator  # noqa: E402
 from reeb_torch.cli import build_config  # noqa: E402
@@ -42,19 +42,7 @@ def stage_ious(gen: ProposalGenerator, image: torch.Tensor, gt: torch.Tensor,
                lost_detail: bool = False) -> tuple[dict[str, torch.Tensor], list[dict]]:
     """Best IoU of each object in ``gt`` at each stage, for one uint8 image; with
     ``lost_detail``, also :func:`lost_details` of the objects the final top-k misses."""
-    captured: dict = {}
-    orig_select = gen._select
-
-    def select(scores, grid, share):  # record what the pipeline saw
-        chosen = orig_select(scores, grid, share)
-        captured.update(scores=scores, grid=grid, chosen=chosen, share=share)
-        return chosen
-
-    gen._select = select  # type: ignore[method-assign]
-    try:
-        out = gen([image])[0]
-    finally:
-        del gen._select
+    out, captured = run_captured(gen, image)
     h, w = image.shape[-2:]
     s = gen.config.scale
     hk, wk = max(1, round(h * s)), max(1, round(w * s))

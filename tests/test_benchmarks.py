@@ -1,6 +1,8 @@
 """The benchmark scripts on the bundled frames (no shared data): diagnose_recall.py's
 per-stage recall and list of lost objects agree with each other and with the generator's
-own output; ablations.py's --variant rows are configs of the default, paired with it."""
+own output; ablations.py's --variant rows are configs of the default, paired with it;
+selection_variants.py's variants reduce to the default where they change nothing, and
+change the ranking as described where they do."""
 
 from __future__ import annotations
 
@@ -125,3 +127,61 @@ def test_a_bad_ablation_variant_is_a_usage_error_before_any_work(tmp_path, capsy
                         "--variant", "kappa=1.5;no_such_field=1"])
     assert info.value.code == 2
     assert "no_such_field" in capsys.readouterr().err and not (tmp_path / "out").exists()
+
+
+@pytest.fixture(scope="module")
+def variants_mod():
+    return _script("selection_variants")
+
+
+@pytest.fixture(scope="module")
+def bundled(tmp_path_factory):
+    items, _ = load_kitti(_example_kitti(tmp_path_factory.mktemp("kitti_sv")))
+    return [it["image"] for it in items]
+
+
+def test_selection_variants_at_their_neutral_settings_are_the_default(variants_mod, bundled):
+    """Each variant reduces to the pipeline itself where it changes nothing: NMS at IoU 1
+    inside the regions, no box narrower than 0 × its height, an empty second list."""
+    cfg = ReebConfig()
+    base, region, narrow = (ProposalGenerator(cfg), variants_mod.RegionNMS(cfg, 1.0),
+                            variants_mod.NarrowShadow(cfg, 0.0, 0.2, False))
+    plain = ProposalGenerator(cfg.replace(shadow_score="none"))
+    for im in bundled:
+        ref = base([im])[0]["boxes"]
+        assert torch.equal(region([im])[0]["boxes"], ref)
+        narrow.plain = variants_mod.run_captured(plain, im)[1]["scores"]
+        assert torch.equal(narrow([im])[0]["boxes"], ref)
+        assert torch.equal(variants_mod.interleave(ref, ref[:0], 0.3), ref)
+
+
+def test_selection_variants_change_the_ranking(variants_mod, bundled):
+    """Narrow boxes scored x 0 instead of the shadow term score 0 and rank behind every
+    other box; with NMS at 0.5 inside the regions no two candidates of a region overlap
+    more than that (the default's candidates do)."""
+    cfg = ReebConfig()
+    plain = ProposalGenerator(cfg.replace(shadow_score="none"))
+    narrow = variants_mod.NarrowShadow(cfg, 0.6, 0.0, False)
+    im = bundled[0]
+    narrow.plain = variants_mod.run_captured(plain, im)[1]["scores"]
+    out = narrow([im])[0]
+    w, h = out["boxes"][:, 2] - out["boxes"][:, 0], out["boxes"][:, 3] - out["boxes"][:, 1]
+    thin = w < 0.6 * h
+    assert bool((out["scores"][thin] == 0).all()) and bool((out["scores"][~thin] > 0).all())
+    if bool(thin.any()):
+        assert int(torch.nonzero(thin)[0]) == int((~thin).sum())  # all of them after the rest
+    for gen, most in ((variants_mod.RegionNMS(cfg, 0.5), 0.5), (ProposalGenerator(cfg), None)):
+        _, cap = variants_mod.run_captured(gen, im)
+        worst = 0.0
+        for idx in cap["grid"].region_windows:
+            c = cap["grid"].boxes[idx[cap["chosen"][0][idx]]]
+            worst = max(worst, float(box_iou(c, c).fill_diagonal_(0).max())) if len(c) > 1 else worst
+        assert worst <= 0.5 + 1e-6 if most else worst > 0.5
+
+
+def test_selection_variants_script_prints_paired_rows(variants_mod, tmp_path, capsys):
+    root = _example_kitti(tmp_path / "kitti")
+    record = variants_mod.main(["--data", str(root), "--family", "region-nms", "--out", str(tmp_path / "o")])
+    assert [r["variant"] for r in record["rows"]][0] == "default"
+    assert len(record["rows"]) == 4 and all("p_value" in r for r in record["rows"][1:])
+    assert (tmp_path / "o" / "selection_variants.txt").read_text().startswith("# rerun: python benchmarks/selection_variants.py")
