@@ -15,7 +15,7 @@ The README's "measured and not taken" list quotes this script. Families (``--fam
   top 2000.
 
 Rerun: ``python benchmarks/selection_variants.py [--data DIR] [--frames 0:39 40:59]
-[--family region-nms narrow-shadow ensemble] [--out DIR]`` (about 10 minutes on 2 cores
+[--family region-nms narrow-shadow ensemble] [--out DIR]`` (about a minute on 2 cores
 for all three on the 60 frames).
 """
 
