@@ -195,7 +195,7 @@ class ProposalGenerator(nn.Module):
         with self._stage("scoring", dev):
             grid = self._window_grid(hk, wk, bounds, fx, fy)
             grey = gray[:, 0] if cfg.shadow_score != "none" else None
-            tabs: dict = {}  # prefix tables of this batch, built once for scoring and refinement
+            tabs: dict = {}  # integral images and prefix tables of this batch, built once for scoring and refinement
             scores = self._score_windows(edges, road, groups, grid, fx, fy, h_in, w_in, crossing, grey, green,
                                          tabs=tabs)
             chosen = self._select(scores, grid, share)
@@ -305,7 +305,8 @@ class ProposalGenerator(nn.Module):
         otherwise one batch of tensor ops per window size. Both give the same numbers."""
         if self._compiled_scoring_applies(edges, groups, grid, crossing):
             return self._score_windows_compiled(edges, groups, grid, fx, fy, h_in, w_in, grey, green, tabs=tabs)
-        return self._score_windows_torch(edges, road, groups, grid, fx, fy, h_in, w_in, crossing, grey, green)
+        return self._score_windows_torch(edges, road, groups, grid, fx, fy, h_in, w_in, crossing, grey, green,
+                                         tabs=tabs)
 
     def _compiled_scoring_applies(self, edges: Tensor, groups: _groups.EdgeGroups, grid: _windows.WindowGrid,
                                   crossing: tuple[Tensor, Tensor] | None) -> bool:
@@ -377,12 +378,13 @@ class ProposalGenerator(nn.Module):
         cfg = self.config
         plan, denom, loc = self._score_plan(grid, fx, fy, h_in, w_in)
         b = edges.shape[0]
-        tables, ii_edges = self._tables(tabs, edges, groups)
+        tables = self._tables(tabs, edges, groups)
+        ii_edges = self._kept_integral(tabs, "edges", edges)
         out = torch.full((b, grid.count), -math.inf, dtype=torch.float32)
         road = 1.0 if cfg.road_score == "flat" else 0.0
         ii_grey = shadow = sqrt_floor = None
         if cfg.shadow_score != "none":
-            ii_grey = self._grey_integral(tabs, grey)
+            ii_grey = self._kept_integral(tabs, "grey", grey)
             if cfg.shadow_power == 0.5:  # the factor in the kernel: sqrt rounds alike everywhere
                 sqrt_floor = cfg.shadow_floor
             else:
@@ -397,14 +399,16 @@ class ProposalGenerator(nn.Module):
     def _score_windows_torch(self, edges: Tensor, road: Tensor | None, groups: _groups.EdgeGroups,
                              grid: _windows.WindowGrid, fx: float, fy: float, h_in: int, w_in: int,
                              crossing: tuple[Tensor, Tensor] | None = None, grey: Tensor | None = None,
-                             green: Tensor | None = None) -> Tensor:
-        """:meth:`_score_windows` as tensor ops, one batch of them per window size (any device, any config)."""
+                             green: Tensor | None = None, *, tabs: dict | None = None) -> Tensor:
+        """:meth:`_score_windows` as tensor ops, one batch of them per window size (any device, any config).
+
+        ``tabs`` keeps the batch's integral images and prefix tables for the refinement."""
         cfg = self.config
         b = edges.shape[0]
-        ii_edges = _scoring.integral_image(edges)
-        ii_road = _scoring.integral_image(road) if road is not None else None  # None: no road term
+        ii_edges = self._kept_integral(tabs, "edges", edges)
+        enclosed = self._enclosed(edges, groups, grid, tabs)
+        ii_road = self._kept_integral(tabs, "road", road) if road is not None else None  # None: no road term
         ii_road_below = _scoring.extend_below(ii_road) if cfg.road_score == "stand" else None  # none past the bottom
-        enclosed = self._enclosed(groups, b, edges.shape[1], edges.shape[2], grid)
         loc_cache: dict = {}  # L depends on the window height and rows only (not on ``paper``'s b_w)
         band = cfg.straddle_band
         if crossing is not None:  # padded by the band so sides at the image border read zeros
@@ -414,7 +418,7 @@ class ProposalGenerator(nn.Module):
         out = torch.full((b, grid.count), -math.inf, dtype=torch.float32, device=edges.device)
         shadow = ii_grey_below = None
         if cfg.shadow_score != "none":  # rows past the bottom add nothing to the strip below
-            ii_grey_below = _scoring.extend_below(_scoring.integral_image(grey))
+            ii_grey_below = _scoring.extend_below(self._kept_integral(tabs, "grey", grey))
             shadow = torch.zeros((b, grid.count), dtype=torch.float64, device=edges.device)
         for s, enc, off in zip(grid.sizes, enclosed, grid.offsets):
             dx, dy, cw, ch = _scoring.centre_box(s.w, s.h, cfg.center_fraction)
@@ -463,34 +467,35 @@ class ProposalGenerator(nn.Module):
                 out[:, off: off + s.count] = torch.where(v >= peak, v, -math.inf).reshape(b, -1)
         return out
 
-    @staticmethod
-    def _enclosed(groups: _groups.EdgeGroups, b: int, hk: int, wk: int, grid: _windows.WindowGrid) -> list[Tensor]:
+    def _enclosed(self, edges: Tensor, groups: _groups.EdgeGroups, grid: _windows.WindowGrid,
+                  tabs: dict | None = None) -> list[Tensor]:
         """Eq. 1's enclosed sums of every window, per size. Groups bounded to tiles smaller
-        than every window: four prefix tables built once, then strided slices per size
-        (:func:`reeb_torch.refinement.enclosed_grid`); otherwise one scatter per size
-        (:func:`reeb_torch.scoring.enclosed_sums`). Both are exact float64 sums: the same numbers."""
+        than every window: four prefix tables built once (:meth:`_tables`, kept in ``tabs``),
+        then strided slices per size (:func:`reeb_torch.refinement.enclosed_grid`); otherwise
+        one scatter per size (:func:`reeb_torch.scoring.enclosed_sums`). Both are exact float64
+        sums: the same numbers."""
         if not grid.sizes:
             return []
         if _tables_exact(groups, grid):
-            tables = _refinement.enclosed_tables(groups, b, hk, wk)
+            tables = self._tables(tabs, edges, groups)
             return [_refinement.enclosed_grid(tables, s) for s in grid.sizes]
-        return _scoring.enclosed_sums(groups, b, grid.sizes)
+        return _scoring.enclosed_sums(groups, edges.shape[0], grid.sizes)
 
     def _box_scorer(self, edges: Tensor, road: Tensor | None, groups: _groups.EdgeGroups,
                     crossing: tuple[Tensor, Tensor] | None, fx: float, fy: float, h_in: int, w_in: int,
-                    grey: Tensor | None = None, green: Tensor | None = None):
+                    grey: Tensor | None = None, green: Tensor | None = None, *, tabs: dict | None = None):
         """V (eq. 12) of arbitrary boxes: returns ``(score_fn, min_side)`` where
         ``score_fn(boxes, b)`` takes int64 ``[K, 4]`` working-pixel boxes (x1, y1 exclusive)
         and their image indices ``[K]`` and gives ``float64 [K]``, the same numbers
         :meth:`_score_windows` gives a window of the grid; exact for boxes at least
         ``min_side`` wide and tall. ``road`` is None where the road term does not read the
-        mask (``none``, ``flat``)."""
+        mask (``none``, ``flat``). ``tabs``: the prefix tables the scoring kept (else built here)."""
         cfg = self.config
-        b, hk, wk = edges.shape
-        tables = _refinement.enclosed_tables(groups, b, hk, wk)
-        ii_edges = _scoring.integral_image(edges)
+        hk = edges.shape[1]
+        tables = self._tables(tabs, edges, groups)
+        ii_edges = self._kept_integral(tabs, "edges", edges)
         if road is not None:  # else a road term that does not read the mask (none, flat)
-            ii_road = _scoring.integral_image(road)
+            ii_road = self._kept_integral(tabs, "road", road)
             ii_road_below = _scoring.extend_below(ii_road)
         band = cfg.straddle_band
         if crossing is not None:
@@ -499,7 +504,7 @@ class ProposalGenerator(nn.Module):
         unit = _scoring.unit_scale(fx, fy)
         at = _refinement.box_sum_at
         if cfg.shadow_score != "none":
-            ii_grey_below = _scoring.extend_below(_scoring.integral_image(grey))
+            ii_grey_below = _scoring.extend_below(self._kept_integral(tabs, "grey", grey))
 
         def centred(x0: Tensor, y0: Tensor, w: Tensor, h: Tensor, fraction: float) -> tuple[Tensor, ...]:
             """The centred ``fraction`` of each box, as :func:`scoring.centre_box` places it."""
@@ -553,26 +558,28 @@ class ProposalGenerator(nn.Module):
         return score_fn, tables.max_extent + 1
 
     @staticmethod
-    def _tables(tabs: dict | None, edges: Tensor, groups: _groups.EdgeGroups
-                ) -> tuple[_refinement.EnclosedTables, Tensor]:
-        """The groups' :class:`~reeb_torch.refinement.EnclosedTables` and the edge map's integral
-        image of a batch, built on first use and kept in ``tabs`` (when given) for the next."""
+    def _tables(tabs: dict | None, edges: Tensor, groups: _groups.EdgeGroups) -> _refinement.EnclosedTables:
+        """The groups' :class:`~reeb_torch.refinement.EnclosedTables` of a batch (``edges``:
+        its ``(B, H, W)`` edge map), built on first use and kept in ``tabs`` (when given) for
+        the next."""
         if tabs is None or "tables" not in tabs:
             b, hk, wk = edges.shape
-            built = (_refinement.enclosed_tables(groups, b, hk, wk), _scoring.integral_image(edges))
+            built = _refinement.enclosed_tables(groups, b, hk, wk)
             if tabs is None:
                 return built
             tabs["tables"] = built
         return tabs["tables"]
 
     @staticmethod
-    def _grey_integral(tabs: dict | None, grey: Tensor) -> Tensor:
-        """The grey image's integral image (shadow term), kept in ``tabs`` like :meth:`_tables`."""
+    def _kept_integral(tabs: dict | None, name: str, x: Tensor) -> Tensor:
+        """The integral image of the batch's ``x`` (``"edges"``: the edge map; ``"grey"``: the
+        shadow term's grey image; ``"road"``: the road mask), kept in ``tabs`` under ``name``
+        like :meth:`_tables`."""
         if tabs is None:
-            return _scoring.integral_image(grey)
-        if "grey" not in tabs:
-            tabs["grey"] = _scoring.integral_image(grey)
-        return tabs["grey"]
+            return _scoring.integral_image(x)
+        if name not in tabs:
+            tabs[name] = _scoring.integral_image(x)
+        return tabs[name]
 
     def _compiled_refine_applies(self, edges: Tensor, crossing: tuple[Tensor, Tensor] | None) -> bool:
         """Whether :func:`reeb_torch.refinement.refine_boxes_cpu` computes this config's box
@@ -618,19 +625,22 @@ class ProposalGenerator(nn.Module):
         vals = scores[bi, ni]
         compiled = self._compiled_refine_applies(edges, crossing)
         if compiled:
-            tables, ii_edges = self._tables(tabs, edges, groups)
+            tables = self._tables(tabs, edges, groups)
+            ii_edges = self._kept_integral(tabs, "edges", edges)
             exact_side = tables.max_extent + 1
         else:
-            score_fn, exact_side = self._box_scorer(edges, road, groups, crossing, fx, fy, h_in, w_in, grey, green)
+            score_fn, exact_side = self._box_scorer(edges, road, groups, crossing, fx, fy, h_in, w_in, grey, green,
+                                                    tabs=tabs)
         min_side = max(exact_side, self._min_window_working(fx, fy))
         wh = boxes[:, 2:] - boxes[:, :2]
         movable = torch.nonzero((wh >= min_side).all(1) & (wh[:, 0] >= cfg.refine_min_aspect * wh[:, 1])).squeeze(1)
         if movable.numel():
             if compiled:
+                grey_below = (_scoring.extend_below(self._kept_integral(tabs, "grey", grey))
+                              if cfg.shadow_score != "none" else None)
                 rb, rs = _refinement.refine_boxes_cpu(
                     boxes[movable], bi[movable], tables, ii_edges, *self._box_tables(grid, hk, wk, fx, fy, h_in, w_in),
-                    green,
-                    _scoring.extend_below(self._grey_integral(tabs, grey)) if cfg.shadow_score != "none" else None,
+                    green, grey_below,
                     dict(unit=_scoring.unit_scale(fx, fy), alpha=cfg.alpha,
                          beta_road=cfg.beta if cfg.road_score == "flat" else 0.0,
                          center_fraction=cfg.center_fraction, vegetation_box=cfg.vegetation_box,
