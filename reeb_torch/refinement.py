@@ -337,8 +337,9 @@ def refine_boxes_cpu(boxes: Tensor, b: Tensor, tables: EnclosedTables, ii_edges:
 
     ``loc[y1, h]`` and ``norm[w, h]`` are the location score and eq. 1's normaliser of a box
     of height ``h`` (width ``w``) whose bottom is working row ``y1``, tabulated by the tensor
-    functions themselves; ``green`` the green-pixel counts (or None), ``grey_below`` the
-    grey integral image extended below the image (or None: no shadow term); ``params`` holds
+    functions themselves; ``green`` the green-pixel counts (``int32``, read as they are; or
+    None), ``grey_below`` the grey integral image extended below the image (or None: no
+    shadow term); ``params`` holds
     ``unit, alpha, beta_road, center_fraction, vegetation_box, vegetation_power,
     shadow_strip, shadow_margin, shadow_floor``."""
     boxes = boxes.clone().contiguous()
@@ -348,11 +349,10 @@ def refine_boxes_cpu(boxes: Tensor, b: Tensor, tables: EnclosedTables, ii_edges:
                   params["shadow_strip"], params["shadow_margin"], params["shadow_floor"], params["beta_road"]],
                  np.float64)
     ip = np.array([params["vegetation_power"], green is not None, grey_below is not None, height], np.int64)
-    empty = np.zeros((1, 1, 1))
     arrays = (tables.anchor.numpy(), tables.cut_col.numpy(), tables.cut_row.numpy(), tables.corner.numpy(),
               ii_edges.contiguous().numpy(), loc.contiguous().numpy(), norm.contiguous().numpy(),
-              green.numpy().astype(np.float64) if green is not None else empty,
-              grey_below.contiguous().numpy() if grey_below is not None else empty)
+              green.contiguous().numpy() if green is not None else np.zeros((1, 1, 1), np.int32),
+              grey_below.contiguous().numpy() if grey_below is not None else np.zeros((1, 1, 1)))
     bx, bb, st, out = boxes.numpy(), b.contiguous().numpy(), steps.numpy(), best.numpy()
 
     def run(lo: int, hi: int) -> None:  # boxes are independent: each core takes a share
