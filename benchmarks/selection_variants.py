@@ -93,14 +93,15 @@ def interleave(a: torch.Tensor, b: torch.Tensor, share: float) -> torch.Tensor:
     return boxes[nms_top_k(boxes, -torch.cat([ra, rb]), ReebConfig().nms_iou, TOP_K)]
 
 
-def variants(family: str) -> list[tuple[str, Callable]]:
-    """``(name, propose)`` rows of a family; ``propose(image)`` gives ranked boxes."""
+def variants(family: str, default_boxes: list[torch.Tensor]) -> list[tuple[str, Callable]]:
+    """``(name, propose)`` rows of a family; ``propose(i, image)`` gives the ranked boxes of
+    the ``i``-th frame (``default_boxes[i]``: the default's, computed once by the caller)."""
     cfg = ReebConfig()
     rows: list[tuple[str, Callable]] = []
     if family == "region-nms":
         for thr in (0.9, 0.85, 0.8):
             gen = RegionNMS(cfg, thr)
-            rows.append((f"NMS {thr} inside each region before the cut", lambda im, g=gen: g([im])[0]["boxes"]))
+            rows.append((f"NMS {thr} inside each region before the cut", lambda i, im, g=gen: g([im])[0]["boxes"]))
     elif family == "narrow-shadow":
         plain_gen = ProposalGenerator(cfg.replace(shadow_score="none"))
         for aspect in (0.6, 0.8):
@@ -108,20 +109,19 @@ def variants(family: str) -> list[tuple[str, Callable]]:
                 for const in (0.2, 0.35, 0.5):
                     gen = NarrowShadow(cfg, aspect, const, floor)
 
-                    def run(im, g=gen):
+                    def run(i, im, g=gen):
                         g.plain = run_captured(plain_gen, im)[1]["scores"]
                         return g([im])[0]["boxes"]
 
                     how = f"term floored at {const}" if floor else f"x {const} instead of the term"
                     rows.append((f"w < {aspect} h: {how}", run))
     elif family == "ensemble":
-        base = ProposalGenerator(cfg)
         for change in ("min_window=12", "scale=1.0", "min_window=20", "blur_sigma=1.5"):
             field, value = change.split("=")
             other = ProposalGenerator(cfg.replace(**{field: type(getattr(cfg, field))(value)}))
             for share in (0.5, 0.3):
                 rows.append((f"+ {change}, share {share}",
-                             lambda im, o=other, s=share: interleave(base([im])[0]["boxes"], o([im])[0]["boxes"], s)))
+                             lambda i, im, o=other, s=share: interleave(default_boxes[i], o([im])[0]["boxes"], s)))
     else:
         raise ValueError(f"unknown family {family!r}; choose from {', '.join(FAMILIES)}")
     return rows
@@ -169,11 +169,12 @@ def main(argv: list[str] | None = None) -> dict:
         record["rows"].append(entry)
 
     base = ProposalGenerator(ReebConfig())
-    ref = object_hits([base([it["image"]])[0]["boxes"] for it in items], gts, TOP_K, IOU)
+    default_boxes = [base([it["image"]])[0]["boxes"] for it in items]
+    ref = object_hits(default_boxes, gts, TOP_K, IOU)
     row("default", ref, None)
     for family in args.family:
-        for name, propose in variants(family):
-            row(name, object_hits([propose(it["image"]) for it in items], gts, TOP_K, IOU), ref)
+        for name, propose in variants(family, default_boxes):
+            row(name, object_hits([propose(i, it["image"]) for i, it in enumerate(items)], gts, TOP_K, IOU), ref)
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "selection_variants.txt").write_text("\n".join(lines) + "\n")
