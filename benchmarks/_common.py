@@ -34,7 +34,7 @@ def environment() -> dict[str, Any]:
 def run_captured(gen: Any, image: Any) -> tuple[dict, dict]:
     """Run ``gen`` (a :class:`~reeb_torch.ProposalGenerator`) on one image and return its
     output and what its per-region cut saw: ``scores`` (``[1, N]``, every window), ``grid``
-    (the :class:`~reeb_torch.windows.WindowGrid`), ``chosen`` (``bool [1, N]``, the
+    (the :class:`~reeb_torch.stages.windows.WindowGrid`), ``chosen`` (``bool [1, N]``, the
     candidates) and ``share`` (eq. 9's region shares)."""
     captured: dict = {}
     orig_select = gen._select

@@ -32,7 +32,7 @@ from reeb_torch import ProposalGenerator  # noqa: E402
 from reeb_torch.cli import build_config  # noqa: E402
 from reeb_torch.eval.common import add_frames_option, load_kitti  # noqa: E402
 from reeb_torch.metrics import kitti_difficulty_mask  # noqa: E402
-from reeb_torch.nms import nms_top_k  # noqa: E402
+from reeb_torch.stages.nms import nms_top_k  # noqa: E402
 from reeb_torch.viz import crop_sheet, save_png  # noqa: E402
 
 STAGES = ("all windows", "valid score", "region candidates", "final top-k")
@@ -76,7 +76,7 @@ def lost_details(gen: ProposalGenerator, best: dict[str, torch.Tensor], iou: tor
     higher than its best-scored good window) against ``region_budget``; after the region cut,
     ``nms_rank`` (0-based, among the candidates that survive NMS) or ``suppressed_by_iou``
     (the suppressing box's IoU with the object). The NMS is recomputed with the pipeline's
-    own :func:`reeb_torch.nms.nms_top_k` on the candidates, without the top-k cut (not
+    own :func:`reeb_torch.stages.nms.nms_top_k` on the candidates, without the top-k cut (not
     reported with ``refine`` or ``region_quota``)."""
     cfg = gen.config
     scores, grid, chosen = captured["scores"][0], captured["grid"], captured["chosen"][0]

@@ -9,10 +9,12 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from .stages.edges import working_size
+
 if TYPE_CHECKING:
     from .config import ReebConfig
 
-__all__ = ["check_images", "check_fits", "working_size", "ImageBatch"]
+__all__ = ["check_images", "check_fits", "ImageBatch"]
 
 ImageBatch = Tensor | Sequence[Tensor]
 
@@ -48,13 +50,6 @@ def _check_one(img: Tensor, where: str, keep_uint8: bool = False) -> Tensor:
                 " (divide uint8 data by 255, or pass the uint8 tensor)"
             )
     return img.float()
-
-
-def working_size(height: int, width: int, scale: float) -> tuple[int, int]:
-    """``(h, w)`` of a ``height × width`` image at the working resolution ``scale``
-    (rounded, at least one pixel): the one rule the resize, the compiled front end and the
-    size check share."""
-    return max(1, int(round(height * scale))), max(1, int(round(width * scale)))
 
 
 def check_fits(height: int, width: int, config: ReebConfig, where: str = "image") -> None:

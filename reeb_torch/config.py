@@ -183,7 +183,7 @@ _MAX_REGIONS = 1024
 
 
 def _region_count(c: "ReebConfig") -> int:
-    from .regions import region_count, region_width_fraction
+    from .stages.regions import region_count, region_width_fraction
 
     frac = region_width_fraction(c.camera_height_m, c.vertical_fov_deg, c.horizontal_fov_deg,
                                  c.max_object_width_m, c.region_width_round)
@@ -356,7 +356,7 @@ class ReebConfig:
     camera prior, in the spirit of eq. 11's "lower boxes are bigger"). ``None`` = all rows."""
     window_geometry: WindowGeometry = "camera"
     """``camera``: window sizes and rows from the ground plane and ``object_templates``
-    (:func:`reeb_torch.windows.camera_window_sizes`; regions set budgets, not the largest
+    (:func:`reeb_torch.stages.windows.camera_window_sizes`; regions set budgets, not the largest
     window). ``grid``: every size of the two geometric series within ``aspect_range``, no
     wider than a region, at the rows ``ground_band`` allows (the first release's grid)."""
     object_templates: tuple[tuple[float, float, float, float], ...] = (
@@ -398,7 +398,7 @@ class ReebConfig:
     """Half-width, in working pixels, of the band around each box side for ``straddle_weight``."""
     refine: bool = False
     """Edge Boxes' refinement: before NMS, move each side of every candidate by halving
-    steps while its score V improves (:mod:`reeb_torch.refinement`; compiled on the CPU
+    steps while its score V improves (:mod:`reeb_torch.stages.refinement`; compiled on the CPU
     unless the straddling or a road term is on, about twice the default's time). Not in
     the paper."""
     refine_min_aspect: float = 0.0

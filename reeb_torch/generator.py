@@ -19,17 +19,18 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from . import edges as _edges
-from . import entropy as _entropy
-from . import groups as _groups
-from . import refinement as _refinement
-from . import regions as _regions
-from . import road as _road
-from . import scoring as _scoring
-from . import windows as _windows
-from ._checks import ImageBatch, check_images, working_size
+from ._checks import ImageBatch, check_images
 from .config import ReebConfig
-from .nms import nms_top_k_many, nms_windows_cpu
+from .stages import edges as _edges
+from .stages import entropy as _entropy
+from .stages import groups as _groups
+from .stages import refinement as _refinement
+from .stages import regions as _regions
+from .stages import road as _road
+from .stages import scoring as _scoring
+from .stages import windows as _windows
+from .stages.edges import working_size
+from .stages.nms import nms_top_k_many, nms_windows_cpu
 
 __all__ = ["ProposalGenerator", "propose", "Inspection"]
 
@@ -301,7 +302,7 @@ class ProposalGenerator(nn.Module):
 
         On the CPU, when no term needs per-window maps (no road fraction, straddling or
         local maxima) and every window is wider and taller than every edge group, one
-        compiled pass (:func:`reeb_torch.scoring.score_grid_cpu`) scores all windows;
+        compiled pass (:func:`reeb_torch.stages.scoring.score_grid_cpu`) scores all windows;
         otherwise one batch of tensor ops per window size. Both give the same numbers."""
         if self._compiled_scoring_applies(edges, groups, grid, crossing):
             return self._score_windows_compiled(edges, groups, grid, fx, fy, h_in, w_in, grey, green, tabs=tabs)
@@ -471,8 +472,8 @@ class ProposalGenerator(nn.Module):
                   tabs: dict | None = None) -> list[Tensor]:
         """Eq. 1's enclosed sums of every window, per size. Groups bounded to tiles smaller
         than every window: four prefix tables built once (:meth:`_tables`, kept in ``tabs``),
-        then strided slices per size (:func:`reeb_torch.refinement.enclosed_grid`); otherwise
-        one scatter per size (:func:`reeb_torch.scoring.enclosed_sums`). Both are exact float64
+        then strided slices per size (:func:`reeb_torch.stages.refinement.enclosed_grid`); otherwise
+        one scatter per size (:func:`reeb_torch.stages.scoring.enclosed_sums`). Both are exact float64
         sums: the same numbers."""
         if not grid.sizes:
             return []
@@ -559,7 +560,7 @@ class ProposalGenerator(nn.Module):
 
     @staticmethod
     def _tables(tabs: dict | None, edges: Tensor, groups: _groups.EdgeGroups) -> _refinement.EnclosedTables:
-        """The groups' :class:`~reeb_torch.refinement.EnclosedTables` of a batch (``edges``:
+        """The groups' :class:`~reeb_torch.stages.refinement.EnclosedTables` of a batch (``edges``:
         its ``(B, H, W)`` edge map), built on first use and kept in ``tabs`` (when given) for
         the next."""
         if tabs is None or "tables" not in tabs:
@@ -582,7 +583,7 @@ class ProposalGenerator(nn.Module):
         return tabs[name]
 
     def _compiled_refine_applies(self, edges: Tensor, crossing: tuple[Tensor, Tensor] | None) -> bool:
-        """Whether :func:`reeb_torch.refinement.refine_boxes_cpu` computes this config's box
+        """Whether :func:`reeb_torch.stages.refinement.refine_boxes_cpu` computes this config's box
         score: on the CPU, without the straddling and road terms, with a location score
         tabulated by box height and bottom row, and a square-root shadow factor (or none)."""
         cfg = self.config
@@ -612,8 +613,8 @@ class ProposalGenerator(nn.Module):
                 groups: _groups.EdgeGroups, crossing: tuple[Tensor, Tensor] | None, fx: float, fy: float,
                 h_in: int, w_in: int, grey: Tensor | None = None, green: Tensor | None = None, *,
                 tabs: dict | None = None) -> tuple[list[Tensor], list[Tensor]]:
-        """Edge Boxes' refinement of every chosen window (:func:`reeb_torch.refinement.refine_boxes_cpu`,
-        compiled, where :meth:`_compiled_refine_applies`; else :func:`reeb_torch.refinement.refine_boxes`
+        """Edge Boxes' refinement of every chosen window (:func:`reeb_torch.stages.refinement.refine_boxes_cpu`,
+        compiled, where :meth:`_compiled_refine_applies`; else :func:`reeb_torch.stages.refinement.refine_boxes`
         with :meth:`_box_scorer`: the same boxes and scores); per image, ``float32 [K, 4]`` working-pixel
         boxes and ``float32 [K]`` scores, in the order of ``nonzero(chosen[i])``. Boxes narrower or
         shorter than the exact-sum limit, or narrower than ``refine_min_aspect`` times their height,
@@ -659,7 +660,7 @@ class ProposalGenerator(nn.Module):
     def _select(self, scores: Tensor, grid: _windows.WindowGrid, share: Tensor) -> Tensor:
         """Each region passes on its best ``share · candidates_per_region`` windows (eq. 9).
         Returns ``bool [B, N]``; ties at the cut go to the lower window index. On the CPU one
-        compiled pass (:func:`reeb_torch.scoring.select_per_region_cpu`), elsewhere a stable sort."""
+        compiled pass (:func:`reeb_torch.stages.scoring.select_per_region_cpu`), elsewhere a stable sort."""
         budget = self._region_budget(share)
         if scores.device.type == "cpu":
             members, starts = self._region_members(grid)

@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import torch
 
-from reeb_torch.edges import (edge_map, gaussian_blur, green_mask, remove_isolated, sobel_gradients, sobel_magnitude,
+from reeb_torch.stages.edges import (edge_map, gaussian_blur, green_mask, remove_isolated, sobel_gradients, sobel_magnitude,
                               to_gray)
-from reeb_torch.scoring import count_integral
+from reeb_torch.stages.scoring import count_integral
 
 
 def test_sobel_matches_opencv_inside_the_border():
@@ -67,7 +67,7 @@ def test_gray_weights():
 def test_compiled_edge_map_equals_the_tensor_ops(sample_image):
     # issue 9: the CPU default path (blur + Sobel, thinning, isolated pixels in numba) gives
     # the tensor ops' edge map bit for bit, on the sample and on noise, at several settings
-    from reeb_torch import edges as E
+    from reeb_torch.stages import edges as E
 
     def tensor_ops(g, sigma, threshold):
         gx, gy = E.sobel_gradients(E.gaussian_blur(g, sigma))
@@ -102,7 +102,7 @@ def test_green_mask_marks_green_dominant_pixels():
 def test_compiled_working_gray_equals_interpolate_then_grey(sample_image):
     # issue 9: the CPU front end (antialiased resize + grey in one compiled pass, from uint8)
     # gives torch's interpolate + kornia's grey bit for bit, where it applies
-    from reeb_torch.edges import working_gray
+    from reeb_torch.stages.edges import working_gray
 
     if torch.backends.cpu.get_cpu_capability() not in ("AVX2", "AVX512"):
         assert working_gray([sample_image], 0.5) is None
@@ -123,7 +123,7 @@ def test_compiled_working_gray_equals_interpolate_then_grey(sample_image):
 
 def test_compiled_working_gray_declines_where_it_would_differ(sample_image):
     # longer filters (scale < 0.5), no resize, upsampling: the caller takes the tensor ops
-    from reeb_torch.edges import working_gray
+    from reeb_torch.stages.edges import working_gray
 
     for scale in (0.3, 0.49, 1.0, 1.5):
         assert working_gray([sample_image], scale) is None

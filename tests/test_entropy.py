@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from reeb_torch.entropy import proposal_share, region_entropy
+from reeb_torch.stages.entropy import proposal_share, region_entropy
 
 
 def _entropy_ref(values: torch.Tensor, bins: int) -> float:
@@ -47,7 +47,7 @@ def test_compiled_strip_histograms_equal_the_tensor_path():
     # the CPU pass counts the same grey levels per strip as the per-column tensor histograms
     import numpy as np
 
-    from reeb_torch.entropy import _strip_histograms, _strip_histograms_tensor
+    from reeb_torch.stages.entropy import _strip_histograms, _strip_histograms_tensor
 
     gen = torch.Generator().manual_seed(4)
     level = (torch.rand(3, 17, 40, generator=gen) * 16).long()

@@ -203,7 +203,7 @@ def test_compiled_scoring_equals_the_tensor_path(sample_image, overrides):
 
 
 def test_scoring_falls_back_to_tensor_ops_when_a_term_needs_maps(crop):
-    from reeb_torch.groups import connected_groups
+    from reeb_torch.stages.groups import connected_groups
 
     e = torch.rand(1, 64, 96)
     g = connected_groups(e, 8)  # groups inside 8-px tiles: every window (>= 16 px) encloses them exactly
@@ -246,7 +246,7 @@ def test_compiled_selection_equals_the_tensor_path(sample_image):
 @pytest.mark.parametrize("overrides", [{}, {"vegetation_score": "none"}, {"scale": 0.7}])
 def test_compiled_front_end_gives_the_tensor_front_ends_proposals(sample_image, overrides):
     # issue 9: the uint8 → grey (and green mask) compiled pass changes nothing downstream
-    from reeb_torch import edges as E
+    from reeb_torch.stages import edges as E
 
     crops = [sample_image[:, 100:290, 200:800], sample_image[:, 150:340, 500:1100]]
     gen = ProposalGenerator(**overrides)

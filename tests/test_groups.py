@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from reeb_torch.groups import cell_groups, connected_groups, label_components
+from reeb_torch.stages.groups import cell_groups, connected_groups, label_components
 
 
 def _flood_components(mask: torch.Tensor) -> list[set[tuple[int, int]]]:
@@ -79,7 +79,7 @@ def test_cell_groups():
 
 
 def _tensor_path(edges: torch.Tensor, cell: int | None):
-    from reeb_torch.groups import _coords, _stats
+    from reeb_torch.stages.groups import _coords, _stats
 
     b, h, w = edges.shape
     xs, ys = _coords(b, h, w, edges.device)
@@ -90,7 +90,7 @@ def _tensor_path(edges: torch.Tensor, cell: int | None):
 def test_compiled_groups_equal_the_tensor_path(sample_image):
     # the CPU union-find gives the FastSV tensor path's groups: same order, same bounds,
     # same float64 masses, on random masks and on the sample's edge map, tiles or not
-    from reeb_torch import edges as E
+    from reeb_torch.stages import edges as E
 
     gen = torch.Generator().manual_seed(3)
     cases = [torch.rand(3, 29, 47, generator=gen) * (torch.rand(3, 29, 47, generator=gen) < d)

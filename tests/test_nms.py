@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torchvision.ops import nms
 
-from reeb_torch.nms import nms_top_k
+from reeb_torch.stages.nms import nms_top_k
 
 
 def _boxes(n: int, gen: torch.Generator) -> torch.Tensor:
@@ -32,10 +32,10 @@ def test_ties_keep_input_order_and_empty_input():
     assert nms_top_k(torch.zeros(0, 4), torch.zeros(0), 0.5, 5).numel() == 0
 
 
-# -- the compiled grid-bucketed CPU path (reeb_torch.nms._grid_nms_sorted) ----------------
+# -- the compiled grid-bucketed CPU path (reeb_torch.stages.nms._grid_nms_sorted) ----------------
 import pytest  # noqa: E402
 
-from reeb_torch.nms import _grid_ok  # noqa: E402
+from reeb_torch.stages.nms import _grid_ok  # noqa: E402
 
 THRESHOLDS = (0.5, 0.55, 0.6, 0.7, 0.8, 0.9, 0.95)
 
@@ -156,7 +156,7 @@ else:
 
 
 def test_nms_top_k_many_equals_one_image_at_a_time():
-    from reeb_torch.nms import nms_top_k, nms_top_k_many
+    from reeb_torch.stages.nms import nms_top_k, nms_top_k_many
 
     gen = torch.Generator().manual_seed(9)
     pairs = []
@@ -173,7 +173,7 @@ def test_nms_top_k_many_equals_one_image_at_a_time():
 def test_nms_windows_cpu_equals_nms_top_k_on_the_chosen_windows():
     # issue 9: gathering, radix sort and NMS compiled per image give nms_top_k's windows,
     # ties (and -0.0 against 0.0) included; NaN scores and bad boxes take the checked path
-    from reeb_torch.nms import nms_windows_cpu
+    from reeb_torch.stages.nms import nms_windows_cpu
 
     gen = torch.Generator().manual_seed(11)
     b, s = _messy_boxes(3000, gen, torch.float32)
@@ -195,7 +195,7 @@ def test_nms_windows_cpu_equals_nms_top_k_on_the_chosen_windows():
 
 
 def test_descending_radix_order_equals_torch_stable_sort():
-    from reeb_torch._radix import descending_order
+    from reeb_torch.stages._radix import descending_order
 
     gen = torch.Generator().manual_seed(12)
     for n in (0, 1, 5, 4097):

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from reeb_torch import ProposalGenerator, ReebConfig
-from reeb_torch.groups import EdgeGroups
-from reeb_torch.refinement import enclosed_at, enclosed_tables, refine_boxes
+from reeb_torch.stages.groups import EdgeGroups
+from reeb_torch.stages.refinement import enclosed_at, enclosed_tables, refine_boxes
 
 
 def _random_groups(seed: int, b: int, h: int, w: int, n: int, ext: int) -> EdgeGroups:
@@ -82,7 +82,7 @@ def test_enclosed_grid_equals_the_per_size_scatter(sample_image):
     # the tensor path's enclosed sums (prefix tables + strided slices) are the very same
     # float64 numbers as the per-size scatter of scoring.enclosed_sums; a road term keeps
     # the generator on the tensor path (the compiled pass reads the same tables)
-    from reeb_torch import scoring
+    from reeb_torch.stages import scoring
 
     gen = ProposalGenerator(road_score="reward")
     seen = {}
@@ -102,9 +102,9 @@ def test_enclosed_grid_equals_the_per_size_scatter(sample_image):
 
 def test_compiled_tables_equal_the_tensor_tables(sample_image):
     # the CPU kernel fills the very same float64 tables as the tensor scatters + cumsums
-    from reeb_torch import edges as E
-    from reeb_torch.groups import connected_groups
-    from reeb_torch.refinement import _enclosed_tables_torch, enclosed_tables
+    from reeb_torch.stages import edges as E
+    from reeb_torch.stages.groups import connected_groups
+    from reeb_torch.stages.refinement import _enclosed_tables_torch, enclosed_tables
 
     gen = torch.Generator().manual_seed(5)
     crops = torch.stack([sample_image[:, :180, :500], sample_image[:, 100:280, 300:800]]).float() / 255

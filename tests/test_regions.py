@@ -7,7 +7,7 @@ import math
 import pytest
 
 from reeb_torch import ReebConfig
-from reeb_torch.regions import region_bounds, region_count, region_width_fraction
+from reeb_torch.stages.regions import region_bounds, region_count, region_width_fraction
 
 
 def test_kitti_defaults_give_seven_quarter_width_strips():

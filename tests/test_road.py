@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from reeb_torch.road import road_mask, sample_positions
+from reeb_torch.stages.road import road_mask, sample_positions
 
 
 def test_samples_are_seeded_and_inside_the_band():

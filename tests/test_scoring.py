@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import torch
 
-from reeb_torch.groups import EdgeGroups
-from reeb_torch.scoring import box_sums, centre_box, combined_score, edge_score, enclosed_sums, integral_image
-from reeb_torch.windows import WindowSize
+from reeb_torch.stages.groups import EdgeGroups
+from reeb_torch.stages.scoring import box_sums, centre_box, combined_score, edge_score, enclosed_sums, integral_image
+from reeb_torch.stages.windows import WindowSize
 
 
 def _random_groups(b: int, h: int, w: int, n: int, gen: torch.Generator) -> EdgeGroups:
@@ -86,7 +86,7 @@ def test_combined_score_eq12():
 
 
 def test_shadow_strips_and_fraction_on_a_synthetic_road():
-    from reeb_torch.scoring import apply_shadow, shadow_fraction, shadow_strips
+    from reeb_torch.stages.scoring import apply_shadow, shadow_fraction, shadow_strips
 
     # a 20 x 20 box over a grey road (0.5) whose bottom 4 rows are dark (0.1) between its wheels
     sh, mx = shadow_strips(20, 20, 0.2, 0.15)
@@ -112,7 +112,7 @@ def test_shadow_strips_and_fraction_on_a_synthetic_road():
 
 
 def test_shadow_fraction_is_a_fraction():
-    from reeb_torch.scoring import shadow_fraction
+    from reeb_torch.stages.scoring import shadow_fraction
 
     gen = torch.Generator().manual_seed(7)
     n = torch.randint(1, 50, (500,), generator=gen)
@@ -125,7 +125,7 @@ def test_shadow_fraction_is_a_fraction():
 def test_select_per_region_cpu_matches_a_stable_sort_with_ties():
     import numpy as np
 
-    from reeb_torch.scoring import select_per_region_cpu
+    from reeb_torch.stages.scoring import select_per_region_cpu
 
     gen = torch.Generator().manual_seed(11)
     b, n = 3, 400
@@ -156,7 +156,7 @@ def test_compiled_integral_image_equals_the_cumulative_sums():
 
 
 def test_vegetation_factor_is_one_minus_the_green_share_to_the_power():
-    from reeb_torch.scoring import vegetation_factor
+    from reeb_torch.stages.scoring import vegetation_factor
 
     sums = torch.tensor([0.0, 50.0, 100.0], dtype=torch.float64)
     assert vegetation_factor(sums, 100.0, 3).tolist() == [1.0, 0.125, 0.0]
@@ -164,7 +164,7 @@ def test_vegetation_factor_is_one_minus_the_green_share_to_the_power():
 
 
 def test_count_integral_equals_the_float_integral_image():
-    from reeb_torch.scoring import count_integral
+    from reeb_torch.stages.scoring import count_integral
 
     gen = torch.Generator().manual_seed(5)
     for m in ((torch.rand(3, 17, 29, generator=gen) > 0.6).float(), torch.zeros(2, 1, 1), torch.ones(1, 4, 6)):
@@ -175,7 +175,7 @@ def test_count_integral_equals_the_float_integral_image():
 def test_kth_largest_radix_selection_equals_a_sort():
     import numpy as np
 
-    from reeb_torch._radix import kth_largest
+    from reeb_torch.stages._radix import kth_largest
 
     rng = np.random.default_rng(0)
     for t in range(200):

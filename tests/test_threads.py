@@ -7,7 +7,7 @@ def test_on_two_cores_covers_the_batch_once_nested_and_after_fork():
     import os
     import sys
 
-    from reeb_torch._threads import on_two_cores
+    from reeb_torch.stages._threads import on_two_cores
 
     for b in (0, 1, 2, 7, 8):
         seen: list[tuple[int, int]] = []

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from reeb_torch.windows import window_grid, window_sizes
+from reeb_torch.stages.windows import window_grid, window_sizes
 
 
 def test_sizes_respect_bounds_and_aspect():

@@ -166,9 +166,9 @@ def enclosed_at(t: EnclosedTables, b: Tensor, x0: Tensor, y0: Tensor, x1: Tensor
 
 def enclosed_grid(t: EnclosedTables, s) -> Tensor:
     """Σ of eq. 1 for every position of the window size ``s`` (a
-    :class:`reeb_torch.windows.WindowSize`), ``float64 (B, ny, nx)``, from strided slices of
+    :class:`reeb_torch.stages.windows.WindowSize`), ``float64 (B, ny, nx)``, from strided slices of
     the tables (no scatter per size). Exact, and equal to
-    :func:`reeb_torch.scoring.enclosed_sums`, when ``s.w`` and ``s.h`` exceed ``max_extent``."""
+    :func:`reeb_torch.stages.scoring.enclosed_sums`, when ``s.w`` and ``s.h`` exceed ``max_extent``."""
     def at(table: Tensor, dy: int, dx: int) -> Tensor:
         oy, ox = s.oy + dy, dx
         return table[:, oy: oy + (s.ny - 1) * s.sy + 1: s.sy, ox: ox + (s.nx - 1) * s.sx + 1: s.sx]

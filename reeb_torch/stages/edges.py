@@ -18,11 +18,18 @@ from numba.core import types as _nbtypes
 from numba.extending import intrinsic, overload
 from torch import Tensor
 
-from ._checks import working_size
 from ._threads import on_two_cores
 
-__all__ = ["to_gray", "working_gray", "green_mask", "gaussian_blur", "sobel_magnitude", "gradient_magnitude", "thin",
-           "remove_isolated", "edge_map"]
+__all__ = ["working_size", "to_gray", "working_gray", "green_mask", "gaussian_blur", "sobel_magnitude",
+           "gradient_magnitude", "thin", "remove_isolated", "edge_map"]
+
+
+def working_size(height: int, width: int, scale: float) -> tuple[int, int]:
+    """``(h, w)`` of a ``height × width`` image at the working resolution ``scale``
+    (rounded, at least one pixel): the one rule the resize, the compiled front end and the
+    size check share."""
+    return max(1, int(round(height * scale))), max(1, int(round(width * scale)))
+
 
 def to_gray(images: Tensor) -> Tensor:
     """RGB ``(B, 3, H, W)`` in [0, 1] to grey ``(B, 1, H, W)`` in [0, 1] (ITU-R 601 weights,
