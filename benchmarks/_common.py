@@ -35,20 +35,18 @@ def run_captured(gen: Any, image: Any) -> tuple[dict, dict]:
     """Run ``gen`` (a :class:`~reeb_torch.ProposalGenerator`) on one image and return its
     output and what its per-region cut saw: ``scores`` (``[1, N]``, every window), ``grid``
     (the :class:`~reeb_torch.stages.windows.WindowGrid`), ``chosen`` (``bool [1, N]``, the
-    candidates) and ``share`` (eq. 9's region shares)."""
+    candidates) and ``share`` (eq. 9's region shares), through the ranking's ``on_select``
+    hook (:class:`reeb_torch.ranking.Ranking`)."""
     captured: dict = {}
-    orig_select = gen._select
 
-    def select(scores, grid, share):  # record what the pipeline saw
-        chosen = orig_select(scores, grid, share)
+    def record(scores, grid, chosen, share):  # what the pipeline saw
         captured.update(scores=scores, grid=grid, chosen=chosen, share=share)
-        return chosen
 
-    gen._select = select
+    gen.ranking.on_select = record
     try:
         out = gen([image])[0]
     finally:
-        del gen._select
+        gen.ranking.on_select = None
     return out, captured
 
 

@@ -33,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_kitti_dir, rerun_line, run_captured  # noqa: E402
 
 from reeb_torch import ProposalGenerator, ReebConfig  # noqa: E402
+from reeb_torch.ranking import Ranking  # noqa: E402
 from reeb_torch.eval.common import add_frames_option, load_kitti  # noqa: E402
 from reeb_torch.metrics import compare_recall, object_hits  # noqa: E402
 from reeb_torch.stages.nms import nms_top_k  # noqa: E402
@@ -41,15 +42,15 @@ TOP_K, IOU = 2000, 0.7
 FAMILIES = ("region-nms", "narrow-shadow", "ensemble")
 
 
-class RegionNMS(ProposalGenerator):
-    """The default, with greedy NMS at ``thr`` inside each region before eq. 9's cut."""
+class RegionNMS(Ranking):
+    """The default's ranking, with greedy NMS at ``thr`` inside each region before eq. 9's cut."""
 
     def __init__(self, config: ReebConfig, thr: float) -> None:
         super().__init__(config)
         self.thr = thr
 
-    def _select(self, scores, grid, share):
-        budget = self._region_budget(share)
+    def region_cut(self, scores, grid, share):
+        budget = self.region_budget(share)
         chosen = torch.zeros_like(scores, dtype=torch.bool)
         for b in range(scores.shape[0]):
             for r, idx in enumerate(grid.region_windows):
@@ -63,8 +64,8 @@ class RegionNMS(ProposalGenerator):
         return chosen
 
 
-class NarrowShadow(ProposalGenerator):
-    """The default, with narrow boxes re-scored without the shadow term: ``plain`` (set per
+class NarrowShadow(Ranking):
+    """The default's ranking, with narrow boxes re-scored without the shadow term: ``plain`` (set per
     image: the scores of the same windows with ``shadow_score='none'``) times ``const``, or
     times the term floored at ``const`` (``floor=True``). The scores are changed in place,
     so the region cut and NMS both rank by them."""
@@ -74,14 +75,21 @@ class NarrowShadow(ProposalGenerator):
         self.aspect, self.const, self.floor = aspect, const, floor
         self.plain: torch.Tensor | None = None
 
-    def _select(self, scores, grid, share):
+    def region_cut(self, scores, grid, share):
         w = grid.boxes[:, 2] - grid.boxes[:, 0]
         h = grid.boxes[:, 3] - grid.boxes[:, 1]
         plain = self.plain
         factor = torch.where(plain > 0, scores / plain.clamp_min(1e-30), torch.zeros_like(scores))
         factor = factor.clamp_min(self.const) if self.floor else torch.full_like(factor, self.const)
         scores.copy_(torch.where((w < self.aspect * h)[None] & torch.isfinite(scores), plain * factor, scores))
-        return super()._select(scores, grid, share)
+        return super().region_cut(scores, grid, share)
+
+
+def with_ranking(ranking: Ranking) -> ProposalGenerator:
+    """A generator of ``ranking``'s config that ranks its windows with ``ranking``."""
+    gen = ProposalGenerator(ranking.config)
+    gen.ranking = ranking
+    return gen
 
 
 def interleave(a: torch.Tensor, b: torch.Tensor, share: float) -> torch.Tensor:
@@ -100,17 +108,17 @@ def variants(family: str, default_boxes: list[torch.Tensor]) -> list[tuple[str, 
     rows: list[tuple[str, Callable]] = []
     if family == "region-nms":
         for thr in (0.9, 0.85, 0.8):
-            gen = RegionNMS(cfg, thr)
+            gen = with_ranking(RegionNMS(cfg, thr))
             rows.append((f"NMS {thr} inside each region before the cut", lambda i, im, g=gen: g([im])[0]["boxes"]))
     elif family == "narrow-shadow":
         plain_gen = ProposalGenerator(cfg.replace(shadow_score="none"))
         for aspect in (0.6, 0.8):
             for floor in (True, False):
                 for const in (0.2, 0.35, 0.5):
-                    gen = NarrowShadow(cfg, aspect, const, floor)
+                    gen = with_ranking(NarrowShadow(cfg, aspect, const, floor))
 
                     def run(i, im, g=gen):
-                        g.plain = run_captured(plain_gen, im)[1]["scores"]
+                        g.ranking.plain = run_captured(plain_gen, im)[1]["scores"]
                         return g([im])[0]["boxes"]
 
                     how = f"term floored at {const}" if floor else f"x {const} instead of the term"

@@ -128,10 +128,10 @@ def test_region_quota_splits_the_output_by_share():
     region = torch.tensor([0, 0, 0, 0, 0, 1, 1, 0, 1, 2])
     share = torch.tensor([0.5, 0.5, 0.0])
     # quota: 2 for region 0, 2 for region 1, none for region 2
-    assert gen._quota(keep, region, share).tolist() == [0, 1, 5, 6]
+    assert gen.ranking.quota(keep, region, share).tolist() == [0, 1, 5, 6]
     # a region with too few proposals leaves its places to the best of the rest
     share = torch.tensor([0.25, 0.0, 0.75])
-    assert gen._quota(keep, region, share).tolist() == [0, 1, 2, 9]
+    assert gen.ranking.quota(keep, region, share).tolist() == [0, 1, 2, 9]
 
 
 def test_stage_times_are_recorded(crop):
@@ -180,66 +180,68 @@ def test_batch_equals_single_on_odd_crops(sample_image):
 def test_compiled_scoring_equals_the_tensor_path(sample_image, overrides):
     # issue 9: the compiled CPU pass gives every window the very same float32 score as the
     # per-size tensor ops, -inf included (so the same candidates, boxes and ranking)
-    from reeb_torch import generator as G
+    from reeb_torch.ranking import Ranking
 
     gen = ProposalGenerator(**overrides)
     seen = {}
-    real = G.ProposalGenerator._score_windows
+    real = Ranking.score
 
-    def spy(self, *args, **kwargs):
-        out = real(self, *args, **kwargs)
-        seen["applies"] = self._compiled_scoring_applies(args[0], args[2], args[3], args[8])
-        seen["equal"] = torch.equal(out, self._score_windows_torch(*args))
+    def spy(self, maps, grid):
+        out = real(self, maps, grid)
+        seen["applies"] = self.compiled_scoring_applies(maps, grid)
+        seen["equal"] = torch.equal(out, self.score_torch(maps, grid))
         seen["finite"] = int(torch.isfinite(out).sum())
         return out
 
     crops = torch.stack([sample_image[:, 100:290, 200:800], sample_image[:, 150:340, 500:1100]])
-    G.ProposalGenerator._score_windows = spy
+    Ranking.score = spy
     try:
         gen(crops)
     finally:
-        G.ProposalGenerator._score_windows = real
+        Ranking.score = real
     assert seen["applies"] and seen["equal"] and seen["finite"] > 1000
 
 
 def test_scoring_falls_back_to_tensor_ops_when_a_term_needs_maps(crop):
+    from reeb_torch.ranking import ScoreMaps
     from reeb_torch.stages.groups import connected_groups
 
     e = torch.rand(1, 64, 96)
     g = connected_groups(e, 8)  # groups inside 8-px tiles: every window (>= 16 px) encloses them exactly
     default = ProposalGenerator(**SMALL)
-    grid = default._window_grid(64, 96, default._region_bounds(96), 1.0, 1.0)
-    assert default._compiled_scoring_applies(e, g, grid, None)
+    maps = ScoreMaps(e, g, (64, 96))
+    grid = default.ranking.window_grid(maps, default._region_bounds(96))
+    assert default.ranking.compiled_scoring_applies(maps, grid)
     for overrides in ({"road_score": "reward"}, {"road_score": "stand"}, {"local_max": True}):
         gen = ProposalGenerator(**SMALL, **overrides)
-        assert not gen._compiled_scoring_applies(e, g, grid, None), overrides
+        assert not gen.ranking.compiled_scoring_applies(maps, grid), overrides
         assert gen([crop])[0]["boxes"].shape[0] > 0
     unbounded = connected_groups(e, None)  # one big component: no exact prefix-table sums
-    assert not default._compiled_scoring_applies(e, unbounded, grid, None)
+    assert not default.ranking.compiled_scoring_applies(ScoreMaps(e, unbounded, (64, 96)), grid)
 
 
 def test_compiled_selection_equals_the_tensor_path(sample_image):
     # eq. 9's per-region top-k: the compiled CPU pass and the stable sort choose the same windows
-    from reeb_torch import generator as G
+    from reeb_torch.ranking import Ranking
 
     for overrides in ({}, {"use_regions": False}, {"region_assign": "contained"}):
         gen = ProposalGenerator(**overrides)
         seen = {}
-        real = G.ProposalGenerator._select
+        real = Ranking.region_cut
 
         def spy(self, scores, grid, share):
             out = real(self, scores, grid, share)
             cfg = self.config
             per = cfg.candidates_per_region if cfg.use_regions else cfg.candidates_without_regions
-            seen["equal"] = torch.equal(out, self._select_torch(scores, grid, (share * per).round().long()))
+            seen["equal"] = torch.equal(out, self.select_torch(scores, grid, (share * per).round().long()))
             seen["n"] = int(out.sum())
             return out
 
-        G.ProposalGenerator._select = spy
+        Ranking.region_cut = spy
         try:
             gen([sample_image[:, 100:300, 100:900]])
         finally:
-            G.ProposalGenerator._select = real
+            Ranking.region_cut = real
         assert seen["equal"] and seen["n"] > 1000, overrides
 
 

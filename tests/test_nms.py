@@ -111,7 +111,7 @@ def test_generator_candidates_equal_torchvision():
     """Real candidates: the boxes the generator hands to NMS on a bundled KITTI frame."""
     from pathlib import Path
 
-    import reeb_torch.generator as G
+    import reeb_torch.ranking as R
     from reeb_torch import ProposalGenerator, get_preset
     from reeb_torch.io import read_image
 
@@ -124,11 +124,11 @@ def test_generator_candidates_equal_torchvision():
             caught.append((boxes[cand], scores[i, cand], iou, k))
         return orig(chosen, boxes, scores, iou, k)
 
-    orig, G.nms_windows_cpu = G.nms_windows_cpu, spy
+    orig, R.nms_windows_cpu = R.nms_windows_cpu, spy
     try:
         out = ProposalGenerator(get_preset("default-no-regions"))([read_image(path)])
     finally:
-        G.nms_windows_cpu = orig
+        R.nms_windows_cpu = orig
     assert caught
     for boxes, scores, iou, k in caught:
         assert boxes.shape[0] > k and _grid_ok(boxes, iou)

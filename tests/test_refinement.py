@@ -59,19 +59,18 @@ def test_refine_climbs_to_the_best_box():
 def test_box_scorer_equals_grid_scores(sample_image):
     gen = ProposalGenerator(ReebConfig(refine=True, straddle_weight=0.5, road_score="stand"))
     seen = {}
-    real = gen._refine
+    real = gen.ranking.refine
 
-    def spy(chosen, scores, grid, edges, road, groups, crossing, fx, fy, h_in, w_in, grey=None, green=None, *,
-            tabs=None):
-        fn, side = gen._box_scorer(edges, road, groups, crossing, fx, fy, h_in, w_in, grey, green)
+    def spy(maps, grid, chosen, scores):
+        fn, side = gen.ranking.box_scorer(maps)
         bi, ni = torch.nonzero(chosen, as_tuple=True)
         boxes = grid.boxes[ni].round().long()
         ok = ((boxes[:, 2:] - boxes[:, :2]) >= side).all(1)
         seen["got"] = fn(boxes[ok], bi[ok])
         seen["ref"] = scores[bi, ni][ok].double()
-        return real(chosen, scores, grid, edges, road, groups, crossing, fx, fy, h_in, w_in, grey, green, tabs=tabs)
+        return real(maps, grid, chosen, scores)
 
-    gen._refine = spy  # type: ignore[method-assign]
+    gen.ranking.refine = spy  # type: ignore[method-assign]
     out = gen([sample_image])[0]
     assert seen["got"].numel() > 1000
     torch.testing.assert_close(seen["got"], seen["ref"], rtol=1e-4, atol=1e-7)
@@ -86,16 +85,16 @@ def test_enclosed_grid_equals_the_per_size_scatter(sample_image):
 
     gen = ProposalGenerator(road_score="reward")
     seen = {}
-    real = gen._enclosed
+    real = gen.ranking.enclosed
 
-    def spy(edges, groups, grid, tabs=None):
-        out = real(edges, groups, grid, tabs)
-        ref = scoring.enclosed_sums(groups, edges.shape[0], grid.sizes)
+    def spy(maps, grid):
+        out = real(maps, grid)
+        ref = scoring.enclosed_sums(maps.groups, maps.edges.shape[0], grid.sizes)
         seen["n"] = len(out)
         seen["equal"] = all(torch.equal(x, y) for x, y in zip(out, ref))
         return out
 
-    gen._enclosed = spy  # type: ignore[method-assign]
+    gen.ranking.enclosed = spy  # type: ignore[method-assign]
     gen([sample_image[:, :200, :600]])
     assert seen["n"] > 50 and seen["equal"]
 
@@ -130,20 +129,21 @@ def test_compiled_refinement_equals_the_tensor_refinement(sample_image, override
     # scorer's refine_boxes (same float64 operations; the location score and the
     # normaliser are tabulated by the tensor functions themselves)
     gen = ProposalGenerator(ReebConfig(refine=True, **overrides))
+    ranking = gen.ranking
     seen = {}
-    real = gen._refine
+    real = ranking.refine
 
-    def spy(*args, **kwargs):
-        assert gen._compiled_refine_applies(args[3], args[6])
-        seen["compiled"] = real(*args, **kwargs)
-        gen._compiled_refine_applies = lambda *a: False  # type: ignore[method-assign]
+    def spy(maps, *args):
+        assert ranking.compiled_refine_applies(maps)
+        seen["compiled"] = real(maps, *args)
+        ranking.compiled_refine_applies = lambda *a: False  # type: ignore[method-assign]
         try:
-            seen["tensor"] = real(*args, **kwargs)
+            seen["tensor"] = real(maps, *args)
         finally:
-            del gen._compiled_refine_applies
+            del ranking.compiled_refine_applies
         return seen["compiled"]
 
-    gen._refine = spy  # type: ignore[method-assign]
+    ranking.refine = spy  # type: ignore[method-assign]
     gen([sample_image])
     (cb, cs), (tb, ts) = seen["compiled"], seen["tensor"]
     assert cb[0].shape[0] > 1000
@@ -154,24 +154,29 @@ def test_compiled_refinement_equals_the_tensor_refinement(sample_image, override
 @pytest.mark.parametrize("overrides", [dict(straddle_weight=0.5), dict(road_score="stand"),
                                        dict(location_score="paper"), dict(shadow_power=0.25)])
 def test_refinement_of_other_scores_takes_the_tensor_path(overrides):
+    from reeb_torch.ranking import ScoreMaps
+    from reeb_torch.stages.groups import connected_groups
+
     gen = ProposalGenerator(ReebConfig(refine=True, **overrides))
     crossing = (torch.zeros(1), torch.zeros(1)) if overrides.get("straddle_weight") else None
-    assert not gen._compiled_refine_applies(torch.zeros(1, 4, 4), crossing)
+    edges = torch.zeros(1, 4, 4)
+    maps = ScoreMaps(edges, connected_groups(edges, 8), (4, 4), crossing=crossing)
+    assert not gen.ranking.compiled_refine_applies(maps)
 
 
 def test_refine_min_aspect_keeps_narrow_boxes_where_they_are(sample_image):
     seen = {}
     for aspect in (0.0, 0.6):
         gen = ProposalGenerator(ReebConfig(refine=True, refine_min_aspect=aspect))
-        real = gen._refine
+        real = gen.ranking.refine
 
-        def spy(chosen, scores, grid, *args, **kwargs):
-            out = real(chosen, scores, grid, *args, **kwargs)
+        def spy(maps, grid, chosen, scores):
+            out = real(maps, grid, chosen, scores)
             ni = torch.nonzero(chosen[0]).squeeze(1)
             seen[aspect] = (grid.boxes[ni].round(), out[0][0])
             return out
 
-        gen._refine = spy  # type: ignore[method-assign]
+        gen.ranking.refine = spy  # type: ignore[method-assign]
         gen([sample_image])
     start, moved_all = seen[0.0]
     start6, moved6 = seen[0.6]

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from ._threads import on_two_cores
 
-__all__ = ["working_size", "to_gray", "working_gray", "green_mask", "gaussian_blur", "sobel_magnitude",
+__all__ = ["working_size", "working_images", "to_gray", "working_gray", "green_mask", "gaussian_blur", "sobel_magnitude",
            "gradient_magnitude", "thin", "remove_isolated", "edge_map"]
 
 
@@ -29,6 +29,21 @@ def working_size(height: int, width: int, scale: float) -> tuple[int, int]:
     (rounded, at least one pixel): the one rule the resize, the compiled front end and the
     size check share."""
     return max(1, int(round(height * scale))), max(1, int(round(width * scale)))
+
+
+def working_images(images: list[Tensor], scale: float) -> Tensor:
+    """``(B, 3, h, w)`` float32: equal-sized ``(3, H, W)`` images (uint8, or float32 in
+    [0, 1]) at the working resolution (:func:`working_size`), each resized on its own
+    (antialiased bilinear when shrinking) and then stacked (stacking the full-resolution
+    images first would copy 4× the data); uint8 images are converted to [0, 1] first. The
+    tensor path of the front end (:func:`working_gray` is the compiled one)."""
+    images = [x.float().div_(255.0) if x.dtype == torch.uint8 else x for x in images]
+    if scale == 1.0:
+        return torch.stack(images) if len(images) > 1 else images[0][None]
+    size = working_size(*images[0].shape[-2:], scale)
+    small = [F.interpolate(x[None], size=size, mode="bilinear", align_corners=False, antialias=scale < 1)
+             for x in images]
+    return torch.cat(small) if len(small) > 1 else small[0]
 
 
 def to_gray(images: Tensor) -> Tensor:

@@ -1,0 +1,638 @@
+"""Ranking the windows: scores (eqs. 1, 10–12), each region's budget (eq. 9), Edge Boxes'
+refinement and the final NMS (eq. 13), for the generator's Table 1.
+
+The stages in :mod:`reeb_torch.stages` are plain functions; this module is the glue that
+maps a :class:`~reeb_torch.ReebConfig` onto them, picks the compiled (numba, CPU) or the
+tensor (any device, the reference) path of each, and keeps what is worth keeping:
+
+* :class:`ScoreMaps`: what the scores of one batch read (edge map, groups, road mask,
+  grey image, green-pixel counts) and the tables built from them — integral images and
+  the enclosed-sum prefix tables — each built on first use and kept for the batch, so the
+  grid scorer, the box scorer and the refinement read one set;
+* :class:`Ranking`: one config's window grid, scoring passes, selection, refinement and
+  suppression, with what depends only on the image size (the score plan, the location
+  and normaliser tables, the windows' boxes in input pixels) cached per window grid.
+
+Where the paths split (both give the same numbers, tested bit for bit):
+
+=================  ===========================================  ==================================
+step               compiled (CPU)                               tensor ops (CUDA, and the rest)
+=================  ===========================================  ==================================
+scores             :func:`~reeb_torch.stages.scoring.score_grid_cpu`,  :meth:`Ranking.score_torch`, one
+                   when no term needs per-window maps           batch of ops per window size
+                   (:meth:`Ranking.compiled_scoring_applies`)
+eq. 9's cut        :func:`~reeb_torch.stages.scoring.select_per_region_cpu`  :meth:`Ranking.select_torch`
+refinement         :func:`~reeb_torch.stages.refinement.refine_boxes_cpu`  :func:`~reeb_torch.stages.refinement.refine_boxes`
+                   (:meth:`Ranking.compiled_refine_applies`)    with :meth:`Ranking.box_scorer`
+NMS                :func:`~reeb_torch.stages.nms.nms_windows_cpu`  :func:`~reeb_torch.stages.nms.nms_top_k_many`
+=================  ===========================================  ==================================
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable, Literal
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from .config import ReebConfig
+from .stages import refinement as _refinement
+from .stages import scoring as _scoring
+from .stages import windows as _windows
+from .stages.groups import EdgeGroups
+from .stages.nms import nms_top_k_many, nms_windows_cpu
+
+__all__ = ["ScoreMaps", "Ranking"]
+
+#: ``score_fn(boxes, b)`` of :meth:`Ranking.box_scorer`: V of int64 ``[K, 4]`` boxes of images ``b``.
+BoxScoreFn = Callable[[Tensor, Tensor], Tensor]
+
+
+@dataclass(eq=False)
+class ScoreMaps:
+    """What the scores of one batch of equal-sized images read, at the working resolution,
+    and the tables built from it (built on first use, then kept for the batch).
+
+    Attributes:
+        edges: ``float32 (B, h, w)`` edge magnitudes (Sec. 3.4).
+        groups: the batch's :class:`~reeb_torch.stages.groups.EdgeGroups` (Sec. 3.7).
+        input_size: ``(H, W)`` of the input images (boxes are returned in those pixels).
+        road: ``(B, h, w)`` road mask (eqs. 3–4), or None where no road term reads it.
+        grey: ``float32 (B, h, w)`` grey image for the shadow term, or None without it.
+        green: ``int32 (B, h + 1, w + 1)`` green-pixel counts (an integral image already)
+            for the vegetation term, or None without it.
+        crossing: the straddling term's ``(columns, rows)`` maps of edges crossing a side,
+            or None without it.
+    """
+
+    edges: Tensor
+    groups: EdgeGroups
+    input_size: tuple[int, int]
+    road: Tensor | None = None
+    grey: Tensor | None = None
+    green: Tensor | None = None
+    crossing: tuple[Tensor, Tensor] | None = None
+    _kept: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def fx(self) -> float:
+        """Working pixels per input pixel, horizontally."""
+        return self.edges.shape[-1] / self.input_size[1]
+
+    @property
+    def fy(self) -> float:
+        """Working pixels per input pixel, vertically."""
+        return self.edges.shape[-2] / self.input_size[0]
+
+    def _keep(self, key: object, build: Callable[[], object]):
+        if key not in self._kept:
+            self._kept[key] = build()
+        return self._kept[key]
+
+    def tables(self) -> _refinement.EnclosedTables:
+        """The groups' enclosed-sum prefix tables (:func:`~reeb_torch.stages.refinement.enclosed_tables`)."""
+        b, hk, wk = self.edges.shape
+        return self._keep("tables", lambda: _refinement.enclosed_tables(self.groups, b, hk, wk))
+
+    def integral(self, name: Literal["edges", "grey", "road"]) -> Tensor:
+        """The integral image (:func:`~reeb_torch.stages.scoring.integral_image`) of the
+        edge map, the grey image or the road mask."""
+        return self._keep(name, lambda: _scoring.integral_image(getattr(self, name)))
+
+    def integral_below(self, name: Literal["grey", "road"]) -> Tensor:
+        """:meth:`integral` extended past the bottom row (strips below a box read zeros
+        there: :func:`~reeb_torch.stages.scoring.extend_below`)."""
+        return self._keep((name, "below"), lambda: _scoring.extend_below(self.integral(name)))
+
+    def crossing_integrals(self, band: int) -> tuple[Tensor, Tensor]:
+        """Integral images of the straddling term's two maps, padded by ``band`` so that
+        sides at the image border read zeros."""
+        def build() -> tuple[Tensor, Tensor]:
+            cols, rows = self.crossing
+            return (_scoring.integral_image(F.pad(cols, (band, band, band, band))),
+                    _scoring.integral_image(F.pad(rows, (band, band, band, band))))
+
+        return self._keep(("crossing", band), build)
+
+
+def _tables_exact(groups: EdgeGroups, grid: _windows.WindowGrid) -> bool:
+    """Whether the prefix tables give eq. 1's enclosed sums exactly for every window of
+    ``grid``: every window is wider and taller than every edge group."""
+    return groups.max_extent < min(min(s.w, s.h) for s in grid.sizes)
+
+
+def _centred(x0: Tensor, y0: Tensor, w: Tensor, h: Tensor, fraction: float) -> tuple[Tensor, ...]:
+    """The centred ``fraction`` of each box, as :func:`~reeb_torch.stages.scoring.centre_box` places it."""
+    cw = (w * fraction).round().long().clamp_(min=1)
+    ch = (h * fraction).round().long().clamp_(min=1)
+    cx0 = x0 + torch.div(w - cw, 2, rounding_mode="floor")
+    cy0 = y0 + torch.div(h - ch, 2, rounding_mode="floor")
+    return cx0, cy0, cx0 + cw, cy0 + ch
+
+
+class Ranking:
+    """One config's windows, scored, cut per region, refined and suppressed.
+
+    :class:`~reeb_torch.ProposalGenerator` calls, in Table 1's order, :meth:`window_grid`,
+    :meth:`score`, :meth:`select`, :meth:`refine` (with ``refine``) and :meth:`suppress`.
+    A subclass may change a step to try another ranking (the generator's ``ranking``
+    attribute takes it; ``benchmarks/selection_variants.py`` changes :meth:`region_cut`),
+    and :attr:`on_select` sees every region cut (``benchmarks/_common.py``).
+    """
+
+    def __init__(self, config: ReebConfig) -> None:
+        self.config = config
+        self.on_select: Callable[[Tensor, _windows.WindowGrid, Tensor, Tensor], None] | None = None
+        """Called as ``on_select(scores, grid, chosen, share)`` after each region cut
+        (diagnostics); ``None`` (default) calls nothing."""
+        self._device_cache: dict = {}
+        self._plan_cache: dict = {}
+
+    # -- windows (Sec. 3.6) -----------------------------------------------------------------
+    def window_grid(self, maps: ScoreMaps, bounds: Tensor) -> _windows.WindowGrid:
+        """The windows of the batch's image size, counted against the regions ``bounds``."""
+        cfg = self.config
+        hk, wk = maps.edges.shape[-2:]
+        fx, fy = maps.fx, maps.fy
+        ground = None if cfg.ground_band is None else (cfg.horizon, *cfg.ground_band)
+        camera = None
+        if cfg.window_geometry == "camera":
+            # template extents (metres) over the camera height: the ratios box side / (y_b − y_h)
+            ratios = tuple((hl / cfg.camera_height_m, hh / cfg.camera_height_m,
+                            wl / cfg.camera_height_m * fx / fy, wh / cfg.camera_height_m * fx / fy)
+                           for hl, hh, wl, wh in cfg.object_templates)
+            camera = (cfg.horizon, ratios, cfg.border_windows, cfg.horizon_slack)
+        return _windows.window_grid(hk, wk, bounds, self.min_window_working(fx, fy), cfg.size_ratio,
+                                    cfg.window_step, cfg.aspect_range, cfg.region_assign, ground, camera)
+
+    def min_window_working(self, fx: float, fy: float) -> int:
+        """The smallest window side in working pixels (at least 3)."""
+        return max(3, int(round(self.config.min_window * min(fx, fy))))
+
+    # -- scores (eqs. 1, 10-12) ---------------------------------------------------------------
+    def score(self, maps: ScoreMaps, grid: _windows.WindowGrid) -> Tensor:
+        """V (eq. 12) of every window, ``float32 [B, N]``; ``-inf`` where S < min_edge_score
+        (or, with ``local_max``, where a neighbouring position of the same size scores higher).
+
+        On the CPU, when no term needs per-window maps (no road fraction, straddling or
+        local maxima) and every window is wider and taller than every edge group, one
+        compiled pass (:func:`reeb_torch.stages.scoring.score_grid_cpu`) scores all windows;
+        otherwise one batch of tensor ops per window size (:meth:`score_torch`). Both give
+        the same numbers."""
+        if self.compiled_scoring_applies(maps, grid):
+            return self.score_compiled(maps, grid)
+        return self.score_torch(maps, grid)
+
+    def compiled_scoring_applies(self, maps: ScoreMaps, grid: _windows.WindowGrid) -> bool:
+        """Whether :meth:`score_compiled` computes this config's scores on this batch."""
+        cfg = self.config
+        if (maps.edges.device.type != "cpu" or maps.crossing is not None or cfg.local_max
+                or cfg.road_score not in ("none", "flat") or not grid.sizes):
+            return False
+        return _tables_exact(maps.groups, grid)
+
+    def score_compiled(self, maps: ScoreMaps, grid: _windows.WindowGrid) -> Tensor:
+        """:meth:`score` in one compiled pass (:func:`reeb_torch.stages.scoring.score_grid_cpu`)."""
+        cfg = self.config
+        fx, fy = maps.fx, maps.fy
+        plan, denom, loc = self._score_plan(grid, fx, fy, *maps.input_size)
+        b = maps.edges.shape[0]
+        out = torch.full((b, grid.count), -math.inf, dtype=torch.float32)
+        road = 1.0 if cfg.road_score == "flat" else 0.0
+        ii_grey = shadow = sqrt_floor = None
+        if cfg.shadow_score != "none":
+            ii_grey = maps.integral("grey")
+            if cfg.shadow_power == 0.5:  # the factor in the kernel: sqrt rounds alike everywhere
+                sqrt_floor = cfg.shadow_floor
+            else:
+                shadow = torch.zeros((b, grid.count), dtype=torch.float64)
+        _scoring.score_grid_cpu(maps.integral("edges"), maps.tables(), plan, denom, loc, _scoring.unit_scale(fx, fy),
+                                cfg.alpha, cfg.beta * road, cfg.min_edge_score, out, ii_grey, shadow, sqrt_floor,
+                                maps.green, cfg.vegetation_power)
+        if shadow is not None:
+            out = _scoring.apply_shadow(out, shadow, cfg.shadow_floor, cfg.shadow_power)
+        return out
+
+    def score_torch(self, maps: ScoreMaps, grid: _windows.WindowGrid) -> Tensor:
+        """:meth:`score` as tensor ops, one batch of them per window size (any device, any config)."""
+        cfg = self.config
+        edges, fx, fy = maps.edges, maps.fx, maps.fy
+        b = edges.shape[0]
+        ii_edges = maps.integral("edges")
+        enclosed = self.enclosed(maps, grid)
+        ii_road = maps.integral("road") if maps.road is not None else None  # None: no road term
+        ii_road_below = maps.integral_below("road") if cfg.road_score == "stand" else None  # none past the bottom
+        loc_cache: dict = {}  # L depends on the window height and rows only (not on ``paper``'s b_w)
+        band = cfg.straddle_band
+        if maps.crossing is not None:  # padded by the band so sides at the image border read zeros
+            ii_cols, ii_rows = maps.crossing_integrals(band)
+        unit = _scoring.unit_scale(fx, fy)
+        out = torch.full((b, grid.count), -math.inf, dtype=torch.float32, device=edges.device)
+        shadow = ii_grey_below = None
+        if cfg.shadow_score != "none":  # rows past the bottom add nothing to the strip below
+            ii_grey_below = maps.integral_below("grey")
+            shadow = torch.zeros((b, grid.count), dtype=torch.float64, device=edges.device)
+        for s, enc, off in zip(grid.sizes, enclosed, grid.offsets):
+            dx, dy, cw, ch = _scoring.centre_box(s.w, s.h, cfg.center_fraction)
+            centre = _scoring.box_sums(ii_edges, dx, dy, cw, ch, s)
+            if maps.crossing is not None:  # contours cut by the box's sides (straddling edges)
+                r2 = 2 * band
+                cut = (_scoring.box_sums(ii_cols, 0, band, r2, s.h, s) + _scoring.box_sums(ii_cols, s.w, band, r2, s.h, s)
+                       + _scoring.box_sums(ii_rows, band, 0, s.w, r2, s) + _scoring.box_sums(ii_rows, band, s.h, s.w, r2, s))
+                centre = centre + cfg.straddle_weight * cut
+            bw, bh = s.w / fx, s.h / fy
+            sc = _scoring.edge_score(enc * unit, centre * unit, bw, bh, cfg.score_norm, cfg.kappa, cfg.gamma).float()
+            r = (_scoring.box_sums(ii_road, 0, 0, s.w, s.h, s) / (s.w * s.h)).float() if ii_road is not None \
+                else torch.zeros_like(sc)
+            if cfg.road_score == "stand":  # road just below the box, little road inside it
+                sh = max(1, int(round(cfg.road_strip * s.h)))
+                below = _scoring.box_sums(ii_road_below, 0, s.h, s.w, sh, s) / (s.w * sh)
+                r = (below.float() * (1.0 - r)).clamp_(0, 1)
+            key = (s.h, s.oy, s.sy, s.ny) if cfg.location_score != "paper" else None  # L ignores b_w
+            loc = loc_cache.get(key) if key is not None else None
+            if loc is None:
+                loc = self._location_rows(s, bw, bh, fy, *maps.input_size, edges.device)
+                if key is not None:
+                    loc_cache[key] = loc
+            v = _scoring.combined_score(sc, loc, r, cfg.alpha, cfg.beta, cfg.road_score)
+            if maps.green is not None:  # trees and verges: the green-dominant share of the window
+                gdx, gdy, gw, gh = _scoring.centre_box(s.w, s.h, cfg.vegetation_box)
+                f = _scoring.vegetation_factor(_scoring.box_sums(maps.green, gdx, gdy, gw, gh, s), float(gw * gh),
+                                               cfg.vegetation_power)
+                v = v * f.float()
+            v = torch.where(sc >= cfg.min_edge_score, v, -math.inf)
+            out[:, off: off + s.count] = v.reshape(b, -1)
+            if shadow is not None:  # the darker bottom strip of a vehicle over the road below it
+                sh, mx = _scoring.shadow_strips(s.w, s.h, cfg.shadow_strip, cfg.shadow_margin)
+                inside = _scoring.box_sums(ii_grey_below, mx, s.h - sh, s.w - 2 * mx, sh, s)
+                below = _scoring.box_sums(ii_grey_below, mx, s.h, s.w - 2 * mx, sh, s)
+                y1 = torch.arange(s.ny, device=edges.device) * s.sy + s.oy + s.h
+                rows = (maps.grey.shape[1] - y1).clamp(0, sh).view(1, -1, 1)
+                u = _scoring.shadow_fraction(inside, below, sh * (s.w - 2 * mx), rows * (s.w - 2 * mx))
+                shadow[:, off: off + s.count] = u.reshape(b, -1)
+        if shadow is not None:  # one call on the whole score tensor, as the compiled path
+            out = _scoring.apply_shadow(out, shadow, cfg.shadow_floor, cfg.shadow_power)
+        if cfg.local_max:
+            self._keep_local_maxima(out, grid)
+        return out
+
+    @staticmethod
+    def _keep_local_maxima(out: Tensor, grid: _windows.WindowGrid) -> None:
+        """``local_max``: ``-inf`` (in place) where a neighbouring position of the same size scores higher."""
+        b = out.shape[0]
+        for s, off in zip(grid.sizes, grid.offsets):
+            v = out[:, off: off + s.count].view(b, s.ny, s.nx)
+            peak = F.max_pool2d(v[:, None], 3, stride=1, padding=1)[:, 0]
+            out[:, off: off + s.count] = torch.where(v >= peak, v, -math.inf).reshape(b, -1)
+
+    def enclosed(self, maps: ScoreMaps, grid: _windows.WindowGrid) -> list[Tensor]:
+        """Eq. 1's enclosed sums of every window, per size. Groups bounded to tiles smaller
+        than every window: the batch's four prefix tables (:meth:`ScoreMaps.tables`), then
+        strided slices per size (:func:`reeb_torch.stages.refinement.enclosed_grid`); otherwise
+        one scatter per size (:func:`reeb_torch.stages.scoring.enclosed_sums`). Both are exact
+        float64 sums: the same numbers."""
+        if not grid.sizes:
+            return []
+        if _tables_exact(maps.groups, grid):
+            tables = maps.tables()
+            return [_refinement.enclosed_grid(tables, s) for s in grid.sizes]
+        return _scoring.enclosed_sums(maps.groups, maps.edges.shape[0], grid.sizes)
+
+    def _ground_ratios(self) -> float | tuple[float, ...]:
+        """Box height / (bottom row − horizon) of the objects the location score expects:
+        one ratio (``ground``) or one per class (``classes``: typical height / camera height)."""
+        cfg = self.config
+        if cfg.location_score == "classes":
+            return tuple(h / cfg.camera_height_m for h in cfg.class_heights_m)
+        return cfg.ground_ratio
+
+    def _class_weights(self) -> tuple[float, ...] | None:
+        cfg = self.config
+        return tuple(cfg.class_weights) if cfg.location_score == "classes" else None
+
+    def _location(self, bottom: Tensor, bw: float | Tensor, bh: float | Tensor, h_in: int, w_in: int) -> Tensor:
+        """L (eq. 11 or its variants) of boxes ``bw × bh`` (input pixels) whose bottom is row ``bottom``."""
+        cfg = self.config
+        return _scoring.location_score(bottom, bw, bh, float(w_in), float(h_in), cfg.location_score,
+                                       cfg.horizon, self._ground_ratios(), cfg.ground_log_sigma,
+                                       self._class_weights())
+
+    def _location_rows(self, s: _windows.WindowSize, bw: float, bh: float, fy: float, h_in: int, w_in: int,
+                       device: torch.device) -> Tensor:
+        """L of the rows of window size ``s``: ``float32 (1, ny, 1)``."""
+        bottom = ((torch.arange(s.ny, device=device, dtype=torch.float32) * s.sy + s.oy + s.h) / fy).view(1, -1, 1)
+        return self._location(bottom, bw, bh, h_in, w_in)
+
+    def _score_plan(self, grid: _windows.WindowGrid, fx: float, fy: float, h_in: int,
+                    w_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per-size constants of the compiled scoring pass (cached per grid and input size):
+        the ``int64 [S, 19]`` size table, eq. 1's normalisers ``float64 [S]`` and L of every
+        size's rows ``float32 [Σ ny]`` (computed by the same tensor code as the torch path)."""
+        return self._grid_cached(("plan", fx, fy, h_in, w_in, self.config), grid,
+                                 lambda: self._build_score_plan(grid, fx, fy, h_in, w_in))
+
+    def _build_score_plan(self, grid: _windows.WindowGrid, fx: float, fy: float, h_in: int,
+                          w_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        cfg = self.config
+        rows, denoms, locs = [], [], []
+        loc_cache: dict = {}
+        loc_offset = 0
+        for s, off in zip(grid.sizes, grid.offsets):
+            dx, dy, cw, ch = _scoring.centre_box(s.w, s.h, cfg.center_fraction)
+            bw, bh = s.w / fx, s.h / fy
+            denom = _scoring.edge_norm(bw, bh, cfg.score_norm, cfg.kappa, cfg.gamma)
+            lkey = (s.h, s.oy, s.sy, s.ny) if cfg.location_score != "paper" else None
+            start = loc_cache.get(lkey) if lkey is not None else None
+            if start is None:
+                start = loc_offset
+                locs.append(self._location_rows(s, bw, bh, fy, h_in, w_in, torch.device("cpu")).reshape(-1))
+                loc_offset += s.ny
+                if lkey is not None:
+                    loc_cache[lkey] = start
+            sh, mx = _scoring.shadow_strips(s.w, s.h, cfg.shadow_strip, cfg.shadow_margin)
+            gdx, gdy, gw, gh = _scoring.centre_box(s.w, s.h, cfg.vegetation_box)
+            rows.append((s.w, s.h, s.sx, s.sy, s.nx, s.ny, s.oy, off, dx, dy, cw, ch, start, sh, mx, gdx, gdy, gw, gh))
+            denoms.append(denom)
+        return (np.asarray(rows, dtype=np.int64).reshape(-1, len(_scoring.PLAN_COLUMNS)),
+                np.asarray(denoms, dtype=np.float64),
+                torch.cat(locs).numpy() if locs else np.zeros(0, np.float32))
+
+    # -- eq. 9: each region's budget --------------------------------------------------------
+    def select(self, scores: Tensor, grid: _windows.WindowGrid, share: Tensor) -> Tensor:
+        """The candidates, ``bool [B, N]``: :meth:`region_cut` (a subclass may change it),
+        then :attr:`on_select` is called, if set."""
+        chosen = self.region_cut(scores, grid, share)
+        if self.on_select is not None:
+            self.on_select(scores, grid, chosen, share)
+        return chosen
+
+    def region_cut(self, scores: Tensor, grid: _windows.WindowGrid, share: Tensor) -> Tensor:
+        """Each region passes on its best ``share · candidates_per_region`` windows (eq. 9).
+        Returns ``bool [B, N]``; ties at the cut go to the lower window index. On the CPU one
+        compiled pass (:func:`reeb_torch.stages.scoring.select_per_region_cpu`), elsewhere a
+        stable sort (:meth:`select_torch`)."""
+        budget = self.region_budget(share)
+        if scores.device.type == "cpu":
+            members, starts = self._region_members(grid)
+            return _scoring.select_per_region_cpu(scores, members, starts, budget)
+        return self.select_torch(scores, grid, budget)
+
+    def region_budget(self, share: Tensor) -> Tensor:
+        """Eq. 9: the windows each region may pass on, ``int64 (B, R)`` from its ``share``."""
+        cfg = self.config
+        per_region = cfg.candidates_per_region if cfg.use_regions else cfg.candidates_without_regions
+        return (share * per_region).round().long()
+
+    def _region_members(self, grid: _windows.WindowGrid) -> tuple[np.ndarray, np.ndarray]:
+        """The windows of every region, concatenated (``int64``), and where each region starts."""
+        def build() -> tuple[np.ndarray, np.ndarray]:
+            lists = [t.numpy().astype(np.int64) for t in grid.region_windows]
+            starts = np.cumsum([0] + [len(x) for x in lists]).astype(np.int64)
+            return (np.concatenate(lists) if lists else np.zeros(0, np.int64), starts)
+
+        return self._grid_cached(("members",), grid, build)
+
+    def select_torch(self, scores: Tensor, grid: _windows.WindowGrid, budget: Tensor) -> Tensor:
+        """:meth:`region_cut` as one stable sort per region (any device). Ties at the cut go to
+        the lower window index, as in the CPU pass (``topk`` leaves their order unspecified,
+        and windows without edges all score 0, so ties are common)."""
+        chosen = torch.zeros_like(scores, dtype=torch.uint8)
+        for r, idx_cpu in enumerate(grid.region_windows):
+            k = min(int(idx_cpu.numel()), int(budget[:, r].max()))
+            if k == 0:
+                continue
+            idx = self._device_tensor(idx_cpu, scores.device)
+            vals, pos = scores[:, idx].sort(dim=1, descending=True, stable=True)  # ties: lower index first
+            vals, pos = vals[:, :k], pos[:, :k]
+            ok = torch.isfinite(vals) & (torch.arange(k, device=scores.device)[None] < budget[:, r: r + 1])
+            chosen.scatter_add_(1, idx[pos], ok.to(torch.uint8))
+        return chosen > 0
+
+    # -- Edge Boxes' refinement (ReebConfig.refine) -----------------------------------------
+    def refine(self, maps: ScoreMaps, grid: _windows.WindowGrid, chosen: Tensor,
+               scores: Tensor) -> tuple[list[Tensor], list[Tensor]]:
+        """Edge Boxes' refinement of every chosen window (:func:`reeb_torch.stages.refinement.refine_boxes_cpu`,
+        compiled, where :meth:`compiled_refine_applies`; else :func:`reeb_torch.stages.refinement.refine_boxes`
+        with :meth:`box_scorer`: the same boxes and scores); per image, ``float32 [K, 4]`` working-pixel
+        boxes and ``float32 [K]`` scores, in the order of ``nonzero(chosen[i])``. Boxes narrower or
+        shorter than the exact-sum limit, or narrower than ``refine_min_aspect`` times their height,
+        stay as they are."""
+        cfg = self.config
+        b = maps.edges.shape[0]
+        bi, ni = torch.nonzero(chosen, as_tuple=True)
+        boxes = self._device_tensor(grid.boxes, maps.edges.device)[ni].round().long()
+        vals = scores[bi, ni]
+        compiled = self.compiled_refine_applies(maps)
+        if compiled:
+            exact_side = maps.tables().max_extent + 1
+        else:
+            score_fn, exact_side = self.box_scorer(maps)
+        min_side = max(exact_side, self.min_window_working(maps.fx, maps.fy))
+        wh = boxes[:, 2:] - boxes[:, :2]
+        movable = torch.nonzero((wh >= min_side).all(1) & (wh[:, 0] >= cfg.refine_min_aspect * wh[:, 1])).squeeze(1)
+        if movable.numel():
+            if compiled:
+                rb, rs = self._refine_compiled(maps, grid, boxes[movable], bi[movable], min_side)
+            else:
+                hk, wk = maps.edges.shape[-2:]
+                rb, rs = _refinement.refine_boxes(boxes[movable], bi[movable], score_fn, wk, hk, min_side,
+                                                  cfg.window_step)
+            boxes[movable] = rb
+            vals = vals.clone()
+            vals[movable] = torch.maximum(vals[movable], rs.float())
+        counts = torch.bincount(bi, minlength=b).tolist()
+        return list(boxes.float().split(counts)), list(vals.split(counts))
+
+    def compiled_refine_applies(self, maps: ScoreMaps) -> bool:
+        """Whether :func:`reeb_torch.stages.refinement.refine_boxes_cpu` computes this config's box
+        score: on the CPU, without the straddling and road terms, with a location score
+        tabulated by box height and bottom row, and a square-root shadow factor (or none)."""
+        cfg = self.config
+        return (maps.edges.device.type == "cpu" and maps.crossing is None and cfg.road_score in ("none", "flat")
+                and cfg.location_score in ("ground", "classes", "none")
+                and (cfg.shadow_score == "none" or cfg.shadow_power == 0.5))
+
+    def _refine_compiled(self, maps: ScoreMaps, grid: _windows.WindowGrid, boxes: Tensor, bi: Tensor,
+                         min_side: int) -> tuple[Tensor, Tensor]:
+        cfg = self.config
+        hk, wk = maps.edges.shape[-2:]
+        grey_below = maps.integral_below("grey") if cfg.shadow_score != "none" else None
+        return _refinement.refine_boxes_cpu(
+            boxes, bi, maps.tables(), maps.integral("edges"), *self._box_tables(grid, maps), maps.green, grey_below,
+            dict(unit=_scoring.unit_scale(maps.fx, maps.fy), alpha=cfg.alpha,
+                 beta_road=cfg.beta if cfg.road_score == "flat" else 0.0,
+                 center_fraction=cfg.center_fraction, vegetation_box=cfg.vegetation_box,
+                 vegetation_power=cfg.vegetation_power, shadow_strip=cfg.shadow_strip,
+                 shadow_margin=cfg.shadow_margin, shadow_floor=cfg.shadow_floor),
+            wk, hk, min_side, cfg.window_step)
+
+    def _box_tables(self, grid: _windows.WindowGrid, maps: ScoreMaps) -> tuple[Tensor, Tensor]:
+        """``loc[y1, h]`` (the location score of a box ``h`` working pixels tall whose bottom is
+        working row ``y1``) and ``norm[w, h]`` (eq. 1's normaliser of a ``w × h`` box), from the
+        tensor functions the box scorer calls, cached with the window grid of the image size."""
+        cfg = self.config
+        hk, wk = maps.edges.shape[-2:]
+        fx, fy = maps.fx, maps.fy
+        h_in, w_in = maps.input_size
+
+        def build() -> tuple[Tensor, Tensor]:
+            rows = torch.arange(hk + 1, dtype=torch.float64)
+            bottom, bh = rows[:, None] / fy, rows[None, :] / fy
+            loc = self._location(bottom, bh, bh, h_in, w_in)
+            bw = torch.arange(wk + 1, dtype=torch.float64)[:, None] / fx
+            norm = _scoring.edge_norm(bw, bh, cfg.score_norm, cfg.kappa, cfg.gamma)
+            return loc.expand(hk + 1, hk + 1).contiguous(), norm.contiguous()
+
+        return self._grid_cached(("box_tables", fx, fy, h_in, w_in), grid, build)
+
+    def box_scorer(self, maps: ScoreMaps) -> tuple[BoxScoreFn, int]:
+        """V (eq. 12) of arbitrary boxes: returns ``(score_fn, min_side)`` where
+        ``score_fn(boxes, b)`` takes int64 ``[K, 4]`` working-pixel boxes (x1, y1 exclusive)
+        and their image indices ``[K]`` and gives ``float64 [K]``, the same numbers
+        :meth:`score` gives a window of the grid; exact for boxes at least ``min_side`` wide
+        and tall. It reads the batch's tables from ``maps``."""
+        cfg = self.config
+        hk = maps.edges.shape[1]
+        h_in, w_in = maps.input_size
+        fx, fy = maps.fx, maps.fy
+        tables = maps.tables()
+        ii_edges = maps.integral("edges")
+        road = maps.road  # None where the road term does not read the mask (none, flat)
+        if road is not None:
+            ii_road, ii_road_below = maps.integral("road"), maps.integral_below("road")
+        band = cfg.straddle_band
+        if maps.crossing is not None:
+            ii_cols, ii_rows = maps.crossing_integrals(band)
+        unit = _scoring.unit_scale(fx, fy)
+        at = _refinement.box_sum_at
+        if cfg.shadow_score != "none":
+            ii_grey_below = maps.integral_below("grey")
+
+        def score_fn(boxes: Tensor, bi: Tensor) -> Tensor:
+            x0, y0, x1, y1 = boxes.unbind(1)
+            w, h = x1 - x0, y1 - y0
+            centre = at(ii_edges, bi, *_centred(x0, y0, w, h, cfg.center_fraction))
+            if maps.crossing is not None:
+                r2 = 2 * band
+                cut = (at(ii_cols, bi, x0, y0 + band, x0 + r2, y1 + band)
+                       + at(ii_cols, bi, x1, y0 + band, x1 + r2, y1 + band)
+                       + at(ii_rows, bi, x0 + band, y0, x1 + band, y0 + r2)
+                       + at(ii_rows, bi, x0 + band, y1, x1 + band, y1 + r2))
+                centre = centre + cfg.straddle_weight * cut
+            enc = _refinement.enclosed_at(tables, bi, x0, y0, x1, y1)
+            bw, bh = w.double() / fx, h.double() / fy
+            sc = _scoring.edge_score(enc * unit, centre * unit, bw, bh, cfg.score_norm, cfg.kappa, cfg.gamma)
+            area = (w * h).double()
+            if road is None:
+                r = torch.zeros_like(area)
+            else:
+                r = at(ii_road, bi, x0, y0, x1, y1) / area
+            if cfg.road_score == "stand":
+                sh = (h * cfg.road_strip).round().long().clamp_(min=1)
+                below = at(ii_road_below, bi, x0, y1, x1, y1 + sh) / (w * sh).double()
+                r = (below * (1.0 - r)).clamp_(0, 1)
+            v = _scoring.combined_score(sc, self._location(y1.double() / fy, bw, bh, h_in, w_in), r,
+                                        cfg.alpha, cfg.beta, cfg.road_score)
+            if maps.green is not None:
+                gx0, gy0, gx1, gy1 = _centred(x0, y0, w, h, cfg.vegetation_box)
+                v = v * _scoring.vegetation_factor(at(maps.green, bi, gx0, gy0, gx1, gy1),
+                                                   ((gx1 - gx0) * (gy1 - gy0)).double(), cfg.vegetation_power)
+            if cfg.shadow_score != "none":
+                sh = (h.double() * cfg.shadow_strip).round().long().clamp_(min=1)
+                mx = torch.minimum((w.double() * cfg.shadow_margin).floor().long(), torch.div(w - 1, 2, rounding_mode="floor"))
+                inside = at(ii_grey_below, bi, x0 + mx, y1 - sh, x1 - mx, y1)
+                below = at(ii_grey_below, bi, x0 + mx, y1, x1 - mx, y1 + sh)
+                rows = torch.minimum((hk - y1).clamp(min=0), sh)
+                u = _scoring.shadow_fraction(inside, below, (sh * (w - 2 * mx)).double(), rows * (w - 2 * mx))
+                v = _scoring.apply_shadow(v, u, cfg.shadow_floor, cfg.shadow_power)
+            return v
+
+        return score_fn, tables.max_extent + 1
+
+    # -- eq. 13: the final proposals ----------------------------------------------------------
+    def suppress(self, maps: ScoreMaps, grid: _windows.WindowGrid, chosen: Tensor, scores: Tensor, share: Tensor,
+                 refined: tuple[list[Tensor], list[Tensor]] | None = None) -> list[dict[str, Tensor]]:
+        """Greedy NMS (eq. 13) of each image's candidates, best first, stopping at ``top_k``
+        (with ``region_quota``, each region's share of the output first: :meth:`quota`):
+        one dict per image, ``boxes`` ``float32 [N, 4]`` in input pixels and ``scores``
+        ``float32 [N]``. ``refined``: :meth:`refine`'s boxes and scores of the candidates
+        (else the windows themselves, gathered, sorted and suppressed in one compiled pass
+        on the CPU: :func:`reeb_torch.stages.nms.nms_windows_cpu`)."""
+        cfg = self.config
+        b, dev = scores.shape[0], scores.device
+        fx, fy = maps.fx, maps.fy
+        to_input = torch.tensor([fx, fy, fx, fy], device=dev)
+        boxes_in = self._grid_cached(("boxes_in", fx, fy, str(dev)), grid,
+                                     lambda: self._device_tensor(grid.boxes, dev) / to_input)
+        region_of = self._device_tensor(grid.region_of, dev)
+        quota = cfg.region_quota and share.shape[1] > 1
+        kept = None
+        if refined is None:  # the windows themselves: gathered, sorted and suppressed compiled
+            kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, grid.count if quota else cfg.top_k)
+        if kept is not None:
+            pairs = [(boxes_in, scores[i]) for i in range(b)]
+            windows = kept
+        else:
+            cands = [torch.nonzero(chosen[i]).squeeze(1) for i in range(b)]
+            if refined is not None:
+                pairs = [(rb / to_input, rs) for rb, rs in zip(*refined)]
+            else:
+                pairs = [(boxes_in[c], scores[i, c]) for i, c in enumerate(cands)]
+            kept = nms_top_k_many(pairs, cfg.nms_iou, max(len(p[1]) for p in pairs) if quota else cfg.top_k)
+            windows = [c[k] for c, k in zip(cands, kept)]
+        results = []
+        for i, ((bx, sc), keep_idx, win) in enumerate(zip(pairs, kept, windows)):
+            if quota:
+                keep_idx = self.quota(keep_idx, region_of[win], share[i])[: cfg.top_k]
+            results.append({"boxes": bx[keep_idx].contiguous(), "scores": sc[keep_idx].contiguous()})
+        return results
+
+    def quota(self, keep: Tensor, region: Tensor, share: Tensor) -> Tensor:
+        """Eq. 9 on the output: of the ``top_k`` proposals, region r gets up to
+        ``top_k · share_r / Σ share`` (its best after NMS); places a region leaves empty go
+        to the best of the rest. ``keep`` is in descending score order and stays so."""
+        k = self.config.top_k
+        if keep.numel() <= k:
+            return keep
+        total = float(share.sum())
+        if total <= 0:
+            return keep
+        quota = torch.floor(share * (k / total)).long()  # (R,)
+        onehot = torch.nn.functional.one_hot(region, share.numel())
+        rank = (onehot.cumsum(0) * onehot).sum(1)  # 1-based rank within its region
+        first = rank <= quota[region]
+        n_first = int(first.sum())
+        rest = torch.nonzero(~first).squeeze(1)[: max(0, k - n_first)]
+        sel = torch.cat([torch.nonzero(first).squeeze(1), rest]).sort().values
+        return keep[sel]
+
+    # -- what depends on the image size only, kept per window grid ------------------------------
+    def _grid_cached(self, key: tuple, grid: _windows.WindowGrid, build):
+        """``build()``, cached per ``key`` and window grid (grids are cached themselves, so
+        one is recognised by identity; the entry keeps it alive so its id is not reused)."""
+        key = (id(grid), *key)
+        hit = self._plan_cache.get(key)
+        if hit is not None and hit[0] is grid:
+            return hit[1]
+        value = build()
+        if len(self._plan_cache) >= 32:  # grids of many image sizes: start afresh
+            self._plan_cache.clear()
+        self._plan_cache[key] = (grid, value)
+        return value
+
+    def _device_tensor(self, t: Tensor, device: torch.device) -> Tensor:
+        """``t`` on ``device``, copied once per tensor and device."""
+        if t.device == device:
+            return t
+        key = (id(t), str(device))
+        hit = self._device_cache.get(key)
+        if hit is None or hit[0] is not t:
+            if len(self._device_cache) >= 256:  # grids of many image sizes: start afresh
+                self._device_cache.clear()
+            hit = (t, t.to(device))
+            self._device_cache[key] = hit
+        return hit[1]
