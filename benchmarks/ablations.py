@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_kitti_dir, environment, rerun_line  # noqa: E402
 
 from reeb_torch import ProposalGenerator, ReebConfig  # noqa: E402
-from reeb_torch.cli import build_config  # noqa: E402
+from reeb_torch.runs.common import build_config  # noqa: E402
 from reeb_torch.eval.common import add_frames_option, load_kitti  # noqa: E402
 from reeb_torch.eval.table3 import moderate_masks  # noqa: E402
 from reeb_torch.metrics import (  # noqa: E402

@@ -47,7 +47,7 @@ def in_memory(paths: Sequence[Path], preset: str, top_k: int, batch_size: int) -
     import torch
 
     import reeb_torch
-    from reeb_torch.batch import size_batches, Decoded
+    from reeb_torch.runs.batch import size_batches, Decoded
 
     t0 = time.perf_counter()
     images = [reeb_torch.read_image(p) for p in paths]
@@ -77,7 +77,7 @@ def cli_run(folder: Path, limit: int | None, workers: int, preset: str, top_k: i
             for p in _list(folder)[:limit]:
                 (src / p.name).symlink_to(p.resolve())
         summary = Path(tmp) / "summary.json"
-        cmd = [sys.executable, "-m", "reeb_torch.cli", "propose", str(src), "--out",
+        cmd = [sys.executable, "-m", "reeb_torch.runs.cli", "propose", str(src), "--out",
                str(Path(tmp) / "out.jsonl"), "--preset", preset, "--top-k", str(top_k),
                "--batch-size", str(batch_size), "--workers", str(workers), "--device", "cpu",
                "--summary-json", str(summary), "--quiet"]
@@ -92,7 +92,7 @@ def cli_run(folder: Path, limit: int | None, workers: int, preset: str, top_k: i
 
 
 def _list(folder: Path) -> list[Path]:
-    from reeb_torch.batch import find_images
+    from reeb_torch.runs.batch import find_images
 
     return find_images([folder])[0]
 

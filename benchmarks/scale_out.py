@@ -8,7 +8,7 @@ Rows (milliseconds per image on the KITTI frames, lower is better), each a fresh
   thread, as a Ray actor of one CPU runs: on a busy machine two OpenMP threads that wait
   for each other can be slower than one);
 - *ray, N actors*: ``reeb propose --engine ray --actors N`` on a local Ray instance sized
-  to the machine; each actor reserves the default :func:`reeb_torch.distributed.actor_cpus`
+  to the machine; each actor reserves the default :func:`reeb_torch.runs.distributed.actor_cpus`
   (one CPU is left to Ray Data's read/write tasks) and runs that many torch threads.
 
 Columns: "in run" is the command's own end-to-end figure (first image to last row
@@ -56,7 +56,7 @@ def run(images: Sequence[Path], engine: str, actors: int, batch_size: int,
             (src / p.name).symlink_to(p.resolve())
         summary = Path(tmp) / "summary.json"
         out = Path(tmp) / ("out.parquet" if engine == "local" else "out_ray.parquet")
-        cmd = [sys.executable, "-m", "reeb_torch.cli", "propose", str(src), "--out", str(out),
+        cmd = [sys.executable, "-m", "reeb_torch.runs.cli", "propose", str(src), "--out", str(out),
                "--batch-size", str(batch_size), "--device", "cpu", "--summary-json",
                str(summary), "--quiet", "--engine", engine]
         if engine == "ray":
@@ -87,7 +87,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = ap.parse_args(argv)
     argv_list = list(argv) if argv is not None else sys.argv[1:]
 
-    from reeb_torch.batch import find_images
+    from reeb_torch.runs.batch import find_images
 
     folder = args.data / "images" if (args.data / "images").is_dir() else args.data
     images = find_images([folder])[0][: args.limit]

@@ -58,7 +58,7 @@ def test_second_writer_fails_at_once_and_loses_nothing(tmp_path):
 
 
 def test_a_run_on_a_locked_output_fails_before_any_work(tmp_path):
-    from reeb_torch.batch import lock_output
+    from reeb_torch.runs.batch import lock_output
 
     good_folder(tmp_path / "B", 1)
     with lock_output(tmp_path / "cc.jsonl"):  # this test process plays the first run
@@ -69,13 +69,13 @@ def test_a_run_on_a_locked_output_fails_before_any_work(tmp_path):
 
 
 def test_lock_of_a_dead_run_is_taken_over(tmp_path):
-    from reeb_torch.batch import OutputBusyError, lock_output
+    from reeb_torch.runs.batch import OutputBusyError, lock_output
 
     out = tmp_path / "o.jsonl"
     (tmp_path / ".o.jsonl.lock").write_text("999999\n")  # left by a killed run: not locked
     with lock_output(out):
         assert (tmp_path / ".o.jsonl.lock").read_text().strip() == str(os.getpid())
-        code = ("import sys; from reeb_torch.batch import lock_output, OutputBusyError\n"
+        code = ("import sys; from reeb_torch.runs.batch import lock_output, OutputBusyError\n"
                 f"try:\n    lock_output({str(out)!r})\nexcept OutputBusyError as e:\n"
                 "    print(e); sys.exit(3)\n")
         r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
@@ -120,7 +120,7 @@ def test_resume_from_another_folder_symlink_and_absolute_path(tmp_path):
                                          ("no", False), ("on", True), ("OFF", False),
                                          ("1", True), ("0", False), ('"false"', False)])
 def test_set_parses_boolean_words(word, value):
-    from reeb_torch.cli import build_config
+    from reeb_torch.runs.common import build_config
 
     assert build_config("default", None, [f"use_regions={word}"], None).use_regions is value
     assert build_config("default", None, [f"refine={word}"], None).refine is value
@@ -128,7 +128,7 @@ def test_set_parses_boolean_words(word, value):
 
 @pytest.mark.parametrize("word", ["maybe", "2", "", "none", "[]", "offf"])
 def test_set_rejects_other_boolean_words(word):
-    from reeb_torch.cli import build_config
+    from reeb_torch.runs.common import build_config
 
     with pytest.raises(click.ClickException) as info:
         build_config("default", None, [f"use_regions={word}"], None)
@@ -138,7 +138,7 @@ def test_set_rejects_other_boolean_words(word):
 @pytest.mark.parametrize("field", ["shadow_score", "vegetation_score", "location_score", "road_score"])
 def test_set_keeps_the_word_none_of_a_choice_field(field):
     # 'none' is one of these fields' words (the term off), not JSON null
-    from reeb_torch.cli import build_config
+    from reeb_torch.runs.common import build_config
 
     assert getattr(build_config("default", None, [f"{field}=none"], None), field) == "none"
     assert getattr(build_config("default", None, [f"{field}= none "], None), field) == "none"
@@ -149,7 +149,7 @@ def test_set_takes_every_word_of_every_choice_field():
     import dataclasses
     import typing
 
-    from reeb_torch.cli import build_config
+    from reeb_torch.runs.common import build_config
     from reeb_torch.config import ReebConfig
 
     hints = typing.get_type_hints(ReebConfig)
@@ -162,7 +162,7 @@ def test_set_takes_every_word_of_every_choice_field():
 
 
 def test_set_still_reads_none_as_null_where_none_is_not_a_word():
-    from reeb_torch.cli import build_config
+    from reeb_torch.runs.common import build_config
 
     cfg = build_config("default", None, ["ground_band=none", "group_cell=null", "window_geometry=grid"], None)
     assert cfg.ground_band is None and cfg.group_cell is None and cfg.window_geometry == "grid"
@@ -227,7 +227,7 @@ def test_interrupt_summary_counts_the_rows_in_the_file(tmp_path):
 
 
 def test_interrupt_is_deferred_while_a_row_is_written():
-    from reeb_torch.batch import CriticalSection
+    from reeb_torch.runs.batch import CriticalSection
 
     cs = CriticalSection()
     with pytest.raises(KeyboardInterrupt):
@@ -283,7 +283,7 @@ def test_parquet_rows_carry_the_schema(tmp_path):
 def test_folder_scan_finds_every_format_the_reader_reads(tmp_path):
     from PIL import Image
 
-    from reeb_torch.batch import find_images
+    from reeb_torch.runs.batch import find_images
     from reeb_torch.io import IMAGE_EXTENSIONS, read_image
 
     rgb = np.random.default_rng(0).integers(0, 256, (20, 30, 3), dtype=np.uint8)
@@ -318,7 +318,7 @@ def test_show_picture_keeps_the_aspect_ratio(h, w):
     import torch
 
     from reeb_torch.generator import Inspection
-    from reeb_torch.viz import inspection_figure
+    from reeb_torch.runs.viz import inspection_figure
 
     insp = Inspection(boxes=torch.tensor([[1.0, 2.0, 30.0, 40.0]]), scores=torch.tensor([1.0]),
                       edges=torch.zeros(h, w), road_mask=torch.zeros(h, w, dtype=torch.bool),
@@ -335,7 +335,7 @@ def test_show_picture_keeps_the_aspect_ratio(h, w):
 
 def test_an_interrupt_wrapped_by_a_library_is_still_an_interrupt():
     # numba, loading a cached kernel when Ctrl-C lands, re-raises it as a SystemError
-    from reeb_torch.batch import caused_by_interrupt
+    from reeb_torch.runs.batch import caused_by_interrupt
 
     def wrapped() -> None:
         try:

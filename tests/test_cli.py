@@ -26,7 +26,7 @@ FAST = ["--top-k", "100", "--device", "cpu"]
 
 def reeb(*args, cwd, timeout=120, check_rc=None) -> subprocess.CompletedProcess:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    r = subprocess.run([sys.executable, "-m", "reeb_torch.cli", *map(str, args)], cwd=cwd,
+    r = subprocess.run([sys.executable, "-m", "reeb_torch.runs.cli", *map(str, args)], cwd=cwd,
                        capture_output=True, text=True, timeout=timeout, env=env)
     if check_rc is not None:
         assert r.returncode == check_rc, f"rc={r.returncode}\nstdout:\n{r.stdout}\nstderr:\n{r.stderr}"
@@ -185,7 +185,7 @@ def test_unwritable_output_fails_before_processing(tmp_path):
 # -- interruption, atomic writes, resume -------------------------------------------------
 
 def _start(args, cwd) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "reeb_torch.cli", *args], cwd=cwd,
+    return subprocess.Popen([sys.executable, "-m", "reeb_torch.runs.cli", *args], cwd=cwd,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -252,7 +252,7 @@ def test_interrupt_kill_and_resume(tmp_path):
 # -- the pieces behind the commands, in process (fast) -----------------------------------
 
 def test_find_images_rules(tmp_path):
-    from reeb_torch.batch import NoImagesError, find_images
+    from reeb_torch.runs.batch import NoImagesError, find_images
 
     for name in ("f10.png", "f2.png", "f1.jpg", "labels.txt"):
         (tmp_path / name).write_bytes(b"x")
@@ -273,7 +273,7 @@ def test_find_images_rules(tmp_path):
 
 
 def test_output_checks_and_atomic_writer(tmp_path):
-    from reeb_torch.batch import OutputError, check_output, open_writer, read_results
+    from reeb_torch.runs.batch import OutputError, check_output, open_writer, read_results
 
     with pytest.raises(OutputError, match="unknown output format"):
         check_output(tmp_path / "out.csv")
@@ -301,7 +301,7 @@ def test_output_checks_and_atomic_writer(tmp_path):
 def test_size_batches_groups_equal_sizes():
     import torch
 
-    from reeb_torch.batch import Decoded, size_batches
+    from reeb_torch.runs.batch import Decoded, size_batches
 
     def item(i, h, w):
         return Decoded(i, f"{i}.png", image=torch.zeros(3, h, w, dtype=torch.uint8))

@@ -1,4 +1,4 @@
-"""reeb propose --engine ray (reeb_torch.distributed) against the single-process path.
+"""reeb propose --engine ray (reeb_torch.runs.distributed) against the single-process path.
 
 One local Ray instance (2 CPUs, no dashboard) serves the whole module; the tests skip when
 Ray is not installed. The reference is the single-process ``reeb propose`` writing Parquet
@@ -18,8 +18,8 @@ ray = pytest.importorskip("ray")
 pytest.importorskip("ray.data")
 pytest.importorskip("pyarrow")
 
-from reeb_torch.cli import main  # noqa: E402
-from reeb_torch.distributed import (  # noqa: E402
+from reeb_torch.runs.cli import main  # noqa: E402
+from reeb_torch.runs.distributed import (  # noqa: E402
     actor_cpus,
     read_result_dir,
     result_files,
@@ -180,8 +180,8 @@ def test_usage_errors_before_any_work(tmp_path):
 
 def test_api_takes_an_existing_dataset(local_ray, small_images):
     from reeb_torch import ReebConfig
-    from reeb_torch.batch import ParquetWriter
-    from reeb_torch.distributed import propose_dataset
+    from reeb_torch.runs.batch import ParquetWriter
+    from reeb_torch.runs.distributed import propose_dataset
 
     path = str(small_images / "b_small.png")
     ds = ray.data.from_items([{"image": path}, {"image": str(small_images / "missing.png")}])

@@ -1,4 +1,4 @@
-"""reeb export --format detectron2 (reeb_torch.export): the precomputed-proposals pickle.
+"""reeb export --format detectron2 (reeb_torch.runs.export): the precomputed-proposals pickle.
 
 detectron2 is not needed: the pickle is loaded with ``pickle`` and checked against what
 detectron2's ``load_proposals_into_dataset`` reads (keys, per-image ``N×4`` XYXY_ABS boxes
@@ -17,9 +17,9 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from reeb_torch import batch as B
-from reeb_torch.cli import main
-from reeb_torch.export import ExportError, detectron2_proposals, image_ids, read_id_map
+from reeb_torch.runs import batch as B
+from reeb_torch.runs.cli import main
+from reeb_torch.runs.export import ExportError, detectron2_proposals, image_ids, read_id_map
 
 
 def _rows():

@@ -1,4 +1,4 @@
-"""reeb_torch.viz.crop_sheet: one tile per object, its box and the nearest proposal drawn."""
+"""reeb_torch.runs.viz.crop_sheet: one tile per object, its box and the nearest proposal drawn."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from reeb_torch.viz import GT_COLOR, NEAREST_COLOR, crop_sheet
+from reeb_torch.runs.viz import GT_COLOR, NEAREST_COLOR, crop_sheet
 
 
 def _has(tile: np.ndarray, color: tuple[int, int, int]) -> bool:

@@ -55,7 +55,7 @@ from typing import Iterable, Iterator, Sequence
 import numpy as np
 import torch
 
-from .io import IMAGE_EXTENSIONS, read_image
+from ..io import IMAGE_EXTENSIONS, read_image
 
 __all__ = [
     "FORMAT_VERSION",
@@ -500,6 +500,29 @@ def read_results(path: str | os.PathLike) -> tuple[list[dict], list[str]]:
     except Exception as e:  # noqa: BLE001 - pyarrow raises its own error types
         raise OutputError(f"{p}: cannot read for --resume ({_one_line(e)})") from e
     return rows, problems
+
+
+def result_files(out_dir: str | os.PathLike) -> list[Path]:
+    """The Parquet files of a result folder, sorted by name (hidden files skipped)."""
+    d = Path(out_dir)
+    return sorted(p for p in d.rglob("*.parquet") if p.is_file()
+                  and not any(part.startswith(".") for part in p.relative_to(d).parts))
+
+
+def read_result_dir(out_dir: str | os.PathLike) -> list[dict]:
+    """All rows of the Parquet files in the folder ``out_dir`` (an empty folder: none).
+
+    Raises ``OSError`` naming the file when one cannot be read.
+    """
+    import pyarrow.parquet as pq
+
+    rows: list[dict] = []
+    for f in result_files(out_dir):
+        try:
+            rows += pq.read_table(f).to_pylist()
+        except Exception as e:  # noqa: BLE001 - pyarrow has its own error types
+            raise OSError(f"{f}: cannot read ({' '.join(str(e).split())})") from e
+    return rows
 
 
 class ResultWriter:

@@ -50,10 +50,8 @@ def read_rows(results: str | os.PathLike) -> list[dict]:
 
     p = Path(results)
     if p.is_dir():
-        from .distributed import read_result_dir
-
         try:
-            rows = read_result_dir(p)
+            rows = B.read_result_dir(p)
         except OSError as e:
             raise ExportError(str(e)) from e
         if not rows:

@@ -1,0 +1,304 @@
+"""The ``reeb`` command line: ``propose``, ``show``, ``eval`` and ``export``.
+
+::
+
+    reeb propose                         # the bundled KITTI sample: top-10 table + reeb_proposals.png
+    reeb propose images/ --out p.jsonl   # a folder (or files, or globs) to JSON Lines / Parquet
+    reeb propose images/ --out p.jsonl --resume   # after an interruption: only what is missing
+    reeb show                            # the bundled sample, explained: reeb_show.png
+    reeb show frame.png --label frame.txt --top 30 --out frame_reeb.png
+    reeb eval ../shared/data/kitti --limit 20     # the paper's Table 3 (reeb_torch.eval.table3)
+
+Exit codes: 0 success; 1 some images failed (each is named, in the summary and in the
+output with its status) or the command failed; 2 usage error (bad option or setting, no
+images found, output not writable, or being written by another run — all checked before
+any work); 130 interrupted (what was done is saved; ``--resume`` continues).
+
+Each command checks its options and hands on: ``propose`` to :mod:`.propose_local` or
+:mod:`.propose_ray`, ``export`` to :mod:`.export`, ``eval`` to :mod:`reeb_torch.eval.table3`;
+what they share (errors, settings, device, summary lines) is :mod:`.common`.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+import click
+
+from .common import (
+    Failure,
+    UsageProblem,
+    box_table,
+    build_config,
+    bundled_sample,
+    label_for,
+    read_labels,
+    resolve_device,
+)
+
+CONTEXT = dict(help_option_names=["-h", "--help"], max_content_width=100)
+
+
+def config_options(f):
+    """``--preset``, ``--config``, ``--set``, ``--top-k``, ``--device`` (shared)."""
+    from ..config import PRESETS
+
+    options = [
+        click.option("--preset", type=click.Choice(sorted(PRESETS)), default="default",
+                     show_default=True, help="Named settings to start from."),
+        click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False),
+                     help="JSON file of ReebConfig fields applied over the preset."),
+        click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE",
+                     help="Change one ReebConfig field (repeatable), e.g. --set scale=1.0."),
+        click.option("--top-k", type=click.IntRange(min=1), default=None,
+                     help="Proposals kept per image (default: the config's top_k, 2000)."),
+        click.option("--device", default="auto", show_default=True,
+                     help="cpu, cuda, cuda:N, or auto (CUDA when available)."),
+    ]
+    for opt in reversed(options):
+        f = opt(f)
+    return f
+
+
+# -- the command group -------------------------------------------------------------------
+
+@click.group(context_settings=CONTEXT)
+@click.version_option(package_name="reeb-torch", prog_name="reeb")
+def main() -> None:
+    """REEB: training-free object proposals for driving images.
+
+    Run `reeb propose` or `reeb show` with no arguments to see the bundled KITTI sample.
+    """
+
+
+# -- reeb propose ------------------------------------------------------------------------
+
+@main.command(context_settings=CONTEXT)
+@click.argument("paths", nargs=-1, type=click.Path())
+@click.option("-o", "--out", type=click.Path(),
+              help="Write one row per image here: .jsonl (JSON Lines) or .parquet.")
+@click.option("--resume", is_flag=True,
+              help="Keep the rows already in --out and process only the images missing there "
+                   "(or that failed).")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
+@config_options
+@click.option("-b", "--batch-size", type=click.IntRange(min=1), default=4, show_default=True,
+              help="Images of equal size computed together.")
+@click.option("-j", "--workers", type=click.IntRange(min=0), default=None,
+              help="Decoding processes running alongside the algorithm (0 = decode inline). "
+                   "[default: min(2, CPUs)]")
+@click.option("--viz", "viz_dir", type=click.Path(),
+              help="Write a PNG per image with its top proposals into this folder.")
+@click.option("--viz-top", type=click.IntRange(min=1), default=10, show_default=True,
+              help="Proposals drawn per picture.")
+@click.option("-r", "--recursive", is_flag=True, help="Look for images in sub-folders too.")
+@click.option("--print-top", type=click.IntRange(min=0), default=None,
+              help="Print a table of the top N boxes per image [default: 10 without --out, "
+                   "else 0].")
+@click.option("--summary-json", type=click.Path(dir_okay=False),
+              help="Also write the closing summary as JSON (for scripts and benchmarks).")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar, no per-file messages.")
+@click.option("--engine", type=click.Choice(["local", "ray"]), default="local", show_default=True,
+              help="local: this process; ray: Ray Data actors (a folder of Parquet files; "
+                   "pip install 'reeb-torch[ray]').")
+@click.option("--address", default=None,
+              help="--engine ray: the Ray cluster (auto, ray://HOST:PORT) [default: a local Ray "
+                   "instance sized to this machine].")
+@click.option("--actors", type=click.IntRange(min=1), default=1, show_default=True,
+              help="--engine ray: actors, each holding one proposal generator.")
+@click.option("--cpus-per-actor", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="--engine ray: CPUs each actor reserves (and its torch threads) "
+                   "[default: leaves one CPU to Ray's read/write tasks].")
+def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, device,
+            batch_size, workers, viz_dir, viz_top, recursive, print_top, summary_json, quiet,
+            engine, address, actors, cpus_per_actor):
+    """Object proposals for images, folders or glob patterns (PATHS).
+
+    With no PATHS, runs on the bundled KITTI sample: prints its top proposals and writes
+    reeb_proposals.png (or into --viz). A file that cannot be processed never stops the
+    run: it gets an "error: ..." status, is named in the summary, and the exit code is 1.
+    The output is written atomically; after Ctrl-C what is done is saved, and --resume
+    continues.
+
+    Output rows, in input order: format_version, image (as given), resolved (the
+    absolute file, symlinks resolved), width, height, boxes ([x1, y1, x2, y2] in pixels,
+    best first), scores, status ("ok" or "error: <file>: <reason>"), config (settings
+    fingerprint). A run locks its output: a second run on it fails at once (exit 2).
+    --resume matches rows on the resolved file, and also takes the finished rows a killed
+    run left in a hidden .NAME.*.tmp file.
+    """
+    if engine == "ray":
+        from .propose_ray import propose_ray
+
+        return propose_ray(paths, out=out, resume=resume, overwrite=overwrite, preset=preset,
+                           config_file=config_file, sets=sets, top_k=top_k, device=device,
+                           batch_size=batch_size, recursive=recursive, summary_json=summary_json,
+                           quiet=quiet, address=address, actors=actors,
+                           cpus_per_actor=cpus_per_actor, viz_dir=viz_dir)
+    from .propose_local import propose_local
+
+    return propose_local(paths, out=out, resume=resume, overwrite=overwrite, preset=preset,
+                         config_file=config_file, sets=sets, top_k=top_k, device=device,
+                         batch_size=batch_size, workers=workers, viz_dir=viz_dir, viz_top=viz_top,
+                         recursive=recursive, print_top=print_top, summary_json=summary_json, quiet=quiet)
+
+
+# -- reeb show ---------------------------------------------------------------------------
+
+@main.command(context_settings=CONTEXT)
+@click.argument("image", required=False, type=click.Path())
+@click.option("-l", "--label", type=click.Path(exists=True, dir_okay=False),
+              help="KITTI label_2 file to draw as ground truth [default: <stem>.txt beside the "
+                   "image, or in ../labels or ../label_2, if there].")
+@click.option("--no-label", is_flag=True, help="Do not look for a label file.")
+@click.option("-n", "--top", type=click.IntRange(min=1), default=20, show_default=True,
+              help="Proposals drawn.")
+@click.option("-o", "--out", type=click.Path(), default="reeb_show.png",
+              show_default=True, help="The PNG to write.")
+@config_options
+def show(image, label, no_label, top, out, preset, config_file, sets, top_k, device):
+    """One picture that explains REEB on IMAGE (default: the bundled KITTI sample).
+
+    Three panels: the edge map and road mask; the region strips with their entropy H and
+    their share of the proposal budget; the top proposals, coloured by rank, with the
+    ground-truth boxes (and each one's best IoU over all proposals).
+    """
+    from .batch import file_error
+    from ..io import read_image
+
+    cfg = build_config(preset, config_file, sets, top_k)
+    dev = resolve_device(device)
+    path = Path(image) if image else bundled_sample()
+    if Path(out).suffix.lower() != ".png":
+        raise UsageProblem(f"{out}: the picture is a PNG; give a file name ending in .png")
+    out_p = Path(out)
+    parent = out_p.parent if str(out_p.parent) else Path(".")
+    if out_p.is_dir() or not parent.is_dir() or not os.access(parent, os.W_OK) or (
+            out_p.exists() and not os.access(out_p, os.W_OK)):
+        raise UsageProblem(f"{out}: cannot write there (is the folder there and writable?)")
+    if not path.exists():
+        raise UsageProblem(f"{path}: no such file")
+    label_path = None if no_label else (Path(label) if label else label_for(path))
+    gt = read_labels(label_path) if label_path else []
+
+    from ..generator import ProposalGenerator
+    from ..io import ImageReadError
+    from .viz import inspection_figure, save_figure
+
+    try:
+        img = read_image(path)
+    except ImageReadError as e:
+        raise Failure(str(e))
+    gen = ProposalGenerator(cfg).to(dev).eval()
+    t0 = time.perf_counter()
+    try:
+        insp = gen.inspect(img.to(dev))
+    except (ValueError, TypeError) as e:
+        raise Failure(file_error(path, e))
+    dt = time.perf_counter() - t0
+    h, w = img.shape[-2:]
+    title = (f"REEB on {path.name} ({w}×{h} px): {len(insp.boxes)} proposals in {1000 * dt:.0f} ms "
+             f"on {dev} — preset {preset}, config {cfg.fingerprint()}")
+    fig = inspection_figure(img, insp, gt=gt, top=top, title=title, config=cfg)
+    try:
+        save_figure(fig, out_p)
+    except OSError as e:
+        raise Failure(f"{out}: cannot write ({e.strerror or e})")
+
+    click.echo(box_table(str(path), (w, h), insp.boxes.cpu(), insp.scores.cpu(), min(top, 10),
+                          len(insp.boxes)))
+    ent = ", ".join(f"R{i + 1} H={float(hv):.2f} {100 * float(s):.0f}%"
+                    for i, (hv, s) in enumerate(zip(insp.entropy.tolist(), insp.share.tolist())))
+    click.echo(f"regions: {ent}")
+    click.echo(f"road: {100 * float(insp.road_mask.float().mean()):.0f} % of pixels; "
+               f"{insp.num_windows} windows scored")
+    if gt:
+        from .viz import _best_match
+
+        boxes = insp.boxes.cpu().numpy()
+        click.echo(f"ground truth ({label_path}):")
+        for o in gt:
+            iou, rank = _best_match(o.box, boxes)
+            where = f"best IoU {iou:.2f} (proposal #{rank})" if iou > 0 else "no proposal overlaps it"
+            click.echo(f"  {o.type:<14} {where}")
+    click.echo(f"wrote {out_p.resolve()}")
+
+
+# -- reeb eval ---------------------------------------------------------------------------
+
+@main.command(context_settings=dict(CONTEXT, ignore_unknown_options=True))
+@click.argument("kitti_dir", type=click.Path(exists=True, file_okay=False))
+@click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames.")
+@click.option("-o", "--out", type=click.Path(file_okay=False), default="runs/table3",
+              show_default=True, help="Folder for the table, CSV/JSON and plots.")
+@click.option("--methods", help="Comma-separated methods (see python -m reeb_torch.eval --help).")
+@click.argument("extra", nargs=-1, type=click.UNPROCESSED)
+def eval(kitti_dir, limit, out, methods, extra):  # noqa: A001 - the command's name
+    """Recall table (the paper's Table 3) and plots on a KITTI-format folder.
+
+    Runs reeb_torch.eval.table3 (as benchmarks/table3.py does); further options (e.g.
+    --frames 0:39 40:59, --max-proposals 1000, --batch 8) are passed on to it.
+    """
+    from ..eval import table3 as table3_module
+
+    argv = ["--data", str(kitti_dir), "--out", str(out)]
+    if limit:
+        argv += ["--limit", str(limit)]
+    if methods:
+        argv += ["--methods", *[m.strip() for m in methods.split(",") if m.strip()]]
+    argv += list(extra)
+    try:
+        table3_module.main(argv, prog="python -m reeb_torch.eval")
+    except SystemExit as e:  # argparse errors (2), --help (0), or a message: exit 1
+        if e.code is None or isinstance(e.code, int):
+            sys.exit(e.code or 0)
+        raise Failure(" ".join(str(e.code).split()))
+
+
+# -- reeb export -------------------------------------------------------------------------
+
+@main.command(context_settings=CONTEXT)
+@click.argument("results", type=click.Path(exists=True))
+@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False),
+              help="The file to write (detectron2: a .pkl pickle).")
+@click.option("--format", "fmt", type=click.Choice(["detectron2"]), default="detectron2",
+              show_default=True, help="Target framework's precomputed-proposals format.")
+@click.option("--ids", "ids_file", type=click.Path(exists=True, dir_okay=False),
+              help="Image → id mapping (JSON object, or CSV/TSV 'image,id'); keys may be the "
+                   "path as written, the file name or the stem. [default: file stems]")
+@click.option("--id-type", type=click.Choice(["str", "int"]), default="str", show_default=True,
+              help="int: ids such as 000123 become 123 (datasets with numeric image_id).")
+def export(results, out, fmt, ids_file, id_type):
+    """Convert RESULTS of `reeb propose` (a .jsonl/.parquet file, or the Parquet folder of
+    --engine ray) into a detector framework's proposal file.
+
+    detectron2: a pickle with ids, boxes (N×4 float32, XYXY_ABS, best first),
+    objectness_logits (the scores) and bbox_mode, for MODEL.LOAD_PROPOSALS with
+    DATASETS.PROPOSAL_FILES_TRAIN/TEST. Failed images are left out and named.
+    """
+    from . import export as E
+
+    try:
+        id_map = E.read_id_map(ids_file) if ids_file else None
+        rows = E.read_rows(results)
+        proposals, failed = E.detectron2_proposals(rows, id_map, id_type)
+    except E.ExportError as e:
+        raise UsageProblem(str(e))
+    if not proposals["ids"]:
+        raise Failure(f"{results}: no image with status ok; nothing to export")
+    try:
+        saved = E.write_detectron2(proposals, out)
+    except E.ExportError as e:
+        raise Failure(str(e))
+    n = sum(len(b) for b in proposals["boxes"])
+    for m in failed:
+        click.echo(f"warning: left out (failed): {m}", err=True)
+    click.echo(f"wrote {saved}: {len(proposals['ids'])} images, {n} proposals ({fmt}, XYXY_ABS)"
+               + (f"; {len(failed)} failed images left out" if failed else ""), err=True)
+
+
+if __name__ == "__main__":
+    main()

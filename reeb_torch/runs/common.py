@@ -1,0 +1,244 @@
+"""What the ``reeb`` command's runs share: errors with their exit codes, the settings from
+the command line, the device, the bundled sample, and the closing summary's lines.
+
+The command (:mod:`.cli`), the local run (:mod:`.propose_local`) and the Ray run
+(:mod:`.propose_ray`) import this module; the libraries they call (:mod:`.batch`,
+:mod:`.distributed`, :mod:`.export`, :mod:`.viz`) import none of them.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Sequence
+
+import click
+
+__all__ = [
+    "UsageProblem",
+    "Failure",
+    "SAMPLE_NAME",
+    "repo_root",
+    "bundled_sample",
+    "BOOL_WORDS",
+    "build_config",
+    "resolve_device",
+    "label_for",
+    "read_labels",
+    "box_table",
+    "ms_per_img",
+    "count_line",
+    "failures_and_summary",
+]
+
+SAMPLE_NAME = "kitti_000001.png"
+
+
+class UsageProblem(click.ClickException):
+    """A one-line error with exit code 2 (bad input given on the command line)."""
+
+    exit_code = 2
+
+
+class Failure(click.ClickException):
+    """A one-line error with exit code 1 (the command could not do its work)."""
+
+    exit_code = 1
+
+
+# -- settings, device, sample ---------------------------------------------------------
+
+def repo_root() -> Path:
+    """The source checkout the package is installed from (editable install)."""
+    # this file's package folder, not reeb_torch.__file__: that is None when the package is
+    # imported as a namespace package (an editable install made before __init__.py existed)
+    return Path(__file__).resolve().parents[2]
+
+
+def bundled_sample() -> Path:
+    """The sample KITTI frame that ``reeb propose`` / ``reeb show`` use without arguments."""
+    p = repo_root() / "examples" / "data" / SAMPLE_NAME
+    if not p.is_file():
+        raise UsageProblem(
+            f"the bundled sample image is missing (expected {p}; it ships with the source "
+            "checkout, not with an installed wheel); give an image path instead")
+    return p
+
+
+def _parse_value(text: str, choices: tuple[str, ...] = ()) -> Any:
+    """A ``--set`` value: one of the field's ``choices`` (the words of a ``Literal`` field,
+    kept as written even where they read as JSON, such as ``none``), else JSON, else
+    ``none``/``null`` as None, ``true``/``false``, or the bare string."""
+    word = text.strip()
+    if word in choices:
+        return word
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        low = word.lower()
+        if low in ("none", "null"):
+            return None
+        if low in ("true", "false"):
+            return low == "true"
+        return text
+
+
+#: The words ``--set`` takes for a bool field of ReebConfig (case-insensitive).
+BOOL_WORDS = {"true": True, "yes": True, "on": True, "1": True,
+              "false": False, "no": False, "off": False, "0": False}
+
+
+def _parse_bool(field: str, text: str) -> bool:
+    """``--set FIELD=WORD`` for a bool field: one of :data:`BOOL_WORDS`, else a usage error."""
+    word = text.strip()
+    if len(word) >= 2 and word[0] == word[-1] and word[0] in "\"'":
+        word = word[1:-1].strip()  # --set 'use_regions="false"'
+    try:
+        return BOOL_WORDS[word.lower()]
+    except KeyError:
+        raise click.BadParameter(
+            f"{field}={text!r}: {field} is a yes/no setting; use true/false, yes/no, on/off "
+            "or 1/0", param_hint="--set") from None
+
+
+def _field_kinds() -> tuple[set[str], dict[str, tuple[str, ...]]]:
+    """Names of the ReebConfig fields whose type is ``bool``, and the words of each field
+    whose type is a ``Literal`` of strings (from the dataclass)."""
+    import dataclasses
+    import typing
+
+    from ..config import ReebConfig
+
+    hints = typing.get_type_hints(ReebConfig)
+    bools: set[str] = set()
+    words: dict[str, tuple[str, ...]] = {}
+    for f in dataclasses.fields(ReebConfig):
+        hint = hints.get(f.name)
+        if hint is bool:
+            bools.add(f.name)
+        elif typing.get_origin(hint) is typing.Literal:
+            words[f.name] = tuple(a for a in typing.get_args(hint) if isinstance(a, str))
+    return bools, words
+
+
+def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_k: int | None):
+    """The ReebConfig from a preset, then a JSON file of fields, then ``--set`` pairs, then
+    ``--top-k`` (each later source overrides the earlier ones).
+
+    A bool field given with ``--set`` takes true/false, yes/no, on/off or 1/0; a field of
+    named choices takes one of its words as written (``shadow_score=none`` is the word
+    ``'none'``, not None); other fields take JSON (``3``, ``1.5``, ``[1, 2]``, ``null``) or a
+    bare string. Any error (a bad word, an unknown field, a value ReebConfig rejects) is a
+    usage error, exit code 2.
+    """
+    from ..config import ReebConfig, get_preset
+
+    d = get_preset(preset).to_dict()
+    if config_file:
+        try:
+            loaded = json.loads(Path(config_file).read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError) as e:
+            raise click.BadParameter(f"{config_file}: cannot read ({e})", param_hint="--config")
+        except json.JSONDecodeError as e:
+            raise click.BadParameter(f"{config_file}: not valid JSON ({e})", param_hint="--config")
+        if isinstance(loaded, dict) and isinstance(loaded.get("config"), dict):
+            loaded = loaded["config"]  # a saved record with a "config" entry
+        if not isinstance(loaded, dict):
+            raise click.BadParameter(f"{config_file}: expected a JSON object of ReebConfig fields",
+                                     param_hint="--config")
+        d.update(loaded)
+    bools, words = _field_kinds() if sets else (set(), {})
+    for item in sets:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise click.BadParameter(f"{item!r}: expected FIELD=VALUE, e.g. scale=1.0",
+                                     param_hint="--set")
+        name = key.strip()
+        d[name] = _parse_bool(name, value) if name in bools else _parse_value(value, words.get(name, ()))
+    if top_k is not None:
+        d["top_k"] = top_k
+    try:
+        return ReebConfig.from_dict(d)
+    except (TypeError, ValueError, ArithmeticError) as e:
+        raise click.BadParameter(" ".join(str(e).split()) or type(e).__name__,
+                                 param_hint="--config/--set/--top-k")
+
+
+def resolve_device(name: str):
+    """``--device``: ``auto`` (CUDA when available), ``cpu``, ``cuda`` or ``cuda:N``, as a
+    ``torch.device``; a usage error when it is not one, or not here."""
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, ValueError):
+        raise click.BadParameter(f"{name!r} is not a device (try cpu, cuda, cuda:1 or auto)",
+                                 param_hint="--device")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise click.BadParameter("CUDA was asked for but is not available here (use --device cpu)",
+                                 param_hint="--device")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise click.BadParameter(f"{name}: only {torch.cuda.device_count()} CUDA device(s)",
+                                 param_hint="--device")
+    return dev
+
+
+def label_for(image: Path) -> Path | None:
+    """A KITTI label file for ``image``: beside it, or in ../labels or ../label_2."""
+    for cand in (image.with_suffix(".txt"),
+                 image.parent.parent / "labels" / f"{image.stem}.txt",
+                 image.parent.parent / "label_2" / f"{image.stem}.txt"):
+        if cand.is_file():
+            return cand
+    return None
+
+
+def read_labels(path: Path) -> list:
+    from ..data import read_kitti_labels
+
+    try:
+        objs = read_kitti_labels(path)
+    except (OSError, ValueError) as e:
+        raise Failure(f"{path}: cannot read the label file ({' '.join(str(e).split())})")
+    return [o for o in objs if o.type != "DontCare"]
+
+
+def box_table(name: str, size: tuple[int, int], boxes, scores, n: int, total: int) -> str:
+    """The top ``n`` of ``total`` boxes of one image as a printed table (``reeb propose``, ``reeb show``)."""
+    w, h = size
+    lines = [f"{name}  {w}×{h} px  {total} proposals" + (f" (top {min(n, total)})" if total else "")]
+    if total:
+        lines.append(f"{'rank':>5} {'x1':>8} {'y1':>8} {'x2':>8} {'y2':>8} {'score':>10}")
+        for i, (b, s) in enumerate(zip(boxes[:n].tolist(), scores[:n].tolist()), 1):
+            lines.append(f"{i:>5} {b[0]:8.1f} {b[1]:8.1f} {b[2]:8.1f} {b[3]:8.1f} {s:10.4f}")
+    return "\n".join(lines)
+
+
+def ms_per_img(seconds: float, n: int) -> str:
+    """``seconds`` over ``n`` images as ``"12.3 ms/img"`` (``"n/a"`` for none)."""
+    return f"{1000 * seconds / n:.1f} ms/img" if n else "n/a"
+
+
+# -- the closing summary ----------------------------------------------------------------
+
+def count_line(done: int, ok: int, failed: int, proposals: int) -> str:
+    """The first line of a run's closing summary (local and Ray engines)."""
+    return (f"{done} image{'s' if done != 1 else ''}: {ok} ok, {failed} failed; {proposals} proposals"
+            + (f" ({proposals / ok:.0f} per image)" if ok else ""))
+
+
+def failures_and_summary(failures: Sequence[str], summary_json: str | None, summary: dict) -> list[str]:
+    """Closing-summary lines naming the failed images; writes ``summary`` to ``summary_json``
+    (a warning line instead if it cannot be written). Shared by the local and Ray engines."""
+    lines = []
+    if failures:
+        lines.append(f"failed ({len(failures)}):")
+        lines += [f"  {m}" for m in failures]
+    if summary_json:
+        try:
+            Path(summary_json).write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+        except OSError as e:
+            lines.append(f"warning: {summary_json}: cannot write the summary ({e.strerror or e})")
+    return lines

@@ -1,0 +1,428 @@
+"""``reeb propose`` on this machine: images in, one row per image out, in input order.
+
+:func:`propose_local` runs the command's local engine: the inputs (files, folders, globs,
+or the bundled sample), the output checked and locked before any work (with ``--resume``,
+the rows kept from before, :class:`_ResumePlan`), the run (decoding in DataLoader workers
+beside the algorithm, batches of equal-sized images, a failed image becomes an ``error:``
+row), and the closing summary. The building blocks are :mod:`.batch`; the Ray engine is
+:mod:`.propose_ray`.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Sequence
+
+import click
+
+from .common import (
+    Failure,
+    UsageProblem,
+    box_table,
+    build_config,
+    bundled_sample,
+    count_line,
+    failures_and_summary,
+    label_for,
+    ms_per_img,
+    read_labels,
+    resolve_device,
+)
+
+__all__ = ["propose_local"]
+
+
+def propose_local(paths: Sequence[str], *, out: str | None, resume: bool, overwrite: bool, preset: str,
+                  config_file: str | None, sets: Sequence[str], top_k: int | None, device: str, batch_size: int,
+                  workers: int | None, viz_dir: str | None, viz_top: int, recursive: bool, print_top: int | None,
+                  summary_json: str | None, quiet: bool) -> None:
+    """``reeb propose`` with ``--engine local`` (the options as the command takes them).
+
+    Usage errors (exit 2) are raised as :class:`~.common.UsageProblem` before any work;
+    the process exits 1 when an image failed, 130 when interrupted.
+    """
+    from . import batch as B
+
+    cfg = build_config(preset, config_file, sets, top_k)
+    dev = resolve_device(device)
+    fingerprint = cfg.fingerprint()
+    workers = B.default_workers() if workers is None else workers
+    echo_err = (lambda m: None) if quiet else (lambda m: click.echo(m, err=True))
+
+    # 1. inputs ---------------------------------------------------------------------------
+    sample_mode = not paths
+    try:
+        images, notes = B.find_images([bundled_sample()] if sample_mode else paths, recursive)
+    except B.NoImagesError as e:
+        raise UsageProblem(str(e))
+    for n in notes:
+        echo_err(f"note: {n}")
+
+    # 2. outputs, checked before any work ------------------------------------------------------
+    if resume and not out:
+        raise UsageProblem("--resume needs --out (the file to continue)")
+    # rows are written in input order: ``slots`` maps an input position to its row (kept
+    # from before, or computed), ``first_rows`` are kept rows of images not among the inputs
+    plan = _ResumePlan(images)
+    stale: list[Path] = []
+    if out:
+        try:
+            B.check_output(out)
+            # one writer per output: a second run fails here, before any work (exit 2)
+            lock = B.lock_output(out)
+        except B.OutputError as e:
+            raise UsageProblem(str(e))
+        click.get_current_context().call_on_close(lock.release)
+        exists = Path(out).exists()
+        if exists and not (resume or overwrite):
+            raise UsageProblem(f"{out} exists; add --resume to continue it or --overwrite to "
+                               "replace it")
+        stale = B.stale_temp_files(out)  # left by killed runs (we hold the lock: none is live)
+        stale_rows: list[dict] = []
+        if stale and not overwrite:
+            for t in stale:
+                got, problems = B.read_partial_results(t, B.output_format(out))
+                stale_rows += got
+                for p in problems:
+                    echo_err(f"warning: {p}")
+            if stale_rows and not resume:
+                raise UsageProblem(
+                    f"{', '.join(t.name for t in stale)} beside {out} hold{'s' if len(stale) == 1 else ''} "
+                    f"{len(stale_rows)} finished rows of a run that was killed; add --resume to use "
+                    "them, or --overwrite to discard them")
+        if overwrite or not stale_rows:
+            for t in stale:  # nothing in them to keep
+                t.unlink(missing_ok=True)
+            stale = []
+        if resume and (exists or stale_rows):
+            rows: list[dict] = []
+            if exists:
+                try:
+                    rows, problems = B.read_results(out)
+                except B.OutputError as e:
+                    raise UsageProblem(str(e))
+                for p in problems:
+                    echo_err(f"warning: {p}")
+            other = {r.get("config") for r in rows + stale_rows
+                     if r.get("status") == "ok"} - {fingerprint}
+            if other:
+                raise UsageProblem(
+                    f"{out} was made with different settings (config {', '.join(sorted(map(str, other)))}, "
+                    f"now {fingerprint}); use the same options, another --out, or --overwrite")
+            before = len(images)
+            plan.keep(rows + stale_rows)
+            images = plan.todo_paths()
+            echo_err(f"resume: {plan.kept} images already in {out}"
+                     + (f" ({len(stale_rows)} rows recovered from a killed run)" if stale_rows else "")
+                     + (f", {plan.duplicates} duplicate rows dropped" if plan.duplicates else "")
+                     + f", {before - len(images)} of them among the inputs; {len(images)} to do")
+            if not images and not stale and not plan.duplicates:
+                click.echo(f"Nothing to do: all {before} images are already in {out}.", err=True)
+                return
+    viz_path = Path(viz_dir) if viz_dir else None
+    if viz_path is not None:
+        try:
+            viz_path.mkdir(parents=True, exist_ok=True)
+            B.check_output(viz_path / "probe.jsonl")
+        except (OSError, B.OutputError) as e:
+            raise UsageProblem(f"--viz {viz_path}: cannot write pictures there "
+                               f"({getattr(e, 'strerror', None) or e})")
+    sample_png = Path("reeb_proposals.png") if sample_mode and viz_path is None else None
+    if sample_png is not None and not os.access(sample_png.parent.resolve(), os.W_OK):
+        raise UsageProblem(f"cannot write {sample_png.resolve()}: the current folder is not "
+                           "writable (use --viz DIR)")
+    if print_top is None:
+        print_top = 0 if out else 10
+    if not out and not sample_mode and viz_path is None:
+        echo_err("note: no --out given: proposals are printed, not saved")
+    viz_names = _viz_names(images) if viz_path is not None else {}
+
+    # 3. the run --------------------------------------------------------------------------
+    import torch
+
+    from ..generator import ProposalGenerator
+    from .viz import draw_proposals, save_png
+
+    try:
+        gen = ProposalGenerator(cfg).to(dev).eval()
+    except (TypeError, ValueError, ArithmeticError) as e:
+        raise UsageProblem(f"the settings are not usable: {' '.join(str(e).split())}")
+    try:
+        writer = B.open_writer(out) if out else None
+    except B.OutputError as e:
+        raise UsageProblem(str(e))
+    if writer is not None:
+        # an unexpected error or exit must not leave the temporary file behind
+        click.get_current_context().call_on_close(writer.discard)
+        writer.write(plan.first_rows)
+    cs = B.CriticalSection()  # a row is written whole, and counted, or not at all
+    saved_now = [0]  # rows of this run in the writer
+
+    def emit(todo_pos: int, row: dict | None) -> None:
+        """Place this run's row for input ``todo_pos`` and write what is next in input order."""
+        plan.put(todo_pos, row)
+        if writer is not None:
+            rows = plan.ready()
+            writer.write(r for r, _ in rows)
+            saved_now[0] += sum(new for _, new in rows)
+    gt = read_labels(label_for(images[0])) if sample_mode and label_for(images[0]) else None
+
+    stats = dict(images=len(images), ok=0, failed=0, proposals=0, algo_s=0.0)
+    failures: list[str] = []
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(images), unit="img", disable=True if quiet else None, file=sys.stderr,
+               dynamic_ncols=True, desc="reeb propose")
+
+    def fail(item, message: str, size=None) -> None:
+        with cs:
+            stats["failed"] += 1
+            failures.append(message)
+            emit(item.index, B.error_row(item.path, message, fingerprint, size or item.size))
+        if not quiet:
+            bar.write(f"error: {message}", file=sys.stderr)
+
+    def finish(item, result, algo_s: float) -> None:
+        h, w = item.image.shape[-2:]
+        boxes, scores = result["boxes"].cpu(), result["scores"].cpu()
+        with cs:
+            stats["ok"] += 1
+            stats["proposals"] += len(boxes)
+            emit(item.index, B.result_row(item.path, w, h, boxes, scores, fingerprint)
+                 if writer is not None else None)
+        if print_top:
+            bar.write(box_table(item.path, (w, h), boxes, scores, print_top, len(boxes)) + "\n",
+                      file=sys.stdout)
+        pictures = []
+        if viz_path is not None:
+            pictures.append(viz_path / viz_names[item.path])
+        if sample_png is not None:
+            pictures.append(sample_png)
+        for pic in pictures:
+            title = f"{Path(item.path).name}: top {min(viz_top, len(boxes))} of {len(boxes)} proposals"
+            try:
+                save_png(pic, draw_proposals(item.image, boxes, scores, top=viz_top,
+                                             gt=gt if pic == sample_png else None, title=title))
+            except OSError as e:
+                bar.write(f"warning: {pic}: cannot write picture ({e.strerror or e})", file=sys.stderr)
+
+    def run_batch(items: list) -> None:
+        x = torch.stack([it.image for it in items]).to(dev, non_blocking=True)
+        t0 = time.perf_counter()
+        results = gen(x)
+        results = [{k: v.cpu() for k, v in r.items()} for r in results]
+        dt = time.perf_counter() - t0
+        stats["algo_s"] += dt
+        for it, r in zip(items, results):
+            finish(it, r, dt / len(items))
+
+    interrupted = False
+    first_done = None  # (time, images done, algorithm seconds) after the first computed batch
+    t_start = time.perf_counter()
+    stream = B.decoded_images(images, workers=workers, min_side=cfg.min_window,
+                              prefetch=batch_size, pin_memory=dev.type == "cuda")
+    previous_handlers = cs.install()  # Ctrl-C, and a polite kill (SIGTERM) treated like it
+    try:
+        # max_lag: a group of a rare size waits at most this many inputs, which bounds the
+        # rows held back to be written in input order
+        for group in B.size_batches(stream, batch_size, max_lag=max(64, 4 * batch_size)):
+            if not group[0].ok:
+                fail(group[0], group[0].error)
+            else:
+                try:
+                    run_batch(group)
+                except (ValueError, TypeError, RuntimeError) as e0:
+                    if B.caused_by_interrupt(e0):
+                        raise
+                    # find the culprit(s): one image at a time
+                    for it in group:
+                        try:
+                            run_batch([it])
+                        except (ValueError, TypeError, RuntimeError) as e1:
+                            if B.caused_by_interrupt(e1):
+                                raise
+                            fail(it, B.file_error(it.path, e1))
+            bar.update(len(group))
+            if first_done is None and stats["ok"]:
+                first_done = (time.perf_counter(), stats["ok"] + stats["failed"], stats["algo_s"])
+            if stats["failed"]:
+                bar.set_postfix(failed=stats["failed"], refresh=False)
+    except KeyboardInterrupt:
+        interrupted = True
+    except Exception as e:  # a Ctrl-C that a library wrapped on its way out (B.caused_by_interrupt)
+        if not B.caused_by_interrupt(e):
+            raise
+        interrupted = True
+    finally:
+        for sig in previous_handlers:  # a second Ctrl-C must not break the saving
+            signal.signal(sig, signal.SIG_IGN)
+        stream.close()
+        bar.close()
+    wall = time.perf_counter() - t_start
+
+    # 4. save and summarise -----------------------------------------------------------------
+    saved = None
+    try:
+        if writer is not None:
+            rows = plan.rest()  # after an interrupt: the rows held back, still in input order
+            writer.write(r for r, _ in rows)
+            saved_now[0] += sum(new for _, new in rows)
+            try:
+                saved = writer.commit()
+            except OSError as e:
+                raise Failure(f"{out}: cannot save the results ({e.strerror or e}); the old file, "
+                              "if any, is unchanged")
+            for t in stale:  # their rows are in the output now
+                t.unlink(missing_ok=True)
+    finally:
+        for sig, h in previous_handlers.items():
+            signal.signal(sig, h)
+    done = stats["ok"] + stats["failed"]
+    summary = dict(images=len(images), processed=done, ok=stats["ok"], failed=stats["failed"],
+                   proposals=stats["proposals"],
+                   ms_per_image=1000 * wall / done if done else None,
+                   algorithm_ms_per_image=1000 * stats["algo_s"] / stats["ok"] if stats["ok"] else None,
+                   workers=workers, batch_size=batch_size, device=str(dev), config=fingerprint,
+                   **_steady(first_done, t_start + wall, done, stats),
+                   out=str(saved) if saved else None, rows=writer.rows_written if writer else None,
+                   saved=saved_now[0] if writer else None,
+                   interrupted=interrupted, failures=failures)
+    lines = [count_line(done, stats["ok"], stats["failed"], stats["proposals"])]
+    if done:
+        lines.append(f"time: {wall:.1f} s, {ms_per_img(wall, done)} end to end; {ms_per_img(stats['algo_s'], stats['ok'])} "
+                     f"in the algorithm ({workers} decoding worker{'s' if workers != 1 else ''}, "
+                     f"batch {batch_size}, {dev})")
+    if saved:
+        lines.append(f"wrote {saved} ({writer.rows_written} rows"
+                     + (f", {plan.kept_written} kept from before" if plan.kept_written else "") + ")")
+    if viz_path is not None and stats["ok"]:
+        lines.append(f"pictures in {viz_path}/")
+    if sample_png is not None and stats["ok"]:
+        lines.append(f"wrote {sample_png.resolve()} (top {viz_top} proposals"
+                     + (", ground truth in green" if gt else "") + ")")
+    lines += failures_and_summary(failures, summary_json, summary)
+    if interrupted:
+        if saved:
+            left = len(images) - saved_now[0]  # counted as written: the summary matches the file
+            how = f"run the same command with --resume to do the {left} left"
+            if "--resume" in sys.argv:
+                how = f"run the same command again to do the {left} left"
+            lines.append(f"interrupted: {saved_now[0]} of {len(images)} images saved in {saved}; {how}")
+        else:
+            lines.append(f"interrupted after {done} of {len(images)} images; nothing was saved "
+                         "(no --out)")
+    click.echo("\n".join(lines), err=True)
+    if interrupted:
+        sys.exit(130)
+    if stats["failed"]:
+        sys.exit(1)
+
+
+class _ResumePlan:
+    """Which inputs to compute, and the output rows in input order.
+
+    Rows are matched on the resolved file (:func:`reeb_torch.runs.batch.resolved_path`, stored
+    in each row as ``resolved``; rows of older files without it are resolved against the
+    current folder), so a run from another folder, through a symlink or with an absolute
+    path finds them. Per file the first ``ok`` row is kept, and other rows of it dropped;
+    an ``error`` row is kept only for a file that is not among the inputs (the others are
+    computed again). Kept rows of files not among the inputs come first in the output, in
+    their old order; then one row per input, in input order.
+    """
+
+    def __init__(self, images: Sequence[Path]) -> None:
+        from .batch import resolved_path
+
+        self.images = list(images)
+        self.keys = [resolved_path(p) for p in self.images]
+        self.first_rows: list[dict] = []
+        self.slots: dict[int, tuple[dict, bool]] = {}  # input position -> (row, new in this run)
+        self.todo = list(range(len(self.images)))  # input positions to compute
+        self.kept = self.duplicates = self.kept_written = 0
+        self._next = 0
+
+    def keep(self, rows: Sequence[dict]) -> None:
+        """Take the rows of an earlier run (the output, then a killed run's temp files)."""
+        from .batch import resolved_path
+
+        def key(r: dict) -> str:
+            return str(r.get("resolved") or resolved_path(str(r["image"])))
+
+        best: dict[str, dict] = {}
+        order: list[str] = []
+        for r in rows:
+            k = key(r)
+            if k not in best:
+                best[k] = r
+                order.append(k)
+            else:
+                self.duplicates += 1
+                if best[k].get("status") != "ok" and r.get("status") == "ok":
+                    best[k] = r
+        position = {k: i for i, k in enumerate(self.keys)}
+        for k in order:
+            r = best[k]
+            ok = r.get("status") == "ok"
+            self.kept += ok
+            if k not in position:
+                self.first_rows.append(r)
+            elif ok:
+                self.slots[position[k]] = (r, False)
+        self.todo = [i for i in range(len(self.images)) if i not in self.slots]
+        self.kept_written = len(self.first_rows)  # written first, before this run's rows
+
+    def todo_paths(self) -> list[Path]:
+        return [self.images[i] for i in self.todo]
+
+    def put(self, todo_pos: int, row: dict | None) -> None:
+        """This run's row for ``todo_paths()[todo_pos]`` (None: no output, only count)."""
+        self.slots[self.todo[todo_pos]] = (row, True)
+
+    def ready(self) -> list[tuple[dict, bool]]:
+        """Rows that can be written now: the next ones in input order, no gap before them."""
+        out = []
+        while self._next in self.slots:
+            out.append(self.slots.pop(self._next))
+            self._next += 1
+        return self._count([o for o in out if o[0] is not None])
+
+    def rest(self) -> list[tuple[dict, bool]]:
+        """All rows still held back, in input order (at the end, or after an interrupt)."""
+        out = [self.slots.pop(i) for i in sorted(self.slots)]
+        self._next = len(self.images)
+        return self._count([o for o in out if o[0] is not None])
+
+    def _count(self, rows: list[tuple[dict, bool]]) -> list[tuple[dict, bool]]:
+        self.kept_written += sum(not new for _, new in rows)
+        return rows
+
+
+def _steady(first_done, t_end: float, done: int, stats: dict) -> dict:
+    """Throughput after the first computed batch (which pays the one-off warm-up)."""
+    if first_done is None or done <= first_done[1]:
+        return dict(steady_ms_per_image=None, steady_algorithm_ms_per_image=None)
+    t1, n1, a1 = first_done
+    n = done - n1
+    return dict(steady_ms_per_image=1000 * (t_end - t1) / n,
+                steady_algorithm_ms_per_image=1000 * (stats["algo_s"] - a1) / n)
+
+
+def _viz_names(images: Sequence[Path]) -> dict[str, str]:
+    """A distinct PNG file name per image: ``<stem>.png``, ``<stem>-<n>.png`` on clashes."""
+    from collections import Counter
+
+    stems = Counter(Path(p).stem for p in images)
+    names: dict[str, str] = {}
+    used: set[str] = set()
+    for i, p in enumerate(images):
+        stem = Path(p).stem
+        name = f"{stem}.png" if stems[stem] == 1 else f"{stem}-{i + 1}.png"
+        while name in used:
+            name = f"{stem}-{i + 1}-{len(used)}.png"
+        used.add(name)
+        names[str(p)] = name
+    return names
