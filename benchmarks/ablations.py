@@ -9,10 +9,10 @@ choose on one half and confirm on the other.
 
 Each row is also paired with the default on the same objects (R@2000, IoU 0.7): ``+g/-l``
 counts the objects it finds that the default misses and the other way round, and ``p`` is
-the two-sided exact sign test of that split (:func:`reeb_torch.metrics.compare_recall`).
+the two-sided exact sign test of that split (:func:`reeb_torch.eval.metrics.compare_recall`).
 On 60 frames a one- or two-object difference is p ≈ 0.5-1: not a finding. The default's
 row gives its recall's 95 % frame-bootstrap interval instead
-(:func:`reeb_torch.metrics.recall_interval`).
+(:func:`reeb_torch.eval.metrics.recall_interval`).
 
 ``--variant "FIELD=VALUE;FIELD=VALUE"`` (repeatable; fields and values as ``reeb propose
 --set``) adds a row for any setting of the default: with it, only the default and these
@@ -41,7 +41,7 @@ from reeb_torch import ProposalGenerator, ReebConfig  # noqa: E402
 from reeb_torch.runs.common import build_config  # noqa: E402
 from reeb_torch.eval.common import add_frames_option, load_kitti  # noqa: E402
 from reeb_torch.eval.table3 import moderate_masks  # noqa: E402
-from reeb_torch.metrics import (  # noqa: E402
+from reeb_torch.eval.metrics import (  # noqa: E402
     average_recall,
     compare_recall,
     object_hits,

@@ -31,7 +31,7 @@ from _common import default_kitti_dir, rerun_line, run_captured  # noqa: E402
 from reeb_torch import ProposalGenerator  # noqa: E402
 from reeb_torch.runs.common import build_config  # noqa: E402
 from reeb_torch.eval.common import add_frames_option, load_kitti  # noqa: E402
-from reeb_torch.metrics import kitti_difficulty_mask  # noqa: E402
+from reeb_torch.eval.metrics import kitti_difficulty_mask  # noqa: E402
 from reeb_torch.stages.nms import nms_top_k  # noqa: E402
 from reeb_torch.runs.viz import crop_sheet, save_png  # noqa: E402
 

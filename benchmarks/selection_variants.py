@@ -35,7 +35,7 @@ from _common import default_kitti_dir, rerun_line, run_captured  # noqa: E402
 from reeb_torch import ProposalGenerator, ReebConfig  # noqa: E402
 from reeb_torch.ranking import Ranking  # noqa: E402
 from reeb_torch.eval.common import add_frames_option, load_kitti  # noqa: E402
-from reeb_torch.metrics import compare_recall, object_hits  # noqa: E402
+from reeb_torch.eval.metrics import compare_recall, object_hits  # noqa: E402
 from reeb_torch.stages.nms import nms_top_k  # noqa: E402
 
 TOP_K, IOU = 2000, 0.7

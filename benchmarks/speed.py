@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_kitti_dir, environment, rerun_line  # noqa: E402
 
 from reeb_torch import ProposalGenerator, get_preset  # noqa: E402
-from reeb_torch.data import KittiDataset  # noqa: E402
+from reeb_torch.eval.data import KittiDataset  # noqa: E402
 from reeb_torch.io import read_image  # noqa: E402
 
 STAGES = [

@@ -1,4 +1,4 @@
-"""Tests of reeb_torch.baselines: output contract on a KITTI frame, and the +1 box offsets
+"""Tests of reeb_torch.eval.baselines: output contract on a KITTI frame, and the +1 box offsets
 checked against what OpenCV's sources say, on synthetic images whose answer is known."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from reeb_torch.baselines import (
+from reeb_torch.eval.baselines import (
     BASELINES,
     BingBaseline,
     EdgeBoxesBaseline,

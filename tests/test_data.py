@@ -1,4 +1,4 @@
-"""Tests of reeb_torch.data: KITTI readers and dataset, on synthetic folders and real files."""
+"""Tests of reeb_torch.eval.data: KITTI readers and dataset, on synthetic folders and real files."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from reeb_torch.data import (
+from reeb_torch.eval.data import (
     DEFAULT_CLASSES,
     KittiDataset,
     camera_intrinsics,
@@ -276,7 +276,8 @@ def test_real_kitti_folder():
 
 
 def test_camera_module_is_the_source_of_the_readers():
-    from reeb_torch import camera, data
+    from reeb_torch import camera
+    from reeb_torch.eval import data
 
     assert data.read_kitti_calib is camera.read_kitti_calib
     assert data.camera_intrinsics is camera.camera_intrinsics

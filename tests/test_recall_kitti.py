@@ -14,8 +14,8 @@ from __future__ import annotations
 import pytest
 
 from reeb_torch import ProposalGenerator, get_preset
-from reeb_torch.data import KittiDataset
-from reeb_torch.metrics import recall_table
+from reeb_torch.eval.data import KittiDataset
+from reeb_torch.eval.metrics import recall_table
 
 
 @pytest.fixture(scope="module")

@@ -4,7 +4,7 @@ Rows are methods, columns are recall (%) at IoU 0.3 / 0.5 / 0.7 for the top 500 
 2000 proposals, then milliseconds per image. Methods (``--methods``, keys in brackets):
 
 - BING [bing], Selective Search [selective-search], Edge Boxes [edgeboxes]: OpenCV contrib,
-  see :mod:`reeb_torch.baselines`;
+  see :mod:`reeb_torch.eval.baselines`;
 - Ours* [reeb-default-no-regions], Ours** [reeb-default]: REEB with the package default
   config, without / with region enhancement;
 - Ours** refined [reeb-refined]: the ``refined`` preset (the default with Edge Boxes'
@@ -17,16 +17,16 @@ Truck). Tables, for the selected frames:
 1. micro recall over all objects (all objects pooled) - the headline, as Table 3;
 2. micro recall over KITTI-*moderate* objects (box height >= 25 px, occlusion <= 1,
    truncation <= 0.3: the usual protocol of KITTI proposal papers,
-   :data:`reeb_torch.metrics.KITTI_DIFFICULTIES`);
+   :data:`reeb_torch.eval.metrics.KITTI_DIFFICULTIES`);
 3. the mean of the per-class recalls (all objects);
 4. per-class recall at 2000 proposals, IoU 0.7, over all and over moderate objects;
 5. average recall (AR, IoU 0.5:0.05:0.95) at each k;
 6. the headline (2000 proposals, IoU 0.7, all objects) with its 95 % frame-bootstrap
-   interval (:func:`reeb_torch.metrics.recall_interval`): on 60 frames about ±6 points,
+   interval (:func:`reeb_torch.eval.metrics.recall_interval`): on 60 frames about ±6 points,
    on 20 about ±10, so the paper's 72.1 % is told apart only from figures well outside it;
    and each method paired with the package default (``reeb-default``, or the first method
    run) on the same objects: objects only it recalls, objects only the default recalls,
-   and the exact sign test (:func:`reeb_torch.metrics.compare_recall`).
+   and the exact sign test (:func:`reeb_torch.eval.metrics.compare_recall`).
 
 ``--frames 0:39 40:59`` selects frames by numeric id (both ends included); with two or more
 ranges, tables 1, 2, 4 and 6 are repeated for each range (the proposals are computed once).
@@ -60,7 +60,7 @@ from typing import Any
 
 import torch
 
-from ..metrics import (
+from .metrics import (
     AR_IOUS,
     KITTI_DIFFICULTIES,
     RecallResult,
@@ -131,7 +131,7 @@ def _reeb(preset: str) -> Callable[..., Callable]:
 
 def _baseline(name: str) -> Callable[..., Callable]:
     def build(max_proposals: int, bing_model: str | os.PathLike | None = None, **_: Any) -> Callable:
-        from ..baselines import BASELINES
+        from .baselines import BASELINES
 
         if name == "bing" and bing_model is not None:
             return BASELINES[name](max_proposals=max_proposals, model_dir=bing_model)
@@ -216,7 +216,7 @@ def recall_tables(
 
     Returns:
         ``(table, ar_table)``: recall at :data:`KS` x :data:`IOUS`, and at :data:`KS` x
-        :data:`reeb_torch.metrics.AR_IOUS` (its mean over IoUs is the average recall).
+        :data:`reeb_torch.eval.metrics.AR_IOUS` (its mean over IoUs is the average recall).
     """
     gts = [it["boxes"] for it in items]
     labels: list[torch.Tensor] | None = [it["labels"] for it in items]
@@ -366,7 +366,7 @@ def build_parser(prog: str = "python -m reeb_torch.eval", default_data: Path | N
                    help="also time REEB in batches of this many images (0 or 1: skip); default: %(default)s")
     p.add_argument("--bing-model", type=Path, default=None,
                    help="folder of BING's nine ObjNessB2W8*.yml.gz files; default: the package's "
-                        "default (reeb_torch.baselines.default_bing_model_dir), else bing_model/ "
+                        "default (reeb_torch.eval.baselines.default_bing_model_dir), else bing_model/ "
                         "beside the --data folder")
     return p
 
@@ -374,7 +374,7 @@ def build_parser(prog: str = "python -m reeb_torch.eval", default_data: Path | N
 def _bing_model(args: argparse.Namespace) -> Path | None:
     if args.bing_model is not None:
         return args.bing_model
-    from ..baselines import default_bing_model_dir
+    from .baselines import default_bing_model_dir
 
     if default_bing_model_dir().is_dir():
         return None

@@ -196,7 +196,7 @@ def label_for(image: Path) -> Path | None:
 
 
 def read_labels(path: Path) -> list:
-    from ..data import read_kitti_labels
+    from ..eval.data import read_kitti_labels
 
     try:
         objs = read_kitti_labels(path)

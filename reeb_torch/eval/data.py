@@ -31,8 +31,8 @@ from typing import Any
 
 import torch
 
-from .camera import camera_intrinsics, read_kitti_calib  # re-exported: moved to .camera
-from .io import IMAGE_EXTENSIONS, read_image
+from ..camera import camera_intrinsics, read_kitti_calib  # re-exported: moved to reeb_torch.camera
+from ..io import IMAGE_EXTENSIONS, read_image
 
 __all__ = [
     "DEFAULT_CLASSES",

@@ -307,7 +307,7 @@ class EdgeBoxesBaseline:
 
 def default_bing_model_dir() -> Path:
     """``shared/data/bing_model`` beside the repository (``<repo>/../shared/data/bing_model``)."""
-    return Path(__file__).resolve().parents[2] / "shared" / "data" / "bing_model"
+    return Path(__file__).resolve().parents[3] / "shared" / "data" / "bing_model"
 
 
 _BING_FILES = ("ObjNessB2W8MAXBGR.idx.yml.gz", "ObjNessB2W8MAXBGR.wS1.yml.gz", "ObjNessB2W8MAXBGR.wS2.yml.gz")
