@@ -180,7 +180,7 @@ def format_lost(lost: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> dict:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=default_kitti_dir())
     ap.add_argument("--limit", type=int, default=None)
@@ -195,6 +195,26 @@ def main(argv: list[str] | None = None) -> dict:
                     help="with --lost: draw every missed object (its box green, the nearest proposal "
                          "orange, the stage that lost it below) in one picture (.png, or .jpg)")
     ap.add_argument("--json", type=Path, default=None, help="also write the numbers to this JSON file")
+    return ap
+
+
+def _write_sheet(path: Path, crops: list, lost: list[dict]) -> None:
+    """``--show``: the missed objects' crops, grouped by the stage that lost them."""
+    order = sorted(range(len(crops)), key=lambda i: LOST_AT.index(lost[i]["lost_at"]))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sheet = crop_sheet([crops[i] for i in order], columns=8)
+    if path.suffix.lower() in (".jpg", ".jpeg"):  # a fifth of the PNG's bytes for photos
+        import cv2
+
+        ok, data = cv2.imencode(".jpg", sheet[:, :, ::-1].copy(), [cv2.IMWRITE_JPEG_QUALITY, 85])
+        path.write_bytes(data.tobytes())
+    else:
+        save_png(path, sheet)
+    print(f"wrote {path}")
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = _parser()
     args = ap.parse_args(argv)
     if args.show is not None and not args.lost:
         ap.error("--show draws the objects --lost lists: give --lost too")
@@ -253,17 +273,7 @@ def main(argv: list[str] | None = None) -> dict:
         print(format_lost(lost))
         record["lost"] = lost
     if args.show is not None:
-        order = sorted(range(len(crops)), key=lambda i: LOST_AT.index(lost[i]["lost_at"]))
-        args.show.parent.mkdir(parents=True, exist_ok=True)
-        sheet = crop_sheet([crops[i] for i in order], columns=8)
-        if args.show.suffix.lower() in (".jpg", ".jpeg"):  # a fifth of the PNG's bytes for photos
-            import cv2
-
-            ok, data = cv2.imencode(".jpg", sheet[:, :, ::-1].copy(), [cv2.IMWRITE_JPEG_QUALITY, 85])
-            args.show.write_bytes(data.tobytes())
-        else:
-            save_png(args.show, sheet)
-        print(f"wrote {args.show}")
+        _write_sheet(args.show, crops, lost)
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(record, indent=1))

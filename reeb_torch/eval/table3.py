@@ -392,6 +392,19 @@ def _frame_span(ids: Sequence[str]) -> str:
     return f"{ids[0]}-{ids[-1]}" if ids else "none"
 
 
+@dataclass
+class _Frames:
+    """The selected frames of the KITTI folder, decoded."""
+
+    items: list[dict]
+    classes: tuple[str, ...]
+    images: list[torch.Tensor]
+    gts: list[torch.Tensor]
+    labels: list[torch.Tensor]
+    ids: list[str]
+    n_obj: int
+
+
 def main(
     argv: Sequence[str] | None = None,
     *,
@@ -405,102 +418,179 @@ def main(
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser(prog, default_data)
+    args = _parse_args(parser, argv)
+    rerun = rerun_line(prog, argv)
+    print(f"Rerun: {rerun}   (from {os.getcwd()})", flush=True)
+    frames = _load_frames(args, parser)
+    splits = _splits(args, frames.ids)
+    bing_model = _bing_model(args)
+    args.out.mkdir(parents=True, exist_ok=True)
+    results, curves, hits = _run_methods(args, frames, splits, bing_model)
+    done = [k for k in args.methods if "recall" in results[k]]
+    # every row paired with the package default (or the first row run) on the same objects
+    reference = "reeb-default" if "reeb-default" in done else (done[0] if done else None)
+    _pair_with_reference(results, hits, splits, done, reference)
+    env = environment()
+    text = _report(args, rerun, env, frames, splits, results, done, reference)
+    print("\n" + text, flush=True)
+    (args.out / "table3.txt").write_text(text)
+    _write_csv(args.out / "table3.csv", results, done, splits, frames.classes, args.batch)
+    plots = _plot(curves, args.out) if curves else []
+    record = _record(args, rerun, env, frames, splits, results, plots)
+    (args.out / "table3.json").write_text(json.dumps(record, indent=1))
+    print(f"wrote {args.out}/table3.txt, table3.csv, table3.json"
+          + (f", {', '.join(plots)}" if plots else ""), flush=True)
+    return record
+
+
+def _parse_args(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if args.max_proposals < max(KS):
         parser.error(f"--max-proposals must be >= {max(KS)} for Table 3's columns, got {args.max_proposals}")
     if args.limit is not None and args.limit < 1:
         parser.error(f"--limit must be >= 1, got {args.limit}")
-    rerun = rerun_line(prog, argv)
-    print(f"Rerun: {rerun}   (from {os.getcwd()})", flush=True)
+    return args
 
+
+def _load_frames(args: argparse.Namespace, parser: argparse.ArgumentParser) -> _Frames:
+    """The selected frames, decoded; a usage error when there are none or they hold no object."""
     t0 = time.perf_counter()
     try:
         items, classes = load_kitti(args.data, limit=args.limit, frames=args.frames)
     except (ValueError, FileNotFoundError) as e:
         parser.error(str(e))
-    images = [it["image"] for it in items]
     gts = [it["boxes"] for it in items]
-    labels = [it["labels"] for it in items]
-    ids = [it["image_id"] for it in items]
-    n_obj = sum(int(g.shape[0]) for g in gts)
-    if n_obj == 0:
+    frames = _Frames(items, classes, [it["image"] for it in items], gts, [it["labels"] for it in items],
+                     [it["image_id"] for it in items], sum(int(g.shape[0]) for g in gts))
+    if frames.n_obj == 0:
         parser.error(f"{args.data}: the {len(items)} selected frames hold no object of "
                      f"{', '.join(classes)}; recall is undefined")
-    print(f"{len(images)} frames from {args.data} ({n_obj} objects of {', '.join(classes)}), "
+    print(f"{len(frames.images)} frames from {args.data} ({frames.n_obj} objects of {', '.join(classes)}), "
           f"decoded in {time.perf_counter() - t0:.1f} s", flush=True)
+    return frames
 
-    # frame splits: the whole selection, then each --frames range when there are several
-    splits: list[tuple[str, list[int]]] = [("all", list(range(len(items))))]
+
+def _splits(args: argparse.Namespace, ids: list[str]) -> list[tuple[str, list[int]]]:
+    """Frame splits: the whole selection, then each ``--frames`` range when there are several."""
+    splits: list[tuple[str, list[int]]] = [("all", list(range(len(ids))))]
     if len(args.frames) > 1:
         for r in args.frames:
             idx = [i for i, f in enumerate(ids) if int(f) in r]
             splits.append((r.text, idx))
-    bing_model = _bing_model(args)
+    return splits
 
-    args.out.mkdir(parents=True, exist_ok=True)
+
+def _run_methods(args: argparse.Namespace, frames: _Frames, splits: list[tuple[str, list[int]]],
+                 bing_model: Path | None) -> tuple[dict[str, Any], dict[str, dict], dict[str, list[torch.Tensor]]]:
+    """Each method's proposals and their record: ``(results, curves, hits)``, keyed by method
+    (curves by label; hits: per-frame headline hits, for the pairing)."""
     results: dict[str, Any] = {}
     curves: dict[str, dict] = {}
     hits: dict[str, list[torch.Tensor]] = {}  # method -> per-frame headline hits
     for key in args.methods:
         method = METHODS[key]
         try:
-            boxes, timing = run_method(method, images, args.max_proposals, args.batch, bing_model=bing_model)
+            boxes, timing = run_method(method, frames.images, args.max_proposals, args.batch, bing_model=bing_model)
         except (FileNotFoundError, ImportError) as e:  # e.g. the BING model folder is absent
             print(f"skipped {method.label}: {e}", flush=True)
             results[key] = {"label": method.label, "skipped": str(e)}
             continue
-        ks_curve, r_k = recall_vs_proposals(boxes, gts, iou=0.7, max_k=args.max_proposals)
-        ious_curve, r_iou = recall_vs_iou(boxes, gts, k=max(KS), ious=CURVE_IOUS)
+        ks_curve, r_k = recall_vs_proposals(boxes, frames.gts, iou=0.7, max_k=args.max_proposals)
+        ious_curve, r_iou = recall_vs_iou(boxes, frames.gts, k=max(KS), ious=CURVE_IOUS)
         curves[method.label] = {"ks": ks_curve.tolist(), "recall_vs_k": r_k.tolist(),
                                 "ious": ious_curve.tolist(), "recall_vs_iou": r_iou.tolist()}
-        split_records: dict[str, Any] = {}
-        hits[key] = object_hits(boxes, gts, *HEADLINE)  # once; each split takes its frames' hits
-        for name, idx in splits:
-            rec: dict[str, Any] = {"frames": [ids[i] for i in idx]}
-            for objects in OBJECT_SETS:
-                table, ar = recall_tables([boxes[i] for i in idx], [items[i] for i in idx], classes, objects)
-                rec[objects] = {"recall": table.to_dict(), "ar": _ar_dict(ar)}
-            ci = recall_interval([hits[key][i] for i in idx])
-            rec["headline_interval"] = {"recall": ci.recall, "low": ci.low, "high": ci.high, "level": ci.level}
-            split_records[name] = rec
-        whole = split_records["all"]
+        hits[key] = object_hits(boxes, frames.gts, *HEADLINE)  # once; each split takes its frames' hits
+        results[key] = _method_record(method, boxes, timing, hits[key], curves[method.label], frames, splits)
+        whole = results[key]["splits"]["all"]
         hk, ht = HEADLINE
-        results[key] = {
-            "label": method.label,
-            # kept as before: all objects of all selected frames
-            "recall": whole["all"]["recall"],
-            "ar_micro": whole["all"]["ar"]["micro"],
-            "ar_class_mean": whole["all"]["ar"]["class_mean"],
-            "recall_moderate": whole["moderate"]["recall"],
-            "per_class_headline": {
-                objects: {c: whole[objects]["recall"]["per_class"][c][str(hk)][f"{ht:g}"] for c in classes}
-                for objects in OBJECT_SETS
-            },
-            "splits": split_records,
-            "timing": timing,
-            "curves": curves[method.label],
-        }
         mod = whole["moderate"]["recall"]["micro"][str(hk)][f"{ht:g}"]
         micro = whole["all"]["recall"]["micro"][str(hk)][f"{ht:g}"]
         print(f"  {method.label}: recall@2000 IoU0.7 micro {_fmt(_pct(micro))} %, "
               f"moderate {_fmt(_pct(mod))} %, {timing['ms_per_img']:.0f} ms/img", flush=True)
+    return results, curves, hits
 
-    done = [k for k in args.methods if "recall" in results[k]]
-    # every row paired with the package default (or the first row run) on the same objects
-    reference = "reeb-default" if "reeb-default" in done else (done[0] if done else None)
+
+def _method_record(method: Method, boxes: list[torch.Tensor], timing: dict, hits: list[torch.Tensor], curve: dict,
+                   frames: _Frames, splits: list[tuple[str, list[int]]]) -> dict[str, Any]:
+    """One method's entry of the JSON record: its recall tables per split and object set."""
+    split_records: dict[str, Any] = {}
+    for name, idx in splits:
+        rec: dict[str, Any] = {"frames": [frames.ids[i] for i in idx]}
+        for objects in OBJECT_SETS:
+            table, ar = recall_tables([boxes[i] for i in idx], [frames.items[i] for i in idx], frames.classes,
+                                      objects)
+            rec[objects] = {"recall": table.to_dict(), "ar": _ar_dict(ar)}
+        ci = recall_interval([hits[i] for i in idx])
+        rec["headline_interval"] = {"recall": ci.recall, "low": ci.low, "high": ci.high, "level": ci.level}
+        split_records[name] = rec
+    whole = split_records["all"]
+    hk, ht = HEADLINE
+    return {
+        "label": method.label,
+        # kept as before: all objects of all selected frames
+        "recall": whole["all"]["recall"],
+        "ar_micro": whole["all"]["ar"]["micro"],
+        "ar_class_mean": whole["all"]["ar"]["class_mean"],
+        "recall_moderate": whole["moderate"]["recall"],
+        "per_class_headline": {
+            objects: {c: whole[objects]["recall"]["per_class"][c][str(hk)][f"{ht:g}"] for c in frames.classes}
+            for objects in OBJECT_SETS
+        },
+        "splits": split_records,
+        "timing": timing,
+        "curves": curve,
+    }
+
+
+def _pair_with_reference(results: dict[str, Any], hits: dict[str, list[torch.Tensor]],
+                         splits: list[tuple[str, list[int]]], done: list[str], reference: str | None) -> None:
+    """Each method's objects found and lost against ``reference``, with the sign test, per split."""
     for k in done:
         for split, idx in splits:
             c = compare_recall([hits[reference][i] for i in idx], [hits[k][i] for i in idx])
             results[k]["splits"][split]["versus_reference"] = {
                 "reference": reference, "gained": c.gained, "lost": c.lost, "p_value": c.p_value}
 
+
+def _report(args: argparse.Namespace, rerun: str, env: dict, frames: _Frames, splits: list[tuple[str, list[int]]],
+            results: dict[str, Any], done: list[str], reference: str | None) -> str:
+    """The text of ``table3.txt``: the rerun line, the header, then the tables of each split,
+    the AR lines and the paper's Table 3."""
+    blocks = []
+    for split, idx in splits:
+        blocks += _split_blocks(args, frames, split, idx, len(splits), results, done, reference)
+    ar_lines = ["Average recall (%, IoU 0.5:0.05:0.95, all objects)   micro @500 / @1000 / @2000  |  "
+                "class mean @500 / @1000 / @2000"]
+    for k in done:
+        a, c = results[k]["ar_micro"], results[k]["ar_class_mean"]
+        ar_lines.append(f"{results[k]['label']:<30} " + " / ".join(f"{_fmt(_pct(a[str(kk)])):>5}" for kk in KS)
+                        + "  |  " + " / ".join(f"{_fmt(_pct(c[str(kk)])):>5}" for kk in KS))
+    blocks.append("\n".join(ar_lines))
+    blocks.append(format_table(
+        "The paper's Table 3 (7481 KITTI frames, C++ on an i7-8750H; its Edge Boxes uses SE edges)",
+        [(n, v, f"{t:,}") for n, (v, t) in PAPER_TABLE3.items()]))
+    counts = ", ".join(f"{c} {n}" for c, n in zip(frames.classes, _class_counts(frames.labels, len(frames.classes))))
+    frames_note = f", --frames {' '.join(r.text for r in args.frames)}" if args.frames else ""
+    header = (f"Table 3 on {len(frames.images)} frames of {args.data} ({_frame_span(frames.ids)}{frames_note}; "
+              f"{frames.n_obj} objects: {counts}).\n"
+              f"Time: wall ms per image of the proposal call only (decoding excluded), batch size 1"
+              f"{f'; REEB also at batch {args.batch} (@b{args.batch})' if args.batch > 1 else ''}; "
+              f"{env['processor']}, {env['cpu_count']} cores, torch threads {env['torch_threads']}, "
+              f"OpenCV threads {env['opencv_threads']}, CUDA {'yes' if env['cuda'] else 'no'}.")
+    return "\n\n".join([f"Rerun: {rerun}", header, *blocks]) + "\n"
+
+
+def _split_blocks(args: argparse.Namespace, frames: _Frames, split: str, idx: list[int], n_splits: int,
+                  results: dict[str, Any], done: list[str], reference: str | None) -> list[str]:
+    """The tables of one split of the frames: micro, moderate (and, for all frames, the
+    class mean), the headline with its interval and pairings, the per-class table."""
     def time_cell(k: str) -> str:
         t = results[k]["timing"]
         s = f"{t['ms_per_img']:.0f}"
         bk = f"ms_per_img_batch{args.batch}"
         return s + (f" ({t[bk]:.0f} @b{args.batch})" if bk in t else "")
 
-    def grid_rows(split: str, objects: str, average: str) -> list[tuple[str, list[float], str]]:
+    def grid_rows(objects: str, average: str) -> list[tuple[str, list[float], str]]:
         rows = []
         for k in done:
             grid = results[k]["splits"][split][objects]["recall"][average]
@@ -512,70 +602,57 @@ def main(
     mod_text = (f"height >= {mod_rule.min_height:g} px, occlusion <= {mod_rule.max_occlusion}, "
                 f"truncation <= {mod_rule.max_truncation:g}")
     blocks = []
-    for split, idx in splits:
-        span = f"{len(idx)} frames {_frame_span([ids[i] for i in idx])}"
-        where = span if split == "all" else f"frames {split} ({span})"
-        if len(splits) > 1:
-            blocks.append(f"=== {'all selected frames' if split == 'all' else 'frames ' + split}: {span} ===")
-        any_rec = results[done[0]]["splits"][split] if done else None
-        n_all = any_rec["all"]["recall"]["num_objects"] if any_rec else 0
-        n_mod = any_rec["moderate"]["recall"]["num_objects"] if any_rec else 0
-        blocks.append(format_table(
-            f"Recall (%) over all objects (micro, {n_all} objects, {where}) - headline, as Table 3",
-            grid_rows(split, "all", "micro")))
-        blocks.append(format_table(
-            f"Recall (%) over KITTI-moderate objects (micro, {n_mod} objects: {mod_text})",
-            grid_rows(split, "moderate", "micro")))
-        if split == "all":
-            blocks.append(format_table(
-                f"Recall (%), mean of the per-class recalls ({', '.join(classes)}; all objects)",
-                grid_rows(split, "all", "class_mean")))
-        ci_rows = []
-        for k in done:
-            ci = results[k]["splits"][split]["headline_interval"]
-            ci_rows.append(f"{results[k]['label']:<30} {100 * ci['recall']:5.1f}   {100 * ci['low']:5.1f} - "
-                           f"{100 * ci['high']:5.1f}")
-        for k in done:
-            if k != reference:
-                v = results[k]["splits"][split]["versus_reference"]
-                ci_rows.append(f"{results[k]['label']:<30} vs {results[reference]['label']}: +{v['gained']} / "
-                               f"-{v['lost']} objects, p = {v['p_value']:.2g}")
-        blocks.append("\n".join([f"Recall (%) at {HEADLINE[0]} proposals, IoU {HEADLINE[1]:g}, all objects, with its "
-                                 "95 % interval (frames drawn with replacement, 4000 draws); each row paired with "
-                                 "the reference on the same objects (+ found by the row only / - by the reference "
-                                 "only, exact two-sided sign test)", *ci_rows]))
-        blocks.append(format_per_class(
-            f"Per-class recall (%) at {HEADLINE[0]} proposals, IoU {HEADLINE[1]:g} ({where})",
-            [(results[k]["label"], {o: results[k]["splits"][split][o]["recall"] for o in OBJECT_SETS})
-             for k in done], classes))
-    ar_lines = ["Average recall (%, IoU 0.5:0.05:0.95, all objects)   micro @500 / @1000 / @2000  |  "
-                "class mean @500 / @1000 / @2000"]
-    for k in done:
-        a, c = results[k]["ar_micro"], results[k]["ar_class_mean"]
-        ar_lines.append(f"{results[k]['label']:<30} " + " / ".join(f"{_fmt(_pct(a[str(kk)])):>5}" for kk in KS)
-                        + "  |  " + " / ".join(f"{_fmt(_pct(c[str(kk)])):>5}" for kk in KS))
-    blocks.append("\n".join(ar_lines))
+    span = f"{len(idx)} frames {_frame_span([frames.ids[i] for i in idx])}"
+    where = span if split == "all" else f"frames {split} ({span})"
+    if n_splits > 1:
+        blocks.append(f"=== {'all selected frames' if split == 'all' else 'frames ' + split}: {span} ===")
+    any_rec = results[done[0]]["splits"][split] if done else None
+    n_all = any_rec["all"]["recall"]["num_objects"] if any_rec else 0
+    n_mod = any_rec["moderate"]["recall"]["num_objects"] if any_rec else 0
     blocks.append(format_table(
-        "The paper's Table 3 (7481 KITTI frames, C++ on an i7-8750H; its Edge Boxes uses SE edges)",
-        [(n, v, f"{t:,}") for n, (v, t) in PAPER_TABLE3.items()]))
-    env = environment()
-    counts = ", ".join(f"{c} {n}" for c, n in zip(classes, _class_counts(labels, len(classes))))
-    frames_note = f", --frames {' '.join(r.text for r in args.frames)}" if args.frames else ""
-    header = (f"Table 3 on {len(images)} frames of {args.data} ({_frame_span(ids)}{frames_note}; "
-              f"{n_obj} objects: {counts}).\n"
-              f"Time: wall ms per image of the proposal call only (decoding excluded), batch size 1"
-              f"{f'; REEB also at batch {args.batch} (@b{args.batch})' if args.batch > 1 else ''}; "
-              f"{env['processor']}, {env['cpu_count']} cores, torch threads {env['torch_threads']}, "
-              f"OpenCV threads {env['opencv_threads']}, CUDA {'yes' if env['cuda'] else 'no'}.")
-    text = "\n\n".join([f"Rerun: {rerun}", header, *blocks]) + "\n"
-    print("\n" + text, flush=True)
-    (args.out / "table3.txt").write_text(text)
+        f"Recall (%) over all objects (micro, {n_all} objects, {where}) - headline, as Table 3",
+        grid_rows("all", "micro")))
+    blocks.append(format_table(
+        f"Recall (%) over KITTI-moderate objects (micro, {n_mod} objects: {mod_text})",
+        grid_rows("moderate", "micro")))
+    if split == "all":
+        blocks.append(format_table(
+            f"Recall (%), mean of the per-class recalls ({', '.join(frames.classes)}; all objects)",
+            grid_rows("all", "class_mean")))
+    blocks.append(_interval_block(split, results, done, reference))
+    blocks.append(format_per_class(
+        f"Per-class recall (%) at {HEADLINE[0]} proposals, IoU {HEADLINE[1]:g} ({where})",
+        [(results[k]["label"], {o: results[k]["splits"][split][o]["recall"] for o in OBJECT_SETS})
+         for k in done], frames.classes))
+    return blocks
 
-    with open(args.out / "table3.csv", "w", newline="") as f:
+
+def _interval_block(split: str, results: dict[str, Any], done: list[str], reference: str | None) -> str:
+    """The headline of each method with its 95 % interval, and its pairing with the reference."""
+    ci_rows = []
+    for k in done:
+        ci = results[k]["splits"][split]["headline_interval"]
+        ci_rows.append(f"{results[k]['label']:<30} {100 * ci['recall']:5.1f}   {100 * ci['low']:5.1f} - "
+                       f"{100 * ci['high']:5.1f}")
+    for k in done:
+        if k != reference:
+            v = results[k]["splits"][split]["versus_reference"]
+            ci_rows.append(f"{results[k]['label']:<30} vs {results[reference]['label']}: +{v['gained']} / "
+                           f"-{v['lost']} objects, p = {v['p_value']:.2g}")
+    return "\n".join([f"Recall (%) at {HEADLINE[0]} proposals, IoU {HEADLINE[1]:g}, all objects, with its "
+                      "95 % interval (frames drawn with replacement, 4000 draws); each row paired with "
+                      "the reference on the same objects (+ found by the row only / - by the reference "
+                      "only, exact two-sided sign test)", *ci_rows])
+
+
+def _write_csv(path: Path, results: dict[str, Any], done: list[str], splits: list[tuple[str, list[int]]],
+               classes: Sequence[str], batch: int) -> None:
+    """``table3.csv``: one row per method × frames × objects × average."""
+    with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["method", "label", "frames", "objects", "average", "num_objects"]
                    + [f"R@{k}_IoU{t:g}" for k in KS for t in IOUS]
-                   + [f"AR@{k}" for k in KS] + ["ms_per_img", f"ms_per_img_batch{args.batch}"])
+                   + [f"AR@{k}" for k in KS] + ["ms_per_img", f"ms_per_img_batch{batch}"])
         for k in done:
             r = results[k]
             for split, _ in splits:
@@ -590,18 +667,22 @@ def main(
                                    + [_fmt(_pct(grid[str(kk)][f"{t:g}"]), 2) for kk in KS for t in IOUS]
                                    + [_fmt(_pct(ar[str(kk)]), 2) for kk in KS]
                                    + [f"{r['timing']['ms_per_img']:.1f}",
-                                      _fmt(r["timing"].get(f"ms_per_img_batch{args.batch}"), 1)])
+                                      _fmt(r["timing"].get(f"ms_per_img_batch{batch}"), 1)])
 
-    plots = _plot(curves, args.out) if curves else []
-    record = {
+
+def _record(args: argparse.Namespace, rerun: str, env: dict, frames: _Frames, splits: list[tuple[str, list[int]]],
+            results: dict[str, Any], plots: list[str]) -> dict[str, Any]:
+    """The JSON record ``main`` returns and writes to ``table3.json``."""
+    mod_rule = KITTI_DIFFICULTIES["moderate"]
+    return {
         "rerun": rerun,
         "data": str(args.data),
-        "num_images": len(images),
-        "image_ids": ids,
+        "num_images": len(frames.images),
+        "image_ids": frames.ids,
         "frames": [r.text for r in args.frames],
-        "splits": {name: [ids[i] for i in idx] for name, idx in splits},
-        "num_objects": n_obj,
-        "classes": list(classes),
+        "splits": {name: [frames.ids[i] for i in idx] for name, idx in splits},
+        "num_objects": frames.n_obj,
+        "classes": list(frames.classes),
         "ks": list(KS),
         "ious": list(IOUS),
         "moderate": {"min_height": mod_rule.min_height, "max_occlusion": mod_rule.max_occlusion,
@@ -613,7 +694,3 @@ def main(
         "paper_table3": {n: {"recall": v, "ms_per_img": t} for n, (v, t) in PAPER_TABLE3.items()},
         "plots": plots,
     }
-    (args.out / "table3.json").write_text(json.dumps(record, indent=1))
-    print(f"wrote {args.out}/table3.txt, table3.csv, table3.json"
-          + (f", {', '.join(plots)}" if plots else ""), flush=True)
-    return record

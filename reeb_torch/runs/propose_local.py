@@ -19,6 +19,7 @@ from typing import Sequence
 
 import click
 
+from . import batch as B
 from .common import (
     Failure,
     UsageProblem,
@@ -45,31 +46,58 @@ def propose_local(paths: Sequence[str], *, out: str | None, resume: bool, overwr
     Usage errors (exit 2) are raised as :class:`~.common.UsageProblem` before any work;
     the process exits 1 when an image failed, 130 when interrupted.
     """
-    from . import batch as B
+    run = _LocalRun(preset=preset, config_file=config_file, sets=sets, top_k=top_k, device=device, out=out,
+                    batch_size=batch_size, workers=workers, viz_top=viz_top, summary_json=summary_json, quiet=quiet)
+    run.find_inputs(paths, recursive)  # 1. inputs
+    if not run.check_output(resume, overwrite):  # 2. outputs, checked before any work
+        return  # nothing to do
+    run.check_pictures(viz_dir, print_top)
+    run.compute()  # 3. the run
+    run.save_and_summarise()  # 4. save and summarise
 
-    cfg = build_config(preset, config_file, sets, top_k)
-    dev = resolve_device(device)
-    fingerprint = cfg.fingerprint()
-    workers = B.default_workers() if workers is None else workers
-    echo_err = (lambda m: None) if quiet else (lambda m: click.echo(m, err=True))
 
-    # 1. inputs ---------------------------------------------------------------------------
-    sample_mode = not paths
-    try:
-        images, notes = B.find_images([bundled_sample()] if sample_mode else paths, recursive)
-    except B.NoImagesError as e:
-        raise UsageProblem(str(e))
-    for n in notes:
-        echo_err(f"note: {n}")
+class _LocalRun:
+    """One local ``reeb propose`` run, step by step: the state its steps share."""
 
-    # 2. outputs, checked before any work ------------------------------------------------------
-    if resume and not out:
-        raise UsageProblem("--resume needs --out (the file to continue)")
-    # rows are written in input order: ``slots`` maps an input position to its row (kept
-    # from before, or computed), ``first_rows`` are kept rows of images not among the inputs
-    plan = _ResumePlan(images)
-    stale: list[Path] = []
-    if out:
+    def __init__(self, *, preset: str, config_file: str | None, sets: Sequence[str], top_k: int | None, device: str,
+                 out: str | None, batch_size: int, workers: int | None, viz_top: int, summary_json: str | None,
+                 quiet: bool) -> None:
+        self.cfg = build_config(preset, config_file, sets, top_k)
+        self.dev = resolve_device(device)
+        self.fingerprint = self.cfg.fingerprint()
+        self.workers = B.default_workers() if workers is None else workers
+        self.out, self.batch_size, self.viz_top = out, batch_size, viz_top
+        self.summary_json, self.quiet = summary_json, quiet
+        self.echo_err = (lambda m: None) if quiet else (lambda m: click.echo(m, err=True))
+        self.stale: list[Path] = []  # temporary files of killed runs whose rows are taken over
+        self.failures: list[str] = []
+        self.saved_now = 0  # rows of this run in the writer
+        self.interrupted = False
+        self.first_done = None  # (time, images done, algorithm seconds) after the first computed batch
+
+    # -- 1. inputs ------------------------------------------------------------------------
+    def find_inputs(self, paths: Sequence[str], recursive: bool) -> None:
+        """The images (the bundled sample without ``paths``); a usage error when there are none."""
+        self.sample_mode = not paths
+        try:
+            self.images, notes = B.find_images([bundled_sample()] if self.sample_mode else paths, recursive)
+        except B.NoImagesError as e:
+            raise UsageProblem(str(e))
+        for n in notes:
+            self.echo_err(f"note: {n}")
+
+    # -- 2. outputs, checked before any work ------------------------------------------------
+    def check_output(self, resume: bool, overwrite: bool) -> bool:
+        """Check and lock ``--out``, take over what earlier runs left (``--resume``); False
+        when every image is already there (nothing to do)."""
+        out = self.out
+        if resume and not out:
+            raise UsageProblem("--resume needs --out (the file to continue)")
+        # rows are written in input order: ``slots`` maps an input position to its row (kept
+        # from before, or computed), ``first_rows`` are kept rows of images not among the inputs
+        self.plan = _ResumePlan(self.images)
+        if not out:
+            return True
         try:
             B.check_output(out)
             # one writer per output: a second run fails here, before any work (exit 2)
@@ -81,14 +109,23 @@ def propose_local(paths: Sequence[str], *, out: str | None, resume: bool, overwr
         if exists and not (resume or overwrite):
             raise UsageProblem(f"{out} exists; add --resume to continue it or --overwrite to "
                                "replace it")
-        stale = B.stale_temp_files(out)  # left by killed runs (we hold the lock: none is live)
+        stale_rows = self._stale_rows(resume, overwrite)
+        if resume and (exists or stale_rows):
+            return self._resume(exists, stale_rows)
+        return True
+
+    def _stale_rows(self, resume: bool, overwrite: bool) -> list[dict]:
+        """The finished rows in the temporary files killed runs left beside ``--out`` (we hold
+        the lock: none is live); files with nothing to keep are removed."""
+        out = self.out
+        stale = B.stale_temp_files(out)
         stale_rows: list[dict] = []
         if stale and not overwrite:
             for t in stale:
                 got, problems = B.read_partial_results(t, B.output_format(out))
                 stale_rows += got
                 for p in problems:
-                    echo_err(f"warning: {p}")
+                    self.echo_err(f"warning: {p}")
             if stale_rows and not resume:
                 raise UsageProblem(
                     f"{', '.join(t.name for t in stale)} beside {out} hold{'s' if len(stale) == 1 else ''} "
@@ -98,228 +135,263 @@ def propose_local(paths: Sequence[str], *, out: str | None, resume: bool, overwr
             for t in stale:  # nothing in them to keep
                 t.unlink(missing_ok=True)
             stale = []
-        if resume and (exists or stale_rows):
-            rows: list[dict] = []
-            if exists:
-                try:
-                    rows, problems = B.read_results(out)
-                except B.OutputError as e:
-                    raise UsageProblem(str(e))
-                for p in problems:
-                    echo_err(f"warning: {p}")
-            other = {r.get("config") for r in rows + stale_rows
-                     if r.get("status") == "ok"} - {fingerprint}
-            if other:
-                raise UsageProblem(
-                    f"{out} was made with different settings (config {', '.join(sorted(map(str, other)))}, "
-                    f"now {fingerprint}); use the same options, another --out, or --overwrite")
-            before = len(images)
-            plan.keep(rows + stale_rows)
-            images = plan.todo_paths()
-            echo_err(f"resume: {plan.kept} images already in {out}"
-                     + (f" ({len(stale_rows)} rows recovered from a killed run)" if stale_rows else "")
-                     + (f", {plan.duplicates} duplicate rows dropped" if plan.duplicates else "")
-                     + f", {before - len(images)} of them among the inputs; {len(images)} to do")
-            if not images and not stale and not plan.duplicates:
-                click.echo(f"Nothing to do: all {before} images are already in {out}.", err=True)
-                return
-    viz_path = Path(viz_dir) if viz_dir else None
-    if viz_path is not None:
-        try:
-            viz_path.mkdir(parents=True, exist_ok=True)
-            B.check_output(viz_path / "probe.jsonl")
-        except (OSError, B.OutputError) as e:
-            raise UsageProblem(f"--viz {viz_path}: cannot write pictures there "
-                               f"({getattr(e, 'strerror', None) or e})")
-    sample_png = Path("reeb_proposals.png") if sample_mode and viz_path is None else None
-    if sample_png is not None and not os.access(sample_png.parent.resolve(), os.W_OK):
-        raise UsageProblem(f"cannot write {sample_png.resolve()}: the current folder is not "
-                           "writable (use --viz DIR)")
-    if print_top is None:
-        print_top = 0 if out else 10
-    if not out and not sample_mode and viz_path is None:
-        echo_err("note: no --out given: proposals are printed, not saved")
-    viz_names = _viz_names(images) if viz_path is not None else {}
+        self.stale = stale
+        return stale_rows
 
-    # 3. the run --------------------------------------------------------------------------
-    import torch
-
-    from ..generator import ProposalGenerator
-    from .viz import draw_proposals, save_png
-
-    try:
-        gen = ProposalGenerator(cfg).to(dev).eval()
-    except (TypeError, ValueError, ArithmeticError) as e:
-        raise UsageProblem(f"the settings are not usable: {' '.join(str(e).split())}")
-    try:
-        writer = B.open_writer(out) if out else None
-    except B.OutputError as e:
-        raise UsageProblem(str(e))
-    if writer is not None:
-        # an unexpected error or exit must not leave the temporary file behind
-        click.get_current_context().call_on_close(writer.discard)
-        writer.write(plan.first_rows)
-    cs = B.CriticalSection()  # a row is written whole, and counted, or not at all
-    saved_now = [0]  # rows of this run in the writer
-
-    def emit(todo_pos: int, row: dict | None) -> None:
-        """Place this run's row for input ``todo_pos`` and write what is next in input order."""
-        plan.put(todo_pos, row)
-        if writer is not None:
-            rows = plan.ready()
-            writer.write(r for r, _ in rows)
-            saved_now[0] += sum(new for _, new in rows)
-    gt = read_labels(label_for(images[0])) if sample_mode and label_for(images[0]) else None
-
-    stats = dict(images=len(images), ok=0, failed=0, proposals=0, algo_s=0.0)
-    failures: list[str] = []
-    from tqdm import tqdm
-
-    bar = tqdm(total=len(images), unit="img", disable=True if quiet else None, file=sys.stderr,
-               dynamic_ncols=True, desc="reeb propose")
-
-    def fail(item, message: str, size=None) -> None:
-        with cs:
-            stats["failed"] += 1
-            failures.append(message)
-            emit(item.index, B.error_row(item.path, message, fingerprint, size or item.size))
-        if not quiet:
-            bar.write(f"error: {message}", file=sys.stderr)
-
-    def finish(item, result, algo_s: float) -> None:
-        h, w = item.image.shape[-2:]
-        boxes, scores = result["boxes"].cpu(), result["scores"].cpu()
-        with cs:
-            stats["ok"] += 1
-            stats["proposals"] += len(boxes)
-            emit(item.index, B.result_row(item.path, w, h, boxes, scores, fingerprint)
-                 if writer is not None else None)
-        if print_top:
-            bar.write(box_table(item.path, (w, h), boxes, scores, print_top, len(boxes)) + "\n",
-                      file=sys.stdout)
-        pictures = []
-        if viz_path is not None:
-            pictures.append(viz_path / viz_names[item.path])
-        if sample_png is not None:
-            pictures.append(sample_png)
-        for pic in pictures:
-            title = f"{Path(item.path).name}: top {min(viz_top, len(boxes))} of {len(boxes)} proposals"
+    def _resume(self, exists: bool, stale_rows: list[dict]) -> bool:
+        """``--resume``: keep the rows of ``--out`` and of killed runs, compute only the rest."""
+        out = self.out
+        rows: list[dict] = []
+        if exists:
             try:
-                save_png(pic, draw_proposals(item.image, boxes, scores, top=viz_top,
-                                             gt=gt if pic == sample_png else None, title=title))
-            except OSError as e:
-                bar.write(f"warning: {pic}: cannot write picture ({e.strerror or e})", file=sys.stderr)
+                rows, problems = B.read_results(out)
+            except B.OutputError as e:
+                raise UsageProblem(str(e))
+            for p in problems:
+                self.echo_err(f"warning: {p}")
+        other = {r.get("config") for r in rows + stale_rows
+                 if r.get("status") == "ok"} - {self.fingerprint}
+        if other:
+            raise UsageProblem(
+                f"{out} was made with different settings (config {', '.join(sorted(map(str, other)))}, "
+                f"now {self.fingerprint}); use the same options, another --out, or --overwrite")
+        plan = self.plan
+        before = len(self.images)
+        plan.keep(rows + stale_rows)
+        self.images = plan.todo_paths()
+        self.echo_err(f"resume: {plan.kept} images already in {out}"
+                      + (f" ({len(stale_rows)} rows recovered from a killed run)" if stale_rows else "")
+                      + (f", {plan.duplicates} duplicate rows dropped" if plan.duplicates else "")
+                      + f", {before - len(self.images)} of them among the inputs; {len(self.images)} to do")
+        if not self.images and not self.stale and not plan.duplicates:
+            click.echo(f"Nothing to do: all {before} images are already in {out}.", err=True)
+            return False
+        return True
 
-    def run_batch(items: list) -> None:
-        x = torch.stack([it.image for it in items]).to(dev, non_blocking=True)
-        t0 = time.perf_counter()
-        results = gen(x)
-        results = [{k: v.cpu() for k, v in r.items()} for r in results]
-        dt = time.perf_counter() - t0
-        stats["algo_s"] += dt
-        for it, r in zip(items, results):
-            finish(it, r, dt / len(items))
+    def check_pictures(self, viz_dir: str | None, print_top: int | None) -> None:
+        """Where pictures go (``--viz``, or ``reeb_proposals.png`` for the sample) and how many
+        boxes are printed per image."""
+        self.viz_path = viz_path = Path(viz_dir) if viz_dir else None
+        if viz_path is not None:
+            try:
+                viz_path.mkdir(parents=True, exist_ok=True)
+                B.check_output(viz_path / "probe.jsonl")
+            except (OSError, B.OutputError) as e:
+                raise UsageProblem(f"--viz {viz_path}: cannot write pictures there "
+                                   f"({getattr(e, 'strerror', None) or e})")
+        sample_png = Path("reeb_proposals.png") if self.sample_mode and viz_path is None else None
+        if sample_png is not None and not os.access(sample_png.parent.resolve(), os.W_OK):
+            raise UsageProblem(f"cannot write {sample_png.resolve()}: the current folder is not "
+                               "writable (use --viz DIR)")
+        self.sample_png = sample_png
+        if print_top is None:
+            print_top = 0 if self.out else 10
+        self.print_top = print_top
+        if not self.out and not self.sample_mode and viz_path is None:
+            self.echo_err("note: no --out given: proposals are printed, not saved")
+        self.viz_names = _viz_names(self.images) if viz_path is not None else {}
 
-    interrupted = False
-    first_done = None  # (time, images done, algorithm seconds) after the first computed batch
-    t_start = time.perf_counter()
-    stream = B.decoded_images(images, workers=workers, min_side=cfg.min_window,
-                              prefetch=batch_size, pin_memory=dev.type == "cuda")
-    previous_handlers = cs.install()  # Ctrl-C, and a polite kill (SIGTERM) treated like it
-    try:
+    # -- 3. the run -------------------------------------------------------------------------
+    def compute(self) -> None:
+        """Decode in workers, propose batch by batch, write each row in input order; Ctrl-C
+        and SIGTERM stop it (what is done is kept)."""
+        from ..generator import ProposalGenerator
+
+        try:
+            self.gen = ProposalGenerator(self.cfg).to(self.dev).eval()
+        except (TypeError, ValueError, ArithmeticError) as e:
+            raise UsageProblem(f"the settings are not usable: {' '.join(str(e).split())}")
+        try:
+            self.writer = B.open_writer(self.out) if self.out else None
+        except B.OutputError as e:
+            raise UsageProblem(str(e))
+        if self.writer is not None:
+            # an unexpected error or exit must not leave the temporary file behind
+            click.get_current_context().call_on_close(self.writer.discard)
+            self.writer.write(self.plan.first_rows)
+        self.cs = B.CriticalSection()  # a row is written whole, and counted, or not at all
+        images = self.images
+        self.gt = read_labels(label_for(images[0])) if self.sample_mode and label_for(images[0]) else None
+        self.stats = dict(images=len(images), ok=0, failed=0, proposals=0, algo_s=0.0)
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=len(images), unit="img", disable=True if self.quiet else None, file=sys.stderr,
+                        dynamic_ncols=True, desc="reeb propose")
+        self.t_start = time.perf_counter()
+        stream = B.decoded_images(images, workers=self.workers, min_side=self.cfg.min_window,
+                                  prefetch=self.batch_size, pin_memory=self.dev.type == "cuda")
+        self.previous_handlers = self.cs.install()  # Ctrl-C, and a polite kill (SIGTERM) treated like it
+        try:
+            self._batches(stream)
+        except KeyboardInterrupt:
+            self.interrupted = True
+        except Exception as e:  # a Ctrl-C that a library wrapped on its way out (B.caused_by_interrupt)
+            if not B.caused_by_interrupt(e):
+                raise
+            self.interrupted = True
+        finally:
+            for sig in self.previous_handlers:  # a second Ctrl-C must not break the saving
+                signal.signal(sig, signal.SIG_IGN)
+            stream.close()
+            self.bar.close()
+        self.wall = time.perf_counter() - self.t_start
+
+    def _batches(self, stream) -> None:
+        stats = self.stats
         # max_lag: a group of a rare size waits at most this many inputs, which bounds the
         # rows held back to be written in input order
-        for group in B.size_batches(stream, batch_size, max_lag=max(64, 4 * batch_size)):
+        for group in B.size_batches(stream, self.batch_size, max_lag=max(64, 4 * self.batch_size)):
             if not group[0].ok:
-                fail(group[0], group[0].error)
+                self._fail(group[0], group[0].error)
             else:
                 try:
-                    run_batch(group)
+                    self._run_batch(group)
                 except (ValueError, TypeError, RuntimeError) as e0:
                     if B.caused_by_interrupt(e0):
                         raise
                     # find the culprit(s): one image at a time
                     for it in group:
                         try:
-                            run_batch([it])
+                            self._run_batch([it])
                         except (ValueError, TypeError, RuntimeError) as e1:
                             if B.caused_by_interrupt(e1):
                                 raise
-                            fail(it, B.file_error(it.path, e1))
-            bar.update(len(group))
-            if first_done is None and stats["ok"]:
-                first_done = (time.perf_counter(), stats["ok"] + stats["failed"], stats["algo_s"])
+                            self._fail(it, B.file_error(it.path, e1))
+            self.bar.update(len(group))
+            if self.first_done is None and stats["ok"]:
+                self.first_done = (time.perf_counter(), stats["ok"] + stats["failed"], stats["algo_s"])
             if stats["failed"]:
-                bar.set_postfix(failed=stats["failed"], refresh=False)
-    except KeyboardInterrupt:
-        interrupted = True
-    except Exception as e:  # a Ctrl-C that a library wrapped on its way out (B.caused_by_interrupt)
-        if not B.caused_by_interrupt(e):
-            raise
-        interrupted = True
-    finally:
-        for sig in previous_handlers:  # a second Ctrl-C must not break the saving
-            signal.signal(sig, signal.SIG_IGN)
-        stream.close()
-        bar.close()
-    wall = time.perf_counter() - t_start
+                self.bar.set_postfix(failed=stats["failed"], refresh=False)
 
-    # 4. save and summarise -----------------------------------------------------------------
-    saved = None
-    try:
-        if writer is not None:
-            rows = plan.rest()  # after an interrupt: the rows held back, still in input order
-            writer.write(r for r, _ in rows)
-            saved_now[0] += sum(new for _, new in rows)
+    def _run_batch(self, items: list) -> None:
+        import torch
+
+        x = torch.stack([it.image for it in items]).to(self.dev, non_blocking=True)
+        t0 = time.perf_counter()
+        results = self.gen(x)
+        results = [{k: v.cpu() for k, v in r.items()} for r in results]
+        dt = time.perf_counter() - t0
+        self.stats["algo_s"] += dt
+        for it, r in zip(items, results):
+            self._finish(it, r)
+
+    def _emit(self, todo_pos: int, row: dict | None) -> None:
+        """Place this run's row for input ``todo_pos`` and write what is next in input order."""
+        self.plan.put(todo_pos, row)
+        if self.writer is not None:
+            rows = self.plan.ready()
+            self.writer.write(r for r, _ in rows)
+            self.saved_now += sum(new for _, new in rows)
+
+    def _fail(self, item, message: str, size=None) -> None:
+        with self.cs:
+            self.stats["failed"] += 1
+            self.failures.append(message)
+            self._emit(item.index, B.error_row(item.path, message, self.fingerprint, size or item.size))
+        if not self.quiet:
+            self.bar.write(f"error: {message}", file=sys.stderr)
+
+    def _finish(self, item, result) -> None:
+        h, w = item.image.shape[-2:]
+        boxes, scores = result["boxes"].cpu(), result["scores"].cpu()
+        with self.cs:
+            self.stats["ok"] += 1
+            self.stats["proposals"] += len(boxes)
+            self._emit(item.index, B.result_row(item.path, w, h, boxes, scores, self.fingerprint)
+                       if self.writer is not None else None)
+        if self.print_top:
+            self.bar.write(box_table(item.path, (w, h), boxes, scores, self.print_top, len(boxes)) + "\n",
+                           file=sys.stdout)
+        self._pictures(item, boxes, scores)
+
+    def _pictures(self, item, boxes, scores) -> None:
+        """The ``--viz`` picture of an image (and ``reeb_proposals.png`` for the sample)."""
+        from .viz import draw_proposals, save_png
+
+        pictures = []
+        if self.viz_path is not None:
+            pictures.append(self.viz_path / self.viz_names[item.path])
+        if self.sample_png is not None:
+            pictures.append(self.sample_png)
+        viz_top = self.viz_top
+        for pic in pictures:
+            title = f"{Path(item.path).name}: top {min(viz_top, len(boxes))} of {len(boxes)} proposals"
             try:
-                saved = writer.commit()
+                save_png(pic, draw_proposals(item.image, boxes, scores, top=viz_top,
+                                             gt=self.gt if pic == self.sample_png else None, title=title))
             except OSError as e:
-                raise Failure(f"{out}: cannot save the results ({e.strerror or e}); the old file, "
-                              "if any, is unchanged")
-            for t in stale:  # their rows are in the output now
-                t.unlink(missing_ok=True)
-    finally:
-        for sig, h in previous_handlers.items():
-            signal.signal(sig, h)
-    done = stats["ok"] + stats["failed"]
-    summary = dict(images=len(images), processed=done, ok=stats["ok"], failed=stats["failed"],
-                   proposals=stats["proposals"],
-                   ms_per_image=1000 * wall / done if done else None,
-                   algorithm_ms_per_image=1000 * stats["algo_s"] / stats["ok"] if stats["ok"] else None,
-                   workers=workers, batch_size=batch_size, device=str(dev), config=fingerprint,
-                   **_steady(first_done, t_start + wall, done, stats),
-                   out=str(saved) if saved else None, rows=writer.rows_written if writer else None,
-                   saved=saved_now[0] if writer else None,
-                   interrupted=interrupted, failures=failures)
-    lines = [count_line(done, stats["ok"], stats["failed"], stats["proposals"])]
-    if done:
-        lines.append(f"time: {wall:.1f} s, {ms_per_img(wall, done)} end to end; {ms_per_img(stats['algo_s'], stats['ok'])} "
-                     f"in the algorithm ({workers} decoding worker{'s' if workers != 1 else ''}, "
-                     f"batch {batch_size}, {dev})")
-    if saved:
-        lines.append(f"wrote {saved} ({writer.rows_written} rows"
-                     + (f", {plan.kept_written} kept from before" if plan.kept_written else "") + ")")
-    if viz_path is not None and stats["ok"]:
-        lines.append(f"pictures in {viz_path}/")
-    if sample_png is not None and stats["ok"]:
-        lines.append(f"wrote {sample_png.resolve()} (top {viz_top} proposals"
-                     + (", ground truth in green" if gt else "") + ")")
-    lines += failures_and_summary(failures, summary_json, summary)
-    if interrupted:
+                self.bar.write(f"warning: {pic}: cannot write picture ({e.strerror or e})", file=sys.stderr)
+
+    # -- 4. save and summarise ----------------------------------------------------------------
+    def save_and_summarise(self) -> None:
+        """Commit the output, print the closing summary, and exit 130 / 1 when interrupted /
+        when an image failed."""
+        saved = self._save()
+        click.echo("\n".join(self._summary_lines(saved)), err=True)
+        if self.interrupted:
+            sys.exit(130)
+        if self.stats["failed"]:
+            sys.exit(1)
+
+    def _save(self) -> Path | None:
+        saved = None
+        try:
+            if self.writer is not None:
+                rows = self.plan.rest()  # after an interrupt: the rows held back, still in input order
+                self.writer.write(r for r, _ in rows)
+                self.saved_now += sum(new for _, new in rows)
+                try:
+                    saved = self.writer.commit()
+                except OSError as e:
+                    raise Failure(f"{self.out}: cannot save the results ({e.strerror or e}); the old file, "
+                                  "if any, is unchanged")
+                for t in self.stale:  # their rows are in the output now
+                    t.unlink(missing_ok=True)
+        finally:
+            for sig, h in self.previous_handlers.items():
+                signal.signal(sig, h)
+        return saved
+
+    def _summary_lines(self, saved: Path | None) -> list[str]:
+        """The closing summary (and ``--summary-json``)."""
+        stats, writer, images, wall = self.stats, self.writer, self.images, self.wall
+        workers, dev = self.workers, self.dev
+        done = stats["ok"] + stats["failed"]
+        summary = dict(images=len(images), processed=done, ok=stats["ok"], failed=stats["failed"],
+                       proposals=stats["proposals"],
+                       ms_per_image=1000 * wall / done if done else None,
+                       algorithm_ms_per_image=1000 * stats["algo_s"] / stats["ok"] if stats["ok"] else None,
+                       workers=workers, batch_size=self.batch_size, device=str(dev), config=self.fingerprint,
+                       **_steady(self.first_done, self.t_start + wall, done, stats),
+                       out=str(saved) if saved else None, rows=writer.rows_written if writer else None,
+                       saved=self.saved_now if writer else None,
+                       interrupted=self.interrupted, failures=self.failures)
+        lines = [count_line(done, stats["ok"], stats["failed"], stats["proposals"])]
+        if done:
+            lines.append(f"time: {wall:.1f} s, {ms_per_img(wall, done)} end to end; "
+                         f"{ms_per_img(stats['algo_s'], stats['ok'])} "
+                         f"in the algorithm ({workers} decoding worker{'s' if workers != 1 else ''}, "
+                         f"batch {self.batch_size}, {dev})")
         if saved:
-            left = len(images) - saved_now[0]  # counted as written: the summary matches the file
-            how = f"run the same command with --resume to do the {left} left"
-            if "--resume" in sys.argv:
-                how = f"run the same command again to do the {left} left"
-            lines.append(f"interrupted: {saved_now[0]} of {len(images)} images saved in {saved}; {how}")
-        else:
-            lines.append(f"interrupted after {done} of {len(images)} images; nothing was saved "
-                         "(no --out)")
-    click.echo("\n".join(lines), err=True)
-    if interrupted:
-        sys.exit(130)
-    if stats["failed"]:
-        sys.exit(1)
+            lines.append(f"wrote {saved} ({writer.rows_written} rows"
+                         + (f", {self.plan.kept_written} kept from before" if self.plan.kept_written else "") + ")")
+        if self.viz_path is not None and stats["ok"]:
+            lines.append(f"pictures in {self.viz_path}/")
+        if self.sample_png is not None and stats["ok"]:
+            lines.append(f"wrote {self.sample_png.resolve()} (top {self.viz_top} proposals"
+                         + (", ground truth in green" if self.gt else "") + ")")
+        lines += failures_and_summary(self.failures, self.summary_json, summary)
+        if self.interrupted:
+            if saved:
+                left = len(images) - self.saved_now  # counted as written: the summary matches the file
+                how = f"run the same command with --resume to do the {left} left"
+                if "--resume" in sys.argv:
+                    how = f"run the same command again to do the {left} left"
+                lines.append(f"interrupted: {self.saved_now} of {len(images)} images saved in {saved}; {how}")
+            else:
+                lines.append(f"interrupted after {done} of {len(images)} images; nothing was saved "
+                             "(no --out)")
+        return lines
 
 
 class _ResumePlan:

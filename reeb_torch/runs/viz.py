@@ -265,24 +265,36 @@ def inspection_figure(
     import matplotlib
 
     matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-    from matplotlib import patheffects
-    from matplotlib.lines import Line2D
-    from matplotlib.patches import Patch, Rectangle
 
     rgb = _hwc(image)
     h, w = rgb.shape[:2]
-    boxes = _boxes(inspection.boxes)
-    edges = inspection.edges.detach().cpu().float().clamp(0, 1).numpy()
-    road = inspection.road_mask.detach().cpu().bool().numpy()
     regions = _boxes(inspection.regions)
     entropy = inspection.entropy.detach().cpu().float().numpy().reshape(-1)
     share = inspection.share.detach().cpu().float().numpy().reshape(-1)
-    gts = gt_pairs(gt)
+    fig, axes, layout = _figure_axes(h, w)
+    _edges_panel(axes["edge"], rgb, inspection, config)
+    _regions_panel(axes["reg"], rgb, regions, entropy, share)
+    _share_bars(axes["bar"], w, regions, entropy, share, config)
+    _proposals_panel(axes["prop"], rgb, _boxes(inspection.boxes), gt_pairs(gt), top, layout, config)
+    if title:
+        fig.text(layout["left"] / layout["fig_w"], 1 - 0.3 / layout["fig_h"], title, ha="left", va="center",
+                 fontsize=13, fontweight="bold")
+    return fig
 
-    # Layout in inches, top to bottom; images fill their axes exactly (no letterbox) at the
-    # image's own aspect ratio: a tall image is capped at 9 in high and made narrower, not
-    # stretched. The bars share the image's width so that they line up with its regions.
+
+_SMALL = dict(fontsize=9)
+_PALETTE = ["#4fc3f7", "#ff8a65"]  # the region strips, alternating
+
+
+def _figure_axes(h: int, w: int):
+    """The figure and its four axes (``edge``, ``reg``, ``bar``, ``prop``), and the layout
+    (inches) the panels place their labels by.
+
+    Top to bottom; images fill their axes exactly (no letterbox) at the image's own aspect
+    ratio: a tall image is capped at 9 in high and made narrower, not stretched. The bars
+    share the image's width so that they line up with its regions."""
+    import matplotlib.pyplot as plt
+
     fig_w, left, right = 15.0, 0.75, 0.2
     img_h = min((fig_w - left - right) * h / w, 9.0)
     aw = img_h * w / h
@@ -298,15 +310,23 @@ def inspection_figure(
         y -= size
         if name in ("edge", "reg", "bar", "prop"):
             axes[name] = fig.add_axes((left / fig_w, y / fig_h, aw / fig_w, size / fig_h))
-    ax_edge, ax_reg, ax_bar, ax_prop = (axes[k] for k in ("edge", "reg", "bar", "prop"))
-    for ax in (ax_edge, ax_reg, ax_prop):
+    for ax in (axes["edge"], axes["reg"], axes["prop"]):
         ax.set_xlim(0, w)
         ax.set_ylim(h, 0)
         ax.set_xticks([])
         ax.set_yticks([])
-    small = dict(fontsize=9)
+    return fig, axes, dict(fig_w=fig_w, fig_h=fig_h, left=left, aw=aw, img_h=img_h)
 
-    # 1. edges and road ----------------------------------------------------------------
+
+def _edges_panel(ax, rgb: np.ndarray, inspection: Any, config: Any) -> None:
+    """Panel 1: the darkened grey image with the edge magnitude in white, the road mask in
+    translucent green, and the band where the road colour is sampled."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch, Rectangle
+
+    h, w = rgb.shape[:2]
+    edges = inspection.edges.detach().cpu().float().clamp(0, 1).numpy()
+    road = inspection.road_mask.detach().cpu().bool().numpy()
     grey = rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32) / 255.0
     base = np.repeat((0.35 * grey)[:, :, None], 3, axis=2)
     e = edges[:, :, None] if edges.shape == (h, w) else np.zeros((h, w, 1), np.float32)
@@ -315,47 +335,55 @@ def inspection_figure(
     road_rgb = np.array([0.1, 0.85, 0.3])
     if road.shape == (h, w):
         layer = np.where(road[:, :, None], 0.55 * layer + 0.45 * road_rgb, layer)
-    ax_edge.imshow(np.clip(layer, 0, 1), extent=(0, w, h, 0), interpolation="antialiased",
-                   aspect="auto")
+    ax.imshow(np.clip(layer, 0, 1), extent=(0, w, h, 0), interpolation="antialiased",
+              aspect="auto")
     road_pct = 100.0 * float(road.mean()) if road.size else 0.0
     handles = [Patch(facecolor=road_rgb, alpha=0.6, label=f"road mask ({road_pct:.0f} % of pixels)"),
                Patch(facecolor="white", edgecolor="0.5", label="edge magnitude")]
     band = getattr(config, "road_band", None)
     if band is not None:
         bx1, by1, bx2, by2 = band[0] * w, band[1] * h, band[2] * w, band[3] * h
-        ax_edge.add_patch(Rectangle((bx1, by1), bx2 - bx1, by2 - by1, fill=False, ls="--",
-                                    lw=1.2, ec="#ffd54f"))
+        ax.add_patch(Rectangle((bx1, by1), bx2 - bx1, by2 - by1, fill=False, ls="--",
+                               lw=1.2, ec="#ffd54f"))
         handles.append(Line2D([], [], color="#ffd54f", ls="--", label="road colour sampled here"))
-    ax_edge.legend(handles=handles, loc="upper right", framealpha=0.85, **small)
-    ax_edge.set_title("1. Edges (Gaussian blur + Sobel, Sec. 3.4) and road segmentation "
-                      "(HSV range around the sampled road colour, Sec. 3.5)", loc="left", fontsize=11)
+    ax.legend(handles=handles, loc="upper right", framealpha=0.85, **_SMALL)
+    ax.set_title("1. Edges (Gaussian blur + Sobel, Sec. 3.4) and road segmentation "
+                 "(HSV range around the sampled road colour, Sec. 3.5)", loc="left", fontsize=11)
 
-    # 2. regions -------------------------------------------------------------------------
-    ax_reg.imshow(rgb, extent=(0, w, h, 0), interpolation="antialiased", aspect="auto")
-    ax_reg.imshow(np.zeros((1, 1, 4)) + [0, 0, 0, 0.3], extent=(0, w, h, 0), aspect="auto")
+
+def _regions_panel(ax, rgb: np.ndarray, regions: np.ndarray, entropy: np.ndarray, share: np.ndarray) -> None:
+    """Panel 2: the region strips as brackets over the image, labelled with H and share."""
+    from matplotlib import patheffects
+
+    h, w = rgb.shape[:2]
+    ax.imshow(rgb, extent=(0, w, h, 0), interpolation="antialiased", aspect="auto")
+    ax.imshow(np.zeros((1, 1, 4)) + [0, 0, 0, 0.3], extent=(0, w, h, 0), aspect="auto")
     n_reg = len(regions)
-    palette = ["#4fc3f7", "#ff8a65"]
     levels = 2 if n_reg > 1 else 1
     outline = [patheffects.withStroke(linewidth=3.5, foreground="black")]
     inset = 0.004 * w
     for i, (x1, y1, x2, y2) in enumerate(regions):
-        c = palette[i % 2]
+        c = _PALETTE[i % 2]
         lane = i % levels
         y = y1 + (0.1 + 0.13 * lane) * (y2 - y1)
         bx1, bx2 = x1 + inset, x2 - inset
-        ax_reg.plot([bx1, bx1, bx2, bx2], [y + 0.05 * h, y, y, y + 0.05 * h], color=c, lw=2.4,
-                    solid_capstyle="butt", path_effects=outline)
+        ax.plot([bx1, bx1, bx2, bx2], [y + 0.05 * h, y, y, y + 0.05 * h], color=c, lw=2.4,
+                solid_capstyle="butt", path_effects=outline)
         for x in (bx1, bx2):
-            ax_reg.plot([x, x], [y + 0.05 * h, y2], color=c, lw=1.0, ls=":", alpha=0.9)
+            ax.plot([x, x], [y + 0.05 * h, y2], color=c, lw=1.0, ls=":", alpha=0.9)
         hv = float(entropy[i]) if i < len(entropy) else float("nan")
         sv = float(share[i]) if i < len(share) else 0.0
-        ax_reg.text((x1 + x2) / 2, y - 0.015 * h, f"R{i + 1}  H={hv:.2f}  {100 * sv:.0f} %",
-                    color=c, ha="center", va="bottom", fontsize=9.5, fontweight="bold",
-                    path_effects=outline)
-    ax_reg.set_title(f"2. {n_reg} overlapping region strip{'s' if n_reg != 1 else ''} "
-                     "(width from the camera geometry, eqs. 5–8)", loc="left", fontsize=11)
+        ax.text((x1 + x2) / 2, y - 0.015 * h, f"R{i + 1}  H={hv:.2f}  {100 * sv:.0f} %",
+                color=c, ha="center", va="bottom", fontsize=9.5, fontweight="bold",
+                path_effects=outline)
+    ax.set_title(f"2. {n_reg} overlapping region strip{'s' if n_reg != 1 else ''} "
+                 "(width from the camera geometry, eqs. 5–8)", loc="left", fontsize=11)
 
-    ax_bar.set_xlim(0, w)
+
+def _share_bars(ax, w: int, regions: np.ndarray, entropy: np.ndarray, share: np.ndarray, config: Any) -> None:
+    """Under panel 2: one bar per region, its share of the window budget (eq. 9)."""
+    n_reg = len(regions)
+    ax.set_xlim(0, w)
     sigma = getattr(config, "entropy_sigma", None)
     if n_reg:
         stride = (np.min(np.diff(np.sort((regions[:, 0] + regions[:, 2]) / 2)))
@@ -365,53 +393,42 @@ def inspection_figure(
             cx = (x1 + x2) / 2
             s = float(share[i]) if i < len(share) else 0.0
             hv = float(entropy[i]) if i < len(entropy) else float("nan")
-            ax_bar.bar(cx, 100 * s, width=width, color=palette[i % 2], edgecolor="0.3", lw=0.6)
-            ax_bar.text(cx, 100 * s + 3, f"R{i + 1}: H={hv:.2f}\n{100 * s:.0f} %", ha="center",
-                        va="bottom", fontsize=8.5)
-    ax_bar.set_ylim(0, 150)
-    ax_bar.set_yticks([0, 50, 100])
-    ax_bar.set_ylabel("share (%)", fontsize=9)
-    ax_bar.set_xticks([])
-    ax_bar.spines[["top", "right"]].set_visible(False)
+            ax.bar(cx, 100 * s, width=width, color=_PALETTE[i % 2], edgecolor="0.3", lw=0.6)
+            ax.text(cx, 100 * s + 3, f"R{i + 1}: H={hv:.2f}\n{100 * s:.0f} %", ha="center",
+                    va="bottom", fontsize=8.5)
+    ax.set_ylim(0, 150)
+    ax.set_yticks([0, 50, 100])
+    ax.set_ylabel("share (%)", fontsize=9)
+    ax.set_xticks([])
+    ax.spines[["top", "right"]].set_visible(False)
     eq = (f"share = 1 − |σ − H| / σ, σ = {sigma:g}" if sigma is not None else "share from eq. 9")
-    ax_bar.text(0.005, 0.97, f"Entropy H of each strip (eq. 2, bits) sets its share of the "
-                f"sliding-window budget (eq. 9: {eq})", transform=ax_bar.transAxes, ha="left",
-                va="top", fontsize=10)
+    ax.text(0.005, 0.97, f"Entropy H of each strip (eq. 2, bits) sets its share of the "
+            f"sliding-window budget (eq. 9: {eq})", transform=ax.transAxes, ha="left",
+            va="top", fontsize=10)
 
-    # 3. proposals -----------------------------------------------------------------------
-    ax_prop.imshow(rgb, extent=(0, w, h, 0), interpolation="antialiased", aspect="auto")
+
+def _proposals_panel(ax, rgb: np.ndarray, boxes: np.ndarray, gts: list, top: int, layout: dict,
+                     config: Any) -> None:
+    """Panel 3: the ``top`` proposals coloured by rank and the ground truth, each labelled
+    with its best IoU over all proposals (:func:`_gt_labels`)."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch, Rectangle
+
+    h, w = rgb.shape[:2]
+    ax.imshow(rgb, extent=(0, w, h, 0), interpolation="antialiased", aspect="auto")
     shown = boxes[:top]
     colors = rank_colors(len(shown)) / 255.0
     for i in range(len(shown) - 1, -1, -1):
         x1, y1, x2, y2 = shown[i]
         lw = 2.6 if i < 3 else (1.6 if i < 10 else 1.0)
-        ax_prop.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, ec=colors[i], lw=lw,
-                                    alpha=1.0 if i < 10 else 0.85))
+        ax.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, ec=colors[i], lw=lw,
+                               alpha=1.0 if i < 10 else 0.85))
         if i < 5:
-            ax_prop.text(x1 + 1, y1 + 1, str(i + 1), color="black", fontsize=8, va="top",
-                         ha="left", fontweight="bold",
-                         bbox=dict(boxstyle="square,pad=0.1", fc=colors[i], ec="none"))
+            ax.text(x1 + 1, y1 + 1, str(i + 1), color="black", fontsize=8, va="top",
+                    ha="left", fontweight="bold",
+                    bbox=dict(boxstyle="square,pad=0.1", fc=colors[i], ec="none"))
     gt_hex = "#%02x%02x%02x" % GT_COLOR
-    char_w = 0.62 * 8 / 72 * w / aw  # data units per character of an 8 pt label
-    line_h = 12 / 72 * h / img_h  # data units per line
-    placed: list[tuple[float, float, float, float]] = []
-    for label, (x1, y1, x2, y2) in sorted(gts, key=lambda g: (g[1][3], g[1][0])):
-        iou, rank = _best_match((x1, y1, x2, y2), boxes)
-        ax_prop.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, ec=gt_hex, lw=1.8,
-                                    ls=(0, (4, 2))))
-        note = f"{label}  IoU {iou:.2f} (#{rank})" if iou > 0 else f"{label}  no proposal overlaps"
-        # below the box, moved down a line at a time until it overlaps no earlier label
-        tw = char_w * len(note)
-        tx = min(max(0.0, x1), max(0.0, w - tw))
-        ty = y2 + 2
-        while any(tx < px2 and px1 < tx + tw and ty < py2 and py1 < ty + line_h
-                  for px1, py1, px2, py2 in placed) and ty < h - line_h:
-            ty += line_h
-        if ty > h - line_h:  # no room below: above the box
-            ty = max(0.0, y1 - line_h - 2)
-        placed.append((tx, ty, tx + tw, ty + line_h))
-        ax_prop.text(tx, ty, note, color="black", fontsize=8, va="top", ha="left",
-                     bbox=dict(boxstyle="square,pad=0.15", fc=gt_hex, ec="none", alpha=0.9))
+    _gt_labels(ax, boxes, gts, gt_hex, w, h, layout)
     handles = []
     if len(shown):
         handles.append(Patch(facecolor=colors[0], label="rank 1 (best)"))
@@ -421,18 +438,39 @@ def inspection_figure(
         handles.append(Line2D([], [], color=gt_hex, ls="--", lw=1.8,
                               label="ground truth: best IoU over all proposals (#rank)"))
     if handles:
-        ax_prop.legend(handles=handles, loc="upper right", framealpha=0.85, **small)
+        ax.legend(handles=handles, loc="upper right", framealpha=0.85, **_SMALL)
     extra = " × shadow underneath" if getattr(config, "shadow_score", "none") != "none" else ""
     if getattr(config, "vegetation_score", "none") != "none":
         extra += " × (1 − green share)^p"
-    ax_prop.set_title(f"3. Top {len(shown)} of {len(boxes)} proposals: edge score S (eq. 1) × "
-                      f"(α·location L + β·road R) (eqs. 10–12){extra}, then NMS (eq. 13)",
-                      loc="left", fontsize=11)
+    ax.set_title(f"3. Top {len(shown)} of {len(boxes)} proposals: edge score S (eq. 1) × "
+                 f"(α·location L + β·road R) (eqs. 10–12){extra}, then NMS (eq. 13)",
+                 loc="left", fontsize=11)
 
-    if title:
-        fig.text(left / fig_w, 1 - 0.3 / fig_h, title, ha="left", va="center", fontsize=13,
-                 fontweight="bold")
-    return fig
+
+def _gt_labels(ax, boxes: np.ndarray, gts: list, gt_hex: str, w: int, h: int, layout: dict) -> None:
+    """The ground-truth boxes, each with a label of its best IoU placed below it (moved down
+    a line at a time until it overlaps no earlier label; above the box when there is no room)."""
+    from matplotlib.patches import Rectangle
+
+    char_w = 0.62 * 8 / 72 * w / layout["aw"]  # data units per character of an 8 pt label
+    line_h = 12 / 72 * h / layout["img_h"]  # data units per line
+    placed: list[tuple[float, float, float, float]] = []
+    for label, (x1, y1, x2, y2) in sorted(gts, key=lambda g: (g[1][3], g[1][0])):
+        iou, rank = _best_match((x1, y1, x2, y2), boxes)
+        ax.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, ec=gt_hex, lw=1.8,
+                               ls=(0, (4, 2))))
+        note = f"{label}  IoU {iou:.2f} (#{rank})" if iou > 0 else f"{label}  no proposal overlaps"
+        tw = char_w * len(note)
+        tx = min(max(0.0, x1), max(0.0, w - tw))
+        ty = y2 + 2
+        while any(tx < px2 and px1 < tx + tw and ty < py2 and py1 < ty + line_h
+                  for px1, py1, px2, py2 in placed) and ty < h - line_h:
+            ty += line_h
+        if ty > h - line_h:  # no room below: above the box
+            ty = max(0.0, y1 - line_h - 2)
+        placed.append((tx, ty, tx + tw, ty + line_h))
+        ax.text(tx, ty, note, color="black", fontsize=8, va="top", ha="left",
+                bbox=dict(boxstyle="square,pad=0.15", fc=gt_hex, ec="none", alpha=0.9))
 
 
 def save_figure(fig, path: str | os.PathLike, dpi: int = 100) -> Path:
