@@ -1,0 +1,148 @@
+"""The package's layout keeps its design (docs/architecture.md): no import circles, the
+stages import only stages, the algorithm imports none of the runs, the evaluation or the
+detectors, the libraries of runs/ do not import the command, and the documented import
+paths of earlier releases still work.
+
+Imports are read from the source (``ast``), module-level and inside functions alike."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "reeb_torch"
+
+ALGORITHM = {"reeb_torch.config", "reeb_torch.generator", "reeb_torch.ranking", "reeb_torch._checks",
+             "reeb_torch.camera", "reeb_torch.io"}
+RUNS_LIBRARIES = {"reeb_torch.runs.batch", "reeb_torch.runs.distributed", "reeb_torch.runs.export",
+                  "reeb_torch.runs.viz"}
+COMMAND = {"reeb_torch.runs.cli", "reeb_torch.runs.common", "reeb_torch.runs.propose_local",
+           "reeb_torch.runs.propose_ray"}
+LONG_FUNCTIONS = {
+    # a numba kernel: one loop nest over the sorted boxes and the grid, kept in one compiled function
+    "stages/nms.py:_grid_nms_sorted",
+    # half of it is the docstring of its thirteen arguments
+    "detection/builder.py:reeb_fasterrcnn_mobilenet_v3",
+}
+
+
+def _modules() -> dict[str, tuple[Path, bool]]:
+    out = {}
+    for p in PACKAGE.rglob("*.py"):
+        parts = list(p.relative_to(PACKAGE.parent).with_suffix("").parts)
+        is_pkg = parts[-1] == "__init__"
+        out[".".join(parts[:-1] if is_pkg else parts)] = (p, is_pkg)
+    return out
+
+
+def _imports(name: str, is_pkg: bool, tree: ast.AST, modules: dict) -> set[str]:
+    """The package's modules that ``name`` imports (``from .x import y`` resolved to the
+    module ``x.y`` where that is one, else ``x``)."""
+    found = set()
+    for node in ast.walk(tree):
+        targets = []
+        if isinstance(node, ast.Import):
+            targets = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = name.split(".") if is_pkg else name.split(".")[:-1]
+                base = base[: len(base) - (node.level - 1)]
+                module = ".".join(base + ([node.module] if node.module else []))
+            else:
+                module = node.module or ""
+            targets = [f"{module}.{a.name}" if f"{module}.{a.name}" in modules else module for a in node.names]
+        for t in targets:
+            while t and t not in modules:
+                t = t.rpartition(".")[0]
+            if t and t != name:
+                found.add(t)
+    return found
+
+
+@pytest.fixture(scope="module")
+def graph() -> dict[str, set[str]]:
+    modules = _modules()
+    return {m: _imports(m, is_pkg, ast.parse(p.read_text(encoding="utf-8")), modules)
+            for m, (p, is_pkg) in modules.items()}
+
+
+def _reach(graph: dict[str, set[str]], start: str) -> set[str]:
+    seen, todo = set(), [start]
+    while todo:
+        for d in graph[todo.pop()]:
+            if d not in seen:
+                seen.add(d)
+                todo.append(d)
+    return seen
+
+
+def test_the_graph_is_read(graph):
+    assert "reeb_torch.ranking" in graph["reeb_torch.generator"]
+    assert "reeb_torch.stages.windows" in graph["reeb_torch.stages.scoring"]
+    assert "reeb_torch.runs.propose_ray" in graph["reeb_torch.runs.cli"]  # an import inside a function
+
+
+def test_no_import_circles(graph):
+    circles = sorted(m for m in graph if m in _reach(graph, m))
+    assert not circles, f"modules on an import circle: {circles}"
+
+
+def test_stages_import_only_stages(graph):
+    for m, deps in graph.items():
+        if m.startswith("reeb_torch.stages."):
+            outside = {d for d in deps if not d.startswith("reeb_torch.stages")}
+            assert not outside, f"{m} imports {outside}"
+
+
+def test_the_algorithm_imports_no_runs_evaluation_or_detectors(graph):
+    for m in ALGORITHM | {m for m in graph if m.startswith("reeb_torch.stages")}:
+        wrong = {d for d in _reach(graph, m) if d.startswith(("reeb_torch.runs", "reeb_torch.eval",
+                                                               "reeb_torch.detection"))}
+        assert not wrong, f"{m} reaches {wrong}"
+
+
+def test_run_libraries_do_not_import_the_command(graph):
+    for m in RUNS_LIBRARIES:
+        assert not (_reach(graph, m) & COMMAND), f"{m} reaches {_reach(graph, m) & COMMAND}"
+
+
+def test_the_evaluation_imports_no_runs(graph):
+    for m in graph:
+        if m.startswith("reeb_torch.eval"):
+            wrong = {d for d in _reach(graph, m) if d.startswith("reeb_torch.runs")}
+            assert not wrong, f"{m} reaches {wrong}"
+
+
+def test_functions_are_short():
+    """No function over 80 lines (def to end) but the ones named, with their reasons."""
+    long = set()
+    for p in PACKAGE.rglob("*.py"):
+        for node in ast.walk(ast.parse(p.read_text(encoding="utf-8"))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno >= 80:
+                long.add(f"{p.relative_to(PACKAGE).as_posix()}:{node.name}")
+    assert long <= LONG_FUNCTIONS, f"over 80 lines: {sorted(long - LONG_FUNCTIONS)}"
+
+
+def test_documented_import_paths_keep_working():
+    import reeb_torch
+    from reeb_torch import cli, data, distributed, metrics
+    from reeb_torch.eval import data as eval_data
+    from reeb_torch.eval import metrics as eval_metrics
+    from reeb_torch.runs import cli as runs_cli
+    from reeb_torch.runs import distributed as runs_distributed
+
+    for name in ("ProposalGenerator", "ReebConfig", "propose", "get_preset", "PRESETS", "read_image",
+                 "ImageReadError", "Inspection"):
+        assert hasattr(reeb_torch, name), name
+    assert distributed.propose_dataset is runs_distributed.propose_dataset
+    assert distributed.write_results is runs_distributed.write_results
+    assert metrics.recall_table is eval_metrics.recall_table
+    assert metrics.compare_recall is eval_metrics.compare_recall
+    assert metrics.recall_interval is eval_metrics.recall_interval
+    assert data.KittiDataset is eval_data.KittiDataset
+    assert data.read_kitti_labels is eval_data.read_kitti_labels
+    assert cli.main is runs_cli.main
+    from reeb_torch.detection import ReebRPN, build_cache  # noqa: F401
+    from reeb_torch.eval import main, table3  # noqa: F401
