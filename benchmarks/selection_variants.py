@@ -1,7 +1,7 @@
 """Changes to how the default picks its candidates, measured in the pipeline: rows of
 recall at 2000 proposals / IoU 0.7 (per half and per class), each paired with the default.
 
-The README's "measured and not taken" list quotes this script. Families (``--family``):
+The "measured and not taken" list of docs/results.md quotes this script. Families (``--family``):
 
 - ``region-nms``: each region's budget (eq. 9) counts *distinct* boxes: greedy NMS at
   0.8 / 0.85 / 0.9 inside the region (over its best 8 × budget windows) before the cut.

@@ -623,11 +623,11 @@ _build_presets()
 def get_preset(name: str) -> ReebConfig:
     """Look up a named preset.
 
-    * ``default``: the best measured setting for speed and recall together (README, Results).
+    * ``default``: the best measured setting for speed and recall together (docs/results.md).
     * ``default-no-regions``: the same without the region enhancement (the paper's Ours*).
     * ``refined``: ``default`` with Edge Boxes' refinement of all but narrow boxes
       (``refine=True, refine_min_aspect=0.6``): the highest recall measured at IoU 0.7 on the
-      shared KITTI frames, at about twice the time per image (README, Results).
+      shared KITTI frames, at about twice the time per image (docs/results.md).
     * ``paper``, ``paper-no-regions``: the printed text wherever it can run
       (:meth:`ReebConfig.paper`).
 

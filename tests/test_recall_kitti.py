@@ -51,5 +51,5 @@ def test_refined_recall_floor(frames):
 
 @pytest.mark.kitti
 def test_default_beats_the_printed_formulas(frames):
-    # the printed eq. 11 ranks the smallest boxes first (README, "Results")
+    # the printed eq. 11 ranks the smallest boxes first (docs/results.md)
     assert _recall("default", frames).at(2000, 0.5) > _recall("paper", frames).at(2000, 0.5) + 0.5
