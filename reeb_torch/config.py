@@ -249,6 +249,9 @@ _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
      "an int >= 2 for group_cell when grouping='cell'"),
     (("class_heights_m", "class_weights"), lambda c: len(c.class_weights) == len(c.class_heights_m),
      "of the same length (one weight per class)"),
+    (("class_heights_m", "object_templates", "location_fit"),
+     lambda c: c.location_fit != "shape" or len(c.object_templates) == len(c.class_heights_m),
+     "of the same length (one template per class) when location_fit='shape'"),
     (("camera_height_m", "vertical_fov_deg", "horizontal_fov_deg", "max_object_width_m",
       "region_width_round", "region_overlap"), lambda c: _region_count(c) <= _MAX_REGIONS,
      f"a camera and overlap giving at most {_MAX_REGIONS} regions (eqs. 5-8)"),
@@ -463,6 +466,13 @@ class ReebConfig:
     ``class_heights_m``): rarer classes weigh less, so their windows don't crowd the budget."""
     ground_log_sigma: float = 0.3
     """Tolerance (in log units) of that ratio for ``location_score='ground'`` or ``'classes'``."""
+    location_fit: Literal["height", "shape"] = "height"
+    """What a class's fit in ``location_score='classes'`` reads (not in the paper):
+    ``height``: the box height alone; ``shape``: its height and its width, which must lie in
+    the class's width range of ``object_templates`` at the depth of its bottom row (a soft
+    interval: the fit falls off as a Gaussian of the log distance outside the range, with
+    ``ground_log_sigma``). A person-shaped box then fits the person classes only, a wide flat
+    one none, instead of taking a car's fit from its height. Other location scores ignore it."""
     alpha: float = 0.6
     beta: float = 0.4
     min_edge_score: float = 0.0

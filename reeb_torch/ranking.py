@@ -226,7 +226,7 @@ class Ranking:
         enclosed = self.enclosed(maps, grid)
         ii_road = maps.integral("road") if maps.road is not None else None  # None: no road term
         ii_road_below = maps.integral_below("road") if cfg.road_score == "stand" else None  # none past the bottom
-        loc_cache: dict = {}  # L depends on the window height and rows only (not on ``paper``'s b_w)
+        loc_cache: dict = {}  # L of a size's rows, shared between sizes with the same _loc_key
         band = cfg.straddle_band
         if maps.crossing is not None:  # padded by the band so sides at the image border read zeros
             ii_cols, ii_rows = maps.crossing_integrals(band)
@@ -252,7 +252,7 @@ class Ranking:
                 sh = max(1, int(round(cfg.road_strip * s.h)))
                 below = _scoring.box_sums(ii_road_below, 0, s.h, s.w, sh, s) / (s.w * sh)
                 r = (below.float() * (1.0 - r)).clamp_(0, 1)
-            key = (s.h, s.oy, s.sy, s.ny) if cfg.location_score != "paper" else None  # L ignores b_w
+            key = self._loc_key(s)
             loc = loc_cache.get(key) if key is not None else None
             if loc is None:
                 loc = self._location_rows(s, bw, bh, fy, *maps.input_size, edges.device)
@@ -314,12 +314,28 @@ class Ranking:
         cfg = self.config
         return tuple(cfg.class_weights) if cfg.location_score == "classes" else None
 
+    def _template_widths(self) -> tuple[tuple[float, float], ...] | None:
+        """Each class's width range in metres when the location score fits the box's shape
+        (``location_fit='shape'`` with ``location_score='classes'``), else None."""
+        cfg = self.config
+        if cfg.location_score == "classes" and cfg.location_fit == "shape":
+            return tuple((t[2], t[3]) for t in cfg.object_templates)
+        return None
+
+    def _loc_key(self, s: _windows.WindowSize) -> tuple | None:
+        """What L of a window size's rows depends on, to share it between sizes: the height
+        and rows, and the width with the class shape fit; None for the printed L (it reads
+        the width and is not shared)."""
+        if self.config.location_score == "paper":
+            return None
+        return (s.h, s.oy, s.sy, s.ny, s.w if self._template_widths() is not None else 0)
+
     def _location(self, bottom: Tensor, bw: float | Tensor, bh: float | Tensor, h_in: int, w_in: int) -> Tensor:
         """L (eq. 11 or its variants) of boxes ``bw × bh`` (input pixels) whose bottom is row ``bottom``."""
         cfg = self.config
         return _scoring.location_score(bottom, bw, bh, float(w_in), float(h_in), cfg.location_score,
                                        cfg.horizon, self._ground_ratios(), cfg.ground_log_sigma,
-                                       self._class_weights())
+                                       self._class_weights(), self._template_widths(), cfg.camera_height_m)
 
     def _location_rows(self, s: _windows.WindowSize, bw: float, bh: float, fy: float, h_in: int, w_in: int,
                        device: torch.device) -> Tensor:
@@ -345,7 +361,7 @@ class Ranking:
             dx, dy, cw, ch = _scoring.centre_box(s.w, s.h, cfg.center_fraction)
             bw, bh = s.w / fx, s.h / fy
             denom = _scoring.edge_norm(bw, bh, cfg.score_norm, cfg.kappa, cfg.gamma)
-            lkey = (s.h, s.oy, s.sy, s.ny) if cfg.location_score != "paper" else None
+            lkey = self._loc_key(s)
             start = loc_cache.get(lkey) if lkey is not None else None
             if start is None:
                 start = loc_offset
@@ -470,22 +486,34 @@ class Ranking:
                  shadow_margin=cfg.shadow_margin, shadow_floor=cfg.shadow_floor),
             wk, hk, min_side, cfg.window_step)
 
-    def _box_tables(self, grid: _windows.WindowGrid, maps: ScoreMaps) -> tuple[Tensor, Tensor]:
-        """``loc[y1, h]`` (the location score of a box ``h`` working pixels tall whose bottom is
-        working row ``y1``) and ``norm[w, h]`` (eq. 1's normaliser of a ``w × h`` box), from the
-        tensor functions the box scorer calls, cached with the window grid of the image size."""
+    def _box_tables(self, grid: _windows.WindowGrid, maps: ScoreMaps) -> tuple[Tensor, Tensor, Tensor]:
+        """The location score and eq. 1's normaliser of any box, tabulated by the tensor
+        functions the box scorer calls (cached with the window grid of the image size):
+        ``loc_h[c, y1, h] · loc_w[c, y1, w]``, at its best over the classes ``c``, is L of a
+        box ``w × h`` working pixels whose bottom is working row ``y1`` (one "class" of the
+        whole L and ``loc_w = 1`` where L does not read the width), and ``norm[w, h]``
+        eq. 1's normaliser."""
         cfg = self.config
         hk, wk = maps.edges.shape[-2:]
         fx, fy = maps.fx, maps.fy
         h_in, w_in = maps.input_size
 
-        def build() -> tuple[Tensor, Tensor]:
+        def build() -> tuple[Tensor, Tensor, Tensor]:
             rows = torch.arange(hk + 1, dtype=torch.float64)
             bottom, bh = rows[:, None] / fy, rows[None, :] / fy
-            loc = self._location(bottom, bh, bh, h_in, w_in)
-            bw = torch.arange(wk + 1, dtype=torch.float64)[:, None] / fx
-            norm = _scoring.edge_norm(bw, bh, cfg.score_norm, cfg.kappa, cfg.gamma)
-            return loc.expand(hk + 1, hk + 1).contiguous(), norm.contiguous()
+            bw = torch.arange(wk + 1, dtype=torch.float64)[None, :] / fx
+            widths = self._template_widths()
+            if widths is None:
+                loc_h = self._location(bottom, bh, bh, h_in, w_in).expand(hk + 1, hk + 1)[None]
+                loc_w = torch.ones((1, hk + 1, wk + 1), dtype=torch.float64)
+            else:
+                loc_h = torch.stack(_scoring.class_height_fits(bottom, bh, float(h_in), cfg.horizon,
+                                                               self._ground_ratios(), cfg.ground_log_sigma,
+                                                               self._class_weights()))
+                loc_w = torch.stack(_scoring.class_width_fits(bottom, bw, float(h_in), cfg.horizon, widths,
+                                                              cfg.ground_log_sigma, cfg.camera_height_m))
+            norm = _scoring.edge_norm(bw.T, bh, cfg.score_norm, cfg.kappa, cfg.gamma)
+            return loc_h.contiguous(), loc_w.contiguous(), norm.contiguous()
 
         return self._grid_cached(("box_tables", fx, fy, h_in, w_in), grid, build)
 

@@ -245,8 +245,8 @@ def _centred(x0: int, y0: int, w: int, h: int, fraction: np.float32) -> tuple[in
 
 @numba.njit(cache=True, nogil=True)
 def _box_score(i: int, x0: int, y0: int, x1: int, y1: int, anchor: np.ndarray, cut_col: np.ndarray,
-               cut_row: np.ndarray, corner: np.ndarray, ii: np.ndarray, loc: np.ndarray, norm: np.ndarray,
-               green: np.ndarray, grey: np.ndarray, params: np.ndarray, iparams: np.ndarray,
+               cut_row: np.ndarray, corner: np.ndarray, ii: np.ndarray, loc_h: np.ndarray, loc_w: np.ndarray,
+               norm: np.ndarray, green: np.ndarray, grey: np.ndarray, params: np.ndarray, iparams: np.ndarray,
                ) -> float:  # pragma: no cover - compiled
     """V of one box, with the operations of the tensor box scorer in the same order (so the
     same float64 numbers): see :func:`refine_boxes_cpu` for ``params`` / ``iparams``."""
@@ -262,7 +262,10 @@ def _box_score(i: int, x0: int, y0: int, x1: int, y1: int, anchor: np.ndarray, c
     row = cut_row[i, y1, x1] - cut_row[i, y1, x0]
     enc = ((a - col) - row) + corner[i, y1, x1]
     s = (enc * unit - centre * unit) / norm[w, h]
-    v = s * (alpha_loc_road * loc[y1, h] + beta_road)
+    loc = loc_h[0, y1, h] * loc_w[0, y1, w]
+    for c in range(1, loc_h.shape[0]):  # the best class, as the tensor location score's maximum
+        loc = max(loc, loc_h[c, y1, h] * loc_w[c, y1, w])
+    v = s * (alpha_loc_road * loc + beta_road)
     if with_green:
         gx0, gy0, gx1, gy1 = _centred(x0, y0, w, h, veg_f)
         gs = _sum(green, i, gx0, gy0, gx1, gy1)
@@ -291,15 +294,15 @@ def _box_score(i: int, x0: int, y0: int, x1: int, y1: int, anchor: np.ndarray, c
 
 @numba.njit(cache=True, nogil=True)
 def _refine_kernel(boxes: np.ndarray, bi: np.ndarray, steps: np.ndarray, best: np.ndarray, anchor: np.ndarray,
-                   cut_col: np.ndarray, cut_row: np.ndarray, corner: np.ndarray, ii: np.ndarray, loc: np.ndarray,
-                   norm: np.ndarray, green: np.ndarray, grey: np.ndarray, params: np.ndarray, iparams: np.ndarray,
+                   cut_col: np.ndarray, cut_row: np.ndarray, corner: np.ndarray, ii: np.ndarray, loc_h: np.ndarray,
+                   loc_w: np.ndarray, norm: np.ndarray, green: np.ndarray, grey: np.ndarray, params: np.ndarray, iparams: np.ndarray,
                    width: int, height: int, min_side: int) -> None:  # pragma: no cover - compiled
     """:func:`refine_boxes` box by box (each box's moves depend only on its own scores)."""
     for k in range(boxes.shape[0]):
         i = bi[k]
         x0, y0, x1, y1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
-        cur = _box_score(i, x0, y0, x1, y1, anchor, cut_col, cut_row, corner, ii, loc, norm, green, grey,
-                         params, iparams)
+        cur = _box_score(i, x0, y0, x1, y1, anchor, cut_col, cut_row, corner, ii, loc_h, loc_w, norm, green,
+                         grey, params, iparams)
         sx, sy = steps[k, 0], steps[k, 1]
         while sx > 0 or sy > 0:
             for side in range(4):
@@ -318,8 +321,8 @@ def _refine_kernel(boxes: np.ndarray, bi: np.ndarray, steps: np.ndarray, best: n
                         c3 += sign * st
                     if c0 < 0 or c1 < 0 or c2 > width or c3 > height or c2 - c0 < min_side or c3 - c1 < min_side:
                         continue
-                    sc = _box_score(i, c0, c1, c2, c3, anchor, cut_col, cut_row, corner, ii, loc, norm, green,
-                                    grey, params, iparams)
+                    sc = _box_score(i, c0, c1, c2, c3, anchor, cut_col, cut_row, corner, ii, loc_h, loc_w, norm,
+                                    green, grey, params, iparams)
                     if sc > cur:
                         x0, y0, x1, y1, cur = c0, c1, c2, c3, sc
             sx //= 2
@@ -328,16 +331,17 @@ def _refine_kernel(boxes: np.ndarray, bi: np.ndarray, steps: np.ndarray, best: n
         best[k] = cur
 
 
-def refine_boxes_cpu(boxes: Tensor, b: Tensor, tables: EnclosedTables, ii_edges: Tensor, loc: Tensor,
-                     norm: Tensor, green: Tensor | None, grey_below: Tensor | None, params: dict,
+def refine_boxes_cpu(boxes: Tensor, b: Tensor, tables: EnclosedTables, ii_edges: Tensor, loc_h: Tensor,
+                     loc_w: Tensor, norm: Tensor, green: Tensor | None, grey_below: Tensor | None, params: dict,
                      width: int, height: int, min_side: int, step_fraction: float) -> tuple[Tensor, Tensor]:
     """:func:`refine_boxes` with the box scorer of the package default compiled (numba), one
     box after the other: the same moves and the same float64 scores as the tensor scorer
     (tested equal), without a tensor op per side, sign and step.
 
-    ``loc[y1, h]`` and ``norm[w, h]`` are the location score and eq. 1's normaliser of a box
-    of height ``h`` (width ``w``) whose bottom is working row ``y1``, tabulated by the tensor
-    functions themselves; ``green`` the green-pixel counts (``int32``, read as they are; or
+    ``max_c loc_h[c, y1, h] · loc_w[c, y1, w]`` and ``norm[w, h]`` are the location score
+    and eq. 1's normaliser of a box of height ``h`` and width ``w`` whose bottom is working
+    row ``y1``, tabulated by the tensor functions themselves (``float64``; one ``c`` and
+    ``loc_w = 1`` where L does not read the width); ``green`` the green-pixel counts (``int32``, read as they are; or
     None), ``grey_below`` the grey integral image extended below the image (or None: no
     shadow term); ``params`` holds
     ``unit, alpha, beta_road, center_fraction, vegetation_box, vegetation_power,
@@ -350,7 +354,8 @@ def refine_boxes_cpu(boxes: Tensor, b: Tensor, tables: EnclosedTables, ii_edges:
                  np.float64)
     ip = np.array([params["vegetation_power"], green is not None, grey_below is not None, height], np.int64)
     arrays = (tables.anchor.numpy(), tables.cut_col.numpy(), tables.cut_row.numpy(), tables.corner.numpy(),
-              ii_edges.contiguous().numpy(), loc.contiguous().numpy(), norm.contiguous().numpy(),
+              ii_edges.contiguous().numpy(), loc_h.contiguous().numpy(), loc_w.contiguous().numpy(),
+              norm.contiguous().numpy(),
               green.contiguous().numpy() if green is not None else np.zeros((1, 1, 1), np.int32),
               grey_below.contiguous().numpy() if grey_below is not None else np.zeros((1, 1, 1)))
     bx, bb, st, out = boxes.numpy(), b.contiguous().numpy(), steps.numpy(), best.numpy()

@@ -176,28 +176,61 @@ def edge_norm(w, h, norm: str, kappa: float, gamma: float):
 
 def location_score(bottom: Tensor, bw: float | Tensor, bh: float | Tensor, img_w: float, img_h: float, mode: str,
                    horizon: float = 0.47, ratio: float | tuple[float, ...] = 1.0, log_sigma: float = 0.5,
-                   weights: tuple[float, ...] | None = None) -> Tensor:
+                   weights: tuple[float, ...] | None = None,
+                   widths: tuple[tuple[float, float], ...] | None = None, camera_height: float = 1.0) -> Tensor:
     """Eq. 11 and variants, for boxes of size ``bw × bh`` whose bottom rows are ``bottom``
     (input pixels, from the image top).
 
     ``paper``: L = b_y / (b_w·b_h) · image width (unbounded). ``ground``: a Gaussian in
     log(b_h / (b_y − horizon·H) / ratio), 0 above the horizon, in [0, 1]. ``classes``: the
     same with one ``ratio`` per object class (a tuple), taking the best fitting class, each
-    class's Gaussian scaled by its ``weights`` (a max-mixture over the class templates). ``none``: 1.
+    class's Gaussian scaled by its ``weights`` (a max-mixture over the class templates): the
+    product of :func:`class_height_fits` and, with ``widths``, :func:`class_width_fits`.
+    ``none``: 1.
     """
     if mode == "paper":
         return bottom * (img_w / (bw * bh))
     if mode in ("ground", "classes"):
-        depth = bottom - horizon * img_h
-        log_r = torch.log(bh / depth.clamp_min(1e-6))
         ratios = ratio if isinstance(ratio, tuple) else (ratio,)
-        weights = (1.0,) * len(ratios) if weights is None else weights
-        val = None
-        for c, wc in zip(ratios, weights):
-            fit = wc * torch.exp(-((log_r - math.log(c)) ** 2) / (2 * log_sigma**2))
-            val = fit if val is None else torch.maximum(val, fit)
-        return torch.where(depth > 0, val, torch.zeros_like(val))
+        fits = class_height_fits(bottom, bh, img_h, horizon, ratios, log_sigma, weights)
+        if widths is not None:
+            fits = [f * g for f, g in zip(fits, class_width_fits(bottom, bw, img_h, horizon, widths, log_sigma,
+                                                                 camera_height))]
+        val = fits[0]
+        for f in fits[1:]:
+            val = torch.maximum(val, f)
+        return val
     return torch.ones_like(bottom)
+
+
+def class_height_fits(bottom: Tensor, bh: float | Tensor, img_h: float, horizon: float, ratios: tuple[float, ...],
+                      log_sigma: float, weights: tuple[float, ...] | None = None) -> list[Tensor]:
+    """How well a box ``bh`` tall standing at row ``bottom`` (input pixels) fits each class:
+    ``w_c · exp(−(log(b_h / (b_y − horizon·H)) − log r_c)² / 2σ²)`` for each ratio r_c
+    (class height / camera height) and weight w_c, 0 where the bottom is not below the
+    horizon; one tensor per class, broadcast over ``bottom`` and ``bh``."""
+    depth = bottom - horizon * img_h
+    log_r = torch.log(bh / depth.clamp_min(1e-6))
+    weights = (1.0,) * len(ratios) if weights is None else weights
+    above = depth <= 0
+    return [torch.where(above, 0.0, wc * torch.exp(-((log_r - math.log(c)) ** 2) / (2 * log_sigma**2)))
+            for c, wc in zip(ratios, weights)]
+
+
+def class_width_fits(bottom: Tensor, bw: float | Tensor, img_h: float, horizon: float,
+                     widths: tuple[tuple[float, float], ...], log_sigma: float, camera_height: float) -> list[Tensor]:
+    """How well a box ``bw`` wide standing at row ``bottom`` (input pixels) fits each class's
+    width range ``(lo, hi)`` in metres (``ReebConfig.location_fit='shape'``): the box's
+    width on the road at that depth, ``b_w · camera_height / (b_y − horizon·H)`` (square
+    pixels), is 1 inside the range and falls off as a Gaussian of its log distance from the
+    range with the height fit's tolerance ``log_sigma``; one tensor per class."""
+    depth = bottom - horizon * img_h
+    log_w = torch.log(bw * camera_height / depth.clamp_min(1e-6))
+    out = []
+    for lo, hi in widths:
+        off = (math.log(lo) - log_w).clamp_min(0.0) + (log_w - math.log(hi)).clamp_min(0.0)
+        out.append(torch.exp(-(off**2) / (2 * log_sigma**2)))
+    return out
 
 
 def combined_score(s: Tensor, loc: Tensor, road: Tensor, alpha: float, beta: float, road_mode: str) -> Tensor:
