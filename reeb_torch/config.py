@@ -251,7 +251,7 @@ _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
      "of the same length (one weight per class)"),
     (("class_heights_m", "object_templates", "location_fit"),
      lambda c: c.location_fit != "shape" or len(c.object_templates) == len(c.class_heights_m),
-     "of the same length (one template per class) when location_fit='shape'"),
+     "of the same length when location_fit='shape' (one template per class, in the same order), or location_fit='height'"),
     (("camera_height_m", "vertical_fov_deg", "horizontal_fov_deg", "max_object_width_m",
       "region_width_round", "region_overlap"), lambda c: _region_count(c) <= _MAX_REGIONS,
      f"a camera and overlap giving at most {_MAX_REGIONS} regions (eqs. 5-8)"),
@@ -337,7 +337,7 @@ class ReebConfig:
     region_quota: bool = False
     """Also split the ``top_k`` output among the regions by their shares (eq. 9 applied to
     the final proposals, not only to the candidates)."""
-    candidates_per_region: int = 6000
+    candidates_per_region: int = 12000
     candidates_without_regions: int = 8000
     """Windows passed on to ranking when ``use_regions=False`` (the whole image is one
     region with share 1); about ``top_k`` of them survive NMS on KITTI."""
@@ -466,7 +466,7 @@ class ReebConfig:
     ``class_heights_m``): rarer classes weigh less, so their windows don't crowd the budget."""
     ground_log_sigma: float = 0.3
     """Tolerance (in log units) of that ratio for ``location_score='ground'`` or ``'classes'``."""
-    location_fit: Literal["height", "shape"] = "height"
+    location_fit: Literal["height", "shape"] = "shape"
     """What a class's fit in ``location_score='classes'`` reads (not in the paper):
     ``height``: the box height alone; ``shape``: its height and its width, which must lie in
     the class's width range of ``object_templates`` at the depth of its bottom row (a soft

@@ -168,8 +168,15 @@ def test_values_are_normalised_so_equal_settings_are_equal():
     assert all(type(v) is float for v in a.road_band)
 
 
+def test_shape_fit_needs_one_template_per_class():
+    with pytest.raises(ValueError, match="one template per class"):
+        ReebConfig(object_templates=((1.0, 2.0, 0.5, 4.0),))
+    ReebConfig(object_templates=((1.0, 2.0, 0.5, 4.0),), location_fit="height")  # the height fit reads no template
+
+
 def test_json_round_trip_with_nested_tuples():
-    c = ReebConfig(object_templates=((1.0, 2.0, 0.5, 4.0), (0.9, 2.2, 0.3, 1.4)), ground_band=None)
+    c = ReebConfig(object_templates=((1.0, 2.0, 0.5, 4.0), (0.9, 2.2, 0.3, 1.4)), ground_band=None,
+                   class_heights_m=(1.5, 1.72), class_weights=(1.0, 1.0))
     back = ReebConfig.from_dict(json.loads(json.dumps(c.to_dict())))
     assert back == c and hash(back) == hash(c) and back.fingerprint() == c.fingerprint()
     assert back.object_templates == ((1.0, 2.0, 0.5, 4.0), (0.9, 2.2, 0.3, 1.4))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from reeb_torch.stages.groups import EdgeGroups
@@ -192,3 +193,36 @@ def test_kth_largest_radix_selection_equals_a_sort():
         k = int(rng.integers(1, n + 1))
         ref = -np.sort(-np.where(np.isnan(v), -np.inf, v))[k - 1]
         assert kth_largest(v, k) == ref, t
+
+
+def test_location_shape_fit_by_hand():
+    """location_fit='shape': a class's height fit times a soft interval on the box's width on
+    the road, worked by hand for a camera 1.5 m up, horizon at row 100 of a 300-row image."""
+    import math
+
+    from reeb_torch.stages.scoring import class_width_fits, location_score
+
+    bottom = torch.tensor([250.0, 250.0, 250.0, 90.0], dtype=torch.float64)  # 150 px below the horizon; one above
+    bh = torch.tensor([150.0, 150.0, 150.0, 20.0], dtype=torch.float64)      # 1.5 m tall at that depth
+    bw = torch.tensor([40.0, 200.0, 1000.0, 20.0], dtype=torch.float64)      # 0.4 m, 2 m, 10 m wide
+    ratios, weights = (1.0, 1.2), (1.0, 0.5)  # a 1.5 m class and a 1.8 m one (weight 0.5)
+    widths = ((1.3, 6.5), (0.3, 1.4))         # car-like and person-like width ranges
+    sigma = 0.3
+    got = location_score(bottom, bw, bh, 640.0, 300.0, "classes", 1 / 3, ratios, sigma, weights, widths, 1.5)
+
+    def gauss(d):
+        return math.exp(-d * d / (2 * sigma * sigma))
+
+    h_fit = [1.0, 0.5 * gauss(math.log(1.0 / 1.2))]  # class 0 fits the height exactly
+    metres = [0.4, 2.0, 10.0]
+    for i, wm in enumerate(metres):
+        w_fit = [gauss(max(math.log(lo) - math.log(wm), 0) + max(math.log(wm) - math.log(hi), 0))
+                 for lo, hi in widths]
+        assert float(got[i]) == pytest.approx(max(h * w for h, w in zip(h_fit, w_fit)), rel=1e-12)
+    assert float(got[1]) == pytest.approx(1.0)          # 2 m wide, 1.5 m tall: the car-like class, fully
+    assert float(got[0]) < 0.5                          # person-shaped: no longer the car class's fit
+    assert float(got[3]) == 0.0                         # above the horizon
+    plain = location_score(bottom, bw, bh, 640.0, 300.0, "classes", 1 / 3, ratios, sigma, weights)
+    assert float(plain[0]) == pytest.approx(1.0)        # the height fit alone takes the car class's fit
+    inside = class_width_fits(bottom[:2], bw[:2], 300.0, 1 / 3, ((0.2, 3.0),), sigma, 1.5)[0]
+    assert torch.equal(inside, torch.ones(2, dtype=torch.float64))  # inside the range: 1 exactly
