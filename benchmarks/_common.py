@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-__all__ = ["REPO_ROOT", "default_kitti_dir", "rerun_line", "environment", "timed", "run_captured"]
+__all__ = ["REPO_ROOT", "default_kitti_dir", "default_dev_dirs", "rerun_line", "environment", "timed", "run_captured"]
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 """The repository root (the folder holding ``benchmarks/``)."""
@@ -16,6 +16,15 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 def default_kitti_dir() -> Path:
     """``shared/data/kitti`` beside the repository: the 60 KITTI frames of the project."""
     return REPO_ROOT.parent / "shared" / "data" / "kitti"
+
+
+def default_dev_dirs() -> list[Path]:
+    """The project's dev folders beside the repository that exist: ``shared/data/kitti`` (60
+    KITTI object frames) and ``shared/data/kitti_tracking`` (46 frames of two tracking
+    sequences); both when neither exists (so the error names them)."""
+    root = REPO_ROOT.parent / "shared" / "data"
+    dirs = [root / "kitti", root / "kitti_tracking"]
+    return [d for d in dirs if d.is_dir()] or dirs
 
 
 def rerun_line(script: str, argv: Sequence[str]) -> str:

@@ -4,13 +4,15 @@ Each row changes one switch of the package default (``ReebConfig()``), or starts
 the ``paper`` preset, and reports recall of the top 2000 proposals at IoU 0.5 and 0.7
 (micro, all objects of the four classes), recall at 0.7 of KITTI-moderate objects, AR, and
 ms/img, on the same KITTI frames; the JSON rows add the per-class recall at 0.7.
-``--frames 0:39 40:59`` (numeric ids, both ends included) adds R@0.7 of each range, to
-choose on one half and confirm on the other.
+``--data`` takes several folders (default: the two dev folders beside the repository,
+``../shared/data/kitti`` and ``../shared/data/kitti_tracking``): every row then also gives
+R@0.7 of each folder and its pairing with the default there. ``--frames 0:39 40:59``
+(numeric ids, both ends included) adds the same for each range.
 
 Each row is also paired with the default on the same objects (R@2000, IoU 0.7): ``+g/-l``
 counts the objects it finds that the default misses and the other way round, and ``p`` is
 the two-sided exact sign test of that split (:func:`reeb_torch.eval.metrics.compare_recall`).
-On 60 frames a one- or two-object difference is p ≈ 0.5-1: not a finding. The default's
+On the 106 dev frames a difference of a few objects is p ≈ 0.3-1: not a finding. The default's
 row gives its recall's 95 % frame-bootstrap interval instead
 (:func:`reeb_torch.eval.metrics.recall_interval`).
 
@@ -19,7 +21,7 @@ row gives its recall's 95 % frame-bootstrap interval instead
 rows run (plus the named rows ``--only`` picks). To check a choice on frames of your own,
 e.g. ``--data HELD_OUT --variant refine=on --variant blur_sigma=1.5``.
 
-Rerun: ``python benchmarks/ablations.py [--data DIR] [--limit N] [--frames A:B ...]
+Rerun: ``python benchmarks/ablations.py [--data DIR ...] [--limit N] [--frames A:B ...]
 [--only NAME ...] [--variant SETTINGS ...]``
 """
 
@@ -35,11 +37,11 @@ import click
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import default_kitti_dir, environment, rerun_line  # noqa: E402
+from _common import default_dev_dirs, environment, rerun_line  # noqa: E402
 
 from reeb_torch import ProposalGenerator, ReebConfig  # noqa: E402
 from reeb_torch.runs.common import build_config  # noqa: E402
-from reeb_torch.eval.common import add_frames_option, load_kitti  # noqa: E402
+from reeb_torch.eval.common import add_data_option, add_frames_option, folder_splits, load_folders  # noqa: E402
 from reeb_torch.eval.table3 import moderate_masks  # noqa: E402
 from reeb_torch.eval.metrics import (  # noqa: E402
     average_recall,
@@ -123,13 +125,16 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "size_ratio=1.15": (D.replace(size_ratio=1.15), "#13"),
     "scale=1.0": (D.replace(scale=1.0, group_cell=16), "#13"),
     "nms_iou=0.8": (D.replace(nms_iou=0.8), "#14"),
+    "candidates_per_region=6000": (D.replace(candidates_per_region=6000), "eq. 9"),
     "candidates_per_region=8000": (D.replace(candidates_per_region=8000), "eq. 9"),
+    "location_fit=height": (D.replace(location_fit="height"), "#11"),
+    "previous default (height fit, 6000)": (D.replace(location_fit="height", candidates_per_region=6000), "prev"),
     "region_quota=on": (D.replace(region_quota=True), "eq. 9"),
 }
 
 
-def load(root: Path, limit: int | None, frames=()):
-    items, classes = load_kitti(root, limit=limit, frames=frames)
+def load(roots: list[Path], limit: int | None, frames=()):
+    items, classes = load_folders(roots, limit=limit, frames=frames)
     return [it["image"] for it in items], [it["boxes"] for it in items], [it["labels"] for it in items], classes, items
 
 
@@ -143,10 +148,12 @@ def run(cfg: ReebConfig, images, batch: int) -> tuple[list[torch.Tensor], float]
     return boxes, (time.perf_counter() - t0) * 1000 / len(images)
 
 
-def main(argv: list[str] | None = None) -> list[dict]:
+def parse_args(argv: list[str] | None) -> tuple[argparse.Namespace, dict]:
+    """The options, and the ``--variant`` rows as ``{name: (config, "set")}`` (a usage error,
+    before any work, for an unknown field or a bad value)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, default=default_kitti_dir())
-    ap.add_argument("--limit", type=int, default=None)
+    add_data_option(ap, default_dev_dirs())
+    ap.add_argument("--limit", type=int, default=None, help="only the first N frames of each folder")
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--only", nargs="*", default=None, help="variant names (substring match)")
     ap.add_argument("--variant", action="append", default=[], metavar="SETTINGS",
@@ -162,6 +169,25 @@ def main(argv: list[str] | None = None) -> list[dict]:
             extra[", ".join(pairs)] = (build_config("default", None, pairs, None), "set")
         except click.ClickException as e:  # an unknown field, a bad value: before any work
             ap.error(f"--variant {text!r}: {e.format_message()}")
+    try:
+        args.frames_data = load(args.data, args.limit, args.frames)
+    except ValueError as e:
+        ap.error(str(e))
+    return args, extra
+
+
+def groups_of(args: argparse.Namespace, items: list[dict]) -> list[tuple[str, list[int]]]:
+    """The frame groups each row also reports: every data folder (when there are several),
+    then every ``--frames`` range (when there are several)."""
+    groups = folder_splits(items)
+    if len(args.frames) > 1:
+        groups += [(r.text, [i for i, it in enumerate(items) if int(it["image_id"]) in r]) for r in args.frames]
+    return groups
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    args, extra = parse_args(argv)
+    images, gts, labels, classes, items = args.frames_data
     lines: list[str] = []
 
     def say(text: str) -> None:  # printed as it comes, and kept for ablations.txt
@@ -169,18 +195,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
         lines.append(text)
 
     say("# rerun: " + rerun_line("benchmarks/ablations.py", argv if argv is not None else sys.argv[1:]))
-    try:
-        images, gts, labels, classes, items = load(args.data, args.limit, args.frames)
-    except ValueError as e:
-        ap.error(str(e))
     gts_mod, labels_mod = select_objects(gts, labels, moderate_masks(items))
-    ranges = args.frames if len(args.frames) > 1 else []
-    in_range = [[i for i, it in enumerate(items) if int(it["image_id"]) in r] for r in ranges]
-    say(f"# {len(images)} images from {args.data}, {sum(len(g) for g in gts)} objects "
+    groups = groups_of(args, items)
+    say(f"# {len(images)} images from {' + '.join(map(str, args.data))}, {sum(len(g) for g in gts)} objects "
         f"({sum(len(g) for g in gts_mod)} moderate), torch threads {torch.get_num_threads()}")
     say(f"{'variant':34s} {'NOTES':6s} {'R@.5':>6s} {'R@.7':>6s} {'mod.7':>6s} {'AR':>6s} {'ms/img':>7s}"
-        + "".join(f" {'.7 ' + r.text:>9s}" for r in ranges) + "  vs default (+g/-l, p)")
-    rows = []
+        + "".join(f" {'.7 ' + g:>{max(9, len(g) + 3)}s}" for g, _ in groups) + "  vs default (+g/-l, p; per group)")
 
     def selected(name: str) -> bool:
         if name in extra:
@@ -192,6 +212,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     base_hits = None
     if not selected("default"):  # every row is paired with the default: run it unlisted
         base_hits = object_hits(run(D, images, args.batch)[0], gts)
+    rows = []
     for name, (cfg, note) in {**VARIANTS, **extra}.items():
         if not selected(name):
             continue
@@ -199,29 +220,44 @@ def main(argv: list[str] | None = None) -> list[dict]:
         hits = object_hits(boxes, gts)
         if name == "default":
             base_hits = hits
-            ci = recall_interval(hits)
-            versus, pair = f"95 % interval {100 * ci.low:.1f}-{100 * ci.high:.1f}", None
-        else:
-            cmp = compare_recall(base_hits, hits)
-            versus = f"+{cmp.gained}/-{cmp.lost}, p {cmp.p_value:.2f}"
-            pair = dict(gained=cmp.gained, lost=cmp.lost, p_value=cmp.p_value)
-        res = recall_table(boxes, gts, labels, classes, ks=(2000,), ious=(0.5, 0.7))
-        ar = float(average_recall(boxes, gts, ks=(2000,))[0])
-        r5, r7 = res.at(2000, 0.5), res.at(2000, 0.7)
-        mod7 = recall_table(boxes, gts_mod, labels_mod, classes, ks=(2000,), ious=(0.7,)).at(2000, 0.7)
-        per_range = {r.text: recall_table([boxes[i] for i in idx], [gts[i] for i in idx],
-                                          ks=(2000,), ious=(0.7,)).at(2000, 0.7)
-                     for r, idx in zip(ranges, in_range)}
-        say(f"{name:34s} {note:6s} {100 * r5:6.1f} {100 * r7:6.1f} {100 * mod7:6.1f} {100 * ar:6.1f} {ms:7.1f}"
-            + "".join(f" {100 * v:9.1f}" for v in per_range.values()) + f"  {versus}")
-        per_class = {c: (None if v != v else v) for c, v in res.per_class_at(2000, 0.7).items()}  # nan: no object
-        rows.append(dict(variant=name, notes=note, recall_05=r5, recall_07=r7, ar=ar, ms_per_img=ms,
-                         recall_07_moderate=mod7, recall_07_per_class=per_class,
-                         recall_07_per_range=per_range, versus_default=pair))
+        row, text = measure(name, note, boxes, ms, hits, base_hits, gts, labels, classes, gts_mod, labels_mod, groups)
+        say(text)
+        rows.append(row)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "ablations.json").write_text(json.dumps({"rows": rows, "env": environment()}, indent=2))
     (args.out / "ablations.txt").write_text("\n".join(lines) + "\n")
     return rows
+
+
+def measure(name, note, boxes, ms, hits, base_hits, gts, labels, classes, gts_mod, labels_mod, groups):
+    """One row of the table: its JSON record and its line of text. The default's row gives
+    its 95 % frame-bootstrap interval, every other row its pairing with the default (over
+    all frames, then per group)."""
+    pairs = {}
+    if hits is base_hits:
+        ci = recall_interval(hits)
+        versus, pair = f"95 % interval {100 * ci.low:.1f}-{100 * ci.high:.1f}", None
+    else:
+        cmp = compare_recall(base_hits, hits)
+        versus = f"+{cmp.gained}/-{cmp.lost}, p {cmp.p_value:.2f}"
+        pair = dict(gained=cmp.gained, lost=cmp.lost, p_value=cmp.p_value)
+        for g, idx in groups:
+            c = compare_recall([base_hits[i] for i in idx], [hits[i] for i in idx])
+            pairs[g] = dict(gained=c.gained, lost=c.lost, p_value=c.p_value)
+            versus += f"; {g} +{c.gained}/-{c.lost}"
+    res = recall_table(boxes, gts, labels, classes, ks=(2000,), ious=(0.5, 0.7))
+    ar = float(average_recall(boxes, gts, ks=(2000,))[0])
+    r5, r7 = res.at(2000, 0.5), res.at(2000, 0.7)
+    mod7 = recall_table(boxes, gts_mod, labels_mod, classes, ks=(2000,), ious=(0.7,)).at(2000, 0.7)
+    per_group = {g: recall_table([boxes[i] for i in idx], [gts[i] for i in idx], ks=(2000,), ious=(0.7,)).at(2000, 0.7)
+                 for g, idx in groups}
+    text = (f"{name:34s} {note:6s} {100 * r5:6.1f} {100 * r7:6.1f} {100 * mod7:6.1f} {100 * ar:6.1f} {ms:7.1f}"
+            + "".join(f" {100 * v:{max(9, len(g) + 3)}.1f}" for g, v in per_group.items()) + f"  {versus}")
+    per_class = {c: (None if v != v else v) for c, v in res.per_class_at(2000, 0.7).items()}  # nan: no object
+    row = dict(variant=name, notes=note, recall_05=r5, recall_07=r7, ar=ar, ms_per_img=ms,
+               recall_07_moderate=mod7, recall_07_per_class=per_class,
+               recall_07_per_range=per_group, versus_default=pair, versus_default_per_range=pairs)
+    return row, text
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@ KITTI-moderate objects (height >= 25 px, occlusion <= 1, truncation <= 0.3), and
 IoU 0.7 of each class, on the frames of a KITTI-format folder. ``--frames 0:39 40:59``
 (numeric ids, both ends included) also reports each range on its own.
 
-Rerun: ``python benchmarks/diagnose_recall.py [--data DIR] [--limit N] [--preset NAME]
+Rerun: ``python benchmarks/diagnose_recall.py [--data DIR ...] [--limit N] [--preset NAME]
 [--set FIELD=VALUE ...] [--frames A:B ...] [--lost [--show IMAGE]] [--json PATH]`` (``--set``
 as in ``reeb propose``, e.g. ``--set min_window=12``; ``--lost`` lists each missed object with
 the stage that lost it, ``--show`` draws them all in one picture)
@@ -26,11 +26,11 @@ import torch
 from torchvision.ops import box_iou
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import default_kitti_dir, rerun_line, run_captured  # noqa: E402
+from _common import default_dev_dirs, rerun_line, run_captured  # noqa: E402
 
 from reeb_torch import ProposalGenerator  # noqa: E402
 from reeb_torch.runs.common import build_config  # noqa: E402
-from reeb_torch.eval.common import add_frames_option, load_kitti  # noqa: E402
+from reeb_torch.eval.common import add_data_option, add_frames_option, folder_splits, load_folders  # noqa: E402
 from reeb_torch.eval.metrics import kitti_difficulty_mask  # noqa: E402
 from reeb_torch.stages.nms import nms_top_k  # noqa: E402
 from reeb_torch.runs.viz import crop_sheet, save_png  # noqa: E402
@@ -164,7 +164,7 @@ def format_lost(lost: list[dict]) -> str:
     counts = {k: sum(d["lost_at"] == k for d in lost) for k in LOST_AT}
     lines = [f"# {len(lost)} objects without a final proposal at IoU 0.7; lost at: "
              + ", ".join(f"{k} {n}" for k, n in counts.items() if n),
-             f"{'frame':8s} {'class':10s} {'w x h':>9s} occ trunc {'lost at':17s} {'grid':>5s} {'final':>5s}  detail"]
+             f"{'frame':12s} {'class':10s} {'w x h':>9s} occ trunc {'lost at':17s} {'grid':>5s} {'final':>5s}  detail"]
     for d in lost:
         x1, y1, x2, y2 = d["box"]
         detail = []
@@ -174,7 +174,7 @@ def format_lost(lost: list[dict]) -> str:
             detail.append(f"survives NMS at rank {d['nms_rank']}")
         if "suppressed_by_iou" in d:
             detail.append(f"suppressed by a box at IoU {d['suppressed_by_iou']:.2f}")
-        lines.append(f"{d['frame']:8s} {d['class']:10s} {f'{x2 - x1:.0f}x{y2 - y1:.0f}':>9s} {d['occluded']:3d} "
+        lines.append(f"{d['frame']:12s} {d['class']:10s} {f'{x2 - x1:.0f}x{y2 - y1:.0f}':>9s} {d['occluded']:3d} "
                      f"{d['truncated']:5.2f} {d['lost_at']:17s} {d['best_iou']['all windows']:5.2f} "
                      f"{d['best_iou']['final top-k']:5.2f}  {'; '.join(detail)}")
     return "\n".join(lines)
@@ -182,8 +182,8 @@ def format_lost(lost: list[dict]) -> str:
 
 def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, default=default_kitti_dir())
-    ap.add_argument("--limit", type=int, default=None)
+    add_data_option(ap, default_dev_dirs())
+    ap.add_argument("--limit", type=int, default=None, help="only the first N frames of each folder")
     ap.add_argument("--preset", default="default")
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="FIELD=VALUE",
                     help="override a config field of the preset (repeatable)")
@@ -220,7 +220,7 @@ def main(argv: list[str] | None = None) -> dict:
         ap.error("--show draws the objects --lost lists: give --lost too")
     print("# rerun:", rerun_line("benchmarks/diagnose_recall.py", argv if argv is not None else sys.argv[1:]))
     try:
-        items, classes = load_kitti(args.data, limit=args.limit, frames=args.frames)
+        items, classes = load_folders(args.data, limit=args.limit, frames=args.frames)
     except ValueError as e:
         ap.error(str(e))
     try:
@@ -229,7 +229,7 @@ def main(argv: list[str] | None = None) -> dict:
         ap.error(e.format_message())
     gen = ProposalGenerator(config)
     acc: dict[str, list[torch.Tensor]] = {s: [] for s in STAGES}
-    labels, moderate, frame_of, lost, crops = [], [], [], [], []
+    labels, moderate, frame_of, folder_of, lost, crops = [], [], [], [], [], []
     for item in items:
         if len(item["boxes"]) == 0:
             continue
@@ -242,22 +242,24 @@ def main(argv: list[str] | None = None) -> dict:
                 cls = classes[int(item["labels"][g])]
                 crops.append((item["image"], item["boxes"][g].tolist(), d["nearest"],
                               _caption(d, cls, item["image_id"])))
-            lost.append({"frame": item["image_id"], "class": classes[int(item["labels"][g])],
+            lost.append({"frame": item["image_id"], "folder": item["folder"], "class": classes[int(item["labels"][g])],
                          "box": [round(float(v), 1) for v in item["boxes"][g]],
                          "occluded": int(item["occluded"][g]), "truncated": round(float(item["truncated"][g]), 2),
                          **d})
         labels.append(item["labels"])
         moderate.append(kitti_difficulty_mask(item["boxes"], item["occluded"], item["truncated"]))
-        frame_of += [int(item["image_id"]) if item["image_id"].isdigit() else -1] * len(item["boxes"])
+        frame_of += [item["image_id"]] * len(item["boxes"])
+        folder_of += [item["folder"]] * len(item["boxes"])
     best = {k: torch.cat(v) if v else torch.zeros(0) for k, v in acc.items()}
     lab = torch.cat(labels) if labels else torch.zeros(0, dtype=torch.int64)
     mod = torch.cat(moderate) if moderate else torch.zeros(0, dtype=torch.bool)
-    frames = torch.tensor(frame_of, dtype=torch.int64)
     n = len(lab)
     preset = args.preset + "".join(f", {kv}" for kv in args.sets)
     print(f"# {len(items)} frames, {n} objects ({int(mod.sum())} moderate), preset {preset}; "
           "recall (%) at IoU 0.7 unless named")
     splits = [("all", torch.ones(n, dtype=torch.bool))]
+    for name, _ in folder_splits(items):  # each data folder, when there are several
+        splits.append((name, torch.tensor([f == name for f in folder_of], dtype=torch.bool)))
     if len(args.frames) > 1:
         for r in args.frames:
             splits.append((r.text, torch.tensor([int(f) in r for f in frame_of], dtype=torch.bool)))
@@ -265,9 +267,10 @@ def main(argv: list[str] | None = None) -> dict:
                     "preset": args.preset, "sets": args.sets, "classes": list(classes), "splits": {}}
     for name, m in splits:
         table = stage_table({k: b[m] for k, b in best.items()}, lab[m], mod[m], classes)
-        title = f"# frames {name}: {int(m.sum())} objects" if name != "all" else f"# all frames: {n} objects"
+        kind = "frames" if name.replace(":", "").isdigit() else "folder"
+        title = f"# {kind} {name}: {int(m.sum())} objects" if name != "all" else f"# all frames: {n} objects"
         print(format_stage_table(title, table, lab[m], mod[m], classes))
-        record["splits"][name] = {"num_objects": int(m.sum()), "frames": sorted({int(f) for f in frames[m].tolist()}),
+        record["splits"][name] = {"num_objects": int(m.sum()), "frames": sorted({f for f, keep in zip(frame_of, m.tolist()) if keep}),
                                   "stages": table}
     if args.lost:
         print(format_lost(lost))

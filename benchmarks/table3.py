@@ -6,9 +6,11 @@ KITTI-moderate objects, class mean, per-class recall at 2000 / IoU 0.7, AR) and 
 written into ``--out`` (default ``runs/table3``): ``table3.txt``, ``table3.csv``,
 ``table3.json`` and two plots.
 
-Rerun: ``python benchmarks/table3.py [--data DIR] [--limit N] [--frames A:B ...]
-[--methods ...]``; ``--data`` defaults to ``../shared/data/kitti`` beside the repository.
-Choose on ``--frames 0:39``, confirm on ``40:59``: ``--frames 0:39 40:59`` reports both.
+Rerun: ``python benchmarks/table3.py [--data DIR ...] [--limit N] [--frames A:B ...]
+[--methods ...]``; ``--data`` defaults to the two dev folders beside the repository,
+``../shared/data/kitti`` and ``../shared/data/kitti_tracking``: every table is given for
+each folder and for both together. ``--frames`` selects numeric ids (KITTI object frames;
+select tracking frames by folder).
 From code, ``main(argv)`` (returns the JSON record).
 """
 
@@ -19,10 +21,10 @@ from pathlib import Path
 from typing import Any, Sequence
 
 try:  # imported as benchmarks.table3
-    from ._common import REPO_ROOT, default_kitti_dir
+    from ._common import REPO_ROOT, default_dev_dirs
 except ImportError:  # run as a script, or loaded from its file
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from _common import REPO_ROOT, default_kitti_dir  # type: ignore[no-redef]
+    from _common import REPO_ROOT, default_dev_dirs  # type: ignore[no-redef]
 
     # The checkout's package first: run from benchmarks/, an editable install made before
     # reeb_torch/__init__.py existed resolves `reeb_torch` as an empty namespace package.
@@ -43,7 +45,7 @@ from reeb_torch.eval.table3 import (  # noqa: E402,F401 - re-exported for old im
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Run the benchmark (``argv`` as on the command line) and return the JSON record."""
-    return _table3.main(argv, prog="benchmarks/table3.py", default_data=default_kitti_dir())
+    return _table3.main(argv, prog="benchmarks/table3.py", default_data=default_dev_dirs())
 
 
 if __name__ == "__main__":

@@ -120,6 +120,20 @@ def test_ablation_variants_run_beside_the_default_only(tmp_path):
     assert rows[2]["recall_07"] == pytest.approx(rows[0]["recall_07"] - pair["lost"] / n)
 
 
+def test_ablations_pair_each_folder(tmp_path):
+    """Two --data folders: each row's recall and pairing with the default per folder, and the
+    pairing over both is the sum of the folders'."""
+    ablations = _script("ablations")
+    a, b = _example_kitti(tmp_path / "a"), _example_kitti(tmp_path / "b")
+    rows = ablations.main(["--data", str(a), str(b), "--batch", "2", "--out", str(tmp_path / "out"),
+                           "--variant", "top_k=100"])
+    per = rows[1]["versus_default_per_range"]
+    assert list(per) == list(rows[1]["recall_07_per_range"]) == ["a", "b"]
+    both = rows[1]["versus_default"]
+    assert both["lost"] == per["a"]["lost"] + per["b"]["lost"] > 0 and both["gained"] == 0
+    assert rows[1]["recall_07_per_range"]["a"] == rows[1]["recall_07_per_range"]["b"]  # the same frames
+
+
 def test_a_bad_ablation_variant_is_a_usage_error_before_any_work(tmp_path, capsys):
     ablations = _script("ablations")
     with pytest.raises(SystemExit) as info:

@@ -239,3 +239,32 @@ def test_reeb_eval_from_a_wheel_outside_the_checkout(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     assert "KITTI-moderate objects" in r.stdout and "Per-class recall" in r.stdout
     assert json.loads((work / "t3" / "table3.json").read_text())["num_objects"] == 3
+
+
+def test_table3_on_two_folders_reports_each_and_both(tmp_path, monkeypatch):
+    """Several --data folders: one run, every table for each folder and for all of them, each
+    folder's numbers equal to a run on that folder alone."""
+    a = _example_kitti(tmp_path / "a" / "kitti")
+    b = _example_kitti(tmp_path / "b" / "kitti")  # same name: told apart by the path
+    (b / "images" / "000008.png").unlink()  # b holds frame 1 only
+    monkeypatch.chdir(tmp_path)
+    both = table3.main(["--data", str(a), str(b), "--methods", "reeb-default", "--batch", "0", "--out", "t3"])
+    assert both["data"] == [str(a), str(b)]
+    assert both["splits"] == {"all": ["000001", "000008", "000001"], "a/kitti": ["000001", "000008"],
+                              "b/kitti": ["000001"]}
+    alone = table3.main(["--data", str(a), "--methods", "reeb-default", "--batch", "0", "--out", "t3a"])
+    split = both["methods"]["reeb-default"]["splits"]
+    assert split["a/kitti"]["all"]["recall"] == alone["methods"]["reeb-default"]["recall"]
+    assert both["num_objects"] == alone["num_objects"] + split["b/kitti"]["all"]["recall"]["num_objects"]
+    text = (tmp_path / "t3" / "table3.txt").read_text()
+    assert "=== folder a/kitti: 2 frames" in text and "=== folder b/kitti: 1 frames" in text
+
+
+def test_folder_names_and_splits():
+    from reeb_torch.eval.common import folder_names, folder_splits
+
+    assert folder_names(["/x/kitti", "/x/kitti_tracking"]) == ["kitti", "kitti_tracking"]
+    assert folder_names(["/p/a/kitti", "/p/b/kitti"]) == ["a/kitti", "b/kitti"]
+    items = [{"folder": "k"}, {"folder": "t"}, {"folder": "k"}]
+    assert folder_splits(items) == [("k", [0, 2]), ("t", [1])]
+    assert folder_splits([{"folder": "k"}] * 3) == []  # one folder: no split of its own

@@ -22,7 +22,11 @@ __all__ = [
     "parse_frame_range",
     "select_frames",
     "load_kitti",
+    "load_folders",
+    "folder_names",
+    "folder_splits",
     "add_frames_option",
+    "add_data_option",
     "rerun_line",
     "environment",
 ]
@@ -119,6 +123,68 @@ def load_kitti(
             "recall needs the ground-truth boxes"
         )
     return [ds[i] for i in range(len(ds))], ds.classes
+
+
+def folder_names(roots: Sequence[str | os.PathLike]) -> list[str]:
+    """A short name for each data folder, for the tables: its last path component, or more
+    of its path where two folders would share a name (``a/kitti``, ``b/kitti``)."""
+    parts = [os.path.normpath(os.path.abspath(r)).split(os.sep) for r in roots]
+    depth = 1
+    while depth < max((len(p) for p in parts), default=1):
+        names = [os.sep.join(p[-depth:]) for p in parts]
+        if len(set(names)) == len(names):
+            return names
+        depth += 1
+    return [os.sep.join(p) for p in parts]
+
+
+def load_folders(
+    roots: Sequence[str | os.PathLike],
+    limit: int | None = None,
+    frames: Sequence[FrameRange] = (),
+    classes: Sequence[str] | None = None,
+) -> tuple[list[dict[str, Any]], tuple[str, ...]]:
+    """:func:`load_kitti` of each folder in turn, the items of all of them in order, each
+    with a ``folder`` entry (:func:`folder_names`). ``limit`` and ``frames`` apply to each
+    folder (``frames`` needs numeric ids in every folder).
+
+    Raises:
+        ValueError: no folder, or one of them as :func:`load_kitti` raises it.
+    """
+    if not roots:
+        raise ValueError("no data folder given")
+    items: list[dict[str, Any]] = []
+    names = folder_names(roots)
+    cls: tuple[str, ...] = ()
+    for root, name in zip(roots, names):
+        got, cls = load_kitti(root, limit=limit, frames=frames, classes=classes)
+        for it in got:
+            it["folder"] = name
+        items += got
+    return items, cls
+
+
+def folder_splits(items: Sequence[dict[str, Any]]) -> list[tuple[str, list[int]]]:
+    """``[(folder name, item indices)]`` in the order the folders were given, for items of
+    :func:`load_folders`; empty when all items come from one folder."""
+    out: dict[str, list[int]] = {}
+    for i, it in enumerate(items):
+        out.setdefault(it.get("folder", ""), []).append(i)
+    return list(out.items()) if len(out) > 1 else []
+
+
+def add_data_option(parser: Any, default: Sequence[str | os.PathLike] | None = None) -> None:
+    """Add ``--data DIR [DIR ...]`` (KITTI-format folders, reported each and together) to
+    an ``argparse`` parser; without a ``default`` it is required."""
+    from pathlib import Path
+
+    shown = " ".join(str(d) for d in default) if default else ""
+    parser.add_argument(
+        "--data", type=Path, nargs="+", default=list(default) if default else None, required=not default,
+        metavar="DIR",
+        help="KITTI-format folders (images/ + labels/, or image_2/ + label_2/); with several, every table "
+             "is given for each folder and for all together" + (f"; default: {shown}" if shown else ""),
+    )
 
 
 def rerun_line(prog: str, argv: Sequence[str]) -> str:

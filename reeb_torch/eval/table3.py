@@ -73,7 +73,7 @@ from .metrics import (
     recall_vs_proposals,
     select_objects,
 )
-from .common import add_frames_option, environment, load_kitti, rerun_line
+from .common import add_data_option, add_frames_option, environment, folder_splits, load_folders, rerun_line
 
 __all__ = [
     "KS",
@@ -346,16 +346,17 @@ def _plot(curves: dict[str, dict], out: Path) -> list[str]:
     return files
 
 
-def build_parser(prog: str = "python -m reeb_torch.eval", default_data: Path | None = None) -> argparse.ArgumentParser:
-    """The command line of :func:`main`. ``default_data``: the ``--data`` default (without
-    one, ``--data`` is required)."""
+def build_parser(prog: str = "python -m reeb_torch.eval",
+                 default_data: Sequence[Path] | Path | None = None) -> argparse.ArgumentParser:
+    """The command line of :func:`main`. ``default_data``: the ``--data`` default, one folder
+    or several (without one, ``--data`` is required)."""
     p = argparse.ArgumentParser(
         prog=prog,
         description="Reproduce the paper's Table 3 (recall vs proposals and IoU, ms/img) on KITTI.",
     )
-    p.add_argument("--data", type=Path, default=default_data, required=default_data is None,
-                   help="KITTI-format folder (images/ + labels/, or image_2/ + label_2/)"
-                        + ("; default: %(default)s" if default_data is not None else ""))
+    if isinstance(default_data, (str, Path)):
+        default_data = [Path(default_data)]
+    add_data_option(p, default_data)
     p.add_argument("--limit", type=int, default=None, help="use only the first N frames (after --frames)")
     add_frames_option(p)
     p.add_argument("--out", type=Path, default=Path("runs/table3"), help="output folder; default: %(default)s")
@@ -378,7 +379,7 @@ def _bing_model(args: argparse.Namespace) -> Path | None:
 
     if default_bing_model_dir().is_dir():
         return None
-    beside = Path(args.data).resolve().parent / "bing_model"
+    beside = Path(args.data[0]).resolve().parent / "bing_model"
     return beside if beside.is_dir() else None
 
 
@@ -422,7 +423,7 @@ def main(
     rerun = rerun_line(prog, argv)
     print(f"Rerun: {rerun}   (from {os.getcwd()})", flush=True)
     frames = _load_frames(args, parser)
-    splits = _splits(args, frames.ids)
+    splits = _splits(args, frames)
     bing_model = _bing_model(args)
     args.out.mkdir(parents=True, exist_ok=True)
     results, curves, hits = _run_methods(args, frames, splits, bing_model)
@@ -456,23 +457,31 @@ def _load_frames(args: argparse.Namespace, parser: argparse.ArgumentParser) -> _
     """The selected frames, decoded; a usage error when there are none or they hold no object."""
     t0 = time.perf_counter()
     try:
-        items, classes = load_kitti(args.data, limit=args.limit, frames=args.frames)
+        items, classes = load_folders(args.data, limit=args.limit, frames=args.frames)
     except (ValueError, FileNotFoundError) as e:
         parser.error(str(e))
     gts = [it["boxes"] for it in items]
     frames = _Frames(items, classes, [it["image"] for it in items], gts, [it["labels"] for it in items],
                      [it["image_id"] for it in items], sum(int(g.shape[0]) for g in gts))
     if frames.n_obj == 0:
-        parser.error(f"{args.data}: the {len(items)} selected frames hold no object of "
+        parser.error(f"{_data_text(args)}: the {len(items)} selected frames hold no object of "
                      f"{', '.join(classes)}; recall is undefined")
-    print(f"{len(frames.images)} frames from {args.data} ({frames.n_obj} objects of {', '.join(classes)}), "
+    print(f"{len(frames.images)} frames from {_data_text(args)} ({frames.n_obj} objects of {', '.join(classes)}), "
           f"decoded in {time.perf_counter() - t0:.1f} s", flush=True)
     return frames
 
 
-def _splits(args: argparse.Namespace, ids: list[str]) -> list[tuple[str, list[int]]]:
-    """Frame splits: the whole selection, then each ``--frames`` range when there are several."""
+def _data_text(args: argparse.Namespace) -> str:
+    """The data folders as the tables name them."""
+    return " + ".join(str(d) for d in args.data)
+
+
+def _splits(args: argparse.Namespace, frames: _Frames) -> list[tuple[str, list[int]]]:
+    """Frame splits: the whole selection, then each data folder when there are several, then
+    each ``--frames`` range when there are several."""
+    ids = frames.ids
     splits: list[tuple[str, list[int]]] = [("all", list(range(len(ids))))]
+    splits += folder_splits(frames.items)
     if len(args.frames) > 1:
         for r in args.frames:
             idx = [i for i, f in enumerate(ids) if int(f) in r]
@@ -571,7 +580,7 @@ def _report(args: argparse.Namespace, rerun: str, env: dict, frames: _Frames, sp
         [(n, v, f"{t:,}") for n, (v, t) in PAPER_TABLE3.items()]))
     counts = ", ".join(f"{c} {n}" for c, n in zip(frames.classes, _class_counts(frames.labels, len(frames.classes))))
     frames_note = f", --frames {' '.join(r.text for r in args.frames)}" if args.frames else ""
-    header = (f"Table 3 on {len(frames.images)} frames of {args.data} ({_frame_span(frames.ids)}{frames_note}; "
+    header = (f"Table 3 on {len(frames.images)} frames of {_data_text(args)} ({_frame_span(frames.ids)}{frames_note}; "
               f"{frames.n_obj} objects: {counts}).\n"
               f"Time: wall ms per image of the proposal call only (decoding excluded), batch size 1"
               f"{f'; REEB also at batch {args.batch} (@b{args.batch})' if args.batch > 1 else ''}; "
@@ -603,9 +612,10 @@ def _split_blocks(args: argparse.Namespace, frames: _Frames, split: str, idx: li
                 f"truncation <= {mod_rule.max_truncation:g}")
     blocks = []
     span = f"{len(idx)} frames {_frame_span([frames.ids[i] for i in idx])}"
-    where = span if split == "all" else f"frames {split} ({span})"
+    name = _split_name(split)
+    where = span if split == "all" else f"{name} ({span})"
     if n_splits > 1:
-        blocks.append(f"=== {'all selected frames' if split == 'all' else 'frames ' + split}: {span} ===")
+        blocks.append(f"=== {'all selected frames' if split == 'all' else name}: {span} ===")
     any_rec = results[done[0]]["splits"][split] if done else None
     n_all = any_rec["all"]["recall"]["num_objects"] if any_rec else 0
     n_mod = any_rec["moderate"]["recall"]["num_objects"] if any_rec else 0
@@ -625,6 +635,12 @@ def _split_blocks(args: argparse.Namespace, frames: _Frames, split: str, idx: li
         [(results[k]["label"], {o: results[k]["splits"][split][o]["recall"] for o in OBJECT_SETS})
          for k in done], frames.classes))
     return blocks
+
+
+def _split_name(split: str) -> str:
+    """How the tables name a split: ``frames 0:39`` for a frame range, ``folder kitti`` for a
+    data folder."""
+    return f"frames {split}" if split.replace(":", "").isdigit() else f"folder {split}"
 
 
 def _interval_block(split: str, results: dict[str, Any], done: list[str], reference: str | None) -> str:
@@ -676,7 +692,7 @@ def _record(args: argparse.Namespace, rerun: str, env: dict, frames: _Frames, sp
     mod_rule = KITTI_DIFFICULTIES["moderate"]
     return {
         "rerun": rerun,
-        "data": str(args.data),
+        "data": [str(d) for d in args.data],
         "num_images": len(frames.images),
         "image_ids": frames.ids,
         "frames": [r.text for r in args.frames],

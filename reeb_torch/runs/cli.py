@@ -230,21 +230,29 @@ def show(image, label, no_label, top, out, preset, config_file, sets, top_k, dev
 # -- reeb eval ---------------------------------------------------------------------------
 
 @main.command(context_settings=dict(CONTEXT, ignore_unknown_options=True))
-@click.argument("kitti_dir", type=click.Path(exists=True, file_okay=False))
-@click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames.")
+@click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
 @click.option("-o", "--out", type=click.Path(file_okay=False), default="runs/table3",
               show_default=True, help="Folder for the table, CSV/JSON and plots.")
 @click.option("--methods", help="Comma-separated methods (see python -m reeb_torch.eval --help).")
-@click.argument("extra", nargs=-1, type=click.UNPROCESSED)
-def eval(kitti_dir, limit, out, methods, extra):  # noqa: A001 - the command's name
-    """Recall table (the paper's Table 3) and plots on a KITTI-format folder.
+@click.argument("args", nargs=-1, type=click.UNPROCESSED, metavar="KITTI_DIR... [TABLE3 OPTIONS]")
+def eval(args, limit, out, methods):  # noqa: A001 - the command's name
+    """Recall table (the paper's Table 3) and plots on KITTI-format folders: every table for
+    each folder and for all of them together.
 
-    Runs reeb_torch.eval.table3 (as benchmarks/table3.py does); further options (e.g.
-    --frames 0:39 40:59, --max-proposals 1000, --batch 8) are passed on to it.
+    Runs reeb_torch.eval.table3 (as benchmarks/table3.py does). The folders come first;
+    further options (e.g. --frames 0:39 40:59, --max-proposals 1000, --batch 8) are passed
+    on to it.
     """
     from ..eval import table3 as table3_module
 
-    argv = ["--data", str(kitti_dir), "--out", str(out)]
+    n = next((i for i, a in enumerate(args) if a.startswith("-")), len(args))
+    kitti_dirs, extra = args[:n], args[n:]
+    if not kitti_dirs:
+        raise click.UsageError("give one or more KITTI-format folders (KITTI_DIR...) before other options")
+    for d in kitti_dirs:
+        if not Path(d).is_dir():
+            raise click.UsageError(f"KITTI_DIR {d!r} is not a folder")
+    argv = ["--data", *kitti_dirs, "--out", str(out)]
     if limit:
         argv += ["--limit", str(limit)]
     if methods:
