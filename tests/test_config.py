@@ -34,13 +34,14 @@ def test_paper_preset_follows_the_printed_text():
 
 
 def test_presets_and_lookup():
-    assert set(PRESETS) == {"default", "default-no-regions", "refined", "paper", "paper-no-regions"}
+    assert set(PRESETS) == {"default", "default-no-regions", "paper", "paper-no-regions"}
     assert not get_preset("paper-no-regions").use_regions
-    # refined = the default with refinement of all but narrow boxes, nothing else changed
-    assert get_preset("refined") == ReebConfig().replace(refine=True, refine_min_aspect=0.6)
     assert not ReebConfig().refine
     with pytest.raises(ValueError, match="unknown preset"):
         get_preset("nope")
+    # the removed preset says why and what the same setting is
+    with pytest.raises(ValueError, match=r"unknown preset 'refined' \(it was removed.*refine=on"):
+        get_preset("refined")
 
 
 @pytest.mark.parametrize(

@@ -1,12 +1,14 @@
 """Recall on real KITTI frames: a regression guard for the whole pipeline.
 
 On the first 15 frames of ``../shared/data/kitti`` (44 objects), the default config
-measured 97.7 % / 79.5 % recall at IoU 0.5 / 0.7 with 2000 proposals (camera windows, the
-class mixture, the shadow and vegetation terms, NMS at 0.75; the vegetation term over whole
-windows, power 3: 93.2 / 77.3; without it and at NMS 0.7, 95.5 / 72.7; without the shadow term too, 84.1 / 59.1; release 0.1 measured
-86.4 / 56.8); the ``refined`` preset (refinement of all but narrow boxes) measured
-100 / 84.1. The floors below leave room for two objects of numerical drift, not for a real
-regression. Skipped when the shared folder is absent.
+measured 93.2 % / 79.5 % recall at IoU 0.5 / 0.7 with 2000 proposals (the class location
+fit by box shape, a region budget of 12000; before it, with the height fit and 6000, 97.7 /
+79.5; the vegetation term over whole windows, power 3: 93.2 / 77.3; without it and at NMS
+0.7, 95.5 / 72.7; without the shadow term too, 84.1 / 59.1; release 0.1 measured 86.4 /
+56.8); with Edge Boxes' refinement of all but narrow boxes (``refine=on,
+refine_min_aspect=0.6``, once the ``refined`` preset) 97.7 / 79.5. The floors below leave
+room for two objects of numerical drift, not for a real regression. Skipped when the
+shared folder is absent.
 """
 
 from __future__ import annotations
@@ -24,9 +26,9 @@ def frames(kitti_dir):
     return [ds[i] for i in range(len(ds))], ds.classes
 
 
-def _recall(preset: str, frames):
+def _recall(preset: str, frames, **overrides):
     items, classes = frames
-    out = ProposalGenerator(get_preset(preset))([it["image"] for it in items])
+    out = ProposalGenerator(get_preset(preset), **overrides)([it["image"] for it in items])
     for o, it in zip(out, items):
         h, w = it["image"].shape[-2:]
         assert o["boxes"].shape[0] <= 2000
@@ -38,15 +40,15 @@ def _recall(preset: str, frames):
 @pytest.mark.kitti
 def test_default_recall_floor(frames):
     r = _recall("default", frames)
-    assert r.at(2000, 0.5) >= 0.93
+    assert r.at(2000, 0.5) >= 0.88
     assert r.at(2000, 0.7) >= 0.75
 
 
 @pytest.mark.kitti
-def test_refined_recall_floor(frames):
-    r = _recall("refined", frames)
-    assert r.at(2000, 0.5) >= 0.95
-    assert r.at(2000, 0.7) >= 0.79
+def test_refinement_recall_floor(frames):
+    r = _recall("default", frames, refine=True, refine_min_aspect=0.6)
+    assert r.at(2000, 0.5) >= 0.93
+    assert r.at(2000, 0.7) >= 0.75
 
 
 @pytest.mark.kitti

@@ -7,8 +7,6 @@ Rows are methods, columns are recall (%) at IoU 0.3 / 0.5 / 0.7 for the top 500 
   see :mod:`reeb_torch.eval.baselines`;
 - Ours* [reeb-default-no-regions], Ours** [reeb-default]: REEB with the package default
   config, without / with region enhancement;
-- Ours** refined [reeb-refined]: the ``refined`` preset (the default with Edge Boxes'
-  refinement of all but narrow boxes; opt-in, about twice the time);
 - REEB as printed [reeb-paper-no-regions, reeb-paper]: the ``paper`` preset.
 
 Recall counts every non-DontCare object of the four classes (Car, Pedestrian, Cyclist,
@@ -148,7 +146,6 @@ METHODS: dict[str, Method] = {
         Method("edgeboxes", "Edge Boxes (Sobel)", _baseline("edgeboxes")),
         Method("reeb-default-no-regions", "Ours* (default, no regions)", _reeb("default-no-regions"), True),
         Method("reeb-default", "Ours** (default)", _reeb("default"), True),
-        Method("reeb-refined", "Ours** refined (opt-in)", _reeb("refined"), True),
         Method("reeb-paper-no-regions", "REEB paper preset, no regions", _reeb("paper-no-regions"), True),
         Method("reeb-paper", "REEB paper preset", _reeb("paper"), True),
     ]
