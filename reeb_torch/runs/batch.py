@@ -29,6 +29,8 @@ format_version  int                         :data:`FORMAT_VERSION` of this schem
 image           str                         the path as given (relative paths stay relative)
 resolved        str                         absolute path, symlinks resolved
                                             (``os.path.realpath``); ``--resume`` matches on it
+                                            (in both, a byte of a file name that is not
+                                            UTF-8 is written ``\\xNN``: :func:`text_path`)
 width           int or null                 image width in pixels as viewed (EXIF orientation
                                             applied); null if the file could not be decoded
 height          int or null                 image height in pixels, likewise
@@ -67,6 +69,8 @@ __all__ = [
     "stale_temp_files",
     "read_partial_results",
     "resolved_path",
+    "text_path",
+    "row_key",
     "CriticalSection",
     "find_images",
     "Decoded",
@@ -105,6 +109,32 @@ FORMAT_VERSION = 1
 def resolved_path(path: str | os.PathLike) -> str:
     """The absolute path of ``path`` with symbolic links resolved (what rows are matched on)."""
     return os.path.realpath(path)
+
+
+def text_path(path: str | os.PathLike) -> str:
+    """``path`` as text that UTF-8 can hold, as rows and messages write it.
+
+    A file name that is not valid UTF-8 (an old Samba or FAT share, an archive from another
+    locale) reaches Python with its undecodable bytes as surrogates (``os.fsdecode``); here
+    each such byte is written as the four characters ``\\xNN`` (``x\\xff.png``), so JSON
+    Lines and Parquet rows can hold it and ``--resume`` matches it (rows are matched on
+    ``text_path(resolved_path(file))``). Valid names come back unchanged.
+    """
+    s = os.fsdecode(os.fspath(path))
+    try:
+        s.encode("utf-8")
+        return s
+    except UnicodeEncodeError:
+        try:
+            raw = s.encode("utf-8", "surrogateescape")
+        except UnicodeEncodeError:  # a lone surrogate that is no escaped byte
+            return s.encode("utf-8", "backslashreplace").decode("utf-8")
+        return raw.decode("utf-8", "backslashreplace")
+
+
+def row_key(path: str | os.PathLike) -> str:
+    """What a row of ``path`` is matched on for ``--resume``: ``text_path(resolved_path(path))``."""
+    return text_path(resolved_path(path))
 
 
 # -- 1. finding images -------------------------------------------------------------------
@@ -214,8 +244,8 @@ def _one_line(msg: str) -> str:
 
 def file_error(path: str | os.PathLike, exc: BaseException | str) -> str:
     """A one-line message ``"<path>: <reason>"`` (the path is not repeated if present)."""
-    msg = _one_line(exc if isinstance(exc, str) else (str(exc) or type(exc).__name__))
-    path = str(path)
+    msg = text_path(_one_line(exc if isinstance(exc, str) else (str(exc) or type(exc).__name__)))
+    path = text_path(path)
     if msg.startswith(path):
         return msg
     return f"{path}: {msg}"
@@ -402,8 +432,8 @@ def result_row(path: str, width: int, height: int, boxes: torch.Tensor, scores: 
     s = scores.detach().to("cpu", torch.float64).numpy()
     return {
         "format_version": FORMAT_VERSION,
-        "image": str(path),
-        "resolved": resolved_path(path),
+        "image": text_path(path),
+        "resolved": row_key(path),
         "width": int(width),
         "height": int(height),
         "boxes": round_like_python(b, decimals).reshape(-1, 4).tolist(),
@@ -416,9 +446,9 @@ def result_row(path: str, width: int, height: int, boxes: torch.Tensor, scores: 
 def error_row(path: str, message: str, config: str, size: tuple[int, int] | None = None) -> dict:
     """The output row of an image that failed; ``message`` names the file."""
     w, h = (int(size[0]), int(size[1])) if size is not None else (None, None)
-    return {"format_version": FORMAT_VERSION, "image": str(path), "resolved": resolved_path(path),
+    return {"format_version": FORMAT_VERSION, "image": text_path(path), "resolved": row_key(path),
             "width": w, "height": h, "boxes": [], "scores": [],
-            "status": f"error: {_one_line(message)}", "config": config}
+            "status": f"error: {text_path(_one_line(message))}", "config": config}
 
 
 OUTPUT_FORMATS = {".jsonl": "jsonl", ".ndjson": "jsonl", ".parquet": "parquet", ".pq": "parquet"}

@@ -194,7 +194,9 @@ class ProposalActor:
         # a relative path resolved here would name a file in the worker's folder: the
         # driver resolved it (column ``open``)
         if "resolved" in row:
-            row["resolved"] = opened
+            from . import batch as B
+
+            row["resolved"] = B.text_path(opened)
         return row
 
     def rows(self, shown: Sequence[str], opened: Sequence[str]) -> list[dict]:

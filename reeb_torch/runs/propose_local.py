@@ -244,36 +244,47 @@ class _LocalRun:
             if not group[0].ok:
                 self._fail(group[0], group[0].error)
             else:
-                try:
-                    self._run_batch(group)
-                except (ValueError, TypeError, RuntimeError) as e0:
-                    if B.caused_by_interrupt(e0):
-                        raise
-                    # find the culprit(s): one image at a time
-                    for it in group:
-                        try:
-                            self._run_batch([it])
-                        except (ValueError, TypeError, RuntimeError) as e1:
-                            if B.caused_by_interrupt(e1):
-                                raise
-                            self._fail(it, B.file_error(it.path, e1))
+                # only the computing is retried image by image (to find the culprit): a row
+                # that was written is never put back, and an error in writing is not an
+                # image's fault (it stops the run, as it must)
+                for it, result in zip(group, self._compute_group(group)):
+                    if isinstance(result, BaseException):
+                        self._fail(it, B.file_error(it.path, result))
+                    else:
+                        self._finish(it, result)
             self.bar.update(len(group))
             if self.first_done is None and stats["ok"]:
                 self.first_done = (time.perf_counter(), stats["ok"] + stats["failed"], stats["algo_s"])
             if stats["failed"]:
                 self.bar.set_postfix(failed=stats["failed"], refresh=False)
 
-    def _run_batch(self, items: list) -> None:
+    def _compute_group(self, group: list) -> list:
+        """The generator's result per image of ``group``, or the error an image gave: the
+        batch at once, and when it fails one image at a time (the culprits get their error)."""
+        try:
+            return self._run_batch(group)
+        except (ValueError, TypeError, RuntimeError) as e0:
+            if B.caused_by_interrupt(e0):
+                raise
+        out: list = []
+        for it in group:
+            try:
+                out += self._run_batch([it])
+            except (ValueError, TypeError, RuntimeError) as e1:
+                if B.caused_by_interrupt(e1):
+                    raise
+                out.append(e1)
+        return out
+
+    def _run_batch(self, items: list) -> list:
         import torch
 
         x = torch.stack([it.image for it in items]).to(self.dev, non_blocking=True)
         t0 = time.perf_counter()
         results = self.gen(x)
         results = [{k: v.cpu() for k, v in r.items()} for r in results]
-        dt = time.perf_counter() - t0
-        self.stats["algo_s"] += dt
-        for it, r in zip(items, results):
-            self._finish(it, r)
+        self.stats["algo_s"] += time.perf_counter() - t0
+        return results
 
     def _emit(self, todo_pos: int, row: dict | None) -> None:
         """Place this run's row for input ``todo_pos`` and write what is next in input order."""
@@ -300,7 +311,7 @@ class _LocalRun:
             self._emit(item.index, B.result_row(item.path, w, h, boxes, scores, self.fingerprint)
                        if self.writer is not None else None)
         if self.print_top:
-            self.bar.write(box_table(item.path, (w, h), boxes, scores, self.print_top, len(boxes)) + "\n",
+            self.bar.write(box_table(B.text_path(item.path), (w, h), boxes, scores, self.print_top, len(boxes)) + "\n",
                            file=sys.stdout)
         self._pictures(item, boxes, scores)
 
@@ -397,7 +408,7 @@ class _LocalRun:
 class _ResumePlan:
     """Which inputs to compute, and the output rows in input order.
 
-    Rows are matched on the resolved file (:func:`reeb_torch.runs.batch.resolved_path`, stored
+    Rows are matched on the resolved file (:func:`reeb_torch.runs.batch.row_key`, stored
     in each row as ``resolved``; rows of older files without it are resolved against the
     current folder), so a run from another folder, through a symlink or with an absolute
     path finds them. Per file the first ``ok`` row is kept, and other rows of it dropped;
@@ -407,10 +418,10 @@ class _ResumePlan:
     """
 
     def __init__(self, images: Sequence[Path]) -> None:
-        from .batch import resolved_path
+        from .batch import row_key
 
         self.images = list(images)
-        self.keys = [resolved_path(p) for p in self.images]
+        self.keys = [row_key(p) for p in self.images]
         self.first_rows: list[dict] = []
         self.slots: dict[int, tuple[dict, bool]] = {}  # input position -> (row, new in this run)
         self.todo = list(range(len(self.images)))  # input positions to compute
@@ -419,10 +430,10 @@ class _ResumePlan:
 
     def keep(self, rows: Sequence[dict]) -> None:
         """Take the rows of an earlier run (the output, then a killed run's temp files)."""
-        from .batch import resolved_path
+        from .batch import row_key
 
         def key(r: dict) -> str:
-            return str(r.get("resolved") or resolved_path(str(r["image"])))
+            return str(r.get("resolved") or row_key(str(r["image"])))
 
         best: dict[str, dict] = {}
         order: list[str] = []

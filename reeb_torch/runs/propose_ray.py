@@ -136,7 +136,7 @@ class _RayRun:
         done = {D.row_key(r) for r in rows if r.get("status") == "ok"}
         self.kept = len(done)
         before = len(self.images)
-        self.images = [p for p in self.images if D.match_key(p) not in done]
+        self.images = [p for p in self.images if B.row_key(p) not in done]
         self.echo_err(f"resume: {self.kept} images already in {out}, {before - len(self.images)} of them among "
                       f"the inputs; {len(self.images)} to do")
         if not self.images:
