@@ -52,3 +52,46 @@ def test_a_file_name_that_is_not_utf8_gets_one_row_and_resumes(tmp_path, ext):
     r = reeb("propose", "d", "-o", out, "--resume", *FAST, cwd=tmp_path, check_rc=0)
     assert "Nothing to do" in r.stderr, r.stderr
     assert no_temp_files(tmp_path)
+
+
+# -- Ray output folder: the lock before anything is deleted; unfinished files ----------------
+
+def _parquet_result(path: Path, image: str) -> None:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from reeb_torch.runs.batch import ParquetWriter, error_row
+
+    pq.write_table(pa.Table.from_pylist([error_row(image, f"{image}: x", "cfg")],
+                                        schema=ParquetWriter.schema()), path)
+
+
+def test_ray_overwrite_takes_the_lock_before_deleting(tmp_path):
+    pytest.importorskip("ray")
+    pytest.importorskip("pyarrow")
+    from reeb_torch.runs.batch import lock_output
+
+    good_folder(tmp_path / "imgs", 1)
+    out = tmp_path / "out.parquet"
+    out.mkdir()
+    _parquet_result(out / "part-0.parquet", "old.png")
+    with lock_output(out):  # another run holds the output
+        r = reeb("propose", "imgs", "--engine", "ray", "-o", "out.parquet", "--overwrite", *FAST,
+                 cwd=tmp_path, check_rc=2)
+    assert "another reeb run" in r.stderr, r.stderr
+    assert (out / "part-0.parquet").is_file()  # nothing deleted
+
+
+def test_ray_resume_sets_aside_a_file_cut_short(tmp_path):
+    pytest.importorskip("pyarrow")
+    from reeb_torch.runs import distributed as D
+
+    out = tmp_path / "out.parquet"
+    out.mkdir()
+    _parquet_result(out / "a.parquet", "a.png")
+    _parquet_result(out / "b.parquet", "b.png")
+    data = (out / "b.parquet").read_bytes()
+    (out / "b.parquet").write_bytes(data[: len(data) // 2])  # killed while Ray wrote it
+    moved = D.set_aside_unfinished(out)
+    assert [p.name for p in moved] == [".b.parquet.unfinished"]
+    assert [r["image"] for r in D.read_result_dir(out)] == ["a.png"]  # readable for --resume again

@@ -56,6 +56,7 @@ __all__ = [
     "result_files",
     "read_result_dir",
     "prune_rows",
+    "set_aside_unfinished",
 ]
 
 RAY_INSTALL_HINT = 'pip install "reeb-torch[ray]"'
@@ -322,3 +323,26 @@ def prune_rows(out_dir: str | os.PathLike, drop: set[str], keep_new: set[Path]) 
         else:
             f.unlink()
     return removed
+
+
+def set_aside_unfinished(out_dir: str | os.PathLike, only: set[Path] | None = None) -> list[Path]:
+    """Rename the Parquet files of ``out_dir`` that cannot be read (a run interrupted or
+    killed while Ray wrote them: no footer) to hidden ``.<name>.unfinished`` files, which
+    :func:`result_files` skips; returns their new paths. ``only``: look at these files only.
+
+    The rows in such a file are not recovered (Parquet keeps its index in the footer); the
+    images are computed again by ``--resume``. Call it holding the output's lock.
+    """
+    import pyarrow.parquet as pq
+
+    moved = []
+    for f in result_files(out_dir):
+        if only is not None and f not in only:
+            continue
+        try:
+            pq.read_metadata(f)
+        except Exception:  # noqa: BLE001 - pyarrow has its own error types
+            aside = f.with_name(f".{f.name}.unfinished")
+            os.replace(f, aside)
+            moved.append(aside)
+    return moved

@@ -53,10 +53,12 @@ def propose_ray(paths: Sequence[str], *, out: str | None, resume: bool, overwrit
     if viz_dir:
         raise UsageProblem("--viz is not available with --engine ray (use --engine local)")
     run.find_inputs(paths, recursive)  # 1. inputs
-    if not run.check_out_dir(resume, overwrite):  # 2. the output folder, checked before any work
-        return  # nothing to do
+    # 2. the output folder, locked first, then checked, before any work (and before any
+    # file in it is deleted: --overwrite)
     release = run.lock()
     try:
+        if not run.check_out_dir(resume, overwrite):
+            return  # nothing to do
         run.start_ray(address, actors, cpus_per_actor)  # 3. Ray, sized to the machine or the cluster
         run.compute()  # 4. the run
         run.summarise(resume, summary_json)
@@ -86,18 +88,14 @@ class _RayRun:
 
     def check_out_dir(self, resume: bool, overwrite: bool) -> bool:
         """``--out`` must be a folder; its results are replaced (``--overwrite``) or kept
-        (``--resume``). False when every image is already there (nothing to do)."""
-        out = self.out
-        if not out:
-            raise UsageProblem("--engine ray needs --out DIR (a folder of Parquet files, "
-                               "e.g. --out proposals.parquet)")
-        self.out_dir = out_dir = Path(out)
-        if out_dir.suffix.lower() in (".jsonl", ".ndjson", ".json"):
-            raise UsageProblem(f"{out}: --engine ray writes a folder of Parquet files; give a folder "
-                               "name such as proposals.parquet")
-        if out_dir.exists() and not out_dir.is_dir():
-            raise UsageProblem(f"{out}: exists and is not a folder; --engine ray writes a folder of "
-                               "Parquet files")
+        (``--resume``); files an interrupted run left unfinished are set aside
+        (:func:`~.distributed.set_aside_unfinished`). Call it holding :meth:`lock`. False
+        when every image is already there (nothing to do)."""
+        out, out_dir = self.out, self.out_dir
+        if out_dir.is_dir():
+            for f in D.set_aside_unfinished(out_dir):
+                self.echo_err(f"warning: {f}: a Parquet file an interrupted run left unfinished; set "
+                              "aside (its images are computed again)")
         existing = D.result_files(out_dir) if out_dir.is_dir() else []
         if existing and not (resume or overwrite):
             raise UsageProblem(f"{out} holds results; add --resume to continue it or --overwrite to "
@@ -145,11 +143,26 @@ class _RayRun:
         return True
 
     def lock(self) -> Callable[[], None]:
-        """One writer per output, as ``reeb propose``: returns the lock's release."""
+        """Check that ``--out`` names a folder (or nothing yet) and take its lock, as
+        ``reeb propose`` does, before anything in it is read or deleted: returns the lock's
+        release."""
+        out = self.out
+        if not out:
+            raise UsageProblem("--engine ray needs --out DIR (a folder of Parquet files, "
+                               "e.g. --out proposals.parquet)")
+        self.out_dir = out_dir = Path(out)
+        if out_dir.suffix.lower() in (".jsonl", ".ndjson", ".json"):
+            raise UsageProblem(f"{out}: --engine ray writes a folder of Parquet files; give a folder "
+                               "name such as proposals.parquet")
+        if out_dir.exists() and not out_dir.is_dir():
+            raise UsageProblem(f"{out}: exists and is not a folder; --engine ray writes a folder of "
+                               "Parquet files")
         try:
-            lock = B.lock_output(self.out_dir)
-        except B.OutputError as e:
-            raise UsageProblem(str(e))
+            out_dir.absolute().parent.mkdir(parents=True, exist_ok=True)
+            lock = B.lock_output(out_dir)
+        except (OSError, B.OutputError) as e:
+            raise UsageProblem(str(e) if isinstance(e, B.OutputError) else
+                               f"{out}: cannot write there ({e.strerror or e})")
         return lock.release
 
     def start_ray(self, address: str | None, actors: int, cpus_per_actor: float | None) -> None:
@@ -196,6 +209,8 @@ class _RayRun:
         except Exception as e:  # noqa: BLE001 - a failed Ray job
             raise Failure(f"the Ray job failed: {' '.join(str(e).split())[:2000]}")
         self.wall = time.perf_counter() - t1
+        if self.interrupted:  # files cut short: set aside, their images are done by --resume
+            D.set_aside_unfinished(out_dir, only=set(D.result_files(out_dir)) - before_files)
         self.new_files = set(D.result_files(out_dir)) - before_files
         rows = []
         for f in sorted(self.new_files):
