@@ -613,10 +613,17 @@ class Ranking:
             kept = nms_top_k_many(pairs, cfg.nms_iou, max(len(p[1]) for p in pairs) if quota else cfg.top_k)
             windows = [c[k] for c, k in zip(cands, kept)]
         results = []
+        h_in, w_in = maps.input_size
         for i, ((bx, sc), keep_idx, win) in enumerate(zip(pairs, kept, windows)):
             if quota:
                 keep_idx = self.quota(keep_idx, region_of[win], share[i])[: cfg.top_k]
-            results.append({"boxes": bx[keep_idx].contiguous(), "scores": sc[keep_idx].contiguous()})
+            boxes = bx[keep_idx].contiguous()  # a copy (indexed): clamped in place below
+            # the contract 0 <= x1 < x2 <= W, 0 <= y1 < y2 <= H in input pixels: a window on
+            # the last working column maps back to W plus a rounding error (odd sides at
+            # scale 0.5: 99.0000076 for W = 99); after NMS, so the ranking is unchanged
+            boxes[:, 0::2] = boxes[:, 0::2].clamp(0.0, float(w_in))
+            boxes[:, 1::2] = boxes[:, 1::2].clamp(0.0, float(h_in))
+            results.append({"boxes": boxes, "scores": sc[keep_idx].contiguous()})
         return results
 
     def quota(self, keep: Tensor, region: Tensor, share: Tensor) -> Tensor:

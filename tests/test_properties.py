@@ -66,7 +66,7 @@ def _assert_valid(out: dict, h: int, w: int, top_k: int) -> None:
     assert boxes.shape[0] <= top_k
     assert bool(torch.isfinite(boxes).all() and torch.isfinite(scores).all())
     assert bool((boxes[:, 0] >= 0).all() and (boxes[:, 1] >= 0).all())
-    assert bool((boxes[:, 2] <= w + 1e-3).all() and (boxes[:, 3] <= h + 1e-3).all())
+    assert bool((boxes[:, 2] <= w).all() and (boxes[:, 3] <= h).all())  # exactly: no rounding past the edge
     assert bool((boxes[:, 2] > boxes[:, 0]).all() and (boxes[:, 3] > boxes[:, 1]).all())
     assert bool((scores[1:] <= scores[:-1]).all())
 
@@ -146,6 +146,28 @@ def test_any_input_gives_valid_boxes_or_a_value_or_type_error(frame, gen, h, w, 
     # the same values as one contiguous float32 batch: layout, batch form, uint8 ≡ float / 255
     ref = torch.stack([im.float() / 255 if dtype == torch.uint8 else im.float() for im in images])
     _same(out, gen(ref))
+
+
+def test_boxes_stay_inside_an_odd_sized_image():
+    """Issue 23: windows on the last working column mapped back to 99.0000076 for W = 99."""
+    torch.manual_seed(35)
+    _assert_valid(ProposalGenerator()(torch.rand(1, 3, 157, 99))[0], 157, 99, 2000)
+
+
+@settings(max_examples=12, **SETTINGS)
+@given(h=st.integers(40, 200), w=st.integers(40, 200), odd=st.sampled_from(["h", "w", "both", "none"]),
+       seed=st.integers(0, 2**16), scale=st.sampled_from([0.5, 0.5, 1.0, 0.37]))
+def test_boxes_stay_inside_the_image_at_any_size(h, w, odd, seed, scale):
+    """The box contract 0 <= x1 < x2 <= W, 0 <= y1 < y2 <= H over random sizes, odd ones
+    included, and working scales that do not divide them."""
+    h = h | 1 if odd in ("h", "both") else h
+    w = w | 1 if odd in ("w", "both") else w
+    torch.manual_seed(seed)
+    gen = ProposalGenerator(**FAST, scale=scale)
+    if min(h, w) < gen.min_side:
+        return
+    (out,) = gen(torch.rand(1, 3, h, w))
+    _assert_valid(out, h, w, gen.config.top_k)
 
 
 @settings(max_examples=6, **SETTINGS)
