@@ -7,8 +7,26 @@
 """
 
 from .config import PRESETS, ReebConfig, get_preset
-from .generator import Inspection, ProposalGenerator, propose
-from .io import ImageReadError, read_image
+
+# torch and the compiled kernels are imported on first use of these names (PEP 562), not by
+# ``import reeb_torch``: the ``reeb`` command then starts at once, and a Ctrl-C while torch
+# loads reaches the command's own handler (exit 130) instead of printing a traceback
+_LAZY = {"ProposalGenerator": "generator", "propose": "generator", "Inspection": "generator",
+         "read_image": "io", "ImageReadError": "io"}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        value = getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
 
 __all__ = [
     "ReebConfig",

@@ -95,3 +95,34 @@ def test_ray_resume_sets_aside_a_file_cut_short(tmp_path):
     moved = D.set_aside_unfinished(out)
     assert [p.name for p in moved] == [".b.parquet.unfinished"]
     assert [r["image"] for r in D.read_result_dir(out)] == ["a.png"]  # readable for --resume again
+
+
+# -- Ctrl-C in the first seconds -------------------------------------------------------------
+
+def test_the_command_starts_without_importing_torch():
+    import subprocess
+    import sys
+
+    code = "import sys, reeb_torch.runs.cli; print('torch' in sys.modules)"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                       env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1])))
+    assert r.stdout.strip() == "False", r.stderr
+
+
+def test_ctrl_c_while_torch_imports_exits_130_quietly(tmp_path):
+    """SIGINT at the first thing the command does (where torch is imported)."""
+    import subprocess
+    import sys
+
+    code = ("import os, signal, sys\n"
+            "import reeb_torch.runs.common as c\n"
+            "def hit(*a, **k):\n"
+            "    os.kill(os.getpid(), signal.SIGINT)\n"
+            "    import torch\n"
+            "c.build_config = hit\n"
+            "from reeb_torch.runs.cli import main\n"
+            "main(['propose', 'x.png', '-o', 'o.jsonl'])\n")
+    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
+                       timeout=120, env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1])))
+    assert r.returncode == 130, r.stderr
+    assert "Traceback" not in r.stderr and "Aborted" not in r.stderr, r.stderr

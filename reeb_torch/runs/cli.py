@@ -65,7 +65,20 @@ def config_options(f):
 
 # -- the command group -------------------------------------------------------------------
 
-@click.group(context_settings=CONTEXT)
+class _Reeb(click.Group):
+    """The ``reeb`` group: a Ctrl-C anywhere in a command (also while torch is still being
+    imported: the package imports it lazily) exits 130 without a traceback, as an
+    interrupted run does, instead of click's "Aborted!" and exit 1."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt:
+            click.echo("interrupted", err=True)
+            ctx.exit(130)
+
+
+@click.group(cls=_Reeb, context_settings=CONTEXT)
 @click.version_option(package_name="reeb-torch", prog_name="reeb")
 def main() -> None:
     """REEB: training-free object proposals for driving images.

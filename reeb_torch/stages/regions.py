@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import math
 
-import torch
-from torch import Tensor
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # torch is imported where a tensor is made: ReebConfig's checks use this
+    from torch import Tensor  # module's arithmetic, and the ``reeb`` command starts without torch
 
 __all__ = ["region_width_fraction", "region_count", "region_bounds"]
 
@@ -45,6 +47,8 @@ def region_bounds(width: int, width_fraction: float, overlap: float) -> Tensor:
     """Column bounds ``int64 [R, 2]`` (x_start inclusive, x_end exclusive) of the regions
     of an image ``width`` pixels wide; strips are spread evenly so the last one ends at the
     right border."""
+    import torch
+
     n = region_count(width_fraction, overlap)
     rw = max(1, int(round(width_fraction * width)))
     if n == 1:
