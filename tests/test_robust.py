@@ -126,3 +126,46 @@ def test_ctrl_c_while_torch_imports_exits_130_quietly(tmp_path):
                        timeout=120, env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1])))
     assert r.returncode == 130, r.stderr
     assert "Traceback" not in r.stderr and "Aborted" not in r.stderr, r.stderr
+
+
+# -- a full disk, a config nested too deeply -------------------------------------------------
+
+@pytest.mark.parametrize("where", ["_write", "_close"])
+def test_a_full_disk_is_one_line_naming_the_output(tmp_path, monkeypatch, where):
+    import errno
+
+    from click.testing import CliRunner
+
+    from reeb_torch.runs import batch as B
+    from reeb_torch.runs.cli import main
+
+    good_folder(tmp_path / "imgs", 2)
+    out = tmp_path / "o.jsonl"
+    out.write_text("old\n")
+
+    def full(self, *a):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(B.JsonlWriter, where, full)
+    monkeypatch.chdir(tmp_path)
+    res = CliRunner().invoke(main, ["propose", "imgs", "-o", "o.jsonl", "--overwrite", "-j", "0", "-q", *FAST])
+    assert res.exit_code == 1, res.output
+    assert res.exception is None or isinstance(res.exception, SystemExit), repr(res.exception)
+    lines = res.output.strip().splitlines()
+    assert len(lines) == 1 and "o.jsonl: cannot" in lines[0], res.output
+    assert "the results (No space left on device)" in lines[0], res.output
+    assert out.read_text() == "old\n"  # the atomic write held
+    assert no_temp_files(tmp_path)
+
+
+@pytest.mark.parametrize("where", ["config", "set"])
+def test_a_deeply_nested_config_is_a_usage_error(tmp_path, where):
+    deep = "[" * 200_000 + "]" * 200_000
+    if where == "config":
+        (tmp_path / "c.json").write_text(deep)
+        args = ["--config", "c.json"]
+    else:
+        args = ["--set", f"object_templates={'[' * 5000 + ']' * 5000}"]
+    good_folder(tmp_path / "imgs", 1)
+    r = reeb("propose", "imgs", *args, *FAST, cwd=tmp_path, check_rc=2)
+    assert "Traceback" not in r.stderr and "nested too deeply" in r.stderr, r.stderr

@@ -517,6 +517,9 @@ def read_results(path: str | os.PathLike) -> tuple[list[dict], list[str]]:
                     except json.JSONDecodeError as e:
                         problems.append(f"{p}:{n}: not a JSON line ({e.msg}); skipped")
                         continue
+                    except RecursionError:
+                        problems.append(f"{p}:{n}: not a result row (nested too deeply); skipped")
+                        continue
                     if not isinstance(row, dict) or "image" not in row:
                         problems.append(f"{p}:{n}: not a result row; skipped")
                         continue
@@ -829,7 +832,7 @@ def read_partial_results(path: str | os.PathLike, fmt: str) -> tuple[list[dict],
         for line in text.splitlines():
             try:
                 row = json.loads(line)
-            except json.JSONDecodeError:
+            except (json.JSONDecodeError, RecursionError):
                 continue
             if isinstance(row, dict) and "image" in row:
                 rows.append(row)

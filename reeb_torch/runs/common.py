@@ -74,6 +74,9 @@ def _parse_value(text: str, choices: tuple[str, ...] = ()) -> Any:
         return word
     try:
         return json.loads(text)
+    except RecursionError:
+        raise click.BadParameter(f"{text[:40]!r}...: nested too deeply to be a setting",
+                                 param_hint="--set") from None
     except json.JSONDecodeError:
         low = word.lower()
         if low in ("none", "null"):
@@ -141,6 +144,9 @@ def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_
             raise click.BadParameter(f"{config_file}: cannot read ({e})", param_hint="--config")
         except json.JSONDecodeError as e:
             raise click.BadParameter(f"{config_file}: not valid JSON ({e})", param_hint="--config")
+        except RecursionError:
+            raise click.BadParameter(f"{config_file}: nested too deeply to be a config",
+                                     param_hint="--config") from None
         if isinstance(loaded, dict) and isinstance(loaded.get("config"), dict):
             loaded = loaded["config"]  # a saved record with a "config" entry
         if not isinstance(loaded, dict):
@@ -159,6 +165,9 @@ def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_
         d["top_k"] = top_k
     try:
         return ReebConfig.from_dict(d)
+    except RecursionError:
+        raise click.BadParameter("a value is nested too deeply to be a setting",
+                                 param_hint="--config/--set/--top-k") from None
     except (TypeError, ValueError, ArithmeticError) as e:
         raise click.BadParameter(" ".join(str(e).split()) or type(e).__name__,
                                  param_hint="--config/--set/--top-k")

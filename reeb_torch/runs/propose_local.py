@@ -208,7 +208,7 @@ class _LocalRun:
         if self.writer is not None:
             # an unexpected error or exit must not leave the temporary file behind
             click.get_current_context().call_on_close(self.writer.discard)
-            self.writer.write(self.plan.first_rows)
+            self._write(self.plan.first_rows)
         self.cs = B.CriticalSection()  # a row is written whole, and counted, or not at all
         images = self.images
         self.gt = read_labels(label_for(images[0])) if self.sample_mode and label_for(images[0]) else None
@@ -291,8 +291,15 @@ class _LocalRun:
         self.plan.put(todo_pos, row)
         if self.writer is not None:
             rows = self.plan.ready()
-            self.writer.write(r for r, _ in rows)
+            self._write([r for r, _ in rows])
             self.saved_now += sum(new for _, new in rows)
+
+    def _write(self, rows: list[dict]) -> None:
+        try:
+            self.writer.write(rows)
+        except OSError as e:  # a full disk, a quota, a lost network share: one line, exit 1
+            raise Failure(f"{self.out}: cannot write the results ({e.strerror or e}); the old file, "
+                          "if any, is unchanged") from None
 
     def _fail(self, item, message: str, size=None) -> None:
         with self.cs:
@@ -349,9 +356,9 @@ class _LocalRun:
         try:
             if self.writer is not None:
                 rows = self.plan.rest()  # after an interrupt: the rows held back, still in input order
-                self.writer.write(r for r, _ in rows)
-                self.saved_now += sum(new for _, new in rows)
                 try:
+                    self.writer.write(r for r, _ in rows)
+                    self.saved_now += sum(new for _, new in rows)
                     saved = self.writer.commit()
                 except OSError as e:
                     raise Failure(f"{self.out}: cannot save the results ({e.strerror or e}); the old file, "
