@@ -80,6 +80,8 @@ def _conform(value: Any, hint: Any) -> Any:
             raise _Mismatch(ValueError) from None
         if not math.isfinite(x):
             raise _Mismatch(ValueError)
+        if x == 0.0:  # -0.0 is 0.0: equal settings, one fingerprint
+            return 0.0
         return value if type(value) is float else x
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin is Literal:
@@ -560,6 +562,12 @@ class ReebConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "ReebConfig":
+        """The config of a dict of fields (as :meth:`to_dict` writes it; lists for tuples).
+
+        Raises TypeError when ``d`` is not a mapping, ValueError naming unknown fields, and
+        the field checks' TypeError / ValueError (:meth:`__post_init__`)."""
+        if not isinstance(d, typing.Mapping):
+            raise TypeError(f"ReebConfig.from_dict expects a dict of ReebConfig fields, got {type(d).__name__}")
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(d) - names)
         if unknown:

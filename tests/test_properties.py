@@ -316,6 +316,43 @@ _RUNNABLE = dict(
 )
 
 
+def _equal_spelling(value, how: int):
+    """The same setting written another way: -0.0 for 0.0, an int for a whole float, a list
+    for a tuple (``how`` picks which, per value)."""
+    if isinstance(value, float) and not isinstance(value, bool):
+        if value == 0.0 and how % 2:
+            return -0.0
+        if value.is_integer() and how % 3 == 0 and abs(value) < 2**53:
+            return int(value)
+        return value
+    if isinstance(value, tuple):
+        items = [_equal_spelling(v, how + i) for i, v in enumerate(value)]
+        return items if how % 2 else tuple(items)
+    return value
+
+
+@settings(max_examples=40, **SETTINGS)
+@given(changes=st.fixed_dictionaries({}, optional=_RUNNABLE), how=st.integers(0, 5))
+def test_equal_configs_give_equal_fingerprints(changes, how):
+    """Issue 23: horizon_slack=-0.0 and 0.0 were equal configs with different fingerprints."""
+    try:
+        cfg = ReebConfig(**changes)
+    except ValueError:
+        return
+    spelled = {k: _equal_spelling(v, how + i) for i, (k, v) in enumerate(cfg.to_dict().items())}
+    other = ReebConfig.from_dict(spelled)
+    assert other == cfg
+    assert other.fingerprint() == cfg.fingerprint()
+    back = ReebConfig.from_dict(json.loads(json.dumps(spelled)))
+    assert back.fingerprint() == cfg.fingerprint()
+
+
+def test_signed_zero_and_from_dict_of_a_list():
+    assert ReebConfig(horizon_slack=-0.0).fingerprint() == ReebConfig(horizon_slack=0.0).fingerprint()
+    with pytest.raises(TypeError, match="dict"):
+        ReebConfig.from_dict([])
+
+
 @settings(max_examples=10, **SETTINGS)
 @given(changes=st.fixed_dictionaries({}, optional=_RUNNABLE), h=st.integers(6, 120), w=st.integers(6, 160),
        y=st.integers(0, 1000), x=st.integers(0, 1000))
