@@ -169,3 +169,24 @@ def test_a_deeply_nested_config_is_a_usage_error(tmp_path, where):
     good_folder(tmp_path / "imgs", 1)
     r = reeb("propose", "imgs", *args, *FAST, cwd=tmp_path, check_rc=2)
     assert "Traceback" not in r.stderr and "nested too deeply" in r.stderr, r.stderr
+
+
+# -- devices that cannot run -------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", ["meta", "cpu:5", "mps", "cuda:99"])
+def test_a_device_that_cannot_run_is_refused_before_work(name):
+    import click
+    import torch
+
+    from reeb_torch.runs.common import resolve_device
+
+    if name == "mps" and getattr(torch.backends, "mps", None) and torch.backends.mps.is_available():
+        pytest.skip("this machine has MPS")
+    with pytest.raises(click.BadParameter):
+        resolve_device(name)
+
+
+def test_a_bad_device_on_the_command_line_is_exit_2(tmp_path):
+    good_folder(tmp_path / "imgs", 1)
+    r = reeb("propose", "imgs", "-o", "o.jsonl", "--top-k", "100", "--device", "meta", cwd=tmp_path, check_rc=2)
+    assert "meta" in r.stderr and not (tmp_path / "o.jsonl").exists()

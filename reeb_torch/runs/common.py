@@ -175,7 +175,8 @@ def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_
 
 def resolve_device(name: str):
     """``--device``: ``auto`` (CUDA when available), ``cpu``, ``cuda`` or ``cuda:N``, as a
-    ``torch.device``; a usage error when it is not one, or not here."""
+    ``torch.device``; a usage error (before any work) when it is not one, cannot compute
+    (``meta``, ``cpu:5``) or is not here (``cuda`` without a GPU, ``mps`` without support)."""
     import torch
 
     if name == "auto":
@@ -191,6 +192,17 @@ def resolve_device(name: str):
     if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
         raise click.BadParameter(f"{name}: only {torch.cuda.device_count()} CUDA device(s)",
                                  param_hint="--device")
+    if dev.type == "meta":
+        raise click.BadParameter("meta is not a device that computes (its tensors hold no values); "
+                                 "use cpu, cuda or auto", param_hint="--device")
+    if dev.type == "cpu" and dev.index not in (None, 0):
+        raise click.BadParameter(f"{name}: there is one CPU device; use cpu", param_hint="--device")
+    if dev.type not in ("cpu", "cuda"):  # mps, xpu, ...: refused unless it can hold a tensor here
+        try:
+            torch.zeros(1, device=dev).add_(1).cpu()
+        except Exception as e:  # noqa: BLE001 - each backend raises its own kind
+            raise click.BadParameter(f"{name}: not available here ({' '.join(str(e).split())[:200]}); "
+                                     "use cpu, cuda or auto", param_hint="--device") from None
     return dev
 
 
