@@ -308,6 +308,13 @@ def test_eval_without_frames_or_labels_is_a_usage_error(tmp_path):
     for folder, words in (("empty", "not a KITTI folder"), ("nolab", "label")):
         r = reeb("eval", folder, "--limit", "1", cwd=tmp_path, check_rc=2)
         assert words in r.stderr and "Traceback" not in r.stderr, r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1, r.stderr  # one line, no usage block (issue 23)
+
+
+def test_show_on_a_folder_is_a_usage_error(tmp_path):
+    (tmp_path / "d").mkdir()
+    r = reeb("show", "d", cwd=tmp_path, check_rc=2)
+    assert "is a folder" in r.stderr, r.stderr
 
 
 # -- 13. reeb show keeps the aspect ratio ------------------------------------------------------

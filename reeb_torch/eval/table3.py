@@ -455,14 +455,14 @@ def _load_frames(args: argparse.Namespace, parser: argparse.ArgumentParser) -> _
     t0 = time.perf_counter()
     try:
         items, classes = load_folders(args.data, limit=args.limit, frames=args.frames)
-    except (ValueError, FileNotFoundError) as e:
-        parser.error(str(e))
+    except (ValueError, FileNotFoundError) as e:  # unusable data: one line, exit 2 (no usage block)
+        parser.exit(2, f"{parser.prog}: error: {' '.join(str(e).split())}\n")
     gts = [it["boxes"] for it in items]
     frames = _Frames(items, classes, [it["image"] for it in items], gts, [it["labels"] for it in items],
                      [it["image_id"] for it in items], sum(int(g.shape[0]) for g in gts))
     if frames.n_obj == 0:
-        parser.error(f"{_data_text(args)}: the {len(items)} selected frames hold no object of "
-                     f"{', '.join(classes)}; recall is undefined")
+        parser.exit(2, f"{parser.prog}: error: {_data_text(args)}: the {len(items)} selected frames hold no "
+                       f"object of {', '.join(classes)}; recall is undefined\n")
     print(f"{len(frames.images)} frames from {_data_text(args)} ({frames.n_obj} objects of {', '.join(classes)}), "
           f"decoded in {time.perf_counter() - t0:.1f} s", flush=True)
     return frames

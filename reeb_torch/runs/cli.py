@@ -194,6 +194,9 @@ def show(image, label, no_label, top, out, preset, config_file, sets, top_k, dev
         raise UsageProblem(f"{out}: cannot write there (is the folder there and writable?)")
     if not path.exists():
         raise UsageProblem(f"{path}: no such file")
+    if path.is_dir():
+        raise UsageProblem(f"{path}: is a folder; reeb show explains one image (reeb propose takes "
+                           "folders)")
     label_path = None if no_label else (Path(label) if label else label_for(path))
     gt = read_labels(label_path) if label_path else []
 
