@@ -37,7 +37,7 @@ def _synthetic(horizon=0.47, cam=1.65, frames=20, per_frame=8, noise_px=1.0, see
 
 def test_known_camera_is_recovered():
     boxes, classes = _synthetic(horizon=0.45, cam=1.8)
-    fit = fit_camera(boxes, classes, H_IMG, samples=100)
+    fit = fit_camera(boxes, classes, H_IMG, samples=100, box_height_factor=1.0)
     assert fit.horizon == pytest.approx(0.45, abs=0.003)
     assert fit.camera_height_m == pytest.approx(1.8, abs=0.03)
     assert fit.horizon_interval[0] <= fit.horizon <= fit.horizon_interval[1]
@@ -57,7 +57,7 @@ def test_outliers_get_no_weight():
             if rng.random() < 0.2:
                 row[[1, 3]] -= rng.uniform(25, 60)
                 n_out += 1
-    fit = fit_camera(boxes, classes, H_IMG, samples=100)
+    fit = fit_camera(boxes, classes, H_IMG, samples=100, box_height_factor=1.0)
     assert fit.horizon == pytest.approx(0.47, abs=0.004)
     assert fit.camera_height_m == pytest.approx(1.65, abs=0.05)
     assert fit.num_outliers >= 0.8 * n_out
@@ -67,11 +67,19 @@ def test_outliers_get_no_weight():
     assert abs(intercept - 0.47) > 0.01 or abs(slope - 1.65) > 0.1
 
 
+def test_box_height_factor_scales_the_camera():
+    boxes, classes = _synthetic(horizon=0.47, cam=1.65)
+    plain = fit_camera(boxes, classes, H_IMG, samples=10, box_height_factor=1.0)
+    tall = fit_camera(boxes, classes, H_IMG, samples=10, box_height_factor=1.1)
+    assert tall.horizon == pytest.approx(plain.horizon)
+    assert tall.camera_height_m == pytest.approx(1.1 * plain.camera_height_m)
+
+
 def test_boxes_cut_by_the_border_are_left_out():
     boxes, classes = _synthetic(frames=5)
     boxes[0] = np.vstack([boxes[0], [10, 200, 100, H_IMG - 1]])  # its bottom row is the image's: cut
     classes[0] = classes[0] + ["Car"]
-    assert fit_camera(boxes, classes, H_IMG, samples=10).num_boxes == 5 * 8
+    assert fit_camera(boxes, classes, H_IMG, samples=10, box_height_factor=1.0).num_boxes == 5 * 8
 
 
 @pytest.mark.parametrize("change, message", [
@@ -92,6 +100,8 @@ def test_mismatched_inputs_are_refused():
         fit_camera(boxes, classes[:2], H_IMG)
     with pytest.raises(ValueError, match="class_heights"):
         fit_camera(boxes, classes, H_IMG, class_heights={"Car": -1})
+    with pytest.raises(ValueError, match="box_height_factor"):
+        fit_camera(boxes, classes, H_IMG, box_height_factor=0)
     with pytest.raises(ValueError, match="same height ratio"):
         same = [np.array([[0, 100, 50, 150.0]] * 4) for _ in range(3)]
         fit_camera(same, [["Car"] * 4] * 3, H_IMG, samples=5)
@@ -108,7 +118,8 @@ def test_cli_calibrate_kitti(kitti_dir, tmp_path):
     record = json.loads(out.read_text())
     cfg = build_config("default", str(out), (), None)  # what reeb propose --config reads
     assert cfg.horizon == record["config"]["horizon"]
-    assert 0.45 < cfg.horizon < 0.49 and 1.3 < cfg.camera_height_m < 1.9  # KITTI: cy/H ~ 0.466, 1.65 m
+    assert 0.46 < cfg.horizon < 0.48 and 1.6 < cfg.camera_height_m < 1.7  # KITTI: cy/H ~ 0.466, 1.65 m
+    assert "box height factor" in res.output
     pytest.importorskip("matplotlib")
     assert (tmp_path / "camera.png").stat().st_size > 1000
 

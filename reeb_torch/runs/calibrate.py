@@ -45,14 +45,14 @@ def read_boxes(roots: Sequence[str | os.PathLike]) -> dict[str, Any]:
 
 
 def format_fit(fit: CameraFit, heights: Mapping[str, float], mean_height: float,
-               p2: Sequence[float] = ()) -> str:
+               p2: Sequence[float] = (), factor: float = 1.0) -> str:
     """The fit, its intervals, the residuals per class and (given) P2's horizon, as text."""
     lo, hi = fit.horizon_interval
     lines = [
         f"horizon          {fit.horizon:.4f} of the image height = {fit.horizon * mean_height:.1f} px of "
         f"{mean_height:.0f} ({100 * fit.level:g} % interval {lo:.4f}-{hi:.4f})",
         f"camera height    {fit.camera_height_m:.3f} m ({100 * fit.level:g} % interval "
-        f"{fit.camera_height_interval[0]:.3f}-{fit.camera_height_interval[1]:.3f})",
+        f"{fit.camera_height_interval[0]:.3f}-{fit.camera_height_interval[1]:.3f}; box height factor {factor:g})",
         f"boxes            {fit.num_boxes} in {fit.num_frames} frames, {fit.num_outliers} given no weight "
         f"(robust residual scale {fit.scale * mean_height:.1f} px)",
     ]
@@ -102,27 +102,28 @@ def plot_fit(fit: CameraFit, out: Path) -> Path | None:
 
 def calibrate(roots: Sequence[str | os.PathLike], out: str | os.PathLike,
               class_heights: Mapping[str, float] | None = None, samples: int = 500,
-              level: float = 0.95, seed: int = 0) -> tuple[str, Path, Path | None]:
+              level: float = 0.95, seed: int = 0, box_height_factor: float | None = None) -> tuple[str, Path, Path | None]:
     """Fit, write the config JSON (``{"config": {"horizon", "camera_height_m"}, "fit": ...}``,
     which ``reeb propose --config`` reads) and the picture beside it (``<out stem>.png``).
 
     Returns ``(the printed text, the JSON path, the picture's path or None)``.
     """
-    from ..camera import KITTI_CLASS_HEIGHTS_M
+    from ..camera import BOX_HEIGHT_FACTOR, KITTI_CLASS_HEIGHTS_M
 
+    factor = BOX_HEIGHT_FACTOR if box_height_factor is None else box_height_factor
     heights = dict(KITTI_CLASS_HEIGHTS_M if class_heights is None else class_heights)
     data = read_boxes(roots)
     fit = fit_camera(data["boxes"], data["classes"], data["heights"], heights, level=level,
-                     samples=samples, seed=seed)
+                     samples=samples, seed=seed, box_height_factor=factor)
     mean_h = sum(data["heights"]) / len(data["heights"])
-    text = format_fit(fit, heights, mean_h, data["p2_horizon"])
+    text = format_fit(fit, heights, mean_h, data["p2_horizon"], factor)
     out = Path(out)
     record = {
         "config": fit.config_changes(),
         "fit": {
             "horizon_interval": fit.horizon_interval, "camera_height_interval": fit.camera_height_interval,
             "level": fit.level, "num_boxes": fit.num_boxes, "num_frames": fit.num_frames,
-            "num_outliers": fit.num_outliers, "class_heights_m": heights,
+            "num_outliers": fit.num_outliers, "class_heights_m": heights, "box_height_factor": factor,
             "per_class": {k: vars(v) for k, v in fit.per_class.items()},
             "p2_horizon_mean": (sum(data["p2_horizon"]) / len(data["p2_horizon"])) if data["p2_horizon"] else None,
             "data": [str(r) for r in roots],
