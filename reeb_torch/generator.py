@@ -30,7 +30,15 @@ from .stages import regions as _regions
 from .stages import road as _road
 from .stages import scoring as _scoring
 
-__all__ = ["ProposalGenerator", "propose", "Inspection"]
+__all__ = ["ProposalGenerator", "propose", "Inspection", "FRONT_END_FIELDS"]
+
+FRONT_END_FIELDS: tuple[str, ...] = (
+    "scale", "blur_sigma", "edge_threshold", "edge_channels", "thin_edges", "remove_isolated", "grouping",
+    "group_cell", "straddle_weight", "vegetation_score", "road_score", "road_samples", "road_band",
+    "road_tolerance", "road_combine", "seed", "shadow_score",
+)
+"""The fields that change :meth:`ProposalGenerator._front_end` (edges, groups, road mask, score maps); two
+configs equal in these share that work (``reeb tune`` computes it once per frame)."""
 
 
 @dataclass
@@ -155,9 +163,15 @@ class ProposalGenerator(nn.Module):
     def _propose_batch(self, images: list[Tensor], keep: bool = False) -> tuple[list[dict[str, Tensor]], dict]:
         """The algorithm on a batch of equal-sized ``(3, H, W)`` images, float32 in [0, 1]
         or uint8 (Table 1). With ``keep``, also the intermediate maps for :meth:`inspect`."""
+        front = self._front_end(images, keep)
+        return self._back_end(images, front, keep)
+
+    def _front_end(self, images: list[Tensor], keep: bool = False) -> tuple[_Working, ScoreMaps]:
+        """The per-image work that only :data:`FRONT_END_FIELDS` change: the edge map at the
+        working resolution, its groups, (where a score reads it) the road mask, and the score
+        maps that keep their integral tables once built."""
         cfg = self.config
         dev = images[0].device
-        input_size = tuple(images[0].shape[-2:])
         needs_road = keep or cfg.road_score not in ("none", "flat")
         # Sec. 3.4: Edge_Map = Sobel(Gaussian_Blur(I)), at the working resolution
         with self._stage("edges", dev):
@@ -171,13 +185,21 @@ class ProposalGenerator(nn.Module):
             with self._stage("road", dev):
                 road = _road.road_mask(work.colour, cfg.road_samples, cfg.road_band, cfg.road_tolerance,
                                        cfg.road_combine, cfg.seed)
+        maps = ScoreMaps(work.edges, groups, tuple(images[0].shape[-2:]), road=road, green=work.green,
+                         crossing=work.crossing, grey=work.gray[:, 0] if cfg.shadow_score != "none" else None)
+        return work, maps
+
+    def _back_end(self, images: list[Tensor], front: tuple[_Working, ScoreMaps],
+                  keep: bool = False) -> tuple[list[dict[str, Tensor]], dict]:
+        """Regions, windows, scores, refinement and NMS on the output of :meth:`_front_end`."""
+        cfg = self.config
+        dev = images[0].device
+        work, maps = front
         # Sec. 3.6: Regions = Divide_Image_Into_Regions(I, Camera_Params); eqs. 2 and 9
         with self._stage("regions", dev):
             bounds, entropy, share = self._regions(work.gray)
         # Sec. 3.6-3.7: dense sliding windows, scored by eqs. 1, 10-12, cut per region (eq. 9)
         with self._stage("scoring", dev):
-            maps = ScoreMaps(work.edges, groups, input_size, road=road, green=work.green, crossing=work.crossing,
-                             grey=work.gray[:, 0] if cfg.shadow_score != "none" else None)
             grid = self.ranking.window_grid(maps, bounds)
             scores = self.ranking.score(maps, grid)
             chosen = self.ranking.select(scores, grid, share)

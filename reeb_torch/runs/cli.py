@@ -1,4 +1,4 @@
-"""The ``reeb`` command line: ``propose``, ``show``, ``eval`` and ``export``.
+"""The ``reeb`` command line: ``propose``, ``show``, ``eval``, ``export``, ``calibrate`` and ``tune``.
 
 ::
 
@@ -8,6 +8,8 @@
     reeb show                            # the bundled sample, explained: reeb_show.png
     reeb show frame.png --label frame.txt --top 30 --out frame_reeb.png
     reeb eval ../shared/data/kitti --limit 20     # the paper's Table 3 (reeb_torch.eval.table3)
+    reeb calibrate my_frames/ -o camera.json      # horizon and camera height from labelled boxes
+    reeb tune my_frames/ --config camera.json -o tuned.json --trials 50 --storage sqlite:///tune.db
 
 Exit codes: 0 success; 1 some images failed (each is named, in the summary and in the
 output with its status) or the command failed; 2 usage error (bad option or setting, no
@@ -322,6 +324,114 @@ def export(results, out, fmt, ids_file, id_type):
         click.echo(f"warning: left out (failed): {m}", err=True)
     click.echo(f"wrote {saved}: {len(proposals['ids'])} images, {n} proposals ({fmt}, XYXY_ABS)"
                + (f"; {len(failed)} failed images left out" if failed else ""), err=True)
+
+
+# -- reeb calibrate ----------------------------------------------------------------------
+
+def _class_heights(items: tuple[str, ...]) -> dict[str, float] | None:
+    from ..camera import KITTI_CLASS_HEIGHTS_M
+
+    if not items:
+        return None
+    heights = dict(KITTI_CLASS_HEIGHTS_M)
+    for item in items:
+        name, sep, value = item.partition("=")
+        try:
+            h = float(value)
+        except ValueError:
+            h = float("nan")
+        if not sep or not name.strip() or not h > 0:
+            raise click.BadParameter(f"{item!r}: expected CLASS=METRES with metres > 0, e.g. Car=1.53",
+                                     param_hint="--class-height")
+        heights[name.strip()] = h
+    return heights
+
+
+@main.command(context_settings=CONTEXT)
+@click.argument("dirs", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False))
+@click.option("-o", "--out", type=click.Path(dir_okay=False), default="camera.json", show_default=True,
+              help="Config file to write (reeb propose --config reads it); the picture goes beside it (.png).")
+@click.option("--class-height", "class_height", multiple=True, metavar="CLASS=METRES",
+              help="Real height of a label class (repeatable); default KITTI's means: Car 1.53, Van 2.21, "
+                   "Truck 3.25, Pedestrian 1.76, Cyclist 1.74, Tram 3.53.")
+@click.option("--samples", type=click.IntRange(min=1), default=500, show_default=True,
+              help="Frame-bootstrap samples for the intervals.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the bootstrap.")
+@click.option("--box-factor", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="2D box height / 3D object height at the bottom's depth [default: 1.055, measured on KITTI "
+                   "with its known 1.65 m; 1 = the plain model].")
+def calibrate(dirs, out, class_height, samples, seed, box_factor):
+    """Fit the horizon row and the camera height from the labelled boxes of KITTI-format
+    folders (DIRS: images/ + labels/, or image_2/ + label_2/).
+
+    Objects standing on a flat road obey bottom - horizon = box height x camera height /
+    class height: a line, fitted robustly (Tukey's biweight), with frame-bootstrap intervals.
+    Prints the fit and the residuals per class; writes the config (horizon, camera_height_m)
+    and a picture of the boxes with the fitted line.
+    """
+    from .calibrate import calibrate as run
+
+    heights = _class_heights(class_height)
+    try:
+        text, path, picture = run(dirs, out, heights, samples=samples, seed=seed, box_height_factor=box_factor)
+    except (ValueError, FileNotFoundError) as e:
+        raise UsageProblem(" ".join(str(e).split()))
+    click.echo(text)
+    click.echo(f"wrote {path}" + (f" and {picture}" if picture else " (no picture: matplotlib is not installed)"),
+               err=True)
+
+
+# -- reeb tune ---------------------------------------------------------------------------
+
+@main.command(context_settings=CONTEXT)
+@click.argument("dirs", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False))
+@click.option("-o", "--out", type=click.Path(dir_okay=False), default="tuned.json", show_default=True,
+              help="Tuned config file (reeb propose --config reads it) with the estimate; plots beside it.")
+@click.option("--trials", type=click.IntRange(min=1), default=50, show_default=True, help="Trials per study.")
+@click.option("--folds", type=click.IntRange(min=2), default=3, show_default=True,
+              help="Contiguous blocks of frames for the nested cross-validation.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the samplers and bootstraps.")
+@click.option("--storage", help="Optuna storage URL, e.g. sqlite:///tune.db (default: in memory).")
+@click.option("--resume", is_flag=True, help="Continue the studies in --storage (after Ctrl-C or a crash).")
+@click.option("--timeout", type=click.FloatRange(min=0, min_open=True), help="Seconds for all the searching.")
+@click.option("--balanced", is_flag=True, help="Objective: mean of the per-class recalls (default: micro).")
+@click.option("--space", "space_file", type=click.Path(exists=True, dir_okay=False),
+              help="JSON search space {field: {type: float|int|categorical, low, high | choices}}.")
+@click.option("-k", "--proposals", "k", type=click.IntRange(min=1), default=2000, show_default=True,
+              help="Proposals counted per frame.")
+@click.option("--iou", type=click.FloatRange(0, 1, min_open=True), default=0.7, show_default=True,
+              help="IoU an object needs.")
+@click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
+@click.option("--score", "score_file", type=click.Path(exists=True, dir_okay=False),
+              help="No search: score this config file (e.g. a tuned.json) against the base on DIRS.")
+@click.option("--preset", default="default", show_default=True, help="Base settings (the comparison).")
+@click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False),
+              help="JSON config over the preset for the base (e.g. reeb calibrate's camera.json).")
+@click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE", help="Change a base field (repeatable).")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, space_file, k, iou, limit,
+         score_file, preset, config_file, sets, quiet):
+    """Search the settings that matter on labelled KITTI-format folders (DIRS) with Optuna,
+    and estimate by nested cross-validation over frames how they do on new frames, beside the
+    base config on the same frames. Runs on the CPU; needs the extra 'tune'.
+    """
+    from . import tune as R
+
+    base = build_config(preset, config_file, sets, None)
+    try:
+        if score_file:
+            click.echo(R.run_score(dirs, build_config(preset, score_file, (), None), base, k, iou, balanced, limit))
+            return
+        record = R.run_tune(dirs, out, base, space_file, trials, folds, seed, storage, resume, timeout, balanced,
+                            k, iou, limit, quiet)
+    except KeyboardInterrupt:
+        where = f"the finished trials are in {storage}; rerun with --resume" if storage else \
+            "nothing was kept (no --storage)"
+        click.echo(f"interrupted: {where}", err=True)
+        sys.exit(130)
+    except (ValueError, FileNotFoundError, ImportError) as e:
+        raise UsageProblem(" ".join(str(e).split()))
+    click.echo(record["text"])
 
 
 if __name__ == "__main__":

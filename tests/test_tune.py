@@ -1,0 +1,144 @@
+"""reeb tune (reeb_torch.eval.tune and runs/tune.py): the search space is checked against
+ReebConfig, the frame cache gives the generator's boxes bit for bit, a tiny study is
+deterministic with a seed and resumable from SQLite, bad input is refused."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from click.testing import CliRunner
+
+from reeb_torch import ProposalGenerator, ReebConfig
+from reeb_torch.eval import tune as T
+
+pytest.importorskip("optuna")
+
+BASE = ReebConfig(top_k=300, candidates_per_region=1500)  # a light base: the test times the search, not REEB
+SPACE = {"nms_iou": {"type": "float", "low": 0.7, "high": 0.8}, "kappa": {"type": "float", "low": 1.4, "high": 1.8}}
+
+
+@pytest.fixture(scope="module")
+def small_kitti(kitti_dir, tmp_path_factory):
+    """Four KITTI frames cut to 400 × 200 px around their objects (fast), in KITTI's layout."""
+    from PIL import Image
+
+    from reeb_torch.eval.data import read_kitti_labels
+
+    root = tmp_path_factory.mktemp("small_kitti")
+    (root / "images").mkdir()
+    (root / "labels").mkdir()
+    made = 0
+    for lp in sorted((kitti_dir / "labels").glob("*.txt")):
+        objs = [o for o in read_kitti_labels(lp) if o.type in ("Car", "Pedestrian", "Cyclist", "Truck")]
+        if not objs:
+            continue
+        cx = min(max((objs[0].box[0] + objs[0].box[2]) / 2 - 200, 0), 1242 - 400)
+        x0, y0 = int(cx), 120
+        lines = []
+        for o in objs:
+            x1, y1, x2, y2 = o.box
+            if x1 >= x0 and x2 <= x0 + 400 and y1 >= y0 and y2 <= y0 + 200:
+                lines.append(f"{o.type} 0.00 0 0 {x1 - x0:.2f} {y1 - y0:.2f} {x2 - x0:.2f} {y2 - y0:.2f} "
+                             "1.5 1.6 3.9 0 1.6 10 0")
+        if not lines:
+            continue
+        img = Image.open(next((kitti_dir / "images").glob(lp.stem + ".*"))).convert("RGB")
+        img.crop((x0, y0, x0 + 400, y0 + 200)).save(root / "images" / f"{lp.stem}.png")
+        (root / "labels" / lp.name).write_text("\n".join(lines) + "\n")
+        made += 1
+        if made == 4:
+            break
+    return root
+
+
+def test_space_is_checked_against_the_config(tmp_path):
+    assert set(T.load_space(None)) >= {"horizon", "camera_height_m", "kappa", "nms_iou", "candidates_per_region"}
+    with pytest.raises(ValueError, match="unknown ReebConfig field.*not_a_field"):
+        T.load_space({"not_a_field": {"type": "float", "low": 0, "high": 1}})
+    with pytest.raises(ValueError, match="low <= high"):
+        T.load_space({"kappa": {"type": "float", "low": 2, "high": 1}})
+    with pytest.raises(ValueError, match="not a valid setting"):
+        T.load_space({"nms_iou": {"type": "float", "low": 0.5, "high": 1.5}})
+    with pytest.raises(ValueError, match="expected"):
+        T.load_space({"kappa": {"type": "normal"}})
+    p = tmp_path / "space.json"
+    p.write_text("{not json")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        T.load_space(p)
+
+
+def test_folds_need_frames():
+    assert T.fold_blocks(5, 2) == [[0, 1, 2], [3, 4]]
+    with pytest.raises(ValueError, match="3 labelled frames cannot make 4 folds"):
+        T.fold_blocks(3, 4)
+
+
+def test_objective_micro_and_balanced():
+    hits = [torch.tensor([True, False, False]), torch.tensor([True])]
+    labels = [torch.tensor([0, 0, 0]), torch.tensor([1])]
+    assert T.objective(hits, labels) == pytest.approx(0.5)
+    assert T.objective(hits, labels, balanced=True) == pytest.approx((1 / 3 + 1) / 2)
+
+
+def test_cache_gives_the_generators_boxes(small_kitti):
+    frames = T.load_frames([small_kitti], limit=2)
+    cache = T.FrameCache(frames)
+    cache.proposals(ReebConfig(), [0, 1])
+    cfg = ReebConfig(kappa=1.5, horizon=0.3, nms_iou=0.7)
+    got = cache.proposals(cfg, [0, 1])
+    assert cache.front_computed == 2  # the second config reused the edges, groups and tables
+    want = [ProposalGenerator(cfg)([im])[0]["boxes"] for im in frames.images]
+    assert all(torch.equal(a, b) for a, b in zip(got, want))
+    cache.proposals(cfg.replace(edge_threshold=0.1), [0])
+    assert cache.front_computed == 3
+
+
+def _tune(root, out, **kw):
+    from reeb_torch.runs.tune import run_tune
+
+    args = dict(trials=2, folds=2, seed=3, storage=None, resume=False, timeout=None, balanced=False, k=300,
+                iou=0.5, limit=2, quiet=True)
+    args.update(kw)
+    space = out.parent / "space.json"
+    space.write_text(json.dumps(SPACE))
+    return run_tune([str(root)], str(out), BASE, str(space), **args)
+
+
+def test_tiny_tune_is_deterministic_and_resumable(small_kitti, tmp_path):
+    db = f"sqlite:///{tmp_path / 'tune.db'}"
+    a = _tune(small_kitti, tmp_path / "a.json", storage=db)
+    b = _tune(small_kitti, tmp_path / "b.json")
+    for key in ("estimate", "base_estimate", "per_fold"):
+        assert a["tune"][key] == b["tune"][key]
+    assert a["config"] == b["config"]
+    assert "cross-validated estimate" in a["text"] and "base" in a["text"]
+    saved = json.loads((tmp_path / "a.json").read_text())
+    ReebConfig.from_dict({**ReebConfig().to_dict(), **saved["config"]})
+    with pytest.raises(ValueError, match="--resume"):
+        _tune(small_kitti, tmp_path / "c.json", storage=db)  # the studies exist: resume or another storage
+    c = _tune(small_kitti, tmp_path / "c.json", storage=db, resume=True, trials=3)
+    import optuna
+
+    assert c["tune"]["trials_completed"] == 3
+    names = [s.study_name for s in optuna.get_all_study_summaries(db)]
+    assert len(names) == 3 and all(len(optuna.load_study(study_name=n, storage=db).trials) == 3 for n in names)
+
+
+def test_cli_tune_refuses_bad_input(small_kitti, tmp_path):
+    from reeb_torch.runs.cli import main
+
+    space = tmp_path / "space.json"
+    space.write_text(json.dumps({"bogus": {"type": "float", "low": 0, "high": 1}}))
+    run = CliRunner().invoke
+    res = run(main, ["tune", str(small_kitti), "--space", str(space), "-o", str(tmp_path / "t.json")])
+    assert res.exit_code == 2 and "bogus" in res.output
+    res = run(main, ["tune", str(small_kitti), "--folds", "5", "-o", str(tmp_path / "t.json")])
+    assert res.exit_code == 2 and "cannot make 5 folds" in res.output
+    res = run(main, ["tune", str(small_kitti), "--resume", "-o", str(tmp_path / "t.json")])
+    assert res.exit_code == 2 and "--storage" in res.output
+    (tmp_path / "nolabels" / "images").mkdir(parents=True)
+    (tmp_path / "nolabels" / "images" / "000000.png").write_bytes((small_kitti / "images").iterdir().__next__().read_bytes())
+    res = run(main, ["tune", str(tmp_path / "nolabels"), "-o", str(tmp_path / "t.json")])
+    assert res.exit_code == 2 and "no label folder" in res.output
