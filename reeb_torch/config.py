@@ -27,6 +27,8 @@ EntropyForm = Literal["printed", "abs-diff"]
 WindowGeometry = Literal["camera", "grid"]
 ShadowScore = Literal["underneath", "none"]
 VegetationScore = Literal["green", "none"]
+Rescore = Literal["none", "affinity", "density", "contrast"]
+RescoreScope = Literal["all", "persons"]
 
 
 # -- validation (ReebConfig.__post_init__) ---------------------------------------------------
@@ -223,6 +225,9 @@ _RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "straddle_weight": _at_least(0),
     "refine_min_aspect": _in(0, 100),
     "straddle_band": _in(0, 64),
+    "rescore_top": _at_least(1),
+    "rescore_power": _in(0, 16),
+    "rescore_thin": _in(0, 100, lo_open=True),
     "center_fraction": _in(0, 1, lo_open=True, hi_open=True),
     "road_strip": _in(0, 1, lo_open=True),
     "shadow_strip": _in(0, 1, lo_open=True),
@@ -252,6 +257,10 @@ _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
     (("class_heights_m", "object_templates", "location_fit"),
      lambda c: c.location_fit != "shape" or len(c.object_templates) == len(c.class_heights_m),
      "of the same length when location_fit='shape' (one template per class, in the same order), or location_fit='height'"),
+    (("rescore", "refine"), lambda c: c.rescore == "none" or not c.refine,
+     "rescore='none' when refine is on (the refinement re-scores the boxes with V alone), or refine=off"),
+    (("rescore", "grouping"), lambda c: c.rescore != "affinity" or c.grouping == "connected",
+     "grouping='connected' with rescore='affinity' (the affinities join connected groups)"),
     (("camera_height_m", "vertical_fov_deg", "horizontal_fov_deg", "max_object_width_m",
       "region_width_round", "region_overlap"), lambda c: _region_count(c) <= _MAX_REGIONS,
      f"a camera and overlap giving at most {_MAX_REGIONS} regions (eqs. 5-8)"),
@@ -408,6 +417,24 @@ class ReebConfig:
     """With ``refine``: only candidates at least this many times as wide as tall move (0:
     all). Narrow, person-shaped boxes then keep their grid box: V's optimum near a person
     is often not the person's box (refining every box finds fewer pedestrians)."""
+    rescore: Rescore = "none"
+    """A second scoring pass after the region cut (:mod:`reeb_torch.stages.rescoring`; not in
+    the paper): the best ``rescore_top`` candidates of each image are ranked on V·f^p, f a
+    cue over its mean on those windows, p ``rescore_power``. ``affinity``: Edge Boxes'
+    affinity-weighted w_n, the share of the enclosed edge mass not chained to a group cut
+    by the box's border (compiled, CPU); ``density``: the box's mean edge magnitude;
+    ``contrast``: that over the mean of the ring around the box. ``none`` (default): no
+    second pass. Candidates past ``rescore_top`` are dropped."""
+    rescore_top: int = 20000
+    """With ``rescore``: how many of each image's best candidates (by V) are re-scored and
+    ranked; the others are dropped before NMS."""
+    rescore_power: float = 1.0
+    """With ``rescore``: the exponent p of the cue (0: the pass only cuts to ``rescore_top``)."""
+    rescore_scope: RescoreScope = "all"
+    """With ``rescore``: ``all`` windows get the cue, or only ``persons``: windows narrower than
+    ``rescore_thin`` times their height (the pedestrian and cyclist shapes); the others keep V."""
+    rescore_thin: float = 0.8
+    """With ``rescore_scope='persons'``: the width/height ratio below which a window is person-shaped."""
     center_fraction: float = 0.5
     """Side of the centre region c relative to the box (eq. 1: half)."""
 
