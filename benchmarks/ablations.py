@@ -136,6 +136,8 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "rescore=density, persons": (D.replace(rescore="density", rescore_scope="persons"), "#19"),
     "rescore=contrast": (D.replace(rescore="contrast"), "#19"),
     "rescore=contrast, persons": (D.replace(rescore="contrast", rescore_scope="persons"), "#19"),
+    "rescore=orientation": (D.replace(rescore="orientation"), "#19"),
+    "rescore=orientation, persons": (D.replace(rescore="orientation", rescore_scope="persons"), "#19"),
     "rescore=density, power 0 (cut only)": (D.replace(rescore="density", rescore_power=0.0), "#19"),
 }
 

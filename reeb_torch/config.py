@@ -27,7 +27,7 @@ EntropyForm = Literal["printed", "abs-diff"]
 WindowGeometry = Literal["camera", "grid"]
 ShadowScore = Literal["underneath", "none"]
 VegetationScore = Literal["green", "none"]
-Rescore = Literal["none", "affinity", "density", "contrast"]
+Rescore = Literal["none", "affinity", "density", "contrast", "orientation"]
 RescoreScope = Literal["all", "persons"]
 
 
@@ -259,8 +259,8 @@ _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
      "of the same length when location_fit='shape' (one template per class, in the same order), or location_fit='height'"),
     (("rescore", "refine"), lambda c: c.rescore == "none" or not c.refine,
      "rescore='none' when refine is on (the refinement re-scores the boxes with V alone), or refine=off"),
-    (("rescore", "grouping"), lambda c: c.rescore != "affinity" or c.grouping == "connected",
-     "grouping='connected' with rescore='affinity' (the affinities join connected groups)"),
+    (("rescore", "grouping"), lambda c: c.rescore not in ("affinity", "orientation") or c.grouping == "connected",
+     "grouping='connected' with rescore='affinity' or 'orientation' (they read connected groups)"),
     (("camera_height_m", "vertical_fov_deg", "horizontal_fov_deg", "max_object_width_m",
       "region_width_round", "region_overlap"), lambda c: _region_count(c) <= _MAX_REGIONS,
      f"a camera and overlap giving at most {_MAX_REGIONS} regions (eqs. 5-8)"),
@@ -423,7 +423,8 @@ class ReebConfig:
     cue over its mean on those windows, p ``rescore_power``. ``affinity``: Edge Boxes'
     affinity-weighted w_n, the share of the enclosed edge mass not chained to a group cut
     by the box's border (compiled, CPU); ``density``: the box's mean edge magnitude;
-    ``contrast``: that over the mean of the ring around the box. ``none`` (default): no
+    ``contrast``: that over the mean of the ring around the box; ``orientation``: the spread
+    of the edge orientations in the box (poles and trunks: one direction). ``none`` (default): no
     second pass. Candidates past ``rescore_top`` are dropped."""
     rescore_top: int = 20000
     """With ``rescore``: how many of each image's best candidates (by V) are re-scored and

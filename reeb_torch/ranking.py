@@ -453,6 +453,8 @@ class Ranking:
             x0, y0, x1, y1 = boxes.unbind(1)
             enclosed = _refinement.enclosed_at(maps.tables(), bi, x0, y0, x1, y1)
             cue = _rescoring.affinity_cue(maps.edges, enclosed, boxes, bi, cfg.group_cell)
+        elif cfg.rescore == "orientation":
+            cue = _rescoring.orientation_cue(maps.edges, boxes, bi, cfg.group_cell)
         elif cfg.rescore == "density":
             cue = _rescoring.density_cue(maps.integral("edges"), boxes, bi)
         else:

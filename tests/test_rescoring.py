@@ -14,7 +14,7 @@ from reeb_torch import ProposalGenerator, ReebConfig
 from reeb_torch.ranking import Ranking
 from reeb_torch.stages.groups import connected_groups
 from reeb_torch.stages.rescoring import (affinity_cue, apply_cue, contrast_cue, density_cue, group_graph,
-                                         top_candidates)
+                                         orientation_cue, top_candidates)
 from reeb_torch.stages.scoring import integral_image
 
 
@@ -34,10 +34,9 @@ def _random_boxes(seed: int, h: int, w: int, k: int, side: int) -> torch.Tensor:
 
 
 # -- brute force: pixels, groups and chains in plain Python ------------------------------------
-def _reference_cue(edges: np.ndarray, box: tuple[int, int, int, int], cell: int) -> float:
-    """Σ w_n m_n / Σ m_n from the pixels: groups by flood fill (8-connected within a tile),
-    orientation from each group's pixel covariance, affinities between groups with pixels
-    within 2 px, w_n = 1 − the best chain product (Bellman–Ford over the groups inside)."""
+def _reference_groups(edges: np.ndarray, cell: int):
+    """Groups by flood fill (8-connected within a tile): the label image, each group's
+    pixels (x, y), centroid and principal-axis angle."""
     h, w = edges.shape
     lab = -np.ones((h, w), int)
     groups: list[list[tuple[int, int]]] = []
@@ -64,6 +63,15 @@ def _reference_cue(edges: np.ndarray, box: tuple[int, int, int, int], cell: int)
     for p, c in zip(pts, cen):
         d = p - c
         theta.append(0.5 * math.atan2(2 * (d[:, 0] * d[:, 1]).mean(), (d[:, 0] ** 2).mean() - (d[:, 1] ** 2).mean()))
+    return lab, groups, pts, cen, theta
+
+
+def _reference_cue(edges: np.ndarray, box: tuple[int, int, int, int], cell: int) -> float:
+    """Σ w_n m_n / Σ m_n from the pixels: orientation from each group's pixel covariance,
+    affinities between groups with pixels within 2 px, w_n = 1 − the best chain product
+    (Bellman–Ford over the groups inside)."""
+    lab, groups, pts, cen, theta = _reference_groups(edges, cell)
+    n = len(groups)
     mass = [sum(float(edges[y, x]) for y, x in p) for p in groups]
     x0, y0, x1, y1 = box
     inside = [all(x0 <= x < x1 and y0 <= y < y1 for x, y in p) for p in pts]
@@ -125,6 +133,32 @@ def test_affinity_matches_brute_force():
     assert float(cue.min()) < 0.99  # the example does chain some mass out
 
 
+def test_orientation_spread():
+    """One direction: no spread; as much vertical as horizontal edge: full spread; and
+    random maps against the pixels' sums."""
+    e = torch.zeros(1, 24, 40)
+    e[0, 2:20, 10] = 0.5  # a pole
+    e[0, 2:19, 25] = 0.5  # and a cross bar of the same length apart from it
+    e[0, 21, 22:39] = 0.5
+    boxes = torch.tensor([[5, 0, 16, 24], [20, 0, 40, 24], [0, 0, 2, 2]])
+    got = orientation_cue(e, boxes, torch.zeros(3, dtype=torch.long), 8)
+    assert got.tolist() == pytest.approx([0.0, 1.0, 0.0], abs=1e-9)
+    e = _edge_map(8, 22, 31, 0.2)
+    boxes = _random_boxes(9, 22, 31, 20, 6)
+    got = orientation_cue(e, boxes, torch.zeros(len(boxes), dtype=torch.long), 8)
+    lab, _, _, _, theta = _reference_groups(e[0].numpy(), 8)
+    for k, (x0, y0, x1, y1) in enumerate(boxes.tolist()):
+        c = s = m = 0.0
+        for y in range(y0, y1):
+            for x in range(x0, x1):
+                if lab[y, x] >= 0:
+                    v = float(e[0, y, x])
+                    m += v
+                    c += v * math.cos(2 * theta[lab[y, x]])
+                    s += v * math.sin(2 * theta[lab[y, x]])
+        assert float(got[k]) == pytest.approx(1 - math.hypot(c, s) / m if m > 0 else 0.0, abs=1e-9)
+
+
 def test_group_graph_has_the_scoring_groups():
     e = _edge_map(5, 30, 45)
     label, mass, bounds, start, nbr, aff = group_graph(e[0].numpy(), 8)
@@ -173,7 +207,7 @@ def test_none_is_the_default_bit_for_bit(sample_image):
     assert r.rescore(None, None, s, c) == (s, c)  # type: ignore[arg-type]
 
 
-@pytest.mark.parametrize("cue", ["affinity", "density", "contrast"])
+@pytest.mark.parametrize("cue", ["affinity", "density", "contrast", "orientation"])
 def test_cues_change_the_ranking_and_both_paths_agree(sample_image, cue, monkeypatch):
     cfg = ReebConfig(rescore=cue, rescore_top=3000)
     got = ProposalGenerator(cfg)([sample_image])[0]
@@ -202,6 +236,7 @@ def test_persons_scope_leaves_wide_windows_alone(sample_image):
     (dict(rescore_thin=0.0), "ReebConfig.rescore_thin"),
     (dict(rescore="density", refine=True), "refine"),
     (dict(rescore="affinity", grouping="cell"), "grouping='connected'"),
+    (dict(rescore="orientation", grouping="cell"), "grouping='connected'"),
 ])
 def test_bad_settings_are_refused(changes, words):
     with pytest.raises(ValueError, match=words.replace("(", r"\(").replace(")", r"\)")):

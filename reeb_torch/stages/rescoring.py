@@ -17,6 +17,10 @@ outside the pass, or outside ``rescore_scope``, keep a comparable score):
   Compiled (numba, CPU; the edge map is read on the CPU on any device): per box, a
   max-product search from the groups on the box's inner border.
 * ``density``: the box's mean edge magnitude (textured objects against smooth road and sky).
+* ``orientation``: the spread of the edge orientations inside the box, ``1 − |Σ m e^{2iθ}| / Σ m``
+  over its edge pixels (θ: the principal axis of each pixel's group, as for ``affinity``;
+  compiled labelling, then integral images): a pole, a trunk or a sign post has edges of one
+  direction (spread near 0), a person or a rider edges of many.
 * ``contrast``: the box's mean edge magnitude over that of the ring around it (a quarter of
   the box's side wide, clipped to the image): an object stands out of its surround.
 
@@ -35,10 +39,10 @@ from torch import Tensor
 from ._threads import on_two_cores
 from .refinement import box_sum_at
 
-__all__ = ["CUES", "top_candidates", "density_cue", "contrast_cue", "group_graph", "affinity_cue",
-           "apply_cue"]
+__all__ = ["CUES", "top_candidates", "density_cue", "contrast_cue", "orientation_cue", "group_graph",
+           "affinity_cue", "apply_cue"]
 
-CUES = ("none", "affinity", "density", "contrast")
+CUES = ("none", "affinity", "density", "contrast", "orientation")
 """The values of ``ReebConfig.rescore``."""
 
 _STOP = 0.05
@@ -312,6 +316,29 @@ def affinity_cue(edges: Tensor, enclosed: Tensor, boxes: Tensor, bi: Tensor, cel
     lost_t = torch.from_numpy(lost).to(enclosed.device)
     keep = (enclosed - lost_t).clamp(min=0)
     return torch.where(enclosed > 0, keep / enclosed.clamp(min=1e-12), torch.ones_like(enclosed)).clamp(max=1.0)
+
+
+def orientation_cue(edges: Tensor, boxes: Tensor, bi: Tensor, cell: int | None) -> Tensor:
+    """``1 − |Σ m e^{2iθ}| / Σ m`` over the edge pixels of each box, ``float64 [K]`` in [0, 1]
+    (0 where a box holds no edge): θ is the principal-axis angle of the pixel's group
+    (groups as eq. 1's, cut at ``cell`` tiles). Arguments as :func:`affinity_cue`."""
+    e = edges.detach().float().cpu().contiguous().numpy()
+    b, h, w = e.shape
+    maps = np.zeros((3, b, h, w))
+    for i in np.unique(bi.cpu().numpy()):
+        label, _, _, _, _, theta = _label_kernel(np.ascontiguousarray(e[i]), 0 if cell is None else int(cell))
+        lab = label.reshape(h, w)
+        on = lab >= 0
+        m = np.where(on, e[i], 0.0).astype(np.float64)
+        t = np.where(on, theta[np.maximum(lab, 0)], 0.0) if len(theta) else np.zeros((h, w))
+        maps[0, i], maps[1, i], maps[2, i] = m, m * np.cos(2 * t), m * np.sin(2 * t)
+    ii = torch.zeros(3, b, h + 1, w + 1, dtype=torch.float64)
+    ii[:, :, 1:, 1:] = torch.from_numpy(maps).cumsum(3).cumsum(2)
+    bx, bic = boxes.cpu(), bi.cpu()
+    x0, y0, x1, y1 = bx.unbind(1)
+    mass, c, s = (box_sum_at(ii[k], bic, x0, y0, x1, y1) for k in range(3))
+    spread = torch.where(mass > 1e-12, 1.0 - torch.sqrt(c * c + s * s) / mass.clamp(min=1e-12), torch.zeros_like(mass))
+    return spread.clamp(0.0, 1.0).to(boxes.device)
 
 
 def apply_cue(scores: Tensor, idx: list[Tensor], cue: list[Tensor], scope: list[Tensor], power: float) -> Tensor:
