@@ -228,6 +228,7 @@ _RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "rescore_top": _at_least(1),
     "rescore_power": _in(0, 16),
     "rescore_thin": _in(0, 100, lo_open=True),
+    "rescore_max_height_m": ((lambda v: v is None or v > 0), "None or > 0"),
     "center_fraction": _in(0, 1, lo_open=True, hi_open=True),
     "road_strip": _in(0, 1, lo_open=True),
     "shadow_strip": _in(0, 1, lo_open=True),
@@ -436,6 +437,12 @@ class ReebConfig:
     ``rescore_thin`` times their height (the pedestrian and cyclist shapes); the others keep V."""
     rescore_thin: float = 0.8
     """With ``rescore_scope='persons'``: the width/height ratio below which a window is person-shaped."""
+    rescore_max_height_m: float | None = None
+    """With ``rescore_scope='persons'``: also the window's real height, from the flat-ground
+    camera (box height / (bottom row − horizon row) · ``camera_height_m``), must be at most
+    this (e.g. 2.3: the tallest pedestrian and cyclist template, 2.2 m, so the backs of
+    trucks are not person-shaped); windows whose bottom is above the horizon are not.
+    ``None`` (default): the shape alone."""
     center_fraction: float = 0.5
     """Side of the centre region c relative to the box (eq. 1: half)."""
 

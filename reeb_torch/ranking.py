@@ -459,12 +459,25 @@ class Ranking:
             cue = _rescoring.density_cue(maps.integral("edges"), boxes, bi)
         else:
             cue = _rescoring.contrast_cue(maps.integral("edges"), boxes, bi)
-        wh = boxes[:, 2:] - boxes[:, :2]
-        scope = (wh[:, 0] < cfg.rescore_thin * wh[:, 1]) if cfg.rescore_scope == "persons" \
-            else torch.ones(len(boxes), dtype=torch.bool, device=boxes.device)
+        scope = self._rescore_scope(boxes, maps.edges.shape[-2])
         counts = [int(ix.numel()) for ix in idx]
         out = _rescoring.apply_cue(scores, idx, list(cue.split(counts)), list(scope.split(counts)), cfg.rescore_power)
         return out, kept
+
+    def _rescore_scope(self, boxes: Tensor, hk: int) -> Tensor:
+        """Which of the int64 ``[K, 4]`` working-pixel boxes get the cue (``rescore_scope``):
+        all, or the person-shaped ones (narrower than ``rescore_thin`` times their height and,
+        with ``rescore_max_height_m``, no taller than that on the ground plane)."""
+        cfg = self.config
+        if cfg.rescore_scope == "all":
+            return torch.ones(len(boxes), dtype=torch.bool, device=boxes.device)
+        wh = boxes[:, 2:] - boxes[:, :2]
+        scope = wh[:, 0] < cfg.rescore_thin * wh[:, 1]
+        if cfg.rescore_max_height_m is not None:
+            depth = boxes[:, 3].double() - cfg.horizon * hk  # bottom row below the horizon row
+            real = wh[:, 1].double() / depth.clamp(min=1e-9) * cfg.camera_height_m
+            scope &= (depth > 0) & (real <= cfg.rescore_max_height_m)
+        return scope
 
     # -- Edge Boxes' refinement (ReebConfig.refine) -----------------------------------------
     def refine(self, maps: ScoreMaps, grid: _windows.WindowGrid, chosen: Tensor,

@@ -228,12 +228,26 @@ def test_persons_scope_leaves_wide_windows_alone(sample_image):
     assert common and len(common) > 0.5 * len(wide(cut))
 
 
+def test_persons_scope_by_shape_and_real_height():
+    hk = 100  # horizon row 47 with the default horizon 0.47
+    boxes = torch.tensor([[0, 40, 10, 60], [0, 40, 30, 60], [0, 10, 10, 60], [0, 10, 10, 40]])
+    shape = Ranking(ReebConfig(rescore="density", rescore_scope="persons"))._rescore_scope(boxes, hk)
+    assert shape.tolist() == [True, False, True, True]
+    tall = Ranking(ReebConfig(rescore="density", rescore_scope="persons", rescore_max_height_m=2.3))
+    # 20 px over 13 rows below the horizon: 2.54 m; 50 over 13: 6.3 m; above the horizon: no
+    assert tall._rescore_scope(boxes, hk).tolist() == [False, False, False, False]
+    boxes = torch.tensor([[0, 70, 10, 90]])  # 20 px over 43 rows: 0.77 m
+    assert tall._rescore_scope(boxes, hk).tolist() == [True]
+    assert Ranking(ReebConfig(rescore="density"))._rescore_scope(boxes, hk).tolist() == [True]
+
+
 @pytest.mark.parametrize("changes, words", [
     (dict(rescore="edges"), "ReebConfig.rescore"),
     (dict(rescore_top=0), "ReebConfig.rescore_top must be >= 1"),
     (dict(rescore_power=-1.0), "ReebConfig.rescore_power"),
     (dict(rescore_scope="cars"), "ReebConfig.rescore_scope"),
     (dict(rescore_thin=0.0), "ReebConfig.rescore_thin"),
+    (dict(rescore_max_height_m=0.0), "ReebConfig.rescore_max_height_m"),
     (dict(rescore="density", refine=True), "refine"),
     (dict(rescore="affinity", grouping="cell"), "grouping='connected'"),
     (dict(rescore="orientation", grouping="cell"), "grouping='connected'"),
