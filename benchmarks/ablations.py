@@ -138,6 +138,8 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "rescore=contrast, persons": (D.replace(rescore="contrast", rescore_scope="persons"), "#19"),
     "rescore=orientation": (D.replace(rescore="orientation"), "#19"),
     "rescore=orientation, persons": (D.replace(rescore="orientation", rescore_scope="persons"), "#19"),
+    "rescore=orientation, persons <= 2.3 m": (D.replace(rescore="orientation", rescore_scope="persons",
+                                                         rescore_max_height_m=2.3), "#19"),
     "rescore=density, power 0 (cut only)": (D.replace(rescore="density", rescore_power=0.0), "#19"),
 }
 
