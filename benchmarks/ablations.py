@@ -130,6 +130,17 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "location_fit=height": (D.replace(location_fit="height"), "#11"),
     "previous default (height fit, 6000)": (D.replace(location_fit="height", candidates_per_region=6000), "prev"),
     "region_quota=on": (D.replace(region_quota=True), "eq. 9"),
+    "rescore=affinity (EB w_n)": (D.replace(rescore="affinity"), "#19"),
+    "rescore=affinity, persons": (D.replace(rescore="affinity", rescore_scope="persons"), "#19"),
+    "rescore=density": (D.replace(rescore="density"), "#19"),
+    "rescore=density, persons": (D.replace(rescore="density", rescore_scope="persons"), "#19"),
+    "rescore=contrast": (D.replace(rescore="contrast"), "#19"),
+    "rescore=contrast, persons": (D.replace(rescore="contrast", rescore_scope="persons"), "#19"),
+    "rescore=orientation": (D.replace(rescore="orientation"), "#19"),
+    "rescore=orientation, persons": (D.replace(rescore="orientation", rescore_scope="persons"), "#19"),
+    "rescore=orientation, persons <= 2.3 m": (D.replace(rescore="orientation", rescore_scope="persons",
+                                                         rescore_max_height_m=2.3), "#19"),
+    "rescore=density, power 0 (cut only)": (D.replace(rescore="density", rescore_power=0.0), "#19"),
 }
 
 

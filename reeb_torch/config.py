@@ -27,6 +27,8 @@ EntropyForm = Literal["printed", "abs-diff"]
 WindowGeometry = Literal["camera", "grid"]
 ShadowScore = Literal["underneath", "none"]
 VegetationScore = Literal["green", "none"]
+Rescore = Literal["none", "affinity", "density", "contrast", "orientation"]
+RescoreScope = Literal["all", "persons"]
 
 
 # -- validation (ReebConfig.__post_init__) ---------------------------------------------------
@@ -225,6 +227,10 @@ _RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "straddle_weight": _at_least(0),
     "refine_min_aspect": _in(0, 100),
     "straddle_band": _in(0, 64),
+    "rescore_top": _at_least(1),
+    "rescore_power": _in(0, 16),
+    "rescore_thin": _in(0, 100, lo_open=True),
+    "rescore_max_height_m": ((lambda v: v is None or v > 0), "None or > 0"),
     "center_fraction": _in(0, 1, lo_open=True, hi_open=True),
     "road_strip": _in(0, 1, lo_open=True),
     "shadow_strip": _in(0, 1, lo_open=True),
@@ -254,6 +260,10 @@ _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
     (("class_heights_m", "object_templates", "location_fit"),
      lambda c: c.location_fit != "shape" or len(c.object_templates) == len(c.class_heights_m),
      "of the same length when location_fit='shape' (one template per class, in the same order), or location_fit='height'"),
+    (("rescore", "refine"), lambda c: c.rescore == "none" or not c.refine,
+     "rescore='none' when refine is on (the refinement re-scores the boxes with V alone), or refine=off"),
+    (("rescore", "grouping"), lambda c: c.rescore not in ("affinity", "orientation") or c.grouping == "connected",
+     "grouping='connected' with rescore='affinity' or 'orientation' (they read connected groups)"),
     (("camera_height_m", "vertical_fov_deg", "horizontal_fov_deg", "max_object_width_m",
       "region_width_round", "region_overlap"), lambda c: _region_count(c) <= _MAX_REGIONS,
      f"a camera and overlap giving at most {_MAX_REGIONS} regions (eqs. 5-8)"),
@@ -410,6 +420,31 @@ class ReebConfig:
     """With ``refine``: only candidates at least this many times as wide as tall move (0:
     all). Narrow, person-shaped boxes then keep their grid box: V's optimum near a person
     is often not the person's box (refining every box finds fewer pedestrians)."""
+    rescore: Rescore = "none"
+    """A second scoring pass after the region cut (:mod:`reeb_torch.stages.rescoring`; not in
+    the paper): the best ``rescore_top`` candidates of each image are ranked on V·f^p, f a
+    cue over its mean on those windows, p ``rescore_power``. ``affinity``: Edge Boxes'
+    affinity-weighted w_n, the share of the enclosed edge mass not chained to a group cut
+    by the box's border (compiled, CPU); ``density``: the box's mean edge magnitude;
+    ``contrast``: that over the mean of the ring around the box; ``orientation``: the spread
+    of the edge orientations in the box (poles and trunks: one direction). ``none`` (default): no
+    second pass. Candidates past ``rescore_top`` are dropped."""
+    rescore_top: int = 20000
+    """With ``rescore``: how many of each image's best candidates (by V) are re-scored and
+    ranked; the others are dropped before NMS."""
+    rescore_power: float = 1.0
+    """With ``rescore``: the exponent p of the cue (0: the pass only cuts to ``rescore_top``)."""
+    rescore_scope: RescoreScope = "all"
+    """With ``rescore``: ``all`` windows get the cue, or only ``persons``: windows narrower than
+    ``rescore_thin`` times their height (the pedestrian and cyclist shapes); the others keep V."""
+    rescore_thin: float = 0.8
+    """With ``rescore_scope='persons'``: the width/height ratio below which a window is person-shaped."""
+    rescore_max_height_m: float | None = None
+    """With ``rescore_scope='persons'``: also the window's real height, from the flat-ground
+    camera (box height / (bottom row − horizon row) · ``camera_height_m``), must be at most
+    this (e.g. 2.3: the tallest pedestrian and cyclist template, 2.2 m, so the backs of
+    trucks are not person-shaped); windows whose bottom is above the horizon are not.
+    ``None`` (default): the shape alone."""
     center_fraction: float = 0.5
     """Side of the centre region c relative to the box (eq. 1: half)."""
 

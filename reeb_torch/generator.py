@@ -203,6 +203,10 @@ class ProposalGenerator(nn.Module):
             grid = self.ranking.window_grid(maps, bounds)
             scores = self.ranking.score(maps, grid)
             chosen = self.ranking.select(scores, grid, share)
+        # a second scoring pass over the best candidates (not in the paper; ``ReebConfig.rescore``)
+        if cfg.rescore != "none":
+            with self._stage("rescore", dev):
+                scores, chosen = self.ranking.rescore(maps, grid, scores, chosen)
         # Edge Boxes' refinement of the candidates (not in the paper; ``ReebConfig.refine``)
         refined = None
         if cfg.refine:
