@@ -94,7 +94,7 @@ def _cv_lines(cv: T.CrossValidation, frames: T.Frames, objective: str) -> list[s
 
 def run_tune(roots: Sequence[str], out: str, base: ReebConfig, space_file: str | None, trials: int, folds: int,
              seed: int, storage: str | None, resume: bool, timeout: float | None, balanced: bool, k: int,
-             iou: float, limit: int | None = None, quiet: bool = False) -> dict[str, Any]:
+             iou: float, limit: int | None = None, quiet: bool = False, plots: bool = True) -> dict[str, Any]:
     """The whole of ``reeb tune``; returns the record written to ``out``.
 
     Raises:
@@ -141,7 +141,7 @@ def run_tune(roots: Sequence[str], out: str, base: ReebConfig, space_file: str |
         },
     }
     Path(out).write_text(json.dumps(record, indent=2, default=str) + "\n", encoding="utf-8")
-    plots = plot_study(study, Path(out).with_suffix(""))
+    plots = plot_study(study, Path(out).with_suffix("")) if plots else []
     record["text"] = "\n".join(lines + [f"wrote {out}" + "".join(f", {p}" for p in plots)])
     return record
 
