@@ -73,7 +73,7 @@ def plot_study(study: Any, stem: Path) -> list[Path]:
     fig, ax = plt.subplots(figsize=(7, 4))
     names = list(imp)[::-1]
     ax.barh(names, [imp[n] for n in names])
-    ax.set_xlabel("importance (Optuna, fANOVA)")
+    ax.set_xlabel("importance (optuna.importance, its default evaluator)")
     fig.tight_layout()
     fig.savefig(stem.with_name(stem.name + "_importances.png"), dpi=110)
     plt.close(fig)
