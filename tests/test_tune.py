@@ -156,3 +156,16 @@ def test_cli_tune_refuses_bad_input(small_kitti, tmp_path):
     (tmp_path / "nolabels" / "images" / "000000.png").write_bytes((small_kitti / "images").iterdir().__next__().read_bytes())
     res = run(main, ["tune", str(tmp_path / "nolabels"), "-o", str(tmp_path / "t.json")])
     assert res.exit_code == 2 and "no label folder" in res.output
+
+
+def test_cli_tune_ctrl_c_points_to_resume(small_kitti, tmp_path, monkeypatch):
+    from reeb_torch.runs import tune as R
+    from reeb_torch.runs.cli import main
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(R, "run_tune", interrupted)
+    db = f"sqlite:///{tmp_path / 't.db'}"
+    res = CliRunner().invoke(main, ["tune", str(small_kitti), "--storage", db, "-o", str(tmp_path / "t.json")])
+    assert res.exit_code == 130 and "--resume" in res.output
