@@ -4,7 +4,6 @@ cross-validate, print, write the tuned config, its record and the plots)."""
 from __future__ import annotations
 
 import json
-import os
 import sys
 import time
 from pathlib import Path
