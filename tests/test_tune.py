@@ -15,7 +15,7 @@ from reeb_torch.eval import tune as T
 
 pytest.importorskip("optuna")
 
-BASE = ReebConfig(top_k=300, candidates_per_region=1500)  # a light base: the test times the search, not REEB
+BASE = ReebConfig(top_k=300, candidates_per_region=1500, size_ratio=1.6, min_window=24)  # a light base: the test times the search, not REEB
 SPACE = {"nms_iou": {"type": "float", "low": 0.7, "high": 0.8}, "kappa": {"type": "float", "low": 1.4, "high": 1.8}}
 
 
@@ -69,6 +69,18 @@ def test_space_is_checked_against_the_config(tmp_path):
         T.load_space(p)
 
 
+def test_bootstrap_interval():
+    hits = [torch.tensor([True, False]), torch.tensor([True]), torch.tensor([], dtype=torch.bool)]
+    labels = [torch.tensor([0, 1]), torch.tensor([1]), torch.tensor([], dtype=torch.int64)]
+    est = T.bootstrap_interval(hits, labels, samples=500)
+    assert est.recall == pytest.approx(2 / 3) and est.num_frames == 2 and est.num_objects == 3
+    assert 0 <= est.low <= est.recall <= est.high <= 1
+    bal = T.bootstrap_interval(hits, labels, balanced=True, samples=500)
+    assert bal.recall == pytest.approx((1 + 0.5) / 2)
+    with pytest.raises(ValueError, match="no ground-truth"):
+        T.bootstrap_interval(hits[2:], labels[2:])
+
+
 def test_folds_need_frames():
     assert T.fold_blocks(5, 2) == [[0, 1, 2], [3, 4]]
     with pytest.raises(ValueError, match="3 labelled frames cannot make 4 folds"):
@@ -99,7 +111,7 @@ def _tune(root, out, **kw):
     from reeb_torch.runs.tune import run_tune
 
     args = dict(trials=2, folds=2, seed=3, storage=None, resume=False, timeout=None, balanced=False, k=300,
-                iou=0.5, limit=2, quiet=True)
+                iou=0.5, limit=2, quiet=True, plots=False)
     args.update(kw)
     space = out.parent / "space.json"
     space.write_text(json.dumps(SPACE))
@@ -108,12 +120,14 @@ def _tune(root, out, **kw):
 
 def test_tiny_tune_is_deterministic_and_resumable(small_kitti, tmp_path):
     db = f"sqlite:///{tmp_path / 'tune.db'}"
-    a = _tune(small_kitti, tmp_path / "a.json", storage=db)
+    a = _tune(small_kitti, tmp_path / "a.json", storage=db, plots=True)
     b = _tune(small_kitti, tmp_path / "b.json")
     for key in ("estimate", "base_estimate", "per_fold"):
         assert a["tune"][key] == b["tune"][key]
     assert a["config"] == b["config"]
     assert "cross-validated estimate" in a["text"] and "base" in a["text"]
+    pytest.importorskip("matplotlib")
+    assert (tmp_path / "a_trials.png").is_file()
     saved = json.loads((tmp_path / "a.json").read_text())
     ReebConfig.from_dict({**ReebConfig().to_dict(), **saved["config"]})
     with pytest.raises(ValueError, match="--resume"):
@@ -142,3 +156,16 @@ def test_cli_tune_refuses_bad_input(small_kitti, tmp_path):
     (tmp_path / "nolabels" / "images" / "000000.png").write_bytes((small_kitti / "images").iterdir().__next__().read_bytes())
     res = run(main, ["tune", str(tmp_path / "nolabels"), "-o", str(tmp_path / "t.json")])
     assert res.exit_code == 2 and "no label folder" in res.output
+
+
+def test_cli_tune_ctrl_c_points_to_resume(small_kitti, tmp_path, monkeypatch):
+    from reeb_torch.runs import tune as R
+    from reeb_torch.runs.cli import main
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(R, "run_tune", interrupted)
+    db = f"sqlite:///{tmp_path / 't.db'}"
+    res = CliRunner().invoke(main, ["tune", str(small_kitti), "--storage", db, "-o", str(tmp_path / "t.json")])
+    assert res.exit_code == 130 and "--resume" in res.output

@@ -21,7 +21,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -88,6 +87,16 @@ class FrameCache:
         self._front: dict[int, Any] = {}
         self.front_computed = 0
         """How many frames' front ends were computed (for tests and the summary)."""
+        self._generators: dict[ReebConfig, ProposalGenerator] = {}
+
+    def _generator(self, cfg: ReebConfig) -> ProposalGenerator:
+        """The generator of ``cfg``, kept for the last few configs: its ranking keeps the window
+        plans per image size (the base config is scored again and again)."""
+        if cfg not in self._generators:
+            if len(self._generators) >= 4:
+                self._generators.pop(next(iter(self._generators)))
+            self._generators[cfg] = ProposalGenerator(cfg)
+        return self._generators[cfg]
 
     def proposals(self, cfg: ReebConfig, indices: Sequence[int]) -> list[Tensor]:
         """Ranked boxes ``Tensor[P_i, 4]`` (``P_i <= cfg.top_k``) for the frames ``indices``."""
@@ -96,7 +105,7 @@ class FrameCache:
         key = tuple(getattr(cfg, f) for f in FRONT_END_FIELDS)
         if key != self._key:
             self._key, self._front = key, {}
-        gen = ProposalGenerator(cfg)
+        gen = self._generator(cfg)
         out = []
         with torch.no_grad():
             for i in indices:
@@ -149,12 +158,17 @@ def bootstrap_interval(hits: Sequence[Tensor], labels: Sequence[Tensor], balance
     if not keep:
         raise ValueError("no ground-truth object: recall is undefined")
     hs, ls = [hits[i] for i in keep], [labels[i] for i in keep]
-    rng = np.random.default_rng(seed)
-    vals = []
-    for _ in range(samples):
-        pick = rng.integers(len(keep), size=len(keep))
-        vals.append(objective([hs[j] for j in pick], [ls[j] for j in pick], balanced))
-    low, high = np.nanquantile(np.array(vals), [(1 - level) / 2, (1 + level) / 2])
+    classes = sorted({int(c) for lab in ls for c in lab.reshape(-1).tolist()})
+    found = np.array([[int(h[lab == c].sum()) for c in classes] for h, lab in zip(hs, ls)], dtype=np.float64)
+    count = np.array([[int((lab == c).sum()) for c in classes] for lab in ls], dtype=np.float64)
+    draw = np.random.default_rng(seed).integers(len(keep), size=(samples, len(keep)))
+    f, n = found[draw].sum(1), count[draw].sum(1)  # (samples, classes)
+    if balanced:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            vals = np.nanmean(np.where(n > 0, f / np.maximum(n, 1), np.nan), axis=1)
+    else:
+        vals = f.sum(1) / n.sum(1)
+    low, high = np.nanquantile(vals, [(1 - level) / 2, (1 + level) / 2])
     return Estimate(objective(hs, ls, balanced), float(low), float(high), level,
                     sum(h.numel() for h in hs), len(keep))
 

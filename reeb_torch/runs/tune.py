@@ -4,7 +4,6 @@ cross-validate, print, write the tuned config, its record and the plots)."""
 from __future__ import annotations
 
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -73,7 +72,7 @@ def plot_study(study: Any, stem: Path) -> list[Path]:
     fig, ax = plt.subplots(figsize=(7, 4))
     names = list(imp)[::-1]
     ax.barh(names, [imp[n] for n in names])
-    ax.set_xlabel("importance (Optuna, fANOVA)")
+    ax.set_xlabel("importance (optuna.importance, its default evaluator)")
     fig.tight_layout()
     fig.savefig(stem.with_name(stem.name + "_importances.png"), dpi=110)
     plt.close(fig)
@@ -94,7 +93,7 @@ def _cv_lines(cv: T.CrossValidation, frames: T.Frames, objective: str) -> list[s
 
 def run_tune(roots: Sequence[str], out: str, base: ReebConfig, space_file: str | None, trials: int, folds: int,
              seed: int, storage: str | None, resume: bool, timeout: float | None, balanced: bool, k: int,
-             iou: float, limit: int | None = None, quiet: bool = False) -> dict[str, Any]:
+             iou: float, limit: int | None = None, quiet: bool = False, plots: bool = True) -> dict[str, Any]:
     """The whole of ``reeb tune``; returns the record written to ``out``.
 
     Raises:
@@ -141,7 +140,7 @@ def run_tune(roots: Sequence[str], out: str, base: ReebConfig, space_file: str |
         },
     }
     Path(out).write_text(json.dumps(record, indent=2, default=str) + "\n", encoding="utf-8")
-    plots = plot_study(study, Path(out).with_suffix(""))
+    plots = plot_study(study, Path(out).with_suffix("")) if plots else []
     record["text"] = "\n".join(lines + [f"wrote {out}" + "".join(f", {p}" for p in plots)])
     return record
 
