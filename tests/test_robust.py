@@ -190,3 +190,19 @@ def test_a_bad_device_on_the_command_line_is_exit_2(tmp_path):
     good_folder(tmp_path / "imgs", 1)
     r = reeb("propose", "imgs", "-o", "o.jsonl", "--top-k", "100", "--device", "meta", cwd=tmp_path, check_rc=2)
     assert "meta" in r.stderr and not (tmp_path / "o.jsonl").exists()
+
+
+# -- what a folder scan skips is named; a file named on the command line gets its row ---------
+
+def test_skipped_entries_are_named_and_named_files_get_error_rows(tmp_path):
+    good_folder(tmp_path / "d", 1)
+    (tmp_path / "d" / "broken.png").symlink_to(tmp_path / "nowhere.png")
+    (tmp_path / "d" / "x.png").mkdir()
+    (tmp_path / "gone.png").symlink_to(tmp_path / "nowhere.png")
+    r = reeb("propose", "d", "gone.png", "-o", "o.jsonl", "-q", *FAST, cwd=tmp_path, check_rc=1)
+    summary = r.stderr
+    assert "broken.png: skipped, a broken symbolic link" in summary, summary
+    assert "x.png: skipped, a folder named like an image" in summary, summary
+    rows = read_jsonl(tmp_path / "o.jsonl")
+    assert [row["image"] for row in rows] == ["d/frame_000.png", "gone.png"]
+    assert rows[1]["status"].startswith("error: gone.png"), rows[1]

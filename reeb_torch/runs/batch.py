@@ -150,6 +150,35 @@ def _is_image_name(p: Path) -> bool:
     return p.suffix.lower() in IMAGE_EXTENSIONS
 
 
+def _is_file(p: Path) -> bool:
+    try:
+        return p.is_file()
+    except OSError:  # a file in a folder we may not enter
+        return False
+
+
+def _unreachable(p: Path) -> bool:
+    """Whether ``p`` names something that is there but cannot be looked at (a file in a
+    folder without search permission) or a broken symbolic link: such a path named on the
+    command line is an input that fails with its own ``error:`` row, not a usage error."""
+    try:
+        os.stat(p)
+    except PermissionError:
+        return True
+    except OSError:
+        return os.path.islink(p)
+    return False
+
+
+def _skip_reason(p: Path) -> str:
+    """The note for a folder entry with an image's name that is not a file."""
+    if os.path.islink(p) and not os.path.exists(p):
+        return f"{p}: skipped, a broken symbolic link (to {os.readlink(p)})"
+    if p.is_dir():
+        return f"{p}: skipped, a folder named like an image"
+    return f"{p}: skipped, not a regular file"
+
+
 def find_images(paths: Sequence[str | os.PathLike], recursive: bool = False) -> tuple[list[Path], list[str]]:
     """Expand ``paths`` into the image files to process.
 
@@ -163,7 +192,10 @@ def find_images(paths: Sequence[str | os.PathLike], recursive: bool = False) -> 
 
     Returns ``(images, notes)``: the images, sorted naturally within each argument and with
     duplicates (the same resolved file) removed, and one line per argument that contributed nothing (an empty
-    folder, a pattern that matched no image). Raises :class:`NoImagesError` when a path
+    folder, a pattern that matched no image) or entry that was skipped (``"<path>: skipped, <why>"``: a
+    broken symbolic link or a folder with an image's name, a sub-folder that cannot be listed). A file
+    named as such that cannot be looked at (no permission, a broken link) is listed: it fails with an
+    ``error:`` row. Raises :class:`NoImagesError` when a path
     does not exist or when no image is found at all.
     """
     images: list[Path] = []
@@ -180,11 +212,21 @@ def find_images(paths: Sequence[str | os.PathLike], recursive: bool = False) -> 
 
     def from_folder(d: Path) -> list[Path]:
         it = d.rglob("*") if recursive else d.iterdir()
-        return sorted((p for p in it if p.is_file() and _is_image_name(p)), key=_natural_key)
+        found = []
+        for p in it:
+            if _is_image_name(p) and not _is_file(p):
+                notes.append(_skip_reason(p))  # a broken link, a folder named x.png: named
+            elif _is_image_name(p):
+                found.append(p)
+        if recursive:  # sub-folders that cannot be listed are skipped by rglob: name them
+            for _ in os.walk(d, onerror=lambda e: notes.append(
+                    f"{e.filename}: skipped, cannot list this folder ({e.strerror or e})")):
+                pass
+        return sorted(found, key=_natural_key)
 
     for arg in paths:
         p = Path(arg)
-        if p.is_file():
+        if _is_file(p) or _unreachable(p):  # a file we may not read still gets its error row
             add(p)
         elif p.is_dir():
             found = from_folder(p)

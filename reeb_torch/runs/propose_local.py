@@ -85,6 +85,7 @@ class _LocalRun:
             raise UsageProblem(str(e))
         for n in notes:
             self.echo_err(f"note: {n}")
+        self.skipped = [n for n in notes if ": skipped, " in n]  # named again in the summary
 
     # -- 2. outputs, checked before any work ------------------------------------------------
     def check_output(self, resume: bool, overwrite: bool) -> bool:
@@ -398,6 +399,10 @@ class _LocalRun:
         if self.sample_png is not None and stats["ok"]:
             lines.append(f"wrote {self.sample_png.resolve()} (top {self.viz_top} proposals"
                          + (", ground truth in green" if self.gt else "") + ")")
+        if self.skipped:
+            lines.append(f"skipped ({len(self.skipped)}, not images):")
+            lines += [f"  {m}" for m in self.skipped]
+        summary["skipped"] = self.skipped
         lines += failures_and_summary(self.failures, self.summary_json, summary)
         if self.interrupted:
             if saved:
