@@ -206,3 +206,38 @@ def test_skipped_entries_are_named_and_named_files_get_error_rows(tmp_path):
     rows = read_jsonl(tmp_path / "o.jsonl")
     assert [row["image"] for row in rows] == ["d/frame_000.png", "gone.png"]
     assert rows[1]["status"].startswith("error: gone.png"), rows[1]
+
+
+# -- reeb export checks rows against the schema ------------------------------------------------
+
+@pytest.mark.parametrize("change, words", [
+    (dict(boxes=[[1.0, 2.0, 3.0]], scores=[0.5]), "box 0"),
+    (dict(boxes=None), "'boxes' is null"),
+    (dict(scores=[0.5, 0.4]), "1 boxes but 2 scores"),
+])
+def test_export_names_the_row_that_breaks_the_schema(tmp_path, change, words):
+    from click.testing import CliRunner
+
+    from reeb_torch.runs.batch import FORMAT_VERSION
+    from reeb_torch.runs.cli import main
+
+    good = dict(format_version=FORMAT_VERSION, image="a.png", resolved="/a.png", width=10, height=10,
+                boxes=[[0.0, 0.0, 5.0, 5.0]], scores=[0.9], status="ok", config="c")
+    bad = dict(good, image="b.png", resolved="/b.png", **change)
+    (tmp_path / "r.jsonl").write_text(json.dumps(good) + "\n" + json.dumps(bad) + "\n")
+    res = CliRunner().invoke(main, ["export", str(tmp_path / "r.jsonl"), "-o", str(tmp_path / "p.pkl")])
+    assert res.exit_code == 2, res.output
+    assert "row 2 (b.png)" in res.output and words in res.output, res.output
+    assert not (tmp_path / "p.pkl").exists()
+
+
+def test_export_of_a_broken_parquet_file_does_not_speak_of_resume(tmp_path):
+    pytest.importorskip("pyarrow")
+    from click.testing import CliRunner
+
+    from reeb_torch.runs.cli import main
+
+    (tmp_path / "r.parquet").write_bytes(b"PAR1 not really")
+    res = CliRunner().invoke(main, ["export", str(tmp_path / "r.parquet"), "-o", str(tmp_path / "p.pkl")])
+    assert res.exit_code == 2 and "cannot read the results" in res.output, res.output
+    assert "--resume" not in res.output

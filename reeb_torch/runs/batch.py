@@ -571,9 +571,9 @@ def read_results(path: str | os.PathLike) -> tuple[list[dict], list[str]]:
 
             rows = pq.read_table(p).to_pylist()
     except OSError as e:
-        raise OutputError(f"{p}: cannot read for --resume ({e.strerror or e})") from e
+        raise OutputError(f"{p}: cannot read the results ({e.strerror or e})") from e
     except Exception as e:  # noqa: BLE001 - pyarrow raises its own error types
-        raise OutputError(f"{p}: cannot read for --resume ({_one_line(e)})") from e
+        raise OutputError(f"{p}: cannot read the results, not a readable {fmt} file ({_one_line(e)})") from e
     return rows, problems
 
 
