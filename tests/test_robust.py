@@ -241,3 +241,28 @@ def test_export_of_a_broken_parquet_file_does_not_speak_of_resume(tmp_path):
     res = CliRunner().invoke(main, ["export", str(tmp_path / "r.parquet"), "-o", str(tmp_path / "p.pkl")])
     assert res.exit_code == 2 and "cannot read the results" in res.output, res.output
     assert "--resume" not in res.output
+
+
+# -- output names: any legal name; a symbolic link writes its target ---------------------------
+
+def test_a_long_legal_output_name_works(tmp_path):
+    good_folder(tmp_path / "d", 1)
+    name = "p" * 240 + ".jsonl"  # 246 characters: legal, but .NAME.XXXXXXXX.tmp is not
+    reeb("propose", "d", "-o", name, "-q", *FAST, cwd=tmp_path, check_rc=0)
+    assert len(read_jsonl(tmp_path / name)) == 1
+    assert no_temp_files(tmp_path) and not [p for p in tmp_path.iterdir() if p.name.endswith(".lock")]
+
+
+def test_an_output_symlink_writes_its_target_and_stays_a_link(tmp_path):
+    from reeb_torch.runs.batch import lock_output
+
+    good_folder(tmp_path / "d", 1)
+    (tmp_path / "real").mkdir()
+    target = tmp_path / "real" / "t.jsonl"
+    (tmp_path / "link.jsonl").symlink_to(target)
+    with lock_output(target):  # the lock protects the target, also through the link
+        r = reeb("propose", "d", "-o", "link.jsonl", *FAST, cwd=tmp_path, check_rc=2)
+        assert "another reeb run" in r.stderr, r.stderr
+    reeb("propose", "d", "-o", "link.jsonl", "-q", *FAST, cwd=tmp_path, check_rc=0)
+    assert (tmp_path / "link.jsonl").is_symlink()
+    assert len(read_jsonl(target)) == 1

@@ -111,6 +111,23 @@ def resolved_path(path: str | os.PathLike) -> str:
     return os.path.realpath(path)
 
 
+#: Longest output name whose hidden companions (``.NAME.lock``, ``.NAME.XXXXXXXX.tmp``) are
+#: named after it; a longer (legal) name gets companions named after its hash instead, so any
+#: name the file system takes works as an output (255 bytes on most).
+_PLAIN_NAME_BYTES = 200
+
+
+def hidden_stem(path: str | os.PathLike) -> str:
+    """The start of the hidden files beside output ``path``: ``.NAME``, or
+    ``.reeb-<16 hex digits of NAME's SHA-256>`` when NAME is longer than 200 bytes."""
+    name = os.fsencode(Path(path).name)
+    if len(name) <= _PLAIN_NAME_BYTES:
+        return f".{Path(path).name}"
+    import hashlib
+
+    return f".reeb-{hashlib.sha256(name).hexdigest()[:16]}"
+
+
 def text_path(path: str | os.PathLike) -> str:
     """``path`` as text that UTF-8 can hold, as rows and messages write it.
 
@@ -530,7 +547,7 @@ def check_output(path: str | os.PathLike) -> None:
     if p.exists() and not os.access(p, os.W_OK):
         raise OutputError(f"{p}: cannot write, the file is read-only")
     try:
-        fd, probe = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".probe", dir=parent)
+        fd, probe = tempfile.mkstemp(prefix=f"{hidden_stem(p)}.", suffix=".probe", dir=parent)
     except OSError as e:
         raise OutputError(f"{p}: cannot write to folder {parent} ({e.strerror or e})") from e
     os.close(fd)
@@ -613,7 +630,7 @@ class ResultWriter:
         self.rows_written = 0
         parent = self.path.parent if str(self.path.parent) else Path(".")
         try:
-            fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=parent)
+            fd, tmp = tempfile.mkstemp(prefix=f"{hidden_stem(self.path)}.", suffix=".tmp", dir=parent)
         except OSError as e:
             raise OutputError(f"{self.path}: cannot write ({e.strerror or e})") from e
         os.close(fd)
@@ -766,7 +783,7 @@ def open_writer(path: str | os.PathLike) -> ResultWriter:
 
 def _lock_path(path: str | os.PathLike) -> Path:
     p = Path(path)
-    return p.with_name(f".{p.name}.lock")
+    return p.with_name(f"{hidden_stem(p)}.lock")
 
 
 class OutputLock:
@@ -849,7 +866,7 @@ def stale_temp_files(path: str | os.PathLike) -> list[Path]:
     """
     p = Path(path)
     parent = p.parent if str(p.parent) else Path(".")
-    pattern = re.compile(rf"^\.{re.escape(p.name)}\.[a-z0-9_]{{8}}\.tmp$")
+    pattern = re.compile(rf"^{re.escape(hidden_stem(p))}\.[a-z0-9_]{{8}}\.tmp$")
     try:
         found = [q for q in parent.iterdir() if pattern.match(q.name) and q.is_file()]
     except OSError:

@@ -202,8 +202,10 @@ def detectron2_proposals(rows: Iterable[dict], id_map: Mapping[str, object] | No
 
 def write_detectron2(proposals: dict, out: str | os.PathLike) -> Path:
     """Pickle ``proposals`` to ``out`` (through a temporary file renamed into place)."""
+    from .batch import hidden_stem
+
     out = Path(out)
-    tmp = out.with_name(f".{out.name}.tmp")
+    tmp = out.with_name(f"{hidden_stem(out)}.tmp")
     try:
         with open(tmp, "wb") as f:
             pickle.dump(proposals, f, protocol=pickle.HIGHEST_PROTOCOL)

@@ -99,6 +99,8 @@ class _LocalRun:
         self.plan = _ResumePlan(self.images)
         if not out:
             return True
+        if os.path.islink(out):  # write the file the link points to (and lock that one), keep the link
+            out = self.out = os.path.realpath(out)
         try:
             B.check_output(out)
             # one writer per output: a second run fails here, before any work (exit 2)
