@@ -266,3 +266,24 @@ def test_an_output_symlink_writes_its_target_and_stays_a_link(tmp_path):
     reeb("propose", "d", "-o", "link.jsonl", "-q", *FAST, cwd=tmp_path, check_rc=0)
     assert (tmp_path / "link.jsonl").is_symlink()
     assert len(read_jsonl(target)) == 1
+
+
+# -- settings that give no proposals are warned about once -------------------------------------
+
+def test_a_config_that_gives_no_proposals_warns_once():
+    import warnings
+
+    import torch
+
+    from reeb_torch import ProposalGenerator
+
+    gen = ProposalGenerator(entropy_bins=65536, top_k=100, candidates_per_region=600)
+    torch.manual_seed(0)
+    x = torch.rand(2, 3, 64, 160)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        out = gen(x)
+        gen(x)
+    assert all(len(r["boxes"]) == 0 for r in out)
+    msgs = [str(w.message) for w in seen if issubclass(w.category, RuntimeWarning)]
+    assert len(msgs) == 1 and "no proposals" in msgs[0] and "share" in msgs[0], msgs
