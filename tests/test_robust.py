@@ -287,3 +287,15 @@ def test_a_config_that_gives_no_proposals_warns_once():
     assert all(len(r["boxes"]) == 0 for r in out)
     msgs = [str(w.message) for w in seen if issubclass(w.category, RuntimeWarning)]
     assert len(msgs) == 1 and "no proposals" in msgs[0] and "share" in msgs[0], msgs
+
+
+# -- -q is quiet --------------------------------------------------------------------------------
+
+def test_quiet_drops_the_decoders_own_error_lines(tmp_path):
+    good_folder(tmp_path / "d", 1)
+    data = (tmp_path / "d" / "frame_000.png").read_bytes()
+    (tmp_path / "d" / "cut.png").write_bytes(data[:20] + b"\0" * 10 + data[30:])  # a bad IHDR CRC
+    (tmp_path / "d" / "half.png").write_bytes(data[: len(data) // 2])  # cut short
+    r = reeb("propose", "d", "-o", "o.jsonl", "-q", "-j", "0", *FAST, cwd=tmp_path, check_rc=1)
+    assert "libpng" not in r.stderr and "WARN" not in r.stderr, r.stderr
+    assert "cut.png" in r.stderr  # still named in the summary

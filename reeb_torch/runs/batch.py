@@ -320,9 +320,11 @@ class ImageFileDataset(torch.utils.data.Dataset):
     message giving both sizes, before any work is spent on them.
     """
 
-    def __init__(self, paths: Sequence[str | os.PathLike], min_side: int | None = None) -> None:
+    def __init__(self, paths: Sequence[str | os.PathLike], min_side: int | None = None,
+                 quiet_decoders: bool = False) -> None:
         self.paths = [str(p) for p in paths]
         self.min_side = min_side
+        self.quiet_decoders = quiet_decoders  # the decoders' own stderr lines ("libpng error") dropped
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -330,7 +332,11 @@ class ImageFileDataset(torch.utils.data.Dataset):
     def __getitem__(self, index: int) -> Decoded:
         path = self.paths[index]
         try:
-            image = read_image(path)
+            if self.quiet_decoders:
+                with _stderr_dropped():
+                    image = read_image(path)
+            else:
+                image = read_image(path)
         except Exception as e:  # noqa: BLE001 - every failure becomes a record, by design
             return Decoded(index, path, error=file_error(path, e))
         h, w = image.shape[-2:]
@@ -339,6 +345,25 @@ class ImageFileDataset(torch.utils.data.Dataset):
                 path, f"image is {w}×{h} px, smaller than the smallest window "
                       f"({self.min_side} px; see ReebConfig.min_window)"))
         return Decoded(index, path, image=image, size=(int(w), int(h)))
+
+
+class _stderr_dropped:
+    """Send file descriptor 2 to /dev/null for a moment: the C decoders (libpng, libjpeg)
+    write their complaints there, which duplicate the one-line message a failed file gets."""
+
+    def __enter__(self) -> None:
+        try:
+            self._saved = os.dup(2)
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 2)
+            os.close(devnull)
+        except OSError:  # pragma: no cover - keep stderr then
+            self._saved = None
+
+    def __exit__(self, *exc: object) -> None:
+        if self._saved is not None:
+            os.dup2(self._saved, 2)
+            os.close(self._saved)
 
 
 def _keep(item: Decoded) -> Decoded:
@@ -381,15 +406,18 @@ def decoded_images(
     min_side: int | None = None,
     prefetch: int = 4,
     pin_memory: bool = False,
+    quiet: bool = False,
 ) -> Iterator[Decoded]:
     """Decode ``paths`` with ``workers`` DataLoader processes (0 = in this process).
 
-    Yields one :class:`Decoded` per path, in input order. Up to ``prefetch`` images per
+    Yields one :class:`Decoded` per path, in input order; ``quiet``: the C decoders' own
+    stderr lines are dropped also when decoding in this process. Up to ``prefetch`` images per
     worker are decoded ahead of the consumer. Closing the iterator (or interrupting it)
     shuts the workers down.
     """
     dataset = ImageFileDataset(paths, min_side=min_side)
     workers = max(0, min(workers, len(dataset)))
+    dataset.quiet_decoders = quiet and workers == 0  # (workers send their stderr to /dev/null)
     kwargs: dict = {}
     if workers > 0:
         kwargs = dict(prefetch_factor=max(2, prefetch), worker_init_fn=_init_worker,

@@ -222,7 +222,7 @@ class _LocalRun:
                         dynamic_ncols=True, desc="reeb propose")
         self.t_start = time.perf_counter()
         stream = B.decoded_images(images, workers=self.workers, min_side=self.cfg.min_window,
-                                  prefetch=self.batch_size, pin_memory=self.dev.type == "cuda")
+                                  prefetch=self.batch_size, pin_memory=self.dev.type == "cuda", quiet=self.quiet)
         self.previous_handlers = self.cs.install()  # Ctrl-C, and a polite kill (SIGTERM) treated like it
         try:
             self._batches(stream)

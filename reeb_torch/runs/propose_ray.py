@@ -172,6 +172,11 @@ class _RayRun:
         each actor reserves."""
         ray, quiet = self.ray, self.quiet
         t0 = time.perf_counter()
+        if quiet:  # -q: Ray's and Ray Data's INFO / WARNING lines too
+            import logging
+
+            for name in ("ray", "ray.data", "ray._private", "ray.data._internal"):
+                logging.getLogger(name).setLevel(logging.ERROR)
         if not ray.is_initialized():
             try:
                 ray.init(address=address, include_dashboard=False, log_to_driver=not quiet,
