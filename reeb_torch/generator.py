@@ -12,6 +12,7 @@ sizes is split into equal-size batches.
 from __future__ import annotations
 
 import time
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Iterator
@@ -104,6 +105,7 @@ class ProposalGenerator(nn.Module):
         self.ranking = Ranking(self.config)
         """The :class:`~reeb_torch.ranking.Ranking` that scores, cuts, refines and suppresses
         the windows; a subclass put here tries another ranking (``benchmarks/selection_variants.py``)."""
+        self._warned_empty = False  # a config that gives no proposals is warned about once
         self.stage_times: dict[str, float] | None = None
         """Set to ``{}`` to accumulate wall seconds per stage (edges, groups, road,
         regions, scoring, refine, nms) over calls; ``None`` (default) records nothing."""
@@ -215,8 +217,25 @@ class ProposalGenerator(nn.Module):
         # Sec. 3.8: Final_Proposals = NMS(Sorted_Proposals) (eq. 13)
         with self._stage("nms", dev):
             results = self.ranking.suppress(maps, grid, chosen, scores, share, refined)
+        if not self._warned_empty and any(len(r["boxes"]) == 0 for r in results):
+            self._warn_empty(input_size, grid.count, share)
         extra = self._kept_maps(maps, bounds, entropy, share, grid.count) if keep else {}
         return results, extra
+
+    def _warn_empty(self, size: tuple, windows: int, share: Tensor) -> None:
+        """Warn once per generator (``RuntimeWarning``) that a valid config gave an image no
+        proposal, with the likely cause: no window fits, or a zero budget in every region."""
+        self._warned_empty = True
+        if windows == 0:
+            why = ("no window fits this image (object_templates, min_window, size_ratio, aspect_range, "
+                   "ground_band)")
+        elif not bool((share.sum(1) > 0).all()):
+            why = ("every region's share of the budget is 0 (eq. 9: entropy_bins or entropy_sigma so "
+                   "extreme that the shares underflow)")
+        else:
+            why = "no window was kept (min_edge_score, candidates_per_region, the scores)"
+        warnings.warn(f"reeb: the settings gave a {size[1]}×{size[0]} image no proposals: {why}; "
+                      "this is warned once", RuntimeWarning, stacklevel=4)
 
     # -- the stages' settings ---------------------------------------------------------------
     def _edge_map(self, images: list[Tensor], needs_colour: bool) -> _Working:

@@ -190,3 +190,112 @@ def test_a_bad_device_on_the_command_line_is_exit_2(tmp_path):
     good_folder(tmp_path / "imgs", 1)
     r = reeb("propose", "imgs", "-o", "o.jsonl", "--top-k", "100", "--device", "meta", cwd=tmp_path, check_rc=2)
     assert "meta" in r.stderr and not (tmp_path / "o.jsonl").exists()
+
+
+# -- what a folder scan skips is named; a file named on the command line gets its row ---------
+
+def test_skipped_entries_are_named_and_named_files_get_error_rows(tmp_path):
+    good_folder(tmp_path / "d", 1)
+    (tmp_path / "d" / "broken.png").symlink_to(tmp_path / "nowhere.png")
+    (tmp_path / "d" / "x.png").mkdir()
+    (tmp_path / "gone.png").symlink_to(tmp_path / "nowhere.png")
+    r = reeb("propose", "d", "gone.png", "-o", "o.jsonl", "-q", *FAST, cwd=tmp_path, check_rc=1)
+    summary = r.stderr
+    assert "broken.png: skipped, a broken symbolic link" in summary, summary
+    assert "x.png: skipped, a folder named like an image" in summary, summary
+    rows = read_jsonl(tmp_path / "o.jsonl")
+    assert [row["image"] for row in rows] == ["d/frame_000.png", "gone.png"]
+    assert rows[1]["status"].startswith("error: gone.png"), rows[1]
+
+
+# -- reeb export checks rows against the schema ------------------------------------------------
+
+@pytest.mark.parametrize("change, words", [
+    (dict(boxes=[[1.0, 2.0, 3.0]], scores=[0.5]), "box 0"),
+    (dict(boxes=None), "'boxes' is null"),
+    (dict(scores=[0.5, 0.4]), "1 boxes but 2 scores"),
+])
+def test_export_names_the_row_that_breaks_the_schema(tmp_path, change, words):
+    from click.testing import CliRunner
+
+    from reeb_torch.runs.batch import FORMAT_VERSION
+    from reeb_torch.runs.cli import main
+
+    good = dict(format_version=FORMAT_VERSION, image="a.png", resolved="/a.png", width=10, height=10,
+                boxes=[[0.0, 0.0, 5.0, 5.0]], scores=[0.9], status="ok", config="c")
+    bad = dict(good, image="b.png", resolved="/b.png", **change)
+    (tmp_path / "r.jsonl").write_text(json.dumps(good) + "\n" + json.dumps(bad) + "\n")
+    res = CliRunner().invoke(main, ["export", str(tmp_path / "r.jsonl"), "-o", str(tmp_path / "p.pkl")])
+    assert res.exit_code == 2, res.output
+    assert "row 2 (b.png)" in res.output and words in res.output, res.output
+    assert not (tmp_path / "p.pkl").exists()
+
+
+def test_export_of_a_broken_parquet_file_does_not_speak_of_resume(tmp_path):
+    pytest.importorskip("pyarrow")
+    from click.testing import CliRunner
+
+    from reeb_torch.runs.cli import main
+
+    (tmp_path / "r.parquet").write_bytes(b"PAR1 not really")
+    res = CliRunner().invoke(main, ["export", str(tmp_path / "r.parquet"), "-o", str(tmp_path / "p.pkl")])
+    assert res.exit_code == 2 and "cannot read the results" in res.output, res.output
+    assert "--resume" not in res.output
+
+
+# -- output names: any legal name; a symbolic link writes its target ---------------------------
+
+def test_a_long_legal_output_name_works(tmp_path):
+    good_folder(tmp_path / "d", 1)
+    name = "p" * 240 + ".jsonl"  # 246 characters: legal, but .NAME.XXXXXXXX.tmp is not
+    reeb("propose", "d", "-o", name, "-q", *FAST, cwd=tmp_path, check_rc=0)
+    assert len(read_jsonl(tmp_path / name)) == 1
+    assert no_temp_files(tmp_path) and not [p for p in tmp_path.iterdir() if p.name.endswith(".lock")]
+
+
+def test_an_output_symlink_writes_its_target_and_stays_a_link(tmp_path):
+    from reeb_torch.runs.batch import lock_output
+
+    good_folder(tmp_path / "d", 1)
+    (tmp_path / "real").mkdir()
+    target = tmp_path / "real" / "t.jsonl"
+    (tmp_path / "link.jsonl").symlink_to(target)
+    with lock_output(target):  # the lock protects the target, also through the link
+        r = reeb("propose", "d", "-o", "link.jsonl", *FAST, cwd=tmp_path, check_rc=2)
+        assert "another reeb run" in r.stderr, r.stderr
+    reeb("propose", "d", "-o", "link.jsonl", "-q", *FAST, cwd=tmp_path, check_rc=0)
+    assert (tmp_path / "link.jsonl").is_symlink()
+    assert len(read_jsonl(target)) == 1
+
+
+# -- settings that give no proposals are warned about once -------------------------------------
+
+def test_a_config_that_gives_no_proposals_warns_once():
+    import warnings
+
+    import torch
+
+    from reeb_torch import ProposalGenerator
+
+    gen = ProposalGenerator(entropy_bins=65536, top_k=100, candidates_per_region=600)
+    torch.manual_seed(0)
+    x = torch.rand(2, 3, 64, 160)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        out = gen(x)
+        gen(x)
+    assert all(len(r["boxes"]) == 0 for r in out)
+    msgs = [str(w.message) for w in seen if issubclass(w.category, RuntimeWarning)]
+    assert len(msgs) == 1 and "no proposals" in msgs[0] and "share" in msgs[0], msgs
+
+
+# -- -q is quiet --------------------------------------------------------------------------------
+
+def test_quiet_drops_the_decoders_own_error_lines(tmp_path):
+    good_folder(tmp_path / "d", 1)
+    data = (tmp_path / "d" / "frame_000.png").read_bytes()
+    (tmp_path / "d" / "cut.png").write_bytes(data[:20] + b"\0" * 10 + data[30:])  # a bad IHDR CRC
+    (tmp_path / "d" / "half.png").write_bytes(data[: len(data) // 2])  # cut short
+    r = reeb("propose", "d", "-o", "o.jsonl", "-q", "-j", "0", *FAST, cwd=tmp_path, check_rc=1)
+    assert "libpng" not in r.stderr and "WARN" not in r.stderr, r.stderr
+    assert "cut.png" in r.stderr  # still named in the summary

@@ -111,6 +111,23 @@ def resolved_path(path: str | os.PathLike) -> str:
     return os.path.realpath(path)
 
 
+#: Longest output name whose hidden companions (``.NAME.lock``, ``.NAME.XXXXXXXX.tmp``) are
+#: named after it; a longer (legal) name gets companions named after its hash instead, so any
+#: name the file system takes works as an output (255 bytes on most).
+_PLAIN_NAME_BYTES = 200
+
+
+def hidden_stem(path: str | os.PathLike) -> str:
+    """The start of the hidden files beside output ``path``: ``.NAME``, or
+    ``.reeb-<16 hex digits of NAME's SHA-256>`` when NAME is longer than 200 bytes."""
+    name = os.fsencode(Path(path).name)
+    if len(name) <= _PLAIN_NAME_BYTES:
+        return f".{Path(path).name}"
+    import hashlib
+
+    return f".reeb-{hashlib.sha256(name).hexdigest()[:16]}"
+
+
 def text_path(path: str | os.PathLike) -> str:
     """``path`` as text that UTF-8 can hold, as rows and messages write it.
 
@@ -150,6 +167,35 @@ def _is_image_name(p: Path) -> bool:
     return p.suffix.lower() in IMAGE_EXTENSIONS
 
 
+def _is_file(p: Path) -> bool:
+    try:
+        return p.is_file()
+    except OSError:  # a file in a folder we may not enter
+        return False
+
+
+def _unreachable(p: Path) -> bool:
+    """Whether ``p`` names something that is there but cannot be looked at (a file in a
+    folder without search permission) or a broken symbolic link: such a path named on the
+    command line is an input that fails with its own ``error:`` row, not a usage error."""
+    try:
+        os.stat(p)
+    except PermissionError:
+        return True
+    except OSError:
+        return os.path.islink(p)
+    return False
+
+
+def _skip_reason(p: Path) -> str:
+    """The note for a folder entry with an image's name that is not a file."""
+    if os.path.islink(p) and not os.path.exists(p):
+        return f"{p}: skipped, a broken symbolic link (to {os.readlink(p)})"
+    if p.is_dir():
+        return f"{p}: skipped, a folder named like an image"
+    return f"{p}: skipped, not a regular file"
+
+
 def find_images(paths: Sequence[str | os.PathLike], recursive: bool = False) -> tuple[list[Path], list[str]]:
     """Expand ``paths`` into the image files to process.
 
@@ -163,7 +209,10 @@ def find_images(paths: Sequence[str | os.PathLike], recursive: bool = False) -> 
 
     Returns ``(images, notes)``: the images, sorted naturally within each argument and with
     duplicates (the same resolved file) removed, and one line per argument that contributed nothing (an empty
-    folder, a pattern that matched no image). Raises :class:`NoImagesError` when a path
+    folder, a pattern that matched no image) or entry that was skipped (``"<path>: skipped, <why>"``: a
+    broken symbolic link or a folder with an image's name, a sub-folder that cannot be listed). A file
+    named as such that cannot be looked at (no permission, a broken link) is listed: it fails with an
+    ``error:`` row. Raises :class:`NoImagesError` when a path
     does not exist or when no image is found at all.
     """
     images: list[Path] = []
@@ -180,11 +229,21 @@ def find_images(paths: Sequence[str | os.PathLike], recursive: bool = False) -> 
 
     def from_folder(d: Path) -> list[Path]:
         it = d.rglob("*") if recursive else d.iterdir()
-        return sorted((p for p in it if p.is_file() and _is_image_name(p)), key=_natural_key)
+        found = []
+        for p in it:
+            if _is_image_name(p) and not _is_file(p):
+                notes.append(_skip_reason(p))  # a broken link, a folder named x.png: named
+            elif _is_image_name(p):
+                found.append(p)
+        if recursive:  # sub-folders that cannot be listed are skipped by rglob: name them
+            for _ in os.walk(d, onerror=lambda e: notes.append(
+                    f"{e.filename}: skipped, cannot list this folder ({e.strerror or e})")):
+                pass
+        return sorted(found, key=_natural_key)
 
     for arg in paths:
         p = Path(arg)
-        if p.is_file():
+        if _is_file(p) or _unreachable(p):  # a file we may not read still gets its error row
             add(p)
         elif p.is_dir():
             found = from_folder(p)
@@ -261,9 +320,11 @@ class ImageFileDataset(torch.utils.data.Dataset):
     message giving both sizes, before any work is spent on them.
     """
 
-    def __init__(self, paths: Sequence[str | os.PathLike], min_side: int | None = None) -> None:
+    def __init__(self, paths: Sequence[str | os.PathLike], min_side: int | None = None,
+                 quiet_decoders: bool = False) -> None:
         self.paths = [str(p) for p in paths]
         self.min_side = min_side
+        self.quiet_decoders = quiet_decoders  # the decoders' own stderr lines ("libpng error") dropped
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -271,7 +332,11 @@ class ImageFileDataset(torch.utils.data.Dataset):
     def __getitem__(self, index: int) -> Decoded:
         path = self.paths[index]
         try:
-            image = read_image(path)
+            if self.quiet_decoders:
+                with _stderr_dropped():
+                    image = read_image(path)
+            else:
+                image = read_image(path)
         except Exception as e:  # noqa: BLE001 - every failure becomes a record, by design
             return Decoded(index, path, error=file_error(path, e))
         h, w = image.shape[-2:]
@@ -280,6 +345,25 @@ class ImageFileDataset(torch.utils.data.Dataset):
                 path, f"image is {w}×{h} px, smaller than the smallest window "
                       f"({self.min_side} px; see ReebConfig.min_window)"))
         return Decoded(index, path, image=image, size=(int(w), int(h)))
+
+
+class _stderr_dropped:
+    """Send file descriptor 2 to /dev/null for a moment: the C decoders (libpng, libjpeg)
+    write their complaints there, which duplicate the one-line message a failed file gets."""
+
+    def __enter__(self) -> None:
+        try:
+            self._saved = os.dup(2)
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 2)
+            os.close(devnull)
+        except OSError:  # pragma: no cover - keep stderr then
+            self._saved = None
+
+    def __exit__(self, *exc: object) -> None:
+        if self._saved is not None:
+            os.dup2(self._saved, 2)
+            os.close(self._saved)
 
 
 def _keep(item: Decoded) -> Decoded:
@@ -322,15 +406,18 @@ def decoded_images(
     min_side: int | None = None,
     prefetch: int = 4,
     pin_memory: bool = False,
+    quiet: bool = False,
 ) -> Iterator[Decoded]:
     """Decode ``paths`` with ``workers`` DataLoader processes (0 = in this process).
 
-    Yields one :class:`Decoded` per path, in input order. Up to ``prefetch`` images per
+    Yields one :class:`Decoded` per path, in input order; ``quiet``: the C decoders' own
+    stderr lines are dropped also when decoding in this process. Up to ``prefetch`` images per
     worker are decoded ahead of the consumer. Closing the iterator (or interrupting it)
     shuts the workers down.
     """
     dataset = ImageFileDataset(paths, min_side=min_side)
     workers = max(0, min(workers, len(dataset)))
+    dataset.quiet_decoders = quiet and workers == 0  # (workers send their stderr to /dev/null)
     kwargs: dict = {}
     if workers > 0:
         kwargs = dict(prefetch_factor=max(2, prefetch), worker_init_fn=_init_worker,
@@ -488,7 +575,7 @@ def check_output(path: str | os.PathLike) -> None:
     if p.exists() and not os.access(p, os.W_OK):
         raise OutputError(f"{p}: cannot write, the file is read-only")
     try:
-        fd, probe = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".probe", dir=parent)
+        fd, probe = tempfile.mkstemp(prefix=f"{hidden_stem(p)}.", suffix=".probe", dir=parent)
     except OSError as e:
         raise OutputError(f"{p}: cannot write to folder {parent} ({e.strerror or e})") from e
     os.close(fd)
@@ -529,9 +616,9 @@ def read_results(path: str | os.PathLike) -> tuple[list[dict], list[str]]:
 
             rows = pq.read_table(p).to_pylist()
     except OSError as e:
-        raise OutputError(f"{p}: cannot read for --resume ({e.strerror or e})") from e
+        raise OutputError(f"{p}: cannot read the results ({e.strerror or e})") from e
     except Exception as e:  # noqa: BLE001 - pyarrow raises its own error types
-        raise OutputError(f"{p}: cannot read for --resume ({_one_line(e)})") from e
+        raise OutputError(f"{p}: cannot read the results, not a readable {fmt} file ({_one_line(e)})") from e
     return rows, problems
 
 
@@ -571,7 +658,7 @@ class ResultWriter:
         self.rows_written = 0
         parent = self.path.parent if str(self.path.parent) else Path(".")
         try:
-            fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=parent)
+            fd, tmp = tempfile.mkstemp(prefix=f"{hidden_stem(self.path)}.", suffix=".tmp", dir=parent)
         except OSError as e:
             raise OutputError(f"{self.path}: cannot write ({e.strerror or e})") from e
         os.close(fd)
@@ -724,7 +811,7 @@ def open_writer(path: str | os.PathLike) -> ResultWriter:
 
 def _lock_path(path: str | os.PathLike) -> Path:
     p = Path(path)
-    return p.with_name(f".{p.name}.lock")
+    return p.with_name(f"{hidden_stem(p)}.lock")
 
 
 class OutputLock:
@@ -807,7 +894,7 @@ def stale_temp_files(path: str | os.PathLike) -> list[Path]:
     """
     p = Path(path)
     parent = p.parent if str(p.parent) else Path(".")
-    pattern = re.compile(rf"^\.{re.escape(p.name)}\.[a-z0-9_]{{8}}\.tmp$")
+    pattern = re.compile(rf"^{re.escape(hidden_stem(p))}\.[a-z0-9_]{{8}}\.tmp$")
     try:
         found = [q for q in parent.iterdir() if pattern.match(q.name) and q.is_file()]
     except OSError:

@@ -33,7 +33,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-__all__ = ["XYXY_ABS", "ExportError", "read_rows", "read_id_map", "image_ids",
+__all__ = ["XYXY_ABS", "ExportError", "read_rows", "read_id_map", "image_ids", "check_row",
            "detectron2_proposals", "write_detectron2"]
 
 #: ``detectron2.structures.BoxMode.XYXY_ABS`` (an IntEnum; its value is 0).
@@ -136,18 +136,53 @@ def image_ids(images: Iterable[str], id_map: Mapping[str, object] | None = None,
     return ids
 
 
+def _numbers(value) -> bool:
+    return all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in value)
+
+
+def check_row(row: object, n: int) -> None:
+    """Raise :class:`ExportError` naming row ``n`` (1-based) and its image unless ``row``
+    follows the row schema (:mod:`reeb_torch.runs.batch`): a dict with ``image`` (str) and
+    ``status`` (str); with status ``ok`` also ``boxes``, a list of ``[x1, y1, x2, y2]``
+    (4 finite numbers each), and ``scores``, one finite number per box."""
+    if not isinstance(row, dict) or not isinstance(row.get("image"), str):
+        raise ExportError(f"row {n}: not a result row (no 'image' path)")
+    where = f"row {n} ({row['image']})"
+    status = row.get("status")
+    if not isinstance(status, str):
+        raise ExportError(f"{where}: 'status' must be 'ok' or 'error: ...', got {status!r}")
+    if status != "ok":
+        return
+    boxes, scores = row.get("boxes"), row.get("scores")
+    if not isinstance(boxes, (list, tuple, np.ndarray)):
+        raise ExportError(f"{where}: status ok but 'boxes' is {type(boxes).__name__ if boxes is not None else 'null'}"
+                          "; expected a list of [x1, y1, x2, y2]")
+    if not isinstance(scores, (list, tuple, np.ndarray)):
+        raise ExportError(f"{where}: status ok but 'scores' is {type(scores).__name__ if scores is not None else 'null'}"
+                          "; expected one number per box")
+    for i, b in enumerate(boxes):
+        if not isinstance(b, (list, tuple, np.ndarray)) or len(b) != 4 or not _numbers(b):
+            raise ExportError(f"{where}: box {i} is {list(b) if isinstance(b, (list, tuple, np.ndarray)) else b!r}; "
+                              "expected 4 finite numbers [x1, y1, x2, y2]")
+    if len(scores) != len(boxes) or not _numbers(scores):
+        raise ExportError(f"{where}: {len(boxes)} boxes but {len(scores)} scores (one finite number per box)")
+
+
 def detectron2_proposals(rows: Iterable[dict], id_map: Mapping[str, object] | None = None,
                          id_type: str = "str") -> tuple[dict, list[str]]:
     """detectron2's precomputed-proposals dict from result rows, and the failed images.
 
-    Rows whose status is not ``"ok"`` are left out (returned as the second value). When an
+    Each row is checked against the row schema first (:func:`check_row`: an
+    :class:`ExportError` names the bad row). Rows whose status is not ``"ok"`` are left out
+    (returned as the second value). When an
     image has several rows (a resumed run), its ``ok`` row is used. Boxes are ``float32``
     ``(N, 4)`` ``XYXY_ABS`` arrays in the rows' order (best first); ``objectness_logits``
     are the scores as ``float32`` ``(N,)``.
     """
     by_image: dict[str, dict] = {}
     failed: dict[str, str] = {}
-    for r in rows:
+    for n, r in enumerate(rows, 1):
+        check_row(r, n)
         image = str(r["image"])
         if r.get("status") == "ok":
             by_image[image] = r
@@ -159,21 +194,18 @@ def detectron2_proposals(rows: Iterable[dict], id_map: Mapping[str, object] | No
     boxes, logits = [], []
     for image in images:
         r = by_image[image]
-        b = np.asarray(r["boxes"] if r["boxes"] is not None else [], dtype=np.float32)
-        b = b.reshape(-1, 4)
-        s = np.asarray(r["scores"] if r["scores"] is not None else [], dtype=np.float32)
-        if len(s) != len(b):
-            raise ExportError(f"{image}: {len(b)} boxes but {len(s)} scores")
-        boxes.append(b)
-        logits.append(s)
+        boxes.append(np.asarray(r["boxes"], dtype=np.float32).reshape(-1, 4))
+        logits.append(np.asarray(r["scores"], dtype=np.float32).reshape(-1))
     return ({"ids": ids, "boxes": boxes, "objectness_logits": logits, "bbox_mode": XYXY_ABS},
             [f"{k}: {v}" for k, v in failed.items()])
 
 
 def write_detectron2(proposals: dict, out: str | os.PathLike) -> Path:
     """Pickle ``proposals`` to ``out`` (through a temporary file renamed into place)."""
+    from .batch import hidden_stem
+
     out = Path(out)
-    tmp = out.with_name(f".{out.name}.tmp")
+    tmp = out.with_name(f"{hidden_stem(out)}.tmp")
     try:
         with open(tmp, "wb") as f:
             pickle.dump(proposals, f, protocol=pickle.HIGHEST_PROTOCOL)

@@ -85,6 +85,7 @@ class _LocalRun:
             raise UsageProblem(str(e))
         for n in notes:
             self.echo_err(f"note: {n}")
+        self.skipped = [n for n in notes if ": skipped, " in n]  # named again in the summary
 
     # -- 2. outputs, checked before any work ------------------------------------------------
     def check_output(self, resume: bool, overwrite: bool) -> bool:
@@ -98,6 +99,8 @@ class _LocalRun:
         self.plan = _ResumePlan(self.images)
         if not out:
             return True
+        if os.path.islink(out):  # write the file the link points to (and lock that one), keep the link
+            out = self.out = os.path.realpath(out)
         try:
             B.check_output(out)
             # one writer per output: a second run fails here, before any work (exit 2)
@@ -219,7 +222,7 @@ class _LocalRun:
                         dynamic_ncols=True, desc="reeb propose")
         self.t_start = time.perf_counter()
         stream = B.decoded_images(images, workers=self.workers, min_side=self.cfg.min_window,
-                                  prefetch=self.batch_size, pin_memory=self.dev.type == "cuda")
+                                  prefetch=self.batch_size, pin_memory=self.dev.type == "cuda", quiet=self.quiet)
         self.previous_handlers = self.cs.install()  # Ctrl-C, and a polite kill (SIGTERM) treated like it
         try:
             self._batches(stream)
@@ -398,6 +401,10 @@ class _LocalRun:
         if self.sample_png is not None and stats["ok"]:
             lines.append(f"wrote {self.sample_png.resolve()} (top {self.viz_top} proposals"
                          + (", ground truth in green" if self.gt else "") + ")")
+        if self.skipped:
+            lines.append(f"skipped ({len(self.skipped)}, not images):")
+            lines += [f"  {m}" for m in self.skipped]
+        summary["skipped"] = self.skipped
         lines += failures_and_summary(self.failures, self.summary_json, summary)
         if self.interrupted:
             if saved:

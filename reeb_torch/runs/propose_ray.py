@@ -10,6 +10,7 @@ engine itself (:mod:`.distributed`) is a library and knows nothing of the comman
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from pathlib import Path
@@ -150,7 +151,8 @@ class _RayRun:
         if not out:
             raise UsageProblem("--engine ray needs --out DIR (a folder of Parquet files, "
                                "e.g. --out proposals.parquet)")
-        self.out_dir = out_dir = Path(out)
+        # a link to a folder: the folder it points to is locked and written (the link stays)
+        self.out_dir = out_dir = Path(os.path.realpath(out) if os.path.islink(out) else out)
         if out_dir.suffix.lower() in (".jsonl", ".ndjson", ".json"):
             raise UsageProblem(f"{out}: --engine ray writes a folder of Parquet files; give a folder "
                                "name such as proposals.parquet")
@@ -170,6 +172,11 @@ class _RayRun:
         each actor reserves."""
         ray, quiet = self.ray, self.quiet
         t0 = time.perf_counter()
+        if quiet:  # -q: Ray's and Ray Data's INFO / WARNING lines too
+            import logging
+
+            for name in ("ray", "ray.data", "ray._private", "ray.data._internal"):
+                logging.getLogger(name).setLevel(logging.ERROR)
         if not ray.is_initialized():
             try:
                 ray.init(address=address, include_dashboard=False, log_to_driver=not quiet,
