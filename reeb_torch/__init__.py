@@ -7,7 +7,7 @@
 """
 
 from .config import PRESETS, ReebConfig, get_preset
-from .generator import Inspection, ProposalGenerator, propose
+from .generator import Inspection, ProposalGenerator, propose, warmup
 from .io import ImageReadError, read_image
 
 __all__ = [
@@ -17,6 +17,7 @@ __all__ = [
     "ProposalGenerator",
     "propose",
     "Inspection",
+    "warmup",
     "read_image",
     "ImageReadError",
 ]
