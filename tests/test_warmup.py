@@ -84,3 +84,14 @@ def test_cache_can_be_turned_off(monkeypatch):
 def test_warm_picture_is_deterministic_uint8():
     a, b = _warm.warm_picture(), _warm.warm_picture()
     assert a.dtype == torch.uint8 and a.shape == (3, 160, 480) and torch.equal(a, b)
+
+
+def test_reeb_warmup_command(tmp_path, monkeypatch):
+    from click.testing import CliRunner
+
+    from reeb_torch.runs.cli import main
+
+    res = CliRunner().invoke(main, ["warmup", "--preset", "nope"])
+    assert res.exit_code == 2 and "unknown preset" in res.output
+    res = CliRunner().invoke(main, ["warmup"])
+    assert res.exit_code == 0 and "kernels ready in" in res.output
