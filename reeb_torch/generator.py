@@ -11,6 +11,7 @@ sizes is split into equal-size batches.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -33,7 +34,7 @@ from .stages import scoring as _scoring
 
 __all__ = ["ProposalGenerator", "propose", "Inspection", "warmup"]
 
-_WARM: set[str] = set()  # fingerprints of the configs whose kernels this process has run
+_WARM: set[tuple] = set()  # kernel keys (_kernel_key) of the configs this process has warmed up
 
 
 @dataclass
@@ -99,7 +100,7 @@ class ProposalGenerator(nn.Module):
         self.ranking = Ranking(self.config)
         """The :class:`~reeb_torch.ranking.Ranking` that scores, cuts, refines and suppresses
         the windows; a subclass put here tries another ranking (``benchmarks/selection_variants.py``)."""
-        self._warm_key = self.config.fingerprint()
+        self._warm_key = _kernel_key(self.config)
         self.compile_s: float = 0.0
         """Seconds the first CPU call spent compiling the kernels (or loading them from
         their cache: :func:`warmup`) before its own work; not in :attr:`stage_times`."""
@@ -272,8 +273,20 @@ def _warm_for(config: ReebConfig) -> float:
     try:
         return warmup(config)
     except ValueError:
-        _WARM.add(config.fingerprint())
+        _WARM.add(_kernel_key(config))
         return time.perf_counter() - t0
+
+
+def _kernel_key(config: ReebConfig) -> tuple:
+    """What decides which kernels (and which of their typed versions) a config runs: its
+    switches (every bool and string field) and the few numbers that pick a path. Configs
+    that differ only in other numbers (``top_k``, ``alpha``, ...) share one warm-up, so a
+    sweep over settings does not pay it per trial."""
+    key = [(f.name, getattr(config, f.name)) for f in dataclasses.fields(config)
+           if isinstance(getattr(config, f.name), (bool, str))]
+    key += [("straddle", config.straddle_weight > 0), ("sqrt_shadow", config.shadow_power == 0.5),
+            ("front_end", 0.5 <= config.scale < 1), ("ground", config.ground_band is None)]
+    return tuple(key)
 
 
 def warmup(*configs: ReebConfig, quiet: bool = False) -> float:
@@ -290,7 +303,7 @@ def warmup(*configs: ReebConfig, quiet: bool = False) -> float:
     x = warm_picture()
     with Notice(quiet):
         for cfg in configs or (ReebConfig(),):
-            _WARM.add(cfg.fingerprint())  # before the run: its own forward must not warm up again
+            _WARM.add(_kernel_key(cfg))  # before the run: its own forward must not warm up again
             gen = ProposalGenerator(cfg)
             gen([x])
             gen(torch.stack([x, x.flip(-1)]).float().div_(255.0))

@@ -55,14 +55,21 @@ def test_warmup_compiles_what_the_default_runs_on_a_real_frame(sample_image):
 
 
 def test_first_call_reports_its_warm_up_apart(sample_image):
-    cfg = ReebConfig(top_k=123)  # a config this process has not run yet
-    generator._WARM.discard(cfg.fingerprint())
+    cfg = ReebConfig(top_k=123)
+    generator._WARM.discard(generator._kernel_key(cfg))  # as if this process had not run it yet
     gen = ProposalGenerator(cfg)
     gen([sample_image])
     assert gen.compile_s > 0
     again = ProposalGenerator(cfg)
     again([sample_image])
     assert again.compile_s == 0.0
+    other = ProposalGenerator(cfg.replace(top_k=77, alpha=0.3))  # other numbers: the same kernels
+    other([sample_image])
+    assert other.compile_s == 0.0
+    switched = ProposalGenerator(cfg.replace(refine=True))  # another switch: warms up
+    generator._WARM.discard(generator._kernel_key(switched.config))
+    switched([sample_image])
+    assert switched.compile_s > 0
 
 
 def test_notice_only_while_not_cached(tmp_path, monkeypatch, capsys):
