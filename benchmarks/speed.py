@@ -1,15 +1,17 @@
 """Speed of REEB per stage, in the layout of the paper's Table 2, with and without region
-enhancement.
+enhancement, for uint8 and float input, at two batch sizes.
 
-End to end from decoded tensors (uint8, already in memory) to ranked boxes, at a given
-batch size and proposal count, on the frames of a KITTI-format folder. Each configuration
-is warmed up once (window grids are cached per image size; the first call also compiles
-the numba NMS kernel, or loads it from numba's cache) and that first call is reported
-apart; then all frames are timed and the median over ``--repeats`` passes is reported, at
-``--batch`` and at batch 1 (the latency a detector sees calling one image at a time).
-Beside the table: an OpenCV pass (grey, Gaussian blur, Sobel x and y) over the same
-images, the floor the paper compares with (15 ms total vs about 3 ms for edges), and the
-ratio of REEB's total to it.
+End to end from decoded tensors (already in memory) to ranked boxes, at a given batch size
+and proposal count, on the frames of a KITTI-format folder, for both inputs a caller may
+hand over: ``uint8`` as decoded and float32 RGB in [0, 1] (``uint8 / 255``, what
+torchvision detectors pass). The first call of each (input, batch) is timed apart (the
+very first one compiles the numba kernels, or loads them from their cache; window grids
+are cached per image size); then passes over all frames, every variant once per pass in a
+rotating order (interleaved: a slow spell of the machine hits all alike), and the median
+over ``--repeats`` passes is reported, at ``--batch`` and at ``--latency-batch`` (1: the
+latency a detector sees calling one image at a time). Beside the table: an OpenCV pass
+(grey, Gaussian blur, Sobel x and y) over the same images, the floor the paper compares
+with (15 ms total vs about 3 ms for edges), and the ratio of REEB's total to it.
 
 Rerun: ``python benchmarks/speed.py [--data DIR] [--limit N] [--batch 8] [--top-k 2000] [--threads N]``
 """
@@ -45,26 +47,57 @@ STAGES = [
 ]
 
 
-def measure(preset: str, images: list[torch.Tensor], batch: int, top_k: int, repeats: int,
-            device: str) -> dict:
-    gen = ProposalGenerator(get_preset(preset), top_k=top_k).to(device)
-    imgs = [im.to(device) for im in images]
+INPUTS = ("uint8", "float")
+
+
+def as_input(images: list[torch.Tensor], kind: str) -> list[torch.Tensor]:
+    """The frames as a caller hands them over: ``uint8`` as decoded, or ``float`` RGB in
+    [0, 1] (``uint8 / 255``, float32, as torchvision detectors and ``ReebRPN`` pass them);
+    converted outside the timing."""
+    return images if kind == "uint8" else [im.float().div_(255.0) for im in images]
+
+
+def _timed_pass(gen: ProposalGenerator, imgs: list[torch.Tensor], batch: int, device: str) -> tuple[float, dict]:
+    """One pass over ``imgs`` in batches of ``batch``: ms per image, and per stage."""
+    gen.stage_times = {}
     t0 = time.perf_counter()
-    gen(imgs[:batch])  # warm-up: numba compile (or cache load), window grids
-    first_ms = (time.perf_counter() - t0) * 1000
-    totals, stages = [], []
-    for _ in range(repeats):
-        gen.stage_times = {}
+    for i in range(0, len(imgs), batch):
+        gen(imgs[i: i + batch])
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    total = (time.perf_counter() - t0) * 1000 / len(imgs)
+    return total, {k: v * 1000 / len(imgs) for k, v in gen.stage_times.items()}
+
+
+def measure(preset: str, images: list[torch.Tensor], batches: list[int], top_k: int, repeats: int,
+            device: str) -> dict:
+    """Time one preset on every (input kind, batch size), interleaved: each pass runs every
+    variant once, in an order that rotates from pass to pass, so that a slow spell of the
+    machine hits them alike. The first call of each variant is timed apart (the very first
+    one compiles the numba kernels, or loads them from their cache). Returns per variant
+    ``"uint8/b8"``: the median ms per image, the per-stage ms of the pass nearest the
+    median, all passes' totals and the first call's ms."""
+    gen = ProposalGenerator(get_preset(preset), top_k=top_k).to(device)
+    inputs = {k: [im.to(device) for im in as_input(images, k)] for k in INPUTS}
+    variants = [(k, b) for b in batches for k in INPUTS]
+    first = {}
+    for k, b in variants:
         t0 = time.perf_counter()
-        for i in range(0, len(imgs), batch):
-            gen(imgs[i: i + batch])
-        if device.startswith("cuda"):
-            torch.cuda.synchronize()
-        totals.append((time.perf_counter() - t0) * 1000 / len(imgs))
-        stages.append({k: v * 1000 / len(imgs) for k, v in gen.stage_times.items()})
-    best = min(range(repeats), key=lambda r: abs(totals[r] - statistics.median(totals)))
-    return {"total": statistics.median(totals), "stages": stages[best], "all_totals": totals,
-            "first_call_ms": first_ms}
+        gen(inputs[k][:b])  # warm-up: numba compile (or cache load), window grids
+        first[(k, b)] = (time.perf_counter() - t0) * 1000
+    runs: dict = {v: [] for v in variants}
+    for r in range(repeats):
+        for j in range(len(variants)):
+            k, b = variants[(j + r) % len(variants)]
+            runs[(k, b)].append(_timed_pass(gen, inputs[k], b, device))
+    out = {}
+    for (k, b), passes in runs.items():
+        totals = [t for t, _ in passes]
+        med = statistics.median(totals)
+        best = min(range(len(passes)), key=lambda i: abs(totals[i] - med))
+        out[f"{k}/b{b}"] = {"total": med, "stages": passes[best][1], "all_totals": totals,
+                            "first_call_ms": first[(k, b)]}
+    return out
 
 
 def opencv_floor(images: list[torch.Tensor], sigma: float, repeats: int) -> float:
@@ -81,6 +114,34 @@ def opencv_floor(images: list[torch.Tensor], sigma: float, repeats: int) -> floa
             cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
         times.append((time.perf_counter() - t0) * 1000 / len(arrays))
     return statistics.median(times)
+
+
+def _table(res: dict, presets: list[str], batches: list[int], floor: float) -> str:
+    """The stage table (uint8 at the first batch size), then the totals of every input kind
+    and batch size, the float / uint8 ratios and the first calls."""
+    main_v = f"uint8/b{batches[0]}"
+    head = f"{'Process (uint8, batch ' + str(batches[0]) + ')':52s}" + "".join(f"{p:>22s}" for p in presets)
+    row = lambda label, vals, fmt="22.1f": f"{label:52s}" + "".join(f"{v:{fmt}}" for v in vals)  # noqa: E731
+    lines = [head, "-" * len(head)]
+    for label, key in STAGES:
+        lines.append(row(label, [res[p][main_v]["stages"].get(key, 0.0) for p in presets]))
+    lines.append("-" * len(head))
+    lines.append(row("Total (end to end, median)", [res[p][main_v]["total"] for p in presets]))
+    lines.append(row("Paper, Table 2 (C++, i7-8750H, Sobel)", [15.0 if "no-regions" not in p else 40.0 for p in presets]))
+    lines.append(row("OpenCV grey+blur+Sobel pass, same images", [floor for _ in presets], "22.2f"))
+    lines.append(row("Total / OpenCV pass (paper: about 5)", [res[p][main_v]["total"] / floor for p in presets]))
+    lines.append("-" * len(head))
+    for b in batches:
+        for k in INPUTS:
+            lines.append(row(f"Total, {k} input, batch {b} (median)", [res[p][f"{k}/b{b}"]["total"] for p in presets]))
+        lines.append(row(f"  float / uint8 at batch {b}", [res[p][f"float/b{b}"]["total"] / res[p][f"uint8/b{b}"]["total"]
+                                                         for p in presets], "22.2f"))
+    lines.append("-" * len(head))
+    for b in batches:
+        for k in INPUTS:
+            lines.append(row(f"First call, {k}, batch {b} (not above), ms", [res[p][f"{k}/b{b}"]["first_call_ms"]
+                                                                         for p in presets], "22.0f"))
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -103,33 +164,13 @@ def main(argv: list[str] | None = None) -> dict:
     images = [read_image(f) for f in files]
     print(f"# {len(images)} frames of {args.data}, batch {args.batch}, top-{args.top_k}, device {args.device}, "
           f"torch threads {torch.get_num_threads()}; median of {args.repeats} passes, ms per image")
-    res = {p: measure(p, images, args.batch, args.top_k, args.repeats, args.device) for p in args.presets}
-    lat = {}
-    if args.latency_batch and args.latency_batch != args.batch:
-        lat = {p: measure(p, images, args.latency_batch, args.top_k, args.repeats, args.device)
-               for p in args.presets}
+    batches = [args.batch] + ([args.latency_batch] if args.latency_batch and args.latency_batch != args.batch else [])
+    res = {p: measure(p, images, batches, args.top_k, args.repeats, args.device) for p in args.presets}
     floor = opencv_floor(images, get_preset("default").blur_sigma, args.repeats)
-    head = f"{'Process':52s}" + "".join(f"{p:>22s}" for p in args.presets)
-    lines = [head, "-" * len(head)]
-    for label, key in STAGES:
-        lines.append(f"{label:52s}" + "".join(f"{res[p]['stages'].get(key, 0.0):22.1f}" for p in args.presets))
-    lines.append("-" * len(head))
-    lines.append(f"{'Total (end to end, median)':52s}" + "".join(f"{res[p]['total']:22.1f}" for p in args.presets))
-    lines.append(f"{'Paper, Table 2 (C++, i7-8750H, Sobel)':52s}" + "".join(
-        f"{(15.0 if 'no-regions' not in p else 40.0):22.1f}" for p in args.presets))
-    lines.append(f"{'OpenCV grey+blur+Sobel pass, same images':52s}" + "".join(
-        f"{floor:22.2f}" for p in args.presets))
-    lines.append(f"{'Total / OpenCV pass (paper: about 5)':52s}" + "".join(
-        f"{res[p]['total'] / floor:22.1f}" for p in args.presets))
-    for p_lat in ([lat] if lat else []):
-        lines.append(f"{f'Total at batch {args.latency_batch} (latency, median)':52s}" + "".join(
-            f"{p_lat[p]['total']:22.1f}" for p in args.presets))
-    lines.append(f"{'First call (numba compile/cache load; not above), ms':52s}" + "".join(
-        f"{res[p]['first_call_ms']:22.0f}" for p in args.presets))
-    table = "\n".join(lines)
+    table = _table(res, args.presets, batches, floor)
     print(table)
     args.out.mkdir(parents=True, exist_ok=True)
-    record = {"results": res, "latency": lat, "opencv_floor_ms": floor, "table": table, "args": {k: str(v) for k, v in vars(args).items()}, "env": environment()}
+    record = {"results": res, "opencv_floor_ms": floor, "table": table, "args": {k: str(v) for k, v in vars(args).items()}, "env": environment()}
     (args.out / "speed.json").write_text(json.dumps(record, indent=2))
     (args.out / "speed.txt").write_text(table + "\n")
     return record

@@ -12,7 +12,7 @@ from .config import PRESETS, ReebConfig, get_preset
 # ``import reeb_torch``: the ``reeb`` command then starts at once, and a Ctrl-C while torch
 # loads reaches the command's own handler (exit 130) instead of printing a traceback
 _LAZY = {"ProposalGenerator": "generator", "propose": "generator", "Inspection": "generator",
-         "read_image": "io", "ImageReadError": "io"}
+         "warmup": "generator", "read_image": "io", "ImageReadError": "io"}
 
 
 def __getattr__(name: str):
@@ -35,6 +35,7 @@ __all__ = [
     "ProposalGenerator",
     "propose",
     "Inspection",
+    "warmup",
     "read_image",
     "ImageReadError",
 ]

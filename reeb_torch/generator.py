@@ -11,6 +11,7 @@ sizes is split into equal-size batches.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from contextlib import contextmanager
@@ -22,6 +23,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._checks import ImageBatch, check_images
+from ._warm import Notice, warm_picture
 from .config import ReebConfig
 from .ranking import Ranking, ScoreMaps
 from .stages import edges as _edges
@@ -31,7 +33,7 @@ from .stages import regions as _regions
 from .stages import road as _road
 from .stages import scoring as _scoring
 
-__all__ = ["ProposalGenerator", "propose", "Inspection", "FRONT_END_FIELDS"]
+__all__ = ["ProposalGenerator", "propose", "Inspection", "warmup", "FRONT_END_FIELDS"]
 
 FRONT_END_FIELDS: tuple[str, ...] = (
     "scale", "blur_sigma", "edge_threshold", "edge_channels", "thin_edges", "remove_isolated", "grouping",
@@ -40,6 +42,9 @@ FRONT_END_FIELDS: tuple[str, ...] = (
 )
 """The fields that change :meth:`ProposalGenerator._front_end` (edges, groups, road mask, score maps); two
 configs equal in these share that work (``reeb tune`` computes it once per frame)."""
+
+
+_WARM: set[tuple] = set()  # kernel keys (_kernel_key) of the configs this process has warmed up
 
 
 @dataclass
@@ -106,6 +111,10 @@ class ProposalGenerator(nn.Module):
         """The :class:`~reeb_torch.ranking.Ranking` that scores, cuts, refines and suppresses
         the windows; a subclass put here tries another ranking (``benchmarks/selection_variants.py``)."""
         self._warned_empty = False  # a config that gives no proposals is warned about once
+        self._warm_key = _kernel_key(self.config)
+        self.compile_s: float = 0.0
+        """Seconds the first CPU call spent compiling the kernels (or loading them from
+        their cache: :func:`warmup`) before its own work; not in :attr:`stage_times`."""
         self.stage_times: dict[str, float] | None = None
         """Set to ``{}`` to accumulate wall seconds per stage (edges, groups, road,
         regions, scoring, refine, nms) over calls; ``None`` (default) records nothing."""
@@ -136,6 +145,8 @@ class ProposalGenerator(nn.Module):
     @torch.no_grad()
     def forward(self, images: ImageBatch) -> list[dict[str, Tensor]]:
         imgs = check_images(images, self.min_side, self.config, keep_uint8=True)
+        if imgs[0].device.type == "cpu" and self._warm_key not in _WARM:
+            self.compile_s += _warm_for(self.config)
         results: list[dict[str, Tensor] | None] = [None] * len(imgs)
         by_size: dict[tuple, list[int]] = {}
         for i, im in enumerate(imgs):
@@ -299,3 +310,47 @@ class ProposalGenerator(nn.Module):
 def propose(images: ImageBatch, config: ReebConfig | None = None, **overrides: object) -> list[dict[str, Tensor]]:
     """Functional form of :class:`ProposalGenerator`: ``propose(images, config)``."""
     return ProposalGenerator(config, **overrides)(images)
+
+
+def _warm_for(config: ReebConfig) -> float:
+    """:func:`warmup` of one config before its first call; a config the synthetic picture
+    does not fit (a very large ``min_window``) compiles on its first image instead."""
+    t0 = time.perf_counter()
+    try:
+        return warmup(config)
+    except ValueError:
+        _WARM.add(_kernel_key(config))
+        return time.perf_counter() - t0
+
+
+def _kernel_key(config: ReebConfig) -> tuple:
+    """What decides which kernels (and which of their typed versions) a config runs: its
+    switches (every bool and string field) and the few numbers that pick a path. Configs
+    that differ only in other numbers (``top_k``, ``alpha``, ...) share one warm-up, so a
+    sweep over settings does not pay it per trial."""
+    key = [(f.name, getattr(config, f.name)) for f in dataclasses.fields(config)
+           if isinstance(getattr(config, f.name), (bool, str))]
+    key += [("straddle", config.straddle_weight > 0), ("sqrt_shadow", config.shadow_power == 0.5),
+            ("front_end", 0.5 <= config.scale < 1), ("ground", config.ground_band is None)]
+    return tuple(key)
+
+
+def warmup(*configs: ReebConfig, quiet: bool = False) -> float:
+    """Compile the CPU kernels that ``configs`` (default: ``ReebConfig()``) use, or load
+    them from their on-disk cache, by running each on a small synthetic picture as uint8
+    and as float input; returns the seconds it took.
+
+    The first call of a :class:`ProposalGenerator` on the CPU does this itself (timed
+    apart: :attr:`ProposalGenerator.compile_s`); call it (or ``reeb warmup``) ahead of time,
+    e.g. at install, to pay the one-time compile there. While the kernels are not yet
+    cached it says so on stderr, unless ``quiet``. The cache is per user and survives a
+    reinstall of the same version (:mod:`reeb_torch.stages._cache`; ``$REEB_TORCH_CACHE_DIR``)."""
+    t0 = time.perf_counter()
+    x = warm_picture()
+    with Notice(quiet):
+        for cfg in configs or (ReebConfig(),):
+            _WARM.add(_kernel_key(cfg))  # before the run: its own forward must not warm up again
+            gen = ProposalGenerator(cfg)
+            gen([x])
+            gen(torch.stack([x, x.flip(-1)]).float().div_(255.0))
+    return time.perf_counter() - t0

@@ -107,6 +107,34 @@ def test_bad_input_is_rejected_with_a_clear_message(images, exc, match):
         ProposalGenerator(**SMALL)(images)
 
 
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")])
+@pytest.mark.parametrize("where", [(0, 0, 0), (1, 31, 17), (2, 63, 39)])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16])
+def test_one_non_finite_value_anywhere_is_rejected(value, where, dtype):
+    # the range check is one min/max pass: a single NaN or infinity must still be caught
+    x = torch.rand(1, 3, 64, 64).to(dtype)
+    x[(0, *where)] = value
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        ProposalGenerator(**SMALL)(x)
+    y = torch.rand(3, 64, 80)[:, :, ::2].to(dtype)  # not contiguous
+    y[where] = value
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        ProposalGenerator(**SMALL)([y])
+
+
+def test_float_equal_to_uint8_over_255_gives_the_same_proposals(sample_image):
+    # issue 20: float RGB in [0, 1] that equals uint8 / 255 gives the uint8 input's boxes
+    # and scores bit for bit, at full size, alone and in a batch, default and paper preset
+    other = torch.flip(sample_image, dims=[2])
+    for cfg in (ReebConfig(top_k=500), get_preset("paper").replace(top_k=300)):
+        gen = ProposalGenerator(cfg)
+        u8 = gen([sample_image, other])
+        f32 = gen(torch.stack([sample_image, other]).float() / 255)
+        alone = gen([sample_image.float().div(255)])
+        for a, b in zip(u8 + u8[:1], f32 + alone):
+            assert torch.equal(a["boxes"], b["boxes"]) and torch.equal(a["scores"], b["scores"])
+
+
 def test_config_type_checked():
     with pytest.raises(TypeError, match="ReebConfig"):
         ProposalGenerator({"top_k": 3})  # type: ignore[arg-type]

@@ -161,6 +161,31 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
                          recursive=recursive, print_top=print_top, summary_json=summary_json, quiet=quiet)
 
 
+# -- reeb warmup -------------------------------------------------------------------------
+
+@main.command(context_settings=CONTEXT)
+@click.option("-p", "--preset", default="default", show_default=True,
+              help="The preset whose kernels to compile (its refinement too).")
+def warmup(preset):
+    """Compile the CPU kernels once for this install (or load them from the cache), so that
+    the first `reeb propose` or ProposalGenerator call does not pay for it; e.g. right after
+    pip install. The cache is per user ($REEB_TORCH_CACHE_DIR, else ~/.cache/reeb-torch/numba)
+    and survives a reinstall of the same version.
+    """
+    from ..config import get_preset
+    from ..generator import warmup as _warmup
+    from ..stages._cache import cache_dir
+
+    try:
+        cfg = get_preset(preset)
+    except (KeyError, ValueError) as e:
+        raise UsageProblem(str(e))
+    seconds = _warmup(cfg, cfg.replace(refine=True))
+    where = cache_dir()
+    click.echo(f"kernels ready in {seconds:.1f} s"
+               + (f" (cached in {where})" if where else " (package cache off: numba's own places)"), err=True)
+
+
 # -- reeb show ---------------------------------------------------------------------------
 
 @main.command(context_settings=CONTEXT)

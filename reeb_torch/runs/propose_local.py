@@ -74,6 +74,8 @@ class _LocalRun:
         self.saved_now = 0  # rows of this run in the writer
         self.interrupted = False
         self.first_done = None  # (time, images done, algorithm seconds) after the first computed batch
+        self.compile_s = self.size_warm_s = 0.0  # warm-up, kept out of the times (compute)
+        self.sized = False
 
     # -- 1. inputs ------------------------------------------------------------------------
     def find_inputs(self, paths: Sequence[str], recursive: bool) -> None:
@@ -204,6 +206,7 @@ class _LocalRun:
             self.gen = ProposalGenerator(self.cfg).to(self.dev).eval()
         except (TypeError, ValueError, ArithmeticError) as e:
             raise UsageProblem(f"the settings are not usable: {' '.join(str(e).split())}")
+        self.compile_s, self.sized, self.size_warm_s = self._warm_up(), False, 0.0
         try:
             self.writer = B.open_writer(self.out) if self.out else None
         except B.OutputError as e:
@@ -238,6 +241,14 @@ class _LocalRun:
             stream.close()
             self.bar.close()
         self.wall = time.perf_counter() - self.t_start
+
+    def _warm_up(self) -> float:
+        """Before the clock starts: compile (or load) the CPU kernels; the seconds it took,
+        which the summary gives apart (``compile_s``, with the first batch's warm-up:
+        :meth:`_run_batch`)."""
+        from ..generator import _warm_for
+
+        return _warm_for(self.cfg) if self.dev.type == "cpu" else 0.0
 
     def _batches(self, stream) -> None:
         stats = self.stats
@@ -283,6 +294,12 @@ class _LocalRun:
         import torch
 
         x = torch.stack([it.image for it in items]).to(self.dev, non_blocking=True)
+        if not self.sized:  # the tables of the first image size (window grid, score plan), untimed
+            t0 = time.perf_counter()
+            self.gen(x[:1])
+            self.size_warm_s = time.perf_counter() - t0  # in the wall time: taken out of it
+            self.compile_s += self.size_warm_s
+            self.sized = True
         t0 = time.perf_counter()
         results = self.gen(x)
         results = [{k: v.cpu() for k, v in r.items()} for r in results]
@@ -375,15 +392,16 @@ class _LocalRun:
 
     def _summary_lines(self, saved: Path | None) -> list[str]:
         """The closing summary (and ``--summary-json``)."""
-        stats, writer, images, wall = self.stats, self.writer, self.images, self.wall
+        stats, writer, images, wall = self.stats, self.writer, self.images, self.wall - self.size_warm_s
         workers, dev = self.workers, self.dev
         done = stats["ok"] + stats["failed"]
         summary = dict(images=len(images), processed=done, ok=stats["ok"], failed=stats["failed"],
                        proposals=stats["proposals"],
                        ms_per_image=1000 * wall / done if done else None,
                        algorithm_ms_per_image=1000 * stats["algo_s"] / stats["ok"] if stats["ok"] else None,
+                       compile_s=self.compile_s,
                        workers=workers, batch_size=self.batch_size, device=str(dev), config=self.fingerprint,
-                       **_steady(self.first_done, self.t_start + wall, done, stats),
+                       **_steady(self.first_done, self.t_start + self.wall, done, stats),
                        out=str(saved) if saved else None, rows=writer.rows_written if writer else None,
                        saved=self.saved_now if writer else None,
                        interrupted=self.interrupted, failures=self.failures)
@@ -392,7 +410,9 @@ class _LocalRun:
             lines.append(f"time: {wall:.1f} s, {ms_per_img(wall, done)} end to end; "
                          f"{ms_per_img(stats['algo_s'], stats['ok'])} "
                          f"in the algorithm ({workers} decoding worker{'s' if workers != 1 else ''}, "
-                         f"batch {self.batch_size}, {dev})")
+                         f"batch {self.batch_size}, {dev})"
+                         + (f"; warm-up before (kernels compiled or loaded, tables for the image size) "
+                            f"{self.compile_s:.1f} s, not counted" if self.compile_s >= 0.05 else ""))
         if saved:
             lines.append(f"wrote {saved} ({writer.rows_written} rows"
                          + (f", {self.plan.kept_written} kept from before" if self.plan.kept_written else "") + ")")

@@ -1,0 +1,104 @@
+"""The one-time compile (issue 20): the kernels' cache folder, the notice, warmup()."""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+
+import numba
+import pytest
+import torch
+
+import reeb_torch
+from reeb_torch import ProposalGenerator, ReebConfig, generator, warmup
+from reeb_torch import _warm
+from reeb_torch.stages import _cache
+
+
+def _dispatchers() -> dict[str, object]:
+    mods = ["reeb_torch._checks"] + [f"reeb_torch.stages.{m.name}" for m in pkgutil.iter_modules(reeb_torch.stages.__path__)]
+    out = {}
+    for name in mods:
+        mod = importlib.import_module(name)
+        for attr, obj in vars(mod).items():
+            if isinstance(obj, numba.core.registry.CPUDispatcher):
+                out[f"{name}.{attr}"] = obj
+    return out
+
+
+def _signatures() -> dict[str, int]:
+    return {k: len(d.signatures) for k, d in _dispatchers().items()}
+
+
+def test_the_package_kernels_are_cached_in_the_per_user_folder_by_source_hash():
+    root = _cache.cache_dir()
+    if root is None:
+        pytest.skip("REEB_TORCH_CACHE_DIR turns the package cache off")
+    found = 0
+    for name, d in _dispatchers().items():
+        if d._cache is None or not hasattr(d._cache, "_cache_path"):
+            continue
+        path = d._cache._cache_path
+        assert path.startswith(str(root)), f"{name} is cached in {path}, not under {root}"
+        found += 1
+    assert found >= 8
+
+
+def test_warmup_compiles_what_the_default_runs_on_a_real_frame(sample_image):
+    warmup(quiet=True)
+    before = _signatures()
+    ProposalGenerator()([sample_image])
+    ProposalGenerator()(sample_image[None].float() / 255)
+    after = _signatures()
+    new = {k: after[k] - before.get(k, 0) for k in after if after[k] != before.get(k, 0)}
+    assert not new, f"compiled after warmup(): {new}"
+
+
+def test_first_call_reports_its_warm_up_apart(sample_image):
+    cfg = ReebConfig(top_k=123)
+    generator._WARM.discard(generator._kernel_key(cfg))  # as if this process had not run it yet
+    gen = ProposalGenerator(cfg)
+    gen([sample_image])
+    assert gen.compile_s > 0
+    again = ProposalGenerator(cfg)
+    again([sample_image])
+    assert again.compile_s == 0.0
+    other = ProposalGenerator(cfg.replace(top_k=77, alpha=0.3))  # other numbers: the same kernels
+    other([sample_image])
+    assert other.compile_s == 0.0
+    switched = ProposalGenerator(cfg.replace(refine=True))  # another switch: warms up
+    generator._WARM.discard(generator._kernel_key(switched.config))
+    switched([sample_image])
+    assert switched.compile_s > 0
+
+
+def test_notice_only_while_not_cached(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv(_cache.ENV, str(tmp_path))
+    assert _cache.cache_dir() == tmp_path
+    warmup(quiet=False)
+    err = capsys.readouterr().err
+    assert "compiling kernels once for this install" in err and "kernels compiled in" in err
+    assert _cache.warm_marker().exists()
+    warmup(quiet=False)
+    assert "compiling" not in capsys.readouterr().err
+
+
+def test_cache_can_be_turned_off(monkeypatch):
+    monkeypatch.setenv(_cache.ENV, "off")
+    assert _cache.cache_dir() is None and _cache.warm_marker() is None
+
+
+def test_warm_picture_is_deterministic_uint8():
+    a, b = _warm.warm_picture(), _warm.warm_picture()
+    assert a.dtype == torch.uint8 and a.shape == (3, 160, 480) and torch.equal(a, b)
+
+
+def test_reeb_warmup_command(tmp_path, monkeypatch):
+    from click.testing import CliRunner
+
+    from reeb_torch.runs.cli import main
+
+    res = CliRunner().invoke(main, ["warmup", "--preset", "nope"])
+    assert res.exit_code == 2 and "unknown preset" in res.output
+    res = CliRunner().invoke(main, ["warmup"])
+    assert res.exit_code == 0 and "kernels ready in" in res.output
