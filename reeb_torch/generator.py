@@ -229,7 +229,7 @@ class ProposalGenerator(nn.Module):
         with self._stage("nms", dev):
             results = self.ranking.suppress(maps, grid, chosen, scores, share, refined)
         if not self._warned_empty and any(len(r["boxes"]) == 0 for r in results):
-            self._warn_empty(input_size, grid.count, share)
+            self._warn_empty(tuple(images[0].shape[-2:]), grid.count, share)
         extra = self._kept_maps(maps, bounds, entropy, share, grid.count) if keep else {}
         return results, extra
 
@@ -351,6 +351,7 @@ def warmup(*configs: ReebConfig, quiet: bool = False) -> float:
         for cfg in configs or (ReebConfig(),):
             _WARM.add(_kernel_key(cfg))  # before the run: its own forward must not warm up again
             gen = ProposalGenerator(cfg)
+            gen._warned_empty = True  # the synthetic picture may keep no window: not the user's images
             gen([x])
             gen(torch.stack([x, x.flip(-1)]).float().div_(255.0))
     return time.perf_counter() - t0
