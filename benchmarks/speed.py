@@ -42,7 +42,8 @@ STAGES = [
     ("Road segmentation (Sec. 3.5)", "road"),
     ("Regions and entropy (Sec. 3.6, eqs. 2, 9)", "regions"),
     ("Proposal scoring (windows, eqs. 1, 10-12, ranking)", "scoring"),
-    ("Edge Boxes' refinement (preset refined only)", "refine"),
+    ("Second scoring pass (rescore; preset persons only)", "rescore"),
+    ("Edge Boxes' refinement (refine=on only)", "refine"),
     ("NMS (eq. 13)", "nms"),
 ]
 

@@ -34,7 +34,11 @@ def test_paper_preset_follows_the_printed_text():
 
 
 def test_presets_and_lookup():
-    assert set(PRESETS) == {"default", "default-no-regions", "paper", "paper-no-regions"}
+    assert set(PRESETS) == {"default", "default-no-regions", "paper", "paper-no-regions", "persons"}
+    # the opt-in second scoring pass: the default but for the rescore fields
+    persons = get_preset("persons")
+    assert (persons.rescore, persons.rescore_scope, persons.rescore_max_height_m) == ("orientation", "persons", 2.3)
+    assert persons.replace(rescore="none", rescore_scope="all", rescore_max_height_m=None) == ReebConfig()
     assert not get_preset("paper-no-regions").use_regions
     assert not ReebConfig().refine
     with pytest.raises(ValueError, match="unknown preset"):
