@@ -73,7 +73,7 @@ def test_bootstrap_interval():
     hits = [torch.tensor([True, False]), torch.tensor([True]), torch.tensor([], dtype=torch.bool)]
     labels = [torch.tensor([0, 1]), torch.tensor([1]), torch.tensor([], dtype=torch.int64)]
     est = T.bootstrap_interval(hits, labels, samples=500)
-    assert est.recall == pytest.approx(2 / 3) and est.num_frames == 2 and est.num_objects == 3
+    assert est.recall == pytest.approx(2 / 3) and est.num_images == 2 and est.num_objects == 3
     assert 0 <= est.low <= est.recall <= est.high <= 1
     bal = T.bootstrap_interval(hits, labels, balanced=True, samples=500)
     assert bal.recall == pytest.approx((1 + 0.5) / 2)

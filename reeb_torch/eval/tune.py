@@ -32,7 +32,7 @@ from torch import Tensor
 
 from ..config import ReebConfig
 from ..generator import FRONT_END_FIELDS, ProposalGenerator
-from .metrics import object_hits
+from .metrics import RecallInterval, object_hits
 
 __all__ = ["Frames", "FrameCache", "Param", "default_space", "load_space", "Estimate", "CrossValidation",
            "load_frames", "score_config", "objective", "bootstrap_interval", "cross_validate", "tune",
@@ -134,20 +134,9 @@ def objective(hits: Sequence[Tensor], labels: Sequence[Tensor], balanced: bool =
     return float(torch.stack([h[lab == c].mean() for c in lab.unique()]).mean())
 
 
-@dataclass(frozen=True)
-class Estimate:
-    """A recall (fraction) with its frame-bootstrap percentile interval ``(low, high)``."""
-
-    recall: float
-    low: float
-    high: float
-    level: float
-    num_objects: int
-    num_frames: int
-
-    def __str__(self) -> str:
-        return (f"{100 * self.recall:.1f} % ({100 * self.level:g} % interval {100 * self.low:.1f}-"
-                f"{100 * self.high:.1f}; {self.num_objects} objects, {self.num_frames} frames)")
+Estimate = RecallInterval
+"""A recall (fraction) with its frame-bootstrap interval: :class:`~reeb_torch.eval.metrics.RecallInterval`
+(micro, or the mean of the class recalls with ``balanced``)."""
 
 
 def bootstrap_interval(hits: Sequence[Tensor], labels: Sequence[Tensor], balanced: bool = False,
