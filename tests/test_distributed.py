@@ -190,3 +190,54 @@ def test_api_takes_an_existing_dataset(local_ray, small_images):
     assert set(got[path]) == set(ParquetWriter.schema().names)
     assert got[path]["status"] == "ok" and (got[path]["width"], got[path]["height"]) == (320, 97)
     assert got[str(small_images / "missing.png")]["status"].startswith("error: ")
+
+
+def test_non_utf8_name_and_quiet_ray_log(tmp_path):
+    """A file name that is not UTF-8 gets an ``ok`` row in the escaped ``\\xNN`` form and
+    ``--resume`` matches it; under ``-q`` none of Ray's INFO / WARNING lines reach stderr.
+    A subprocess, so that this run starts Ray itself (as a user's run does)."""
+    import os
+    import re
+    import shutil
+    import subprocess
+    import sys
+
+    d = tmp_path / "d"
+    d.mkdir()
+    shutil.copy(EXAMPLES / "kitti_000001.png", d / "a.png")
+    shutil.copy(EXAMPLES / "kitti_000001.png", os.path.join(os.fsencode(d), b"x\xff.png"))
+    args = ["propose", "d", "--engine", "ray", "--actors", "1", "-o", "o.parquet",
+            "--top-k", "100", "--device", "cpu"]
+    env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(REPO))
+    r = subprocess.run([sys.executable, "-m", "reeb_torch.runs.cli", *args, "-q"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 0, r.stderr
+    assert "Traceback" not in r.stderr
+    ray_lines = [ln for ln in r.stderr.splitlines()
+                 if re.search(r"\b(INFO|WARNING|WARN)\b", ln) or "[Dataset]" in ln]
+    assert not ray_lines, "\n".join(ray_lines)
+    rows = read_result_dir(tmp_path / "o.parquet")
+    assert len(rows) == 2 and all(row["status"] == "ok" for row in rows), rows
+    assert {row["image"] for row in rows} == {"d/a.png", "d/x\\xff.png"}
+    assert {row["resolved"] for row in rows} == {f"{d}/a.png", f"{d}/x\\xff.png"}
+    r = subprocess.run([sys.executable, "-m", "reeb_torch.runs.cli", *args, "--resume"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode == 0 and "Nothing to do" in r.stderr, r.stderr
+
+
+def test_input_table_holds_a_non_utf8_name_as_plain_columns(local_ray, tmp_path):
+    """The input dataset's columns are Arrow string / binary, not Ray's pickled-object
+    fallback (which logs a WARNING and which Ray can turn off); ``open`` keeps the bytes."""
+    import os
+
+    import pyarrow as pa
+
+    from reeb_torch.runs.distributed import paths_dataset
+
+    name = os.path.join(os.fsencode(tmp_path), b"x\xff.png")
+    ds = paths_dataset([os.fsdecode(name)])
+    schema = ds.schema()
+    types = dict(zip(schema.names, schema.types))
+    assert types["image"] == pa.string() and types["open"] == pa.binary(), types
+    (row,) = ds.take_all()
+    assert row["image"] == f"{tmp_path}/x\\xff.png" and row["open"] == name

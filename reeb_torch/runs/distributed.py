@@ -3,11 +3,12 @@
 The pipeline reads top to bottom, like the single-machine one in :mod:`reeb_torch.runs.batch`:
 
 1. :func:`paths_dataset` turns image paths into a ``ray.data.Dataset`` with one row per
-   path (column ``image``: the path as given; column ``open``: the absolute path the
-   workers open). Paths go through ``ray.data.from_items`` rather than
-   ``ray.data.read_images``, so that decoding is the project's own reader
-   (:class:`reeb_torch.runs.batch.ImageFileDataset`: grey, RGBA and 16-bit images converted;
-   a corrupt or non-image file becomes an ``error:`` row and never fails the job);
+   path (column ``image``: the path as given, as text; column ``open``: the absolute path
+   the workers open, as bytes, so that a file name that is not UTF-8 is read as it is).
+   Paths go through ``ray.data.from_items`` rather than ``ray.data.read_images``, so that
+   decoding is the project's own reader (:class:`reeb_torch.runs.batch.ImageFileDataset`:
+   grey, RGBA and 16-bit images converted; a corrupt or non-image file becomes an
+   ``error:`` row and never fails the job);
 2. :func:`propose_dataset` maps :class:`ProposalActor` over it with ``map_batches`` on an
    actor pool. Each actor holds one :class:`~reeb_torch.ProposalGenerator` and sets
    torch's thread count to the CPUs it reserved. Its rows are built by
@@ -120,13 +121,19 @@ def row_key(row: dict) -> str:
 
 
 def paths_dataset(paths: Iterable[str | os.PathLike]) -> "ray.data.Dataset":
-    """A dataset of image paths: columns ``image`` (as given) and ``open`` (:func:`match_key`).
+    """A dataset of image paths: columns ``image`` (the path as given, as text:
+    :func:`reeb_torch.runs.batch.text_path`) and ``open`` (:func:`match_key`, as bytes:
+    ``os.fsencode``).
 
     Relative paths are resolved against the caller's working folder here, in the driver,
-    because Ray's workers run in other folders; the rows keep the path as given.
+    because Ray's workers run in other folders; the rows keep the path as given. A file name
+    that is not UTF-8 is ``image`` in the rows' ``\\xNN`` form and read from the exact bytes
+    of ``open`` (both columns plain Arrow types, never pickled Python objects).
     """
+    from . import batch as B
+
     ray = require_ray()
-    items = [{"image": str(p), "open": match_key(p)} for p in paths]
+    items = [{"image": B.text_path(p), "open": os.fsencode(match_key(p))} for p in paths]
     if not items:
         raise ValueError("no image paths given")
     # several blocks, so that several actors get work (one block goes to one actor)
@@ -139,8 +146,8 @@ class ProposalActor:
     """The callable class of the ``map_batches`` step: one generator per actor.
 
     A batch is a dict of numpy arrays with column ``image`` (the path written in the row)
-    and, optionally, ``open`` (the path to read; defaults to ``image``). Returns a
-    ``pyarrow.Table`` with one row per input path, typed by
+    and, optionally, ``open`` (the path to read, ``str`` or ``bytes``; defaults to
+    ``image``). Returns a ``pyarrow.Table`` with one row per input path, typed by
     :meth:`reeb_torch.runs.batch.ParquetWriter.schema`. Images of equal size are computed
     together, as in ``reeb propose``; a batch that fails is redone one image at a time so
     that only the culprit gets an ``error:`` row.
@@ -172,7 +179,7 @@ class ProposalActor:
         item = B.ImageFileDataset([opened], min_side=self.config.min_window)[0]
         item.path = shown
         if item.error is not None and opened != shown:
-            item.error = item.error.replace(opened, shown)
+            item.error = item.error.replace(B.text_path(opened), shown).replace(opened, shown)
         return item
 
     def _run(self, items: list) -> list[dict]:
@@ -233,9 +240,17 @@ class ProposalActor:
 
         from .batch import ParquetWriter
 
-        shown = [str(s) for s in batch["image"]]
-        opened = [str(o) for o in batch["open"]] if "open" in batch else shown
+        shown = [_path_text(s) for s in batch["image"]]
+        opened = [_path_text(o) for o in batch["open"]] if "open" in batch else shown
         return pa.Table.from_pylist(self.rows(shown, opened), schema=ParquetWriter.schema())
+
+
+def _path_text(p: Any) -> str:
+    """A path from a dataset column as ``str``: bytes (``open``) through ``os.fsdecode``, so a
+    name that is not UTF-8 comes back as the file system's own name."""
+    if isinstance(p, (bytes, bytearray, memoryview)):
+        return os.fsdecode(bytes(p))
+    return str(p)
 
 
 def propose_dataset(
