@@ -300,6 +300,16 @@ def _affinity_kernel(boxes: np.ndarray, label: np.ndarray, w: int, mass: np.ndar
         out[k] = lost
 
 
+def _rows_by_image(b_np: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """``(i, rows)`` for each image ``i`` present in ``b_np`` (``int64 [K]``, >= 0), in
+    increasing ``i``, ``rows`` its positions ascending (as ``np.nonzero(b_np == i)[0]``):
+    one stable argsort instead of a mask per image."""
+    order = np.argsort(b_np, kind="stable")
+    ends = np.cumsum(np.bincount(b_np))
+    starts = ends - np.bincount(b_np)
+    return [(i, order[starts[i]:ends[i]]) for i in np.flatnonzero(ends - starts)]
+
+
 def group_graph(edges: np.ndarray, cell: int | None, radius: int = 2) -> tuple[np.ndarray, ...]:
     """The groups of one ``float32 (h, w)`` edge map and their affinity graph:
     ``(label [h·w], mass [G], bounds [G, 4] inclusive x1, y1, x2, y2, start [G + 1],
@@ -319,8 +329,7 @@ def affinity_cue(edges: Tensor, enclosed: Tensor, boxes: Tensor, bi: Tensor, cel
     bx = boxes.cpu().numpy().astype(np.int64)
     b_np = bi.cpu().numpy()
     lost = np.zeros(len(bx))
-    for i in np.unique(b_np):
-        rows = np.nonzero(b_np == i)[0]
+    for i, rows in _rows_by_image(b_np):
         label, mass, bounds, start, nbr, aff = group_graph(e[i], cell)
         sub = np.ascontiguousarray(bx[rows])
         part = np.zeros(len(rows))
@@ -372,8 +381,7 @@ def orientation_cue(edges: Tensor, boxes: Tensor, bi: Tensor, cell: int | None) 
     bx = boxes.cpu().numpy().astype(np.int64)
     b_np = bi.cpu().numpy()
     sums = np.zeros((3, len(bx)))
-    for i in np.unique(b_np):
-        rows = np.nonzero(b_np == i)[0]
+    for i, rows in _rows_by_image(b_np):
         label, _, _, _, _, theta = _label_kernel(np.ascontiguousarray(e[i]), 0 if cell is None else int(cell))
         part = np.zeros((3, len(rows)))
         _orientation_sums(label, e[i], np.cos(2 * theta), np.sin(2 * theta), np.ascontiguousarray(bx[rows]), part)
