@@ -255,3 +255,20 @@ def test_persons_scope_by_shape_and_real_height():
 def test_bad_settings_are_refused(changes, words):
     with pytest.raises(ValueError, match=words.replace("(", r"\(").replace(")", r"\)")):
         ReebConfig(**changes)
+
+
+@pytest.mark.parametrize("n", [0, 1, 9, 5000])
+def test_descending_stable_is_torchs_stable_sort(n: int) -> None:
+    """The key sort of ``top_candidates`` gives torch's stable descending permutation, with
+    ties, ±0, ±inf and subnormals; NaN falls back to torch's sort."""
+    from reeb_torch.stages.rescoring import _descending_stable
+
+    g = torch.Generator().manual_seed(n)
+    v = (torch.randn(n, generator=g) * 4).round() / 3
+    if n > 8:
+        v[::3] = -0.0
+        v[1::5] = 0.0
+        v[2], v[4], v[5], v[7] = math.inf, -math.inf, -1e-45, 1e-45
+    assert torch.equal(_descending_stable(v), v.sort(descending=True, stable=True).indices)
+    w = torch.tensor([1.0, math.nan, 2.0, 1.0])
+    assert torch.equal(_descending_stable(w), w.sort(descending=True, stable=True).indices)

@@ -59,9 +59,23 @@ def top_candidates(scores: Tensor, chosen: Tensor, top: int) -> list[Tensor]:
     out = []
     for i in range(scores.shape[0]):
         cand = torch.nonzero(chosen[i]).squeeze(1)
-        order = scores[i, cand].sort(descending=True, stable=True).indices[:top]
+        order = _descending_stable(scores[i, cand])[:top]
         out.append(cand[order])
     return out
+
+
+def _descending_stable(vals: Tensor) -> Tensor:
+    """``vals.sort(descending=True, stable=True).indices`` (``float32 [n]``), the same
+    permutation: on the CPU without NaN, one sort of distinct ``uint64`` keys (the score's
+    bits mapped to an order-preserving integer, ``−0`` as ``+0``, high; the index low),
+    about 2.4 times faster than the stable float sort at 30 000 to 170 000 values."""
+    if vals.device.type != "cpu" or vals.dtype != torch.float32 or len(vals) >= 2 ** 32 or bool(vals.isnan().any()):
+        return vals.sort(descending=True, stable=True).indices
+    u = (vals.numpy() + np.float32(0.0)).view(np.uint32)  # + 0: −0 → +0 (they tie in torch's sort)
+    up = np.where(u >> 31 != 0, ~u, u | np.uint32(0x80000000))  # ascending as the floats
+    key = (~up).astype(np.uint64) << np.uint64(32) | np.arange(len(u), dtype=np.uint64)
+    key.sort()
+    return torch.from_numpy((key & np.uint64(0xFFFFFFFF)).astype(np.int64))
 
 
 def density_cue(ii_edges: Tensor, boxes: Tensor, bi: Tensor) -> Tensor:
@@ -286,6 +300,16 @@ def _affinity_kernel(boxes: np.ndarray, label: np.ndarray, w: int, mass: np.ndar
         out[k] = lost
 
 
+def _rows_by_image(b_np: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """``(i, rows)`` for each image ``i`` present in ``b_np`` (``int64 [K]``, >= 0), in
+    increasing ``i``, ``rows`` its positions ascending (as ``np.nonzero(b_np == i)[0]``):
+    one stable argsort instead of a mask per image."""
+    order = np.argsort(b_np, kind="stable")
+    ends = np.cumsum(np.bincount(b_np))
+    starts = ends - np.bincount(b_np)
+    return [(i, order[starts[i]:ends[i]]) for i in np.flatnonzero(ends - starts)]
+
+
 def group_graph(edges: np.ndarray, cell: int | None, radius: int = 2) -> tuple[np.ndarray, ...]:
     """The groups of one ``float32 (h, w)`` edge map and their affinity graph:
     ``(label [h·w], mass [G], bounds [G, 4] inclusive x1, y1, x2, y2, start [G + 1],
@@ -305,8 +329,7 @@ def affinity_cue(edges: Tensor, enclosed: Tensor, boxes: Tensor, bi: Tensor, cel
     bx = boxes.cpu().numpy().astype(np.int64)
     b_np = bi.cpu().numpy()
     lost = np.zeros(len(bx))
-    for i in np.unique(b_np):
-        rows = np.nonzero(b_np == i)[0]
+    for i, rows in _rows_by_image(b_np):
         label, mass, bounds, start, nbr, aff = group_graph(e[i], cell)
         sub = np.ascontiguousarray(bx[rows])
         part = np.zeros(len(rows))
@@ -318,25 +341,52 @@ def affinity_cue(edges: Tensor, enclosed: Tensor, boxes: Tensor, bi: Tensor, cel
     return torch.where(enclosed > 0, keep / enclosed.clamp(min=1e-12), torch.ones_like(enclosed)).clamp(max=1.0)
 
 
+@numba.njit(cache=True, nogil=True)
+def _orientation_sums(label: np.ndarray, edges: np.ndarray, cos2: np.ndarray, sin2: np.ndarray,
+                      boxes: np.ndarray, out: np.ndarray):  # pragma: no cover - compiled
+    """``out[:, k]``: ``Σ m``, ``Σ m cos 2θ``, ``Σ m sin 2θ`` over box ``k`` of one image, from
+    integral images built as ``cumsum`` along x, then along y (the same sums in the same order
+    as torch's ``cumsum(3).cumsum(2)``), read as ``ii[y1, x1] − ii[y0, x1] − ii[y1, x0] + ii[y0, x0]``."""
+    h, w = edges.shape
+    ii = np.zeros((3, h + 1, w + 1))
+    for y in range(h):
+        a0 = a1 = a2 = 0.0
+        for x in range(w):
+            g = label[y * w + x]
+            if g >= 0:
+                m = np.float64(edges[y, x])
+                a0 += m
+                a1 += m * cos2[g]
+                a2 += m * sin2[g]
+            else:
+                a0 += 0.0
+                a1 += 0.0
+                a2 += 0.0
+            ii[0, y + 1, x + 1] = ii[0, y, x + 1] + a0
+            ii[1, y + 1, x + 1] = ii[1, y, x + 1] + a1
+            ii[2, y + 1, x + 1] = ii[2, y, x + 1] + a2
+    for k in range(boxes.shape[0]):
+        x0, y0, x1, y1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
+        for c in range(3):
+            out[c, k] = ii[c, y1, x1] - ii[c, y0, x1] - ii[c, y1, x0] + ii[c, y0, x0]
+
+
 def orientation_cue(edges: Tensor, boxes: Tensor, bi: Tensor, cell: int | None) -> Tensor:
     """``1 − |Σ m e^{2iθ}| / Σ m`` over the edge pixels of each box, ``float64 [K]`` in [0, 1]
     (0 where a box holds no edge): θ is the principal-axis angle of the pixel's group
-    (groups as eq. 1's, cut at ``cell`` tiles). Arguments as :func:`affinity_cue`."""
+    (groups as eq. 1's, cut at ``cell`` tiles). Arguments as :func:`affinity_cue`.
+    Compiled (numba, CPU): labelling, then one pass building the integral images of the
+    image's boxes and reading them."""
     e = edges.detach().float().cpu().contiguous().numpy()
-    b, h, w = e.shape
-    maps = np.zeros((3, b, h, w))
-    for i in np.unique(bi.cpu().numpy()):
+    bx = boxes.cpu().numpy().astype(np.int64)
+    b_np = bi.cpu().numpy()
+    sums = np.zeros((3, len(bx)))
+    for i, rows in _rows_by_image(b_np):
         label, _, _, _, _, theta = _label_kernel(np.ascontiguousarray(e[i]), 0 if cell is None else int(cell))
-        lab = label.reshape(h, w)
-        on = lab >= 0
-        m = np.where(on, e[i], 0.0).astype(np.float64)
-        t = np.where(on, theta[np.maximum(lab, 0)], 0.0) if len(theta) else np.zeros((h, w))
-        maps[0, i], maps[1, i], maps[2, i] = m, m * np.cos(2 * t), m * np.sin(2 * t)
-    ii = torch.zeros(3, b, h + 1, w + 1, dtype=torch.float64)
-    ii[:, :, 1:, 1:] = torch.from_numpy(maps).cumsum(3).cumsum(2)
-    bx, bic = boxes.cpu(), bi.cpu()
-    x0, y0, x1, y1 = bx.unbind(1)
-    mass, c, s = (box_sum_at(ii[k], bic, x0, y0, x1, y1) for k in range(3))
+        part = np.zeros((3, len(rows)))
+        _orientation_sums(label, e[i], np.cos(2 * theta), np.sin(2 * theta), np.ascontiguousarray(bx[rows]), part)
+        sums[:, rows] = part
+    mass, c, s = torch.from_numpy(sums).unbind(0)
     spread = torch.where(mass > 1e-12, 1.0 - torch.sqrt(c * c + s * s) / mass.clamp(min=1e-12), torch.zeros_like(mass))
     return spread.clamp(0.0, 1.0).to(boxes.device)
 
