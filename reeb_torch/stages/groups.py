@@ -154,17 +154,18 @@ def _find(parent: np.ndarray, p: int) -> int:  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _connected_groups_kernel(edges: np.ndarray, cell: int):  # pragma: no cover - compiled
-    """Union–find over the edge pixels of ``(B, H, W)`` in raster order (8-connected, not
-    across images nor ``cell`` tiles; ``cell <= 0``: no tiles). Each component's root is
-    its smallest flat index, and groups come out in the order of their roots, with their
-    statistics as :func:`_stats` computes them (float64 mass, inclusive bounds)."""
+def pixel_labels(edges: np.ndarray, cell: int):  # pragma: no cover - compiled
+    """Union–find over the edge pixels (``edges > 0``; NaN is background) of ``(B, H, W)`` in
+    raster order: 8-connected, not across images nor ``cell`` tiles (``cell <= 0``: no
+    tiles). Each component's root is its smallest flat index; the components are numbered
+    in the order of their roots. Returns the label of every pixel, ``int64 [B·H·W]`` (−1: no
+    edge), and the number of components. Shared by eq. 1's groups and the rescoring cues."""
     b, h, w = edges.shape
     n = b * h * w
     flat = edges.reshape(-1)
     parent = np.full(n, -1, np.int64)
     for p in range(n):
-        if not flat[p] > 0:  # as edges > 0: NaN is background
+        if not flat[p] > 0:
             continue
         parent[p] = p
         rem = p % (h * w)
@@ -186,27 +187,40 @@ def _connected_groups_kernel(edges: np.ndarray, cell: int):  # pragma: no cover 
                 parent[c] = a
             elif c < a:
                 parent[a] = c
-    gid = np.full(n, -1, np.int64)
+    label = np.full(n, -1, np.int64)
     count = 0
     for p in range(n):
         if parent[p] >= 0 and _find(parent, p) == p:
-            gid[p] = count
+            label[p] = count
             count += 1
-    batch = np.empty(count, np.int64)
+    for p in range(n):
+        if parent[p] >= 0:
+            label[p] = label[_find(parent, p)]  # the root (<= p) is numbered above
+    return label, count
+
+
+@numba.njit(cache=True, nogil=True)
+def _connected_groups_kernel(edges: np.ndarray, cell: int):  # pragma: no cover - compiled
+    """The groups of :func:`pixel_labels`, in the order of their roots, with their
+    statistics as :func:`_stats` computes them (float64 mass, inclusive bounds)."""
+    b, h, w = edges.shape
+    n = b * h * w
+    flat = edges.reshape(-1)
+    label, count = pixel_labels(edges, cell)
+    batch = np.full(count, -1, np.int64)
     x1 = np.empty(count, np.int64)
     y1 = np.empty(count, np.int64)
     x2 = np.empty(count, np.int64)
     y2 = np.empty(count, np.int64)
     mass = np.zeros(count, np.float64)
     for p in range(n):
-        if parent[p] < 0:
+        g = label[p]
+        if g < 0:
             continue
-        r = _find(parent, p)
-        g = gid[r]
         rem = p % (h * w)
         y = rem // w
         x = rem % w
-        if r == p:
+        if batch[g] < 0:  # the group's first pixel in raster order: its root
             batch[g] = p // (h * w)
             x1[g] = x
             y1[g] = y

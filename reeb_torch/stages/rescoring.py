@@ -37,6 +37,7 @@ import torch
 from torch import Tensor
 
 from ._threads import on_two_cores
+from .groups import pixel_labels
 from .refinement import box_sum_at
 
 __all__ = ["CUES", "top_candidates", "density_cue", "contrast_cue", "orientation_cue", "group_graph",
@@ -109,51 +110,16 @@ def contrast_cue(ii_edges: Tensor, boxes: Tensor, bi: Tensor) -> Tensor:
 
 # -- affinity: the groups' graph, then a max-product search per box ----------------------------
 @numba.njit(cache=True, nogil=True)
-def _find(parent: np.ndarray, p: int) -> int:  # pragma: no cover - compiled
-    while parent[p] != p:
-        parent[p] = parent[parent[p]]
-        p = parent[p]
-    return p
-
-
-@numba.njit(cache=True, nogil=True)
 def _label_kernel(edges: np.ndarray, cell: int):  # pragma: no cover - compiled
     """8-connected components of ``edges > 0`` of one ``(h, w)`` image, cut at ``cell`` tiles
-    (``cell <= 0``: none), numbered by their first pixel in raster order (as eq. 1's groups):
-    the label image ``int64 [h·w]`` (−1: no edge), and per group its mass, inclusive bounds,
-    centroid and principal-axis angle (radians)."""
+    (``cell <= 0``: none), numbered by their first pixel in raster order (as eq. 1's groups:
+    :func:`~reeb_torch.stages.groups.pixel_labels`): the label image ``int64 [h·w]`` (−1: no
+    edge), and per group its mass, inclusive bounds, centroid and principal-axis angle
+    (radians)."""
     h, w = edges.shape
     n = h * w
     flat = edges.reshape(-1)
-    parent = np.full(n, -1, np.int64)
-    for p in range(n):
-        if not flat[p] > 0:
-            continue
-        parent[p] = p
-        y, x = p // w, p % w
-        for dy, dx in ((-1, -1), (-1, 0), (-1, 1), (0, -1)):
-            yy, xx = y + dy, x + dx
-            if yy < 0 or xx < 0 or xx >= w:
-                continue
-            if cell > 0 and (yy // cell != y // cell or xx // cell != x // cell):
-                continue
-            q = p + dy * w + dx
-            if parent[q] < 0:
-                continue
-            a, c = _find(parent, p), _find(parent, q)
-            if a < c:
-                parent[c] = a
-            elif c < a:
-                parent[a] = c
-    label = np.full(n, -1, np.int64)
-    count = 0
-    for p in range(n):
-        if parent[p] >= 0 and _find(parent, p) == p:
-            label[p] = count
-            count += 1
-    for p in range(n):
-        if parent[p] >= 0:
-            label[p] = label[_find(parent, p)]
+    label, count = pixel_labels(edges.reshape(1, h, w), cell)
     mass = np.zeros(count)
     bounds = np.empty((count, 4), np.int64)
     bounds[:, 0] = w
