@@ -17,18 +17,11 @@ __all__ = ["run_tune", "run_score", "plot_study"]
 
 
 def _progress(total: int, quiet: bool) -> Any:
-    """A tqdm bar (or a stand-in with ``update`` / ``close`` when tqdm is absent or ``quiet``)."""
-    class _Null:
-        def update(self, n: int = 1) -> None: ...
-        def close(self) -> None: ...
+    """The trials' tqdm bar on stderr (silent with ``quiet``), as ``reeb propose``'s."""
+    from tqdm import tqdm
 
-    if quiet:
-        return _Null()
-    try:
-        from tqdm import tqdm
-    except ImportError:
-        return _Null()
-    return tqdm(total=total, desc="reeb tune", unit="trial", file=sys.stderr, dynamic_ncols=True)
+    return tqdm(total=total, desc="reeb tune", unit="trial", disable=True if quiet else None, file=sys.stderr,
+                dynamic_ncols=True)
 
 
 def _changed(base: ReebConfig, cfg: ReebConfig) -> dict[str, Any]:
