@@ -444,7 +444,8 @@ class Ranking:
         kept = torch.zeros_like(chosen)
         for i, ix in enumerate(idx):
             kept[i, ix] = True
-        if not sum(int(ix.numel()) for ix in idx):
+        counts = [int(ix.numel()) for ix in idx]
+        if not sum(counts):
             return scores, kept
         all_boxes = self._device_tensor(grid.boxes, scores.device)
         bi = torch.cat([torch.full_like(ix, i) for i, ix in enumerate(idx)])
@@ -460,7 +461,6 @@ class Ranking:
         else:
             cue = _rescoring.contrast_cue(maps.integral("edges"), boxes, bi)
         scope = self._rescore_scope(boxes, maps.edges.shape[-2])
-        counts = [int(ix.numel()) for ix in idx]
         out = _rescoring.apply_cue(scores, idx, list(cue.split(counts)), list(scope.split(counts)), cfg.rescore_power)
         return out, kept
 
