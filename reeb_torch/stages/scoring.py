@@ -279,12 +279,27 @@ def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, 
     or, with ``sqrt_floor >= 0`` (a power of 0.5), straight into V as :func:`apply_shadow`
     does it (sqrt is correctly rounded in both, so the numbers are the same). With a green
     integral image (``green.shape[0] > 0``), V is first multiplied by
-    :func:`vegetation_factor`."""
+    :func:`vegetation_factor`.
+
+    One row of windows (a size, a window row) at a time, in passes over the row: the
+    table reads (strided gathers) into short buffers, then the divisions, square roots and
+    products over those buffers, which the compiler vectorises; each window's numbers are
+    the same operations in the same order as one window at a time."""
     neg_inf = np.float32(-np.inf)
     with_shadow = grey.shape[0] > 0
     with_green = green.shape[0] > 0
+    shadow_into_v = with_shadow and sqrt_floor >= 0
     hmax = ii.shape[1] - 1
+    nmax = 1
+    for k in range(plan.shape[0]):
+        nmax = max(nmax, plan[k, 4])
+    num = np.empty(nmax, np.float64)  # eq. 1's numerator (input-pixel units)
+    val = np.empty(nmax, np.float32)  # S, then V
+    fac = np.empty(nmax, np.float32)  # the vegetation factor
+    s_in = np.empty(nmax, np.float64)  # grey sums of the bottom strip inside the box
+    s_below = np.empty(nmax, np.float64)  # and of the strip just below it
     for b in range(ii.shape[0]):
+        ob = out[b]
         for k in range(plan.shape[0]):
             w, h, sx, sy, nx, ny, oy, off, dx, dy, cw, ch, lo, sh, mx, gdx, gdy, gw, gh = plan[k]
             d = denom[k]
@@ -295,47 +310,83 @@ def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, 
                 cy1 = cy0 + ch
                 wl = alpha * loc[lo + j] + beta_r
                 row = off + j * nx
-                yb = min(y1 + sh, hmax)
-                n_in = float(sh * (w - 2 * mx))
-                n_below = float(max(yb - y1, 1) * (w - 2 * mx))
-                inv_area = 1.0 / float(gw * gh)
-                gy0 = y0 + gdy
-                gy1 = gy0 + gh
+                e0, e1 = ii[b, cy0], ii[b, cy1]
+                a0, a1 = anchor[b, y0], anchor[b, y1]
+                c0, c1 = cut_col[b, y0], cut_col[b, y1]
+                r1 = cut_row[b, y1]
+                k1 = corner[b, y1]
                 for i in range(nx):
                     x0 = i * sx
                     x1 = x0 + w
                     cx0 = x0 + dx
                     cx1 = cx0 + cw
-                    centre = ((ii[b, cy1, cx1] - ii[b, cy0, cx1]) - ii[b, cy1, cx0]) + ii[b, cy0, cx0]
-                    a = ((anchor[b, y1, x1] - anchor[b, y0, x1]) - anchor[b, y1, x0]) + anchor[b, y0, x0]
-                    col = cut_col[b, y1, x1] - cut_col[b, y0, x1]
-                    rw = cut_row[b, y1, x1] - cut_row[b, y1, x0]
-                    enc = ((a - col) - rw) + corner[b, y1, x1]
-                    s = np.float32((enc * unit - centre * unit) / d)
-                    out[b, row + i] = s * wl if s >= min_edge else neg_inf
-                    if with_green and s >= min_edge:
-                        gx0 = x0 + gdx
+                    centre = ((e1[cx1] - e0[cx1]) - e1[cx0]) + e0[cx0]
+                    a = ((a1[x1] - a0[x1]) - a1[x0]) + a0[x0]
+                    col = c1[x1] - c0[x1]
+                    rw = r1[x1] - r1[x0]
+                    enc = ((a - col) - rw) + k1[x1]
+                    num[i] = enc * unit - centre * unit
+                for i in range(nx):
+                    val[i] = np.float32(num[i] / d)
+                if with_green:
+                    inv_area = 1.0 / float(gw * gh)
+                    gy0 = y0 + gdy
+                    gy1 = gy0 + gh
+                    g0, g1 = green[b, gy0], green[b, gy1]
+                    for i in range(nx):
+                        gx0 = i * sx + gdx
                         gx1 = gx0 + gw
-                        gs = ((green[b, gy1, gx1] - green[b, gy0, gx1]) - green[b, gy1, gx0]) + green[b, gy0, gx0]
+                        gs = ((g1[gx1] - g0[gx1]) - g1[gx0]) + g0[gx0]
                         q = 1.0 - float(gs) * inv_area
                         f = q
                         for _ in range(veg_power - 1):
                             f = f * q
-                        out[b, row + i] = out[b, row + i] * np.float32(f)
-                    if with_shadow:
-                        ax0 = x0 + mx
-                        ax1 = x1 - mx
-                        g_in = (((grey[b, y1, ax1] - grey[b, y1 - sh, ax1]) - grey[b, y1, ax0])
-                                + grey[b, y1 - sh, ax0]) / n_in
+                        fac[i] = np.float32(f)
+                    for i in range(nx):
+                        s = val[i]
+                        val[i] = (s * wl) * fac[i] if s >= min_edge else neg_inf
+                else:
+                    for i in range(nx):
+                        s = val[i]
+                        val[i] = s * wl if s >= min_edge else neg_inf
+                if not with_shadow:
+                    for i in range(nx):
+                        ob[row + i] = val[i]
+                    continue
+                yb = min(y1 + sh, hmax)
+                n_in = float(sh * (w - 2 * mx))
+                n_below = float(max(yb - y1, 1) * (w - 2 * mx))
+                q0, q1, q2 = grey[b, y1 - sh], grey[b, y1], grey[b, yb]
+                for i in range(nx):
+                    ax0 = i * sx + mx
+                    ax1 = i * sx + w - mx
+                    s_in[i] = ((q1[ax1] - q0[ax1]) - q1[ax0]) + q0[ax0]
+                    s_below[i] = ((q2[ax1] - q1[ax1]) - q2[ax0]) + q1[ax0]
+                if shadow_into_v:
+                    if yb > y1:
+                        for i in range(nx):
+                            g_in = s_in[i] / n_in
+                            g_below = s_below[i] / n_below
+                            t = (g_below - g_in) / (g_below if g_below > 1e-3 else 1e-3)
+                            t = t if t > 0.0 else 0.0
+                            t = t if t < 1.0 else 1.0
+                            v = val[i]  # -inf (S below min_edge) stays
+                            ob[row + i] = v * np.float32(np.sqrt(t + sqrt_floor)) if v != neg_inf else neg_inf
+                    else:  # no row below the box: U = 0
+                        f0 = np.float32(np.sqrt(0.0 + sqrt_floor))
+                        for i in range(nx):
+                            v = val[i]
+                            ob[row + i] = v * f0 if v != neg_inf else neg_inf
+                else:
+                    us = shadow[b]
+                    for i in range(nx):
+                        ob[row + i] = val[i]
                         u = 0.0
                         if yb > y1:
-                            g_below = (((grey[b, yb, ax1] - grey[b, y1, ax1]) - grey[b, yb, ax0])
-                                       + grey[b, y1, ax0]) / n_below
+                            g_in = s_in[i] / n_in
+                            g_below = s_below[i] / n_below
                             u = min(max((g_below - g_in) / max(g_below, 1e-3), 0.0), 1.0)
-                        if sqrt_floor < 0:
-                            shadow[b, row + i] = u
-                        elif s >= min_edge:
-                            out[b, row + i] = out[b, row + i] * np.float32(np.sqrt(u + sqrt_floor))
+                        us[row + i] = u
 
 
 def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc: np.ndarray, unit: float,
