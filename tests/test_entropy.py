@@ -50,9 +50,23 @@ def test_compiled_strip_histograms_equal_the_tensor_path():
     from reeb_torch.stages.entropy import _strip_histograms, _strip_histograms_tensor
 
     gen = torch.Generator().manual_seed(4)
-    level = (torch.rand(3, 17, 40, generator=gen) * 16).long()
+    grey = torch.rand(3, 17, 40, generator=gen)
+    # the edges of the range and of the bins: 0, 1, exact multiples of 1/16 and their neighbours
+    edge_values = torch.tensor([0.0, 1.0, 0.5, 1 / 16, 15 / 16, 0.9999999, 0.0625 - 1e-8, 0.0625 + 1e-8])
+    grey.view(-1)[: len(edge_values)] = edge_values
     bounds = torch.tensor([[0, 10], [5, 25], [20, 40], [0, 40]])
     hist = np.zeros((3, 4, 16), np.float32)
-    _strip_histograms(level.numpy(), bounds.numpy(), hist)
+    _strip_histograms(grey.numpy(), bounds.numpy(), 16, hist)
+    level = (grey * 16).long().clamp_(0, 15)  # the tensor path's levels
     assert torch.equal(torch.from_numpy(hist), _strip_histograms_tensor(level, bounds, 16))
     assert float(hist[:, 3].sum()) == 3 * 17 * 40
+
+
+def test_region_entropy_on_the_cpu_equals_the_tensor_path():
+    # the compiled pass takes the grey levels itself: the same entropies as the tensor ops
+    from reeb_torch.stages.entropy import _entropy_bits, _strip_histograms_tensor, region_entropy
+
+    grey = torch.rand(4, 1, 30, 64, generator=torch.Generator().manual_seed(7))
+    bounds = torch.tensor([[0, 20], [10, 40], [30, 64]])
+    level = (grey[:, 0] * 256).long().clamp_(0, 255)
+    assert torch.equal(region_entropy(grey, bounds), _entropy_bits(_strip_histograms_tensor(level, bounds, 256)))

@@ -8,6 +8,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ._threads import on_two_cores
+
 __all__ = ["region_entropy", "proposal_share"]
 
 
@@ -23,11 +25,15 @@ def region_entropy(gray: Tensor, bounds: Tensor, bins: int = 256) -> Tensor:
     """
     g = gray.reshape(gray.shape[0], -1, gray.shape[-1]) if gray.ndim == 4 else gray
     b, h, w = g.shape
-    level = (g * bins).long().clamp_(0, bins - 1)  # (B, H, W)
-    if g.device.type == "cpu":  # one compiled pass over each strip (the same integer counts)
+    if g.device.type == "cpu" and g.dtype == torch.float32:
+        # one compiled pass per image over each strip, grey levels taken as it goes (the
+        # same levels and integer counts), the two halves of the batch on two cores
         hist_np = np.zeros((b, bounds.shape[0], bins), np.float32)
-        _strip_histograms(level.contiguous().numpy(), bounds.to(torch.int64).contiguous().numpy(), hist_np)
+        src = g.contiguous().numpy()
+        bnd = bounds.to(torch.int64).contiguous().numpy()
+        on_two_cores(lambda lo, hi: _strip_histograms(src[lo:hi], bnd, int(bins), hist_np[lo:hi]), b)
         return _entropy_bits(torch.from_numpy(hist_np))
+    level = (g * bins).long().clamp_(0, bins - 1)  # (B, H, W)
     return _entropy_bits(_strip_histograms_tensor(level, bounds, bins))
 
 
@@ -51,13 +57,21 @@ def _entropy_bits(hist: Tensor) -> Tensor:
 
 
 @numba.njit(cache=True, nogil=True)
-def _strip_histograms(level: np.ndarray, bounds: np.ndarray, hist: np.ndarray) -> None:  # pragma: no cover
-    """Counts of each grey level in each column strip ``[bounds[r, 0], bounds[r, 1])``."""
-    for b in range(level.shape[0]):
+def _strip_histograms(gray: np.ndarray, bounds: np.ndarray, bins: int, hist: np.ndarray) -> None:  # pragma: no cover
+    """Counts of each grey level in each column strip ``[bounds[r, 0], bounds[r, 1])`` of
+    float32 ``gray`` ``(B, H, W)``; a pixel's level is ``(g · bins).long().clamp_(0, bins − 1)``
+    as the tensor path takes it (a float32 product, truncated)."""
+    fb = np.float32(bins)
+    top = bins - 1
+    for b in range(gray.shape[0]):
         for r in range(bounds.shape[0]):
-            for y in range(level.shape[1]):
+            counts = hist[b, r]
+            for y in range(gray.shape[1]):
+                line = gray[b, y]
                 for x in range(bounds[r, 0], bounds[r, 1]):
-                    hist[b, r, level[b, y, x]] += 1.0
+                    lv = int(line[x] * fb)
+                    lv = 0 if lv < 0 else (top if lv > top else lv)
+                    counts[lv] += 1.0
 
 
 def proposal_share(entropy: Tensor, sigma: float = 4.0, form: str = "abs-diff") -> Tensor:

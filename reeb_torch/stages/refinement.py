@@ -63,8 +63,9 @@ def _tables_kernel(b: np.ndarray, x1: np.ndarray, y1: np.ndarray, x2: np.ndarray
                    first: int, anchor: np.ndarray, cut_col: np.ndarray, cut_row: np.ndarray,
                    corner: np.ndarray) -> None:  # pragma: no cover - compiled
     """The four tables of :func:`_enclosed_tables_torch` for images ``first, first + 1, …``:
-    zeroed in order, the same difference entries, then their 2-D prefix sums (every entry
-    is an exact float64 sum, so the order of the additions does not matter)."""
+    zeroed in order, the same difference entries, then their 2-D prefix sums, the four
+    tables a row at a time together (every entry is an exact float64 sum, so the order of
+    the additions does not matter; it is the previous order all the same)."""
     for t in (anchor, cut_col, cut_row, corner):
         t[:] = 0.0
     for g in range(b.shape[0]):
@@ -78,13 +79,56 @@ def _tables_kernel(b: np.ndarray, x1: np.ndarray, y1: np.ndarray, x2: np.ndarray
         corner[i, y1[g] + 1, x2[g] + 1] -= mg
         corner[i, y2[g] + 1, x1[g] + 1] -= mg
         corner[i, y2[g] + 1, x2[g] + 1] += mg
-    for t in (anchor, cut_col, cut_row, corner):
-        for i in range(t.shape[0]):
-            for y in range(t.shape[1]):
-                acc = 0.0
-                for x in range(t.shape[2]):
-                    acc += t[i, y, x]
-                    t[i, y, x] = acc if y == 0 else acc + t[i, y - 1, x]
+    # the 2-D prefix sums, the four tables' rows side by side (four independent running
+    # sums, each entry the row's running sum plus the entry above, as before)
+    hp, wp = corner.shape[1], corner.shape[2]  # H + 2, W + 2
+    h1, w1 = hp - 1, wp - 1  # anchor's shape
+    for i in range(anchor.shape[0]):
+        at, ct, rt, kt = anchor[i], cut_col[i], cut_row[i], corner[i]
+        for y in range(hp):
+            a = 0.0
+            c = 0.0
+            r = 0.0
+            k = 0.0
+            rr, kr = rt[y], kt[y]
+            if y == 0:
+                ar, cr = at[0], ct[0]
+                for x in range(w1):
+                    a += ar[x]
+                    ar[x] = a
+                    c += cr[x]
+                    cr[x] = c
+                    r += rr[x]
+                    rr[x] = r
+                    k += kr[x]
+                    kr[x] = k
+                c += cr[w1]
+                cr[w1] = c
+                k += kr[w1]
+                kr[w1] = k
+                continue
+            rp, kp = rt[y - 1], kt[y - 1]
+            if y < h1:
+                ar, cr, ap, cp = at[y], ct[y], at[y - 1], ct[y - 1]
+                for x in range(w1):
+                    a += ar[x]
+                    ar[x] = a + ap[x]
+                    c += cr[x]
+                    cr[x] = c + cp[x]
+                    r += rr[x]
+                    rr[x] = r + rp[x]
+                    k += kr[x]
+                    kr[x] = k + kp[x]
+                c += cr[w1]
+                cr[w1] = c + cp[w1]
+            else:  # the last row: cut_row and corner only
+                for x in range(w1):
+                    r += rr[x]
+                    rr[x] = r + rp[x]
+                    k += kr[x]
+                    kr[x] = k + kp[x]
+            k += kr[w1]
+            kr[w1] = k + kp[w1]
 
 
 def enclosed_tables(groups: EdgeGroups, batch: int, height: int, width: int) -> EnclosedTables:
