@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 import time
 import warnings
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from typing import Iterator
 
@@ -26,6 +26,8 @@ from ._checks import ImageBatch, check_images
 from ._warm import Notice, warm_picture
 from .config import ReebConfig
 from .ranking import Ranking, ScoreMaps
+from .stages import _scratch
+from .stages._threads import torch_single_threaded
 from .stages import edges as _edges
 from .stages import entropy as _entropy
 from .stages import groups as _groups
@@ -99,6 +101,12 @@ class ProposalGenerator(nn.Module):
 
     * ``boxes``: ``float32 [N, 4]`` (x1, y1, x2, y2) in that image's pixels, ranked;
     * ``scores``: ``float32 [N]``, descending; ``N <= config.top_k``.
+
+    On the CPU a call runs compiled kernels on two threads (the calling thread and one
+    helper), with torch's intra-op threads set to 1 for its duration (restored after), and
+    reuses the previous call's scratch memory for its large intermediate arrays (about
+    8 MB per 1242×375 image, kept per thread; ``reeb_torch.stages._scratch.release()``
+    frees it). The returned tensors never share that memory.
     """
 
     def __init__(self, config: ReebConfig | None = None, **overrides: object) -> None:
@@ -145,16 +153,19 @@ class ProposalGenerator(nn.Module):
     @torch.no_grad()
     def forward(self, images: ImageBatch) -> list[dict[str, Tensor]]:
         imgs = check_images(images, self.min_side, self.config, keep_uint8=True)
-        if imgs[0].device.type == "cpu" and self._warm_key not in _WARM:
+        on_cpu = imgs[0].device.type == "cpu"
+        if on_cpu and self._warm_key not in _WARM:
             self.compile_s += _warm_for(self.config)
         results: list[dict[str, Tensor] | None] = [None] * len(imgs)
         by_size: dict[tuple, list[int]] = {}
         for i, im in enumerate(imgs):
             by_size.setdefault((tuple(im.shape), im.device), []).append(i)
-        for idx in by_size.values():
-            out, _ = self._propose_batch([imgs[i] for i in idx])
-            for i, r in zip(idx, out):
-                results[i] = r
+        with torch_single_threaded() if on_cpu else nullcontext():
+            for idx in by_size.values():
+                with _scratch.reusing():  # the batch's large arrays in last batch's memory; results are copies
+                    out, _ = self._propose_batch([imgs[i] for i in idx])
+                for i, r in zip(idx, out):
+                    results[i] = r
         return results  # type: ignore[return-value]
 
     @torch.no_grad()

@@ -40,6 +40,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .config import ReebConfig
+from .stages import _scratch
 from .stages import refinement as _refinement
 from .stages import rescoring as _rescoring
 from .stages import scoring as _scoring
@@ -102,7 +103,7 @@ class ScoreMaps:
     def integral(self, name: Literal["edges", "grey", "road"]) -> Tensor:
         """The integral image (:func:`~reeb_torch.stages.scoring.integral_image`) of the
         edge map, the grey image or the road mask."""
-        return self._keep(name, lambda: _scoring.integral_image(getattr(self, name)))
+        return self._keep(name, lambda: _scoring.integral_image(getattr(self, name), key=f"integral.{name}"))
 
     def integral_below(self, name: Literal["grey", "road"]) -> Tensor:
         """:meth:`integral` extended past the bottom row (strips below a box read zeros
@@ -203,7 +204,9 @@ class Ranking:
         fx, fy = maps.fx, maps.fy
         plan, denom, loc = self._score_plan(grid, fx, fy, *maps.input_size)
         b = maps.edges.shape[0]
-        out = torch.full((b, grid.count), -math.inf, dtype=torch.float32)
+        out_np = _scratch.empty("score.out", (b, grid.count), np.float32)
+        out_np.fill(-np.inf)  # (numpy's fill: one thread, where torch's would wake its pool)
+        out = torch.from_numpy(out_np)
         road = 1.0 if cfg.road_score == "flat" else 0.0
         ii_grey = shadow = sqrt_floor = None
         if cfg.shadow_score != "none":

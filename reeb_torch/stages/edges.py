@@ -18,6 +18,7 @@ from numba.core import types as _nbtypes
 from numba.extending import intrinsic, overload
 from torch import Tensor
 
+from . import _scratch
 from ._threads import on_two_cores
 
 __all__ = ["working_size", "working_images", "to_gray", "working_gray", "green_mask", "gaussian_blur", "sobel_magnitude",
@@ -82,8 +83,9 @@ def working_gray(images: list[Tensor], scale: float,
     if max(xw.shape[1], yw.shape[1]) > 4:  # scale < 0.5: torch sums longer filters in another order
         return None
     arrays = [im.contiguous().numpy() for im in images]
-    out = np.empty((len(images), 1, ho, wo), np.float32)
-    green = np.empty((len(images), ho + 1, wo + 1) if with_green else (len(images), 0, 0), np.int32)
+    out = _scratch.empty("front.grey", (len(images), 1, ho, wo), np.float32)
+    green = (_scratch.empty("front.green", (len(images), ho + 1, wo + 1), np.int32) if with_green
+             else np.empty((len(images), 0, 0), np.int32))
 
     def run(lo: int, hi: int) -> None:
         for i in range(lo, hi):
@@ -443,10 +445,10 @@ def _edge_map_cpu(gray: Tensor, sigma: float, threshold: float) -> Tensor:
     passes."""
     b, _, h, w = gray.shape
     wts = _blur_weights(sigma, h, w, gray)
-    gx, gy, mag = (np.empty((b, h, w), np.float32) for _ in range(3))
+    gx, gy, mag = (_scratch.empty(f"edges.{name}", (b, h, w), np.float32) for name in ("gx", "gy", "mag"))
     g, wt = gray[:, 0].contiguous().numpy(), wts.contiguous().numpy()
     on_two_cores(lambda lo, hi: _blur_sobel_kernel(g[lo:hi], wt, gx[lo:hi], gy[lo:hi], mag[lo:hi]), b)
-    out = np.empty((b, h, w), np.float32)
+    out = _scratch.empty("edges.out", (b, h, w), np.float32)
     t = np.float32(threshold)
     on_two_cores(lambda lo, hi: _thin_isolated_kernel(mag[lo:hi], gx[lo:hi], gy[lo:hi], t, out[lo:hi]), b)
     return torch.from_numpy(out)

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from . import _scratch
 from ._threads import on_two_cores
 from .groups import EdgeGroups
 
@@ -142,8 +143,8 @@ def enclosed_tables(groups: EdgeGroups, batch: int, height: int, width: int) -> 
     h, w = height, width
     # np.empty, zeroed in order by the kernel: a calloc'd buffer would fault its pages in
     # during the scattered writes instead, which costs more than the whole pass
-    tabs = [np.empty((batch, h + 1, w + 1)), np.empty((batch, h + 1, w + 2)), np.empty((batch, h + 2, w + 1)),
-            np.empty((batch, h + 2, w + 2))]
+    tabs = [_scratch.empty("tables.anchor", (batch, h + 1, w + 1)), _scratch.empty("tables.cut_col", (batch, h + 1, w + 2)),
+            _scratch.empty("tables.cut_row", (batch, h + 2, w + 1)), _scratch.empty("tables.corner", (batch, h + 2, w + 2))]
     fields = [groups.batch, groups.x1, groups.y1, groups.x2, groups.y2, groups.magnitude.to(torch.float64)]
     if len(groups) > 1 and not bool((groups.batch[1:] >= groups.batch[:-1]).all()):
         order = torch.argsort(groups.batch, stable=True)  # image by image (the sums are exact in any order)

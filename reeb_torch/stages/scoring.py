@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from . import _scratch
 from ._radix import kth_largest
 from ._threads import on_two_cores
 from .groups import EdgeGroups
@@ -44,7 +45,7 @@ __all__ = [
     "vegetation_factor",
 ]
 
-def integral_image(x: Tensor) -> Tensor:
+def integral_image(x: Tensor, key: str | None = None) -> Tensor:
     """``(B, H, W)`` → ``float64 (B, H + 1, W + 1)`` with ``ii[:, y, x] = Σ x[:, :y, :x]``.
 
     float64 holds the sums of float32 edge magnitudes exactly (an image's whole edge mass
@@ -52,11 +53,12 @@ def integral_image(x: Tensor) -> Tensor:
 
     On the CPU (float32 input) one compiled pass (numba) per half batch fills the table,
     summing in the order of the tensor ops (along rows, then down columns): the same
-    numbers (tested equal) without the float64 copy and the two intermediate tables."""
+    numbers (tested equal) without the float64 copy and the two intermediate tables; with
+    a ``key``, in a buffer a generator's ``forward`` reuses (:mod:`._scratch`)."""
     b, h, w = x.shape
     if x.device.type == "cpu" and x.dtype == torch.float32 and not x.requires_grad:
         src = x.contiguous().numpy()
-        out = np.empty((b, h + 1, w + 1))
+        out = np.empty((b, h + 1, w + 1)) if key is None else _scratch.empty(key, (b, h + 1, w + 1))
         on_two_cores(lambda lo, hi: _integral_kernel(src[lo:hi], out[lo:hi]), b)
         return torch.from_numpy(out)
     ii = torch.zeros(b, h + 1, w + 1, dtype=torch.float64, device=x.device)
@@ -266,6 +268,81 @@ PLAN_COLUMNS = ("w", "h", "sx", "sy", "nx", "ny", "oy", "offset", "dx", "dy", "c
 """Columns of the ``int64 [S, 19]`` size table :func:`score_grid_cpu` reads, one row per size."""
 
 
+@numba.njit(cache=True, nogil=True, inline="always")  # one function to the compiler
+def _row_edge_scores(e0, e1, a0, a1, c0, c1, r1, k1, nx: int, sx: int, w: int, dx: int, cw: int, unit: float,
+                     d: float, num: np.ndarray, val: np.ndarray) -> None:  # pragma: no cover - compiled
+    """S (eq. 1) of one row of ``nx`` windows into ``val``: the table rows at the window's
+    top and bottom (edge integral ``e``, enclosed-sum tables ``a``, ``c``, ``r``, ``k``) read
+    into ``num`` first, then divided (a loop the compiler vectorises)."""
+    for i in range(nx):
+        x0 = i * sx
+        x1 = x0 + w
+        cx0 = x0 + dx
+        cx1 = cx0 + cw
+        centre = ((e1[cx1] - e0[cx1]) - e1[cx0]) + e0[cx0]
+        a = ((a1[x1] - a0[x1]) - a1[x0]) + a0[x0]
+        col = c1[x1] - c0[x1]
+        rw = r1[x1] - r1[x0]
+        enc = ((a - col) - rw) + k1[x1]
+        num[i] = enc * unit - centre * unit
+    for i in range(nx):
+        val[i] = np.float32(num[i] / d)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")  # one function to the compiler
+def _row_vegetation(g0, g1, nx: int, sx: int, gdx: int, gw: int, inv_area: float, veg_power: int,
+                    fac: np.ndarray) -> None:  # pragma: no cover - compiled
+    """:func:`vegetation_factor` of one row of windows into ``fac`` (green counts ``g``)."""
+    for i in range(nx):
+        gx0 = i * sx + gdx
+        gx1 = gx0 + gw
+        gs = ((g1[gx1] - g0[gx1]) - g1[gx0]) + g0[gx0]
+        q = 1.0 - float(gs) * inv_area
+        f = q
+        for _ in range(veg_power - 1):
+            f = f * q
+        fac[i] = np.float32(f)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")  # one function to the compiler
+def _row_shadow(q0, q1, q2, nx: int, sx: int, w: int, mx: int, below: bool, n_in: float, n_below: float,
+                sqrt_floor: float, s_in: np.ndarray, s_below: np.ndarray, val: np.ndarray, ob: np.ndarray,
+                us: np.ndarray, row: int) -> None:  # pragma: no cover - compiled
+    """The shadow term of one row of windows (grey integral rows ``q0``, ``q1``, ``q2`` at
+    the strip's top, the box bottom and the strip below's bottom; ``below``: a row lies
+    below the box): with ``sqrt_floor >= 0`` V (``val``, ``-inf`` stays) times
+    sqrt(U + floor) into ``ob[row:]``, else V into ``ob[row:]`` and U into ``us[row:]``."""
+    neg_inf = np.float32(-np.inf)
+    for i in range(nx):
+        ax0 = i * sx + mx
+        ax1 = i * sx + w - mx
+        s_in[i] = ((q1[ax1] - q0[ax1]) - q1[ax0]) + q0[ax0]
+        s_below[i] = ((q2[ax1] - q1[ax1]) - q2[ax0]) + q1[ax0]
+    if sqrt_floor < 0:  # U for apply_shadow
+        for i in range(nx):
+            ob[row + i] = val[i]
+            u = 0.0
+            if below:
+                g_in = s_in[i] / n_in
+                g_below = s_below[i] / n_below
+                u = min(max((g_below - g_in) / max(g_below, 1e-3), 0.0), 1.0)
+            us[row + i] = u
+    elif below:
+        for i in range(nx):
+            g_in = s_in[i] / n_in
+            g_below = s_below[i] / n_below
+            t = (g_below - g_in) / (g_below if g_below > 1e-3 else 1e-3)
+            t = t if t > 0.0 else 0.0
+            t = t if t < 1.0 else 1.0
+            v = val[i]
+            ob[row + i] = v * np.float32(np.sqrt(t + sqrt_floor)) if v != neg_inf else neg_inf
+    else:  # no row below the box: U = 0
+        f0 = np.float32(np.sqrt(0.0 + sqrt_floor))
+        for i in range(nx):
+            v = val[i]
+            ob[row + i] = v * f0 if v != neg_inf else neg_inf
+
+
 @numba.njit(cache=True, nogil=True)
 def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, cut_row: np.ndarray,
                        corner: np.ndarray, plan: np.ndarray, denom: np.ndarray, loc: np.ndarray,
@@ -287,61 +364,28 @@ def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, 
     the same operations in the same order as one window at a time."""
     neg_inf = np.float32(-np.inf)
     with_shadow = grey.shape[0] > 0
-    with_green = green.shape[0] > 0
-    shadow_into_v = with_shadow and sqrt_floor >= 0
     hmax = ii.shape[1] - 1
     nmax = 1
     for k in range(plan.shape[0]):
         nmax = max(nmax, plan[k, 4])
-    num = np.empty(nmax, np.float64)  # eq. 1's numerator (input-pixel units)
-    val = np.empty(nmax, np.float32)  # S, then V
-    fac = np.empty(nmax, np.float32)  # the vegetation factor
-    s_in = np.empty(nmax, np.float64)  # grey sums of the bottom strip inside the box
-    s_below = np.empty(nmax, np.float64)  # and of the strip just below it
+    num, s_in, s_below = np.empty(nmax), np.empty(nmax), np.empty(nmax)  # float64 sums
+    val, fac = np.empty(nmax, np.float32), np.empty(nmax, np.float32)  # S then V; the vegetation factor
     for b in range(ii.shape[0]):
         ob = out[b]
+        us = shadow[b] if shadow.shape[0] > 0 else np.empty(0)  # U, where it is not applied here
         for k in range(plan.shape[0]):
             w, h, sx, sy, nx, ny, oy, off, dx, dy, cw, ch, lo, sh, mx, gdx, gdy, gw, gh = plan[k]
-            d = denom[k]
             for j in range(ny):
                 y0 = oy + j * sy
                 y1 = y0 + h
-                cy0 = y0 + dy
-                cy1 = cy0 + ch
                 wl = alpha * loc[lo + j] + beta_r
                 row = off + j * nx
-                e0, e1 = ii[b, cy0], ii[b, cy1]
-                a0, a1 = anchor[b, y0], anchor[b, y1]
-                c0, c1 = cut_col[b, y0], cut_col[b, y1]
-                r1 = cut_row[b, y1]
-                k1 = corner[b, y1]
-                for i in range(nx):
-                    x0 = i * sx
-                    x1 = x0 + w
-                    cx0 = x0 + dx
-                    cx1 = cx0 + cw
-                    centre = ((e1[cx1] - e0[cx1]) - e1[cx0]) + e0[cx0]
-                    a = ((a1[x1] - a0[x1]) - a1[x0]) + a0[x0]
-                    col = c1[x1] - c0[x1]
-                    rw = r1[x1] - r1[x0]
-                    enc = ((a - col) - rw) + k1[x1]
-                    num[i] = enc * unit - centre * unit
-                for i in range(nx):
-                    val[i] = np.float32(num[i] / d)
-                if with_green:
-                    inv_area = 1.0 / float(gw * gh)
-                    gy0 = y0 + gdy
-                    gy1 = gy0 + gh
-                    g0, g1 = green[b, gy0], green[b, gy1]
-                    for i in range(nx):
-                        gx0 = i * sx + gdx
-                        gx1 = gx0 + gw
-                        gs = ((g1[gx1] - g0[gx1]) - g1[gx0]) + g0[gx0]
-                        q = 1.0 - float(gs) * inv_area
-                        f = q
-                        for _ in range(veg_power - 1):
-                            f = f * q
-                        fac[i] = np.float32(f)
+                _row_edge_scores(ii[b, y0 + dy], ii[b, y0 + dy + ch], anchor[b, y0], anchor[b, y1], cut_col[b, y0],
+                                 cut_col[b, y1], cut_row[b, y1], corner[b, y1], nx, sx, w, dx, cw, unit, denom[k],
+                                 num, val)
+                if green.shape[0] > 0:
+                    _row_vegetation(green[b, y0 + gdy], green[b, y0 + gdy + gh], nx, sx, gdx, gw, 1.0 / float(gw * gh),
+                                    veg_power, fac)
                     for i in range(nx):
                         s = val[i]
                         val[i] = (s * wl) * fac[i] if s >= min_edge else neg_inf
@@ -354,39 +398,9 @@ def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, 
                         ob[row + i] = val[i]
                     continue
                 yb = min(y1 + sh, hmax)
-                n_in = float(sh * (w - 2 * mx))
-                n_below = float(max(yb - y1, 1) * (w - 2 * mx))
-                q0, q1, q2 = grey[b, y1 - sh], grey[b, y1], grey[b, yb]
-                for i in range(nx):
-                    ax0 = i * sx + mx
-                    ax1 = i * sx + w - mx
-                    s_in[i] = ((q1[ax1] - q0[ax1]) - q1[ax0]) + q0[ax0]
-                    s_below[i] = ((q2[ax1] - q1[ax1]) - q2[ax0]) + q1[ax0]
-                if shadow_into_v:
-                    if yb > y1:
-                        for i in range(nx):
-                            g_in = s_in[i] / n_in
-                            g_below = s_below[i] / n_below
-                            t = (g_below - g_in) / (g_below if g_below > 1e-3 else 1e-3)
-                            t = t if t > 0.0 else 0.0
-                            t = t if t < 1.0 else 1.0
-                            v = val[i]  # -inf (S below min_edge) stays
-                            ob[row + i] = v * np.float32(np.sqrt(t + sqrt_floor)) if v != neg_inf else neg_inf
-                    else:  # no row below the box: U = 0
-                        f0 = np.float32(np.sqrt(0.0 + sqrt_floor))
-                        for i in range(nx):
-                            v = val[i]
-                            ob[row + i] = v * f0 if v != neg_inf else neg_inf
-                else:
-                    us = shadow[b]
-                    for i in range(nx):
-                        ob[row + i] = val[i]
-                        u = 0.0
-                        if yb > y1:
-                            g_in = s_in[i] / n_in
-                            g_below = s_below[i] / n_below
-                            u = min(max((g_below - g_in) / max(g_below, 1e-3), 0.0), 1.0)
-                        us[row + i] = u
+                _row_shadow(grey[b, y1 - sh], grey[b, y1], grey[b, yb], nx, sx, w, mx, yb > y1,
+                            float(sh * (w - 2 * mx)), float(max(yb - y1, 1) * (w - 2 * mx)), sqrt_floor,
+                            s_in, s_below, val, ob, us, row)
 
 
 def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc: np.ndarray, unit: float,
@@ -515,7 +529,8 @@ def select_per_region_cpu(scores: Tensor, members: np.ndarray, starts: np.ndarra
     image ``b`` and region ``r``, the ``budget[b, r]`` best finite scores among the region's
     windows ``members[starts[r]:starts[r + 1]]`` (ascending window indices; the lower index
     wins a tie at the cut). ``scores``: ``float32 [B, N]``; ``budget``: ``int64 [B, R]``."""
-    chosen = np.zeros(tuple(scores.shape), np.bool_)
+    chosen = _scratch.empty("select.chosen", tuple(scores.shape), np.bool_)
+    chosen.fill(False)
     sc, bu = scores.contiguous().numpy(), budget.contiguous().numpy()
     on_two_cores(lambda lo, hi: _select_kernel(sc[lo:hi], members, starts, bu[lo:hi], chosen[lo:hi]),
                   sc.shape[0])
