@@ -26,3 +26,70 @@ def test_on_two_cores_covers_the_batch_once_nested_and_after_fork():
             os._exit(0)
         os.waitpid(pid, 0)
         assert os.read(r, 2) == b"ok"
+
+
+def test_torch_threads_are_one_inside_a_cpu_call_and_restored_after(sample_image):
+    # issue 20: torch's idle OpenMP workers spun against the kernels' helper thread
+    import pytest
+    import torch
+
+    from reeb_torch import ProposalGenerator
+    from reeb_torch.stages._threads import torch_single_threaded
+
+    before = torch.get_num_threads()
+    seen = []
+    gen = ProposalGenerator(top_k=50)
+    real = gen._propose_batch
+    gen._propose_batch = lambda *a, **k: (seen.append(torch.get_num_threads()), real(*a, **k))[1]
+    gen([sample_image[:, :200, :400]])
+    assert seen == [1] and torch.get_num_threads() == before
+    with pytest.raises(RuntimeError):  # restored when the block raises, and nested blocks restore once
+        with torch_single_threaded():
+            with torch_single_threaded():
+                assert torch.get_num_threads() == 1
+            assert torch.get_num_threads() == 1
+            raise RuntimeError
+    assert torch.get_num_threads() == before
+
+
+def test_scratch_memory_is_reused_only_inside_the_outermost_block():
+    import numpy as np
+
+    from reeb_torch.stages import _scratch
+
+    outside = _scratch.empty("t.a", (3, 4))
+    with _scratch.reusing():
+        a = _scratch.empty("t.a", (3, 4))
+        with _scratch.reusing():  # a nested call (a first call's warm-up) gets its own arrays
+            assert not np.shares_memory(_scratch.empty("t.a", (3, 4)), a)
+        b = _scratch.empty("t.b", (2, 2), np.int32)
+    with _scratch.reusing():
+        again = _scratch.empty("t.a", (2, 5), np.float32)  # the same memory, any dtype and shape
+        bigger = _scratch.empty("t.b", (100, 100), np.int32)
+    assert np.shares_memory(a, again) and not np.shares_memory(a, outside)
+    assert not np.shares_memory(b, bigger) and bigger.shape == (100, 100) and bigger.flags.c_contiguous
+    _scratch.release()
+    with _scratch.reusing():
+        assert not np.shares_memory(_scratch.empty("t.a", (3, 4)), a)
+
+
+def test_results_and_kept_maps_do_not_share_the_reused_memory(sample_image):
+    # a second call must not change what the first returned, nor the maps inspect keeps
+    import torch
+
+    from reeb_torch import ProposalGenerator
+
+    gen = ProposalGenerator(top_k=300)
+    a, b = sample_image[:, :220, :500], sample_image[:, 120:340, 600:1100]
+    first = gen([a, a.flip(-1)])
+    kept = [{k: v.clone() for k, v in r.items()} for r in first]
+    front = gen._front_end([a])  # what reeb tune caches per frame
+    edges = front[1].edges.clone()
+    tables = front[1].tables().anchor.clone()
+    gen([b, b.flip(-1)])
+    for r, k in zip(first, kept):
+        assert torch.equal(r["boxes"], k["boxes"]) and torch.equal(r["scores"], k["scores"])
+    assert torch.equal(front[1].edges, edges) and torch.equal(front[1].tables().anchor, tables)
+    again = gen._back_end([a], front)[0][0]
+    alone = ProposalGenerator(top_k=300)([a])[0]
+    assert torch.equal(again["boxes"], alone["boxes"]) and torch.equal(again["scores"], alone["scores"])
