@@ -124,9 +124,11 @@ def test_generator_candidates_equal_torchvision():
             caught.append((boxes[cand], scores[i, cand], iou, k))
         return orig(chosen, boxes, scores, iou, k)
 
+    gen = ProposalGenerator(get_preset("default-no-regions"))
+    gen([read_image(path)])  # a first call warms the kernels up on a picture of its own, not to be caught
     orig, R.nms_windows_cpu = R.nms_windows_cpu, spy
     try:
-        out = ProposalGenerator(get_preset("default-no-regions"))([read_image(path)])
+        out = gen([read_image(path)])
     finally:
         R.nms_windows_cpu = orig
     assert caught
@@ -207,3 +209,23 @@ def test_descending_radix_order_equals_torch_stable_sort():
             v[:2] = torch.tensor([float("inf"), float("-inf")])
         ref = torch.sort(v, descending=True, stable=True).indices
         assert torch.equal(torch.from_numpy(descending_order(v.numpy())), ref), n
+
+
+def test_nms_windows_cpu_sorts_a_prefix_first_and_all_when_it_keeps_too_few():
+    # issue 20: only the best 3k candidates are sorted first; when they hold fewer than k
+    # distinct boxes (here the best 40 are one box) it falls back to all: same windows
+    from reeb_torch.stages.nms import nms_windows_cpu
+
+    gen = torch.Generator().manual_seed(5)
+    n = 600
+    xy = torch.rand(n, 2, generator=gen) * 500
+    boxes = torch.cat([xy, xy + torch.rand(n, 2, generator=gen) * 80 + 5], 1)
+    boxes[:40] = torch.tensor([10.0, 10.0, 60.0, 60.0])
+    scores = torch.rand(2, n, generator=gen)
+    scores[:, :40] += 2.0  # the duplicates rank first
+    scores[1, 100:300] = 0.5  # ties across the prefix's cut
+    chosen = torch.ones(2, n, dtype=torch.bool)
+    for k in (5, 12, 30, 200):
+        got = nms_windows_cpu(chosen, boxes, scores, 0.7, k)
+        for i in range(2):
+            assert torch.equal(got[i], nms_top_k(boxes, scores[i], 0.7, k)), (i, k)
