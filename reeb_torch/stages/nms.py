@@ -5,9 +5,10 @@ returns exactly ``torchvision.ops.nms(boxes, scores, iou)[:k]`` (equal scores ke
 order, as torchvision's CPU kernel does), by one of two paths:
 
 * **CPU, ``iou >= 0.5``: a grid-bucketed greedy NMS compiled with numba.** If the IoU of
-  two boxes exceeds 0.5, their intersection spans more than half of each box's width and
-  height, so each box contains the other's centre. Every kept box is registered in the
-  grid cells it covers (with a small margin against rounding), and a candidate is tested
+  two boxes exceeds t >= 0.5, their intersection spans more than t times the wider
+  one's width (and the taller one's height), so their centres lie less than (1 − t) times
+  either box's width (height) apart. Every kept box is registered in the grid cells within
+  that reach of its centre (with a small margin against rounding), and a candidate is tested
   only against the kept boxes registered in its centre's cell and in the adjacent
   log-width/log-height bins (IoU > t also needs width and height ratios > t), with torchvision's IoU
   arithmetic in the boxes' dtype; the loop stops once ``k`` boxes are kept. The first call
@@ -109,13 +110,18 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pr
         nk += 1
         if nk == k:
             break
-        # register box i in every cell it covers, with a margin for rounding
-        mx = 0.01 * (float(ix2) - float(ix1)) + 1e-6 * (abs(float(ix1)) + abs(float(ix2)) + cs)
-        my = 0.01 * (float(iy2) - float(iy1)) + 1e-6 * (abs(float(iy1)) + abs(float(iy2)) + cs)
-        ca = min(max(int((float(ix1) - mx - x0) / cs), 0), gw - 1)
-        cb = min(max(int((float(ix2) + mx - x0) / cs), 0), gw - 1)
-        ra = min(max(int((float(iy1) - my - y0) / cs), 0), gh - 1)
-        rb = min(max(int((float(iy2) + my - y0) / cs), 0), gh - 1)
+        # register box i in the cells a box it suppresses can have its centre in, with a
+        # margin for rounding: IoU > t >= 0.5 needs the widths to overlap by more than
+        # t·max(w), so the centres lie less than (1 − t)·w_i apart (the heights likewise)
+        wi, hi = float(ix2) - float(ix1), float(iy2) - float(iy1)  # (bw is the size bins' width)
+        mx = 0.01 * wi + 1e-6 * (abs(float(ix1)) + abs(float(ix2)) + cs)
+        my = 0.01 * hi + 1e-6 * (abs(float(iy1)) + abs(float(iy2)) + cs)
+        ccx, ccy = 0.5 * (float(ix1) + float(ix2)), 0.5 * (float(iy1) + float(iy2))
+        reach = 1.0 - iou
+        ca = min(max(int((ccx - reach * wi - mx - x0) / cs), 0), gw - 1)
+        cb = min(max(int((ccx + reach * wi + mx - x0) / cs), 0), gw - 1)
+        ra = min(max(int((ccy - reach * hi - my - y0) / cs), 0), gh - 1)
+        rb = min(max(int((ccy + reach * hi + my - y0) / cs), 0), gh - 1)
         need = used + (cb - ca + 1) * (rb - ra + 1)
         if need > cap:
             cap = max(2 * cap, need)
