@@ -39,7 +39,7 @@ def descending_order(vals: np.ndarray) -> np.ndarray:  # pragma: no cover - comp
     tmp_keys = np.empty(n, np.uint32)
     count = np.empty(2048, np.int64)
     for shift in (0, 11, 22):
-        count[:] = 0
+        count.fill(0)
         for i in range(n):
             count[(keys[i] >> shift) & 2047] += 1
         total = 0
@@ -69,7 +69,7 @@ def kth_largest(vals: np.ndarray, k: int) -> np.float32:  # pragma: no cover - c
     prefix = np.uint32(0)
     mask = np.uint32(0)
     for shift, bits in ((21, 11), (10, 11), (0, 10)):
-        count[:] = 0
+        count.fill(0)
         top = np.uint32((1 << bits) - 1)
         for i in range(n):
             kk = keys[i]

@@ -191,7 +191,7 @@ def _working_gray_kernel(img: np.ndarray, lut: np.ndarray, xlo: np.ndarray, xn: 
             line[i] = _fma(lb[i], wb, _fma(lg[i], wg, lr[i] * wr))
         if green.shape[0] > 0:
             if yo == 0:
-                green[0, :] = 0
+                green[0].fill(0)
             above, below = green[yo], green[yo + 1]
             below[0] = 0
             run = 0

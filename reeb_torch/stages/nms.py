@@ -52,21 +52,26 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pr
     keep = np.empty(min(n, k), np.int64)
     if n == 0 or k <= 0:
         return keep[:0]
-    x1 = boxes[:, 0].copy()
-    y1 = boxes[:, 1].copy()
-    x2 = boxes[:, 2].copy()
-    y2 = boxes[:, 3].copy()
-    areas = (x2 - x1) * (y2 - y1)  # as torchvision: in the boxes' dtype
+    # plain loops, no array expressions: each of those is a function of its own to compile
+    x1 = np.empty(n, boxes.dtype)
+    y1 = np.empty(n, boxes.dtype)
+    x2 = np.empty(n, boxes.dtype)
+    y2 = np.empty(n, boxes.dtype)
+    areas = np.empty(n, boxes.dtype)
+    x0, y0, xe, ye, wmax = np.inf, np.inf, -np.inf, -np.inf, 1e-6
+    for i in range(n):
+        a, b, c, d = boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3]
+        x1[i], y1[i], x2[i], y2[i] = a, b, c, d
+        areas[i] = (c - a) * (d - b)  # as torchvision: in the boxes' dtype
+        x0, y0 = min(x0, float(a)), min(y0, float(b))
+        xe, ye = max(xe, float(c)), max(ye, float(d))
+        # size bins: IoU > t implies min/max width > t and min/max height > t, so with bins of
+        # log-size at least -log(t) wide (a margin against rounding), partners sit in adjacent bins
+        wmax = max(wmax, float(c - a), float(d - b))
     zero = areas[0] - areas[0]  # 0 in the boxes' dtype (max(float32, 0) would widen)
-    x0 = float(x1.min())
-    y0 = float(y1.min())
-    ext = max(float(x2.max()) - x0, float(y2.max()) - y0, 1e-6)
-    cs = ext / _GRID_CELLS
-    gw = min(int((float(x2.max()) - x0) / cs) + 1, _GRID_CELLS + 1)
-    gh = min(int((float(y2.max()) - y0) / cs) + 1, _GRID_CELLS + 1)
-    # size bins: IoU > t implies min/max width > t and min/max height > t, so with bins of
-    # log-size at least -log(t) wide (a margin against rounding), partners sit in adjacent bins
-    wmax = max(float((x2 - x1).max()), float((y2 - y1).max()), 1e-6)
+    cs = max(xe - x0, ye - y0, 1e-6) / _GRID_CELLS
+    gw = min(int((xe - x0) / cs) + 1, _GRID_CELLS + 1)
+    gh = min(int((ye - y0) / cs) + 1, _GRID_CELLS + 1)
     floor_ = wmax * 1e-4
     span = np.log(wmax / floor_)
     bw = max(-np.log(min(iou, 0.999)) * 1.01 + 1e-9, span / (_SIZE_BINS - 0.5))
@@ -127,8 +132,9 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pr
             cap = max(2 * cap, need)
             new_box = np.empty(cap, np.int64)
             new_next = np.empty(cap, np.int64)
-            new_box[:used] = ent_box[:used]
-            new_next[:used] = ent_next[:used]
+            for e in range(used):  # a loop, not a slice assignment: that one costs seconds to compile
+                new_box[e] = ent_box[e]
+                new_next[e] = ent_next[e]
             ent_box, ent_next = new_box, new_next
         for r in range(ra, rb + 1):
             for c in range(ca, cb + 1):

@@ -68,7 +68,7 @@ def _tables_kernel(b: np.ndarray, x1: np.ndarray, y1: np.ndarray, x2: np.ndarray
     tables a row at a time together (every entry is an exact float64 sum, so the order of
     the additions does not matter; it is the previous order all the same)."""
     for t in (anchor, cut_col, cut_row, corner):
-        t[:] = 0.0
+        t.fill(0.0)
     for g in range(b.shape[0]):
         i, mg = b[g] - first, m[g]
         anchor[i, y1[g] + 1, x1[g] + 1] += mg

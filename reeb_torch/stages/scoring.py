@@ -87,7 +87,7 @@ def _integral_kernel(x: np.ndarray, out: np.ndarray) -> None:  # pragma: no cove
     row's running sum, in ``out``'s type, added to the row above's table entry."""
     nb, h, w = x.shape
     for b in range(nb):
-        out[b, 0, :] = 0
+        out[b, 0].fill(0)
         for i in range(h):
             out[b, i + 1, 0] = 0
             run = out[b, i + 1, 0]  # 0 in out's type
