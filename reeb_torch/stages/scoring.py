@@ -436,12 +436,33 @@ def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc:
     consts = (plan, denom, loc, float(unit), f32(alpha), f32(beta_r), f32(min_edge))
     sq = -1.0 if sqrt_floor is None else float(sqrt_floor)
 
-    def run(lo: int, hi: int) -> None:
-        _score_grid_kernel(*(a[lo:hi] for a in per_image), *consts, out.numpy()[lo:hi],
-                           g[lo:hi] if g.shape[0] else g, u[lo:hi] if u.shape[0] else u, sq,
-                           gr[lo:hi] if gr.shape[0] else gr, int(veg_power))
+    if ii.shape[0] % 2 == 0:  # the two cores take half the images each (each its own tables)
 
-    on_two_cores(run, ii.shape[0])
+        def run(lo: int, hi: int) -> None:
+            _score_grid_kernel(*(a[lo:hi] for a in per_image), *consts, out.numpy()[lo:hi],
+                               g[lo:hi] if g.shape[0] else g, u[lo:hi] if u.shape[0] else u, sq,
+                               gr[lo:hi] if gr.shape[0] else gr, int(veg_power))
+
+        on_two_cores(run, ii.shape[0])
+        return
+    # an odd batch (one image: the latency a detector sees): every other window size each,
+    # for every image (each size writes its own part of ``out``)
+    parts = _split_plan(plan, denom)
+
+    def run_sizes(lo: int, hi: int) -> None:
+        for p, d in parts[lo:hi]:
+            if p.shape[0]:
+                _score_grid_kernel(*per_image, p, d, *consts[2:], out.numpy(), g, u, sq, gr, int(veg_power))
+
+    on_two_cores(run_sizes, len(parts))
+
+
+def _split_plan(plan: np.ndarray, denom: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The size table's rows (and their normalisers) in two parts, every other size each
+    (neighbouring sizes cost about the same, so the parts do too)."""
+    if plan.shape[0] < 2:
+        return [(plan, denom)]
+    return [(np.ascontiguousarray(plan[i::2]), np.ascontiguousarray(denom[i::2])) for i in (0, 1)]
 
 
 def shadow_strips(w: int, h: int, strip: float, margin: float) -> tuple[int, int]:
