@@ -671,10 +671,17 @@ class Ranking:
         for i, ((bx, sc), keep_idx, win) in enumerate(zip(pairs, kept, windows)):
             if quota:
                 keep_idx = self.quota(keep_idx, region_of[win], share[i])[: cfg.top_k]
-            boxes = bx[keep_idx].contiguous()  # a copy (indexed): clamped in place below
             # the contract 0 <= x1 < x2 <= W, 0 <= y1 < y2 <= H in input pixels: a window on
             # the last working column maps back to W plus a rounding error (odd sides at
             # scale 0.5: 99.0000076 for W = 99); after NMS, so the ranking is unchanged
+            if bx.device.type == "cpu":  # numpy's take and clip: the same copies, without torch's pool
+                idx = keep_idx.numpy()
+                b_np = np.take(bx.numpy(), idx, axis=0)
+                np.clip(b_np[:, 0::2], 0.0, float(w_in), out=b_np[:, 0::2])
+                np.clip(b_np[:, 1::2], 0.0, float(h_in), out=b_np[:, 1::2])
+                results.append({"boxes": torch.from_numpy(b_np), "scores": torch.from_numpy(np.take(sc.numpy(), idx))})
+                continue
+            boxes = bx[keep_idx].contiguous()  # a copy (indexed): clamped in place below
             boxes[:, 0::2] = boxes[:, 0::2].clamp(0.0, float(w_in))
             boxes[:, 1::2] = boxes[:, 1::2].clamp(0.0, float(h_in))
             results.append({"boxes": boxes, "scores": sc[keep_idx].contiguous()})
