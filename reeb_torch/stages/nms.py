@@ -238,17 +238,17 @@ def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k
     ch = chosen.contiguous().numpy()
     bx = boxes.contiguous().numpy()
     sc = scores.contiguous().numpy()
-    out: list[np.ndarray] = [np.empty(0, np.int64)] * ch.shape[0]
+    out: list[np.ndarray | None] = [np.empty(0, np.int64)] * ch.shape[0]
     boxes_ok = bool(np.isfinite(bx).all() and (bx[:, 2] >= bx[:, 0]).all() and (bx[:, 3] >= bx[:, 1]).all())
 
     def run(lo: int, hi: int) -> None:
         for i in range(lo, hi):
-            out[i] = _nms_windows_kernel(ch[i], bx, sc[i], float(iou), int(k), boxes_ok)
+            out[i] = _nms_window_image(ch[i], bx, sc[i], float(iou), int(k), boxes_ok)
 
     on_two_cores(run, ch.shape[0])
     result = []
     for i, keep in enumerate(out):
-        if len(keep) == 1 and keep[0] < 0:  # NaN or bad boxes: the checked path
+        if keep is None:  # NaN or bad boxes: the checked path
             cand = torch.nonzero(chosen[i]).squeeze(1)
             result.append(cand[nms_top_k(boxes[cand], scores[i, cand], iou, k)])
         else:
@@ -257,45 +257,52 @@ def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k
 
 
 _PREFIX = 3
-"""The compiled window NMS first sorts only the best ``_PREFIX · k`` candidates (greedy NMS
-decides a box from the boxes ranked above it, so a prefix of the ranking gives the same
-first boxes); on KITTI the 2000th kept box is about the 4800th candidate of 17 000–34 000.
-Only if the prefix keeps fewer than ``k`` does it sort and suppress all of them."""
+"""The window NMS first sorts only the best ``_PREFIX · k`` candidates (greedy NMS decides a
+box from the boxes ranked above it, so a prefix of the ranking gives the same first boxes);
+on KITTI the 2000th kept box is about the 4800th candidate of 17 000–34 000. Only if the
+prefix keeps fewer than ``k`` does it sort and suppress all of them."""
 
 
-@numba.njit(cache=True, nogil=True)
-def _nms_windows_kernel(chosen: np.ndarray, boxes: np.ndarray, scores: np.ndarray, iou: float,
-                        k: int, boxes_ok: bool) -> np.ndarray:  # pragma: no cover - compiled
-    """:func:`nms_windows_cpu` for one image; ``[-1]`` where the checked path must run.
+def _nms_window_image(chosen: np.ndarray, boxes: np.ndarray, scores: np.ndarray, iou: float, k: int,
+                      boxes_ok: bool) -> np.ndarray | None:
+    """:func:`nms_windows_cpu` for one image, in compiled steps (each its own kernel, so each
+    compiles on its own and quickly); ``None`` where the checked path must run.
     ``boxes_ok``: every row of ``boxes`` is finite with ``x1 <= x2, y1 <= y2`` (checked
     once per batch), so only the best ``_PREFIX · k`` candidates need sorting first."""
-    cand = np.nonzero(chosen)[0]
-    n = cand.shape[0]
-    vals = np.empty(n, np.float32)
-    for j in range(n):
-        v = scores[cand[j]]
-        if np.isnan(v):
-            return np.full(1, -1, np.int64)
-        vals[j] = v
+    cand, vals, has_nan = _candidate_scores(chosen, scores)
+    if has_nan:
+        return None
     m = _PREFIX * k
-    if boxes_ok and 0 < m < n:
-        t = kth_largest(vals, m)
-        sub = np.nonzero(vals >= t)[0]  # the best m and their ties, in window order
-        keep, order, sel = _nms_of(sub, cand, vals, boxes, iou, k)
-        if keep.shape[0] == k:
-            return _windows_of(keep, order, sel, cand)
-    keep, order, sel = _nms_of(np.arange(n), cand, vals, boxes, iou, k)
-    if keep.shape[0] == 1 and keep[0] < 0:
-        return keep
-    return _windows_of(keep, order, sel, cand)
+    if boxes_ok and 0 < m < len(cand):
+        sel = np.flatnonzero(vals >= kth_largest(vals, m))  # the best m and their ties, in window order
+        order, sb, ok = _sorted_boxes(sel, cand, vals, boxes)
+        keep = _grid_nms_sorted(sb, iou, k)
+        if len(keep) == k:
+            return cand[sel[order[keep]]]
+    sel = np.arange(len(cand))
+    order, sb, ok = _sorted_boxes(sel, cand, vals, boxes)
+    if not ok:
+        return None
+    return cand[order[_grid_nms_sorted(sb, iou, k)]]
 
 
 @numba.njit(cache=True, nogil=True)
-def _nms_of(sel: np.ndarray, cand: np.ndarray, vals: np.ndarray, boxes: np.ndarray, iou: float,
-            k: int):  # pragma: no cover - compiled
-    """Greedy NMS of the candidates ``cand[sel]`` (scores ``vals[sel]``), sorted by a stable
-    radix sort: the kept positions in that order, the order and ``sel``; ``[-1]`` when a
-    box is not finite with ``x1 <= x2, y1 <= y2``."""
+def _candidate_scores(chosen: np.ndarray, scores: np.ndarray):  # pragma: no cover - compiled
+    """The chosen windows (ascending), their float32 scores, and whether one is NaN."""
+    cand = np.nonzero(chosen)[0]
+    vals = np.empty(cand.shape[0], np.float32)
+    for j in range(cand.shape[0]):
+        v = scores[cand[j]]
+        if np.isnan(v):
+            return cand, vals, True
+        vals[j] = v
+    return cand, vals, False
+
+
+@numba.njit(cache=True, nogil=True)
+def _sorted_boxes(sel: np.ndarray, cand: np.ndarray, vals: np.ndarray, boxes: np.ndarray):  # pragma: no cover
+    """The stable descending order of ``vals[sel]`` (radix sort), the boxes of
+    ``cand[sel]`` in that order, and whether all are finite with ``x1 <= x2, y1 <= y2``."""
     n = sel.shape[0]
     sv = np.empty(n, np.float32)
     for j in range(n):
@@ -306,16 +313,6 @@ def _nms_of(sel: np.ndarray, cand: np.ndarray, vals: np.ndarray, boxes: np.ndarr
         src = cand[sel[order[j]]]
         a, b, c, d = boxes[src, 0], boxes[src, 1], boxes[src, 2], boxes[src, 3]
         if not (np.isfinite(a) and np.isfinite(b) and np.isfinite(c) and np.isfinite(d) and c >= a and d >= b):
-            return np.full(1, -1, np.int64), order, sel
+            return order, sb, False
         sb[j, 0], sb[j, 1], sb[j, 2], sb[j, 3] = a, b, c, d
-    return _grid_nms_sorted(sb, iou, k), order, sel
-
-
-@numba.njit(cache=True, nogil=True)
-def _windows_of(keep: np.ndarray, order: np.ndarray, sel: np.ndarray,
-                cand: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
-    """The windows ``cand[sel[order[keep]]]``."""
-    out = np.empty(keep.shape[0], np.int64)
-    for j in range(keep.shape[0]):
-        out[j] = cand[sel[order[keep[j]]]]
-    return out
+    return order, sb, True
