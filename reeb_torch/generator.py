@@ -12,6 +12,7 @@ sizes is split into equal-size batches.
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
 import warnings
 from contextlib import contextmanager, nullcontext
@@ -27,7 +28,7 @@ from ._warm import Notice, warm_picture
 from .config import ReebConfig
 from .ranking import Ranking, ScoreMaps
 from .stages import _scratch
-from .stages._threads import torch_single_threaded
+from .stages._threads import on_two_cores, serially, torch_single_threaded
 from .stages import edges as _edges
 from .stages import entropy as _entropy
 from .stages import groups as _groups
@@ -46,6 +47,7 @@ FRONT_END_FIELDS: tuple[str, ...] = (
 configs equal in these share that work (``reeb tune`` computes it once per frame)."""
 
 
+_STAGE_LOCK = threading.Lock()  # stage_times is written by both halves of a CPU batch
 _WARM: set[tuple] = set()  # kernel keys (_kernel_key) of the configs this process has warmed up
 
 
@@ -103,7 +105,9 @@ class ProposalGenerator(nn.Module):
     * ``scores``: ``float32 [N]``, descending; ``N <= config.top_k``.
 
     On the CPU a call runs compiled kernels on two threads (the calling thread and one
-    helper), with torch's intra-op threads set to 1 for its duration (restored after), and
+    helper, each taking half the images through the whole algorithm; one image has each
+    kernel's work split instead), with torch's intra-op threads set to 1 for its duration
+    (restored after), and
     reuses the previous call's scratch memory for its large intermediate arrays (about
     8 MB per 1242×375 image, kept per thread; ``reeb_torch.stages._scratch.release()``
     frees it). The returned tensors never share that memory.
@@ -123,9 +127,11 @@ class ProposalGenerator(nn.Module):
         self.compile_s: float = 0.0
         """Seconds the first CPU call spent compiling the kernels (or loading them from
         their cache: :func:`warmup`) before its own work; not in :attr:`stage_times`."""
+        self._time_share = 1.0
         self.stage_times: dict[str, float] | None = None
         """Set to ``{}`` to accumulate wall seconds per stage (edges, groups, road,
-        regions, scoring, refine, nms) over calls; ``None`` (default) records nothing."""
+        regions, scoring, refine, nms) over calls; ``None`` (default) records nothing. Where
+        the two halves of a CPU batch run side by side, each records half its time."""
 
     @contextmanager
     def _stage(self, name: str, device: torch.device) -> Iterator[None]:
@@ -135,10 +141,12 @@ class ProposalGenerator(nn.Module):
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         t0 = time.perf_counter()
+        share = self._time_share
         yield
         if device.type == "cuda":
             torch.cuda.synchronize(device)
-        self.stage_times[name] = self.stage_times.get(name, 0.0) + time.perf_counter() - t0
+        with _STAGE_LOCK:
+            self.stage_times[name] = self.stage_times.get(name, 0.0) + (time.perf_counter() - t0) * share
 
     def extra_repr(self) -> str:
         c = self.config
@@ -157,16 +165,38 @@ class ProposalGenerator(nn.Module):
         if on_cpu and self._warm_key not in _WARM:
             self.compile_s += _warm_for(self.config)
         results: list[dict[str, Tensor] | None] = [None] * len(imgs)
-        by_size: dict[tuple, list[int]] = {}
-        for i, im in enumerate(imgs):
-            by_size.setdefault((tuple(im.shape), im.device), []).append(i)
-        with torch_single_threaded() if on_cpu else nullcontext():
-            for idx in by_size.values():
-                with _scratch.reusing():  # the batch's large arrays in last batch's memory; results are copies
-                    out, _ = self._propose_batch([imgs[i] for i in idx])
-                for i, r in zip(idx, out):
-                    results[i] = r
+        if not on_cpu:
+            self._run_sizes(imgs, range(len(imgs)), results)
+            return results  # type: ignore[return-value]
+        # the CPU: each core takes half the images through the whole algorithm (its kernels
+        # run serially there), so the two meet once per call, whatever the image sizes; one
+        # image has its kernels split between the cores instead
+        half = (len(imgs) + 1) // 2
+
+        def run(lo: int, hi: int) -> None:
+            for part in range(lo, hi):
+                with serially():
+                    self._run_sizes(imgs, range(part * half, min(len(imgs), (part + 1) * half)), results, 0.5)
+
+        with torch_single_threaded():
+            if len(imgs) == 1:
+                self._run_sizes(imgs, range(1), results)
+            else:
+                on_two_cores(run, 2)
         return results  # type: ignore[return-value]
+
+    def _run_sizes(self, imgs: list[Tensor], which: range, results: list, share: float = 1.0) -> None:
+        """The images ``which`` of ``imgs``, a batch per image size, into ``results``;
+        ``share`` of each stage's time is recorded (1/2 where two threads run side by side)."""
+        by_size: dict[tuple, list[int]] = {}
+        for i in which:
+            by_size.setdefault((tuple(imgs[i].shape), imgs[i].device), []).append(i)
+        self._time_share = share
+        for idx in by_size.values():
+            with _scratch.reusing():  # the batch's large arrays in last batch's memory; results are copies
+                out, _ = self._propose_batch([imgs[i] for i in idx])
+            for i, r in zip(idx, out):
+                results[i] = r
 
     @torch.no_grad()
     def inspect(self, image: Tensor) -> Inspection:

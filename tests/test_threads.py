@@ -93,3 +93,21 @@ def test_results_and_kept_maps_do_not_share_the_reused_memory(sample_image):
     again = gen._back_end([a], front)[0][0]
     alone = ProposalGenerator(top_k=300)([a])[0]
     assert torch.equal(again["boxes"], alone["boxes"]) and torch.equal(again["scores"], alone["scores"])
+
+
+def test_a_mixed_batch_split_between_the_cores_equals_each_image_alone(sample_image):
+    # each core takes half the images (grouped by size within its half): the same boxes and
+    # scores as one image at a time, in the caller's order
+    import torch
+
+    from reeb_torch import ProposalGenerator
+
+    crops = [sample_image[:, :200, :400], sample_image[:, 100:300, 300:700], sample_image[:, :180, :360],
+             sample_image[:, 150:350, 600:1000], sample_image[:, 50:230, 800:1160]]
+    gen = ProposalGenerator(top_k=200)
+    gen.stage_times = {}
+    both = gen(crops)
+    assert set(gen.stage_times) == {"edges", "groups", "regions", "scoring", "nms"}
+    for crop, got in zip(crops, both):
+        alone = gen([crop])[0]
+        assert torch.equal(got["boxes"], alone["boxes"]) and torch.equal(got["scores"], alone["scores"])

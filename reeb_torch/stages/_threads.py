@@ -10,7 +10,7 @@ from typing import Callable, Iterator
 
 import torch
 
-__all__ = ["on_two_cores", "torch_single_threaded"]
+__all__ = ["on_two_cores", "torch_single_threaded", "serially"]
 
 _pool: ThreadPoolExecutor | None = None
 _lock = threading.Lock()
@@ -42,7 +42,7 @@ def on_two_cores(run: Callable[[int, int], None], b: int) -> None:
     refinement): a compiled kernel that releases the GIL runs on the two halves at once
     (the items are independent, so the numbers are the same as in one call). Calls from several threads share the helper thread (their
     second halves queue); a call from the helper thread itself runs serially."""
-    if b < 2 or getattr(_inside, "worker", False):
+    if b < 2 or getattr(_inside, "worker", False) or getattr(_inside, "serial", False):
         run(0, b)
         return
     half = (b + 1) // 2
@@ -80,3 +80,15 @@ def torch_single_threaded() -> Iterator[None]:
             _torch_users -= 1
             if _torch_users == 0 and _torch_saved != 1:
                 torch.set_num_threads(_torch_saved)
+
+
+@contextmanager
+def serially() -> Iterator[None]:
+    """Within the block, :func:`on_two_cores` runs its work in the calling thread (for a
+    caller that keeps the other core busy with work of its own)."""
+    before = getattr(_inside, "serial", False)
+    _inside.serial = True
+    try:
+        yield
+    finally:
+        _inside.serial = before
