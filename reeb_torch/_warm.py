@@ -14,7 +14,7 @@ __all__ = ["warm_picture", "Notice", "COMPILE_ESTIMATE_S"]
 
 #: What compiling every kernel of the default took (``reeb warmup`` with an empty cache:
 #: 56 s on two cores shared with other work, about 20 s on quiet ones); the notice says it.
-COMPILE_ESTIMATE_S = "20-60 s"
+COMPILE_ESTIMATE_S = "30-60 s"
 
 
 def warm_picture(height: int = 160, width: int = 480) -> torch.Tensor:
