@@ -84,6 +84,8 @@ def _tables_kernel(b: np.ndarray, x1: np.ndarray, y1: np.ndarray, x2: np.ndarray
     # sums, each entry the row's running sum plus the entry above, as before)
     hp, wp = corner.shape[1], corner.shape[2]  # H + 2, W + 2
     h1, w1 = hp - 1, wp - 1  # anchor's shape
+    zero = np.zeros(wp)  # the row above row 0 (adding +0.0 to a running sum changes no bit)
+    spare = np.zeros((2, wp))  # anchor's and cut_col's stand-ins on the last row (only theirs)
     for i in range(anchor.shape[0]):
         at, ct, rt, kt = anchor[i], cut_col[i], cut_row[i], corner[i]
         for y in range(hp):
@@ -91,43 +93,23 @@ def _tables_kernel(b: np.ndarray, x1: np.ndarray, y1: np.ndarray, x2: np.ndarray
             c = 0.0
             r = 0.0
             k = 0.0
+            if y == h1:
+                spare.fill(0.0)
+            ar, cr = (at[y], ct[y]) if y < h1 else (spare[0], spare[1])
+            ap, cp = (at[y - 1], ct[y - 1]) if 0 < y < h1 else (zero, zero)
             rr, kr = rt[y], kt[y]
-            if y == 0:
-                ar, cr = at[0], ct[0]
-                for x in range(w1):
-                    a += ar[x]
-                    ar[x] = a
-                    c += cr[x]
-                    cr[x] = c
-                    r += rr[x]
-                    rr[x] = r
-                    k += kr[x]
-                    kr[x] = k
-                c += cr[w1]
-                cr[w1] = c
-                k += kr[w1]
-                kr[w1] = k
-                continue
-            rp, kp = rt[y - 1], kt[y - 1]
-            if y < h1:
-                ar, cr, ap, cp = at[y], ct[y], at[y - 1], ct[y - 1]
-                for x in range(w1):
-                    a += ar[x]
-                    ar[x] = a + ap[x]
-                    c += cr[x]
-                    cr[x] = c + cp[x]
-                    r += rr[x]
-                    rr[x] = r + rp[x]
-                    k += kr[x]
-                    kr[x] = k + kp[x]
-                c += cr[w1]
-                cr[w1] = c + cp[w1]
-            else:  # the last row: cut_row and corner only
-                for x in range(w1):
-                    r += rr[x]
-                    rr[x] = r + rp[x]
-                    k += kr[x]
-                    kr[x] = k + kp[x]
+            rp, kp = (rt[y - 1], kt[y - 1]) if y > 0 else (zero, zero)
+            for x in range(w1):
+                a += ar[x]
+                ar[x] = a + ap[x]
+                c += cr[x]
+                cr[x] = c + cp[x]
+                r += rr[x]
+                rr[x] = r + rp[x]
+                k += kr[x]
+                kr[x] = k + kp[x]
+            c += cr[w1]
+            cr[w1] = c + cp[w1]
             k += kr[w1]
             kr[w1] = k + kp[w1]
 
