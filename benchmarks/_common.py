@@ -49,7 +49,8 @@ def run_captured(gen: Any, image: Any) -> tuple[dict, dict]:
     captured: dict = {}
 
     def record(scores, grid, chosen, share):  # what the pipeline saw
-        captured.update(scores=scores, grid=grid, chosen=chosen, share=share)
+        # copies: forward reuses the memory of its scores and candidates in the next call
+        captured.update(scores=scores.clone(), grid=grid, chosen=chosen.clone(), share=share.clone())
 
     gen.ranking.on_select = record
     try:

@@ -151,7 +151,8 @@ class Ranking:
         self.config = config
         self.on_select: Callable[[Tensor, _windows.WindowGrid, Tensor, Tensor], None] | None = None
         """Called as ``on_select(scores, grid, chosen, share)`` after each region cut
-        (diagnostics); ``None`` (default) calls nothing."""
+        (diagnostics); ``None`` (default) calls nothing. Inside ``forward`` the ``scores``
+        and ``chosen`` it is handed live in memory the next call reuses: copy what you keep."""
         self._device_cache: dict = {}
         self._plan_cache: dict = {}
 
