@@ -48,6 +48,7 @@ configs equal in these share that work (``reeb tune`` computes it once per frame
 
 
 _STAGE_LOCK = threading.Lock()  # stage_times is written by both halves of a CPU batch
+_TIME_SHARE = threading.local()  # .share: the part of a stage's time this thread records
 _WARM: set[tuple] = set()  # kernel keys (_kernel_key) of the configs this process has warmed up
 
 
@@ -127,7 +128,6 @@ class ProposalGenerator(nn.Module):
         self.compile_s: float = 0.0
         """Seconds the first CPU call spent compiling the kernels (or loading them from
         their cache: :func:`warmup`) before its own work; not in :attr:`stage_times`."""
-        self._time_share = 1.0
         self.stage_times: dict[str, float] | None = None
         """Set to ``{}`` to accumulate wall seconds per stage (edges, groups, road,
         regions, scoring, refine, nms) over calls; ``None`` (default) records nothing. Where
@@ -141,7 +141,7 @@ class ProposalGenerator(nn.Module):
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         t0 = time.perf_counter()
-        share = self._time_share
+        share = getattr(_TIME_SHARE, "share", 1.0)
         yield
         if device.type == "cuda":
             torch.cuda.synchronize(device)
@@ -191,12 +191,16 @@ class ProposalGenerator(nn.Module):
         by_size: dict[tuple, list[int]] = {}
         for i in which:
             by_size.setdefault((tuple(imgs[i].shape), imgs[i].device), []).append(i)
-        self._time_share = share
-        for idx in by_size.values():
-            with _scratch.reusing():  # the batch's large arrays in last batch's memory; results are copies
-                out, _ = self._propose_batch([imgs[i] for i in idx])
-            for i, r in zip(idx, out):
-                results[i] = r
+        before = getattr(_TIME_SHARE, "share", 1.0)
+        _TIME_SHARE.share = share
+        try:
+            for idx in by_size.values():
+                with _scratch.reusing():  # the batch's large arrays in last batch's memory; results are copies
+                    out, _ = self._propose_batch([imgs[i] for i in idx])
+                for i, r in zip(idx, out):
+                    results[i] = r
+        finally:
+            _TIME_SHARE.share = before
 
     @torch.no_grad()
     def inspect(self, image: Tensor) -> Inspection:

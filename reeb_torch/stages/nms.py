@@ -275,7 +275,7 @@ def _nms_window_image(chosen: np.ndarray, boxes: np.ndarray, scores: np.ndarray,
     m = _PREFIX * k
     if boxes_ok and 0 < m < len(cand):
         sel = np.flatnonzero(vals >= kth_largest(vals, m))  # the best m and their ties, in window order
-        order, sb, ok = _sorted_boxes(sel, cand, vals, boxes)
+        order, sb, _ = _sorted_boxes(sel, cand, vals, boxes)  # valid: boxes_ok
         keep = _grid_nms_sorted(sb, iou, k)
         if len(keep) == k:
             return cand[sel[order[keep]]]
