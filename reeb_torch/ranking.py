@@ -46,7 +46,7 @@ from .stages import rescoring as _rescoring
 from .stages import scoring as _scoring
 from .stages import windows as _windows
 from .stages.groups import EdgeGroups
-from .stages.nms import nms_top_k_many, nms_windows_cpu
+from .stages.nms import boxes_valid, nms_top_k_many, nms_windows_cpu
 
 __all__ = ["ScoreMaps", "Ranking"]
 
@@ -124,7 +124,7 @@ class ScoreMaps:
 def _tables_exact(groups: EdgeGroups, grid: _windows.WindowGrid) -> bool:
     """Whether the prefix tables give eq. 1's enclosed sums exactly for every window of
     ``grid``: every window is wider and taller than every edge group."""
-    return groups.max_extent < min(min(s.w, s.h) for s in grid.sizes)
+    return groups.max_extent < grid.min_side
 
 
 def _centred(x0: Tensor, y0: Tensor, w: Tensor, h: Tensor, fraction: float) -> tuple[Tensor, ...]:
@@ -655,7 +655,9 @@ class Ranking:
         quota = cfg.region_quota and share.shape[1] > 1
         kept = None
         if refined is None:  # the windows themselves: gathered, sorted and suppressed compiled
-            kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, grid.count if quota else cfg.top_k)
+            ok = (self._grid_cached(("boxes_ok", fx, fy), grid, lambda: boxes_valid(boxes_in))
+                  if dev.type == "cpu" and boxes_in.dtype == torch.float32 else None)
+            kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, grid.count if quota else cfg.top_k, ok)
         if kept is not None:
             pairs = [(boxes_in, scores[i]) for i in range(b)]
             windows = kept

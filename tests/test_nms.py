@@ -118,11 +118,11 @@ def test_generator_candidates_equal_torchvision():
     path = Path(__file__).resolve().parents[1] / "examples" / "data" / "kitti_000001.png"
     caught = []
 
-    def spy(chosen, boxes, scores, iou, k):
+    def spy(chosen, boxes, scores, iou, k, boxes_ok=None):
         for i in range(chosen.shape[0]):
             cand = chosen[i].nonzero().squeeze(1)
             caught.append((boxes[cand], scores[i, cand], iou, k))
-        return orig(chosen, boxes, scores, iou, k)
+        return orig(chosen, boxes, scores, iou, k, boxes_ok)
 
     gen = ProposalGenerator(get_preset("default-no-regions"))
     gen([read_image(path)])  # a first call warms the kernels up on a picture of its own, not to be caught

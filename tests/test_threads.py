@@ -111,3 +111,47 @@ def test_a_mixed_batch_split_between_the_cores_equals_each_image_alone(sample_im
     for crop, got in zip(crops, both):
         alone = gen([crop])[0]
         assert torch.equal(got["boxes"], alone["boxes"]) and torch.equal(got["scores"], alone["scores"])
+
+
+def test_one_image_split_by_rows_equals_the_same_image_in_one_piece(sample_image):
+    # issue 20, batch-1 latency: one image's kernels take half its rows (or strips, or
+    # regions) each; every part must give the numbers of the whole image in one call
+    import numpy as np
+    import torch
+
+    from reeb_torch.stages import edges as E
+    from reeb_torch.stages import entropy as H
+    from reeb_torch.stages import scoring as S
+    from reeb_torch.stages._threads import images_or_rows, serially
+
+    seen: list[tuple[int, int, int, int]] = []
+    images_or_rows(lambda *a: seen.append(a), 1, 9)
+    assert sorted(seen) == [(0, 1, 0, 5), (0, 1, 5, 9)]
+    seen.clear()
+    images_or_rows(lambda *a: seen.append(a), 3, 9)
+    assert sorted(seen) == [(0, 2, 0, 9), (2, 3, 0, 9)]
+
+    x = sample_image[:, :102, :334]  # 51 × 167 working pixels: unequal halves
+    for img in (x, x.float() / 255):
+        split = E.working_gray([img], 0.5, with_green=True)
+        with serially():
+            whole = E.working_gray([img], 0.5, with_green=True)
+        assert torch.equal(split[0], whole[0]) and torch.equal(split[1], whole[1])
+        gray = split[0].clone()
+        e_split = E.edge_map(gray, 1.0, 0.05, True, True).clone()
+        bounds = torch.tensor([[0, 60], [40, 120], [100, 167]])
+        h_split = H.region_entropy(gray, bounds)
+        with serially():
+            assert torch.equal(e_split, E.edge_map(gray, 1.0, 0.05, True, True))
+            assert torch.equal(h_split, H.region_entropy(gray, bounds))
+
+    g = torch.Generator().manual_seed(0)
+    scores = torch.rand(1, 500, generator=g)
+    scores[0, ::7] = float("-inf")
+    members = np.concatenate([np.arange(0, 200), np.arange(150, 380), np.arange(300, 500)])
+    starts = np.array([0, 200, 430, 630])
+    budget = torch.tensor([[50, 300, 20]])
+    split = S.select_per_region_cpu(scores, members, starts, budget).clone()
+    with serially():
+        assert torch.equal(split, S.select_per_region_cpu(scores, members, starts, budget))
+    assert 200 < int(split.sum()) < 500  # every region marked some, not all

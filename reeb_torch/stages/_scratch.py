@@ -17,6 +17,7 @@ The buffers of a thread stay allocated (at the size of the largest batch seen) u
 
 from __future__ import annotations
 
+import math
 import threading
 from contextlib import contextmanager
 from typing import Iterator
@@ -48,7 +49,7 @@ def empty(key: str, shape: tuple[int, ...], dtype: type | np.dtype = np.float64)
     if getattr(_local, "depth", 0) != 1:
         return np.empty(shape, dtype)
     dt = np.dtype(dtype)
-    n = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
+    n = math.prod(shape) * dt.itemsize
     bufs = getattr(_local, "bufs", None)
     if bufs is None:
         bufs = _local.bufs = {}

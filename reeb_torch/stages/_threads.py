@@ -10,7 +10,7 @@ from typing import Callable, Iterator
 
 import torch
 
-__all__ = ["on_two_cores", "torch_single_threaded", "serially"]
+__all__ = ["on_two_cores", "images_or_rows", "torch_single_threaded", "serially"]
 
 _pool: ThreadPoolExecutor | None = None
 _lock = threading.Lock()
@@ -51,6 +51,17 @@ def on_two_cores(run: Callable[[int, int], None], b: int) -> None:
         run(0, half)
     finally:
         other.result()
+
+
+def images_or_rows(run: Callable[[int, int, int, int], None], b: int, rows: int) -> None:
+    """``run(i0, i1, r0, r1)``: images ``[i0, i1)``, rows ``[r0, r1)`` of each, on the two
+    cores: half the images each, or for one image half its ``rows`` each (the latency of
+    a single image: a kernel whose output rows depend only on its input, each row computed
+    the same way whichever part holds it, so the numbers are the same)."""
+    if b == 1:
+        on_two_cores(lambda lo, hi: run(0, 1, lo, hi), rows)
+    else:
+        on_two_cores(lambda lo, hi: run(lo, hi, 0, rows), b)
 
 
 _torch_lock = threading.Lock()

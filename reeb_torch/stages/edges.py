@@ -19,7 +19,7 @@ from numba.extending import intrinsic, overload
 from torch import Tensor
 
 from . import _scratch
-from ._threads import on_two_cores
+from ._threads import images_or_rows
 
 __all__ = ["working_size", "working_images", "to_gray", "working_gray", "green_mask", "gaussian_blur", "sobel_magnitude",
            "gradient_magnitude", "thin", "remove_isolated", "edge_map"]
@@ -87,11 +87,18 @@ def working_gray(images: list[Tensor], scale: float,
     green = (_scratch.empty("front.green", (len(images), ho + 1, wo + 1), np.int32) if with_green
              else np.empty((len(images), 0, 0), np.int32))
 
-    def run(lo: int, hi: int) -> None:
-        for i in range(lo, hi):
-            _working_gray_kernel(arrays[i], _UNIT_LUT, xlo, xn, xw, ylo, yn, yw, out[i, 0], green[i])
+    parts = []
 
-    on_two_cores(run, len(images))
+    def run(lo: int, hi: int, r0: int, r1: int) -> None:
+        for i in range(lo, hi):
+            _working_gray_kernel(arrays[i], _UNIT_LUT, xlo, xn, xw, ylo, yn, yw, out[i, 0], green[i], r0, r1)
+        parts.append((lo, hi, r0, r1))
+
+    images_or_rows(run, len(images), ho)
+    if with_green:  # a part of the rows below the first counted from zero at its first row
+        for lo, hi, r0, r1 in sorted(parts, key=lambda p: p[2]):
+            if r0 > 0:
+                green[lo:hi, r0 + 1: r1 + 1] += green[lo:hi, r0: r0 + 1]
     return torch.from_numpy(out), torch.from_numpy(green) if with_green else None
 
 
@@ -147,15 +154,23 @@ def _unit_overload(v, lut):  # pragma: no cover - compiled
 @numba.njit(cache=True, nogil=True)
 def _working_gray_kernel(img: np.ndarray, lut: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: np.ndarray,
                          ylo: np.ndarray, yn: np.ndarray, yw: np.ndarray,
-                         out: np.ndarray, green: np.ndarray) -> None:  # pragma: no cover - compiled
-    """:func:`working_gray` of one ``(3, H, W)`` image into ``out`` ``(h, w)``: the
-    horizontal pass for the three channels together, then the vertical pass a whole
-    output row at a time, then the grey (and the running counts of :func:`green_mask` into
-    ``green`` ``(h + 1, w + 1)`` unless it is empty)."""
+                         out: np.ndarray, green: np.ndarray, y0: int, y1: int) -> None:  # pragma: no cover - compiled
+    """:func:`working_gray` of one ``(3, H, W)`` image into output rows ``[y0, y1)`` of
+    ``out`` ``(h, w)``: the horizontal pass for the three channels together (the input
+    rows those output rows read), then the vertical pass a whole output row at a time,
+    then the grey; and unless ``green`` ``(h + 1, w + 1)`` is empty, the running counts of
+    :func:`green_mask` into its rows ``y0 + 1 .. y1``, counted from row ``y0`` as zero
+    (the caller adds row ``y0``'s counts where ``y0 > 0``)."""
     _, h, _ = img.shape
-    wo, ho = xlo.shape[0], ylo.shape[0]
+    wo = xlo.shape[0]
+    if y1 <= y0:
+        return
     rows = np.empty((3, h, wo), np.float32)
-    for y in range(h):
+    top, bottom = ylo[y0], ylo[y0] + yn[y0]
+    for yo in range(y0 + 1, y1):
+        bottom = max(bottom, ylo[yo] + yn[yo])
+        top = min(top, ylo[yo])
+    for y in range(top, bottom):
         sr, sg, sb = img[0, y], img[1, y], img[2, y]
         dr, dg, db = rows[0, y], rows[1, y], rows[2, y]
         for i in range(wo):
@@ -172,7 +187,7 @@ def _working_gray_kernel(img: np.ndarray, lut: np.ndarray, xlo: np.ndarray, xn: 
             dr[i], dg[i], db[i] = r, g, b
     wr, wg, wb = np.float32(0.299), np.float32(0.587), np.float32(0.114)
     lr, lg, lb = np.empty(wo, np.float32), np.empty(wo, np.float32), np.empty(wo, np.float32)
-    for yo in range(ho):
+    for yo in range(y0, y1):
         a, n = ylo[yo], yn[yo]
         w0 = yw[yo, 0]
         for i in range(wo):
@@ -190,9 +205,13 @@ def _working_gray_kernel(img: np.ndarray, lut: np.ndarray, xlo: np.ndarray, xn: 
         for i in range(wo):
             line[i] = _fma(lb[i], wb, _fma(lg[i], wg, lr[i] * wr))
         if green.shape[0] > 0:
-            if yo == 0:
-                green[0].fill(0)
-            above, below = green[yo], green[yo + 1]
+            if yo == y0:
+                if y0 == 0:
+                    green[0].fill(0)
+                above = np.zeros(wo + 1, green.dtype)
+            else:
+                above = green[yo]
+            below = green[yo + 1]
             below[0] = 0
             run = 0
             for i in range(wo):
@@ -229,7 +248,14 @@ def _blur_weights(sigma: float, h: int, w: int, like: Tensor) -> Tensor:
     if r >= h or r >= w:  # reflection needs more pixels than the kernel radius
         raise ValueError(f"blur_sigma={sigma} needs an image of at least {r + 1}×{r + 1} working "
                          f"pixels, got {h}×{w}")
-    return kornia.filters.get_gaussian_kernel1d(k, sigma, device=like.device, dtype=like.dtype)[0]
+    return _gaussian_1d(k, float(sigma), like.device, like.dtype)
+
+
+@functools.lru_cache(maxsize=16)
+def _gaussian_1d(k: int, sigma: float, device: torch.device, dtype: torch.dtype) -> Tensor:
+    """kornia's ``get_gaussian_kernel1d(k, sigma)[0]``, built once per setting (building it
+    cost more than the blur of a 621×188 image); the tensor is read, never written."""
+    return kornia.filters.get_gaussian_kernel1d(k, sigma, device=device, dtype=dtype)[0]
 
 
 def sobel_gradients(gray: Tensor) -> tuple[Tensor, Tensor]:
@@ -341,10 +367,10 @@ def crossing_maps(edges: Tensor, gx: Tensor, gy: Tensor) -> tuple[Tensor, Tensor
 
 @numba.njit(cache=True, nogil=True)
 def _blur_sobel_kernel(gray: np.ndarray, wts: np.ndarray, gx: np.ndarray, gy: np.ndarray,
-                       mag: np.ndarray) -> None:  # pragma: no cover - compiled
+                       mag: np.ndarray, y0: int, y1: int) -> None:  # pragma: no cover - compiled
     """:func:`sobel_gradients` of :func:`gaussian_blur` for ``gray`` ``(B, H, W)``, and their
-    :func:`gradient_magnitude`: reflected borders for the blur, replicated for Sobel, the
-    same float32 operations in the same order."""
+    :func:`gradient_magnitude`, in rows ``[y0, y1)``: reflected borders for the blur,
+    replicated for Sobel, the same float32 operations in the same order."""
     nb, h, w = gray.shape
     k = wts.shape[0]
     r = k // 2
@@ -354,9 +380,10 @@ def _blur_sobel_kernel(gray: np.ndarray, wts: np.ndarray, gx: np.ndarray, gy: np
     rows = np.empty((h + 2 * r, w), np.float32)
     blur = np.empty((h, w), np.float32)
     line = np.empty(w + 2 * r, np.float32)
+    b0, b1 = max(y0 - 1, 0), min(y1 + 1, h)  # the blurred rows the Sobel rows read
     for b in range(nb):
         img = gray[b]
-        for yy in range(h + 2 * r):
+        for yy in range(b0, b1 + 2 * r):
             y = yy - r
             y = -y if y < 0 else (2 * (h - 1) - y if y >= h else y)
             for xi in range(w + 2 * r):  # the row, reflected at both ends
@@ -371,7 +398,7 @@ def _blur_sobel_kernel(gray: np.ndarray, wts: np.ndarray, gx: np.ndarray, gy: np
                 wi = wts[i]
                 for x in range(w):
                     dst[x] = dst[x] + wi * line[x + i]
-        for y in range(h):
+        for y in range(b0, b1):
             dst = blur[y]
             w0 = wts[0]
             src = rows[y]
@@ -382,7 +409,7 @@ def _blur_sobel_kernel(gray: np.ndarray, wts: np.ndarray, gx: np.ndarray, gy: np
                 src = rows[y + i]
                 for x in range(w):
                     dst[x] = dst[x] + wi * src[x]
-        for y in range(h):
+        for y in range(y0, y1):
             ym, yp = max(y - 1, 0), min(y + 1, h - 1)
             for x in range(w):
                 xm, xp = max(x - 1, 0), min(x + 1, w - 1)
@@ -401,14 +428,16 @@ def _blur_sobel_kernel(gray: np.ndarray, wts: np.ndarray, gx: np.ndarray, gy: np
 
 @numba.njit(cache=True, nogil=True)
 def _thin_isolated_kernel(mag: np.ndarray, gx: np.ndarray, gy: np.ndarray, threshold: np.float32,
-                          out: np.ndarray) -> None:  # pragma: no cover - compiled
-    """``mag`` where it passes the threshold, :func:`thin` and :func:`remove_isolated`, else 0."""
+                          out: np.ndarray, y0: int, y1: int) -> None:  # pragma: no cover - compiled
+    """``mag`` where it passes the threshold, :func:`thin` and :func:`remove_isolated`, else
+    0, in rows ``[y0, y1)``."""
     nb, h, w = mag.shape
     tan = np.float32(0.4142135623730951)
     keep = np.empty((h, w), np.bool_)
+    k0, k1 = max(y0 - 1, 0), min(y1 + 1, h)  # the thinned rows the isolation test reads
     for b in range(nb):
         m = mag[b]
-        for y in range(h):
+        for y in range(k0, k1):
             ym, yp = max(y - 1, 0), min(y + 1, h - 1)
             for x in range(w):
                 xm, xp = max(x - 1, 0), min(x + 1, w - 1)
@@ -427,7 +456,7 @@ def _thin_isolated_kernel(mag: np.ndarray, gx: np.ndarray, gy: np.ndarray, thres
                 else:
                     ok = c >= m[ym, xp] and c >= m[yp, xm]
                 keep[y, x] = ok
-        for y in range(h):
+        for y in range(y0, y1):
             for x in range(w):
                 v = np.float32(0.0)
                 if keep[y, x]:
@@ -447,8 +476,10 @@ def _edge_map_cpu(gray: Tensor, sigma: float, threshold: float) -> Tensor:
     wts = _blur_weights(sigma, h, w, gray)
     gx, gy, mag = (_scratch.empty(f"edges.{name}", (b, h, w), np.float32) for name in ("gx", "gy", "mag"))
     g, wt = gray[:, 0].contiguous().numpy(), wts.contiguous().numpy()
-    on_two_cores(lambda lo, hi: _blur_sobel_kernel(g[lo:hi], wt, gx[lo:hi], gy[lo:hi], mag[lo:hi]), b)
+    images_or_rows(lambda lo, hi, r0, r1: _blur_sobel_kernel(g[lo:hi], wt, gx[lo:hi], gy[lo:hi], mag[lo:hi], r0, r1),
+                   b, h)
     out = _scratch.empty("edges.out", (b, h, w), np.float32)
     t = np.float32(threshold)
-    on_two_cores(lambda lo, hi: _thin_isolated_kernel(mag[lo:hi], gx[lo:hi], gy[lo:hi], t, out[lo:hi]), b)
+    images_or_rows(lambda lo, hi, r0, r1: _thin_isolated_kernel(mag[lo:hi], gx[lo:hi], gy[lo:hi], t, out[lo:hi],
+                                                                r0, r1), b, h)
     return torch.from_numpy(out)

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._threads import on_two_cores
+from ._threads import images_or_rows
 
 __all__ = ["region_entropy", "proposal_share"]
 
@@ -27,11 +27,13 @@ def region_entropy(gray: Tensor, bounds: Tensor, bins: int = 256) -> Tensor:
     b, h, w = g.shape
     if g.device.type == "cpu" and g.dtype == torch.float32:
         # one compiled pass per image over each strip, grey levels taken as it goes (the
-        # same levels and integer counts), the two halves of the batch on two cores
+        # same levels and integer counts), the two halves of the batch (or of one image's
+        # strips) on two cores
         hist_np = np.zeros((b, bounds.shape[0], bins), np.float32)
         src = g.contiguous().numpy()
         bnd = bounds.to(torch.int64).contiguous().numpy()
-        on_two_cores(lambda lo, hi: _strip_histograms(src[lo:hi], bnd, int(bins), hist_np[lo:hi]), b)
+        images_or_rows(lambda lo, hi, r0, r1: _strip_histograms(src[lo:hi], bnd[r0:r1], int(bins),
+                                                                hist_np[lo:hi, r0:r1]), b, bnd.shape[0])
         return _entropy_bits(torch.from_numpy(hist_np))
     level = (g * bins).long().clamp_(0, bins - 1)  # (B, H, W)
     return _entropy_bits(_strip_histograms_tensor(level, bounds, bins))

@@ -217,7 +217,8 @@ def nms_top_k_many(pairs: list[tuple[Tensor, Tensor]], iou: float, k: int,
     return out  # type: ignore[return-value]
 
 
-def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k: int) -> list[Tensor] | None:
+def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k: int,
+                    boxes_ok: bool | None = None) -> list[Tensor] | None:
     """For each image ``b``, the windows (indices into ``boxes``) that
     ``nms_top_k(boxes[c], scores[b, c], iou, k)`` keeps, best first, with ``c`` the
     chosen windows ``chosen[b].nonzero()``: the same indices (tested), but the whole
@@ -228,6 +229,8 @@ def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k
         chosen: ``bool [B, N]``, the candidates of each image.
         boxes: ``float32 [N, 4]`` (x1, y1, x2, y2), the windows, shared by the images.
         scores: ``float32 [B, N]``.
+        boxes_ok: :func:`boxes_valid` of ``boxes`` where the caller knows it (a grid's
+            windows are the same batch after batch); ``None``: checked here.
 
     Returns ``None`` where this path does not apply (not CPU float32, ``iou < 0.5``); an
     image whose candidates hold NaN scores or boxes that are not finite with
@@ -239,7 +242,8 @@ def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k
     bx = boxes.contiguous().numpy()
     sc = scores.contiguous().numpy()
     out: list[np.ndarray | None] = [np.empty(0, np.int64)] * ch.shape[0]
-    boxes_ok = bool(np.isfinite(bx).all() and (bx[:, 2] >= bx[:, 0]).all() and (bx[:, 3] >= bx[:, 1]).all())
+    if boxes_ok is None:
+        boxes_ok = boxes_valid(boxes)
 
     def run(lo: int, hi: int) -> None:
         for i in range(lo, hi):
@@ -254,6 +258,13 @@ def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k
         else:
             result.append(torch.from_numpy(keep))
     return result
+
+
+def boxes_valid(boxes: Tensor) -> bool:
+    """Whether every row of ``float32 [N, 4]`` CPU ``boxes`` is finite with ``x1 <= x2``
+    and ``y1 <= y2`` (what the window NMS's prefix path needs of all of them)."""
+    bx = boxes.contiguous().numpy()
+    return bool(np.isfinite(bx).all() and (bx[:, 2] >= bx[:, 0]).all() and (bx[:, 3] >= bx[:, 1]).all())
 
 
 _PREFIX = 3

@@ -26,7 +26,7 @@ from torch import Tensor
 
 from . import _scratch
 from ._radix import kth_largest
-from ._threads import on_two_cores
+from ._threads import images_or_rows, on_two_cores
 from .groups import EdgeGroups
 from .windows import WindowSize
 
@@ -553,6 +553,8 @@ def select_per_region_cpu(scores: Tensor, members: np.ndarray, starts: np.ndarra
     chosen = _scratch.empty("select.chosen", tuple(scores.shape), np.bool_)
     chosen.fill(False)
     sc, bu = scores.contiguous().numpy(), budget.contiguous().numpy()
-    on_two_cores(lambda lo, hi: _select_kernel(sc[lo:hi], members, starts, bu[lo:hi], chosen[lo:hi]),
-                  sc.shape[0])
+    # one image: half the regions each (a window in two overlapping regions may be marked
+    # by both threads, each writing True)
+    images_or_rows(lambda lo, hi, r0, r1: _select_kernel(sc[lo:hi], members, starts[r0: r1 + 1], bu[lo:hi, r0:r1],
+                                                         chosen[lo:hi]), sc.shape[0], len(starts) - 1)
     return torch.from_numpy(chosen)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import torch
 from torch import Tensor
@@ -63,6 +63,11 @@ class WindowGrid:
     @property
     def count(self) -> int:
         return self.offsets[-1]
+
+    @cached_property
+    def min_side(self) -> int:
+        """The smallest width or height of any size (working pixels; 0 without sizes)."""
+        return min((min(s.w, s.h) for s in self.sizes), default=0)
 
 
 def _series(lo: float, hi: float, ratio: float) -> list[int]:
