@@ -121,6 +121,7 @@ def test_one_image_split_by_rows_equals_the_same_image_in_one_piece(sample_image
 
     from reeb_torch.stages import edges as E
     from reeb_torch.stages import entropy as H
+    from reeb_torch.stages import groups as G
     from reeb_torch.stages import scoring as S
     from reeb_torch.stages._threads import images_or_rows, serially
 
@@ -141,9 +142,15 @@ def test_one_image_split_by_rows_equals_the_same_image_in_one_piece(sample_image
         e_split = E.edge_map(gray, 1.0, 0.05, True, True).clone()
         bounds = torch.tensor([[0, 60], [40, 120], [100, 167]])
         h_split = H.region_entropy(gray, bounds)
+        g_split = G.connected_groups(e_split, 8)  # cut at row 24, a tile border
         with serially():
             assert torch.equal(e_split, E.edge_map(gray, 1.0, 0.05, True, True))
             assert torch.equal(h_split, H.region_entropy(gray, bounds))
+        pair = G.connected_groups(torch.cat([e_split, e_split]), 8)  # two images: each in one piece
+        first = pair.batch == 0
+        assert len(g_split) > 20 and bool((g_split.y2 >= 24).any()) and bool((g_split.y1 < 24).any())
+        for f in ("batch", "x1", "y1", "x2", "y2", "magnitude"):
+            assert torch.equal(getattr(g_split, f), getattr(pair, f)[first]), f
 
     g = torch.Generator().manual_seed(0)
     scores = torch.rand(1, 500, generator=g)
