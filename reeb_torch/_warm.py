@@ -1,20 +1,25 @@
 """The one-time cost of the compiled kernels: the picture :func:`reeb_torch.warmup` runs on,
-the notice a first run prints, and the marker left once the kernels are cached."""
+the notice a first run prints, the marker left once the kernels are cached, and the
+helper process that compiles part of them on the other core meanwhile."""
 
 from __future__ import annotations
 
+import os
+import subprocess
 import sys
 import time
+from pathlib import Path
 
 import torch
 
 from .stages import _cache
 
-__all__ = ["warm_picture", "Notice", "COMPILE_ESTIMATE_S"]
+__all__ = ["warm_picture", "Notice", "COMPILE_ESTIMATE_S", "start_helper", "stop_helper", "compile_helper_part"]
 
-#: What compiling every kernel of the default took (``reeb warmup`` with an empty cache:
-#: 56 s on two cores shared with other work, about 20 s on quiet ones); the notice says it.
-COMPILE_ESTIMATE_S = "30-60 s"
+#: What compiling every kernel of the default takes (``reeb_torch.warmup()`` with an empty
+#: cache and the helper process: 16-17 s on this 2-core VM, 24-26 s in one process; it was
+#: 56 s in one process on two cores shared with other work); the notice says it.
+COMPILE_ESTIMATE_S = "15-40 s"
 
 
 def warm_picture(height: int = 160, width: int = 480) -> torch.Tensor:
@@ -65,3 +70,64 @@ class Notice:
             self.marker.touch()
         except OSError:
             pass  # a read-only cache: the notice comes again next time, nothing worse
+
+
+HELPER_ENV = "REEB_TORCH_WARM_HELPER"
+"""Set in the helper process (so that it starts none of its own); set it (to any value)
+to compile in one process only."""
+
+
+def start_helper() -> subprocess.Popen | None:
+    """Start a second Python process that compiles :func:`compile_helper_part`'s kernels
+    into the same cache while this one runs the warm-up (numba compiles in one thread per
+    process; a kernel this process reaches after the helper has cached it is loaded, not
+    compiled). ``None`` on one core, inside the helper, in a frozen application, or where
+    it cannot start."""
+    if os.environ.get(HELPER_ENV) is not None or (os.cpu_count() or 1) < 2 or getattr(sys, "frozen", False):
+        return None  # (a frozen application's executable is not a Python to run -c with)
+    env = dict(os.environ, **{HELPER_ENV: "1"})
+    here = str(Path(__file__).resolve().parents[1])  # this copy of the package, first
+    env["PYTHONPATH"] = here + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    try:
+        return subprocess.Popen([sys.executable, "-c", "from reeb_torch._warm import compile_helper_part as c; c()"],
+                                env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
+    except OSError:
+        return None
+
+
+def stop_helper(helper: subprocess.Popen | None) -> None:
+    """End the helper once the warm-up is done: whatever it has not cached by then this
+    process compiled (and cached) itself. numba writes each cache file whole (a temporary
+    file, then a rename), so stopping it mid-way leaves nothing half-written."""
+    if helper is None:
+        return
+    if helper.poll() is None:
+        helper.terminate()
+    try:
+        helper.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        helper.kill()
+        helper.wait()
+
+
+def compile_helper_part() -> None:
+    """In the helper process: the kernels the warm-up reaches last (the per-region cut, the
+    window NMS's three and the float front end), in the order it reaches them, on
+    synthetic inputs of the types the pipeline passes them, so that they are cached under
+    the same signatures (``tests/test_warmup.py`` checks that they add none)."""
+    import numpy as np
+
+    from .stages import edges, nms, scoring
+    from .stages._threads import serially
+
+    g = torch.Generator().manual_seed(0)
+    n = 9000  # more than 3 · 2000 candidates: the prefix path of the window NMS
+    xy = torch.rand(n, 2, generator=g) * 400
+    boxes = torch.cat([xy, xy + 8 + torch.rand(n, 2, generator=g) * 60], 1)
+    scores = torch.rand(2, n, generator=g)
+    with serially():  # one core: the warm-up has the other
+        scoring.select_per_region_cpu(scores, np.arange(n, dtype=np.int64), np.array([0, n // 2, n], np.int64),
+                                      torch.full((2, 2), 300, dtype=torch.int64))
+        nms.nms_windows_cpu(torch.rand(2, n, generator=g) < 0.9, boxes, scores, 0.7, 2000)
+        edges.working_gray([warm_picture().float().div_(255.0)], 0.5, with_green=True)

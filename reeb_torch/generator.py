@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._checks import ImageBatch, check_images
-from ._warm import Notice, warm_picture
+from ._warm import Notice, start_helper, stop_helper, warm_picture
 from .config import ReebConfig
 from .ranking import Ranking, ScoreMaps
 from .stages import _scratch
@@ -388,15 +388,21 @@ def warmup(*configs: ReebConfig, quiet: bool = False) -> float:
     The first call of a :class:`ProposalGenerator` on the CPU does this itself (timed
     apart: :attr:`ProposalGenerator.compile_s`); call it (or ``reeb warmup``) ahead of time,
     e.g. at install, to pay the one-time compile there. While the kernels are not yet
-    cached it says so on stderr, unless ``quiet``. The cache is per user and survives a
+    cached it says so on stderr, unless ``quiet``, and a second Python process compiles
+    the kernels the run reaches last meanwhile (numba compiles on one core per process;
+    ``$REEB_TORCH_WARM_HELPER`` set: one process only). The cache is per user and survives a
     reinstall of the same version (:mod:`reeb_torch.stages._cache`; ``$REEB_TORCH_CACHE_DIR``)."""
     t0 = time.perf_counter()
     x = warm_picture()
-    with Notice(quiet):
-        for cfg in configs or (ReebConfig(),):
-            _WARM.add(_kernel_key(cfg))  # before the run: its own forward must not warm up again
-            gen = ProposalGenerator(cfg)
-            gen._warned_empty = True  # the synthetic picture may keep no window: not the user's images
-            gen([x])
-            gen(torch.stack([x, x.flip(-1)]).float().div_(255.0))
+    with Notice(quiet) as notice:
+        helper = start_helper() if notice.first else None  # compiles the last kernels meanwhile
+        try:
+            for cfg in configs or (ReebConfig(),):
+                _WARM.add(_kernel_key(cfg))  # before the run: its own forward must not warm up again
+                gen = ProposalGenerator(cfg)
+                gen._warned_empty = True  # the synthetic picture may keep no window: not the user's images
+                gen([x])
+                gen(torch.stack([x, x.flip(-1)]).float().div_(255.0))
+        finally:
+            stop_helper(helper)
     return time.perf_counter() - t0

@@ -102,3 +102,54 @@ def test_reeb_warmup_command(tmp_path, monkeypatch):
     assert res.exit_code == 2 and "unknown preset" in res.output
     res = CliRunner().invoke(main, ["warmup"])
     assert res.exit_code == 0 and "kernels ready in" in res.output
+
+
+def test_the_helper_process_compiles_only_what_the_warm_up_runs(monkeypatch):
+    # its kernels must be cached under the signatures the warm-up itself asks for, else the
+    # warm-up would find nothing and compile them again
+    from reeb_torch.stages import edges, nms, scoring
+
+    warmup(quiet=True)
+    kernels = _dispatchers()
+    before = {k: set(map(str, d.signatures)) for k, d in kernels.items()}
+    called = set()
+    for mod, name in ((scoring, "_select_kernel"), (nms, "_grid_nms_sorted"), (nms, "_sorted_boxes"),
+                      (edges, "_working_gray_kernel")):
+        kernel = getattr(mod, name)
+        monkeypatch.setattr(mod, name, lambda *a, _k=kernel, _n=name: (called.add(_n), _k(*a))[1])
+    _warm.compile_helper_part()
+    assert called == {"_select_kernel", "_grid_nms_sorted", "_sorted_boxes", "_working_gray_kernel"}
+    after = {k: set(map(str, d.signatures)) for k, d in kernels.items()}
+    assert {k: after[k] - before[k] for k in after if after[k] - before[k]} == {}
+
+
+def test_the_helper_process_starts_and_is_stopped(monkeypatch):
+    import subprocess
+
+    monkeypatch.setenv(_warm.HELPER_ENV, "1")  # inside the helper (or turned off): none of its own
+    assert _warm.start_helper() is None
+    _warm.stop_helper(None)
+    monkeypatch.delenv(_warm.HELPER_ENV)
+    monkeypatch.setattr(_warm.os, "cpu_count", lambda: 1)
+    assert _warm.start_helper() is None  # one core: nothing to run it on
+    monkeypatch.setattr(_warm.os, "cpu_count", lambda: 2)
+    helper = _warm.start_helper()
+    assert isinstance(helper, subprocess.Popen)
+    _warm.stop_helper(helper)  # the warm-up ended first: the helper is ended, not waited for
+    assert helper.returncode is not None
+
+
+def test_the_compiled_path_does_not_import_torchvision(tmp_path):
+    # importing torchvision costs ~2.7 s (torch._dynamo) at every start; only the
+    # torchvision NMS path (CUDA, refined boxes) needs it
+    import os
+    import subprocess
+    import sys
+
+    code = ("import sys, torch; from reeb_torch import ProposalGenerator; "
+            "ProposalGenerator()([torch.zeros(3, 64, 200, dtype=torch.uint8)]); "
+            "print('torchvision' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         env={**os.environ, _warm.HELPER_ENV: "1"})
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "False"

@@ -38,7 +38,6 @@ from typing import Any, Literal, Union
 
 import torch
 from torch import Tensor
-from torchvision.ops import box_iou
 
 __all__ = [
     "AR_IOUS",
@@ -102,6 +101,8 @@ def _check_ious(ious: Sequence[float] | float) -> tuple[float, ...]:
 
 def _running_best(proposals: Tensor, gt: Tensor, k_max: int) -> Tensor:
     """``Tensor[G, min(k_max, P)]``: best IoU of each GT box with proposals ``0..j``."""
+    from torchvision.ops import box_iou  # here: its import takes ~2.7 s, which `reeb propose` need not pay
+
     p = proposals[:k_max].to(torch.float32)
     g = gt.to(device=p.device, dtype=torch.float32)
     iou = box_iou(g, p).nan_to_num_(0.0)  # 0/0 for two degenerate boxes

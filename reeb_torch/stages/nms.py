@@ -28,7 +28,6 @@ import numba
 import numpy as np
 import torch
 from torch import Tensor
-from torchvision.ops import nms
 
 from ._radix import descending_order, kth_largest
 from ._threads import on_two_cores
@@ -178,6 +177,8 @@ def _torchvision_sorted(order: Tensor, sboxes: Tensor, iou: float, k: int, first
     """The torchvision path of :func:`nms_top_k` on boxes already sorted by ``order``:
     ``nms`` on a growing prefix of the ranking (a box's fate depends only on the boxes
     ranked above it)."""
+    from torchvision.ops import nms  # here: its import takes ~2.7 s (torch._dynamo); the compiled path needs none
+
     n = sboxes.shape[0]
     rank_score = torch.arange(n, 0, -1, device=sboxes.device, dtype=torch.float32)  # strict order
     p = min(n, first or 2 * k)
