@@ -102,7 +102,7 @@ def test_green_mask_marks_green_dominant_pixels():
 def test_compiled_working_gray_equals_interpolate_then_grey(sample_image):
     # issue 9: the CPU front end (antialiased resize + grey in one compiled pass, from uint8)
     # gives torch's interpolate + kornia's grey bit for bit, where it applies
-    from reeb_torch.stages.edges import working_gray
+    from reeb_torch.stages.edges import _regular_span, working_gray
 
     if torch.backends.cpu.get_cpu_capability() not in ("AVX2", "AVX512"):
         assert working_gray([sample_image], 0.5) is None
@@ -110,7 +110,9 @@ def test_compiled_working_gray_equals_interpolate_then_grey(sample_image):
     gen = torch.Generator().manual_seed(3)
     crops = [sample_image[:, :150, :400], sample_image[:, 20:170, 100:500]]
     noise = [torch.randint(0, 256, (3, 31, 47), dtype=torch.uint8, generator=gen) for _ in range(3)]
-    for images in (crops, noise, [x.float() / 255 for x in noise]):
+    # 400 → 200 columns: all but the end outputs take the vectorised four-tap loop
+    assert _regular_span(400, 200).tolist() == [1, 199, -1]
+    for images in (crops, [x.float() / 255 for x in crops], noise, [x.float() / 255 for x in noise]):
         for scale in (0.5, 0.51, 0.7, 0.9):
             got, none = working_gray(images, scale)
             assert got.dtype == torch.float32 and none is None

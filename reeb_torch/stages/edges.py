@@ -80,6 +80,7 @@ def working_gray(images: list[Tensor], scale: float,
     ho, wo = working_size(h, w, scale)
     xlo, xn, xw = _aa_weights(w, wo)
     ylo, yn, yw = _aa_weights(h, ho)
+    span = _regular_span(w, wo)
     if max(xw.shape[1], yw.shape[1]) > 4:  # scale < 0.5: torch sums longer filters in another order
         return None
     arrays = [im.contiguous().numpy() for im in images]
@@ -91,7 +92,7 @@ def working_gray(images: list[Tensor], scale: float,
 
     def run(lo: int, hi: int, r0: int, r1: int) -> None:
         for i in range(lo, hi):
-            _working_gray_kernel(arrays[i], _UNIT_LUT, xlo, xn, xw, ylo, yn, yw, out[i, 0], green[i], r0, r1)
+            _working_gray_kernel(arrays[i], _UNIT_LUT, xlo, xn, xw, ylo, yn, yw, span, out[i, 0], green[i], r0, r1)
         parts.append((lo, hi, r0, r1))
 
     images_or_rows(run, len(images), ho)
@@ -129,6 +130,26 @@ def _aa_weights(n_in: int, n_out: int) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return first.numpy().astype(np.int64), count.numpy().astype(np.int64), tab.contiguous().numpy()
 
 
+@functools.lru_cache(maxsize=16)
+def _regular_span(n_in: int, n_out: int) -> np.ndarray:
+    """``int64 [i0, i1, off]``: the longest run of outputs of :func:`_aa_weights` ``(n_in,
+    n_out)`` with four taps starting at ``2·i + off`` and the same weights as output ``i0``
+    (a halving: all but the two end outputs), which the front end computes in a vectorised
+    loop; ``i0 == i1`` (``= n_out``) where there is none."""
+    lo, n, w = _aa_weights(n_in, n_out)
+    best = (n_out, n_out, 0)
+    i = 0
+    while i < n_out:
+        j = i
+        while (j < n_out and n[j] == 4 and w.shape[1] >= 4 and lo[j] - 2 * j == lo[i] - 2 * i
+               and np.array_equal(w[j, :4], w[i, :4])):
+            j += 1
+        if j - i > best[1] - best[0]:
+            best = (i, j, int(lo[i] - 2 * i))
+        i = max(j, i + 1)
+    return np.array(best, np.int64)
+
+
 @intrinsic
 def _fma(typingctx, a, b, c):  # pragma: no cover - compiled
     """``a·b + c`` rounded once (llvm.fma), as torch's AVX2/AVX-512 kernels compute it."""
@@ -151,40 +172,65 @@ def _unit_overload(v, lut):  # pragma: no cover - compiled
     return lambda v, lut: v
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _row_taps(fr: np.ndarray, fg: np.ndarray, fb: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: np.ndarray,
+              dr: np.ndarray, dg: np.ndarray, db: np.ndarray, i0: int, i1: int) -> None:  # pragma: no cover
+    """The horizontal pass of outputs ``[i0, i1)`` of one row of the three channels (``fr,
+    fg, fb`` in [0, 1]): each output's taps in order, the first a product, the rest fused
+    multiply-adds."""
+    for i in range(i0, i1):
+        a = xlo[i]
+        w0 = xw[i, 0]
+        r = fr[a] * w0
+        g = fg[a] * w0
+        b = fb[a] * w0
+        for j in range(1, xn[i]):
+            wj = xw[i, j]
+            r = _fma(fr[a + j], wj, r)
+            g = _fma(fg[a + j], wj, g)
+            b = _fma(fb[a + j], wj, b)
+        dr[i], dg[i], db[i] = r, g, b
+
+
 @numba.njit(cache=True, nogil=True)
 def _working_gray_kernel(img: np.ndarray, lut: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: np.ndarray,
-                         ylo: np.ndarray, yn: np.ndarray, yw: np.ndarray,
+                         ylo: np.ndarray, yn: np.ndarray, yw: np.ndarray, span: np.ndarray,
                          out: np.ndarray, green: np.ndarray, y0: int, y1: int) -> None:  # pragma: no cover - compiled
     """:func:`working_gray` of one ``(3, H, W)`` image into output rows ``[y0, y1)`` of
     ``out`` ``(h, w)``: the horizontal pass for the three channels together (the input
-    rows those output rows read), then the vertical pass a whole output row at a time,
+    rows those output rows read; outputs ``span[0] <= i < span[1]`` have four taps at
+    ``2·i + span[2]`` with the weights of output ``span[0]``, a loop the compiler
+    vectorises), then the vertical pass a whole output row at a time,
     then the grey; and unless ``green`` ``(h + 1, w + 1)`` is empty, the running counts of
     :func:`green_mask` into its rows ``y0 + 1 .. y1``, counted from row ``y0`` as zero
     (the caller adds row ``y0``'s counts where ``y0 > 0``)."""
-    _, h, _ = img.shape
+    _, h, win = img.shape
     wo = xlo.shape[0]
     if y1 <= y0:
         return
     rows = np.empty((3, h, wo), np.float32)
+    f = np.empty((3, win), np.float32)  # one input row of each channel in [0, 1]
     top, bottom = ylo[y0], ylo[y0] + yn[y0]
     for yo in range(y0 + 1, y1):
         bottom = max(bottom, ylo[yo] + yn[yo])
         top = min(top, ylo[yo])
+    i0, i1, off = span[0], span[1], span[2]
     for y in range(top, bottom):
-        sr, sg, sb = img[0, y], img[1, y], img[2, y]
+        for c in range(3):
+            src, dst = img[c, y], f[c]
+            for x in range(win):
+                dst[x] = _unit(src[x], lut)
+        fr, fg, fb = f[0], f[1], f[2]
         dr, dg, db = rows[0, y], rows[1, y], rows[2, y]
-        for i in range(wo):
-            a = xlo[i]
-            w0 = xw[i, 0]
-            r = _unit(sr[a], lut) * w0
-            g = _unit(sg[a], lut) * w0
-            b = _unit(sb[a], lut) * w0
-            for j in range(1, xn[i]):
-                wj = xw[i, j]
-                r = _fma(_unit(sr[a + j], lut), wj, r)
-                g = _fma(_unit(sg[a + j], lut), wj, g)
-                b = _fma(_unit(sb[a + j], lut), wj, b)
-            dr[i], dg[i], db[i] = r, g, b
+        _row_taps(fr, fg, fb, xlo, xn, xw, dr, dg, db, 0, i0)
+        if i1 > i0:
+            c0, c1, c2, c3 = xw[i0, 0], xw[i0, 1], xw[i0, 2], xw[i0, 3]
+            for i in range(i0, i1):
+                a = 2 * i + off
+                dr[i] = _fma(fr[a + 3], c3, _fma(fr[a + 2], c2, _fma(fr[a + 1], c1, fr[a] * c0)))
+                dg[i] = _fma(fg[a + 3], c3, _fma(fg[a + 2], c2, _fma(fg[a + 1], c1, fg[a] * c0)))
+                db[i] = _fma(fb[a + 3], c3, _fma(fb[a + 2], c2, _fma(fb[a + 1], c1, fb[a] * c0)))
+        _row_taps(fr, fg, fb, xlo, xn, xw, dr, dg, db, max(i0, i1), wo)
     wr, wg, wb = np.float32(0.299), np.float32(0.587), np.float32(0.114)
     lr, lg, lb = np.empty(wo, np.float32), np.empty(wo, np.float32), np.empty(wo, np.float32)
     for yo in range(y0, y1):
