@@ -81,6 +81,11 @@ def test_compiled_edge_map_equals_the_tensor_ops(sample_image):
             got = E.edge_map(g, sigma, threshold, True, True)
             assert torch.equal(got, tensor_ops(g, sigma, threshold)), (sigma, threshold)
             assert int((got > 0).sum()) > 0
+    # narrow and short images: the end columns and rows take the clamped (replicated) paths
+    for h, w in ((5, 5), (4, 6), (64, 3), (3, 64), (9, 2)):
+        g = torch.rand(2, 1, h, w, generator=gen)
+        g[:, :, ::3] *= 0.2
+        assert torch.equal(E.edge_map(g, 0.5, 0.05, True, True), tensor_ops(g, 0.5, 0.05)), (h, w)
 
 
 def _interpolated(images, scale):

@@ -420,9 +420,6 @@ def _blur_sobel_kernel(gray: np.ndarray, wts: np.ndarray, gx: np.ndarray, gy: np
     nb, h, w = gray.shape
     k = wts.shape[0]
     r = k // 2
-    quarter = np.float32(0.25)
-    two = np.float32(2.0)
-    one = np.float32(1.0)
     rows = np.empty((h + 2 * r, w), np.float32)
     blur = np.empty((h, w), np.float32)
     line = np.empty(w + 2 * r, np.float32)
@@ -432,10 +429,12 @@ def _blur_sobel_kernel(gray: np.ndarray, wts: np.ndarray, gx: np.ndarray, gy: np
         for yy in range(b0, b1 + 2 * r):
             y = yy - r
             y = -y if y < 0 else (2 * (h - 1) - y if y >= h else y)
-            for xi in range(w + 2 * r):  # the row, reflected at both ends
-                xs = xi - r
-                xs = -xs if xs < 0 else (2 * (w - 1) - xs if xs >= w else xs)
-                line[xi] = img[y, xs]
+            src = img[y]
+            for x in range(w):  # the row, then its ends reflected
+                line[x + r] = src[x]
+            for xi in range(r):
+                line[xi] = src[r - xi]
+                line[w + r + xi] = src[w - 2 - xi]
             dst = rows[yy]  # tap by tap over the whole row (vectorised), the same sum per pixel
             w0 = wts[0]
             for x in range(w):
@@ -457,61 +456,82 @@ def _blur_sobel_kernel(gray: np.ndarray, wts: np.ndarray, gx: np.ndarray, gy: np
                     dst[x] = dst[x] + wi * src[x]
         for y in range(y0, y1):
             ym, yp = max(y - 1, 0), min(y + 1, h - 1)
-            for x in range(w):
-                xm, xp = max(x - 1, 0), min(x + 1, w - 1)
-                d0 = blur[ym, xp] - blur[ym, xm]
-                d1 = blur[y, xp] - blur[y, xm]
-                d2 = blur[yp, xp] - blur[yp, xm]
-                u = ((d0 + two * d1) + d2) * quarter
-                gx[b, y, x] = u
-                e0 = blur[yp, xm] - blur[ym, xm]
-                e1 = blur[yp, x] - blur[ym, x]
-                e2 = blur[yp, xp] - blur[ym, xp]
-                v = ((e0 + two * e1) + e2) * quarter
-                gy[b, y, x] = v
-                mag[b, y, x] = min(np.sqrt(u * u + v * v), one)
+            up, mid, down = blur[ym], blur[y], blur[yp]
+            ox, oy, om = gx[b, y], gy[b, y], mag[b, y]
+            _sobel_at(up, mid, down, 0, 0, min(1, w - 1), ox, oy, om)
+            for x in range(1, w - 1):  # replicated borders: the end columns clamp their neighbours
+                _sobel_at(up, mid, down, x, x - 1, x + 1, ox, oy, om)
+            if w > 1:
+                _sobel_at(up, mid, down, w - 1, w - 2, w - 1, ox, oy, om)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _sobel_at(up: np.ndarray, mid: np.ndarray, down: np.ndarray, x: int, xm: int, xp: int,
+              gx: np.ndarray, gy: np.ndarray, mag: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Sobel ``gx, gy`` (the 3×3 kernels / 4) and the magnitude (clipped to 1) at column
+    ``x`` of a row of the blurred image, from the rows above, at and below it (columns
+    ``xm, xp`` its neighbours)."""
+    two = np.float32(2.0)
+    quarter = np.float32(0.25)
+    d0 = up[xp] - up[xm]
+    d1 = mid[xp] - mid[xm]
+    d2 = down[xp] - down[xm]
+    u = ((d0 + two * d1) + d2) * quarter
+    gx[x] = u
+    e0 = down[xm] - up[xm]
+    e1 = down[x] - up[x]
+    e2 = down[xp] - up[xp]
+    v = ((e0 + two * e1) + e2) * quarter
+    gy[x] = v
+    mag[x] = min(np.sqrt(u * u + v * v), np.float32(1.0))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _ridge(m: np.ndarray, a: np.float32, d: np.float32, y: int, x: int, ym: int, yp: int, xm: int, xp: int,
+           tan: np.float32, threshold: np.float32) -> bool:  # pragma: no cover - compiled
+    """Whether pixel ``(y, x)`` of ``m`` passes the threshold and is not smaller than its
+    two neighbours across the edge (gradient ``a, d``; rows ``ym, yp`` and columns ``xm,
+    xp`` its neighbours): every comparison made, then one chosen, so that a row of them
+    compiles to vector selects."""
+    c = m[y, x]
+    ax, ay = abs(a), abs(d)
+    horiz = ay <= tan * ax
+    vert = ax <= tan * ay
+    diag = a * d > 0
+    keep_h = (c >= m[y, xm]) & (c >= m[y, xp])
+    keep_v = (c >= m[ym, x]) & (c >= m[yp, x])
+    keep_d1 = (c >= m[ym, xm]) & (c >= m[yp, xp])
+    keep_d2 = (c >= m[ym, xp]) & (c >= m[yp, xm])
+    ok = keep_h if horiz else (keep_v if vert else (keep_d1 if diag else keep_d2))
+    return (c > threshold) & ok
 
 
 @numba.njit(cache=True, nogil=True)
 def _thin_isolated_kernel(mag: np.ndarray, gx: np.ndarray, gy: np.ndarray, threshold: np.float32,
                           out: np.ndarray, y0: int, y1: int) -> None:  # pragma: no cover - compiled
     """``mag`` where it passes the threshold, :func:`thin` and :func:`remove_isolated`, else
-    0, in rows ``[y0, y1)``."""
+    0, in rows ``[y0, y1)``: the thinned pixels into a table with a border of False (so the
+    isolation test reads its eight neighbours without bounds checks)."""
     nb, h, w = mag.shape
     tan = np.float32(0.4142135623730951)
-    keep = np.empty((h, w), np.bool_)
+    zero = np.float32(0.0)
+    keep = np.zeros((h + 2, w + 2), np.bool_)
     k0, k1 = max(y0 - 1, 0), min(y1 + 1, h)  # the thinned rows the isolation test reads
     for b in range(nb):
         m = mag[b]
         for y in range(k0, k1):
             ym, yp = max(y - 1, 0), min(y + 1, h - 1)
-            for x in range(w):
-                xm, xp = max(x - 1, 0), min(x + 1, w - 1)
-                c = m[y, x]
-                if not c > threshold:
-                    keep[y, x] = False
-                    continue
-                a, d = gx[b, y, x], gy[b, y, x]
-                ax, ay = abs(a), abs(d)
-                if ay <= tan * ax:
-                    ok = c >= m[y, xm] and c >= m[y, xp]
-                elif ax <= tan * ay:
-                    ok = c >= m[ym, x] and c >= m[yp, x]
-                elif a * d > 0:
-                    ok = c >= m[ym, xm] and c >= m[yp, xp]
-                else:
-                    ok = c >= m[ym, xp] and c >= m[yp, xm]
-                keep[y, x] = ok
+            a, d, kr = gx[b, y], gy[b, y], keep[y + 1]
+            kr[1] = _ridge(m, a[0], d[0], y, 0, ym, yp, 0, min(1, w - 1), tan, threshold)
+            for x in range(1, w - 1):  # replicated borders: the end columns clamp their neighbours
+                kr[x + 1] = _ridge(m, a[x], d[x], y, x, ym, yp, x - 1, x + 1, tan, threshold)
+            if w > 1:
+                kr[w] = _ridge(m, a[w - 1], d[w - 1], y, w - 1, ym, yp, w - 2, w - 1, tan, threshold)
         for y in range(y0, y1):
+            up, mid, down, row, dst = keep[y], keep[y + 1], keep[y + 2], m[y], out[b, y]
             for x in range(w):
-                v = np.float32(0.0)
-                if keep[y, x]:
-                    for dy in range(-1, 2):
-                        for dx in range(-1, 2):
-                            yy, xx = y + dy, x + dx
-                            if (dy != 0 or dx != 0) and 0 <= yy < h and 0 <= xx < w and keep[yy, xx]:
-                                v = m[y, x]
-                out[b, y, x] = v
+                near = (up[x] | up[x + 1] | up[x + 2] | mid[x] | mid[x + 2] | down[x] | down[x + 1] | down[x + 2])
+                dst[x] = row[x] if mid[x + 1] & near else zero
 
 
 def _edge_map_cpu(gray: Tensor, sigma: float, threshold: float) -> Tensor:
