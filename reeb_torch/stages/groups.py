@@ -153,6 +153,17 @@ def _find(parent: np.ndarray, p: int) -> int:  # pragma: no cover - compiled
     return p
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _union(parent: np.ndarray, p: int, q: int) -> None:  # pragma: no cover - compiled
+    """Join the sets of ``p`` and ``q``; the smaller root becomes the root of both."""
+    a = _find(parent, p)
+    c = _find(parent, q)
+    if a < c:
+        parent[c] = a
+    elif c < a:
+        parent[a] = c
+
+
 @numba.njit(cache=True, nogil=True)
 def pixel_labels(edges: np.ndarray, cell: int):  # pragma: no cover - compiled
     """Union–find over the edge pixels (``edges > 0``; NaN is background) of ``(B, H, W)`` in
@@ -164,29 +175,37 @@ def pixel_labels(edges: np.ndarray, cell: int):  # pragma: no cover - compiled
     n = b * h * w
     flat = edges.reshape(-1)
     parent = np.full(n, -1, np.int64)
-    for p in range(n):
-        if not flat[p] > 0:
-            continue
-        parent[p] = p
-        rem = p % (h * w)
-        y = rem // w
-        x = rem % w
-        for dy, dx in ((-1, -1), (-1, 0), (-1, 1), (0, -1)):
-            yy = y + dy
-            xx = x + dx
-            if yy < 0 or xx < 0 or xx >= w:
-                continue
-            if cell > 0 and (yy // cell != y // cell or xx // cell != x // cell):
-                continue
-            q = p + dy * w + dx
-            if parent[q] < 0:
-                continue
-            a = _find(parent, p)
-            c = _find(parent, q)
-            if a < c:
-                parent[c] = a
-            elif c < a:
-                parent[a] = c
+    # which neighbours share a tile, per column (left, right) and per row (above): the
+    # same tests as ``yy // cell == y // cell`` and ``xx // cell == x // cell``, made once
+    left_ok = np.ones(w, np.bool_)
+    right_ok = np.ones(w, np.bool_)
+    left_ok[0] = False
+    right_ok[w - 1] = False
+    if cell > 0:
+        for x in range(w):
+            if x % cell == 0:
+                left_ok[x] = False
+            if (x + 1) % cell == 0:
+                right_ok[x] = False
+    for i in range(b):
+        for y in range(h):
+            up = y > 0 and (cell <= 0 or y % cell != 0)
+            row = (i * h + y) * w
+            for x in range(w):
+                p = row + x
+                if not flat[p] > 0:
+                    continue
+                parent[p] = p
+                if up:
+                    q = p - w
+                    if left_ok[x] and parent[q - 1] >= 0:  # (-1, -1)
+                        _union(parent, p, q - 1)
+                    if parent[q] >= 0:  # (-1, 0)
+                        _union(parent, p, q)
+                    if right_ok[x] and parent[q + 1] >= 0:  # (-1, +1)
+                        _union(parent, p, q + 1)
+                if left_ok[x] and parent[p - 1] >= 0:  # (0, -1)
+                    _union(parent, p, p - 1)
     label = np.full(n, -1, np.int64)
     count = 0
     for p in range(n):
@@ -219,7 +238,7 @@ def _connected_groups_kernel(edges: np.ndarray, cell: int):  # pragma: no cover 
             continue
         rem = p % (h * w)
         y = rem // w
-        x = rem % w
+        x = rem - y * w
         if batch[g] < 0:  # the group's first pixel in raster order: its root
             batch[g] = p // (h * w)
             x1[g] = x
