@@ -272,3 +272,10 @@ def test_descending_stable_is_torchs_stable_sort(n: int) -> None:
     assert torch.equal(_descending_stable(v), v.sort(descending=True, stable=True).indices)
     w = torch.tensor([1.0, math.nan, 2.0, 1.0])
     assert torch.equal(_descending_stable(w), w.sort(descending=True, stable=True).indices)
+    # the first `top` of it by radix selection and sort (ties at the cut included)
+    from reeb_torch.stages.rescoring import _top_stable
+
+    full = v.sort(descending=True, stable=True).indices
+    for top in (1, 2, 7, max(n - 1, 1), n + 3):
+        assert torch.equal(_top_stable(v, top), full[:top]), top
+    assert torch.equal(_top_stable(w, 2), w.sort(descending=True, stable=True).indices[:2])

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ._radix import descending_order, kth_largest
 from ._threads import on_two_cores
 from .groups import pixel_labels
 from .refinement import box_sum_at
@@ -60,9 +61,23 @@ def top_candidates(scores: Tensor, chosen: Tensor, top: int) -> list[Tensor]:
     out = []
     for i in range(scores.shape[0]):
         cand = torch.nonzero(chosen[i]).squeeze(1)
-        order = _descending_stable(scores[i, cand])[:top]
+        order = _top_stable(scores[i, cand], top)
         out.append(cand[order])
     return out
+
+
+def _top_stable(vals: Tensor, top: int) -> Tensor:
+    """``_descending_stable(vals)[:top]``: on the CPU without NaN, only the values at or
+    above the ``top``-th largest (compiled radix selection) are sorted (compiled radix
+    sort, stable), the kernels the window NMS uses; they come in index order, so ties keep
+    the lower index first, as in the full sort."""
+    n = len(vals)
+    if (top >= n or vals.device.type != "cpu" or vals.dtype != torch.float32 or not vals.is_contiguous()
+            or bool(vals.isnan().any())):
+        return _descending_stable(vals)[:top]
+    v = vals.numpy()
+    sel = np.flatnonzero(v >= kth_largest(v, top))  # the best top and their ties, ascending
+    return torch.from_numpy(sel[descending_order(np.ascontiguousarray(v[sel]))][:top])
 
 
 def _descending_stable(vals: Tensor) -> Tensor:
