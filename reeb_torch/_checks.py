@@ -49,15 +49,9 @@ def _in_unit_range(img: Tensor) -> bool:
     times when other work holds the cores); elsewhere one ``aminmax``."""
     if img.device.type == "cpu" and img.dtype == torch.float32 and img.is_contiguous():
         flat = img.reshape(-1).numpy()
-        half = (flat.shape[0] + 1) // 2
-        inside = [0, 0]
-
-        def run(lo: int, hi: int) -> None:
-            for j in range(lo, hi):
-                inside[j] = _count_in_unit_range(flat[j * half: (j + 1) * half])
-
-        on_two_cores(run, 2)
-        return inside[0] + inside[1] == flat.shape[0]
+        inside: list[int] = []
+        on_two_cores(lambda lo, hi: inside.append(_count_in_unit_range(flat[lo:hi])), flat.shape[0])
+        return sum(inside) == flat.shape[0]
     lo, hi = torch.aminmax(img)
     return bool((lo >= 0) & (hi <= 1))
 

@@ -139,7 +139,7 @@ def test_the_helper_process_starts_and_is_stopped(monkeypatch):
     assert helper.returncode is not None
 
 
-def test_the_compiled_path_does_not_import_torchvision(tmp_path):
+def test_the_compiled_path_does_not_import_torchvision():
     # importing torchvision costs ~2.7 s (torch._dynamo) at every start; only the
     # torchvision NMS path (CUDA, refined boxes) needs it
     import os

@@ -80,9 +80,9 @@ def working_gray(images: list[Tensor], scale: float,
     ho, wo = working_size(h, w, scale)
     xlo, xn, xw = _aa_weights(w, wo)
     ylo, yn, yw = _aa_weights(h, ho)
-    span = _regular_span(w, wo)
     if max(xw.shape[1], yw.shape[1]) > 4:  # scale < 0.5: torch sums longer filters in another order
         return None
+    span = _regular_span(w, wo)
     arrays = [im.contiguous().numpy() for im in images]
     out = _scratch.empty("front.grey", (len(images), 1, ho, wo), np.float32)
     green = (_scratch.empty("front.green", (len(images), ho + 1, wo + 1), np.int32) if with_green
@@ -138,11 +138,12 @@ def _regular_span(n_in: int, n_out: int) -> np.ndarray:
     loop; ``i0 == i1`` (``= n_out``) where there is none."""
     lo, n, w = _aa_weights(n_in, n_out)
     best = (n_out, n_out, 0)
+    if w.shape[1] < 4:
+        return np.array(best, np.int64)
     i = 0
     while i < n_out:
         j = i
-        while (j < n_out and n[j] == 4 and w.shape[1] >= 4 and lo[j] - 2 * j == lo[i] - 2 * i
-               and np.array_equal(w[j, :4], w[i, :4])):
+        while j < n_out and n[j] == 4 and lo[j] - 2 * j == lo[i] - 2 * i and np.array_equal(w[j, :4], w[i, :4]):
             j += 1
         if j - i > best[1] - best[0]:
             best = (i, j, int(lo[i] - 2 * i))
@@ -230,7 +231,7 @@ def _working_gray_kernel(img: np.ndarray, lut: np.ndarray, xlo: np.ndarray, xn: 
                 dr[i] = _fma(fr[a + 3], c3, _fma(fr[a + 2], c2, _fma(fr[a + 1], c1, fr[a] * c0)))
                 dg[i] = _fma(fg[a + 3], c3, _fma(fg[a + 2], c2, _fma(fg[a + 1], c1, fg[a] * c0)))
                 db[i] = _fma(fb[a + 3], c3, _fma(fb[a + 2], c2, _fma(fb[a + 1], c1, fb[a] * c0)))
-        _row_taps(fr, fg, fb, xlo, xn, xw, dr, dg, db, max(i0, i1), wo)
+        _row_taps(fr, fg, fb, xlo, xn, xw, dr, dg, db, i1, wo)
     wr, wg, wb = np.float32(0.299), np.float32(0.587), np.float32(0.114)
     lr, lg, lb = np.empty(wo, np.float32), np.empty(wo, np.float32), np.empty(wo, np.float32)
     for yo in range(y0, y1):

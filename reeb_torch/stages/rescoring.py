@@ -77,7 +77,7 @@ def _top_stable(vals: Tensor, top: int) -> Tensor:
         return _descending_stable(vals)[:top]
     v = vals.numpy()
     sel = np.flatnonzero(v >= kth_largest(v, top))  # the best top and their ties, ascending
-    return torch.from_numpy(sel[descending_order(np.ascontiguousarray(v[sel]))][:top])
+    return torch.from_numpy(sel[descending_order(v[sel])][:top])
 
 
 def _descending_stable(vals: Tensor) -> Tensor:
