@@ -206,6 +206,25 @@ def _wait_for_rows(d: Path, name: str, proc: subprocess.Popen, rows: int = 1,
     raise AssertionError("no row was written in time")
 
 
+def _assert_workers_hold_no_pipe(proc: subprocess.Popen) -> None:
+    """The decoding workers (forked) hold neither of the run's output pipes: a caller
+    that kills the run reads to their end at once, not when the orphaned workers exit (CI
+    once waited more than 30 s for that)."""
+    children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
+    if not children.exists():  # not Linux
+        return
+    ours = {os.readlink(f"/proc/{proc.pid}/fd/{fd}") for fd in (1, 2)}
+    assert all(o.startswith("pipe:") for o in ours)
+    kids = children.read_text().split()
+    assert kids  # the run decodes in workers
+    for k in kids:
+        try:
+            held = {os.readlink(f"/proc/{k}/fd/{fd}") for fd in (1, 2)}
+        except FileNotFoundError:  # that worker has finished already
+            continue
+        assert not held & ours, (k, held)
+
+
 def test_interrupt_kill_and_resume(tmp_path):
     n = 60  # enough work (several seconds) that the signals land mid-run
     paths = good_folder(tmp_path / "imgs", n)
@@ -233,6 +252,7 @@ def test_interrupt_kill_and_resume(tmp_path):
     # kill -9 while resuming: no chance to clean up, the output is still the old one
     proc = _start([*args, "--resume"], tmp_path)
     tmp = _wait_for_rows(tmp_path, "out.jsonl", proc, rows=len(saved) + 1)
+    _assert_workers_hold_no_pipe(proc)
     proc.kill()
     proc.communicate(timeout=30)
     assert (tmp_path / "out.jsonl").read_text() == saved_text

@@ -370,17 +370,34 @@ def _keep(item: Decoded) -> Decoded:
     return item
 
 
+def _die_with_parent() -> None:
+    """Linux: the kernel kills this worker when the process that started it dies (a
+    ``kill -9`` of the run), instead of the worker living on until DataLoader's watchdog
+    notices, seconds later or, stuck flushing its queue, never."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # pragma: no cover - not Linux
+        pass
+
+
 def _init_worker(_: int) -> None:
     # Decoding is one image per worker; leave the cores to the other workers and the
     # algorithm. The decoders' own complaints ("libpng error: ...") duplicate the one-line
     # message each failed file gets, and would break the progress bar: a worker's stderr
-    # goes to /dev/null (every failure reaches the main process as a Decoded record).
+    # goes to /dev/null (every failure reaches the main process as a Decoded record), and
+    # so does its stdout (it prints nothing; a forked worker holding the run's stdout pipe
+    # would keep a caller reading it waiting after the run itself has been killed).
     torch.set_num_threads(1)
+    _die_with_parent()
     try:
         devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 1)
         os.dup2(devnull, 2)
         os.close(devnull)
-    except OSError:  # pragma: no cover - keep stderr then
+    except OSError:  # pragma: no cover - keep stdout and stderr then
         pass
     try:
         import cv2
