@@ -5,11 +5,12 @@ End to end from decoded tensors (already in memory) to ranked boxes, at a given 
 and proposal count, on the frames of a KITTI-format folder, for both inputs a caller may
 hand over: ``uint8`` as decoded and float32 RGB in [0, 1] (``uint8 / 255``, what
 torchvision detectors pass). The first call of each (input, batch) is timed apart (the
-very first one compiles the numba kernels, or loads them from their cache; window grids
-are cached per image size); then passes over all frames, every variant once per pass in a
-rotating order (interleaved: a slow spell of the machine hits all alike), and the median
-over ``--repeats`` passes is reported, at ``--batch`` and at ``--latency-batch`` (1: the
-latency a detector sees calling one image at a time). Beside the table: an OpenCV pass
+very first one compiles the numba kernels, or loads them from their cache), and so is the
+first image of each other size (window grids and tables are built once per size); then
+passes over all frames, every variant once per pass in a rotating order (interleaved: a
+slow spell of the machine hits all alike), and the median over ``--repeats`` passes is
+reported, at ``--batch`` and at ``--latency-batch`` (1: the latency a detector sees
+calling one image at a time). Beside the table: an OpenCV pass
 (grey, Gaussian blur, Sobel x and y) over the same images, the floor the paper compares
 with (15 ms total vs about 3 ms for edges), and the ratio of REEB's total to it.
 
@@ -81,11 +82,12 @@ def measure(preset: str, images: list[torch.Tensor], batches: list[int], top_k: 
     gen = ProposalGenerator(get_preset(preset), top_k=top_k).to(device)
     inputs = {k: [im.to(device) for im in as_input(images, k)] for k in INPUTS}
     variants = [(k, b) for b in batches for k in INPUTS]
-    first = {}
+    first, new_size = {}, {}
     for k, b in variants:
         t0 = time.perf_counter()
         gen(inputs[k][:b])  # warm-up: numba compile (or cache load), window grids
         first[(k, b)] = (time.perf_counter() - t0) * 1000
+        new_size[(k, b)] = _other_sizes(gen, inputs[k])
     runs: dict = {v: [] for v in variants}
     for r in range(repeats):
         for j in range(len(variants)):
@@ -97,8 +99,23 @@ def measure(preset: str, images: list[torch.Tensor], batches: list[int], top_k: 
         med = statistics.median(totals)
         best = min(range(len(passes)), key=lambda i: abs(totals[i] - med))
         out[f"{k}/b{b}"] = {"total": med, "stages": passes[best][1], "all_totals": totals,
-                            "first_call_ms": first[(k, b)]}
+                            "first_call_ms": first[(k, b)], "new_size_ms": new_size[(k, b)]}
     return out
+
+
+def _other_sizes(gen: ProposalGenerator, imgs: list[torch.Tensor]) -> float | None:
+    """The first call at each image size after the first (the window grid, score plan and
+    NMS tables of a size are built once, then cached), one image each, so that no timed
+    pass pays them: their mean ms, ``None`` where all frames share one size."""
+    seen = {tuple(imgs[0].shape)}
+    times = []
+    for im in imgs:
+        if tuple(im.shape) not in seen:
+            seen.add(tuple(im.shape))
+            t0 = time.perf_counter()
+            gen([im])
+            times.append((time.perf_counter() - t0) * 1000)
+    return statistics.mean(times) if times else None
 
 
 def opencv_floor(images: list[torch.Tensor], sigma: float, repeats: int) -> float:
@@ -142,6 +159,9 @@ def _table(res: dict, presets: list[str], batches: list[int], floor: float) -> s
         for k in INPUTS:
             lines.append(row(f"First call, {k}, batch {b} (not above), ms", [res[p][f"{k}/b{b}"]["first_call_ms"]
                                                                          for p in presets], "22.0f"))
+    sizes = [res[p][f"uint8/b{batches[0]}"]["new_size_ms"] for p in presets]
+    if all(v is not None for v in sizes):
+        lines.append(row("First call at each other image size (not above), ms", sizes, "22.0f"))
     return "\n".join(lines)
 
 
