@@ -76,11 +76,13 @@ def measure(preset: str, images: list[torch.Tensor], batches: list[int], top_k: 
             device: str) -> dict:
     """Time one preset on every (input kind, batch size), interleaved: each pass runs every
     variant once, in an order that rotates from pass to pass, so that a slow spell of the
-    machine hits them alike; the OpenCV pass (:func:`opencv_pass`) is one more variant, so that
-    the ratio to it compares runs of the same spell. The first call of each variant is timed apart (the very first
-    one compiles the numba kernels, or loads them from their cache). Returns per variant
-    ``"uint8/b8"``: the median ms per image, the per-stage ms of the pass nearest the
-    median, all passes' totals and the first call's ms."""
+    machine hits them alike; the OpenCV pass (:func:`opencv_pass`) is one more variant, so
+    that the ratio to it compares runs of the same spell. The first call of each variant is
+    timed apart (the very first one compiles the numba kernels, or loads them from their
+    cache), and so are the first calls at the other image sizes (:func:`_other_sizes`).
+    Returns per variant ``"uint8/b8"``: the median ms per image, the per-stage ms of the pass
+    nearest the median, all passes' totals, the first call's ms and the other sizes' mean
+    first-call ms; and ``"opencv_ms"`` (median) and ``"opencv_all"`` for the OpenCV pass."""
     gen = ProposalGenerator(get_preset(preset), top_k=top_k).to(device)
     inputs = {k: [im.to(device) for im in as_input(images, k)] for k in INPUTS}
     variants = [(k, b) for b in batches for k in INPUTS]

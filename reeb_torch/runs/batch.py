@@ -371,9 +371,10 @@ def _keep(item: Decoded) -> Decoded:
 
 
 def _die_with_parent() -> None:
-    """Linux: the kernel kills this worker when the process that started it dies (a
-    ``kill -9`` of the run), instead of the worker living on until DataLoader's watchdog
-    notices, seconds later or, stuck flushing its queue, never."""
+    """Linux: the kernel kills this worker when the thread that started it (the one that
+    first iterated the loader) ends, as it does when the run is killed (``kill -9``),
+    instead of the worker living on until DataLoader's watchdog notices, seconds later or,
+    stuck flushing its queue, never."""
     try:
         import ctypes
 
@@ -430,7 +431,8 @@ def decoded_images(
     Yields one :class:`Decoded` per path, in input order; ``quiet``: the C decoders' own
     stderr lines are dropped also when decoding in this process. Up to ``prefetch`` images per
     worker are decoded ahead of the consumer. Closing the iterator (or interrupting it)
-    shuts the workers down.
+    shuts the workers down; so does the end of the thread that began iterating it (on
+    Linux the workers die with it), so iterate it to its end in that thread.
     """
     dataset = ImageFileDataset(paths, min_side=min_side)
     workers = max(0, min(workers, len(dataset)))
