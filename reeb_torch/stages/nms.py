@@ -75,10 +75,12 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pr
     span = np.log(wmax / floor_)
     bw = max(-np.log(min(iou, 0.999)) * 1.01 + 1e-9, span / (_SIZE_BINS - 0.5))
     nb = min(int(span / bw) + 1, _SIZE_BINS)
-    head = np.full(gw * gh * nb * nb, -1, np.int64)  # per cell and size bin: a linked list
+    head = np.full(gw * gh * nb * nb, -1, np.int32)  # per cell and size bin: a linked list
+    # of the kept boxes registered there, each entry holding its box (no second lookup)
     cap = 4 * n + 64
-    ent_box = np.empty(cap, np.int64)
-    ent_next = np.empty(cap, np.int64)
+    e_x1, e_y1 = np.empty(cap, boxes.dtype), np.empty(cap, boxes.dtype)
+    e_x2, e_y2 = np.empty(cap, boxes.dtype), np.empty(cap, boxes.dtype)
+    e_area, e_next = np.empty(cap, boxes.dtype), np.empty(cap, np.int32)
     used = 0
     nk = 0
     for i in range(n):
@@ -91,21 +93,20 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pr
         by = min(int(np.log(max(float(iy2) - float(iy1), floor_) / floor_) / bw), nb - 1)
         base = (cy * gw + cx) * nb * nb
         dead = False
-        for bb in range(max(by - 1, 0), min(by + 2, nb)):
-            for ba in range(max(bx - 1, 0), min(bx + 2, nb)):
-                e = head[base + bb * nb + ba]
-                while e >= 0:
-                    j = ent_box[e]
-                    w = max(min(x2[j], ix2) - max(x1[j], ix1), zero)
-                    h = max(min(y2[j], iy2) - max(y1[j], iy1), zero)
-                    inter = w * h
-                    ovr = inter / (areas[j] + ia - inter)
-                    if ovr > iou:
-                        dead = True
-                        break
-                    e = ent_next[e]
-                if dead:
+        for q in range(9):  # the 3 × 3 size bins around its own, its own first (~10 % faster)
+            bb, ba = by + (q // 3 + 1) % 3 - 1, bx + (q % 3 + 1) % 3 - 1
+            if bb < 0 or bb >= nb or ba < 0 or ba >= nb:
+                continue
+            e = head[base + bb * nb + ba]
+            while e >= 0:
+                w = max(min(e_x2[e], ix2) - max(e_x1[e], ix1), zero)
+                h = max(min(e_y2[e], iy2) - max(e_y1[e], iy1), zero)
+                inter = w * h
+                ovr = inter / (e_area[e] + ia - inter)
+                if ovr > iou:
+                    dead = True
                     break
+                e = e_next[e]
             if dead:
                 break
         if dead:
@@ -129,17 +130,18 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pr
         need = used + (cb - ca + 1) * (rb - ra + 1)
         if need > cap:
             cap = max(2 * cap, need)
-            new_box = np.empty(cap, np.int64)
-            new_next = np.empty(cap, np.int64)
+            n_x1, n_y1 = np.empty(cap, boxes.dtype), np.empty(cap, boxes.dtype)
+            n_x2, n_y2 = np.empty(cap, boxes.dtype), np.empty(cap, boxes.dtype)
+            n_area, n_next = np.empty(cap, boxes.dtype), np.empty(cap, np.int32)
             for e in range(used):  # a loop, not a slice assignment: that one costs seconds to compile
-                new_box[e] = ent_box[e]
-                new_next[e] = ent_next[e]
-            ent_box, ent_next = new_box, new_next
+                n_x1[e], n_y1[e], n_x2[e], n_y2[e] = e_x1[e], e_y1[e], e_x2[e], e_y2[e]
+                n_area[e], n_next[e] = e_area[e], e_next[e]
+            e_x1, e_y1, e_x2, e_y2, e_area, e_next = n_x1, n_y1, n_x2, n_y2, n_area, n_next
         for r in range(ra, rb + 1):
             for c in range(ca, cb + 1):
                 cell = (r * gw + c) * nb * nb + by * nb + bx
-                ent_box[used] = i
-                ent_next[used] = head[cell]
+                e_x1[used], e_y1[used], e_x2[used], e_y2[used], e_area[used] = ix1, iy1, ix2, iy2, ia
+                e_next[used] = head[cell]
                 head[cell] = used
                 used += 1
     return keep[:nk]
