@@ -92,7 +92,7 @@ def working_gray(images: list[Tensor], scale: float,
 
     def run(lo: int, hi: int, r0: int, r1: int) -> None:
         for i in range(lo, hi):
-            _working_gray_kernel(arrays[i], _UNIT_LUT, xlo, xn, xw, ylo, yn, yw, span, out[i, 0], green[i], r0, r1)
+            _working_gray_kernel(arrays[i], xlo, xn, xw, ylo, yn, yw, span, out[i, 0], green[i], r0, r1)
         parts.append((lo, hi, r0, r1))
 
     images_or_rows(run, len(images), ho)
@@ -108,10 +108,6 @@ def green_mask(images: Tensor) -> Tensor:
     and G > B, else 0 (vegetation, for ``ReebConfig.vegetation_score``)."""
     r, g, b = images.unbind(1)
     return ((g > r) & (g > b)).float()
-
-
-# uint8 → float32 in [0, 1] exactly as ``x.float().div_(255.0)``
-_UNIT_LUT = torch.arange(256, dtype=torch.uint8).float().div_(255.0).numpy()
 
 
 @functools.lru_cache(maxsize=16)
@@ -162,15 +158,18 @@ def _fma(typingctx, a, b, c):  # pragma: no cover - compiled
     return sig, codegen
 
 
-def _unit(v, lut):  # pragma: no cover - replaced by the overload below in compiled code
+def _unit(v):  # pragma: no cover - replaced by the overload below in compiled code
     raise NotImplementedError
 
 
 @overload(_unit)
-def _unit_overload(v, lut):  # pragma: no cover - compiled
+def _unit_overload(v):  # pragma: no cover - compiled
+    """A pixel in [0, 1]: uint8 as ``x.float().div_(255.0)`` (one correctly rounded float32
+    division, as torch's; a vectorised division here, where a 256-entry table was a gather
+    per pixel: 0.45 ms per KITTI image), float32 as it is."""
     if isinstance(v, _nbtypes.Integer):
-        return lambda v, lut: lut[v]
-    return lambda v, lut: v
+        return lambda v: np.float32(v) / np.float32(255.0)
+    return lambda v: v
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -194,7 +193,7 @@ def _row_taps(fr: np.ndarray, fg: np.ndarray, fb: np.ndarray, xlo: np.ndarray, x
 
 
 @numba.njit(cache=True, nogil=True)
-def _working_gray_kernel(img: np.ndarray, lut: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: np.ndarray,
+def _working_gray_kernel(img: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: np.ndarray,
                          ylo: np.ndarray, yn: np.ndarray, yw: np.ndarray, span: np.ndarray,
                          out: np.ndarray, green: np.ndarray, y0: int, y1: int) -> None:  # pragma: no cover - compiled
     """:func:`working_gray` of one ``(3, H, W)`` image into output rows ``[y0, y1)`` of
@@ -220,7 +219,7 @@ def _working_gray_kernel(img: np.ndarray, lut: np.ndarray, xlo: np.ndarray, xn: 
         for c in range(3):
             src, dst = img[c, y], f[c]
             for x in range(win):
-                dst[x] = _unit(src[x], lut)
+                dst[x] = _unit(src[x])
         fr, fg, fb = f[0], f[1], f[2]
         dr, dg, db = rows[0, y], rows[1, y], rows[2, y]
         _row_taps(fr, fg, fb, xlo, xn, xw, dr, dg, db, 0, i0)
@@ -234,6 +233,7 @@ def _working_gray_kernel(img: np.ndarray, lut: np.ndarray, xlo: np.ndarray, xn: 
         _row_taps(fr, fg, fb, xlo, xn, xw, dr, dg, db, i1, wo)
     wr, wg, wb = np.float32(0.299), np.float32(0.587), np.float32(0.114)
     lr, lg, lb = np.empty(wo, np.float32), np.empty(wo, np.float32), np.empty(wo, np.float32)
+    gm = np.empty(wo, green.dtype)
     for yo in range(y0, y1):
         a, n = ylo[yo], yn[yo]
         w0 = yw[yo, 0]
@@ -260,10 +260,11 @@ def _working_gray_kernel(img: np.ndarray, lut: np.ndarray, xlo: np.ndarray, xn: 
                 above = green[yo]
             below = green[yo + 1]
             below[0] = 0
+            for i in range(wo):  # the mask first, in a loop the compiler vectorises (the
+                gm[i] = (lg[i] > lr[i]) & (lg[i] > lb[i])  # running count's branch cost 0.3 ms)
             run = 0
             for i in range(wo):
-                if lg[i] > lr[i] and lg[i] > lb[i]:
-                    run += 1
+                run += gm[i]
                 below[i + 1] = above[i + 1] + run
 
 
