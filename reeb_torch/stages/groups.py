@@ -165,12 +165,11 @@ def _union(parent: np.ndarray, p: int, q: int) -> None:  # pragma: no cover - co
 
 
 @numba.njit(cache=True, nogil=True)
-def pixel_labels(edges: np.ndarray, cell: int):  # pragma: no cover - compiled
+def _union_pass(edges: np.ndarray, cell: int) -> np.ndarray:  # pragma: no cover - compiled
     """Union–find over the edge pixels (``edges > 0``; NaN is background) of ``(B, H, W)`` in
     raster order: 8-connected, not across images nor ``cell`` tiles (``cell <= 0``: no
-    tiles). Each component's root is its smallest flat index; the components are numbered
-    in the order of their roots. Returns the label of every pixel, ``int64 [B·H·W]`` (−1: no
-    edge), and the number of components. Shared by eq. 1's groups and the rescoring cues."""
+    tiles). Returns the parent of every pixel, ``int64 [B·H·W]`` (−1: no edge); each
+    component's root is its smallest flat index."""
     b, h, w = edges.shape
     n = b * h * w
     flat = edges.reshape(-1)
@@ -206,6 +205,16 @@ def pixel_labels(edges: np.ndarray, cell: int):  # pragma: no cover - compiled
                         _union(parent, p, q + 1)
                 if left_ok[x] and parent[p - 1] >= 0:  # (0, -1)
                     _union(parent, p, p - 1)
+    return parent
+
+
+@numba.njit(cache=True, nogil=True)
+def pixel_labels(edges: np.ndarray, cell: int):  # pragma: no cover - compiled
+    """The components of :func:`_union_pass`, numbered in the order of their roots: the
+    label of every pixel, ``int64 [B·H·W]`` (−1: no edge), and the number of components.
+    Used by the rescoring cues (eq. 1's groups: :func:`_connected_groups_kernel`)."""
+    n = edges.size
+    parent = _union_pass(edges, cell)
     label = np.full(n, -1, np.int64)
     count = 0
     for p in range(n):
@@ -225,33 +234,40 @@ def _connected_groups_kernel(edges: np.ndarray, cell: int):  # pragma: no cover 
     b, h, w = edges.shape
     n = b * h * w
     flat = edges.reshape(-1)
-    label, count = pixel_labels(edges, cell)
-    batch = np.full(count, -1, np.int64)
-    x1 = np.empty(count, np.int64)
-    y1 = np.empty(count, np.int64)
-    x2 = np.empty(count, np.int64)
-    y2 = np.empty(count, np.int64)
-    mass = np.zeros(count, np.float64)
+    parent = _union_pass(edges, cell)
+    # one raster pass numbers the groups and sums them: a root (its group's smallest index)
+    # comes before the rest of its group, and is marked with its number as −2 − number
+    m = 0
     for p in range(n):
-        g = label[p]
-        if g < 0:
-            continue
-        rem = p % (h * w)
-        y = rem // w
-        x = rem - y * w
-        if batch[g] < 0:  # the group's first pixel in raster order: its root
-            batch[g] = p // (h * w)
-            x1[g] = x
-            y1[g] = y
-            x2[g] = x
-            y2[g] = y
-        else:
-            x1[g] = min(x1[g], x)
-            y1[g] = min(y1[g], y)
-            x2[g] = max(x2[g], x)
-            y2[g] = max(y2[g], y)
-        mass[g] += np.float64(flat[p])
-    return batch, x1, y1, x2, y2, mass
+        m += parent[p] >= 0
+    batch, x1, y1 = np.empty(m, np.int64), np.empty(m, np.int64), np.empty(m, np.int64)
+    x2, y2 = np.empty(m, np.int64), np.empty(m, np.int64)
+    mass = np.zeros(m, np.float64)
+    count = 0
+    for i in range(b):
+        for y in range(h):
+            row = (i * h + y) * w
+            for x in range(w):
+                p = row + x
+                q = parent[p]
+                if q == -1:
+                    continue
+                if q == p:  # a root: a new group
+                    g = count
+                    parent[p] = -2 - g
+                    count += 1
+                    batch[g], x1[g], y1[g], x2[g], y2[g] = i, x, y, x, y
+                else:
+                    while parent[q] >= 0:
+                        q = parent[q]
+                    g = -2 - parent[q]
+                    parent[p] = q  # (q is numbered; later pixels that point at p go straight there)
+                    x1[g] = min(x1[g], x)
+                    y1[g] = min(y1[g], y)
+                    x2[g] = max(x2[g], x)
+                    y2[g] = max(y2[g], y)
+                mass[g] += np.float64(flat[p])
+    return batch[:count], x1[:count], y1[:count], x2[:count], y2[:count], mass[:count]
 
 
 def connected_groups(edges: Tensor, cell: int | None = None) -> EdgeGroups:
