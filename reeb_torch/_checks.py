@@ -17,7 +17,7 @@ from .stages.edges import working_size
 if TYPE_CHECKING:
     from .config import ReebConfig
 
-__all__ = ["check_images", "check_fits", "ImageBatch"]
+__all__ = ["check_images", "check_fits", "check_range", "ImageBatch"]
 
 ImageBatch = Tensor | Sequence[Tensor]
 
@@ -56,7 +56,22 @@ def _in_unit_range(img: Tensor) -> bool:
     return bool((lo >= 0) & (hi <= 1))
 
 
-def _check_one(img: Tensor, where: str, keep_uint8: bool = False) -> Tensor:
+def check_range(img: Tensor, where: str) -> None:
+    """Raise ValueError, naming ``where``, unless every value of the float image ``img`` is
+    finite and in [0, 1]."""
+    if img.numel() and not _in_unit_range(img):
+        lo_t, hi_t = torch.aminmax(img)  # min and max propagate NaN; an infinity is one of them
+        lo, hi = float(lo_t), float(hi_t)
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            raise ValueError(f"{where}: contains NaN or infinite values")
+        if lo < 0.0 or hi > 1.0:
+            raise ValueError(
+                f"{where}: float images must hold values in [0, 1], got range [{lo:.4g}, {hi:.4g}]"
+                " (divide uint8 data by 255, or pass the uint8 tensor)"
+            )
+
+
+def _check_one(img: Tensor, where: str, keep_uint8: bool = False, defer_range: bool = False) -> Tensor:
     if not isinstance(img, Tensor):
         raise TypeError(f"{where}: expected a torch.Tensor, got {type(img).__name__}")
     _check_storage(img, where)
@@ -68,16 +83,8 @@ def _check_one(img: Tensor, where: str, keep_uint8: bool = False) -> Tensor:
         return img if keep_uint8 else img.float().div_(255.0)
     if not img.is_floating_point():
         raise TypeError(f"{where}: expected dtype float or uint8, got {img.dtype}")
-    if img.numel() and not _in_unit_range(img):
-        lo_t, hi_t = torch.aminmax(img)  # min and max propagate NaN; an infinity is one of them
-        lo, hi = float(lo_t), float(hi_t)
-        if not (math.isfinite(lo) and math.isfinite(hi)):
-            raise ValueError(f"{where}: contains NaN or infinite values")
-        if lo < 0.0 or hi > 1.0:
-            raise ValueError(
-                f"{where}: float images must hold values in [0, 1], got range [{lo:.4g}, {hi:.4g}]"
-                " (divide uint8 data by 255, or pass the uint8 tensor)"
-            )
+    if not defer_range:
+        check_range(img, where)
     return img.float()
 
 
@@ -98,7 +105,7 @@ def check_fits(height: int, width: int, config: ReebConfig, where: str = "image"
 
 
 def check_images(images: ImageBatch, min_side: int, config: ReebConfig | None = None,
-                 keep_uint8: bool = False) -> list[Tensor]:
+                 keep_uint8: bool = False, unchecked: list[int] | None = None) -> list[Tensor]:
     """Validate a batch and return a list of float32 ``(3, H, W)`` images in [0, 1]
     (with ``keep_uint8``, uint8 images are returned as they are, for a caller that
     converts them itself: ``x.float().div_(255.0)``).
@@ -107,7 +114,9 @@ def check_images(images: ImageBatch, min_side: int, config: ReebConfig | None = 
     dense, on a real device (a meta tensor is a TypeError). ``min_side`` is the smallest
     height/width an image may have (the smallest window); with ``config``, each image must
     also fit its working resolution (:func:`check_fits`). Wrong types raise TypeError,
-    wrong shapes, values or sizes ValueError.
+    wrong shapes, values or sizes ValueError. Given a list ``unchecked``, the values of
+    float32 CPU images are not checked here: their indices go into the list, for a caller
+    that checks them as it reads them (:func:`check_range` where it cannot).
     """
     if isinstance(images, Tensor):
         if images.ndim == 3:
@@ -127,7 +136,11 @@ def check_images(images: ImageBatch, min_side: int, config: ReebConfig | None = 
         raise ValueError("empty batch: expected at least one image")
     out = []
     for i, img in enumerate(seq):
-        x = _check_one(img, f"image {i}", keep_uint8)
+        defer = (unchecked is not None and isinstance(img, Tensor) and img.dtype == torch.float32
+                 and img.device.type == "cpu")
+        x = _check_one(img, f"image {i}", keep_uint8, defer)
+        if defer:
+            unchecked.append(i)
         h, w = x.shape[-2:]
         if h < min_side or w < min_side:
             raise ValueError(

@@ -122,6 +122,32 @@ def test_one_non_finite_value_anywhere_is_rejected(value, where, dtype):
         ProposalGenerator(**SMALL)([y])
 
 
+def test_float_values_are_checked_as_the_front_end_reads_them(sample_image, monkeypatch):
+    # issue 20: a float image was read twice, once by the range check and once by the front
+    # end (0.3 ms per KITTI image); the front end now counts what it reads, and the error
+    # still names the image, in a batch split between the cores and in one image split by rows
+    import reeb_torch._checks as checks
+
+    calls = []
+    real = checks._in_unit_range
+    monkeypatch.setattr(checks, "_in_unit_range", lambda img: (calls.append(1), real(img))[1])
+    x = sample_image[:, :200, :480].float() / 255
+    gen = ProposalGenerator(**SMALL)
+    gen([x, x.flip(-1), x])
+    assert calls == []  # no separate pass over good images on the compiled front end
+    for n, bad in ((1, 0), (3, 2), (4, 1)):
+        for value, match in ((1.5, r"\[0, 1\]"), (float("nan"), "NaN or infinite"), (-0.25, r"\[0, 1\]")):
+            batch = [x.clone() for _ in range(n)]
+            batch[bad][1, 150, 300] = value  # in the lower half of the rows: the second core's part
+            with pytest.raises(ValueError, match=f"image {bad}: .*{match}"):
+                gen(batch)
+    road = ProposalGenerator(road_score="reward", **SMALL)  # the colour path: checked apart
+    y = x.clone()
+    y[0, 5, 5] = 2.0
+    with pytest.raises(ValueError, match=r"image 1: .*\[0, 1\]"):
+        road([x, y])
+
+
 def test_float_equal_to_uint8_over_255_gives_the_same_proposals(sample_image):
     # issue 20: float RGB in [0, 1] that equals uint8 / 255 gives the uint8 input's boxes
     # and scores bit for bit, at full size, alone and in a batch, default and paper preset

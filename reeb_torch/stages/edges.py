@@ -53,15 +53,18 @@ def to_gray(images: Tensor) -> Tensor:
     return kornia.color.rgb_to_grayscale(images)
 
 
-def working_gray(images: list[Tensor], scale: float,
-                 with_green: bool = False) -> tuple[Tensor, Tensor | None] | None:
+def working_gray(images: list[Tensor], scale: float, with_green: bool = False,
+                 outside: list[int] | None = None) -> tuple[Tensor, Tensor | None] | None:
     """``(grey, green_counts)`` at the working resolution from equal-sized ``(3, H, W)``
     images (uint8, or float32 in [0, 1]): grey ``(B, 1, h, w)`` float32 with ``h, w`` =
     :func:`working_size`, and with ``with_green`` the pixel counts of :func:`green_mask`
     of the resized colour image, ``int32 (B, h + 1, w + 1)``, the same table as
     ``scoring.count_integral(green_mask(...))``, counted as the rows come out (else
     ``None``). ``None`` where this compiled path does not apply (then resize with
-    ``F.interpolate`` and use :func:`to_gray`).
+    ``F.interpolate`` and use :func:`to_gray`). Given a list ``outside``, it is filled with
+    each image's count of values outside [0, 1] (NaN included), counted as the pass reads
+    them (no second pass over a float image; −1 where the pass does not read every input
+    row, so the count is unknown).
 
     It is the same computation as ``to_gray(F.interpolate(x / 255, antialias=True))``,
     operation for operation and bit for bit (tested): torch's antialiased bilinear
@@ -89,13 +92,18 @@ def working_gray(images: list[Tensor], scale: float,
              else np.empty((len(images), 0, 0), np.int32))
 
     parts = []
+    counts: list[tuple[int, int]] = []
 
     def run(lo: int, hi: int, r0: int, r1: int) -> None:
         for i in range(lo, hi):
-            _working_gray_kernel(arrays[i], xlo, xn, xw, ylo, yn, yw, span, out[i, 0], green[i], r0, r1)
+            counts.append((i, _working_gray_kernel(arrays[i], xlo, xn, xw, ylo, yn, yw, span, out[i, 0], green[i],
+                                                   r0, r1)))
         parts.append((lo, hi, r0, r1))
 
     images_or_rows(run, len(images), ho)
+    if outside is not None:
+        every_row = _reads_every_row(h, ho)
+        outside[:] = [sum(c for j, c in counts if j == i) if every_row else -1 for i in range(len(images))]
     if with_green:  # a part of the rows below the first counted from zero at its first row
         for lo, hi, r0, r1 in sorted(parts, key=lambda p: p[2]):
             if r0 > 0:
@@ -147,6 +155,17 @@ def _regular_span(n_in: int, n_out: int) -> np.ndarray:
     return np.array(best, np.int64)
 
 
+@functools.lru_cache(maxsize=16)
+def _reads_every_row(n_in: int, n_out: int) -> bool:
+    """Whether the vertical taps of :func:`_aa_weights` ``(n_in, n_out)`` read every input
+    row (then the front end's range count has seen every value of the image)."""
+    lo, n, _ = _aa_weights(n_in, n_out)
+    seen = np.zeros(n_in, np.bool_)
+    for a, k in zip(lo.tolist(), n.tolist()):
+        seen[a: a + k] = True
+    return bool(seen.all())
+
+
 @intrinsic
 def _fma(typingctx, a, b, c):  # pragma: no cover - compiled
     """``a·b + c`` rounded once (llvm.fma), as torch's AVX2/AVX-512 kernels compute it."""
@@ -172,6 +191,18 @@ def _unit_overload(v):  # pragma: no cover - compiled
     return lambda v: v
 
 
+def _outside_unit(v):  # pragma: no cover - replaced by the overload below in compiled code
+    raise NotImplementedError
+
+
+@overload(_outside_unit)
+def _outside_unit_overload(v):  # pragma: no cover - compiled
+    """1 where a float pixel is outside [0, 1] or NaN, else 0 (a uint8 pixel: always 0)."""
+    if isinstance(v, _nbtypes.Integer):
+        return lambda v: 0
+    return lambda v: 0 if (v >= 0) & (v <= 1) else 1
+
+
 @numba.njit(cache=True, nogil=True, inline="always")
 def _row_taps(fr: np.ndarray, fg: np.ndarray, fb: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: np.ndarray,
               dr: np.ndarray, dg: np.ndarray, db: np.ndarray, i0: int, i1: int) -> None:  # pragma: no cover
@@ -195,7 +226,7 @@ def _row_taps(fr: np.ndarray, fg: np.ndarray, fb: np.ndarray, xlo: np.ndarray, x
 @numba.njit(cache=True, nogil=True)
 def _working_gray_kernel(img: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: np.ndarray,
                          ylo: np.ndarray, yn: np.ndarray, yw: np.ndarray, span: np.ndarray,
-                         out: np.ndarray, green: np.ndarray, y0: int, y1: int) -> None:  # pragma: no cover - compiled
+                         out: np.ndarray, green: np.ndarray, y0: int, y1: int) -> int:  # pragma: no cover - compiled
     """:func:`working_gray` of one ``(3, H, W)`` image into output rows ``[y0, y1)`` of
     ``out`` ``(h, w)``: the horizontal pass for the three channels together (the input
     rows those output rows read; outputs ``span[0] <= i < span[1]`` have four taps at
@@ -203,11 +234,14 @@ def _working_gray_kernel(img: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: n
     vectorises), then the vertical pass a whole output row at a time,
     then the grey; and unless ``green`` ``(h + 1, w + 1)`` is empty, the running counts of
     :func:`green_mask` into its rows ``y0 + 1 .. y1``, counted from row ``y0`` as zero
-    (the caller adds row ``y0``'s counts where ``y0 > 0``)."""
+    (the caller adds row ``y0``'s counts where ``y0 > 0``). Returns how many of the
+    values it read (every column of the input rows those output rows read) lie outside
+    [0, 1] or are NaN (0 for uint8)."""
     _, h, win = img.shape
     wo = xlo.shape[0]
+    bad = 0  # values read outside [0, 1] (NaN included): returned
     if y1 <= y0:
-        return
+        return bad
     rows = np.empty((3, h, wo), np.float32)
     f = np.empty((3, win), np.float32)  # one input row of each channel in [0, 1]
     top, bottom = ylo[y0], ylo[y0] + yn[y0]
@@ -219,7 +253,9 @@ def _working_gray_kernel(img: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: n
         for c in range(3):
             src, dst = img[c, y], f[c]
             for x in range(win):
-                dst[x] = _unit(src[x])
+                v = src[x]
+                dst[x] = _unit(v)
+                bad += _outside_unit(v)
         fr, fg, fb = f[0], f[1], f[2]
         dr, dg, db = rows[0, y], rows[1, y], rows[2, y]
         _row_taps(fr, fg, fb, xlo, xn, xw, dr, dg, db, 0, i0)
@@ -266,6 +302,7 @@ def _working_gray_kernel(img: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: n
             for i in range(wo):
                 run += gm[i]
                 below[i + 1] = above[i + 1] + run
+    return bad
 
 
 def gaussian_blur(gray: Tensor, sigma: float) -> Tensor:
