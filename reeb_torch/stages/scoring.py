@@ -521,27 +521,32 @@ def _select_kernel(scores: np.ndarray, members: np.ndarray, starts: np.ndarray, 
             if k <= 0:
                 continue
             vals = np.empty(n, np.float32)
-            finite = 0
+            row = scores[i]
             for j in range(n):
-                vals[j] = scores[i, idx[j]]
-                if np.isfinite(vals[j]):
-                    finite += 1
+                vals[j] = row[idx[j]]
+            finite = 0
+            for j in range(n):  # the counts without branches: loops the compiler vectorises (the marks keep
+                # theirs: one image's regions overlap across the two cores, which only ever write True)
+                finite += np.isfinite(vals[j])
+            out = chosen[i]
             if finite <= k:
                 for j in range(n):
                     if np.isfinite(vals[j]):
-                        chosen[i, idx[j]] = True
+                        out[idx[j]] = True
                 continue
             t = kth_largest(vals, k)  # finite: more than k are
-            left = k
+            above = 0
+            for j in range(n):
+                above += vals[j] > t
             for j in range(n):
                 if vals[j] > t:
-                    chosen[i, idx[j]] = True
-                    left -= 1
+                    out[idx[j]] = True
+            left = k - above
             for j in range(n):
                 if left == 0:
                     break
                 if vals[j] == t:
-                    chosen[i, idx[j]] = True
+                    out[idx[j]] = True
                     left -= 1
 
 
