@@ -14,11 +14,13 @@ from . import _spin
 
 __all__ = ["on_two_cores", "images_or_rows", "torch_single_threaded", "serially"]
 
-_IDLE_READS = 200_000
-"""Reads of the task counter (~5 ms here) the helper thread spins for after a task before
-it sleeps: a single image hands it seven kernels, with ~2 ms of the caller's own work (the
-NMS) between the last and the next image's first. A caller that runs one image every
-100 ms pays ~5 % of the second core for it."""
+_IDLE_READS = 80_000
+"""Reads of the task counter (~2 ms here) the helper thread spins for after a task before
+it sleeps: a single image hands it seven kernels, less than 2 ms apart but for the NMS
+(~2 ms, between one image's last and the next one's first; 5 ms of spinning covered that
+too, for 0.04 ms per image, and costs 3 ms more of the second core after every call: in
+a batch run that is the decoding workers' time). A caller that runs one image every
+100 ms pays ~2 % of the second core for it."""
 _WAIT_READS = 80_000
 """Reads (~2 ms) a caller spins for while the helper finishes its half, before it sleeps."""
 
