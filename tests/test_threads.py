@@ -86,6 +86,24 @@ def test_the_hand_over_raises_from_either_half_sleeps_when_idle_and_serves_two_c
     assert _spin.wait_while(flags, 0, 5, 100) == 3
 
 
+def test_spinning_can_be_turned_off_from_the_environment():
+    import os
+    import subprocess
+    import sys
+
+    code = "from reeb_torch.stages import _spin; print(_spin.SPINS)"
+    for value, want in (("0", "False"), ("off", "False"), ("1", None)):
+        env = {**os.environ, "REEB_TORCH_SPIN": value}
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+        assert out.stdout.strip() == (want or str(_spin_default())), value
+
+
+def _spin_default() -> bool:
+    from reeb_torch.stages import _spin
+
+    return _spin._HINT is not None
+
+
 def test_torch_threads_are_one_inside_a_cpu_call_and_restored_after(sample_image):
     # issue 20: torch's idle OpenMP workers spun against the kernels' helper thread
     import pytest

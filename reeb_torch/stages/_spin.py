@@ -9,12 +9,14 @@ number of reads; the caller sleeps on a lock only after that (:mod:`._threads`).
 
 The read is an atomic acquire load (an ordinary load could be hoisted out of the loop by
 the compiler, and then never see the change). Where the CPU has no spin-wait hint that
-numba can emit (other than x86-64 and arm64), :data:`SPINS` is ``False`` and callers sleep
-at once.
+numba can emit (other than x86-64 and arm64), or where ``$REEB_TORCH_SPIN`` is ``0``
+(for a machine whose second core has other work to do: the helper spins up to ~2 ms after
+each call), :data:`SPINS` is ``False`` and callers sleep at once.
 """
 
 from __future__ import annotations
 
+import os
 import platform
 
 import numba
@@ -26,7 +28,7 @@ from numba.extending import intrinsic
 __all__ = ["SPINS", "wait_while"]
 
 _HINT = {"x86_64": "x86", "amd64": "x86", "aarch64": "arm", "arm64": "arm"}.get(platform.machine().lower())
-SPINS = _HINT is not None
+SPINS = _HINT is not None and os.environ.get("REEB_TORCH_SPIN", "1").strip().lower() not in ("0", "off", "no", "false")
 """Whether :func:`wait_while` spins here (else the helper's callers only sleep on locks)."""
 
 
