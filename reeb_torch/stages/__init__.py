@@ -20,7 +20,6 @@ module                 what it computes
 :mod:`.nms`            Sec. 3.8, eq. 13: greedy NMS that stops at ``top_k``
 ``_radix``             radix sort and selection kernels (scoring, NMS)
 ``_threads``           the one helper thread the compiled kernels split work onto
-``_spin``              the helper's hand-over: a compiled, bounded wait on a counter
 ``_cache``             where the kernels are cached on disk (per user, by source hash)
 =====================  ==================================================================
 
