@@ -199,3 +199,17 @@ def test_selection_variants_script_prints_paired_rows(variants_mod, tmp_path, ca
     assert [r["variant"] for r in record["rows"]][0] == "default"
     assert len(record["rows"]) == 4 and all("p_value" in r for r in record["rows"][1:])
     assert (tmp_path / "o" / "selection_variants.txt").read_text().startswith("# rerun: python benchmarks/selection_variants.py")
+
+
+def test_speed_ab_pairs_runs_and_gives_the_exact_sign_test():
+    ab = _script("speed_ab")
+    assert ab.sign_test_p(6, 0) == pytest.approx(2 / 64)  # all six pairs one way: p = 0.031
+    assert ab.sign_test_p(5, 1) == pytest.approx(2 * 7 / 64)
+    assert ab.sign_test_p(0, 0) == 1.0 and ab.sign_test_p(3, 3) == 1.0
+    pairs = [({"batch 8": 6.0, "batch 1": 9.0}, {"batch 8": 5.0, "batch 1": 9.9}),
+             ({"batch 8": 7.0, "batch 1": 10.0}, {"batch 8": 6.3, "batch 1": 9.0}),
+             ({"batch 8": 5.0, "batch 1": 8.0}, {"batch 8": 5.5, "batch 1": 7.2})]
+    s = ab.summarise(pairs)
+    assert s["batch 8"]["ratios"] == [0.833, 0.9, 1.1] and s["batch 8"]["median_ratio"] == 0.9
+    assert (s["batch 8"]["faster"], s["batch 8"]["slower"]) == (2, 1)
+    assert s["batch 1"]["base_ms"] == [9.0, 10.0, 8.0] and s["batch 1"]["this_ms"] == [9.9, 9.0, 7.2]

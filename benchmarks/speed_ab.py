@@ -1,0 +1,138 @@
+"""Speed of this checkout against another git revision, in alternated runs, paired.
+
+On a shared machine whole runs drift by a fifth or more in minutes (the VM this project
+is measured on moved by a third between hours), more than most changes are worth. So this
+runs the two versions in turns, each in its own process on the same frames (the other
+revision from a temporary ``git worktree``; the kernel cache is keyed by source, so the
+two share it), and reports each
+pair's ratio (this / base), their median, how many pairs favour each side, and the exact
+two-sided sign-test p of that count. A pair is two runs minutes apart, so a drift within
+a pair still reaches the ratio; more pairs make it average out.
+
+Each run: every frame at ``--batch`` sizes (default 8 and 1), uint8 input, after a warm-up
+pass (compiling or loading the kernels, building each image size's tables), the best of
+``--passes`` passes, ms per image.
+
+Rerun: ``python benchmarks/speed_ab.py --base REV [--pairs 6] [--data DIR] [--preset default]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import default_kitti_dir, rerun_line  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def sign_test_p(wins: int, losses: int) -> float:
+    """Exact two-sided sign-test p of ``wins`` against ``losses`` (ties left out)."""
+    n = wins + losses
+    if n == 0:
+        return 1.0
+    k = min(wins, losses)
+    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n
+    return min(1.0, 2 * tail)
+
+
+def summarise(pairs: list[tuple[dict[str, float], dict[str, float]]]) -> dict[str, dict]:
+    """Per batch size: each pair's ratio (this / base), their median, the pairs where this
+    checkout is faster and slower, the sign-test p, and both sides' ranges."""
+    out = {}
+    for key in pairs[0][0]:
+        ratios = [new[key] / base[key] for base, new in pairs]
+        faster = sum(r < 1 for r in ratios)
+        slower = sum(r > 1 for r in ratios)
+        out[key] = {"ratios": [round(r, 3) for r in ratios], "median_ratio": round(statistics.median(ratios), 3),
+                    "faster": faster, "slower": slower, "sign_p": round(sign_test_p(faster, slower), 3),
+                    "base_ms": [round(b[key], 2) for b, _ in pairs], "this_ms": [round(n[key], 2) for _, n in pairs]}
+    return out
+
+
+def _child(data: str, preset: str, batches: list[int], passes: int, limit: int | None) -> None:
+    """One run (in a process of its own, with the version under test first on the path)."""
+    from reeb_torch import ProposalGenerator, get_preset
+    from reeb_torch.eval.data import KittiDataset
+    from reeb_torch.io import read_image
+
+    paths = KittiDataset(data).image_paths[:limit]
+    images = [read_image(p) for p in paths]
+    gen = ProposalGenerator(get_preset(preset))
+    result = {}
+    for b in batches:
+        def one_pass() -> float:
+            t0 = time.perf_counter()
+            for i in range(0, len(images), b):
+                gen(images[i: i + b])
+            return (time.perf_counter() - t0) / len(images) * 1e3
+
+        one_pass()  # warm-up: kernels, each size's tables
+        result[f"batch {b}"] = min(one_pass() for _ in range(passes))
+    print(json.dumps(result))
+
+
+def _run(src: Path, args: argparse.Namespace) -> dict[str, float]:
+    env = {**os.environ, "PYTHONPATH": str(src)}
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--data", str(args.data.resolve()),
+           "--preset", args.preset,
+           "--passes", str(args.passes), "--batch", *map(str, args.batch)]
+    if args.limit:
+        cmd += ["--limit", str(args.limit)]
+    out = subprocess.run(cmd, env=env, cwd=src, capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--base", help="git revision to compare with (required unless --child)")
+    ap.add_argument("--pairs", type=int, default=6)
+    ap.add_argument("--data", type=Path, default=default_kitti_dir())
+    ap.add_argument("--preset", default="default")
+    ap.add_argument("--batch", type=int, nargs="+", default=[8, 1])
+    ap.add_argument("--passes", type=int, default=2)
+    ap.add_argument("--limit", type=int, default=None)
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child:
+        _child(str(args.data), args.preset, args.batch, args.passes, args.limit)
+        return {}
+    if not args.base:
+        ap.error("--base REV is required")
+    rev = subprocess.run(["git", "rev-parse", "--short", args.base], cwd=REPO, capture_output=True, text=True,
+                         check=True).stdout.strip()
+    pairs = []
+    with tempfile.TemporaryDirectory(prefix="reeb-ab-") as tmp:
+        tree = Path(tmp) / "base"
+        subprocess.run(["git", "worktree", "add", "--detach", "-f", str(tree), rev], cwd=REPO, check=True,
+                       capture_output=True)
+        try:
+            for i in range(args.pairs):
+                base = _run(tree, args)
+                new = _run(REPO, args)
+                pairs.append((base, new))
+                print(f"pair {i + 1}: " + ", ".join(f"{k} {base[k]:.2f} -> {new[k]:.2f}" for k in base), flush=True)
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=REPO, capture_output=True)
+    summary = summarise(pairs)
+    print("# rerun:", rerun_line("benchmarks/speed_ab.py", sys.argv[1:] if argv is None else argv))
+    print(f"# this checkout against {rev}, {args.pairs} alternated pairs, {args.preset}, ms/img (best of "
+          f"{args.passes} passes each)")
+    for key, s in summary.items():
+        print(f"{key}: median ratio {s['median_ratio']} (this / {rev}); faster in {s['faster']}, slower in "
+              f"{s['slower']} of {args.pairs} pairs (sign test p = {s['sign_p']}); {rev} "
+              f"{min(s['base_ms'])}-{max(s['base_ms'])}, this {min(s['this_ms'])}-{max(s['this_ms'])}")
+    return summary
+
+
+if __name__ == "__main__":
+    main()
