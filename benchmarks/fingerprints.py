@@ -3,7 +3,9 @@ few frames, for uint8 and float input, at batch 1 and batch 8: run it before and
 speed change and compare (``--check FILE`` exits 1 on any difference).
 
 The frames: the two bundled examples and, where the dev folder is beside the repository,
-its first six frames (eight images in all). Float input is ``uint8 / 255`` (float32).
+the first of its frames of each other image size (KITTI's are 1242, 1241, 1238 and 1224
+px wide, and 1241 resizes through longer filters), then its first frames up to eight
+images in all. Float input is ``uint8 / 255`` (float32).
 
 Rerun: ``python benchmarks/fingerprints.py [--out FILE] [--check FILE] [--presets default paper]``
 """
@@ -27,11 +29,15 @@ DEV = REPO.parent / "shared" / "data" / "kitti" / "images"
 
 
 def frames(limit: int = 8) -> list[tuple[str, torch.Tensor]]:
-    """``(name, uint8 (3, H, W))`` of the bundled examples, then dev frames, ``limit`` in all."""
-    paths = list(EXAMPLES)
-    if DEV.is_dir():
-        paths += sorted(DEV.glob("*.png"))[: max(0, limit - len(paths))]
-    return [(p.name, read_image(p)) for p in paths[:limit]]
+    """``(name, uint8 (3, H, W))`` of the bundled examples, then a dev frame of each size
+    not yet among them, then the first dev frames, ``limit`` in all."""
+    out = [(p.name, read_image(p)) for p in EXAMPLES]
+    dev = [(p.name, read_image(p)) for p in sorted(DEV.glob("*.png"))] if DEV.is_dir() else []
+    for name, im in dev:  # one of each image size first
+        if im.shape not in [x.shape for _, x in out]:
+            out.append((name, im))
+    out += [(name, im) for name, im in dev if name not in {n for n, _ in out}]
+    return out[:limit]
 
 
 def digest(out: dict[str, torch.Tensor]) -> str:

@@ -397,7 +397,7 @@ def _kernel_key(config: ReebConfig) -> tuple:
     key = [(f.name, getattr(config, f.name)) for f in dataclasses.fields(config)
            if isinstance(getattr(config, f.name), (bool, str))]
     key += [("straddle", config.straddle_weight > 0), ("sqrt_shadow", config.shadow_power == 0.5),
-            ("front_end", 0.5 <= config.scale < 1), ("ground", config.ground_band is None)]
+            ("front_end", 0 < config.scale < 1), ("ground", config.ground_band is None)]
     return tuple(key)
 
 

@@ -114,11 +114,13 @@ def test_compiled_working_gray_equals_interpolate_then_grey(sample_image):
         return
     gen = torch.Generator().manual_seed(3)
     crops = [sample_image[:, :150, :400], sample_image[:, 20:170, 100:500]]
+    odd = [sample_image[:, :151, :401]]  # like KITTI's 1241 px: a few outputs of five taps at 0.5
     noise = [torch.randint(0, 256, (3, 31, 47), dtype=torch.uint8, generator=gen) for _ in range(3)]
     # 400 → 200 columns: all but the end outputs take the vectorised four-tap loop
     assert _regular_span(400, 200).tolist() == [1, 199, -1]
-    for images in (crops, [x.float() / 255 for x in crops], noise, [x.float() / 255 for x in noise]):
-        for scale in (0.5, 0.51, 0.7, 0.9):
+    for images in (crops, [x.float() / 255 for x in crops], odd, noise, [x.float() / 255 for x in noise]):
+        # below 0.5 the filters are longer than four taps: torch adds them in another order
+        for scale in (0.5, 0.51, 0.7, 0.9, 0.49, 0.3, 0.2):
             got, none = working_gray(images, scale)
             assert got.dtype == torch.float32 and none is None
             assert torch.equal(got, to_gray(_interpolated(images, scale))), (images[0].dtype, scale)
@@ -128,10 +130,15 @@ def test_compiled_working_gray_equals_interpolate_then_grey(sample_image):
             assert green.dtype == torch.int32 and torch.equal(green, ref), (images[0].dtype, scale)
 
 
-def test_compiled_working_gray_declines_where_it_would_differ(sample_image):
-    # longer filters (scale < 0.5), no resize, upsampling: the caller takes the tensor ops
+def test_compiled_working_gray_declines_where_it_would_differ(sample_image, monkeypatch):
+    # no resize, upsampling, float64, or a torch that sums long filters in another order
+    # than the probe found: the caller takes the tensor ops
+    from reeb_torch.stages import edges
     from reeb_torch.stages.edges import working_gray
 
-    for scale in (0.3, 0.49, 1.0, 1.5):
+    for scale in (1.0, 1.5):
         assert working_gray([sample_image], scale) is None
     assert working_gray([sample_image.double() / 255], 0.5) is None
+    assert edges._sums_as_torch(151, 401, *edges.working_size(151, 401, 0.5))  # five taps: probed
+    monkeypatch.setattr(edges, "_sums_as_torch", lambda *size: False)
+    assert working_gray([sample_image[:, :151, :401]], 0.5) is None

@@ -71,9 +71,10 @@ def working_gray(images: list[Tensor], scale: float, with_green: bool = False,
     weights (read off torch itself, per image size), its horizontal-then-vertical passes
     with fused multiply-adds, and kornia's ``addcmul`` grey, in one compiled pass per
     image (numba) that never writes the colour image at either resolution. It applies on
-    the CPU for ``0.5 <= scale < 1`` (filters of at most four taps; torch sums longer
-    ones in another order) where torch's kernels are the fused multiply-add builds (x86
-    AVX2/AVX-512); elsewhere it returns ``None``."""
+    the CPU for ``scale < 1`` where torch's kernels are the fused multiply-add builds (x86
+    AVX2/AVX-512) and, for filters longer than four taps (``scale < 0.5``, or an odd
+    width such as KITTI's 1241 px at 0.5), where :func:`_sums_as_torch` finds torch's
+    order of summing; elsewhere it returns ``None``."""
     x0 = images[0]
     if not (0 < scale < 1) or x0.device.type != "cpu" or x0.dtype not in (torch.uint8, torch.float32):
         return None
@@ -81,10 +82,10 @@ def working_gray(images: list[Tensor], scale: float, with_green: bool = False,
         return None
     _, h, w = x0.shape
     ho, wo = working_size(h, w, scale)
+    if not _sums_as_torch(h, w, ho, wo):
+        return None
     xlo, xn, xw = _aa_weights(w, wo)
     ylo, yn, yw = _aa_weights(h, ho)
-    if max(xw.shape[1], yw.shape[1]) > 4:  # scale < 0.5: torch sums longer filters in another order
-        return None
     span = _regular_span(w, wo)
     arrays = [im.contiguous().numpy() for im in images]
     out = _scratch.empty("front.grey", (len(images), 1, ho, wo), np.float32)
@@ -120,18 +121,25 @@ def green_mask(images: Tensor) -> Tensor:
 
 @functools.lru_cache(maxsize=16)
 def _aa_weights(n_in: int, n_out: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """torch's antialiased bilinear weights from ``n_in`` to ``n_out`` samples, read off
-    ``F.interpolate`` of one-hot rows (a weight times 1.0 is exact): each output's first
-    input index, count and float32 weights ``(n_out, k)``."""
+    """torch's antialiased bilinear weights from ``n_in`` to ``n_out`` samples: each
+    output's first input index and count of taps as torch's ``_compute_indices_min_size_
+    weights_aa`` sets them in float32 (an end tap may weigh 0; the count decides torch's
+    order of summing, :func:`_unfused_taps`), and the float32 weights ``(n_out, k)``, read
+    off ``F.interpolate`` of one-hot rows (a weight times 1.0 is exact)."""
     eye = torch.eye(n_in, dtype=torch.float32)[None, None]
     wts = F.interpolate(eye, size=(n_in, n_out), mode="bilinear", align_corners=False, antialias=True)[0, 0].T
-    nz = wts != 0
-    first = nz.to(torch.uint8).argmax(1)
-    last = n_in - 1 - nz.flip(1).to(torch.uint8).argmax(1)
-    count = last - first + 1
-    cols = first[:, None] + torch.arange(int(count.max()))[None]
-    tab = wts.gather(1, cols.clamp_(max=n_in - 1)) * (cols <= last[:, None])
-    return first.numpy().astype(np.int64), count.numpy().astype(np.int64), tab.contiguous().numpy()
+    scale = np.float32(n_in / n_out)
+    support = scale if scale >= 1 else np.float32(1.0)
+    centre = (np.float64(scale) * (np.arange(n_out) + 0.5)).astype(np.float32)
+    first = np.maximum(((centre - support).astype(np.float64) + 0.5).astype(np.int64), 0)
+    end = np.minimum(((centre + support).astype(np.float64) + 0.5).astype(np.int64), n_in)
+    count = np.clip(end - first, 0, int(np.ceil(support)) * 2 + 1)
+    cols = torch.from_numpy(first[:, None] + np.arange(int(count.max()))[None])
+    inside = cols < torch.from_numpy(first + count)[:, None]
+    tab = wts.gather(1, cols.clamp(max=n_in - 1)) * inside
+    if not torch.equal((tab != 0).sum(1), (wts != 0).sum(1)):  # a weight outside the taps: not this torch
+        raise RuntimeError(f"antialiased weights {n_in} -> {n_out} are not where torch's formula puts them")
+    return first, count, tab.contiguous().numpy()
 
 
 @functools.lru_cache(maxsize=16)
@@ -153,6 +161,28 @@ def _regular_span(n_in: int, n_out: int) -> np.ndarray:
             best = (i, j, int(lo[i] - 2 * i))
         i = max(j, i + 1)
     return np.array(best, np.int64)
+
+
+@functools.lru_cache(maxsize=16)
+def _sums_as_torch(h: int, w: int, ho: int, wo: int) -> bool:
+    """Whether the compiled front end gives ``F.interpolate``'s numbers from ``h × w`` to
+    ``ho × wo`` on this machine's torch: ``True`` outright for filters of at most four
+    taps (the fused multiply-adds of torch's AVX2/AVX-512 builds, tested); for longer
+    ones the order of :func:`_unfused_taps` depends on how torch's build vectorised its
+    loop, so once per size a random image is resized both ways and compared bit for bit."""
+    try:
+        if max(_aa_weights(w, wo)[2].shape[1], _aa_weights(h, ho)[2].shape[1]) <= 4:
+            return True
+    except RuntimeError:  # another torch's weights
+        return False
+    probe = torch.rand((3, h, w), generator=torch.Generator().manual_seed(0))
+    xlo, xn, xw = _aa_weights(w, wo)
+    ylo, yn, yw = _aa_weights(h, ho)
+    got = np.empty((ho, wo), np.float32)
+    _working_gray_kernel(probe.numpy(), xlo, xn, xw, ylo, yn, yw, _regular_span(w, wo), got,
+                         np.empty((0, 0), np.int32), 0, ho)
+    want = F.interpolate(probe[None], size=(ho, wo), mode="bilinear", align_corners=False, antialias=True)
+    return bool(torch.equal(torch.from_numpy(got), to_gray(want)[0, 0]))
 
 
 @functools.lru_cache(maxsize=16)
@@ -204,23 +234,70 @@ def _outside_unit_overload(v):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
+def _unfused_taps(n: int) -> int:  # pragma: no cover - compiled
+    """How many of an ``n``-tap filter's taps after the first torch's antialiased resize
+    adds as rounded products, in order: its compiled loop over taps ``1 .. n-1`` runs in
+    blocks of four lanes (products, then added in order) and fuses the rest, so 0 for up
+    to four taps (all fused) and ``4·⌊(n-1)/4⌋`` beyond (found by trying every order of
+    up to 26 taps against ``F.interpolate``; :func:`_sums_as_torch` checks it per size)."""
+    return (n - 1) // 4 * 4
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
 def _row_taps(fr: np.ndarray, fg: np.ndarray, fb: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: np.ndarray,
               dr: np.ndarray, dg: np.ndarray, db: np.ndarray, i0: int, i1: int) -> None:  # pragma: no cover
     """The horizontal pass of outputs ``[i0, i1)`` of one row of the three channels (``fr,
-    fg, fb`` in [0, 1]): each output's taps in order, the first a product, the rest fused
-    multiply-adds."""
+    fg, fb`` in [0, 1]): each output's taps in order as torch sums them, the first a
+    product, then (:func:`_unfused_taps`) taps each added as a rounded product, the rest
+    fused multiply-adds."""
     for i in range(i0, i1):
         a = xlo[i]
+        n = xn[i]
         w0 = xw[i, 0]
         r = fr[a] * w0
         g = fg[a] * w0
         b = fb[a] * w0
-        for j in range(1, xn[i]):
+        q = _unfused_taps(n)
+        for j in range(1, q + 1):
+            wj = xw[i, j]
+            r = r + fr[a + j] * wj
+            g = g + fg[a + j] * wj
+            b = b + fb[a + j] * wj
+        for j in range(q + 1, n):
             wj = xw[i, j]
             r = _fma(fr[a + j], wj, r)
             g = _fma(fg[a + j], wj, g)
             b = _fma(fb[a + j], wj, b)
         dr[i], dg[i], db[i] = r, g, b
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _column_taps(rows: np.ndarray, a: int, n: int, wts: np.ndarray, lr: np.ndarray, lg: np.ndarray,
+                 lb: np.ndarray) -> None:  # pragma: no cover
+    """The vertical pass of one output row into ``lr, lg, lb``: rows ``a .. a+n-1`` of the
+    horizontal pass ``rows`` ``(3, H, w)``, weighted by ``wts`` and summed as
+    :func:`_row_taps` sums, a whole row per tap."""
+    wo = lr.shape[0]
+    w0 = wts[0]
+    for i in range(wo):
+        lr[i] = rows[0, a, i] * w0
+        lg[i] = rows[1, a, i] * w0
+        lb[i] = rows[2, a, i] * w0
+    q = _unfused_taps(n)
+    for j in range(1, q + 1):
+        wj = wts[j]
+        r0, g0, b0 = rows[0, a + j], rows[1, a + j], rows[2, a + j]
+        for i in range(wo):
+            lr[i] = lr[i] + r0[i] * wj
+            lg[i] = lg[i] + g0[i] * wj
+            lb[i] = lb[i] + b0[i] * wj
+    for j in range(q + 1, n):
+        wj = wts[j]
+        r0, g0, b0 = rows[0, a + j], rows[1, a + j], rows[2, a + j]
+        for i in range(wo):
+            lr[i] = _fma(r0[i], wj, lr[i])
+            lg[i] = _fma(g0[i], wj, lg[i])
+            lb[i] = _fma(b0[i], wj, lb[i])
 
 
 @numba.njit(cache=True, nogil=True)
@@ -271,19 +348,7 @@ def _working_gray_kernel(img: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: n
     lr, lg, lb = np.empty(wo, np.float32), np.empty(wo, np.float32), np.empty(wo, np.float32)
     gm = np.empty(wo, green.dtype)
     for yo in range(y0, y1):
-        a, n = ylo[yo], yn[yo]
-        w0 = yw[yo, 0]
-        for i in range(wo):
-            lr[i] = rows[0, a, i] * w0
-            lg[i] = rows[1, a, i] * w0
-            lb[i] = rows[2, a, i] * w0
-        for j in range(1, n):
-            wj = yw[yo, j]
-            r0, g0, b0 = rows[0, a + j], rows[1, a + j], rows[2, a + j]
-            for i in range(wo):
-                lr[i] = _fma(r0[i], wj, lr[i])
-                lg[i] = _fma(g0[i], wj, lg[i])
-                lb[i] = _fma(b0[i], wj, lb[i])
+        _column_taps(rows, ylo[yo], yn[yo], yw[yo], lr, lg, lb)
         line = out[yo]
         for i in range(wo):
             line[i] = _fma(lb[i], wb, _fma(lg[i], wg, lr[i] * wr))
