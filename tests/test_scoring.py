@@ -148,9 +148,11 @@ def test_select_per_region_cpu_matches_a_stable_sort_with_ties():
 
 
 def test_compiled_integral_image_equals_the_cumulative_sums():
-    # issue 9: the CPU pass sums in the tensor ops' order (rows, then columns): equal bit for bit
+    # issue 9: the CPU pass sums in the tensor ops' order (rows, then columns): equal bit for bit,
+    # in its blocks of four rows and in the rows left over (heights 23 and 3)
     gen = torch.Generator().manual_seed(4)
-    for x in (torch.rand(3, 20, 31, generator=gen) ** 8, torch.rand(1, 1, 1, generator=gen), torch.zeros(2, 4, 0)):
+    for x in (torch.rand(3, 20, 31, generator=gen) ** 8, torch.rand(2, 23, 17, generator=gen) ** 8,
+              torch.rand(1, 3, 5, generator=gen), torch.rand(1, 1, 1, generator=gen), torch.zeros(2, 4, 0)):
         ref = torch.zeros(x.shape[0], x.shape[1] + 1, x.shape[2] + 1, dtype=torch.float64)
         ref[:, 1:, 1:] = x.double().cumsum(2).cumsum(1)
         assert torch.equal(integral_image(x), ref)
