@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import math
 import shlex
 import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-__all__ = ["REPO_ROOT", "default_kitti_dir", "default_dev_dirs", "rerun_line", "environment", "timed", "run_captured"]
+__all__ = ["REPO_ROOT", "default_kitti_dir", "default_dev_dirs", "rerun_line", "environment", "timed", "run_captured",
+           "sign_test_p"]
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 """The repository root (the folder holding ``benchmarks/``)."""
@@ -65,3 +67,13 @@ def timed(fn: Callable[[], Any]) -> tuple[Any, float]:
     t0 = time.perf_counter()
     out = fn()
     return out, time.perf_counter() - t0
+
+
+def sign_test_p(wins: int, losses: int) -> float:
+    """Exact two-sided sign-test p of ``wins`` against ``losses`` (ties left out)."""
+    n = wins + losses
+    if n == 0:
+        return 1.0
+    k = min(wins, losses)
+    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n
+    return min(1.0, 2 * tail)

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import statistics
 import subprocess
@@ -30,19 +29,9 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import default_kitti_dir, rerun_line  # noqa: E402
+from _common import default_kitti_dir, rerun_line, sign_test_p  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def sign_test_p(wins: int, losses: int) -> float:
-    """Exact two-sided sign-test p of ``wins`` against ``losses`` (ties left out)."""
-    n = wins + losses
-    if n == 0:
-        return 1.0
-    k = min(wins, losses)
-    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n
-    return min(1.0, 2 * tail)
 
 
 def summarise(pairs: list[tuple[dict[str, float], dict[str, float]]]) -> dict[str, dict]:

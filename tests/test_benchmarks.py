@@ -213,3 +213,23 @@ def test_speed_ab_pairs_runs_and_gives_the_exact_sign_test():
     assert s["batch 8"]["ratios"] == [0.833, 0.9, 1.1] and s["batch 8"]["median_ratio"] == 0.9
     assert (s["batch 8"]["faster"], s["batch 8"]["slower"]) == (2, 1)
     assert s["batch 1"]["base_ms"] == [9.0, 10.0, 8.0] and s["batch 1"]["this_ms"] == [9.9, 9.0, 7.2]
+
+
+def test_kernel_ab_times_a_kernel_against_a_revision_on_captured_inputs(tmp_path):
+    import subprocess
+
+    import numpy as np
+
+    if subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True).returncode != 0:
+        pytest.skip("not a git checkout")
+    ab = _script("kernel_ab")
+    root = _example_kitti(tmp_path / "kitti")
+    res = ab.main(["stages.scoring._integral_kernel", "--base", "HEAD", "--data", str(root), "--frames", "2",
+                   "--batch", "1", "--reps", "2"])
+    # the two bundled frames, one call per integral (edges, grey) each; HEAD's kernel is this one's
+    assert res["images"] == 2 and res["calls"] >= 4 and res["same_outputs"]
+    assert res["faster"] + res["slower"] <= 2 and res["base_ms"] > 0 and res["this_ms"] > 0
+    a, b = [np.zeros(3), np.ones(2, np.int32)], [np.zeros(3), np.ones(2, np.int32)]
+    assert ab.same_bits(a, b)
+    b[0][1] = -0.0  # equal as numbers, not as bits
+    assert not ab.same_bits(a, b) and not ab.same_bits(a, a[:1])
