@@ -128,7 +128,7 @@ def _aa_weights(n_in: int, n_out: int) -> tuple[np.ndarray, np.ndarray, np.ndarr
     off ``F.interpolate`` of one-hot rows (a weight times 1.0 is exact)."""
     eye = torch.eye(n_in, dtype=torch.float32)[None, None]
     wts = F.interpolate(eye, size=(n_in, n_out), mode="bilinear", align_corners=False, antialias=True)[0, 0].T
-    scale = np.float32(n_in / n_out)
+    scale = np.float32(n_in) / np.float32(n_out)  # float32, as torch's area_pixel_compute_scale<float>
     support = scale if scale >= 1 else np.float32(1.0)
     centre = (np.float64(scale) * (np.arange(n_out) + 0.5)).astype(np.float32)
     first = np.maximum(((centre - support).astype(np.float64) + 0.5).astype(np.int64), 0)

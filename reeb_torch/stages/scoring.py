@@ -88,8 +88,8 @@ def _integral_kernel(x: np.ndarray, out: np.ndarray) -> None:  # pragma: no cove
 
     Four rows at a time: a row's running sum is a chain of dependent float64 additions
     (one per pixel, each waiting for the last), and four independent chains side by side
-    keep the core busy; every entry is the same two additions as row by row (0.109 →
-    0.056 ms per KITTI image)."""
+    keep the core busy; every entry is the same two additions as row by row
+    (``benchmarks/kernel_ab.py``: 0.84× the time at batch 8, 0.94× at batch 1)."""
     nb, h, w = x.shape
     for b in range(nb):
         out[b, 0].fill(0)
