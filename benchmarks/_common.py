@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 __all__ = ["REPO_ROOT", "default_kitti_dir", "default_dev_dirs", "rerun_line", "environment", "timed", "run_captured",
-           "sign_test_p"]
+           "sign_test_p", "paired_ratios"]
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 """The repository root (the folder holding ``benchmarks/``)."""
@@ -77,3 +77,11 @@ def sign_test_p(wins: int, losses: int) -> float:
     k = min(wins, losses)
     tail = sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n
     return min(1.0, 2 * tail)
+
+
+def paired_ratios(base: Sequence[float], this: Sequence[float]) -> tuple[list[float], int, int, float]:
+    """Each pair's ratio ``this / base``, the pairs where ``this`` is faster and slower, and
+    the exact sign-test p of those counts (:func:`sign_test_p`)."""
+    ratios = [t / b for b, t in zip(base, this)]
+    faster, slower = sum(r < 1 for r in ratios), sum(r > 1 for r in ratios)
+    return ratios, faster, slower, sign_test_p(faster, slower)

@@ -36,7 +36,8 @@ def frames(limit: int = 8) -> list[tuple[str, torch.Tensor]]:
     for name, im in dev:  # one of each image size first
         if im.shape not in [x.shape for _, x in out]:
             out.append((name, im))
-    out += [(name, im) for name, im in dev if name not in {n for n, _ in out}]
+    taken = {n for n, _ in out}
+    out += [(name, im) for name, im in dev if name not in taken]
     return out[:limit]
 
 

@@ -33,7 +33,7 @@ from typing import Any, Callable
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import REPO_ROOT, default_kitti_dir, rerun_line, sign_test_p  # noqa: E402
+from _common import REPO_ROOT, default_kitti_dir, paired_ratios, rerun_line  # noqa: E402
 
 
 def kernel_source(module: str, rev: str | None) -> str:
@@ -122,11 +122,10 @@ def race(fns: dict[str, Callable], calls: list[tuple], reps: int) -> dict[str, l
 
 def summarise(times: dict[str, list[float]]) -> dict:
     """Medians, the rounds' ratios (this / base), wins each way and the sign-test p."""
-    ratios = [t / b for b, t in zip(times["base"], times["this"])]
-    faster, slower = sum(r < 1 for r in ratios), sum(r > 1 for r in ratios)
+    ratios, faster, slower, p = paired_ratios(times["base"], times["this"])
     return {"base_ms": round(statistics.median(times["base"]), 4), "this_ms": round(statistics.median(times["this"]), 4),
             "median_ratio": round(statistics.median(ratios), 3), "faster": faster, "slower": slower,
-            "sign_p": round(sign_test_p(faster, slower), 4)}
+            "sign_p": round(p, 4)}
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import default_kitti_dir, rerun_line, sign_test_p  # noqa: E402
+from _common import default_kitti_dir, paired_ratios, rerun_line, sign_test_p  # noqa: E402,F401
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -39,11 +39,9 @@ def summarise(pairs: list[tuple[dict[str, float], dict[str, float]]]) -> dict[st
     checkout is faster and slower, the sign-test p, and both sides' ranges."""
     out = {}
     for key in pairs[0][0]:
-        ratios = [new[key] / base[key] for base, new in pairs]
-        faster = sum(r < 1 for r in ratios)
-        slower = sum(r > 1 for r in ratios)
+        ratios, faster, slower, p = paired_ratios([base[key] for base, _ in pairs], [new[key] for _, new in pairs])
         out[key] = {"ratios": [round(r, 3) for r in ratios], "median_ratio": round(statistics.median(ratios), 3),
-                    "faster": faster, "slower": slower, "sign_p": round(sign_test_p(faster, slower), 3),
+                    "faster": faster, "slower": slower, "sign_p": round(p, 3),
                     "base_ms": [round(b[key], 2) for b, _ in pairs], "this_ms": [round(n[key], 2) for _, n in pairs]}
     return out
 

@@ -171,13 +171,13 @@ def _sums_as_torch(h: int, w: int, ho: int, wo: int) -> bool:
     ones the order of :func:`_unfused_taps` depends on how torch's build vectorised its
     loop, so once per size a random image is resized both ways and compared bit for bit."""
     try:
-        if max(_aa_weights(w, wo)[2].shape[1], _aa_weights(h, ho)[2].shape[1]) <= 4:
-            return True
+        xlo, xn, xw = _aa_weights(w, wo)
+        ylo, yn, yw = _aa_weights(h, ho)
     except RuntimeError:  # another torch's weights
         return False
+    if max(xw.shape[1], yw.shape[1]) <= 4:
+        return True
     probe = torch.rand((3, h, w), generator=torch.Generator().manual_seed(0))
-    xlo, xn, xw = _aa_weights(w, wo)
-    ylo, yn, yw = _aa_weights(h, ho)
     got = np.empty((ho, wo), np.float32)
     _working_gray_kernel(probe.numpy(), xlo, xn, xw, ylo, yn, yw, _regular_span(w, wo), got,
                          np.empty((0, 0), np.int32), 0, ho)
