@@ -76,11 +76,11 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pr
     bw = max(-np.log(min(iou, 0.999)) * 1.01 + 1e-9, span / (_SIZE_BINS - 0.5))
     nb = min(int(span / bw) + 1, _SIZE_BINS)
     head = np.full(gw * gh * nb * nb, -1, np.int32)  # per cell and size bin: a linked list
-    # of the kept boxes registered there, each entry holding its box (no second lookup)
+    # of the kept boxes registered there, each entry holding its box (no second lookup):
+    # x1, y1, x2, y2 and area side by side in a row of 8 (one cache line per test, where
+    # five arrays took five: 0.85x the time on KITTI's candidates), the links apart
     cap = 4 * n + 64
-    e_x1, e_y1 = np.empty(cap, boxes.dtype), np.empty(cap, boxes.dtype)
-    e_x2, e_y2 = np.empty(cap, boxes.dtype), np.empty(cap, boxes.dtype)
-    e_area, e_next = np.empty(cap, boxes.dtype), np.empty(cap, np.int32)
+    ent, e_next = np.empty((cap, 8), boxes.dtype), np.empty(cap, np.int32)
     used = 0
     nk = 0
     for i in range(n):
@@ -99,10 +99,11 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pr
                 continue
             e = head[base + bb * nb + ba]
             while e >= 0:
-                w = max(min(e_x2[e], ix2) - max(e_x1[e], ix1), zero)
-                h = max(min(e_y2[e], iy2) - max(e_y1[e], iy1), zero)
+                en = ent[e]
+                w = max(min(en[2], ix2) - max(en[0], ix1), zero)
+                h = max(min(en[3], iy2) - max(en[1], iy1), zero)
                 inter = w * h
-                ovr = inter / (e_area[e] + ia - inter)
+                ovr = inter / (en[4] + ia - inter)
                 if ovr > iou:
                     dead = True
                     break
@@ -130,17 +131,16 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pr
         need = used + (cb - ca + 1) * (rb - ra + 1)
         if need > cap:
             cap = max(2 * cap, need)
-            n_x1, n_y1 = np.empty(cap, boxes.dtype), np.empty(cap, boxes.dtype)
-            n_x2, n_y2 = np.empty(cap, boxes.dtype), np.empty(cap, boxes.dtype)
-            n_area, n_next = np.empty(cap, boxes.dtype), np.empty(cap, np.int32)
+            n_ent, n_next = np.empty((cap, 8), boxes.dtype), np.empty(cap, np.int32)
             for e in range(used):  # a loop, not a slice assignment: that one costs seconds to compile
-                n_x1[e], n_y1[e], n_x2[e], n_y2[e] = e_x1[e], e_y1[e], e_x2[e], e_y2[e]
-                n_area[e], n_next[e] = e_area[e], e_next[e]
-            e_x1, e_y1, e_x2, e_y2, e_area, e_next = n_x1, n_y1, n_x2, n_y2, n_area, n_next
+                for q in range(5):
+                    n_ent[e, q] = ent[e, q]
+                n_next[e] = e_next[e]
+            ent, e_next = n_ent, n_next
         for r in range(ra, rb + 1):
             for c in range(ca, cb + 1):
                 cell = (r * gw + c) * nb * nb + by * nb + bx
-                e_x1[used], e_y1[used], e_x2[used], e_y2[used], e_area[used] = ix1, iy1, ix2, iy2, ia
+                ent[used, 0], ent[used, 1], ent[used, 2], ent[used, 3], ent[used, 4] = ix1, iy1, ix2, iy2, ia
                 e_next[used] = head[cell]
                 head[cell] = used
                 used += 1
