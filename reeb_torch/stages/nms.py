@@ -43,6 +43,19 @@ candidates, fine size bins halve the kernel's time (3.3 → 1.8 ms/img) and coar
 keep the table small; the result is the same whatever these two constants are."""
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _size_bin(edge: np.ndarray, size: float) -> int:  # pragma: no cover - compiled
+    """The size bin of ``size``: the last ``q < 32`` with ``edge[q] <= size`` (``edge``: the
+    bins' ascending lower edges, ``edge[0]`` unread, ``inf`` from the last bin on, 64 long),
+    as five selects without branches."""
+    q = 0
+    q = q + 16 if edge[q + 16] <= size else q
+    q = q + 8 if edge[q + 8] <= size else q
+    q = q + 4 if edge[q + 4] <= size else q
+    q = q + 2 if edge[q + 2] <= size else q
+    return q + 1 if edge[q + 1] <= size else q
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")  # 0/0 -> NaN, as in C++
 def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pragma: no cover - compiled
     """Rows of ``boxes`` (``[N, 4]`` x1, y1, x2, y2, best first, finite, x1 <= x2, y1 <= y2)
@@ -75,6 +88,11 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pr
     span = np.log(wmax / floor_)
     bw = max(-np.log(min(iou, 0.999)) * 1.01 + 1e-9, span / (_SIZE_BINS - 0.5))
     nb = min(int(span / bw) + 1, _SIZE_BINS)
+    # bin q holds sizes from floor·e^(q·bw): found by a binary search of these lower edges
+    # (no logarithm per box: 0.92x the time); consecutive edges are more than 1/t apart
+    edge = np.full(2 * _SIZE_BINS, np.inf)
+    for q in range(1, nb):
+        edge[q] = floor_ * np.exp(q * bw)
     head = np.full(gw * gh * nb * nb, -1, np.int32)  # per cell and size bin: a linked list
     # of the kept boxes registered there, each entry holding its box (no second lookup):
     # x1, y1, x2, y2 and area side by side in a row of 8 (one cache line per test, where
@@ -89,8 +107,8 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pr
         cx = min(max(cx, 0), gw - 1)
         cy = min(max(cy, 0), gh - 1)
         ix1, iy1, ix2, iy2, ia = x1[i], y1[i], x2[i], y2[i], areas[i]
-        bx = min(int(np.log(max(float(ix2) - float(ix1), floor_) / floor_) / bw), nb - 1)
-        by = min(int(np.log(max(float(iy2) - float(iy1), floor_) / floor_) / bw), nb - 1)
+        bx = _size_bin(edge, float(ix2) - float(ix1))
+        by = _size_bin(edge, float(iy2) - float(iy1))
         base = (cy * gw + cx) * nb * nb
         dead = False
         for q in range(9):  # the 3 × 3 size bins around its own, its own first (~10 % faster)
