@@ -632,16 +632,22 @@ def _thin_isolated_kernel(mag: np.ndarray, gx: np.ndarray, gy: np.ndarray, thres
 
 def _edge_map_cpu(gray: Tensor, sigma: float, threshold: float) -> Tensor:
     """:func:`edge_map`'s default path on the CPU: ``(B, 1, H, W)`` float32 → ``(B, H, W)``.
-    Blur, Sobel and the magnitude, then thinning and isolated pixels, are two compiled
-    passes."""
+    Blur, Sobel and the magnitude, then thinning and isolated pixels: two compiled passes,
+    both in one hand-over to the second core. One image is split by rows: each core also
+    computes the two Sobel rows past each end of its half that its thinning reads (the same
+    numbers either way), into its own buffers, so the two passes need no wait between them."""
     b, _, h, w = gray.shape
     wts = _blur_weights(sigma, h, w, gray)
-    gx, gy, mag = (_scratch.empty(f"edges.{name}", (b, h, w), np.float32) for name in ("gx", "gy", "mag"))
     g, wt = gray[:, 0].contiguous().numpy(), wts.contiguous().numpy()
-    images_or_rows(lambda lo, hi, r0, r1: _blur_sobel_kernel(g[lo:hi], wt, gx[lo:hi], gy[lo:hi], mag[lo:hi], r0, r1),
-                   b, h)
+    bufs = [[_scratch.empty(f"edges.{name}.{part}", (b, h, w), np.float32) for name in ("gx", "gy", "mag")]
+            for part in range(2 if b == 1 else 1)]
     out = _scratch.empty("edges.out", (b, h, w), np.float32)
     t = np.float32(threshold)
-    images_or_rows(lambda lo, hi, r0, r1: _thin_isolated_kernel(mag[lo:hi], gx[lo:hi], gy[lo:hi], t, out[lo:hi],
-                                                                r0, r1), b, h)
+
+    def run(lo: int, hi: int, r0: int, r1: int) -> None:
+        gx, gy, mag = bufs[1 if r0 > 0 else 0]
+        _blur_sobel_kernel(g[lo:hi], wt, gx[lo:hi], gy[lo:hi], mag[lo:hi], max(r0 - 2, 0), min(r1 + 2, h))
+        _thin_isolated_kernel(mag[lo:hi], gx[lo:hi], gy[lo:hi], t, out[lo:hi], r0, r1)
+
+    images_or_rows(run, b, h)
     return torch.from_numpy(out)
