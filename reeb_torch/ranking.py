@@ -203,7 +203,7 @@ class Ranking:
         """:meth:`score` in one compiled pass (:func:`reeb_torch.stages.scoring.score_grid_cpu`)."""
         cfg = self.config
         fx, fy = maps.fx, maps.fy
-        plan, denom, loc = self._score_plan(grid, fx, fy, *maps.input_size)
+        plan, denom, loc, order = self._score_plan(grid, fx, fy, *maps.input_size)
         b = maps.edges.shape[0]
         out_np = _scratch.empty("score.out", (b, grid.count), np.float32)
         out_np.fill(-np.inf)  # (numpy's fill: one thread, where torch's would wake its pool)
@@ -218,7 +218,7 @@ class Ranking:
                 shadow = torch.zeros((b, grid.count), dtype=torch.float64)
         _scoring.score_grid_cpu(maps.integral("edges"), maps.tables(), plan, denom, loc, _scoring.unit_scale(fx, fy),
                                 cfg.alpha, cfg.beta * road, cfg.min_edge_score, out, ii_grey, shadow, sqrt_floor,
-                                maps.green, cfg.vegetation_power)
+                                maps.green, cfg.vegetation_power, order)
         if shadow is not None:
             out = _scoring.apply_shadow(out, shadow, cfg.shadow_floor, cfg.shadow_power)
         return out
@@ -350,15 +350,16 @@ class Ranking:
         return self._location(bottom, bw, bh, h_in, w_in)
 
     def _score_plan(self, grid: _windows.WindowGrid, fx: float, fy: float, h_in: int,
-                    w_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    w_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Per-size constants of the compiled scoring pass (cached per grid and input size):
-        the ``int64 [S, 19]`` size table, eq. 1's normalisers ``float64 [S]`` and L of every
-        size's rows ``float32 [Σ ny]`` (computed by the same tensor code as the torch path)."""
+        the ``int64 [S, 19]`` size table, eq. 1's normalisers ``float64 [S]``, L of every
+        size's rows ``float32 [Σ ny]`` (computed by the same tensor code as the torch path)
+        and the order of the rows (:func:`~reeb_torch.stages.scoring.row_order`)."""
         return self._grid_cached(("plan", fx, fy, h_in, w_in, self.config), grid,
                                  lambda: self._build_score_plan(grid, fx, fy, h_in, w_in))
 
     def _build_score_plan(self, grid: _windows.WindowGrid, fx: float, fy: float, h_in: int,
-                          w_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                          w_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         cfg = self.config
         rows, denoms, locs = [], [], []
         loc_cache: dict = {}
@@ -379,9 +380,9 @@ class Ranking:
             gdx, gdy, gw, gh = _scoring.centre_box(s.w, s.h, cfg.vegetation_box)
             rows.append((s.w, s.h, s.sx, s.sy, s.nx, s.ny, s.oy, off, dx, dy, cw, ch, start, sh, mx, gdx, gdy, gw, gh))
             denoms.append(denom)
-        return (np.asarray(rows, dtype=np.int64).reshape(-1, len(_scoring.PLAN_COLUMNS)),
-                np.asarray(denoms, dtype=np.float64),
-                torch.cat(locs).numpy() if locs else np.zeros(0, np.float32))
+        plan = np.asarray(rows, dtype=np.int64).reshape(-1, len(_scoring.PLAN_COLUMNS))
+        return (plan, np.asarray(denoms, dtype=np.float64), torch.cat(locs).numpy() if locs else np.zeros(0, np.float32),
+                _scoring.row_order(plan))
 
     # -- eq. 9: each region's budget --------------------------------------------------------
     def select(self, scores: Tensor, grid: _windows.WindowGrid, share: Tensor) -> Tensor:

@@ -228,3 +228,23 @@ def test_location_shape_fit_by_hand():
     assert float(plain[0]) == pytest.approx(1.0)        # the height fit alone takes the car class's fit
     inside = class_width_fits(bottom[:2], bw[:2], 300.0, 1 / 3, ((0.2, 3.0),), sigma, 1.5)[0]
     assert torch.equal(inside, torch.ones(2, dtype=torch.float64))  # inside the range: 1 exactly
+
+
+def test_row_order_takes_every_window_row_once_by_bottom_row():
+    import numpy as np
+
+    from reeb_torch.stages.scoring import PLAN_COLUMNS, row_order
+
+    gen = np.random.default_rng(0)
+    plan = np.zeros((7, len(PLAN_COLUMNS)), np.int64)
+    col = {c: i for i, c in enumerate(PLAN_COLUMNS)}
+    plan[:, col["h"]] = gen.integers(3, 40, 7)
+    plan[:, col["sy"]] = gen.integers(1, 5, 7)
+    plan[:, col["ny"]] = [4, 0, 1, 9, 3, 3, 6]  # a size without rows too
+    plan[:, col["oy"]] = gen.integers(0, 8, 7)
+    order = row_order(plan)
+    assert order.dtype == np.int64 and order.flags.c_contiguous
+    rows = [(k, j) for k in range(7) for j in range(plan[k, col["ny"]])]
+    assert sorted(map(tuple, order.tolist())) == rows
+    bottom = [plan[k, col["oy"]] + j * plan[k, col["sy"]] + plan[k, col["h"]] for k, j in order.tolist()]
+    assert all((b0, k0) <= (b1, k1) for b0, b1, (k0, _), (k1, _) in zip(bottom, bottom[1:], order, order[1:]))
