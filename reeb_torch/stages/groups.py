@@ -13,6 +13,7 @@ Two groupings (``ReebConfig.grouping``):
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numba
@@ -46,11 +47,17 @@ class EdgeGroups:
     def __len__(self) -> int:
         return int(self.batch.numel())
 
-    @property
+    @functools.cached_property
     def max_extent(self) -> int:
         """The largest ``x2 − x1`` or ``y2 − y1`` of any group (0 without groups): window
-        sums from prefix tables are exact for windows wider and taller than this."""
-        return int(torch.maximum(self.x2 - self.x1, self.y2 - self.y1).max()) if len(self) else 0
+        sums from prefix tables are exact for windows wider and taller than this (worked
+        out once; the fields are not to be changed after)."""
+        if not len(self):
+            return 0
+        if self.x1.device.type == "cpu":  # numpy's small ops cost a fraction of torch's
+            x1, y1, x2, y2 = (t.numpy() for t in (self.x1, self.y1, self.x2, self.y2))
+            return int(np.maximum(x2 - x1, y2 - y1).max())
+        return int(torch.maximum(self.x2 - self.x1, self.y2 - self.y1).max())
 
 
 def _tile(x: Tensor, cell: int, pad_value: float) -> Tensor:
@@ -290,9 +297,7 @@ def connected_groups(edges: Tensor, cell: int | None = None) -> EdgeGroups:
             parts[lo] = _connected_groups_kernel(e[lo:hi], c)
 
         on_two_cores(run, b)  # images are independent: halves in order, batch index shifted
-        cols = [torch.cat([torch.from_numpy(parts[lo][i]) + (lo if i == 0 else 0) for lo in sorted(parts)])
-                for i in range(6)]
-        return EdgeGroups(*cols)
+        return _joined([parts[lo] for lo in sorted(parts)], [(lo, 0) for lo in sorted(parts)])
     xs, ys = _coords(b, h, w, edges.device)
     labels = label_components(edges > 0, cell).view(-1)
     return _stats(labels, edges.reshape(-1), xs.reshape(-1), ys.reshape(-1), h * w)
@@ -313,8 +318,17 @@ def _one_image_in_two(e: np.ndarray, cell: int) -> EdgeGroups:
             parts[j] = _connected_groups_kernel(e[:, spans[j][0]: spans[j][1]], cell)
 
     on_two_cores(run, 2)
-    cols = [torch.cat([torch.from_numpy(parts[j][i]) + (spans[j][0] if i in (2, 4) else 0) for j in (0, 1)])
-            for i in range(6)]  # batch, x1, y1, x2, y2, mass: the rows below the cut shifted down
+    return _joined(parts, [(0, spans[j][0]) for j in (0, 1)])  # the rows below the cut shifted down
+
+
+def _joined(parts: list, shifts: list[tuple[int, int]]) -> EdgeGroups:
+    """:class:`EdgeGroups` of the kernel's outputs ``(batch, x1, y1, x2, y2, mass)`` for
+    consecutive parts, each part's batch index and rows shifted by its ``shifts`` entry
+    (in numpy: torch's small ops cost several times as much per call)."""
+    cols = []
+    for i in range(6):
+        add = [s[0] if i == 0 else s[1] if i in (2, 4) else 0 for s in shifts]
+        cols.append(torch.from_numpy(np.concatenate([p[i] + a if a else p[i] for p, a in zip(parts, add)])))
     return EdgeGroups(*cols)
 
 

@@ -128,10 +128,10 @@ def enclosed_tables(groups: EdgeGroups, batch: int, height: int, width: int) -> 
     tabs = [_scratch.empty("tables.anchor", (batch, h + 1, w + 1)), _scratch.empty("tables.cut_col", (batch, h + 1, w + 2)),
             _scratch.empty("tables.cut_row", (batch, h + 2, w + 1)), _scratch.empty("tables.corner", (batch, h + 2, w + 2))]
     fields = [groups.batch, groups.x1, groups.y1, groups.x2, groups.y2, groups.magnitude.to(torch.float64)]
-    if len(groups) > 1 and not bool((groups.batch[1:] >= groups.batch[:-1]).all()):
-        order = torch.argsort(groups.batch, stable=True)  # image by image (the sums are exact in any order)
-        fields = [f[order] for f in fields]
     *cols, mass = [f.contiguous().numpy() for f in fields]
+    if batch > 1 and len(groups) > 1 and not (cols[0][1:] >= cols[0][:-1]).all():
+        order = np.argsort(cols[0], kind="stable")  # image by image (the sums are exact in any order)
+        *cols, mass = [np.ascontiguousarray(f[order]) for f in (*cols, mass)]
     starts = np.searchsorted(cols[0], np.arange(batch + 1))
 
     def run(lo: int, hi: int) -> None:
