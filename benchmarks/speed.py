@@ -13,7 +13,9 @@ reported, at ``--batch`` and at ``--latency-batch`` (1: the latency a detector s
 calling one image at a time). Beside the table: an OpenCV pass (grey, Gaussian blur,
 Sobel x and y) over the same images, timed in the same rotation (once per pass), the floor
 the paper compares with (15 ms total vs about 3 ms for edges), and the ratio of REEB's
-total to it.
+total to it, with the lowest and highest pass beside the medians (for the ratio, each
+pass's total over the same pass's OpenCV time: the short OpenCV pass swings more than
+REEB's, so these spread wider than the ratio of the medians).
 
 Rerun: ``python benchmarks/speed.py [--data DIR] [--limit N] [--batch 8] [--top-k 2000] [--threads N]``
 """
@@ -81,8 +83,9 @@ def measure(preset: str, images: list[torch.Tensor], batches: list[int], top_k: 
     timed apart (the very first one compiles the numba kernels, or loads them from their
     cache), and so are the first calls at the other image sizes (:func:`_other_sizes`).
     Returns per variant ``"uint8/b8"``: the median ms per image, the per-stage ms of the pass
-    nearest the median, all passes' totals, the first call's ms and the other sizes' mean
-    first-call ms; and ``"opencv_ms"`` (median) and ``"opencv_all"`` for the OpenCV pass."""
+    nearest the median, all passes' totals, each pass's total over the same pass's OpenCV
+    time (``"to_opencv"``), the first call's ms and the other sizes' mean first-call ms;
+    and ``"opencv_ms"`` (median) and ``"opencv_all"`` for the OpenCV pass."""
     gen = ProposalGenerator(get_preset(preset), top_k=top_k).to(device)
     inputs = {k: [im.to(device) for im in as_input(images, k)] for k in INPUTS}
     variants = [(k, b) for b in batches for k in INPUTS]
@@ -109,6 +112,7 @@ def measure(preset: str, images: list[torch.Tensor], batches: list[int], top_k: 
         med = statistics.median(totals)
         best = min(range(len(passes)), key=lambda i: abs(totals[i] - med))
         out[f"{k}/b{b}"] = {"total": med, "stages": passes[best][1], "all_totals": totals,
+                            "to_opencv": [t / f for t, f in zip(totals, floors)],
                             "first_call_ms": first[(k, b)], "new_size_ms": new_size[(k, b)]}
     return out
 
@@ -150,12 +154,16 @@ def _table(res: dict, presets: list[str], batches: list[int]) -> str:
     for label, key in STAGES:
         lines.append(row(label, [res[p][main_v]["stages"].get(key, 0.0) for p in presets]))
     lines.append("-" * len(head))
+    spread = lambda label, key: f"{label:52s}" + "".join(  # noqa: E731
+        f"{f'{min(res[p][main_v][key]):.1f}-{max(res[p][main_v][key]):.1f}':>22s}" for p in presets)
     lines.append(row("Total (end to end, median)", [res[p][main_v]["total"] for p in presets]))
+    lines.append(spread("  lowest-highest pass", "all_totals"))
     lines.append(row("Paper, Table 2 (C++, i7-8750H, Sobel)", [15.0 if "no-regions" not in p else 40.0 for p in presets]))
     lines.append(row("OpenCV grey+blur+Sobel pass, same images, same passes", [res[p]["opencv_ms"] for p in presets],
                      "22.2f"))
-    lines.append(row("Total / OpenCV pass (paper: about 5)", [res[p][main_v]["total"] / res[p]["opencv_ms"]
-                                                              for p in presets]))
+    lines.append(row("Total / OpenCV pass (medians; paper: about 5)", [res[p][main_v]["total"] / res[p]["opencv_ms"]
+                                                                       for p in presets]))
+    lines.append(spread("  per pass, lowest-highest", "to_opencv"))
     lines.append("-" * len(head))
     for b in batches:
         for k in INPUTS:

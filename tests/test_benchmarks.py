@@ -233,3 +233,24 @@ def test_kernel_ab_times_a_kernel_against_a_revision_on_captured_inputs(tmp_path
     assert ab.same_bits(a, b)
     b[0][1] = -0.0  # equal as numbers, not as bits
     assert not ab.same_bits(a, b) and not ab.same_bits(a, a[:1])
+
+
+def test_speed_table_gives_the_ratio_of_medians_and_each_pass_spread():
+    import statistics
+
+    from reeb_torch.io import read_image
+
+    speed = _script("speed")
+    images = [read_image(p) for p in sorted((REPO / "examples" / "data").glob("kitti_*.png"))]
+    res = {"default": speed.measure("default", images, [2, 1], 100, 3, "cpu")}
+    main = res["default"]["uint8/b2"]
+    floors = res["default"]["opencv_all"]
+    assert len(main["all_totals"]) == len(floors) == len(main["to_opencv"]) == 3
+    assert main["to_opencv"] == [t / f for t, f in zip(main["all_totals"], floors)]
+    table = speed._table(res, ["default"], [2, 1])
+    lines = table.splitlines()
+    ratio = next(ln for ln in lines if ln.startswith("Total / OpenCV pass"))
+    assert ratio.split()[-1] == f"{statistics.median(main['all_totals']) / statistics.median(floors):.1f}"
+    spreads = [ln.split()[-1] for ln in lines if "lowest-highest" in ln]
+    assert spreads == [f"{min(main['all_totals']):.1f}-{max(main['all_totals']):.1f}",
+                       f"{min(main['to_opencv']):.1f}-{max(main['to_opencv']):.1f}"]
