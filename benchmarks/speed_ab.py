@@ -4,10 +4,10 @@ On a shared machine whole runs drift by a fifth or more in minutes (the VM this 
 is measured on moved by a third between hours), more than most changes are worth. So this
 runs the two versions in turns, each in its own process on the same frames (the other
 revision from a temporary ``git worktree``; the kernel cache is keyed by source, so the
-two share it), and reports each
-pair's ratio (this / base), their median, how many pairs favour each side, and the exact
-two-sided sign-test p of that count. A pair is two runs minutes apart, so a drift within
-a pair still reaches the ratio; more pairs make it average out.
+two share it), and reports each pair's ratio (this / base), their median, how many pairs
+favour each side, and the exact two-sided sign-test p of that count
+(``_common.paired_ratios``). A pair is two runs minutes apart, so a drift within a pair
+still reaches the ratio; more pairs make it average out.
 
 Each run: every frame at ``--batch`` sizes (default 8 and 1), uint8 input, after a warm-up
 pass (compiling or loading the kernels, building each image size's tables), the best of
@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import default_kitti_dir, paired_ratios, rerun_line, sign_test_p  # noqa: E402,F401
+from _common import default_kitti_dir, paired_ratios, rerun_line  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
