@@ -130,6 +130,25 @@ def test_compiled_working_gray_equals_interpolate_then_grey(sample_image):
             assert green.dtype == torch.int32 and torch.equal(green, ref), (images[0].dtype, scale)
 
 
+def test_compiled_uint8_to_unit_is_the_division_for_every_value():
+    # the front end's product-and-residual quotient is torch's x.float() / 255 for each of
+    # the 256 values a uint8 pixel can take
+    import numba
+
+    from reeb_torch.stages.edges import _unit
+
+    @numba.njit
+    def units(x):
+        out = np.empty(x.shape[0], np.float32)
+        for i in range(x.shape[0]):
+            out[i] = _unit(x[i])
+        return out
+
+    every = torch.arange(256, dtype=torch.uint8)
+    got = units(every.numpy())
+    assert np.array_equal(got.view(np.uint32), (every.float() / 255).numpy().view(np.uint32))
+
+
 def test_compiled_working_gray_declines_where_it_would_differ(sample_image, monkeypatch):
     # no resize, upsampling, float64, or a torch that sums long filters in another order
     # than the probe found: the caller takes the tensor ops

