@@ -31,6 +31,8 @@ def _signatures() -> dict[str, int]:
 
 
 def test_the_package_kernels_are_cached_in_the_per_user_folder_by_source_hash():
+    # by the hash of every kernel source: a kernel's cache entry holds the kernels it calls
+    # from other files, so a change to any of them must move every entry
     root = _cache.cache_dir()
     if root is None:
         pytest.skip("REEB_TORCH_CACHE_DIR turns the package cache off")
@@ -40,6 +42,7 @@ def test_the_package_kernels_are_cached_in_the_per_user_folder_by_source_hash():
             continue
         path = d._cache._cache_path
         assert path.startswith(str(root)), f"{name} is cached in {path}, not under {root}"
+        assert path.endswith(f"-{_cache.kernels_hash()}"), f"{name} is cached in {path}"
         found += 1
     assert found >= 8
 

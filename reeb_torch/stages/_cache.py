@@ -3,9 +3,13 @@
 numba's ``cache=True`` writes beside the source (``__pycache__``), which a reinstall of the
 package wipes, so a fresh install of the same version compiled every kernel again (about
 20 s on two busy cores). Here the package's kernels are cached in a per-user folder,
-one subfolder per source file *and its content hash*: the same source, reinstalled or in
-another checkout, finds its kernels; a changed source gets a new folder. numba still keys
-each entry by its own version, the Python version and the CPU.
+one subfolder per source file *and the content hash of every source file that defines a
+kernel*: the same sources, reinstalled or in another checkout, find their kernels; a change
+to any of them gets new folders. (A kernel's cache entry holds the kernels it calls from
+other files, compiled in, and numba checks only the file that defines it: with one hash
+per file, a change to ``_radix.py`` left ``scoring.py``'s cached kernels running the old
+``_radix`` code.) numba still keys each entry by its own version, the Python version and
+the CPU.
 
 The folder: ``$REEB_TORCH_CACHE_DIR`` if set (``off``, ``0`` or empty: numba's own
 places), else ``$XDG_CACHE_HOME/reeb-torch/numba``, else ``~/.cache/reeb-torch/numba``.
@@ -15,6 +19,7 @@ before any kernel is defined.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import sys
@@ -38,14 +43,11 @@ def cache_dir() -> Path | None:
     return Path(base) / "reeb-torch" / "numba"
 
 
-def _source_hash(py_file: str) -> str:
-    with open(py_file, "rb") as f:
-        return hashlib.sha256(f.read()).hexdigest()[:16]
-
-
+@functools.cache
 def kernels_hash() -> str:
     """One hash of every source file of the package that defines a kernel, with the numba
-    and Python versions: what :func:`warm_marker` is named after."""
+    and Python versions (worked out once per process): what every kernel's cache folder and
+    :func:`warm_marker` are named after."""
     import numba
 
     h = hashlib.sha256(f"{numba.__version__} {sys.version}".encode())
@@ -64,12 +66,13 @@ def warm_marker() -> Path | None:
 
 
 class _PackageCacheLocator(_caching._SourceFileBackedLocatorMixin, _caching._CacheLocator):
-    """numba cache locator for this package's kernels: :func:`cache_dir` / ``<file>-<hash>``."""
+    """numba cache locator for this package's kernels: :func:`cache_dir` /
+    ``<file>-<kernels_hash()>``."""
 
     def __init__(self, py_func, py_file: str) -> None:
         self._py_file = py_file
         self._lineno = py_func.__code__.co_firstlineno
-        self._cache_path = str(cache_dir() / f"{Path(py_file).stem}-{_source_hash(py_file)}")
+        self._cache_path = str(cache_dir() / f"{Path(py_file).stem}-{kernels_hash()}")
 
     def get_cache_path(self) -> str:
         return self._cache_path
