@@ -263,14 +263,23 @@ class ProposalGenerator(nn.Module):
         cfg = self.config
         dev = images[0].device
         work, maps = front
-        # Sec. 3.6: Regions = Divide_Image_Into_Regions(I, Camera_Params); eqs. 2 and 9
-        with self._stage("regions", dev):
-            bounds, entropy, share = self._regions(work.gray)
-        # Sec. 3.6-3.7: dense sliding windows, scored by eqs. 1, 10-12, cut per region (eq. 9)
-        with self._stage("scoring", dev):
-            grid = self.ranking.window_grid(maps, bounds)
-            scores = self.ranking.score(maps, grid)
-            chosen = self.ranking.select(scores, grid, share)
+        # one image on the CPU: the groups' tables are built on the other core while this
+        # one takes the regions and the integral images, in place of each stage's halves
+        beside = len(images) == 1 and self.ranking.compiled_scoring_may_apply(maps)
+        try:
+            # Sec. 3.6: Regions = Divide_Image_Into_Regions(I, Camera_Params); eqs. 2 and 9
+            with self._stage("regions", dev):
+                if beside:
+                    maps.start_tables()
+                with serially() if beside else nullcontext():
+                    bounds, entropy, share = self._regions(work.gray)
+            # Sec. 3.6-3.7: dense sliding windows, scored by eqs. 1, 10-12, cut per region (eq. 9)
+            with self._stage("scoring", dev):
+                grid = self.ranking.window_grid(maps, bounds)
+                scores = self.ranking.score(maps, grid)
+                chosen = self.ranking.select(scores, grid, share)
+        finally:
+            maps.settle()
         # a second scoring pass over the best candidates (not in the paper; ``ReebConfig.rescore``)
         if cfg.rescore != "none":
             with self._stage("rescore", dev):

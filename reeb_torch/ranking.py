@@ -79,6 +79,7 @@ class ScoreMaps:
     green: Tensor | None = None
     crossing: tuple[Tensor, Tensor] | None = None
     _kept: dict = field(default_factory=dict, repr=False)
+    _pending: Callable[[], _refinement.EnclosedTables] | None = field(default=None, repr=False)
 
     @property
     def fx(self) -> float:
@@ -96,9 +97,25 @@ class ScoreMaps:
         return self._kept[key]
 
     def tables(self) -> _refinement.EnclosedTables:
-        """The groups' enclosed-sum prefix tables (:func:`~reeb_torch.stages.refinement.enclosed_tables`)."""
+        """The groups' enclosed-sum prefix tables (:func:`~reeb_torch.stages.refinement.enclosed_tables`);
+        where :meth:`start_tables` started them, waits for them."""
+        self.settle()
         b, hk, wk = self.edges.shape
         return self._keep("tables", lambda: _refinement.enclosed_tables(self.groups, b, hk, wk))
+
+    def start_tables(self) -> None:
+        """Start :meth:`tables` on the helper thread (CPU): this thread goes on meanwhile
+        and :meth:`tables` collects them. Whoever calls this calls :meth:`settle` before
+        the batch ends, whatever happens (the tables are memory the next batch reuses)."""
+        if "tables" not in self._kept and self._pending is None:
+            b, hk, wk = self.edges.shape
+            self._pending = _refinement.enclosed_tables_started(self.groups, b, hk, wk)
+
+    def settle(self) -> None:
+        """Wait for the tables :meth:`start_tables` started, if any, and keep them."""
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            self._kept["tables"] = pending()
 
     def integral(self, name: Literal["edges", "grey", "road"]) -> Tensor:
         """The integral image (:func:`~reeb_torch.stages.scoring.integral_image`) of the
@@ -193,11 +210,14 @@ class Ranking:
 
     def compiled_scoring_applies(self, maps: ScoreMaps, grid: _windows.WindowGrid) -> bool:
         """Whether :meth:`score_compiled` computes this config's scores on this batch."""
+        return self.compiled_scoring_may_apply(maps) and bool(grid.sizes) and _tables_exact(maps.groups, grid)
+
+    def compiled_scoring_may_apply(self, maps: ScoreMaps) -> bool:
+        """:meth:`compiled_scoring_applies` but for the window grid's part: whether the
+        scores may read ``maps.tables()`` (the generator starts them early then)."""
         cfg = self.config
-        if (maps.edges.device.type != "cpu" or maps.crossing is not None or cfg.local_max
-                or cfg.road_score not in ("none", "flat") or not grid.sizes):
-            return False
-        return _tables_exact(maps.groups, grid)
+        return (maps.edges.device.type == "cpu" and maps.crossing is None and not cfg.local_max
+                and cfg.road_score in ("none", "flat"))
 
     def score_compiled(self, maps: ScoreMaps, grid: _windows.WindowGrid) -> Tensor:
         """:meth:`score` in one compiled pass (:func:`reeb_torch.stages.scoring.score_grid_cpu`)."""

@@ -201,3 +201,58 @@ def test_one_image_split_by_rows_equals_the_same_image_in_one_piece(sample_image
     with serially():
         assert torch.equal(split, S.select_per_region_cpu(scores, members, starts, budget))
     assert 200 < int(split.sum()) < 500  # every region marked some, not all
+
+
+def test_started_runs_on_the_helper_and_its_wait_raises_what_it_raised():
+    import threading
+
+    import pytest
+
+    from reeb_torch.stages._threads import serially, started
+
+    where: list[str] = []
+    wait = started(lambda: where.append(threading.current_thread().name))
+    wait()
+    assert where and where[0].startswith("reeb-half")
+    with serially():  # the caller keeps both cores' work: here and now
+        wait = started(lambda: where.append(threading.current_thread().name))
+        assert where[-1] == threading.current_thread().name
+        wait()
+
+    def boom():
+        raise ValueError("in the helper")
+
+    wait = started(boom)
+    with pytest.raises(ValueError, match="in the helper"):
+        wait()
+
+
+def test_one_image_builds_its_tables_beside_the_regions_and_waits_for_them(sample_image, monkeypatch):
+    # issue 20, batch-1 latency: one image's enclosed-sum tables are built on the helper
+    # thread while the caller takes the regions; the same boxes as a batch's, and a stage
+    # that raises meanwhile still waits for the helper (its tables are reused memory)
+    import pytest
+    import torch
+
+    from reeb_torch import ProposalGenerator, ReebConfig
+    from reeb_torch.ranking import ScoreMaps
+
+    gen = ProposalGenerator(ReebConfig(top_k=300))
+    x = sample_image[:, :200, :600]
+    gen([x])  # the first call's warm-up runs pictures of its own
+    started: list[int] = []
+    real_start = ScoreMaps.start_tables
+    monkeypatch.setattr(ScoreMaps, "start_tables", lambda self: (started.append(1), real_start(self))[1])
+    alone = gen([x])[0]
+    assert started == [1]
+    pair = gen([x, x.flip(-1)])[0]  # two images: each core takes one (serially: tables inline)
+    assert torch.equal(alone["boxes"], pair["boxes"]) and torch.equal(alone["scores"], pair["scores"])
+
+    settled: list[int] = []
+    real_settle = ScoreMaps.settle
+    monkeypatch.setattr(ScoreMaps, "settle", lambda self: (settled.append(self._pending is not None),
+                                                           real_settle(self))[1])
+    monkeypatch.setattr(gen, "_regions", lambda gray: (_ for _ in ()).throw(RuntimeError("regions")))
+    with pytest.raises(RuntimeError, match="regions"):
+        gen([x])
+    assert settled == [True]  # still pending when the stage raised, then waited for

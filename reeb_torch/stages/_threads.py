@@ -10,7 +10,7 @@ from typing import Callable, Iterator
 
 import torch
 
-__all__ = ["on_two_cores", "images_or_rows", "torch_single_threaded", "serially"]
+__all__ = ["on_two_cores", "images_or_rows", "started", "torch_single_threaded", "serially"]
 
 _pool: ThreadPoolExecutor | None = None
 _lock = threading.Lock()
@@ -53,6 +53,19 @@ def on_two_cores(run: Callable[[int, int], None], b: int) -> None:
         run(0, half)
     finally:
         other.result()
+
+
+def started(run: Callable[[], None]) -> Callable[[], None]:
+    """``run()`` started on the helper thread while the caller goes on; returns the
+    function that waits for it to end (and raises what it raised). In the helper thread
+    itself, or within :func:`serially`, ``run()`` runs here and now. The caller's own
+    kernels meanwhile belong within :func:`serially`: a half handed to the helper would
+    queue behind ``run``."""
+    if getattr(_inside, "worker", False) or getattr(_inside, "serial", False):
+        run()
+        return lambda: None
+    job = _worker().submit(run)
+    return lambda: job.result()
 
 
 def images_or_rows(run: Callable[[int, int, int, int], None], b: int, rows: int) -> None:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numba
 import numpy as np
@@ -31,10 +32,10 @@ import torch
 from torch import Tensor
 
 from . import _scratch
-from ._threads import on_two_cores
+from ._threads import on_two_cores, started
 from .groups import EdgeGroups
 
-__all__ = ["EnclosedTables", "enclosed_tables", "box_sum_at", "enclosed_at", "enclosed_grid", "refine_boxes"]
+__all__ = ["EnclosedTables", "enclosed_tables", "enclosed_tables_started", "box_sum_at", "enclosed_at", "enclosed_grid", "refine_boxes"]
 
 
 @dataclass
@@ -122,6 +123,30 @@ def enclosed_tables(groups: EdgeGroups, batch: int, height: int, width: int) -> 
     entry is a float64 sum of the groups' float64 masses, which is exact (tested equal)."""
     if groups.batch.device.type != "cpu":
         return _enclosed_tables_torch(groups, batch, height, width)
+    run, tables = _tables_job(groups, batch, height, width)
+    on_two_cores(run, batch)
+    return tables
+
+
+def enclosed_tables_started(groups: EdgeGroups, batch: int, height: int,
+                            width: int) -> Callable[[], EnclosedTables]:
+    """:func:`enclosed_tables` on the CPU, the compiled pass started on the helper thread
+    (:func:`reeb_torch.stages._threads.started`) for the whole batch: returns the function
+    that waits for it and gives the tables (the same numbers)."""
+    run, tables = _tables_job(groups, batch, height, width)
+    wait = started(lambda: run(0, batch))
+
+    def done() -> EnclosedTables:
+        wait()
+        return tables
+
+    return done
+
+
+def _tables_job(groups: EdgeGroups, batch: int, height: int,
+                width: int) -> tuple[Callable[[int, int], None], EnclosedTables]:
+    """The compiled pass of :func:`enclosed_tables` as ``run(lo, hi)`` (images ``[lo,
+    hi)``), and the tables it fills."""
     h, w = height, width
     # np.empty, zeroed in order by the kernel: a calloc'd buffer would fault its pages in
     # during the scattered writes instead, which costs more than the whole pass
@@ -138,9 +163,8 @@ def enclosed_tables(groups: EdgeGroups, batch: int, height: int, width: int) -> 
         a, z = starts[lo], starts[hi]
         _tables_kernel(*(c[a:z] for c in cols), mass[a:z], lo, *(t[lo:hi] for t in tabs))
 
-    on_two_cores(run, batch)
     anchor, cut_col, cut_row, corner = (torch.from_numpy(t) for t in tabs)
-    return EnclosedTables(anchor, cut_col, cut_row, corner, groups.max_extent)
+    return run, EnclosedTables(anchor, cut_col, cut_row, corner, groups.max_extent)
 
 
 def _enclosed_tables_torch(groups: EdgeGroups, batch: int, height: int, width: int) -> EnclosedTables:
