@@ -339,11 +339,12 @@ def _working_gray_kernel(img: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: n
         _row_taps(fr, fg, fb, xlo, xn, xw, dr, dg, db, 0, i0)
         if i1 > i0:
             c0, c1, c2, c3 = xw[i0, 0], xw[i0, 1], xw[i0, 2], xw[i0, 3]
-            for i in range(i0, i1):
-                a = 2 * i + off
-                dr[i] = _fma(fr[a + 3], c3, _fma(fr[a + 2], c2, _fma(fr[a + 1], c1, fr[a] * c0)))
-                dg[i] = _fma(fg[a + 3], c3, _fma(fg[a + 2], c2, _fma(fg[a + 1], c1, fg[a] * c0)))
-                db[i] = _fma(fb[a + 3], c3, _fma(fb[a + 2], c2, _fma(fb[a + 1], c1, fb[a] * c0)))
+            a0 = 2 * i0 + off
+            for c in range(3):  # on slices from the first output, by an index from 0: the compiler
+                src, dst = f[c, a0:], rows[c, y, i0:i1]  # sees it is never negative and vectorises
+                for t in range(i1 - i0):  # the loop (with 2·i + off, its test for negative indices
+                    a = 2 * t  # kept it scalar: 15x the time of this loop alone)
+                    dst[t] = _fma(src[a + 3], c3, _fma(src[a + 2], c2, _fma(src[a + 1], c1, src[a] * c0)))
         _row_taps(fr, fg, fb, xlo, xn, xw, dr, dg, db, i1, wo)
     wr, wg, wb = np.float32(0.299), np.float32(0.587), np.float32(0.114)
     lr, lg, lb = np.empty(wo, np.float32), np.empty(wo, np.float32), np.empty(wo, np.float32)
