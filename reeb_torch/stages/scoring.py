@@ -300,11 +300,12 @@ def _row_edge_scores(e0, e1, a0, a1, c0, c1, r1, k1, nx: int, sx: int, w: int, d
     """S (eq. 1) of one row of ``nx`` windows into ``val``: the table rows at the window's
     top and bottom (edge integral ``e``, enclosed-sum tables ``a``, ``c``, ``r``, ``k``) read
     into ``num`` first, then divided (a loop the compiler vectorises)."""
+    usx, uw, udx, ucw = np.uint64(sx), np.uint64(w), np.uint64(dx), np.uint64(cw)
     for i in range(nx):
-        x0 = i * sx
-        x1 = x0 + w
-        cx0 = x0 + dx
-        cx1 = cx0 + cw
+        x0 = np.uint64(i) * usx  # unsigned: no test for negative indices on each of the 13 loads
+        x1 = x0 + uw
+        cx0 = x0 + udx
+        cx1 = cx0 + ucw
         centre = ((e1[cx1] - e0[cx1]) - e1[cx0]) + e0[cx0]
         a = ((a1[x1] - a0[x1]) - a1[x0]) + a0[x0]
         col = c1[x1] - c0[x1]
@@ -319,9 +320,10 @@ def _row_edge_scores(e0, e1, a0, a1, c0, c1, r1, k1, nx: int, sx: int, w: int, d
 def _row_vegetation(g0, g1, nx: int, sx: int, gdx: int, gw: int, inv_area: float, veg_power: int,
                     fac: np.ndarray) -> None:  # pragma: no cover - compiled
     """:func:`vegetation_factor` of one row of windows into ``fac`` (green counts ``g``)."""
+    usx, ugdx, ugw = np.uint64(sx), np.uint64(gdx), np.uint64(gw)
     for i in range(nx):
-        gx0 = i * sx + gdx
-        gx1 = gx0 + gw
+        gx0 = np.uint64(i) * usx + ugdx  # unsigned, as in _row_edge_scores
+        gx1 = gx0 + ugw
         gs = ((g1[gx1] - g0[gx1]) - g1[gx0]) + g0[gx0]
         q = 1.0 - float(gs) * inv_area
         f = q
@@ -339,20 +341,23 @@ def _row_shadow(q0, q1, q2, nx: int, sx: int, w: int, mx: int, below: bool, n_in
     below the box): with ``sqrt_floor >= 0`` V (``val``, ``-inf`` stays) times
     sqrt(U + floor) into ``ob[row:]``, else V into ``ob[row:]`` and U into ``us[row:]``."""
     neg_inf = np.float32(-np.inf)
+    o = ob[row: row + nx]  # indexed from 0 (no test for negative indices: loops that vectorise)
+    usx, umx, uax = np.uint64(sx), np.uint64(mx), np.uint64(w - mx)
     for i in range(nx):
-        ax0 = i * sx + mx
-        ax1 = i * sx + w - mx
+        ax0 = np.uint64(i) * usx + umx  # unsigned, as in _row_edge_scores
+        ax1 = np.uint64(i) * usx + uax
         s_in[i] = ((q1[ax1] - q0[ax1]) - q1[ax0]) + q0[ax0]
         s_below[i] = ((q2[ax1] - q1[ax1]) - q2[ax0]) + q1[ax0]
     if sqrt_floor < 0:  # U for apply_shadow
+        ou = us[row: row + nx]
         for i in range(nx):
-            ob[row + i] = val[i]
+            o[i] = val[i]
             u = 0.0
             if below:
                 g_in = s_in[i] / n_in
                 g_below = s_below[i] / n_below
                 u = min(max((g_below - g_in) / max(g_below, 1e-3), 0.0), 1.0)
-            us[row + i] = u
+            ou[i] = u
     elif below:
         for i in range(nx):
             g_in = s_in[i] / n_in
@@ -361,12 +366,12 @@ def _row_shadow(q0, q1, q2, nx: int, sx: int, w: int, mx: int, below: bool, n_in
             t = t if t > 0.0 else 0.0
             t = t if t < 1.0 else 1.0
             v = val[i]
-            ob[row + i] = v * np.float32(np.sqrt(t + sqrt_floor)) if v != neg_inf else neg_inf
+            o[i] = v * np.float32(np.sqrt(t + sqrt_floor)) if v != neg_inf else neg_inf
     else:  # no row below the box: U = 0
         f0 = np.float32(np.sqrt(0.0 + sqrt_floor))
         for i in range(nx):
             v = val[i]
-            ob[row + i] = v * f0 if v != neg_inf else neg_inf
+            o[i] = v * f0 if v != neg_inf else neg_inf
 
 
 @numba.njit(cache=True, nogil=True)
@@ -421,8 +426,9 @@ def _score_grid_kernel(ii: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray, 
                     s = val[i]
                     val[i] = s * wl if s >= min_edge else neg_inf
             if not with_shadow:
+                o = ob[row: row + nx]
                 for i in range(nx):
-                    ob[row + i] = val[i]
+                    o[i] = val[i]
                 continue
             yb = min(y1 + sh, hmax)
             _row_shadow(grey[b, y1 - sh], grey[b, y1], grey[b, yb], nx, sx, w, mx, yb > y1,
