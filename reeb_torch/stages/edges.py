@@ -536,8 +536,9 @@ def _blur_sobel_kernel(gray: np.ndarray, wts: np.ndarray, gx: np.ndarray, gy: np
             y = yy - r
             y = -y if y < 0 else (2 * (h - 1) - y if y >= h else y)
             src = img[y]
+            inner = line[r: r + w]  # (slices indexed from 0: no test for negative indices)
             for x in range(w):  # the row, then its ends reflected
-                line[x + r] = src[x]
+                inner[x] = src[x]
             for xi in range(r):
                 line[xi] = src[r - xi]
                 line[w + r + xi] = src[w - 2 - xi]
@@ -547,8 +548,9 @@ def _blur_sobel_kernel(gray: np.ndarray, wts: np.ndarray, gx: np.ndarray, gy: np
                 dst[x] = w0 * line[x]
             for i in range(1, k):
                 wi = wts[i]
+                tap = line[i: i + w]
                 for x in range(w):
-                    dst[x] = dst[x] + wi * line[x + i]
+                    dst[x] = dst[x] + wi * tap[x]
         for y in range(b0, b1):
             dst = blur[y]
             w0 = wts[0]
