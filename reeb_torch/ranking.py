@@ -104,10 +104,10 @@ class ScoreMaps:
         return self._keep("tables", lambda: _refinement.enclosed_tables(self.groups, b, hk, wk))
 
     def start_tables(self) -> None:
-        """Start :meth:`tables` on the helper thread (CPU): this thread goes on meanwhile
+        """Start :meth:`tables` on the helper thread (CPU only): this thread goes on meanwhile
         and :meth:`tables` collects them. Whoever calls this calls :meth:`settle` before
         the batch ends, whatever happens (the tables are memory the next batch reuses)."""
-        if "tables" not in self._kept and self._pending is None:
+        if "tables" not in self._kept and self._pending is None and self.edges.device.type == "cpu":
             b, hk, wk = self.edges.shape
             self._pending = _refinement.enclosed_tables_started(self.groups, b, hk, wk)
 

@@ -35,7 +35,8 @@ from . import _scratch
 from ._threads import on_two_cores, started
 from .groups import EdgeGroups
 
-__all__ = ["EnclosedTables", "enclosed_tables", "enclosed_tables_started", "box_sum_at", "enclosed_at", "enclosed_grid", "refine_boxes"]
+__all__ = ["EnclosedTables", "enclosed_tables", "enclosed_tables_started", "box_sum_at", "enclosed_at",
+           "enclosed_grid", "refine_boxes"]
 
 
 @dataclass
