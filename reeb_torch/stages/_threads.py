@@ -37,6 +37,12 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_forget_pool)
 
 
+def _in_caller() -> bool:
+    """Whether work handed to the helper runs in the calling thread instead: the caller is
+    the helper itself, or within :func:`serially`."""
+    return getattr(_inside, "worker", False) or getattr(_inside, "serial", False)
+
+
 def on_two_cores(run: Callable[[int, int], None], b: int) -> None:
     """``run(lo, hi)`` over items ``[0, b)`` (the images of a batch, or the boxes of the
     refinement): a compiled kernel that releases the GIL runs on the two halves at once
@@ -44,7 +50,7 @@ def on_two_cores(run: Callable[[int, int], None], b: int) -> None:
     several threads share the helper thread (their second halves queue); a call from the
     helper thread itself, or within :func:`serially`, runs both halves in the calling
     thread."""
-    if b < 2 or getattr(_inside, "worker", False) or getattr(_inside, "serial", False):
+    if b < 2 or _in_caller():
         run(0, b)
         return
     half = (b + 1) // 2
@@ -61,7 +67,7 @@ def started(run: Callable[[], None]) -> Callable[[], None]:
     itself, or within :func:`serially`, ``run()`` runs here and now. The caller's own
     kernels meanwhile belong within :func:`serially`: a half handed to the helper would
     queue behind ``run``."""
-    if getattr(_inside, "worker", False) or getattr(_inside, "serial", False):
+    if _in_caller():
         run()
         return lambda: None
     job = _worker().submit(run)

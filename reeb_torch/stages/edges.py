@@ -574,44 +574,38 @@ def _blur_sobel_kernel(gray: np.ndarray, wts: np.ndarray, gx: np.ndarray, gy: np
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _sobel_at(up: np.ndarray, mid: np.ndarray, down: np.ndarray, x: int, xm: int, xp: int,
-              gx: np.ndarray, gy: np.ndarray, mag: np.ndarray) -> None:  # pragma: no cover - compiled
-    """Sobel ``gx, gy`` (the 3×3 kernels / 4) and the magnitude (clipped to 1) at column
-    ``x`` of a row of the blurred image, from the rows above, at and below it (columns
-    ``xm, xp`` its neighbours)."""
+def _sobel_px(ul: np.float32, uc: np.float32, ur: np.float32, ml: np.float32, mr: np.float32, dl: np.float32,
+              dc: np.float32, dr: np.float32) -> tuple:  # pragma: no cover - compiled
+    """Sobel ``gx, gy`` (the 3×3 kernels / 4) and the magnitude (clipped to 1) of one pixel
+    of the blurred image from its neighbours: rows up, mid(dle) and down, columns l(eft),
+    c(entre) and r(ight)."""
     two = np.float32(2.0)
     quarter = np.float32(0.25)
-    d0 = up[xp] - up[xm]
-    d1 = mid[xp] - mid[xm]
-    d2 = down[xp] - down[xm]
-    u = ((d0 + two * d1) + d2) * quarter
-    gx[x] = u
-    e0 = down[xm] - up[xm]
-    e1 = down[x] - up[x]
-    e2 = down[xp] - up[xp]
-    v = ((e0 + two * e1) + e2) * quarter
-    gy[x] = v
-    mag[x] = min(np.sqrt(u * u + v * v), np.float32(1.0))
+    u = (((ur - ul) + two * (mr - ml)) + (dr - dl)) * quarter
+    v = (((dl - ul) + two * (dc - uc)) + (dr - ur)) * quarter
+    return u, v, min(np.sqrt(u * u + v * v), np.float32(1.0))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _sobel_at(up: np.ndarray, mid: np.ndarray, down: np.ndarray, x: int, xm: int, xp: int,
+              gx: np.ndarray, gy: np.ndarray, mag: np.ndarray) -> None:  # pragma: no cover - compiled
+    """:func:`_sobel_px` at column ``x`` of a row, from the rows above, at and below it
+    (columns ``xm, xp`` its neighbours: the end columns clamp theirs)."""
+    gx[x], gy[x], mag[x] = _sobel_px(up[xm], up[x], up[xp], mid[xm], mid[xp], down[xm], down[x], down[xp])
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _sobel_inner(up: np.ndarray, mid: np.ndarray, down: np.ndarray, gx: np.ndarray, gy: np.ndarray,
                  mag: np.ndarray) -> None:  # pragma: no cover - compiled
-    """:func:`_sobel_at` at columns ``1 .. w − 2`` of a row (``gx, gy, mag``: those columns'
+    """:func:`_sobel_px` at columns ``1 .. w − 2`` of a row (``gx, gy, mag``: those columns'
     outputs), as one loop over slices indexed from 0: no test for negative indices, so the
     compiler vectorises it (with ``x − 1`` and ``x + 1`` it stayed scalar)."""
     n = gx.shape[0]
     u0, u1, u2 = up[0:n], up[1: n + 1], up[2: n + 2]
     m0, m2 = mid[0:n], mid[2: n + 2]
-    d0_, d1_, d2_ = down[0:n], down[1: n + 1], down[2: n + 2]
-    two = np.float32(2.0)
-    quarter = np.float32(0.25)
+    d0, d1, d2 = down[0:n], down[1: n + 1], down[2: n + 2]
     for t in range(n):
-        u = (((u2[t] - u0[t]) + two * (m2[t] - m0[t])) + (d2_[t] - d0_[t])) * quarter
-        gx[t] = u
-        v = (((d0_[t] - u0[t]) + two * (d1_[t] - u1[t])) + (d2_[t] - u2[t])) * quarter
-        gy[t] = v
-        mag[t] = min(np.sqrt(u * u + v * v), np.float32(1.0))
+        gx[t], gy[t], mag[t] = _sobel_px(u0[t], u1[t], u2[t], m0[t], m2[t], d0[t], d1[t], d2[t])
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
