@@ -113,13 +113,13 @@ def stop_helper(helper: subprocess.Popen | None) -> None:
 
 
 def compile_helper_part() -> None:
-    """In the helper process: the kernels the warm-up reaches last (the per-region cut, the
-    window NMS's three and the float front end), in the order it reaches them, on
-    synthetic inputs of the types the pipeline passes them, so that they are cached under
-    the same signatures (``tests/test_warmup.py`` checks that they add none)."""
+    """In the helper process: the kernels the warm-up reaches last (the window scores, the
+    per-region cut and the window NMS's three), in the order it reaches them, on synthetic
+    inputs of the types the pipeline passes them, so that they are cached under the same
+    signatures (``tests/test_warmup.py`` checks that they add none)."""
     import numpy as np
 
-    from .stages import edges, nms, scoring
+    from .stages import nms, refinement, scoring
     from .stages._threads import serially
 
     g = torch.Generator().manual_seed(0)
@@ -127,8 +127,11 @@ def compile_helper_part() -> None:
     xy = torch.rand(n, 2, generator=g) * 400
     boxes = torch.cat([xy, xy + 8 + torch.rand(n, 2, generator=g) * 60], 1)
     scores = torch.rand(2, n, generator=g)
+    table = torch.zeros(1, 9, 9, dtype=torch.float64)  # no window sizes: typed and compiled, nothing run
     with serially():  # one core: the warm-up has the other
+        scoring.score_grid_cpu(table, refinement.EnclosedTables(table, table, table, table, 1),
+                               np.zeros((0, len(scoring.PLAN_COLUMNS)), np.int64), np.zeros(0), np.zeros(0, np.float32),
+                               1.0, 1.0, 0.0, 0.0, torch.empty(1, 0))
         scoring.select_per_region_cpu(scores, np.arange(n, dtype=np.int64), np.array([0, n // 2, n], np.int64),
                                       torch.full((2, 2), 300, dtype=torch.int64))
         nms.nms_windows_cpu(torch.rand(2, n, generator=g) < 0.9, boxes, scores, 0.7, 2000)
-        edges.working_gray([warm_picture().float().div_(255.0)], 0.5, with_green=True)

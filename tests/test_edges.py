@@ -135,13 +135,13 @@ def test_compiled_uint8_to_unit_is_the_division_for_every_value():
     # the 256 values a uint8 pixel can take
     import numba
 
-    from reeb_torch.stages.edges import _unit
+    from reeb_torch.stages.edges import _unit8
 
     @numba.njit
     def units(x):
         out = np.empty(x.shape[0], np.float32)
         for i in range(x.shape[0]):
-            out[i] = _unit(x[i])
+            out[i] = _unit8(x[i])
         return out
 
     every = torch.arange(256, dtype=torch.uint8)

@@ -110,18 +110,18 @@ def test_reeb_warmup_command(tmp_path, monkeypatch):
 def test_the_helper_process_compiles_only_what_the_warm_up_runs(monkeypatch):
     # its kernels must be cached under the signatures the warm-up itself asks for, else the
     # warm-up would find nothing and compile them again
-    from reeb_torch.stages import edges, nms, scoring
+    from reeb_torch.stages import nms, scoring
 
     warmup(quiet=True)
     kernels = _dispatchers()
     before = {k: set(map(str, d.signatures)) for k, d in kernels.items()}
     called = set()
-    for mod, name in ((scoring, "_select_kernel"), (nms, "_grid_nms_sorted"), (nms, "_sorted_boxes"),
-                      (edges, "_working_gray_kernel")):
+    for mod, name in ((scoring, "_score_grid_kernel"), (scoring, "_select_kernel"), (nms, "_grid_nms_sorted"),
+                      (nms, "_sorted_boxes")):
         kernel = getattr(mod, name)
         monkeypatch.setattr(mod, name, lambda *a, _k=kernel, _n=name: (called.add(_n), _k(*a))[1])
     _warm.compile_helper_part()
-    assert called == {"_select_kernel", "_grid_nms_sorted", "_sorted_boxes", "_working_gray_kernel"}
+    assert called == {"_score_grid_kernel", "_select_kernel", "_grid_nms_sorted", "_sorted_boxes"}
     after = {k: set(map(str, d.signatures)) for k, d in kernels.items()}
     assert {k: after[k] - before[k] for k in after if after[k] - before[k]} == {}
 

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from numba.core import types as _nbtypes
-from numba.extending import intrinsic, overload
+from numba.extending import intrinsic
 from torch import Tensor
 
 from . import _scratch
@@ -87,7 +87,7 @@ def working_gray(images: list[Tensor], scale: float, with_green: bool = False,
     xlo, xn, xw = _aa_weights(w, wo)
     ylo, yn, yw = _aa_weights(h, ho)
     span = _regular_span(w, wo)
-    arrays = [im.contiguous().numpy() for im in images]
+    arrays = [_kernel_pair(im) for im in images]
     out = _scratch.empty("front.grey", (len(images), 1, ho, wo), np.float32)
     green = (_scratch.empty("front.green", (len(images), ho + 1, wo + 1), np.int32) if with_green
              else np.empty((len(images), 0, 0), np.int32))
@@ -97,7 +97,7 @@ def working_gray(images: list[Tensor], scale: float, with_green: bool = False,
 
     def run(lo: int, hi: int, r0: int, r1: int) -> None:
         for i in range(lo, hi):
-            counts.append((i, _working_gray_kernel(arrays[i], xlo, xn, xw, ylo, yn, yw, span, out[i, 0], green[i],
+            counts.append((i, _working_gray_kernel(*arrays[i], xlo, xn, xw, ylo, yn, yw, span, out[i, 0], green[i],
                                                    r0, r1)))
         parts.append((lo, hi, r0, r1))
 
@@ -117,6 +117,17 @@ def green_mask(images: Tensor) -> Tensor:
     and G > B, else 0 (vegetation, for ``ReebConfig.vegetation_score``)."""
     r, g, b = images.unbind(1)
     return ((g > r) & (g > b)).float()
+
+
+_NO_UINT8 = np.empty((3, 0, 0), np.uint8)
+_NO_FLOAT = np.empty((3, 0, 0), np.float32)
+
+
+def _kernel_pair(image: Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """``(uint8, float32)`` arrays for :func:`_working_gray_kernel` of a ``(3, H, W)``
+    image of either type, the other one empty."""
+    a = image.contiguous().numpy()
+    return (a, _NO_FLOAT) if a.dtype == np.uint8 else (_NO_UINT8, a)
 
 
 @functools.lru_cache(maxsize=16)
@@ -179,7 +190,7 @@ def _sums_as_torch(h: int, w: int, ho: int, wo: int) -> bool:
         return True
     probe = torch.rand((3, h, w), generator=torch.Generator().manual_seed(0))
     got = np.empty((ho, wo), np.float32)
-    _working_gray_kernel(probe.numpy(), xlo, xn, xw, ylo, yn, yw, _regular_span(w, wo), got,
+    _working_gray_kernel(*_kernel_pair(probe), xlo, xn, xw, ylo, yn, yw, _regular_span(w, wo), got,
                          np.empty((0, 0), np.int32), 0, ho)
     want = F.interpolate(probe[None], size=(ho, wo), mode="bilinear", align_corners=False, antialias=True)
     return bool(torch.equal(torch.from_numpy(got), to_gray(want)[0, 0]))
@@ -210,36 +221,16 @@ def _fma(typingctx, a, b, c):  # pragma: no cover - compiled
 _INV_255 = np.float32(1.0) / np.float32(255.0)
 
 
-def _unit(v):  # pragma: no cover - replaced by the overload below in compiled code
-    raise NotImplementedError
-
-
-@overload(_unit)
-def _unit_overload(v):  # pragma: no cover - compiled
-    """A pixel in [0, 1]: uint8 as ``x.float().div_(255.0)`` (torch's correctly rounded
-    float32 division), float32 as it is. The quotient is a product by 1/255 corrected by
-    its residual (two fused multiply-adds; the same float32 as the division for each of
-    the 256 values, tested): 0.58x the time of the vectorised division, where a 256-entry
-    table was a gather per pixel (0.45 ms per KITTI image)."""
-    if isinstance(v, _nbtypes.Integer):
-        def unit(v):
-            x = np.float32(v)
-            q = x * _INV_255
-            return _fma(_fma(-q, np.float32(255.0), x), _INV_255, q)
-        return unit
-    return lambda v: v
-
-
-def _outside_unit(v):  # pragma: no cover - replaced by the overload below in compiled code
-    raise NotImplementedError
-
-
-@overload(_outside_unit)
-def _outside_unit_overload(v):  # pragma: no cover - compiled
-    """1 where a float pixel is outside [0, 1] or NaN, else 0 (a uint8 pixel: always 0)."""
-    if isinstance(v, _nbtypes.Integer):
-        return lambda v: 0
-    return lambda v: 0 if (v >= 0) & (v <= 1) else 1
+@numba.njit(cache=True, nogil=True)
+def _unit8(v: int) -> float:  # pragma: no cover - compiled
+    """A uint8 pixel in [0, 1] as ``x.float().div_(255.0)`` (torch's correctly rounded
+    float32 division): a product by 1/255 corrected by its residual (two fused
+    multiply-adds; the same float32 as the division for each of the 256 values, tested):
+    0.58x the time of the vectorised division, where a 256-entry table was a gather per
+    pixel (0.45 ms per KITTI image)."""
+    x = np.float32(v)
+    q = x * _INV_255
+    return _fma(_fma(-q, np.float32(255.0), x), _INV_255, q)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -302,11 +293,33 @@ def _column_taps(rows: np.ndarray, a: int, n: int, wts: np.ndarray, lr: np.ndarr
 
 
 @numba.njit(cache=True, nogil=True)
-def _working_gray_kernel(img: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: np.ndarray,
+def _unit_rows(img8: np.ndarray, img: np.ndarray, y: int, f: np.ndarray) -> int:  # pragma: no cover - compiled
+    """Row ``y`` of the three channels in [0, 1] into ``f`` ``(3, W)``, from uint8 ``img8``
+    or, where that is empty, float32 ``img``; returns how many of them lie outside [0, 1]
+    or are NaN (0 for uint8)."""
+    bad = 0
+    if img8.shape[1] > 0:
+        for c in range(3):
+            src8, dst = img8[c, y], f[c]
+            for x in range(dst.shape[0]):
+                dst[x] = _unit8(src8[x])
+        return bad
+    for c in range(3):
+        src, dst = img[c, y], f[c]
+        for x in range(dst.shape[0]):
+            v = src[x]
+            dst[x] = v
+            bad += 0 if (v >= 0) & (v <= 1) else 1
+    return bad
+
+
+@numba.njit(cache=True, nogil=True)
+def _working_gray_kernel(img8: np.ndarray, img: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: np.ndarray,
                          ylo: np.ndarray, yn: np.ndarray, yw: np.ndarray, span: np.ndarray,
                          out: np.ndarray, green: np.ndarray, y0: int, y1: int) -> int:  # pragma: no cover - compiled
-    """:func:`working_gray` of one ``(3, H, W)`` image into output rows ``[y0, y1)`` of
-    ``out`` ``(h, w)``: the horizontal pass for the three channels together (the input
+    """:func:`working_gray` of one ``(3, H, W)`` image, uint8 ``img8`` or, where that is
+    empty, float32 ``img`` (one kernel for both types, compiled once), into output rows
+    ``[y0, y1)`` of ``out`` ``(h, w)``: the horizontal pass for the three channels together (the input
     rows those output rows read; outputs ``span[0] <= i < span[1]`` have four taps at
     ``2·i + span[2]`` with the weights of output ``span[0]``, a loop the compiler
     vectorises), then the vertical pass a whole output row at a time,
@@ -315,7 +328,8 @@ def _working_gray_kernel(img: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: n
     (the caller adds row ``y0``'s counts where ``y0 > 0``). Returns how many of the
     values it read (every column of the input rows those output rows read) lie outside
     [0, 1] or are NaN (0 for uint8)."""
-    _, h, win = img.shape
+    as8 = img8.shape[1] > 0
+    _, h, win = img8.shape if as8 else img.shape
     wo = xlo.shape[0]
     bad = 0  # values read outside [0, 1] (NaN included): returned
     if y1 <= y0:
@@ -328,12 +342,7 @@ def _working_gray_kernel(img: np.ndarray, xlo: np.ndarray, xn: np.ndarray, xw: n
         top = min(top, ylo[yo])
     i0, i1, off = span[0], span[1], span[2]
     for y in range(top, bottom):
-        for c in range(3):
-            src, dst = img[c, y], f[c]
-            for x in range(win):
-                v = src[x]
-                dst[x] = _unit(v)
-                bad += _outside_unit(v)
+        bad += _unit_rows(img8, img, y, f)
         fr, fg, fb = f[0], f[1], f[2]
         dr, dg, db = rows[0, y], rows[1, y], rows[2, y]
         _row_taps(fr, fg, fb, xlo, xn, xw, dr, dg, db, 0, i0)
