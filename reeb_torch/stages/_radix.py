@@ -34,7 +34,9 @@ def descending_order(vals: np.ndarray) -> np.ndarray:  # pragma: no cover - comp
     the keys: ~10× a comparison sort on ~10⁴ scores."""
     n = vals.shape[0]
     keys = _descending_keys(vals)
-    idx = np.arange(n)
+    idx = np.empty(n, np.int64)
+    for i in range(n):  # np.arange(n), in a loop: its implementation took 0.5 s to compile
+        idx[i] = i
     tmp_idx = np.empty(n, np.int64)
     tmp_keys = np.empty(n, np.uint32)
     count = np.empty(2048, np.int64)
