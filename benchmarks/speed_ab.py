@@ -9,11 +9,13 @@ favour each side, and the exact two-sided sign-test p of that count
 (``_common.paired_ratios``). A pair is two runs minutes apart, so a drift within a pair
 still reaches the ratio; more pairs make it average out.
 
-Each run: every frame at ``--batch`` sizes (default 8 and 1), uint8 input, after a warm-up
+Each run: every frame at ``--batch`` sizes (default 8 and 1), ``--input`` uint8 (default) or
+float32 in [0, 1] (as torchvision detectors pass them), after a warm-up
 pass (compiling or loading the kernels, building each image size's tables), the best of
 ``--passes`` passes, ms per image.
 
-Rerun: ``python benchmarks/speed_ab.py --base REV [--pairs 6] [--data DIR] [--preset default]``
+Rerun: ``python benchmarks/speed_ab.py --base REV [--pairs 6] [--data DIR] [--preset default]
+[--input float]``
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ def summarise(pairs: list[tuple[dict[str, float], dict[str, float]]]) -> dict[st
     return out
 
 
-def _child(data: str, preset: str, batches: list[int], passes: int, limit: int | None) -> None:
+def _child(data: str, preset: str, batches: list[int], passes: int, limit: int | None, kind: str) -> None:
     """One run (in a process of its own, with the version under test first on the path)."""
     from reeb_torch import ProposalGenerator, get_preset
     from reeb_torch.eval.data import KittiDataset
@@ -54,6 +56,8 @@ def _child(data: str, preset: str, batches: list[int], passes: int, limit: int |
 
     paths = KittiDataset(data).image_paths[:limit]
     images = [read_image(p) for p in paths]
+    if kind == "float":
+        images = [x.float().div_(255.0) for x in images]
     gen = ProposalGenerator(get_preset(preset))
     result = {}
     for b in batches:
@@ -71,7 +75,7 @@ def _child(data: str, preset: str, batches: list[int], passes: int, limit: int |
 def _run(src: Path, args: argparse.Namespace) -> dict[str, float]:
     env = {**os.environ, "PYTHONPATH": str(src)}
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--data", str(args.data.resolve()),
-           "--preset", args.preset,
+           "--preset", args.preset, "--input", args.input,
            "--passes", str(args.passes), "--batch", *map(str, args.batch)]
     if args.limit:
         cmd += ["--limit", str(args.limit)]
@@ -88,10 +92,11 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--batch", type=int, nargs="+", default=[8, 1])
     ap.add_argument("--passes", type=int, default=2)
     ap.add_argument("--limit", type=int, default=None)
+    ap.add_argument("--input", choices=("uint8", "float"), default="uint8")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
-        _child(str(args.data), args.preset, args.batch, args.passes, args.limit)
+        _child(str(args.data), args.preset, args.batch, args.passes, args.limit, args.input)
         return {}
     if not args.base:
         ap.error("--base REV is required")
@@ -112,8 +117,8 @@ def main(argv: list[str] | None = None) -> dict:
             subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=REPO, capture_output=True)
     summary = summarise(pairs)
     print("# rerun:", rerun_line("benchmarks/speed_ab.py", sys.argv[1:] if argv is None else argv))
-    print(f"# this checkout against {rev}, {args.pairs} alternated pairs, {args.preset}, ms/img (best of "
-          f"{args.passes} passes each)")
+    print(f"# this checkout against {rev}, {args.pairs} alternated pairs, {args.preset}, {args.input} input, "
+          f"ms/img (best of {args.passes} passes each)")
     for key, s in summary.items():
         print(f"{key}: median ratio {s['median_ratio']} (this / {rev}); faster in {s['faster']}, slower in "
               f"{s['slower']} of {args.pairs} pairs (sign test p = {s['sign_p']}); {rev} "
