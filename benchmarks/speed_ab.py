@@ -14,8 +14,12 @@ float32 in [0, 1] (as torchvision detectors pass them), after a warm-up
 pass (compiling or loading the kernels, building each image size's tables), the best of
 ``--passes`` passes, ms per image.
 
+With ``--first-call``, each run is instead the one-time cost a fresh install pays:
+``reeb_torch.warmup()`` with an empty kernel cache of its own, in seconds, with its helper
+process (``--one-process``: without it, i.e. all of the compile work in one process).
+
 Rerun: ``python benchmarks/speed_ab.py --base REV [--pairs 6] [--data DIR] [--preset default]
-[--input float]``
+[--input float] [--first-call [--one-process]]``
 """
 
 from __future__ import annotations
@@ -72,8 +76,23 @@ def _child(data: str, preset: str, batches: list[int], passes: int, limit: int |
     print(json.dumps(result))
 
 
+def _first_call() -> None:
+    """One fresh install's warm-up (in a process of its own, its cache folder empty)."""
+    from reeb_torch import warmup
+
+    print(json.dumps({"first call, s": warmup(quiet=True)}))
+
+
 def _run(src: Path, args: argparse.Namespace) -> dict[str, float]:
     env = {**os.environ, "PYTHONPATH": str(src)}
+    if args.first_call:
+        with tempfile.TemporaryDirectory(prefix="reeb-cache-") as cache:
+            env["REEB_TORCH_CACHE_DIR"] = cache
+            if args.one_process:
+                env["REEB_TORCH_WARM_HELPER"] = "1"
+            out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child-first-call"], env=env,
+                                 cwd=src, capture_output=True, text=True, check=True)
+        return json.loads(out.stdout.strip().splitlines()[-1])
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--data", str(args.data.resolve()),
            "--preset", args.preset, "--input", args.input,
            "--passes", str(args.passes), "--batch", *map(str, args.batch)]
@@ -93,8 +112,14 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--passes", type=int, default=2)
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--input", choices=("uint8", "float"), default="uint8")
+    ap.add_argument("--first-call", action="store_true", help="time a fresh install's warm-up instead")
+    ap.add_argument("--one-process", action="store_true", help="with --first-call: no helper process")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--child-first-call", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.child_first_call:
+        _first_call()
+        return {}
     if args.child:
         _child(str(args.data), args.preset, args.batch, args.passes, args.limit, args.input)
         return {}
@@ -117,8 +142,12 @@ def main(argv: list[str] | None = None) -> dict:
             subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=REPO, capture_output=True)
     summary = summarise(pairs)
     print("# rerun:", rerun_line("benchmarks/speed_ab.py", sys.argv[1:] if argv is None else argv))
-    print(f"# this checkout against {rev}, {args.pairs} alternated pairs, {args.preset}, {args.input} input, "
-          f"ms/img (best of {args.passes} passes each)")
+    if args.first_call:
+        print(f"# this checkout against {rev}, {args.pairs} alternated pairs, warmup() of the default on an empty "
+              f"kernel cache, s ({'one process' if args.one_process else 'with its helper process'})")
+    else:
+        print(f"# this checkout against {rev}, {args.pairs} alternated pairs, {args.preset}, {args.input} input, "
+              f"ms/img (best of {args.passes} passes each)")
     for key, s in summary.items():
         print(f"{key}: median ratio {s['median_ratio']} (this / {rev}); faster in {s['faster']}, slower in "
               f"{s['slower']} of {args.pairs} pairs (sign test p = {s['sign_p']}); {rev} "

@@ -215,6 +215,15 @@ def test_speed_ab_pairs_runs_and_gives_the_exact_sign_test():
     assert s["batch 1"]["base_ms"] == [9.0, 10.0, 8.0] and s["batch 1"]["this_ms"] == [9.9, 9.0, 7.2]
 
 
+def test_speed_ab_first_call_child_reports_the_warm_up_in_seconds(capsys):
+    import json
+
+    ab = _script("speed_ab")
+    ab.main(["--child-first-call"])  # here the kernels are cached: it loads them
+    got = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert list(got) == ["first call, s"] and 0 < got["first call, s"] < 60
+
+
 def test_kernel_ab_times_a_kernel_against_a_revision_on_captured_inputs(tmp_path):
     import subprocess
 
