@@ -297,13 +297,13 @@ def _unit_rows(img8: np.ndarray, img: np.ndarray, y: int, f: np.ndarray) -> int:
     """Row ``y`` of the three channels in [0, 1] into ``f`` ``(3, W)``, from uint8 ``img8``
     or, where that is empty, float32 ``img``; returns how many of them lie outside [0, 1]
     or are NaN (0 for uint8)."""
-    bad = 0
     if img8.shape[1] > 0:
         for c in range(3):
             src8, dst = img8[c, y], f[c]
             for x in range(dst.shape[0]):
                 dst[x] = _unit8(src8[x])
-        return bad
+        return 0
+    bad = 0
     for c in range(3):
         src, dst = img[c, y], f[c]
         for x in range(dst.shape[0]):
