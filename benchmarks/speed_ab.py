@@ -15,8 +15,9 @@ pass (compiling or loading the kernels, building each image size's tables), the 
 ``--passes`` passes, ms per image.
 
 With ``--first-call``, each run is instead the one-time cost a fresh install pays:
-``reeb_torch.warmup()`` with an empty kernel cache of its own, in seconds, with its helper
-process (``--one-process``: without it, i.e. all of the compile work in one process).
+``reeb_torch.warmup()`` of ``--preset`` with an empty kernel cache of its own, in seconds,
+with its helper process (``--one-process``: without it, all of the compile work in one
+process).
 
 Rerun: ``python benchmarks/speed_ab.py --base REV [--pairs 6] [--data DIR] [--preset default]
 [--input float] [--first-call [--one-process]]``
@@ -76,11 +77,12 @@ def _child(data: str, preset: str, batches: list[int], passes: int, limit: int |
     print(json.dumps(result))
 
 
-def _first_call() -> None:
-    """One fresh install's warm-up (in a process of its own, its cache folder empty)."""
-    from reeb_torch import warmup
+def _first_call(preset: str) -> None:
+    """One fresh install's warm-up of ``preset`` (in a process of its own, its cache folder
+    empty)."""
+    from reeb_torch import get_preset, warmup
 
-    print(json.dumps({"first call, s": warmup(quiet=True)}))
+    print(json.dumps({"first call, s": warmup(get_preset(preset), quiet=True)}))
 
 
 def _run(src: Path, args: argparse.Namespace) -> dict[str, float]:
@@ -90,8 +92,8 @@ def _run(src: Path, args: argparse.Namespace) -> dict[str, float]:
             env["REEB_TORCH_CACHE_DIR"] = cache
             if args.one_process:
                 env["REEB_TORCH_WARM_HELPER"] = "1"
-            out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child-first-call"], env=env,
-                                 cwd=src, capture_output=True, text=True, check=True)
+            out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child-first-call", "--preset",
+                                  args.preset], env=env, cwd=src, capture_output=True, text=True, check=True)
         return json.loads(out.stdout.strip().splitlines()[-1])
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--data", str(args.data.resolve()),
            "--preset", args.preset, "--input", args.input,
@@ -118,7 +120,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--child-first-call", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child_first_call:
-        _first_call()
+        _first_call(args.preset)
         return {}
     if args.child:
         _child(str(args.data), args.preset, args.batch, args.passes, args.limit, args.input)
@@ -143,8 +145,8 @@ def main(argv: list[str] | None = None) -> dict:
     summary = summarise(pairs)
     print("# rerun:", rerun_line("benchmarks/speed_ab.py", sys.argv[1:] if argv is None else argv))
     if args.first_call:
-        print(f"# this checkout against {rev}, {args.pairs} alternated pairs, warmup() of the default on an empty "
-              f"kernel cache, s ({'one process' if args.one_process else 'with its helper process'})")
+        print(f"# this checkout against {rev}, {args.pairs} alternated pairs, warmup() of {args.preset} on an "
+              f"empty kernel cache, s ({'one process' if args.one_process else 'with its helper process'})")
     else:
         print(f"# this checkout against {rev}, {args.pairs} alternated pairs, {args.preset}, {args.input} input, "
               f"ms/img (best of {args.passes} passes each)")

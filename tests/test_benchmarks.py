@@ -219,7 +219,7 @@ def test_speed_ab_first_call_child_reports_the_warm_up_in_seconds(capsys):
     import json
 
     ab = _script("speed_ab")
-    ab.main(["--child-first-call"])  # here the kernels are cached: it loads them
+    ab.main(["--child-first-call", "--preset", "default"])  # here the kernels are cached: it loads them
     got = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert list(got) == ["first call, s"] and 0 < got["first call, s"] < 60
 
