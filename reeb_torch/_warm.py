@@ -4,17 +4,21 @@ helper process that compiles part of them on the other core meanwhile."""
 
 from __future__ import annotations
 
+import gc
 import os
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 import torch
 
 from .stages import _cache
 
-__all__ = ["warm_picture", "Notice", "COMPILE_ESTIMATE_S", "start_helper", "stop_helper", "compile_helper_part"]
+__all__ = ["warm_picture", "Notice", "COMPILE_ESTIMATE_S", "gc_paused", "start_helper", "stop_helper",
+           "compile_helper_part"]
 
 #: What compiling every kernel of the default takes (``reeb_torch.warmup()`` with an empty
 #: cache and the helper process: 9.6-12.2 s on this 2-core VM on 2026-12-03, 16-17 s in one
@@ -73,6 +77,23 @@ class Notice:
             pass  # a read-only cache: the notice comes again next time, nothing worse
 
 
+@contextmanager
+def gc_paused() -> Iterator[None]:
+    """Python's cyclic garbage collector off within the block, one collection after it (where
+    it was on). numba's compiler leaves many long-lived objects, and the full collections
+    they set off took 1.6-2.0 s of a 14-18 s compile in one process (about 50 MB more at
+    the peak without them); with the kernels cached, the collection after takes the full
+    one (~0.12 s) that the first call would otherwise meet."""
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
+            gc.collect()
+
+
 HELPER_ENV = "REEB_TORCH_WARM_HELPER"
 """Set in the helper process (so that it starts none of its own); set it (to any value)
 to compile in one process only."""
@@ -128,7 +149,7 @@ def compile_helper_part() -> None:
     boxes = torch.cat([xy, xy + 8 + torch.rand(n, 2, generator=g) * 60], 1)
     scores = torch.rand(2, n, generator=g)
     table = torch.zeros(1, 9, 9, dtype=torch.float64)  # no window sizes: typed and compiled, nothing run
-    with serially():  # one core: the warm-up has the other
+    with serially(), gc_paused():  # one core: the warm-up has the other
         scoring.score_grid_cpu(table, refinement.EnclosedTables(table, table, table, table, 1),
                                np.zeros((0, len(scoring.PLAN_COLUMNS)), np.int64), np.zeros(0), np.zeros(0, np.float32),
                                1.0, 1.0, 0.0, 0.0, torch.empty(1, 0))

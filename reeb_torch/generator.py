@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._checks import ImageBatch, check_images, check_range
-from ._warm import Notice, start_helper, stop_helper, warm_picture
+from ._warm import Notice, gc_paused, start_helper, stop_helper, warm_picture
 from .config import ReebConfig
 from .ranking import Ranking, ScoreMaps
 from .stages import _scratch
@@ -427,12 +427,13 @@ def warmup(*configs: ReebConfig, quiet: bool = False) -> float:
     with Notice(quiet) as notice:
         helper = start_helper() if notice.first else None  # compiles the last kernels meanwhile
         try:
-            for cfg in configs or (ReebConfig(),):
-                _WARM.add(_kernel_key(cfg))  # before the run: its own forward must not warm up again
-                gen = ProposalGenerator(cfg)
-                gen._warned_empty = True  # the synthetic picture may keep no window: not the user's images
-                gen([x])
-                gen(torch.stack([x, x.flip(-1)]).float().div_(255.0))
+            with gc_paused():  # and one collection after: not in the first call's time
+                for cfg in configs or (ReebConfig(),):
+                    _WARM.add(_kernel_key(cfg))  # before the run: its own forward must not warm up again
+                    gen = ProposalGenerator(cfg)
+                    gen._warned_empty = True  # the synthetic picture may keep no window: not the user's images
+                    gen([x])
+                    gen(torch.stack([x, x.flip(-1)]).float().div_(255.0))
         finally:
             stop_helper(helper)
     return time.perf_counter() - t0

@@ -156,3 +156,22 @@ def test_the_compiled_path_does_not_import_torchvision():
                          env={**os.environ, _warm.HELPER_ENV: "1"})
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().splitlines()[-1] == "False"
+
+
+def test_gc_is_paused_while_compiling_and_restored_after():
+    import gc
+
+    assert gc.isenabled()
+    with _warm.gc_paused():
+        assert not gc.isenabled()
+    assert gc.isenabled()
+    gc.disable()  # a caller that keeps it off: left off
+    try:
+        with _warm.gc_paused():
+            pass
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
+    with pytest.raises(RuntimeError), _warm.gc_paused():
+        raise RuntimeError("a failed warm-up")
+    assert gc.isenabled()
