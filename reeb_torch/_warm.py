@@ -21,8 +21,8 @@ __all__ = ["warm_picture", "Notice", "COMPILE_ESTIMATE_S", "gc_paused", "start_h
            "compile_helper_part"]
 
 #: What compiling every kernel of the default takes (``reeb_torch.warmup()`` with an empty
-#: cache and the helper process: 9.6-12.2 s on this 2-core VM on 2026-12-03, 16-17 s in one
-#: process, by ``benchmarks/speed_ab.py --first-call``; it was 56 s in one process on two
+#: cache and the helper process: 7.7-12.1 s on this 2-core VM on 2026-12-03, 12.9-14.0 s in
+#: one process, by ``benchmarks/speed_ab.py --first-call``; it was 56 s in one process on two
 #: cores shared with other work); the notice says it.
 COMPILE_ESTIMATE_S = "10-40 s"
 
