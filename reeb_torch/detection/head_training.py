@@ -1,0 +1,194 @@
+"""Training the detector's heads over cached backbone features, and detecting with them.
+
+With the backbone frozen (:func:`~reeb_torch.detection.reeb_fasterrcnn_lite0`), one step
+needs only the cached maps of its frames (:mod:`reeb_torch.detection.feature_cache`). For
+each frame, :func:`frame_forward` runs what ``GeneralizedRCNN.forward`` runs after the
+backbone, on the same modules: the neck, ``model.rpn`` (a :class:`ReebRPN` handed the input
+image, or the learned RPN), ``model.roi_heads``, and in evaluation
+``model.transform.postprocess`` back to input pixels. Frames go through one at a time (a
+batch's frames differ in size; one at a time, each frame's maps are exactly those of the
+frame alone) and a step's gradient is the mean over its frames.
+
+Training-time ignore regions: proposals that overlap a ``DontCare`` box (more than half of
+the proposal's area inside it) or a neighbouring-class object (``Van``, ``Person_sitting``;
+IoU >= 0.5), and no target with IoU >= 0.5, are not sampled as background: KITTI's
+evaluation counts detections there as neither right nor wrong.
+
+Deterministic for a seed: the frame order comes from its own generator, the RoI and anchor
+samplers from ``torch.manual_seed(seed)`` set at the start.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor, nn
+from torchvision.models.detection.image_list import ImageList
+from torchvision.models.detection.transform import resize_boxes
+from torchvision.ops import box_iou
+
+from .feature_cache import FrameFeatures
+from .rpn import ReebRPN
+
+__all__ = ["TrainSettings", "CachedFrame", "drop_ignored", "frame_forward", "train_heads", "detect"]
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """The training budget and optimiser.
+
+    Attributes:
+        epochs: passes over the training frames.
+        batch_size: frames per step.
+        lr: AdamW's peak learning rate (linear warm-up over ``warmup`` steps, then cosine
+            decay to 1 % of it).
+        weight_decay: AdamW's decoupled weight decay.
+        warmup: warm-up steps.
+        seed: seeds the frame order and torch's global generator (the samplers).
+        max_steps: stop after this many steps (``None``: ``epochs`` full passes).
+    """
+
+    epochs: int = 12
+    batch_size: int = 2
+    lr: float = 3e-4
+    weight_decay: float = 1e-4
+    warmup: int = 50
+    seed: int = 0
+    max_steps: int | None = None
+
+
+@dataclass
+class CachedFrame:
+    """One frame as the heads see it.
+
+    Attributes:
+        image: ``uint8 [3, H, W]``: what a :class:`ReebRPN` proposes from (by its digest).
+        features: its cached frozen maps.
+        boxes: ``float32 [N, 4]`` targets, input pixels; ``labels``: ``int64 [N]``, 1..C.
+        ignore: ``[M, 4]`` neighbouring-class objects; ``dontcare``: ``[K, 4]`` DontCare boxes.
+    """
+
+    image: Tensor
+    features: FrameFeatures
+    boxes: Tensor
+    labels: Tensor
+    ignore: Tensor = field(default_factory=lambda: torch.zeros(0, 4))
+    dontcare: Tensor = field(default_factory=lambda: torch.zeros(0, 4))
+
+
+def _ioa(a: Tensor, b: Tensor) -> Tensor:
+    """``[len(a), len(b)]``: the share of each box of ``a``'s area inside each box of ``b``."""
+    lt = torch.max(a[:, None, :2], b[None, :, :2])
+    rb = torch.min(a[:, None, 2:], b[None, :, 2:])
+    inter = (rb - lt).clamp(min=0).prod(-1)
+    area = (a[:, 2:] - a[:, :2]).clamp(min=0).prod(-1)[:, None]
+    return inter / area.clamp(min=1e-6)
+
+
+def drop_ignored(proposals: Tensor, targets: Tensor, ignore: Tensor, dontcare: Tensor,
+                 threshold: float = 0.5) -> Tensor:
+    """The proposals (``[P, 4]``) that are not in an ignore region (module doc), all boxes
+    in one frame; those with IoU >= ``threshold`` with a target are always kept."""
+    if len(proposals) == 0 or (len(ignore) == 0 and len(dontcare) == 0):
+        return proposals
+    drop = torch.zeros(len(proposals), dtype=torch.bool)
+    if len(ignore):
+        drop |= box_iou(proposals, ignore).amax(1) >= threshold
+    if len(dontcare):
+        drop |= _ioa(proposals, dontcare).amax(1) > threshold
+    if len(targets):
+        drop &= box_iou(proposals, targets).amax(1) < threshold
+    return proposals[~drop]
+
+
+def _resized(boxes: Tensor, f: FrameFeatures) -> Tensor:
+    return resize_boxes(boxes.float(), list(f.original_size), list(f.image_size))
+
+
+def frame_forward(model: nn.Module, frame: CachedFrame) -> dict[str, Tensor]:
+    """One frame through neck, proposals and box head: the losses in training mode, the
+    detections (``boxes`` in input pixels, ``labels``, ``scores``) in evaluation mode."""
+    f = frame.features
+    features = model.backbone.neck({k: v[None] for k, v in f.levels.items()})
+    images = ImageList(torch.zeros(()).expand(1, 3, *f.padded_size), [tuple(f.image_size)])
+    targets = None
+    if model.training:
+        targets = [{"boxes": _resized(frame.boxes, f), "labels": frame.labels}]
+    if isinstance(model.rpn, ReebRPN):
+        model.rpn._inputs = [frame.image]
+    proposals, rpn_losses = model.rpn(images, features, targets)
+    if targets is not None:
+        proposals = [drop_ignored(proposals[0], targets[0]["boxes"], _resized(frame.ignore, f),
+                                  _resized(frame.dontcare, f))]
+    detections, roi_losses = model.roi_heads(features, proposals, images.image_sizes, targets)
+    if model.training:
+        return {**rpn_losses, **roi_losses}
+    return model.transform.postprocess(detections, images.image_sizes, [tuple(f.original_size)])[0]
+
+
+def _lr(step: int, total: int, s: TrainSettings) -> float:
+    if step < s.warmup:
+        return s.lr * (step + 1) / s.warmup
+    t = (step - s.warmup) / max(1, total - s.warmup)
+    return s.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * min(1.0, t))))
+
+
+def _step(model: nn.Module, frames: Sequence[CachedFrame], optimizer: torch.optim.Optimizer) -> float:
+    """One optimiser step on ``frames`` (gradient = mean over the frames); the mean loss."""
+    optimizer.zero_grad(set_to_none=True)
+    total = 0.0
+    for frame in frames:
+        loss = sum(frame_forward(model, frame).values()) / len(frames)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"non-finite training loss {loss.item()}")
+        loss.backward()
+        total += loss.item()
+    optimizer.step()
+    return total
+
+
+def train_heads(model: nn.Module, frames: Sequence[CachedFrame], settings: TrainSettings = TrainSettings(),
+                progress: bool = True) -> dict[str, object]:
+    """Train every parameter of ``model`` that requires a gradient (the neck, the box head
+    and predictor, the learned RPN's head; the frozen backbone has none) over ``frames``.
+
+    Returns:
+        ``{"losses": [mean loss per step], "steps": int, "train_s": wall seconds}``.
+    """
+    from tqdm import tqdm
+
+    if not frames:
+        raise ValueError("no training frame")
+    torch.manual_seed(settings.seed)
+    order = torch.Generator().manual_seed(settings.seed)
+    per_epoch = math.ceil(len(frames) / settings.batch_size)
+    total = settings.max_steps or settings.epochs * per_epoch
+    params = [p for p in model.parameters() if p.requires_grad]
+    optimizer = torch.optim.AdamW(params, lr=settings.lr, weight_decay=settings.weight_decay)
+    model.train()
+    losses, t0 = [], time.perf_counter()
+    bar = tqdm(range(total), desc="train heads", unit="step", disable=not progress)
+    for step in bar:
+        if step % per_epoch == 0:
+            perm = torch.randperm(len(frames), generator=order).tolist()
+        pos = (step % per_epoch) * settings.batch_size
+        for group in optimizer.param_groups:
+            group["lr"] = _lr(step, total, settings)
+        losses.append(_step(model, [frames[i] for i in perm[pos:pos + settings.batch_size]], optimizer))
+        bar.set_postfix(loss=f"{losses[-1]:.3f}")
+    model.eval()
+    return {"losses": losses, "steps": total, "train_s": time.perf_counter() - t0}
+
+
+@torch.no_grad()
+def detect(model: nn.Module, frames: Sequence[CachedFrame], progress: bool = True) -> list[dict[str, Tensor]]:
+    """Detections of every frame (``boxes [D, 4]`` input pixels, ``labels [D]`` 1..C,
+    ``scores [D]``), the model in evaluation mode."""
+    from tqdm import tqdm
+
+    model.eval()
+    return [frame_forward(model, f) for f in tqdm(frames, desc="detect", unit="img", disable=not progress)]

@@ -1,0 +1,169 @@
+"""Faster R-CNN on a frozen, pretrained EfficientNet-Lite0, with REEB (or learned) proposals.
+
+:func:`reeb_fasterrcnn_lite0` builds torchvision's
+:class:`~torchvision.models.detection.FasterRCNN` as the design asks for it:
+
+- **backbone** :class:`Lite0Pyramid`: EfficientNet-Lite0 with its ImageNet weights
+  (:mod:`reeb_torch.detection.lite0`), frozen (``eval`` mode, no gradients), giving the
+  maps of strides 8, 16 and 32 (40, 112, 320 channels), then a light trainable neck
+  (:class:`LiteNeck`: a 1×1 lateral conv per level to ``neck_channels`` and FPN's top-down
+  sum, without FPN's 3×3 output convs, whose cost on the stride-8 map would dominate
+  training on a CPU);
+- **proposals** :class:`~reeb_torch.detection.ReebRPN` (REEB, or any training-free
+  source given as ``generator``), or torchvision's learned RPN (``proposals="learned"``,
+  the control: 2 anchor sizes × 3 aspect ratios per level, sizes 32-1024 px);
+- **RoI pooling** :class:`~torchvision.ops.MultiScaleRoIAlign` (7×7, sampling ratio 2) over
+  the three levels, torchvision's two-layer box head (:class:`TwoMLPHead`, 1024 units) and
+  box predictor.
+
+Both arms build the same modules in the same order, so with the same ``torch`` seed the neck
+and the box head start from the same weights. Images enter as float RGB in [0, 1]; the
+transform resizes them to a shorter side of ``min_size`` (KITTI's 1242×375 becomes
+1907×576 by default: objects of the moderate level, 25 px tall, become 38 px, five cells of
+the stride-8 map) and normalises them as the Lite models expect.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import OrderedDict
+from typing import Any, Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+from torchvision.models.detection import FasterRCNN
+from torchvision.models.detection.anchor_utils import AnchorGenerator
+from torchvision.models.detection.faster_rcnn import FastRCNNPredictor, TwoMLPHead
+from torchvision.models.detection.rpn import RPNHead
+from torchvision.ops import MultiScaleRoIAlign
+
+from ..config import ReebConfig
+from .lite0 import LITE0_MEAN, LITE0_STD, PYRAMID_LEVELS, EfficientNetLite0, load_lite0
+from .rpn import ReebRPN
+
+__all__ = ["LiteNeck", "Lite0Pyramid", "reeb_fasterrcnn_lite0", "LEARNED_ANCHOR_SIZES"]
+
+LEARNED_ANCHOR_SIZES = ((32, 64), (128, 256), (512, 1024))
+"""Anchor sizes (px of the resized image) of the learned RPN on the three levels."""
+
+
+class LiteNeck(nn.Module):
+    """Trainable 1×1 laterals and FPN's top-down pathway over the frozen maps.
+
+    ``forward(levels)``: ``{"0": [B, 40, h0, w0], "1": [B, 112, h1, w1], "2": [B, 320, h2,
+    w2]}`` (any float dtype) -> the same names, each ``[B, channels, h_i, w_i]`` float32:
+    ``P2 = L2(C2)``, ``P1 = L1(C1) + up(P2)``, ``P0 = L0(C0) + up(P1)`` (nearest upsampling
+    to the finer map's size).
+    """
+
+    def __init__(self, channels: int = 128) -> None:
+        super().__init__()
+        self.lateral = nn.ModuleDict({name: nn.Conv2d(c, channels, 1)
+                                      for name, (_, _, c) in PYRAMID_LEVELS.items()})
+        self.out_channels = channels
+
+    def forward(self, levels: dict[str, Tensor]) -> "OrderedDict[str, Tensor]":
+        names = list(PYRAMID_LEVELS)
+        out: dict[str, Tensor] = {}
+        above: Tensor | None = None
+        for name in reversed(names):
+            x = self.lateral[name](levels[name].float())
+            if above is not None:
+                x = x + F.interpolate(above, size=x.shape[-2:], mode="nearest")
+            out[name] = above = x
+        return OrderedDict((n, out[n]) for n in names)
+
+
+class Lite0Pyramid(nn.Module):
+    """The detector's backbone: frozen EfficientNet-Lite0 maps, then :class:`LiteNeck`.
+
+    ``forward(x)``: ``x`` ``[B, 3, H, W]`` normalised (:data:`LITE0_MEAN`, :data:`LITE0_STD`)
+    -> ``OrderedDict`` of three ``[B, out_channels, ceil(H/s), ceil(W/s)]`` maps, s = 8, 16, 32.
+    :meth:`frozen` is the part computed once per frame and cached; the body stays in
+    ``eval`` mode whatever ``train()`` is called with.
+    """
+
+    def __init__(self, body: EfficientNetLite0, channels: int = 128) -> None:
+        super().__init__()
+        self.body = body.eval().requires_grad_(False)
+        self.neck = LiteNeck(channels)
+        self.out_channels = channels
+
+    def train(self, mode: bool = True) -> "Lite0Pyramid":
+        super().train(mode)
+        self.body.eval()
+        return self
+
+    @torch.no_grad()
+    def frozen(self, x: Tensor) -> dict[str, Tensor]:
+        """The body's maps (:meth:`EfficientNetLite0.pyramid`), without gradients."""
+        return self.body.pyramid(x)
+
+    def forward(self, x: Tensor) -> "OrderedDict[str, Tensor]":
+        return self.neck(self.frozen(x))
+
+
+def _learned_rpn_parts(channels: int) -> tuple[AnchorGenerator, RPNHead]:
+    ratios = ((0.5, 1.0, 2.0),) * len(LEARNED_ANCHOR_SIZES)
+    anchors = AnchorGenerator(LEARNED_ANCHOR_SIZES, ratios)
+    return anchors, RPNHead(channels, anchors.num_anchors_per_location()[0])
+
+
+def reeb_fasterrcnn_lite0(
+    num_classes: int,
+    *,
+    proposals: Literal["reeb", "learned"] = "reeb",
+    generator: nn.Module | None = None,
+    config: ReebConfig | None = None,
+    weights: str | os.PathLike | None = None,
+    min_size: int = 576,
+    max_size: int = 2048,
+    neck_channels: int = 128,
+    rpn_post_nms_top_n_train: int = 2000,
+    rpn_post_nms_top_n_test: int = 1000,
+    **kwargs: Any,
+) -> FasterRCNN:
+    """Faster R-CNN, frozen pretrained EfficientNet-Lite0, REEB (or learned) proposals.
+
+    Args:
+        num_classes: classes *including* the background (label 0); KITTI's Car,
+            Pedestrian, Cyclist: ``num_classes=4``, labels 1..3.
+        proposals: ``"reeb"``: a :class:`ReebRPN`, attached, running ``generator`` (default
+            ``ProposalGenerator(config)``); ``"learned"``: torchvision's RPN on the neck.
+        generator: any module with the :class:`~reeb_torch.ProposalGenerator` contract
+            (e.g. :class:`~reeb_torch.detection.sources.SourceGenerator` for Edge Boxes).
+        config: REEB settings when ``generator`` is ``None`` (default: ``ReebConfig()``).
+        weights: the Lite0 state dict (default: the ``detect`` extra's file); ImportError
+            naming the extra when it is missing.
+        min_size, max_size: the transform's resize (shorter side, bound on the longer).
+        neck_channels: channels of the neck and of the pooled RoI features.
+        rpn_post_nms_top_n_train, rpn_post_nms_top_n_test: proposals per image handed to
+            the box head in training and evaluation, for either arm.
+        **kwargs: passed to :class:`FasterRCNN` (``box_batch_size_per_image``,
+            ``box_score_thresh``, ``box_detections_per_img``, ...).
+
+    Returns:
+        The model; ``model(images)`` in ``eval`` mode gives ``{"boxes", "labels",
+        "scores"}`` per image in its input pixels.
+    """
+    if proposals not in ("reeb", "learned"):
+        raise ValueError(f"proposals must be 'reeb' or 'learned', got {proposals!r}")
+    backbone = Lite0Pyramid(load_lite0(weights), neck_channels)
+    anchors, rpn_head = _learned_rpn_parts(neck_channels)
+    model = FasterRCNN(
+        backbone, None, min_size=min_size, max_size=max_size,
+        image_mean=list(LITE0_MEAN), image_std=list(LITE0_STD),
+        rpn_anchor_generator=anchors, rpn_head=rpn_head,
+        rpn_pre_nms_top_n_train=rpn_post_nms_top_n_train, rpn_pre_nms_top_n_test=rpn_post_nms_top_n_test,
+        rpn_post_nms_top_n_train=rpn_post_nms_top_n_train, rpn_post_nms_top_n_test=rpn_post_nms_top_n_test,
+        box_roi_pool=MultiScaleRoIAlign(list(PYRAMID_LEVELS), output_size=7, sampling_ratio=2),
+        box_head=TwoMLPHead(neck_channels * 7 * 7, 1024),
+        box_predictor=FastRCNNPredictor(1024, num_classes),
+        **kwargs,
+    )
+    if proposals == "reeb":
+        ReebRPN(config, generator=generator, post_nms_top_n_train=rpn_post_nms_top_n_train,
+                post_nms_top_n_test=rpn_post_nms_top_n_test,
+                image_mean=LITE0_MEAN, image_std=LITE0_STD).attach(model)
+    return model
