@@ -169,12 +169,13 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
 def warmup(preset):
     """Compile the CPU kernels once for this install (or load them from the cache), so that
     the first `reeb propose` or ProposalGenerator call does not pay for it; e.g. right after
-    pip install. The cache is per user ($REEB_TORCH_CACHE_DIR, else ~/.cache/reeb-torch/numba)
-    and survives a reinstall of the same version.
+    pip install. The cache is private to the user ($REEB_TORCH_CACHE_DIR, else
+    ~/.cache/reeb-torch/numba; `off`: none), survives a reinstall of the same version, and
+    replaces a damaged entry by compiling it again.
     """
     from ..config import get_preset
     from ..generator import warmup as _warmup
-    from ..stages._cache import cache_dir
+    from ..stages._cache import cache_dir, cache_note
 
     try:
         cfg = get_preset(preset)
@@ -183,7 +184,7 @@ def warmup(preset):
     seconds = _warmup(cfg, cfg.replace(refine=True))
     where = cache_dir()
     click.echo(f"kernels ready in {seconds:.1f} s"
-               + (f" (cached in {where})" if where else " (package cache off: numba's own places)"), err=True)
+               + (f" (cached in {where})" if where else f" (not cached: {cache_note()})"), err=True)
 
 
 # -- reeb show ---------------------------------------------------------------------------
