@@ -299,6 +299,42 @@ def test_folder_scan_finds_every_format_the_reader_reads(tmp_path):
             assert read_image(tmp_path / f"b{ext}").shape == (3, 20, 30), ext
 
 
+# -- 16. paths to the same file are named, not dropped silently (issue 37) ---------------------
+
+def test_scan_names_the_paths_to_the_same_file(tmp_path):
+    from reeb_torch.runs.batch import same_file_note, scan_images
+
+    real = good_folder(tmp_path / "real", 3)
+    (tmp_path / "links").mkdir()
+    for i in range(12):  # four links to each image
+        (tmp_path / "links" / f"l{i:02d}.png").symlink_to(real[i % 3])
+    found = scan_images([tmp_path / "links", real[0]])
+    assert [p.name for p in found.images] == ["l00.png", "l01.png", "l02.png"]
+    assert len(found.same_file) == 10
+    assert found.same_file[0] == (tmp_path / "links" / "l03.png", tmp_path / "links" / "l00.png")
+    assert found.same_file[-1] == (real[0], tmp_path / "links" / "l00.png")  # named twice: the first kept
+    note = same_file_note(found.same_file)
+    assert note == (f"skipped 10 paths, the same file as another: {tmp_path}/links/l03.png (= {tmp_path}/links/"
+                    f"l00.png), {tmp_path}/links/l04.png (= {tmp_path}/links/l01.png), {tmp_path}/links/l05.png "
+                    f"(= {tmp_path}/links/l02.png), and 7 more")
+    assert found.notes == [note]
+
+
+def test_a_folder_of_links_says_how_many_paths_were_the_same_file(tmp_path):
+    real = good_folder(tmp_path / "real", 2)
+    (tmp_path / "links").mkdir()
+    for i in range(8):
+        (tmp_path / "links" / f"l{i}.png").symlink_to(real[i % 2])
+    r = reeb("propose", "links", "-o", "o.jsonl", "-q", "--summary-json", "s.json", *FAST, cwd=tmp_path,
+             check_rc=0)
+    assert len(read_jsonl(tmp_path / "o.jsonl")) == 2
+    lines = r.stderr.splitlines()
+    assert lines[0].startswith("2 images: 2 ok"), r.stderr
+    assert lines[1] == ("skipped 6 paths, the same file as another: links/l2.png (= links/l0.png), "
+                        "links/l3.png (= links/l1.png), links/l4.png (= links/l0.png), and 3 more"), r.stderr
+    assert json.loads((tmp_path / "s.json").read_text())["same_file"] == 6
+
+
 # -- 15. reeb eval without data ---------------------------------------------------------------
 
 def test_eval_without_frames_or_labels_is_a_usage_error(tmp_path):

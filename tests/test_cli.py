@@ -281,7 +281,8 @@ def test_find_images_rules(tmp_path):
     (tmp_path / "none").mkdir()
     images, notes = find_images([tmp_path, tmp_path / "f2.png", tmp_path / "none"])
     assert [p.name for p in images] == ["f1.jpg", "f2.png", "f10.png"]  # natural order, no dupes
-    assert len(notes) == 1 and "none" in notes[0] and "--recursive" in notes[0]
+    assert len(notes) == 2 and "none" in notes[0] and "--recursive" in notes[0]
+    assert notes[1] == f"skipped 1 path, the same file as another: {tmp_path / 'f2.png'} (= {tmp_path / 'f2.png'})"
     images, _ = find_images([tmp_path], recursive=True)
     assert "f3.png" in [p.name for p in images]
     images, _ = find_images([str(tmp_path / "f1*")])

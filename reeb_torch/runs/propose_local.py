@@ -82,12 +82,14 @@ class _LocalRun:
         """The images (the bundled sample without ``paths``); a usage error when there are none."""
         self.sample_mode = not paths
         try:
-            self.images, notes = B.find_images([bundled_sample()] if self.sample_mode else paths, recursive)
+            found = B.scan_images([bundled_sample()] if self.sample_mode else paths, recursive)
         except B.NoImagesError as e:
             raise UsageProblem(str(e))
-        for n in notes:
+        for n in found.notes:
             self.echo_err(f"note: {n}")
-        self.skipped = [n for n in notes if ": skipped, " in n]  # named again in the summary
+        self.images = found.images
+        self.skipped = [n for n in found.notes if ": skipped, " in n]  # named again in the summary
+        self.same_file = found.same_file  # and these, with -q too
 
     # -- 2. outputs, checked before any work ------------------------------------------------
     def check_output(self, resume: bool, overwrite: bool) -> bool:
@@ -406,6 +408,9 @@ class _LocalRun:
                        saved=self.saved_now if writer else None,
                        interrupted=self.interrupted, failures=self.failures)
         lines = [count_line(done, stats["ok"], stats["failed"], stats["proposals"])]
+        if self.same_file:
+            lines.append(B.same_file_note(self.same_file))
+        summary["same_file"] = len(self.same_file)
         if done:
             lines.append(f"time: {wall:.1f} s, {ms_per_img(wall, done)} end to end; "
                          f"{ms_per_img(stats['algo_s'], stats['ok'])} "

@@ -81,11 +81,12 @@ class _RayRun:
         if not paths:
             raise UsageProblem("--engine ray needs PATHS (images, folders or glob patterns)")
         try:
-            self.images, notes = B.find_images(paths, recursive)
+            found = B.scan_images(paths, recursive)
         except B.NoImagesError as e:
             raise UsageProblem(str(e))
-        for n in notes:
+        for n in found.notes:
             self.echo_err(f"note: {n}")
+        self.images, self.same_file = found.images, found.same_file  # the latter named in the summary too
 
     def check_out_dir(self, resume: bool, overwrite: bool) -> bool:
         """``--out`` must be a folder; its results are replaced (``--overwrite``) or kept
@@ -249,7 +250,10 @@ class _RayRun:
                        cpus_per_actor=cpus, batch_size=self.batch_size, device=str(dev),
                        address=self.address, config=self.fingerprint, out=str(out_dir), rows=done,
                        interrupted=self.interrupted, failures=failures)
+        summary["same_file"] = len(self.same_file)
         lines = [count_line(done, len(ok), len(failures), proposals)]
+        if self.same_file:
+            lines.append(B.same_file_note(self.same_file))
         if done:
             lines.append(f"time: {wall:.1f} s, {ms_per_img(wall, done)} end to end ({actors} Ray actor"
                          f"{'s' if actors != 1 else ''} × {cpus:g} CPU, batch {self.batch_size}, {dev}); "
