@@ -6,12 +6,11 @@
 >>> out[0]["boxes"], out[0]["scores"]      # Tensor[N, 4] (x1, y1, x2, y2), Tensor[N]
 """
 
-from .config import PRESETS, ReebConfig, get_preset
-
-# torch and the compiled kernels are imported on first use of these names (PEP 562), not by
-# ``import reeb_torch``: the ``reeb`` command then starts at once, and a Ctrl-C while torch
-# loads reaches the command's own handler (exit 130) instead of printing a traceback
-_LAZY = {"ProposalGenerator": "generator", "propose": "generator", "Inspection": "generator",
+# every name is imported on its first use (PEP 562), not by ``import reeb_torch``: the
+# settings import numba (~0.4 s), the generator torch; so the ``reeb`` command's own Ctrl-C
+# handling (exit 130, one line) is in place before either loads (reeb_torch.runs._ctrl_c)
+_LAZY = {"ReebConfig": "config", "PRESETS": "config", "get_preset": "config",
+         "ProposalGenerator": "generator", "propose": "generator", "Inspection": "generator",
          "warmup": "generator", "read_image": "io", "ImageReadError": "io"}
 
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -126,6 +128,59 @@ def test_ctrl_c_while_torch_imports_exits_130_quietly(tmp_path):
                        timeout=120, env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1])))
     assert r.returncode == 130, r.stderr
     assert "Traceback" not in r.stderr and "Aborted" not in r.stderr, r.stderr
+
+
+def _as_the_console_script(code: str, args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    """Run ``code`` and then what the ``reeb`` console script runs (``main()`` reading
+    ``sys.argv``), with ``args`` on the command line."""
+    script = code + "from reeb_torch.runs.cli import main\nsys.exit(main())\n"
+    return subprocess.run([sys.executable, "-c", script, *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=300, env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1])))
+
+
+@pytest.mark.parametrize("module", ["click", "numba"])
+def test_ctrl_c_while_the_command_is_imported_exits_130_with_one_line(tmp_path, module):
+    """Issue 37: SIGINT while Python imports the command (click, the settings' numba), the
+    first ~0.5 s after reeb's own code starts."""
+    hook = ("import os, signal, sys\n"
+            "class Hit:\n"
+            "    def find_spec(self, name, path=None, target=None):\n"
+            f"        if name == {module!r}:\n"
+            "            os.kill(os.getpid(), signal.SIGINT)\n"
+            "sys.meta_path.insert(0, Hit())\n")
+    r = _as_the_console_script(hook, ["propose", "x.png", "-o", "o.jsonl"], tmp_path)
+    assert r.returncode == 130 and r.stderr == "interrupted\n", (r.returncode, r.stderr)
+
+
+@pytest.mark.parametrize("when", ["right after the command", "in the exit functions", "as Python shuts down"])
+@pytest.mark.parametrize("rc", [0, 1])
+def test_ctrl_c_after_the_run_has_finished_keeps_its_exit_code(tmp_path, when, rc):
+    """Issue 37: SIGINT once the output is written (Python shutting down) exited -2."""
+    good_folder(tmp_path / "d", 1)
+    if rc:
+        (tmp_path / "d" / "bad.png").write_bytes(b"not an image")
+    if when == "right after the command":
+        hook = ("import os, signal, sys\n"
+                "from reeb_torch.runs import cli\n"
+                "real = cli._Reeb.invoke\n"
+                "def invoke(self, ctx):\n"
+                "    try:\n"
+                "        return real(self, ctx)\n"
+                "    finally:\n"
+                "        os.kill(os.getpid(), signal.SIGINT)\n"
+                "cli._Reeb.invoke = invoke\n")
+    elif when == "in the exit functions":  # the last one (registered first)
+        hook = "import atexit, os, signal, sys\natexit.register(os.kill, os.getpid(), signal.SIGINT)\n"
+    else:  # as the modules are torn down, after the exit functions: Python runs no handler then
+        hook = ("import os, signal, sys\n"
+                "class Late:\n"
+                "    def __del__(self, kill=os.kill, pid=os.getpid(), sig=signal.SIGINT):\n"
+                "        kill(pid, sig)\n"
+                "late = Late()\n")
+    r = _as_the_console_script(hook, ["propose", "d", "-o", "o.jsonl", "-q", *FAST], tmp_path)
+    assert r.returncode == rc, (r.returncode, r.stderr)
+    assert "Traceback" not in r.stderr and "KeyboardInterrupt" not in r.stderr and "Aborted" not in r.stderr, r.stderr
+    assert len(read_jsonl(tmp_path / "o.jsonl")) == 1 + rc
 
 
 # -- a full disk, a config nested too deeply -------------------------------------------------

@@ -23,14 +23,18 @@ what they share (errors, settings, device, summary lines) is :mod:`.common`.
 
 from __future__ import annotations
 
-import os
-import sys
-import time
-from pathlib import Path
+from . import _ctrl_c
 
-import click
+_BEFORE = _ctrl_c.exit_at_once()  # while this module's imports load (~0.5 s): see the end of the file
 
-from .common import (
+import os  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import click  # noqa: E402
+
+from .common import (  # noqa: E402
     Failure,
     UsageProblem,
     box_table,
@@ -68,16 +72,43 @@ def config_options(f):
 # -- the command group -------------------------------------------------------------------
 
 class _Reeb(click.Group):
-    """The ``reeb`` group: a Ctrl-C anywhere in a command (also while torch is still being
-    imported: the package imports it lazily) exits 130 without a traceback, as an
-    interrupted run does, instead of click's "Aborted!" and exit 1."""
+    """The ``reeb`` group: a Ctrl-C at any time (:mod:`._ctrl_c`) exits 130 with one line and
+    no traceback, as an interrupted run does, instead of click's "Aborted!" and exit 1 or
+    Python's traceback; once the command has finished, with its exit code (when the process
+    is the command's: ``main()`` reads ``sys.argv``)."""
+
+    program = False  # this process runs the command line it was started with
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        before = _ctrl_c.exit_at_once()  # options parsed, nothing done yet
+        type(self).program = args is None and standalone_mode
+        try:
+            return super().main(args, prog_name, complete_var, standalone_mode, **extra)
+        except SystemExit as e:
+            if self.program:  # --help, --version and usage errors too
+                _ctrl_c.exits_with(_ctrl_c.exit_code(e))
+            raise
+        finally:
+            if not self.program:  # called from Python (a test, a script): as it was
+                _ctrl_c.restore(before)
 
     def invoke(self, ctx: click.Context):
+        _ctrl_c.interrupts()  # the runs catch KeyboardInterrupt to save what is done
+        ended = None
         try:
             return super().invoke(ctx)
         except KeyboardInterrupt:
             click.echo("interrupted", err=True)
-            ctx.exit(130)
+            ended = click.exceptions.Exit(130)
+            raise ended from None
+        except BaseException as e:
+            ended = e
+            raise
+        finally:
+            if self.program:
+                _ctrl_c.exits_with(_ctrl_c.exit_code(ended))
+            else:
+                _ctrl_c.exit_at_once()  # the rest of main(); it puts back the caller's handler
 
 
 @click.group(cls=_Reeb, context_settings=CONTEXT)
@@ -459,6 +490,8 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
         raise UsageProblem(" ".join(str(e).split()))
     click.echo(record["text"])
 
+
+_ctrl_c.restore(_BEFORE)  # the command's imports are done; main() takes over
 
 if __name__ == "__main__":
     main()
