@@ -71,7 +71,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--eval-every", type=int, default=0, help="0: evaluate at the end only")
     p.add_argument("--checkpoint-every", type=int, default=100)
     p.add_argument("--out", default="runs/detector", help="folder for checkpoints and metrics")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from OUT/last.pt (read with weights_only=True: tensors and plain values only)")
     p.add_argument("--device", default=None, help="default: cuda when available, else cpu")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
@@ -233,6 +234,8 @@ def lr_at(iteration: int, args: argparse.Namespace) -> float:
 
 
 def save_checkpoint(path: Path, model, optimizer, iteration: int, args, history: list) -> None:
+    """Tensors and plain values only (dicts, lists, tuples, numbers, strings): what
+    :func:`load_checkpoint` reads with ``weights_only=True``."""
     tmp = path.with_name(path.name + ".tmp")
     torch.save({
         "model": model.state_dict(),
@@ -243,6 +246,20 @@ def save_checkpoint(path: Path, model, optimizer, iteration: int, args, history:
         "rng": {"torch": torch.get_rng_state(), "python": random.getstate()},
     }, tmp)
     tmp.replace(path)
+
+
+def load_checkpoint(path: Path, device: torch.device) -> dict[str, Any]:
+    """A checkpoint of :func:`save_checkpoint`, read with ``weights_only=True``: a file that
+    holds anything else (pickled code: a checkpoint from elsewhere can run code when loaded
+    in full) is refused with a message, never run."""
+    if not path.exists():
+        raise SystemExit(f"--resume: no checkpoint {path}")
+    try:
+        return torch.load(path, map_location=device, weights_only=True)
+    except Exception as e:  # noqa: BLE001 - UnpicklingError, RuntimeError: each names what it met
+        first = " ".join(str(e).split())[:300]
+        raise SystemExit(f"--resume: {path} is not a checkpoint of this script (it holds more than tensors "
+                         f"and plain values, or is damaged); not loaded: {first}") from None
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -272,9 +289,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     start, history = 0, []
     ckpt_path = out / "last.pt"
     if args.resume:
-        if not ckpt_path.exists():
-            raise SystemExit(f"--resume: no checkpoint {ckpt_path}")
-        ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
+        ckpt = load_checkpoint(ckpt_path, device)
         model.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
         start, history = ckpt["iteration"], ckpt["history"]

@@ -422,8 +422,23 @@ def test_train_script_trains_checkpoints_and_resumes(tmp_path):
     assert first["val_frames"] == 1 and set(first["AP50_per_class"]) == set(CLASSES)
     assert 0.0 <= first["recall"]["micro"]["100"]["0.5"] <= 1.0
     script.main(common + ["--iterations", "3", "--resume"])
-    ckpt = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
+    ckpt = torch.load(tmp_path / "run" / "last.pt", weights_only=True)  # tensors and plain values only
     assert ckpt["iteration"] == 3 and [h["iteration"] for h in ckpt["history"]] == [1, 2, 3]
+    # a checkpoint from elsewhere that runs code when unpickled in full: refused, never run (issue 37)
+    torch.save({"model": _RunsCode(tmp_path / "ran")}, tmp_path / "run" / "last.pt")
+    with pytest.raises(SystemExit, match="not a checkpoint of this script"):
+        script.main(common + ["--iterations", "4", "--resume"])
+    assert not (tmp_path / "ran").exists()
+
+
+class _RunsCode:
+    """Unpickled in full, it creates the file ``path``: what a hostile checkpoint could do."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __reduce__(self):
+        return open, (str(self.path), "w")
 
 
 # -- the pretrained EfficientNet-Lite0 detector (the 'detect' extra) -------------------------
