@@ -6,6 +6,7 @@ module                what it holds
 :mod:`.cli`           the ``reeb`` command: ``propose``, ``show``, ``eval``, ``export``
 :mod:`.common`        what the command's runs share: errors and exit codes, settings
                       from the command line, the device, the closing summary
+:mod:`._ctrl_c`       what a Ctrl-C does while the command starts, runs and has finished
 :mod:`.propose_local` ``reeb propose`` on this machine
 :mod:`.propose_ray`   ``reeb propose --engine ray``
 :mod:`.batch`         building blocks of a run: finding and decoding images, result rows,
