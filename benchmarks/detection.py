@@ -220,6 +220,7 @@ def main(argv: list[str] | None = None) -> dict[str, dict]:
         print(f"\n== {name}")
         try:
             results[name] = run_arm(name, train, test, args)
+            print(format_table({name: results[name]}).splitlines()[-1])
         except SourceUnavailable as e:
             print(f"skipped: {e}")
     table = format_table(results)
