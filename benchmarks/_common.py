@@ -47,18 +47,22 @@ def run_captured(gen: Any, image: Any) -> tuple[dict, dict]:
     output and what its per-region cut saw: ``scores`` (``[1, N]``, every window), ``grid``
     (the :class:`~reeb_torch.stages.windows.WindowGrid`), ``chosen`` (``bool [1, N]``, the
     candidates) and ``share`` (eq. 9's region shares), through the ranking's ``on_select``
-    hook (:class:`reeb_torch.ranking.Ranking`)."""
+    hook (:class:`reeb_torch.ranking.Ranking`); with a learned ranking also ``ranked`` (its
+    logits, ``[1, N]``) and ``kept`` (the candidates it ranked), through ``on_rank``."""
     captured: dict = {}
 
     def record(scores, grid, chosen, share):  # what the pipeline saw
         # copies: forward reuses the memory of its scores and candidates in the next call
         captured.update(scores=scores.clone(), grid=grid, chosen=chosen.clone(), share=share.clone())
 
-    gen.ranking.on_select = record
+    def ranked(scores, kept):
+        captured.update(ranked=scores.clone(), kept=kept.clone())
+
+    gen.ranking.on_select, gen.ranking.on_rank = record, ranked
     try:
         out = gen([image])[0]
     finally:
-        gen.ranking.on_select = None
+        gen.ranking.on_select = gen.ranking.on_rank = None
     return out, captured
 
 

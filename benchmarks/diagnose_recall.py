@@ -2,7 +2,8 @@
 
 For each ground-truth object, the best IoU with (1) every sliding window of the grid
 (coverage), (2) the windows with a valid score (S above ``min_edge_score``), (3) the
-candidates the regions pass on (each region's top-k, eq. 9 budgets), (4) the final
+candidates the regions pass on (each region's top-k, eq. 9 budgets), (3b) those the learned
+ranking's prefilter keeps (``ranker_keep``; all of them without a ranker), (4) the final
 ``top_k`` after NMS. Recall at IoU 0.5 and 0.7 over all objects (micro) and over
 KITTI-moderate objects (height >= 25 px, occlusion <= 1, truncation <= 0.3), and recall at
 IoU 0.7 of each class, on the frames of a KITTI-format folder. ``--frames 0:39 40:59``
@@ -35,7 +36,7 @@ from reeb_torch.eval.metrics import kitti_difficulty_mask  # noqa: E402
 from reeb_torch.stages.nms import nms_top_k  # noqa: E402
 from reeb_torch.runs.viz import crop_sheet, save_png  # noqa: E402
 
-STAGES = ("all windows", "valid score", "region candidates", "final top-k")
+STAGES = ("all windows", "valid score", "region candidates", "ranked candidates", "final top-k")
 
 
 def stage_ious(gen: ProposalGenerator, image: torch.Tensor, gt: torch.Tensor,
@@ -50,12 +51,14 @@ def stage_ious(gen: ProposalGenerator, image: torch.Tensor, gt: torch.Tensor,
     iou = box_iou(gt, boxes)
     valid = torch.isfinite(captured["scores"][0])[None]
     chosen = captured["chosen"][0][None]
+    ranked = captured.get("kept", captured["chosen"])[0][None]  # the learned ranking's prefilter
     final = box_iou(gt, out["boxes"]) if len(out["boxes"]) else torch.zeros(len(gt), 1)
     zero = torch.zeros(())
     best = {
         "all windows": iou.max(1).values,
         "valid score": torch.where(valid, iou, zero).max(1).values,
         "region candidates": torch.where(chosen, iou, zero).max(1).values,
+        "ranked candidates": torch.where(ranked, iou, zero).max(1).values,
         "final top-k": final.max(1).values,
     }
     details = lost_details(gen, best, iou, boxes, captured) if lost_detail else []
@@ -83,8 +86,10 @@ def lost_details(gen: ProposalGenerator, best: dict[str, torch.Tensor], iou: tor
     budget = gen.ranking.region_budget(captured["share"][0])
     lost = torch.nonzero(best["final top-k"] < 0.7).squeeze(1).tolist()
     nms_detail = not cfg.refine and not cfg.region_quota
-    cand = torch.nonzero(chosen).squeeze(1)
-    kept = cand[nms_top_k(boxes[cand], scores[cand], cfg.nms_iou, len(cand))] if lost and nms_detail else None
+    # what the NMS ranks: the learned ranking's candidates and logits, else the cut's and V
+    order, cand = (captured["ranked"][0], torch.nonzero(captured["kept"][0]).squeeze(1)) if "kept" in captured \
+        else (scores, torch.nonzero(chosen).squeeze(1))
+    kept = cand[nms_top_k(boxes[cand], order[cand], cfg.nms_iou, len(cand))] if lost and nms_detail else None
     out = []
     for g in lost:
         d: dict = {"index": g, "best_iou": {k: round(float(v[g]), 3) for k, v in best.items()}}
@@ -101,7 +106,7 @@ def lost_details(gen: ProposalGenerator, best: dict[str, torch.Tensor], iou: tor
                 d["lost_at"], d["nms_rank"] = "top-k", int(hit[0])
             else:
                 good_c = cand[iou[g, cand] >= 0.7]
-                top_c = good_c[scores[good_c].argmax()]
+                top_c = good_c[order[good_c].argmax()]
                 over = torch.nonzero(box_iou(boxes[top_c][None], boxes[kept])[0] > cfg.nms_iou).squeeze(1)
                 d["lost_at"] = "nms"
                 if len(over):  # the first (best-scored) kept box over the threshold suppressed it
@@ -140,10 +145,11 @@ def format_stage_table(title: str, table: dict[str, dict[str, float]], labels: t
     return "\n".join(lines)
 
 
-LOST_AT = ("all windows", "valid score", "region candidates", "nms", "top-k", "final top-k")
+LOST_AT = ("all windows", "valid score", "region candidates", "ranked candidates", "nms", "top-k", "final top-k")
 
 
 SHORT = {"all windows": "no window", "valid score": "invalid", "region candidates": "region",
+         "ranked candidates": "prefilter",
          "nms": "NMS", "top-k": "top-k", "final top-k": "final"}
 
 

@@ -3,8 +3,8 @@
 Each field names the paper section or equation it comes from. Where the printed paper is
 ambiguous or cannot run as printed (``../shared/paper/NOTES.md``), the field documents the
 choice and :meth:`ReebConfig.paper` keeps the printed reading. The package default
-(``ReebConfig()``) is the variant with the best recall measured by
-``benchmarks/ablations.py`` on the 60 KITTI frames in ``../shared/data/kitti``.
+(``ReebConfig()``) is the variant with the best recall measured on the 106 dev frames in
+``../shared/data`` (cross-validated where it was fitted to labels: ``reeb fit``).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import typing
 from dataclasses import dataclass
 from typing import Any, Callable, Literal
 
-__all__ = ["ReebConfig", "PRESETS", "get_preset"]
+__all__ = ["ReebConfig", "PRESETS", "get_preset", "TRAINING_FREE"]
 
 Grouping = Literal["connected", "cell"]
 ScoreNorm = Literal["perimeter", "area"]
@@ -249,6 +249,8 @@ _RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "beta": _at_least(0),
     "nms_iou": _in(0, 1, lo_open=True),
     "top_k": _at_least(1),
+    "ranker_keep": _at_least(1),
+    "ranker": ((lambda v: v.strip() != ""), "'none', a shipped ranker name ('kitti') or the path of a weights file"),
 }
 
 _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
@@ -264,6 +266,8 @@ _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
      "rescore='none' when refine is on (the refinement re-scores the boxes with V alone), or refine=off"),
     (("rescore", "grouping"), lambda c: c.rescore not in ("affinity", "orientation") or c.grouping == "connected",
      "grouping='connected' with rescore='affinity' or 'orientation' (they read connected groups)"),
+    (("rescore", "refine", "ranker"), lambda c: c.ranker == "none" or (c.rescore == "none" and not c.refine),
+     "rescore='none' and refine=off when a ranker is set (the ranker orders the windows themselves), or ranker='none'"),
     (("camera_height_m", "vertical_fov_deg", "horizontal_fov_deg", "max_object_width_m",
       "region_width_round", "region_overlap"), lambda c: _region_count(c) <= _MAX_REGIONS,
      f"a camera and overlap giving at most {_MAX_REGIONS} regions (eqs. 5-8)"),
@@ -349,12 +353,14 @@ class ReebConfig:
     region_quota: bool = False
     """Also split the ``top_k`` output among the regions by their shares (eq. 9 applied to
     the final proposals, not only to the candidates)."""
-    candidates_per_region: int = 12000
+    candidates_per_region: int = 30000
+    """Most windows a region may pass on to ranking (eq. 9's "maximum number of proposals
+    that the user wants to generate in a region"); the region passes share × this. 30000
+    gives the learned ranking a pool that holds a window at IoU 0.7 for 95 % of the dev
+    objects; V alone ranks best with 12000 (:meth:`training_free`)."""
     candidates_without_regions: int = 8000
     """Windows passed on to ranking when ``use_regions=False`` (the whole image is one
     region with share 1); about ``top_k`` of them survive NMS on KITTI."""
-    """Most windows a region may pass on to ranking (eq. 9's "maximum number of proposals
-    that the user wants to generate in a region"); the region passes share × this."""
 
     # -- Sec. 3.6: sliding windows (NOTES #13) -------------------------------------------
     min_window: int = 16
@@ -516,6 +522,19 @@ class ReebConfig:
     """Windows with S below this are dropped (Sec. 3.7 prints 0.01, kept by ``paper``; the
     scale of S depends on the edge map's, so the default only drops S <= 0, measured)."""
 
+    # -- the learned ranking (not in the paper) --------------------------------------------
+    ranker: str = "kitti"
+    """Orders the candidates of the region cut by a small learned model over per-box features
+    (:mod:`reeb_torch.ranker`, :mod:`reeb_torch.stages.features`) in place of V, before eq. 13's
+    NMS (not in the paper): ``kitti`` (default) the model shipped with the package, fitted on
+    the 106 KITTI dev frames; the path of a weights file ``reeb fit`` wrote for another camera;
+    or ``none``: rank by V (training-free, as printed; :meth:`training_free` also sets the
+    budget V ranks best with). Scores are then the model's logits."""
+    ranker_keep: int = 12000
+    """With ``ranker``: the candidates of each image its prefilter keeps (a tiny model over the
+    box's geometry, V and region, which need no box sum) for the full features and model; the
+    others are dropped before NMS. Larger is slower and ranks more boxes."""
+
     # -- eq. 13: NMS and output ----------------------------------------------------------
     nms_iou: float = 0.75
     """Eq. 13's threshold. The paper prints 0.7 (kept by ``paper``); 0.75 is Edge Boxes'
@@ -588,6 +607,11 @@ class ReebConfig:
         base.update(overrides)
         return cls(**base)  # type: ignore[arg-type]
 
+    def training_free(self) -> "ReebConfig":
+        """A copy without the learned ranking: ``ranker='none'`` and the candidate budget that
+        V ranks best (:data:`TRAINING_FREE`)."""
+        return self.replace(**TRAINING_FREE)
+
     def replace(self, **changes: object) -> "ReebConfig":
         """A copy with ``changes`` applied (validated)."""
         return dataclasses.replace(self, **changes)  # type: ignore[arg-type]
@@ -649,6 +673,11 @@ class ReebConfig:
         return hashlib.sha256(blob).hexdigest()[:16]
 
 
+TRAINING_FREE: dict[str, object] = {"ranker": "none", "candidates_per_region": 12000}
+"""The fields :meth:`ReebConfig.training_free` sets: no learned ranking, and the candidate budget
+with which V alone ranks best (``benchmarks/ablations.py``)."""
+
+
 def _no_regions(cfg: ReebConfig) -> ReebConfig:
     return cfg.replace(use_regions=False)
 
@@ -664,12 +693,17 @@ _REMOVED_PRESETS = {
 
 def _build_presets() -> None:
     PRESETS["default"] = ReebConfig()
-    PRESETS["default-no-regions"] = _no_regions(ReebConfig())
+    PRESETS["training-free"] = ReebConfig().training_free()
+    # the paper's Ours*: its ranking reads the regions, so without them the training-free one
+    PRESETS["training-free-no-regions"] = _no_regions(ReebConfig().training_free())
+    PRESETS["default-no-regions"] = PRESETS["training-free-no-regions"]
     PRESETS["paper"] = ReebConfig.paper()
     PRESETS["paper-no-regions"] = _no_regions(ReebConfig.paper())
+
     # opt-in: the second scoring pass that won on the dev frames (+13 / -3, p 0.02) but was the
     # best of 21 rows there and costs ~3.5x the time; not yet checked on frames kept apart
-    PRESETS["persons"] = ReebConfig(rescore="orientation", rescore_scope="persons", rescore_max_height_m=2.3)
+    PRESETS["persons"] = ReebConfig().training_free().replace(rescore="orientation", rescore_scope="persons",
+                                                              rescore_max_height_m=2.3)
 
 
 _build_presets()
@@ -678,11 +712,15 @@ _build_presets()
 def get_preset(name: str) -> ReebConfig:
     """Look up a named preset.
 
-    * ``default``: the best measured setting for speed and recall together (docs/results.md).
-    * ``default-no-regions``: the same without the region enhancement (the paper's Ours*).
+    * ``default``: REEB's windows ranked by the shipped learned model (``ranker='kitti'``):
+      the best recall measured (cross-validated on the 106 dev frames; docs/results.md).
+    * ``training-free``: no learned part: the windows ranked by V (eq. 12), with the
+      budget V ranks best with (:meth:`ReebConfig.training_free`).
+    * ``training-free-no-regions`` (also ``default-no-regions``, its former name): that
+      without the region enhancement (the paper's Ours*; the learned ranking reads the regions).
     * ``paper``, ``paper-no-regions``: the printed text wherever it can run
       (:meth:`ReebConfig.paper`).
-    * ``persons``: opt-in, the default with a second scoring pass that ranks person-shaped
+    * ``persons``: opt-in, the training-free setting with a second scoring pass that ranks person-shaped
       windows (no taller than 2.3 m on the road) by the spread of their edge orientations
       (``rescore='orientation'``, ``rescore_scope='persons'``): 72.2 against 69.1 % on the
       106 dev frames (+13 / -3 objects, p 0.02; pedestrians 62.3, cyclists 58.5 %) at about

@@ -36,7 +36,7 @@ from .stages import regions as _regions
 from .stages import road as _road
 from .stages import scoring as _scoring
 
-__all__ = ["ProposalGenerator", "propose", "Inspection", "warmup", "FRONT_END_FIELDS"]
+__all__ = ["ProposalGenerator", "propose", "Inspection", "Candidates", "warmup", "FRONT_END_FIELDS"]
 
 FRONT_END_FIELDS: tuple[str, ...] = (
     "scale", "blur_sigma", "edge_threshold", "edge_channels", "thin_edges", "remove_isolated", "grouping",
@@ -78,6 +78,24 @@ class Inspection:
     share: Tensor
     num_groups: int
     num_windows: int
+
+
+@dataclass
+class Candidates:
+    """The candidates of one image that the learned ranking orders (the region cut, eq. 9),
+    with their per-box features (:meth:`ProposalGenerator.candidates`).
+
+    Attributes:
+        boxes: ``float32 [K, 4]`` (x1, y1, x2, y2) in input pixels, in window order (not ranked).
+        scores: ``float32 [K]`` their combined scores V (eq. 12).
+        features: ``float32 [K, F]`` their features (:func:`reeb_torch.stages.features.box_features`).
+        feature_names: the ``F`` column names.
+    """
+
+    boxes: Tensor
+    scores: Tensor
+    features: Tensor
+    feature_names: tuple[str, ...]
 
 
 @dataclass
@@ -224,6 +242,29 @@ class ProposalGenerator(nn.Module):
             num_groups=extra["num_groups"], num_windows=extra["num_windows"],
         )
 
+    @torch.no_grad()
+    def candidates(self, image: Tensor) -> Candidates:
+        """The candidates of one ``(3, H, W)`` image before the final ranking and NMS, and
+        their features: what :class:`~reeb_torch.ranker.BoxRanker` scores (``reeb fit`` fits
+        it on these)."""
+        (x,) = check_images([image], self.min_side, self.config, keep_uint8=True)
+        return self._candidates([x], self._front_end([x]))[0]
+
+    def _candidates(self, images: list[Tensor], front: tuple[_Working, ScoreMaps]) -> list[Candidates]:
+        """:meth:`candidates` of a batch of equal-sized images whose :meth:`_front_end` is ``front``."""
+        work, maps = front
+        bounds, entropy, share = self._regions(work.gray)
+        grid = self.ranking.window_grid(maps, bounds)
+        scores = self.ranking.score(maps, grid)
+        chosen = self.ranking.select(scores, grid, share)
+        bi, ni, feats = self.ranking.features(maps, grid, scores, chosen, share, entropy)
+        scale = torch.tensor([maps.fx, maps.fy, maps.fx, maps.fy], device=scores.device)
+        boxes = grid.boxes.to(scores.device)[ni] / scale
+        counts = torch.bincount(bi, minlength=len(images)).tolist()
+        names = self.ranking.feature_names()
+        return [Candidates(b, v.clone(), f, names)
+                for b, v, f in zip(boxes.split(counts), scores[bi, ni].split(counts), feats.split(counts))]
+
     # ------------------------------------------------------------------------------------
     def _propose_batch(self, images: list[Tensor], keep: bool = False,
                        check_at: list[int | None] | None = None) -> tuple[list[dict[str, Tensor]], dict]:
@@ -254,7 +295,7 @@ class ProposalGenerator(nn.Module):
                 road = _road.road_mask(work.colour, cfg.road_samples, cfg.road_band, cfg.road_tolerance,
                                        cfg.road_combine, cfg.seed)
         maps = ScoreMaps(work.edges, groups, tuple(images[0].shape[-2:]), road=road, green=work.green,
-                         crossing=work.crossing, grey=work.gray[:, 0] if cfg.shadow_score != "none" else None)
+                         crossing=work.crossing, grey=work.gray[:, 0])
         return work, maps
 
     def _back_end(self, images: list[Tensor], front: tuple[_Working, ScoreMaps],
@@ -284,6 +325,10 @@ class ProposalGenerator(nn.Module):
         if cfg.rescore != "none":
             with self._stage("rescore", dev):
                 scores, chosen = self.ranking.rescore(maps, grid, scores, chosen)
+        # the learned ranking of the candidates (not in the paper; ``ReebConfig.ranker``)
+        if cfg.ranker != "none":
+            with self._stage("ranker", dev):
+                scores, chosen = self.ranking.rank_learned(maps, grid, scores, chosen, share, entropy)
         # Edge Boxes' refinement of the candidates (not in the paper; ``ReebConfig.refine``)
         refined = None
         if cfg.refine:

@@ -45,7 +45,9 @@ from .stages import refinement as _refinement
 from .stages import rescoring as _rescoring
 from .stages import scoring as _scoring
 from .stages import windows as _windows
+from .stages import features as _features
 from .stages.groups import EdgeGroups
+from .stages._radix import kth_largest
 from .stages.nms import boxes_valid, nms_top_k_many, nms_windows_cpu
 
 __all__ = ["ScoreMaps", "Ranking"]
@@ -64,7 +66,7 @@ class ScoreMaps:
         groups: the batch's :class:`~reeb_torch.stages.groups.EdgeGroups` (Sec. 3.7).
         input_size: ``(H, W)`` of the input images (boxes are returned in those pixels).
         road: ``(B, h, w)`` road mask (eqs. 3–4), or None where no road term reads it.
-        grey: ``float32 (B, h, w)`` grey image for the shadow term, or None without it.
+        grey: ``float32 (B, h, w)`` grey image (the shadow term, the learned ranking's features), or None.
         green: ``int32 (B, h + 1, w + 1)`` green-pixel counts (an integral image already)
             for the vegetation term, or None without it.
         crossing: the straddling term's ``(columns, rows)`` maps of edges crossing a side,
@@ -138,6 +140,28 @@ class ScoreMaps:
         return self._keep(("crossing", band), build)
 
 
+def _best_per_image(values: Tensor, counts: Tensor, keep: int) -> Tensor:
+    """Indices of the best ``keep`` of each image's ``values`` (the images' values lie in
+    consecutive runs of ``counts``), ties to the earlier; ascending. On the CPU a compiled
+    radix selection (:func:`~reeb_torch.stages._radix.kth_largest`), elsewhere a stable sort."""
+    out, start = [], 0
+    for n in counts.tolist():
+        part = values[start: start + n]
+        if n <= keep:
+            sel = torch.arange(n, device=values.device)
+        elif values.device.type == "cpu":
+            v = part.detach().float().contiguous().numpy()
+            thr = kth_largest(v, keep)
+            above = np.flatnonzero(v > thr)
+            ties = np.flatnonzero(v == thr)[: keep - len(above)]
+            sel = torch.from_numpy(np.sort(np.concatenate([above, ties])))
+        else:
+            sel = torch.sort(part, descending=True, stable=True).indices[:keep].sort().values
+        out.append(sel + start)
+        start += n
+    return torch.cat(out) if out else values.new_zeros(0, dtype=torch.long)
+
+
 def _tables_exact(groups: EdgeGroups, grid: _windows.WindowGrid) -> bool:
     """Whether the prefix tables give eq. 1's enclosed sums exactly for every window of
     ``grid``: every window is wider and taller than every edge group."""
@@ -170,8 +194,17 @@ class Ranking:
         """Called as ``on_select(scores, grid, chosen, share)`` after each region cut
         (diagnostics); ``None`` (default) calls nothing. Inside ``forward`` the ``scores``
         and ``chosen`` it is handed live in memory the next call reuses: copy what you keep."""
+        self.on_rank: Callable[[Tensor, Tensor], None] | None = None
+        """Called as ``on_rank(scores, chosen)`` with what :meth:`rank_learned` returns
+        (diagnostics; live memory as for :attr:`on_select`); ``None`` (default) calls nothing."""
         self._device_cache: dict = {}
         self._plan_cache: dict = {}
+        self.model = None
+        """The learned ranking's :class:`~reeb_torch.ranker.BoxRanker` (``config.ranker``), or None."""
+        if config.ranker != "none":
+            from .ranker import load_ranker
+
+            self.model = load_ranker(config.ranker, self.feature_names())
 
     # -- windows (Sec. 3.6) -----------------------------------------------------------------
     def window_grid(self, maps: ScoreMaps, bounds: Tensor) -> _windows.WindowGrid:
@@ -503,6 +536,112 @@ class Ranking:
             real = wh[:, 1].double() / depth.clamp(min=1e-9) * cfg.camera_height_m
             scope &= (depth > 0) & (real <= cfg.rescore_max_height_m)
         return scope
+
+    # -- the learned ranking (ReebConfig.ranker) -------------------------------------------
+    def feature_names(self) -> tuple[str, ...]:
+        """The columns of :meth:`features` for this config (one location fit per class)."""
+        return _features.feature_names(len(self.config.class_heights_m))
+
+    def box_maps(self, maps: ScoreMaps, geometry_only: bool = False) -> _features.BoxMaps:
+        """The tables the per-box features read (:class:`~reeb_torch.stages.features.BoxMaps`);
+        with ``geometry_only``, only their sizes (for the window columns: no table is built)."""
+        cfg = self.config
+        grey = maps.grey
+        widths = (tuple((t[2], t[3]) for t in cfg.object_templates)
+                  if cfg.location_fit == "shape" and len(cfg.object_templates) == len(cfg.class_heights_m) else None)
+        if geometry_only:
+            tables = (None,) * 6
+        else:
+            tables = (maps.integral("edges"), maps.integral("grey"),
+                      maps._keep("grey2", lambda: _scoring.integral_image(grey * grey)), maps.integral_below("grey"),
+                      maps.green, maps.tables())
+        return _features.BoxMaps(
+            tuple(maps.edges.shape[-2:]), *tables, cfg.horizon, cfg.camera_height_m,
+            tuple(h / cfg.camera_height_m for h in cfg.class_heights_m), tuple(cfg.class_weights), widths,
+            cfg.ground_log_sigma, maps.fx, maps.fy, cfg.center_fraction, cfg.score_norm, cfg.kappa, cfg.gamma)
+
+    def features(self, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor, chosen: Tensor,
+                 share: Tensor, entropy: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The features of every candidate: ``(bi int64 [K], ni int64 [K], float32 [K, F])``,
+        the image and window index of each candidate (``nonzero(chosen)`` order) and its
+        features (:func:`~reeb_torch.stages.features.box_features`; compiled on the CPU)."""
+        bi, ni = torch.nonzero(chosen, as_tuple=True)
+        return bi, ni, self._features_of(maps, grid, scores, share, entropy, bi, ni)
+
+    def _window_table(self, maps: ScoreMaps, grid: _windows.WindowGrid) -> Tensor:
+        """The window columns of every window of ``grid`` (:func:`~reeb_torch.stages.features.window_features`),
+        ``float32 [N, 11 + C]`` (as the features hold them), computed once per grid."""
+        dev = maps.edges.device
+        return self._grid_cached(("window_features", maps.fx, maps.fy, str(dev)), grid, lambda: _features.window_features(
+            self.box_maps(maps, geometry_only=True), self._device_tensor(grid.boxes, dev).round().long()).float())
+
+    def _features_of(self, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor, share: Tensor,
+                     entropy: Tensor, bi: Tensor, ni: Tensor, cheap: bool = False) -> Tensor:
+        dev = scores.device
+        region_of = self._device_tensor(grid.region_of, dev)
+        if dev.type == "cpu":
+            return _features.box_features_cpu(self.box_maps(maps, geometry_only=cheap), grid.boxes,
+                                              self._window_table(maps, grid), scores, share, entropy, region_of,
+                                              bi, ni, cheap)
+        boxes = self._device_tensor(grid.boxes, dev)[ni].round().long()
+        region = region_of[ni]
+        return _features.box_features(self.box_maps(maps, geometry_only=cheap), boxes, bi, scores[bi, ni],
+                                      share[bi, region], entropy[bi, region], self._window_table(maps, grid)[ni],
+                                      cheap)
+
+    def rank_learned(self, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor, chosen: Tensor,
+                     share: Tensor, entropy: Tensor) -> tuple[Tensor, Tensor]:
+        """``ranker``: the candidates ranked by the model, for :meth:`suppress`: ``(scores
+        float32 [B, N], chosen bool [B, N])``, the model's logit of each candidate it ranks
+        (``-inf`` elsewhere) and which those are: where the model has a prefilter, each
+        image's best ``ranker_keep`` candidates by the prefilter; all of them otherwise."""
+        model = self._model_on(scores.device)
+        bi, ni = torch.nonzero(chosen, as_tuple=True)
+        keep = self.config.ranker_keep
+        counts = torch.bincount(bi, minlength=scores.shape[0])
+        if model.prefilter is not None and len(bi) and int(counts.max()) > keep:
+            sel = _best_per_image(self._prefilter(model, maps, grid, scores, share, entropy, bi, ni), counts, keep)
+            bi, ni = bi[sel], ni[sel]
+        out = torch.full_like(scores, -math.inf)
+        kept = torch.zeros_like(chosen)
+        if len(bi):
+            out[bi, ni] = model(self._features_of(maps, grid, scores, share, entropy, bi, ni))
+            kept[bi, ni] = True
+        if self.on_rank is not None:
+            self.on_rank(out, kept)
+        return out, kept
+
+    def _prefilter(self, model, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor, share: Tensor,
+                   entropy: Tensor, bi: Tensor, ni: Tensor) -> Tensor:
+        """The prefilter's logit of each candidate ``(bi, ni)``, ``float32 [K]``: on the CPU,
+        for a one-hidden-layer prefilter, the hidden layer's share of the window columns is
+        tabulated once per grid and the rest compiled (:func:`~reeb_torch.stages.features.prefilter_cpu`);
+        elsewhere the model on the cheap columns (the same to float32 rounding)."""
+        pre = model.prefilter
+        if scores.device.type != "cpu" or len(pre) != 3:
+            return model.prefilter_scores(self._features_of(maps, grid, scores, share, entropy, bi, ni, cheap=True))
+        first, last = pre[0], pre[2]
+        nw = self._window_table(maps, grid).shape[1]
+
+        def build() -> Tensor:
+            win = (self._window_table(maps, grid).float() - model.mean[:nw]) / model.scale[:nw]
+            return torch.addmm(first.bias, win, first.weight[:, :nw].T).contiguous()
+
+        table = self._grid_cached(("prefilter", id(model)), grid, build)
+        return _features.prefilter_cpu(table, scores, share, entropy, grid.region_of, bi, ni, model.mean[nw: nw + 3],
+                                       model.scale[nw: nw + 3], first.weight[:, nw:], last.weight[0],
+                                       float(last.bias[0]))
+
+    def _model_on(self, device: torch.device):
+        """:attr:`model` on ``device`` (the shared CPU model, or a copy per device)."""
+        if device.type == "cpu":
+            return self.model
+        key = ("model", str(device))
+        if key not in self._device_cache:
+            import copy
+
+            self._device_cache[key] = (None, copy.deepcopy(self.model).to(device))
+        return self._device_cache[key][1]
 
     # -- Edge Boxes' refinement (ReebConfig.refine) -----------------------------------------
     def refine(self, maps: ScoreMaps, grid: _windows.WindowGrid, chosen: Tensor,

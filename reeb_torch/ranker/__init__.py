@@ -1,0 +1,19 @@
+"""The learned ranking over REEB's candidates (``ReebConfig.ranker``; not in the paper).
+
+REEB's windows cover the objects; its hand-weighted score V (eq. 12) cannot order them.
+:class:`BoxRanker` scores each candidate from cheap per-box features
+(:mod:`reeb_torch.stages.features`) and the generator ranks by it before the final NMS.
+Weights are safetensors files (:func:`load_ranker`, :func:`save_ranker`); ``kitti`` ships
+with the package, and ``reeb fit`` fits new ones on a user's labelled frames
+(:mod:`reeb_torch.eval.fit`).
+
+>>> from reeb_torch.ranker import load_ranker
+>>> model = load_ranker("kitti")              # a BoxRanker, eval mode
+>>> logits = model(features)                  # float [K, F] -> float32 [K]
+"""
+
+from .model import BoxRanker
+from .weights import SHIPPED, RankerWeightsError, load_ranker, resolve_ranker, save_ranker, shipped_path
+
+__all__ = ["BoxRanker", "SHIPPED", "RankerWeightsError", "load_ranker", "resolve_ranker", "save_ranker",
+           "shipped_path"]

@@ -1,0 +1,99 @@
+"""The learned ranking's model: small MLPs over per-box features, giving one logit per box.
+
+:class:`BoxRanker` standardises the features (the mean and spread of the frames it was
+fitted on, kept as buffers) and has two stages, a cascade as BING's and Viola-Jones':
+
+* :meth:`BoxRanker.prefilter_scores`: a tiny MLP over the first, cheap columns
+  (:func:`~reeb_torch.stages.features.cheap_count`: the window's geometry and location fits,
+  V, the region), which need no box sum, for every candidate; the generator keeps the best
+  ``ReebConfig.ranker_keep``;
+* :meth:`BoxRanker.forward`: one or more MLPs over all the columns of those, averaged.
+
+It is a plain ``nn.Module`` whose weights come from :func:`reeb_torch.ranker.load_ranker`;
+the features are :func:`reeb_torch.stages.features.box_features`.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from ..stages.features import cheap_count
+
+
+__all__ = ["BoxRanker"]
+
+
+def _mlp(inputs: int, hidden: Sequence[int]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for width in hidden:
+        layers += [nn.Linear(inputs, width), nn.ReLU()]
+        inputs = width
+    layers.append(nn.Linear(inputs, 1))
+    return nn.Sequential(*layers)
+
+
+class BoxRanker(nn.Module):
+    """``forward(features float [K, F]) -> float32 [K]`` logits: higher ranks first.
+
+    Args:
+        feature_names: the ``F`` feature columns it reads, in order
+            (:func:`reeb_torch.stages.features.feature_names`).
+        hidden: the widths of the hidden layers of each MLP.
+        members: how many MLPs (fitted from different seeds) are averaged.
+        prefilter: the widths of the prefilter's hidden layers (``()``: a linear prefilter),
+            or None for none (every candidate gets all the features).
+
+    Attributes:
+        mean, scale: ``float32 [F]`` buffers; a feature enters the MLPs as ``(x − mean) / scale``.
+        meta: what the weights file said about itself (provenance, the config it was fitted
+            with); ``{}`` for a model made here.
+    """
+
+    def __init__(self, feature_names: Sequence[str], hidden: Sequence[int] = (64, 64), members: int = 1,
+                 prefilter: Sequence[int] | None = (16,)) -> None:
+        super().__init__()
+        if members < 1 or not hidden or min(hidden) < 1 or (prefilter and min(prefilter) < 1):
+            raise ValueError(f"BoxRanker needs members >= 1 and hidden widths >= 1, got {members}, {tuple(hidden)}, "
+                             f"prefilter {prefilter}")
+        self.feature_names = tuple(feature_names)
+        self.hidden = tuple(int(h) for h in hidden)
+        f = len(self.feature_names)
+        self.register_buffer("mean", torch.zeros(f))
+        self.register_buffer("scale", torch.ones(f))
+        self.members = nn.ModuleList(_mlp(f, self.hidden) for _ in range(members))
+        self.prefilter_hidden = None if prefilter is None else tuple(int(h) for h in prefilter)
+        self.cheap = cheap_count(sum(1 for n in self.feature_names if n.startswith("class_fit_")))
+        """How many first columns the prefilter reads (:func:`~reeb_torch.stages.features.cheap_count`)."""
+        self.prefilter = None if prefilter is None else _mlp(self.cheap, self.prefilter_hidden)
+        self.meta: dict = {}
+
+    def extra_repr(self) -> str:
+        return (f"features={len(self.feature_names)}, hidden={self.hidden}, members={len(self.members)}, "
+                f"prefilter={self.prefilter_hidden}")
+
+    def prefilter_scores(self, cheap: Tensor) -> Tensor:
+        """``float [K, cheap]`` (the first :attr:`cheap` columns of the features) -> ``float32 [K]``
+        the prefilter's logits; higher is kept first. Raises ValueError without a prefilter."""
+        if self.prefilter is None:
+            raise ValueError("this BoxRanker has no prefilter")
+        if cheap.ndim != 2 or cheap.shape[1] != self.cheap:
+            raise ValueError(f"BoxRanker.prefilter_scores expects [K, {self.cheap}], got {tuple(cheap.shape)}")
+        x = (cheap.float() - self.mean[: self.cheap]) / self.scale[: self.cheap]
+        return self.prefilter(x).squeeze(1)
+
+    def standardise(self, features: Tensor) -> Tensor:
+        """``(features − mean) / scale``, float32."""
+        return (features.float() - self.mean) / self.scale
+
+    def forward(self, features: Tensor) -> Tensor:
+        if features.ndim != 2 or features.shape[1] != len(self.feature_names):
+            raise ValueError(f"BoxRanker expects features of shape [K, {len(self.feature_names)}], "
+                             f"got {tuple(features.shape)}")
+        x = self.standardise(features)
+        out = self.members[0](x)
+        for m in self.members[1:]:
+            out = out + m(x)
+        return (out / len(self.members)).squeeze(1)
