@@ -98,24 +98,37 @@ class FrameCache:
             self._generators[cfg] = ProposalGenerator(cfg)
         return self._generators[cfg]
 
-    def proposals(self, cfg: ReebConfig, indices: Sequence[int]) -> list[Tensor]:
-        """Ranked boxes ``Tensor[P_i, 4]`` (``P_i <= cfg.top_k``) for the frames ``indices``."""
+    def _front_of(self, cfg: ReebConfig, i: int) -> tuple[ProposalGenerator, list[Tensor], Any]:
+        """The generator of ``cfg``, frame ``i`` as its input, and that frame's front end (cached)."""
         from .._checks import check_images
 
         key = tuple(getattr(cfg, f) for f in FRONT_END_FIELDS)
         if key != self._key:
             self._key, self._front = key, {}
         gen = self._generator(cfg)
+        img = check_images([self.frames.images[i]], gen.min_side, cfg, keep_uint8=True)
+        if i not in self._front:
+            with torch.no_grad():
+                self._front[i] = gen._front_end(img)
+            self.front_computed += 1
+        return gen, img, self._front[i]
+
+    def proposals(self, cfg: ReebConfig, indices: Sequence[int]) -> list[Tensor]:
+        """Ranked boxes ``Tensor[P_i, 4]`` (``P_i <= cfg.top_k``) for the frames ``indices``."""
         out = []
         with torch.no_grad():
             for i in indices:
-                img = check_images([self.frames.images[i]], gen.min_side, cfg, keep_uint8=True)
-                if i not in self._front:
-                    self._front[i] = gen._front_end(img)
-                    self.front_computed += 1
-                results, _ = gen._back_end(img, self._front[i])
+                gen, img, front = self._front_of(cfg, i)
+                results, _ = gen._back_end(img, front)
                 out.append(results[0]["boxes"].detach().cpu())
         return out
+
+    def candidates(self, cfg: ReebConfig, i: int):
+        """Frame ``i``'s candidates and their features under ``cfg``
+        (:meth:`reeb_torch.ProposalGenerator.candidates`)."""
+        with torch.no_grad():
+            gen, img, front = self._front_of(cfg, i)
+            return gen._candidates(img, front)[0]
 
     def hits(self, cfg: ReebConfig, indices: Sequence[int], k: int, iou: float) -> list[Tensor]:
         """Per frame of ``indices``, ``bool Tensor[N_i]``: objects the top ``k`` boxes find at ``iou``."""

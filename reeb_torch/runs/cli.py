@@ -28,6 +28,7 @@ from . import _ctrl_c
 _BEFORE = _ctrl_c.exit_at_once()  # while this module's imports load (~0.5 s): see the end of the file
 
 import os  # noqa: E402
+import shlex  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -212,7 +213,7 @@ def warmup(preset):
         cfg = get_preset(preset)
     except (KeyError, ValueError) as e:
         raise UsageProblem(str(e))
-    seconds = _warmup(cfg, cfg.replace(refine=True))
+    seconds = _warmup(cfg, cfg.replace(ranker="none", rescore="none", refine=True))
     where = cache_dir()
     click.echo(f"kernels ready in {seconds:.1f} s"
                + (f" (cached in {where})" if where else f" (not cached: {cache_note()})"), err=True)
@@ -487,6 +488,52 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
         click.echo(f"interrupted: {where}", err=True)
         sys.exit(130)
     except (ValueError, FileNotFoundError, ImportError) as e:
+        raise UsageProblem(" ".join(str(e).split()))
+    click.echo(record["text"])
+
+
+# -- reeb fit ----------------------------------------------------------------------------
+
+@main.command(context_settings=CONTEXT)
+@click.argument("dirs", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False))
+@click.option("-o", "--out", type=click.Path(dir_okay=False), default="ranker.safetensors", show_default=True,
+              help="Weights file to write; a config for reeb propose --config is written beside it (.json).")
+@click.option("--folds", type=click.IntRange(min=2), default=5, show_default=True,
+              help="Blocks of frames for the cross-validated estimate.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the negatives' sample and the fit.")
+@click.option("--epochs", type=click.IntRange(min=1), default=15, show_default=True, help="Passes over the rows.")
+@click.option("--hidden", default="64,64", show_default=True, help="Hidden layer widths, comma-separated.")
+@click.option("--balance", type=click.FloatRange(0, 2), default=0.5, show_default=True,
+              help="Weigh each class's objects by (objects / the class's objects)^BALANCE (1: classes equal).")
+@click.option("-k", "--proposals", "k", type=click.IntRange(min=1), default=2000, show_default=True,
+              help="Proposals counted per frame.")
+@click.option("--iou", type=click.FloatRange(0, 1, min_open=True), default=0.7, show_default=True,
+              help="IoU an object needs.")
+@click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
+@click.option("--preset", default="default", show_default=True, help="Settings the ranking is fitted for.")
+@click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False),
+              help="JSON config over the preset (e.g. reeb calibrate's camera.json).")
+@click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE", help="Change a field (repeatable).")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
+def fit(dirs, out, folds, seed, epochs, hidden, balance, k, iou, limit, preset, config_file, sets, quiet):
+    """Fit the learned ranking on labelled KITTI-format folders (DIRS) for another camera, and
+    estimate by cross-validation over blocks of frames how it does on frames it never saw,
+    beside the training-free settings and the shipped model on the same frames. Writes the
+    weights (OUT, safetensors) and a config that reeb propose --config takes. Runs on the CPU.
+    """
+    from ..eval.fit import FitOptions
+    from . import fit as R
+
+    cfg = build_config(preset, config_file, sets, None)
+    try:
+        widths = tuple(int(w) for w in hidden.split(","))
+    except ValueError:
+        raise click.BadParameter(f"{hidden!r}: expected widths such as 64,64", param_hint="--hidden") from None
+    opts = FitOptions(hidden=widths, epochs=epochs, seed=seed, balance=balance)
+    command = " ".join(["reeb fit", *map(shlex.quote, sys.argv[2:])])
+    try:
+        record = R.run_fit(dirs, out, cfg, opts, folds, k, iou, limit, quiet, command)
+    except (ValueError, FileNotFoundError) as e:
         raise UsageProblem(" ".join(str(e).split()))
     click.echo(record["text"])
 

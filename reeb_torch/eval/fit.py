@@ -1,0 +1,330 @@
+"""``reeb fit``'s engine: fit the learned ranking (:mod:`reeb_torch.ranker`) on labelled
+frames, and estimate by cross-validation how it does on frames it never saw.
+
+* :func:`load_fit_frames` reads KITTI-format folders once: the target objects (car, truck,
+  pedestrian, cyclist) and the boxes that are neither target nor background (vans, trams,
+  ``DontCare``, ...), whose overlapping candidates teach nothing either way.
+* :func:`frame_samples` runs the generator to its candidates (the region cut, eq. 9) and
+  keeps each frame's training rows: every candidate at IoU ≥ ``positive_iou`` with a target
+  (an object's positives weigh 1 together, so each object counts once) and a seeded sample
+  of those below ``negative_iou`` with every labelled box.
+* :func:`fit_ranker` fits a :class:`~reeb_torch.ranker.BoxRanker` (weighted logistic loss,
+  AdamW, one CPU thread, seeded: the same frames and options give the same bits).
+* :func:`frame_folds` makes folds of blocks of frames that never put neighbouring frames
+  of one drive on both sides; :func:`cross_validate` fits on all folds but one, scores
+  the generator with that model on the held-out fold, and collects the held-out hits.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import re
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+from torchvision.ops import box_iou
+
+from ..config import ReebConfig
+from ..ranker import BoxRanker, save_ranker
+from .tune import FrameCache, Frames
+
+__all__ = ["FitFrames", "FitOptions", "Sample", "FitCrossValidation", "load_fit_frames", "frame_sample",
+           "frame_samples", "fit_ranker", "frame_folds", "similar_frames", "training_frames", "cross_validate",
+           "drive_of"]
+
+
+@dataclass
+class FitFrames(Frames):
+    """:class:`~reeb_torch.eval.tune.Frames` with, per frame, ``ignore``: ``float32 [M, 4]``
+    the labelled boxes that are no target (other classes, ``DontCare``)."""
+
+    ignore: list[Tensor] = field(default_factory=list)
+
+
+def load_fit_frames(roots: Sequence[str | os.PathLike], limit: int | None = None) -> FitFrames:
+    """Read the labelled frames of KITTI-format folders (:func:`reeb_torch.eval.tune.load_frames`)
+    and, per frame, the boxes of the other labelled types.
+
+    Raises:
+        ValueError: as :func:`~reeb_torch.eval.tune.load_frames`.
+    """
+    from .data import DEFAULT_CLASSES, KittiDataset, read_kitti_labels
+    from .tune import load_frames
+
+    frames = load_frames(roots, limit)
+    ignore: list[Tensor] = []
+    for root in roots:
+        ds = KittiDataset(root, limit=limit)
+        for image_id in ds.ids:
+            others = [o.box for o in read_kitti_labels(ds.label_dir / f"{image_id}.txt")
+                      if o.type not in DEFAULT_CLASSES]
+            ignore.append(torch.tensor(others, dtype=torch.float32).reshape(-1, 4))
+    return FitFrames(**{f.name: getattr(frames, f.name) for f in dataclasses.fields(Frames)}, ignore=ignore)
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """How :func:`fit_ranker` fits a model (``reeb fit``'s options).
+
+    Attributes:
+        hidden: widths of the MLP's hidden layers.
+        members: MLPs fitted from different seeds and averaged.
+        prefilter: widths of the prefilter's hidden layers, or None for no prefilter.
+        epochs: passes over the training rows.
+        negatives: fraction of each frame's negative candidates sampled.
+        positive_iou: a candidate at this IoU or more with a target object is a positive.
+        negative_iou: a candidate below this IoU with every labelled box is a negative (the
+            others are left out).
+        balance: each class's objects weigh (all objects / the class's objects)^balance (0:
+            every object weighs the same; 1: every class does).
+        lr, weight_decay: AdamW's (a one-cycle schedule peaks at ``lr``).
+        batch: rows per step.
+        seed: seeds the negatives' sample and the fit.
+    """
+
+    hidden: tuple[int, ...] = (64, 64)
+    members: int = 1
+    prefilter: tuple[int, ...] | None = (16,)
+    epochs: int = 15
+    negatives: float = 0.02
+    positive_iou: float = 0.7
+    negative_iou: float = 0.5
+    balance: float = 0.5
+    lr: float = 3e-3
+    weight_decay: float = 1e-4
+    batch: int = 4096
+    seed: int = 0
+
+
+@dataclass
+class Sample:
+    """One frame's training rows: ``features float32 [n, F]``, ``target float32 [n]`` (1 a
+    positive, 0 a negative), ``weight float32 [n]`` and ``label int64 [n]`` (the class of a
+    positive's object, -1 for a negative)."""
+
+    features: Tensor
+    target: Tensor
+    weight: Tensor
+    label: Tensor
+
+
+def _labels(boxes: Tensor, gt: Tensor, ignore: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Per candidate: best IoU with a target, which target, best IoU with any labelled box."""
+    k = len(boxes)
+    if len(gt):
+        iou = box_iou(boxes, gt)
+        best, which = iou.max(1)
+    else:
+        best, which = torch.zeros(k), torch.full((k,), -1, dtype=torch.long)
+    other = box_iou(boxes, ignore).amax(1) if len(ignore) else torch.zeros(k)
+    return best, which, torch.maximum(best, other)
+
+
+def frame_sample(features: Tensor, boxes: Tensor, gt: Tensor, labels: Tensor, ignore: Tensor, opts: FitOptions,
+                 rng: np.random.Generator) -> Sample:
+    """The training rows of one frame's candidates (``features [K, F]``, ``boxes [K, 4]``) for
+    its target objects ``gt [N, 4]`` of classes ``labels [N]``."""
+    best, which, any_iou = _labels(boxes, gt, ignore)
+    pos = torch.nonzero(best >= opts.positive_iou).squeeze(1)
+    neg = torch.nonzero(any_iou < opts.negative_iou).squeeze(1)
+    neg = neg[torch.from_numpy(rng.random(len(neg)) < opts.negatives)]
+    per_object = torch.bincount(which[pos], minlength=max(1, len(gt))).float()
+    w_pos = 1.0 / per_object[which[pos]]
+    idx = torch.cat([pos, neg])
+    target = torch.cat([torch.ones(len(pos)), torch.zeros(len(neg))])
+    weight = torch.cat([w_pos, torch.ones(len(neg))])
+    label = torch.cat([labels[which[pos]], torch.full((len(neg),), -1, dtype=torch.long)])
+    return Sample(features[idx].contiguous(), target, weight, label)
+
+
+def frame_samples(cache: FrameCache, cfg: ReebConfig, opts: FitOptions, indices: Sequence[int] | None = None,
+                  progress: Callable | None = None) -> list[Sample]:
+    """:func:`frame_sample` of each frame of ``cache`` (``indices``, default all) under ``cfg``;
+    frame ``i``'s negatives are drawn by a generator seeded with ``(opts.seed, i)``."""
+    frames = cache.frames
+    idx = range(len(frames)) if indices is None else indices
+    cfg = cfg.replace(ranker="none")  # the candidates do not depend on the ranker
+    out = []
+    for i in (progress(idx) if progress else idx):
+        c = cache.candidates(cfg, i)
+        ignore = frames.ignore[i] if isinstance(frames, FitFrames) else torch.zeros(0, 4)
+        out.append(frame_sample(c.features, c.boxes, frames.gts[i], frames.labels[i], ignore, opts,
+                                np.random.default_rng([opts.seed, i])))
+    return out
+
+
+def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: FitOptions) -> BoxRanker:
+    """A :class:`BoxRanker` fitted on ``samples`` (weighted logistic loss; the positives'
+    total weight is made the negatives'), its prefilter on the same rows. Runs on one CPU thread with seeded draws, so the
+    same samples and options give the same weights bit for bit.
+
+    Raises:
+        ValueError: no positive or no negative row (no labelled object found by a candidate).
+    """
+    x = torch.cat([s.features for s in samples]).float()
+    y = torch.cat([s.target for s in samples])
+    w = torch.cat([s.weight for s in samples])
+    if not bool((y == 1).any()) or not bool((y == 0).any()):
+        raise ValueError("no candidate overlaps a labelled object at the positive IoU (or none is background): "
+                         "the ranking cannot be fitted on these frames")
+    if opts.balance:  # each class's objects weigh (objects / the class's objects)^balance
+        label = torch.cat([s.label for s in samples])
+        per_class = torch.bincount(label[y == 1], weights=w[y == 1])
+        factor = torch.where(per_class > 0, (per_class.sum() / per_class.clamp(min=1e-9)) ** opts.balance, 0.0)
+        w = torch.where(y == 1, w * factor[label.clamp(min=0)].float(), w)
+    w = torch.where(y == 1, w * (w[y == 0].sum() / w[y == 1].sum()), w)
+    model = BoxRanker(feature_names, opts.hidden, opts.members, opts.prefilter)
+    model.mean.copy_(x.mean(0))
+    model.scale.copy_(x.std(0).clamp(min=1e-6))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        xs = model.standardise(x)
+        for m, member in enumerate(model.members):
+            _fit_member(member, xs, y, w, opts, opts.seed * 1000 + m)
+        if model.prefilter is not None:
+            _fit_member(model.prefilter, xs[:, : model.cheap], y, w, opts, opts.seed * 1000 + 999)
+    finally:
+        torch.set_num_threads(threads)
+    return model.eval().requires_grad_(False)
+
+
+def _fit_member(net: torch.nn.Module, x: Tensor, y: Tensor, w: Tensor, opts: FitOptions, seed: int) -> None:
+    gen = torch.Generator().manual_seed(seed)
+    for p in net.parameters():  # the same initial weights for the same seed, whatever ran before
+        if p.ndim == 2:
+            bound = 1.0 / math.sqrt(p.shape[1])
+            p.data.uniform_(-bound, bound, generator=gen)
+        else:
+            p.data.zero_()
+    opt = torch.optim.AdamW(net.parameters(), lr=opts.lr, weight_decay=opts.weight_decay)
+    n = len(x)
+    steps = opts.epochs * math.ceil(n / opts.batch)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=opts.lr, total_steps=steps)
+    net.train()
+    for _ in range(opts.epochs):
+        perm = torch.randperm(n, generator=gen)
+        for s in range(0, n, opts.batch):
+            b = perm[s: s + opts.batch]
+            logits = net(x[b]).squeeze(1)
+            loss = torch.nn.functional.binary_cross_entropy_with_logits(logits, y[b], weight=w[b], reduction="sum")
+            opt.zero_grad()
+            (loss / w[b].sum()).backward()
+            opt.step()
+            sched.step()
+    net.eval()
+
+
+# -- folds ---------------------------------------------------------------------------------------
+
+_DRIVE = re.compile(r"^(.+)_(\d+)$")
+
+
+def drive_of(image_id: str, folder: str) -> str | None:
+    """The drive (sequence) a frame belongs to, from ids of the form ``<drive>_<number>``
+    (KITTI tracking: ``t0000_000012``); None for ids that name no drive (KITTI object ids:
+    frames drawn from many drives)."""
+    m = _DRIVE.match(image_id)
+    return f"{folder}/{m.group(1)}" if m else None
+
+
+def frame_folds(n: int, folds: int) -> list[list[int]]:
+    """``folds`` blocks of consecutive frames (in the order given: folder, then id), sizes
+    differing by at most one; :func:`training_frames` keeps a held-out block's neighbours
+    out of its training frames.
+
+    Raises:
+        ValueError: fewer than 2 folds, or fewer frames than folds.
+    """
+    from .tune import fold_blocks
+
+    return fold_blocks(n, folds)
+
+
+def similar_frames(images: Sequence[Tensor], ratio: float = 0.3) -> list[set[int]]:
+    """Per frame, the other frames that look nearly the same: the distance between their
+    24 × 80 thumbnails is below ``ratio`` times the median distance between all pairs
+    (neighbouring frames of one drive, or two moments of one drive among KITTI's object
+    frames, whose ids do not name their drive)."""
+    thumbs = torch.stack([torch.nn.functional.interpolate(im[None].float(), size=(24, 80), mode="area")[0].flatten()
+                          for im in images])
+    d = torch.cdist(thumbs, thumbs)
+    off = d[~torch.eye(len(images), dtype=torch.bool)]
+    limit = ratio * float(off.median()) if off.numel() else 0.0
+    return [set(torch.nonzero(d[i] < limit).flatten().tolist()) - {i} for i in range(len(images))]
+
+
+def training_frames(blocks: list[list[int]], held: int, ids: Sequence[str], folders: Sequence[str],
+                    similar: Sequence[set[int]] = (), gap: int = 2) -> list[int]:
+    """The frames to fit on when block ``held`` is held out: every other block's frames but
+    the frames of the held-out frames' drives within ``gap`` frames of the block (in that
+    drive's order) and the frames ``similar`` to a held-out one, so no neighbouring frames of
+    one drive fall on both sides."""
+    drives = [drive_of(i, f) for i, f in zip(ids, folders)]
+    held_set = set(blocks[held])
+    near: set[int] = set()
+    for d in {drives[i] for i in held_set} - {None}:
+        members = [i for i in range(len(ids)) if drives[i] == d]
+        pos = [j for j, i in enumerate(members) if i in held_set]
+        lo, hi = min(pos) - gap, max(pos) + gap
+        near.update(members[j] for j in range(max(0, lo), min(len(members), hi + 1)))
+    for i in held_set:
+        near.update(similar[i] if similar else ())
+    return [i for b, block in enumerate(blocks) if b != held for i in block if i not in near]
+
+
+@dataclass
+class FitCrossValidation:
+    """Held-out recall of fitted rankings against a base config on the same frames.
+
+    Attributes:
+        folds: the frame indices of each held-out block.
+        ranked_hits, base_hits: per frame (in frame order), ``bool [N_i]``: the objects the
+            generator with the model fitted without that frame's block finds, and ``base``'s.
+        per_fold: per block, ``(ranked recall, base recall)``.
+        trained: per block, how many frames its model was fitted on.
+    """
+
+    folds: list[list[int]]
+    ranked_hits: list[Tensor] = field(repr=False)
+    base_hits: list[Tensor] = field(repr=False)
+    per_fold: list[tuple[float, float]] = field(default_factory=list)
+    trained: list[int] = field(default_factory=list)
+
+
+def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples: Sequence[Sample],
+                   opts: FitOptions, folds: int, k: int = 2000, iou: float = 0.7, gap: int = 2,
+                   progress: Callable | None = None) -> FitCrossValidation:
+    """For each of ``folds`` blocks of frames: fit on the others (:func:`training_frames`),
+    run the generator of ``cfg`` with that model on the block, and pair its hits with
+    ``base``'s on the same objects."""
+    from .tune import objective
+
+    frames = cache.frames
+    blocks = frame_folds(len(frames), folds)
+    similar = similar_frames(frames.images)
+    names = cache.candidates(cfg.replace(ranker="none"), 0).feature_names
+    r_hits: list = [None] * len(frames)
+    b_hits: list = [None] * len(frames)
+    per_fold, trained = [], []
+    with tempfile.TemporaryDirectory(prefix="reeb-fit-") as tmp:
+        for f in progress(range(len(blocks))) if progress else range(len(blocks)):
+            block = blocks[f]
+            train = training_frames(blocks, f, frames.ids, frames.folders, similar, gap)
+            model = fit_ranker([samples[i] for i in train], names, opts)
+            path = save_ranker(model, Path(tmp) / f"fold{f}.safetensors")
+            for i, rh, bh in zip(block, cache.hits(cfg.replace(ranker=str(path)), block, k, iou),
+                                 cache.hits(base, block, k, iou)):
+                r_hits[i], b_hits[i] = rh, bh
+            labels = [frames.labels[i] for i in block]
+            per_fold.append((objective([r_hits[i] for i in block], labels),
+                             objective([b_hits[i] for i in block], labels)))
+            trained.append(len(train))
+    return FitCrossValidation(blocks, r_hits, b_hits, per_fold, trained)

@@ -1,0 +1,154 @@
+"""``reeb fit``: the command's work around :mod:`reeb_torch.eval.fit` (load the frames, take
+their candidates, cross-validate, fit on all of them, print, write the weights and a config
+that ``reeb propose --config`` reads)."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+from ..config import ReebConfig
+from ..eval import fit as F
+from ..eval.metrics import compare_recall
+from ..eval.tune import FrameCache, bootstrap_interval, objective
+
+__all__ = ["run_fit", "frames_digest"]
+
+
+def _bar(total: int, desc: str, quiet: bool) -> Any:
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, disable=True if quiet else None, file=sys.stderr, dynamic_ncols=True)
+
+
+def _iterate(desc: str, quiet: bool):
+    """A progress-bar wrapper for the engine's loops (``progress=``)."""
+    def wrap(items):
+        items = list(items)
+        with _bar(len(items), desc, quiet) as bar:
+            for it in items:
+                yield it
+                bar.update()
+
+    return wrap
+
+
+def frames_digest(frames: F.FitFrames) -> str:
+    """A short digest of which frames a model was fitted on (folder names and ids)."""
+    text = "\n".join(sorted(f"{f}/{i}" for f, i in zip(frames.folders, frames.ids)))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _row(name: str, hits: list, ref: list | None, frames: F.FitFrames, idx: Sequence[int]) -> dict[str, Any]:
+    """Recall (with its interval), per class, and the pairing with ``ref`` on the frames ``idx``."""
+    h, lab = [hits[i] for i in idx], [frames.labels[i] for i in idx]
+    est = bootstrap_interval(h, lab)
+    per_class = {}
+    for c, cname in enumerate(frames.classes):
+        n = sum(int((x == c).sum()) for x in lab)
+        if n:
+            per_class[cname] = 100 * sum(int(y[x == c].sum()) for y, x in zip(h, lab)) / n
+    row = {"name": name, "recall": 100 * est.recall, "low": 100 * est.low, "high": 100 * est.high,
+           "objects": est.num_objects, "per_class": per_class}
+    if ref is not None:
+        row["paired"] = dataclasses.asdict(compare_recall([ref[i] for i in idx], h))
+    return row
+
+
+def _fmt(row: dict[str, Any]) -> str:
+    classes = ", ".join(f"{c} {v:.1f}" for c, v in row["per_class"].items())
+    paired = ""
+    if "paired" in row:
+        p = row["paired"]
+        paired = f"; against training-free +{p['gained']} / -{p['lost']}, p {p['p_value']:.2g}"
+    return (f"  {row['name']:<24} {row['recall']:5.1f} % ({row['low']:.1f}-{row['high']:.1f}; {classes})"
+            f"{paired}")
+
+
+def _report(frames: F.FitFrames, rows: dict[str, list], ref: list) -> tuple[list[str], dict[str, Any]]:
+    """The table of each setting's recall over all frames and per folder."""
+    groups = [("all frames", list(range(len(frames))))]
+    names = list(dict.fromkeys(frames.folders))
+    if len(names) > 1:
+        groups += [(n, [i for i, f in enumerate(frames.folders) if f == n]) for n in names]
+    lines, record = [], {}
+    for title, idx in groups:
+        lines.append(f"{title} ({len(idx)} frames):")
+        record[title] = []
+        for name, hits in rows.items():
+            row = _row(name, hits, None if hits is ref else ref, frames, idx)
+            record[title].append(row)
+            lines.append(_fmt(row))
+    return lines, record
+
+
+def _shipped_hits(cache: FrameCache, cfg: ReebConfig, k: int, iou: float) -> list | None:
+    """The shipped model's hits on the frames, or None where it cannot rank this config's features."""
+    from ..ranker import RankerWeightsError
+
+    try:
+        return cache.hits(cfg.replace(ranker="kitti"), range(len(cache.frames)), k, iou)
+    except RankerWeightsError:
+        return None
+
+
+def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions, folds: int, k: int = 2000,
+            iou: float = 0.7, limit: int | None = None, quiet: bool = False,
+            command: str = "") -> dict[str, Any]:
+    """The whole of ``reeb fit``; returns the record (also in the weights' metadata).
+
+    ``cfg`` is the config the ranking is fitted for (its candidates; its ``ranker`` is
+    replaced by the new weights); it is compared with ``cfg.training_free()`` and, where it
+    can rank these features, the shipped ``kitti`` model, on the same frames.
+
+    Raises:
+        ValueError: no labels, fewer frames than folds, nothing to fit on.
+    """
+    from ..ranker import load_ranker, save_ranker
+
+    t0 = time.monotonic()
+    frames = F.load_fit_frames(roots, limit=limit)
+    F.frame_folds(len(frames), folds)  # refuse fewer frames than folds before any work
+    cache = FrameCache(frames)
+    base = cfg.training_free()
+    samples = F.frame_samples(cache, cfg, opts, progress=_iterate("candidates", quiet))
+    cv = F.cross_validate(cache, cfg, base, samples, opts, folds, k, iou, progress=_iterate("folds", quiet))
+    names = cache.candidates(cfg.replace(ranker="none"), 0).feature_names
+    model = F.fit_ranker(samples, names, opts)
+    rows = {"training-free": cv.base_hits, "fitted (cross-validated)": cv.ranked_hits}
+    table, record = _report(frames, rows, cv.base_hits)  # kept in the weights: the same for the same frames
+    shipped = _shipped_hits(cache, cfg, k, iou)
+    if shipped is not None:
+        table = _report(frames, {**rows, "shipped kitti model": shipped}, cv.base_hits)[0]
+    provenance = {
+        "data": [os.path.basename(os.path.normpath(r)) for r in roots], "frames": len(frames),
+        "objects": sum(len(g) for g in frames.gts), "frames_digest": frames_digest(frames),
+        "options": dataclasses.asdict(opts), "folds": folds, "k": k, "iou": iou, "command": command,
+        "cross_validated": record,
+    }
+    path = save_ranker(model, out, provenance, cfg.to_dict())
+    config_path = Path(out).with_suffix(".json")
+    config_path.write_text(json.dumps({**_changed(cfg), "ranker": str(out)}, indent=2) + "\n", encoding="utf-8")
+    load_ranker(str(path), names)  # what it wrote reads back
+    head = (f"{len(frames)} frames, {provenance['objects']} objects; {folds} folds of blocks of frames "
+            f"(no neighbouring frames of one drive on both sides); recall at {k} proposals, IoU {iou}, "
+            "95 % frame-bootstrap intervals; "
+            f"{time.monotonic() - t0:.0f} s")
+    note = []
+    if shipped is not None and load_ranker("kitti").meta.get("provenance", {}).get("frames_digest") == \
+            provenance["frames_digest"]:
+        note = ["  (the shipped model was fitted on these frames: its row is no estimate)"]
+    text = "\n".join([head] + table + note + [f"wrote {path} and {config_path} (reeb propose --config {config_path})"])
+    return {"provenance": provenance, "text": text, "weights": str(path), "config": str(config_path)}
+
+
+def _changed(cfg: ReebConfig) -> dict[str, Any]:
+    """The fields of ``cfg`` that differ from the package default, but the ranker."""
+    default = ReebConfig().to_dict()
+    return {k: v for k, v in cfg.to_dict().items() if default[k] != v and k != "ranker"}

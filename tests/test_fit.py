@@ -1,0 +1,132 @@
+"""Fitting the learned ranking (reeb_torch.eval.fit, reeb fit): training rows from labelled
+candidates (hand-worked), a seeded fit that gives the same bits twice, folds that keep
+neighbouring frames of one drive on one side, the command end to end, and the shipped
+weights refitted bit for bit from the frames and options they name."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from reeb_torch.eval import fit as F
+from reeb_torch.stages.features import feature_names
+
+REPO_DATA = __import__("pathlib").Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def test_frame_sample_by_hand():
+    """Positives: IoU >= 0.7 with a target, an object's positives weigh 1 together; negatives:
+    below 0.5 with every labelled box (targets and the others); the rest left out."""
+    gt = torch.tensor([[0.0, 0.0, 10.0, 10.0]])
+    ignore = torch.tensor([[100.0, 0.0, 110.0, 10.0]])
+    boxes = torch.tensor([[0.0, 0.0, 10.0, 10.0],     # IoU 1: positive
+                          [0.0, 0.0, 10.0, 12.0],     # IoU 0.83: positive
+                          [0.0, 0.0, 10.0, 17.0],     # IoU 0.59: neither
+                          [50.0, 50.0, 60.0, 60.0],   # background: negative
+                          [100.0, 0.0, 110.0, 11.0]])  # on an ignored van: neither
+    feats = torch.arange(5.0)[:, None].expand(5, 3)
+    s = F.frame_sample(feats, boxes, gt, torch.tensor([2]), ignore, F.FitOptions(negatives=1.0),
+                       np.random.default_rng(0))
+    assert s.features[:, 0].tolist() == [0.0, 1.0, 3.0]
+    assert s.target.tolist() == [1.0, 1.0, 0.0]
+    assert s.weight.tolist() == [0.5, 0.5, 1.0]
+    assert s.label.tolist() == [2, 2, -1]
+
+
+def _samples(seed: int, n: int = 3000) -> list[F.Sample]:
+    g = torch.Generator().manual_seed(seed)
+    x = torch.randn(n, 47, generator=g)
+    y = (x[:, 0] + 0.3 * torch.randn(n, generator=g) > 1).float()
+    return [F.Sample(x, y, torch.ones(n), torch.where(y > 0, 0, -1))]
+
+
+def test_fit_is_seeded_and_learns():
+    opts = F.FitOptions(epochs=10, hidden=(8,), batch=256)
+    a = F.fit_ranker(_samples(0), feature_names(4), opts)
+    torch.randn(3)  # whatever ran between
+    b = F.fit_ranker(_samples(0), feature_names(4), opts)
+    assert all(torch.equal(p, q) for p, q in zip(a.state_dict().values(), b.state_dict().values()))
+    c = F.fit_ranker(_samples(0), feature_names(4), F.FitOptions(epochs=10, hidden=(8,), batch=256, seed=1))
+    assert not torch.equal(a.members[0][0].weight, c.members[0][0].weight)
+    test = _samples(1)[0]
+    with torch.no_grad():
+        logit = a(test.features)
+    pos, neg = logit[test.target == 1], logit[test.target == 0]
+    assert float((pos[:, None] > neg[None, :]).float().mean()) > 0.8  # AUC on new rows (0.5: chance)
+    with pytest.raises(ValueError, match="cannot be fitted"):
+        F.fit_ranker([F.Sample(torch.zeros(3, 47), torch.zeros(3), torch.ones(3), torch.full((3,), -1))],
+                     feature_names(4), opts)
+
+
+def test_folds_keep_neighbouring_frames_of_a_drive_apart():
+    ids = [f"{i:06d}" for i in range(6)] + [f"t0000_{i:06d}" for i in range(0, 30, 3)]
+    folders = ["kitti"] * 6 + ["kitti_tracking"] * 10
+    blocks = F.frame_folds(len(ids), 4)
+    assert sorted(i for b in blocks for i in b) == list(range(16))
+    for held, block in enumerate(blocks):
+        train = F.training_frames(blocks, held, ids, folders, gap=2)
+        assert not set(train) & set(block)
+        drive = [i for i in range(6, 16)]
+        for i in block:
+            if i in drive:  # no frame of the drive within 2 of a held-out one
+                assert all(abs(j - i) > 2 for j in train if j in drive)
+        assert all(j in train for j in range(6) if j not in block)  # object frames name no drive
+    similar = [set() for _ in ids]
+    similar[0], similar[5] = {5}, {0}
+    assert 5 not in F.training_frames(blocks, 0, ids, folders, similar)
+    assert F.drive_of("t0016_000002", "x") == "x/t0016" and F.drive_of("000002", "x") is None
+
+
+def test_similar_frames_finds_near_copies(sample_image):
+    other = torch.roll(sample_image, 300, dims=2)
+    frames = [sample_image, sample_image.clone(), other, sample_image.flip(1)]
+    sim = F.similar_frames(frames)
+    assert sim[0] == {1} and sim[1] == {0} and 2 not in sim[0]
+
+
+@pytest.mark.kitti
+def test_reeb_fit_end_to_end(kitti_dir, tmp_path):
+    out = tmp_path / "mine.safetensors"
+    r = subprocess.run([sys.executable, "-m", "reeb_torch.runs.cli", "fit", str(kitti_dir), "--limit", "8",
+                        "--folds", "2", "--epochs", "2", "-q", "-o", str(out)], capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "training-free" in r.stdout and "fitted (cross-validated)" in r.stdout and "shipped kitti model" in r.stdout
+    from reeb_torch import ProposalGenerator, ReebConfig
+    from reeb_torch.ranker import load_ranker
+    import json
+
+    cfg = json.loads(out.with_suffix(".json").read_text())
+    assert cfg["ranker"] == str(out)
+    assert load_ranker(str(out)).meta["provenance"]["frames"] == 8
+    gen = ProposalGenerator(ReebConfig.from_dict(cfg))
+    assert gen.ranking.model is load_ranker(str(out))
+    bad = subprocess.run([sys.executable, "-m", "reeb_torch.runs.cli", "fit", str(kitti_dir), "--limit", "1",
+                          "--folds", "2", "-o", str(tmp_path / "x.safetensors")], capture_output=True, text=True,
+                         timeout=300)
+    assert bad.returncode == 2 and "cannot make 2 folds" in bad.stderr
+
+
+@pytest.mark.kitti
+def test_shipped_weights_refit_bit_for_bit(kitti_dir):
+    """The model in the shipped file is the fit on all the frames it names, with its options."""
+    from reeb_torch import ReebConfig
+    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.ranker import load_ranker
+
+    shipped = load_ranker("kitti")
+    prov = shipped.meta["provenance"]
+    dirs = [REPO_DATA / d for d in prov["data"]]
+    if not all(d.is_dir() for d in dirs):
+        pytest.skip(f"the frames the shipped weights were fitted on are absent: {dirs}")
+    opts = F.FitOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in prov["options"].items()})
+    frames = F.load_fit_frames(dirs)
+    assert len(frames) == prov["frames"]
+    samples = F.frame_samples(FrameCache(frames), ReebConfig(), opts)
+    model = F.fit_ranker(samples, shipped.feature_names, opts)
+    for (name, a), b in zip(shipped.state_dict().items(), model.state_dict().values()):
+        assert torch.equal(a, b), name
