@@ -191,7 +191,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--presets", nargs="*", default=["default", "default-no-regions"])
+    ap.add_argument("--presets", nargs="*", default=["default", "training-free"])
     ap.add_argument("--out", type=Path, default=Path("runs/speed"))
     args = ap.parse_args(argv)
     if args.threads:

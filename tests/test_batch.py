@@ -123,7 +123,7 @@ def test_set_parses_boolean_words(word, value):
     from reeb_torch.runs.common import build_config
 
     assert build_config("default", None, [f"use_regions={word}"], None).use_regions is value
-    assert build_config("default", None, [f"refine={word}"], None).refine is value
+    assert build_config("training-free", None, [f"refine={word}"], None).refine is value
 
 
 @pytest.mark.parametrize("word", ["maybe", "2", "", "none", "[]", "offf"])
@@ -157,7 +157,7 @@ def test_set_takes_every_word_of_every_choice_field():
              for w in typing.get_args(hints[f.name])]
     assert len(pairs) >= 20
     for name, word in pairs:
-        cfg = build_config("default", None, [f"{name}={word}"], None)
+        cfg = build_config("training-free", None, [f"{name}={word}"], None)
         assert getattr(cfg, name) == word, (name, word)
 
 

@@ -173,7 +173,7 @@ def test_selection_variants_change_the_ranking(variants_mod, bundled):
     """Narrow boxes scored x 0 instead of the shadow term score 0 and rank behind every
     other box; with NMS at 0.5 inside the regions no two candidates of a region overlap
     more than that (the default's candidates do)."""
-    cfg = ReebConfig()
+    cfg = ReebConfig().training_free()
     plain = ProposalGenerator(cfg.replace(shadow_score="none"))
     narrow = variants_mod.with_ranking(variants_mod.NarrowShadow(cfg, 0.6, 0.0, False))
     im = bundled[0]

@@ -34,11 +34,18 @@ def test_paper_preset_follows_the_printed_text():
 
 
 def test_presets_and_lookup():
-    assert set(PRESETS) == {"default", "default-no-regions", "paper", "paper-no-regions", "persons"}
-    # the opt-in second scoring pass: the default but for the rescore fields
+    assert set(PRESETS) == {"default", "training-free", "training-free-no-regions", "default-no-regions", "paper",
+                            "paper-no-regions", "persons"}
+    # the default ranks with the shipped model; training-free is it without the learned part
+    assert ReebConfig().ranker == "kitti" and get_preset("training-free") == ReebConfig().training_free()
+    assert get_preset("training-free").ranker == "none"
+    assert get_preset("default-no-regions") == get_preset("training-free-no-regions") == \
+        get_preset("training-free").replace(use_regions=False)
+    # the opt-in second scoring pass: training-free but for the rescore fields
     persons = get_preset("persons")
     assert (persons.rescore, persons.rescore_scope, persons.rescore_max_height_m) == ("orientation", "persons", 2.3)
-    assert persons.replace(rescore="none", rescore_scope="all", rescore_max_height_m=None) == ReebConfig()
+    assert persons.replace(rescore="none", rescore_scope="all", rescore_max_height_m=None) == \
+        get_preset("training-free")
     assert not get_preset("paper-no-regions").use_regions
     assert not ReebConfig().refine
     with pytest.raises(ValueError, match="unknown preset"):

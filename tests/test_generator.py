@@ -193,9 +193,9 @@ def test_stage_times_are_recorded(crop):
     gen.stage_times = {}
     gen([crop])
     # no road term in the default score: the road mask is not computed at all
-    assert set(gen.stage_times) == {"edges", "groups", "regions", "scoring", "nms"}
+    assert set(gen.stage_times) == {"edges", "groups", "regions", "scoring", "ranker", "nms"}
     assert all(v >= 0 for v in gen.stage_times.values())
-    gen = ProposalGenerator(**SMALL, road_score="reward", refine=True)
+    gen = ProposalGenerator(**SMALL, ranker="none", road_score="reward", refine=True)
     gen.stage_times = {}
     gen([crop])
     assert set(gen.stage_times) == {"edges", "groups", "road", "regions", "scoring", "refine", "nms"}

@@ -46,7 +46,7 @@ def test_default_recall_floor(frames):
 
 @pytest.mark.kitti
 def test_refinement_recall_floor(frames):
-    r = _recall("default", frames, refine=True, refine_min_aspect=0.6)
+    r = _recall("training-free", frames, refine=True, refine_min_aspect=0.6)
     assert r.at(2000, 0.5) >= 0.93
     assert r.at(2000, 0.7) >= 0.75
 

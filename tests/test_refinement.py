@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from reeb_torch import ProposalGenerator, ReebConfig
+from reeb_torch.config import TRAINING_FREE
 from reeb_torch.stages.groups import EdgeGroups
 from reeb_torch.stages.refinement import enclosed_at, enclosed_tables, refine_boxes
 
@@ -57,7 +58,7 @@ def test_refine_climbs_to_the_best_box():
 
 
 def test_box_scorer_equals_grid_scores(sample_image):
-    gen = ProposalGenerator(ReebConfig(refine=True, straddle_weight=0.5, road_score="stand"))
+    gen = ProposalGenerator(ReebConfig(**TRAINING_FREE, refine=True, straddle_weight=0.5, road_score="stand"))
     seen = {}
     real = gen.ranking.refine
 
@@ -128,7 +129,7 @@ def test_compiled_refinement_equals_the_tensor_refinement(sample_image, override
     # the compiled pass makes the very same moves and scores, bit for bit, as the tensor
     # scorer's refine_boxes (same float64 operations; the location score and the
     # normaliser are tabulated by the tensor functions themselves)
-    gen = ProposalGenerator(ReebConfig(refine=True, **overrides))
+    gen = ProposalGenerator(ReebConfig(**TRAINING_FREE, refine=True, **overrides))
     ranking = gen.ranking
     seen = {}
     real = ranking.refine
@@ -157,7 +158,7 @@ def test_refinement_of_other_scores_takes_the_tensor_path(overrides):
     from reeb_torch.ranking import ScoreMaps
     from reeb_torch.stages.groups import connected_groups
 
-    gen = ProposalGenerator(ReebConfig(refine=True, **overrides))
+    gen = ProposalGenerator(ReebConfig(**TRAINING_FREE, refine=True, **overrides))
     crossing = (torch.zeros(1), torch.zeros(1)) if overrides.get("straddle_weight") else None
     edges = torch.zeros(1, 4, 4)
     maps = ScoreMaps(edges, connected_groups(edges, 8), (4, 4), crossing=crossing)
@@ -167,7 +168,7 @@ def test_refinement_of_other_scores_takes_the_tensor_path(overrides):
 def test_refine_min_aspect_keeps_narrow_boxes_where_they_are(sample_image):
     seen = {}
     for aspect in (0.0, 0.6):
-        gen = ProposalGenerator(ReebConfig(refine=True, refine_min_aspect=aspect))
+        gen = ProposalGenerator(ReebConfig(**TRAINING_FREE, refine=True, refine_min_aspect=aspect))
         real = gen.ranking.refine
 
         def spy(maps, grid, chosen, scores):

@@ -146,7 +146,7 @@ def test_a_mixed_batch_split_between_the_cores_equals_each_image_alone(sample_im
     gen = ProposalGenerator(top_k=200)
     gen.stage_times = {}
     both = gen(crops)
-    assert set(gen.stage_times) == {"edges", "groups", "regions", "scoring", "nms"}
+    assert set(gen.stage_times) == {"edges", "groups", "regions", "scoring", "ranker", "nms"}
     for crop, got in zip(crops, both):
         alone = gen([crop])[0]
         assert torch.equal(got["boxes"], alone["boxes"]) and torch.equal(got["scores"], alone["scores"])

@@ -11,6 +11,7 @@ import torch
 
 import reeb_torch
 from reeb_torch import ProposalGenerator, ReebConfig, generator, warmup
+from reeb_torch.config import TRAINING_FREE
 from reeb_torch import _warm
 from reeb_torch.stages import _cache
 
@@ -69,7 +70,7 @@ def test_first_call_reports_its_warm_up_apart(sample_image):
     other = ProposalGenerator(cfg.replace(top_k=77, alpha=0.3))  # other numbers: the same kernels
     other([sample_image])
     assert other.compile_s == 0.0
-    switched = ProposalGenerator(cfg.replace(refine=True))  # another switch: warms up
+    switched = ProposalGenerator(cfg.replace(**TRAINING_FREE, refine=True))  # another switch: warms up
     generator._WARM.discard(generator._kernel_key(switched.config))
     switched([sample_image])
     assert switched.compile_s > 0

@@ -1,0 +1,137 @@
+"""The learned ranking (reeb_torch.ranker, ReebConfig.ranker): the model's contract, its
+weights files (safetensors, read back the same; missing, corrupt, foreign and stale files
+refused in one line naming the file), the shipped model, and the generator with a ranker
+(the output contract, one image alone as in a batch, 'none' is the training-free path)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from reeb_torch import ProposalGenerator, ReebConfig
+from reeb_torch.ranker import SHIPPED, BoxRanker, RankerWeightsError, load_ranker, save_ranker, shipped_path
+from reeb_torch.stages.features import FEATURES_VERSION, feature_names
+
+
+def _model(seed: int = 0, **kw) -> BoxRanker:
+    torch.manual_seed(seed)
+    return BoxRanker(feature_names(4), **kw).eval()
+
+
+def test_model_contract():
+    m = _model()
+    x = torch.randn(5, 47)
+    assert m(x).shape == (5,) and m(x).dtype == torch.float32
+    assert m.prefilter_scores(x[:, : m.cheap]).shape == (5,)
+    with pytest.raises(ValueError, match=r"\[K, 47\]"):
+        m(torch.randn(5, 46))
+    with pytest.raises(ValueError, match="no prefilter"):
+        _model(prefilter=None).prefilter_scores(x[:, :18])
+    two = BoxRanker(feature_names(4), members=2)
+    assert torch.allclose(two(x), (two.members[0](two.standardise(x)) + two.members[1](two.standardise(x))).squeeze(1) / 2)
+
+
+def test_weights_round_trip(tmp_path):
+    m = _model(3, hidden=(8,), members=2)
+    p = save_ranker(m, tmp_path / "r.safetensors", provenance={"frames": 2}, config={"horizon": 0.5})
+    got = load_ranker(str(p))
+    assert got.hidden == (8,) and len(got.members) == 2 and got.prefilter_hidden == (16,)
+    assert all(torch.equal(a, b) for a, b in zip(m.state_dict().values(), got.state_dict().values()))
+    assert got.meta == {"provenance": {"frames": 2}, "config": {"horizon": 0.5}}
+    save_ranker(m, tmp_path / "s.safetensors", provenance={"frames": 2}, config={"horizon": 0.5})
+    assert (tmp_path / "r.safetensors").read_bytes() == (tmp_path / "s.safetensors").read_bytes()
+    assert not any(p.requires_grad for p in got.parameters())
+
+
+def test_bad_weights_files_are_one_line_errors(tmp_path):
+    with pytest.raises(RankerWeightsError, match="no such file") as e:
+        load_ranker(str(tmp_path / "missing.safetensors"))
+    assert "\n" not in str(e.value) and "'none'" in str(e.value)
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"\x10\x00\x00\x00\x00\x00\x00\x00{not json")
+    with pytest.raises(RankerWeightsError, match="not a readable safetensors file") as e:
+        load_ranker(str(bad))
+    assert "\n" not in str(e.value) and str(bad) in str(e.value)
+    from safetensors.torch import save_file
+
+    other = tmp_path / "other.safetensors"
+    save_file({"w": torch.zeros(2)}, str(other), metadata={"format": "pt"})
+    with pytest.raises(RankerWeightsError, match="not a reeb-torch ranker's"):
+        load_ranker(str(other))
+    good = save_ranker(_model(), tmp_path / "old.safetensors")
+    with open(good, "rb") as f:
+        raw = f.read()
+    n = int.from_bytes(raw[:8], "little")
+    header = json.loads(raw[8: 8 + n])
+    info = json.loads(header["__metadata__"]["reeb-ranker"])
+    info["features_version"] = FEATURES_VERSION - 1
+    header["__metadata__"]["reeb-ranker"] = json.dumps(info)
+    blob = json.dumps(header).encode()
+    blob += b" " * (-len(blob) % 8)
+    stale = tmp_path / "stale.safetensors"
+    stale.write_bytes(len(blob).to_bytes(8, "little") + blob + raw[8 + n:])
+    with pytest.raises(RankerWeightsError, match=f"version {FEATURES_VERSION - 1}.*version {FEATURES_VERSION}"):
+        load_ranker(str(stale))
+
+
+def test_weights_for_other_features_are_refused(tmp_path):
+    p = save_ranker(_model(), tmp_path / "four.safetensors")
+    with pytest.raises(RankerWeightsError, match="47 features.*this config gives 46"):
+        ProposalGenerator(ReebConfig(ranker=str(p), class_heights_m=(1.5, 3.2, 1.72), class_weights=(1, 1, 1),
+                                     location_fit="height"))
+
+
+def test_shipped_weights_load_and_say_where_they_come_from():
+    assert set(SHIPPED) == {"kitti"}
+    assert shipped_path("kitti").stat().st_size < 100_000
+    m = load_ranker("kitti", feature_names(4))
+    prov = m.meta["provenance"]
+    assert prov["frames"] == 106 and prov["command"].startswith("reeb fit ")
+    assert load_ranker("kitti") is m  # loaded once
+
+
+def test_generator_with_ranker_contract(sample_image):
+    gen = ProposalGenerator()
+    assert gen.config.ranker == "kitti" and gen.ranking.model is not None
+    out = gen([sample_image])[0]
+    b, s = out["boxes"], out["scores"]
+    assert b.dtype == s.dtype == torch.float32 and 0 < len(b) <= gen.config.top_k
+    assert bool((s[:-1] >= s[1:]).all())
+    h, w = sample_image.shape[-2:]
+    assert bool((b[:, 0] >= 0).all() & (b[:, 2] <= w).all() & (b[:, 0] < b[:, 2]).all() & (b[:, 3] <= h).all())
+    batch = gen([sample_image, sample_image.flip(-1), sample_image])
+    assert torch.equal(batch[0]["boxes"], b) and torch.equal(batch[2]["scores"], s)
+    assert torch.equal(gen(sample_image[None].float() / 255)[0]["boxes"], b)
+
+
+def test_ranker_none_is_the_training_free_ranking(sample_image):
+    a = ProposalGenerator(ReebConfig().training_free())([sample_image])[0]
+    b = ProposalGenerator(ReebConfig(ranker="none", candidates_per_region=12000))([sample_image])[0]
+    assert torch.equal(a["boxes"], b["boxes"])
+    assert ReebConfig().training_free().ranker == "none"
+
+
+def test_ranker_keep_bounds_the_ranked_candidates(sample_image):
+    gen = ProposalGenerator(ranker_keep=500, top_k=5000)
+    assert len(gen([sample_image])[0]["boxes"]) <= 500
+
+
+def test_bad_ranker_settings():
+    with pytest.raises(ValueError, match="ReebConfig.ranker must be"):
+        ReebConfig(ranker="")
+    with pytest.raises(ValueError, match="rescore='none' and refine=off when a ranker is set"):
+        ReebConfig(refine=True)
+    with pytest.raises(ValueError, match="ranker_keep"):
+        ReebConfig(ranker_keep=0)
+
+
+@pytest.mark.cuda
+def test_cuda_ranking_matches_the_cpu(sample_image):
+    cpu = ProposalGenerator()([sample_image])[0]
+    gpu = ProposalGenerator().to("cuda")([sample_image.cuda()])[0]
+    from torchvision.ops import box_iou
+
+    iou = box_iou(cpu["boxes"][:200], gpu["boxes"][:200].cpu()).amax(1)
+    assert float((iou > 0.99).float().mean()) > 0.9  # the prefilter and MLP round differently there
