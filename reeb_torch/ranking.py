@@ -550,11 +550,10 @@ class Ranking:
         widths = (tuple((t[2], t[3]) for t in cfg.object_templates)
                   if cfg.location_fit == "shape" and len(cfg.object_templates) == len(cfg.class_heights_m) else None)
         if geometry_only:
-            tables = (None,) * 6
+            tables = (None,) * 5
         else:
             tables = (maps.integral("edges"), maps.integral("grey"),
-                      maps._keep("grey2", lambda: _scoring.integral_image(grey * grey)), maps.integral_below("grey"),
-                      maps.green, maps.tables())
+                      maps._keep("grey2", lambda: _scoring.integral_image(grey * grey)), maps.green, maps.tables())
         return _features.BoxMaps(
             tuple(maps.edges.shape[-2:]), *tables, cfg.horizon, cfg.camera_height_m,
             tuple(h / cfg.camera_height_m for h in cfg.class_heights_m), tuple(cfg.class_weights), widths,

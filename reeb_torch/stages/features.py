@@ -92,7 +92,6 @@ class BoxMaps:
         ii_edges: ``float64 (B, h + 1, w + 1)`` integral image of the edge magnitudes.
         ii_grey: ``float64 (B, h + 1, w + 1)`` integral image of the grey image in [0, 1].
         ii_grey2: ``float64 (B, h + 1, w + 1)`` integral image of its square.
-        ii_grey_below: ``ii_grey`` extended below the image, ``(B, 2h + 1, w + 1)``.
         green: ``int32 (B, h + 1, w + 1)`` green-pixel counts, or None (those features are 0).
             (The tables may be None for :func:`window_features`, which reads none.)
         tables: the groups' enclosed-sum tables (:class:`~reeb_torch.stages.refinement.EnclosedTables`).
@@ -110,7 +109,6 @@ class BoxMaps:
     ii_edges: Tensor | None
     ii_grey: Tensor | None
     ii_grey2: Tensor | None
-    ii_grey_below: Tensor | None
     green: Tensor | None
     tables: EnclosedTables | None
     horizon: float
@@ -223,9 +221,9 @@ def _terms(maps: BoxMaps, box: tuple[Tensor, ...], bi: Tensor) -> list[Tensor]:
     sh = (bh * SHADOW_STRIP).round().long().clamp(min=1)
     mx = torch.minimum((bw * SHADOW_MARGIN).floor().long(), torch.div(x1 - x0 - 1, 2, rounding_mode="floor"))
     cols = (x1 - x0 - 2 * mx).double()
-    g_in = at(maps.ii_grey_below, bi, x0 + mx, y1 - sh, x1 - mx, y1) / (sh.double() * cols)
-    rows = torch.minimum((h - y1).clamp(min=0), sh)
-    g_below = at(maps.ii_grey_below, bi, x0 + mx, y1, x1 - mx, y1 + sh) / (rows.double() * cols).clamp(min=1)
+    g_in = at(maps.ii_grey, bi, x0 + mx, y1 - sh, x1 - mx, y1) / (sh.double() * cols)
+    rows = torch.minimum((h - y1).clamp(min=0), sh)  # the strip below, cut at the image's bottom
+    g_below = at(maps.ii_grey, bi, x0 + mx, y1, x1 - mx, y1 + rows) / (rows.double() * cols).clamp(min=1)
     shadow = torch.where(rows > 0, ((g_below - g_in) / g_below.clamp(min=1e-3)).clamp(0, 1), torch.zeros_like(g_in))
     c = _grown(x0, y0, x1, y1, -BORDER, h, w)
     green = (at(maps.green, bi, *c).double() / _area(c) if maps.green is not None else torch.zeros_like(bw))
@@ -317,7 +315,7 @@ def _log_ratio(m: float, ref: float) -> float:  # pragma: no cover - compiled
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _features_kernel(grid_boxes: np.ndarray, window: np.ndarray, scores: np.ndarray, share: np.ndarray,
                      entropy: np.ndarray, region_of: np.ndarray, bi: np.ndarray, ni: np.ndarray, ii: np.ndarray,
-                     grey: np.ndarray, grey2: np.ndarray, below: np.ndarray, green: np.ndarray, anchor: np.ndarray,
+                     grey: np.ndarray, grey2: np.ndarray, green: np.ndarray, anchor: np.ndarray,
                      cut_col: np.ndarray, cut_row: np.ndarray, corner: np.ndarray, consts: np.ndarray,
                      out: np.ndarray, full: bool, lo: int, hi: int) -> None:  # pragma: no cover - compiled
     """Rows ``lo:hi`` of :func:`box_features_cpu` (the same arithmetic as the tensor path, in
@@ -339,7 +337,7 @@ def _features_kernel(grid_boxes: np.ndarray, window: np.ndarray, scores: np.ndar
         o[nw], o[nw + 1], o[nw + 2] = np.log(max(float(scores[b, n]), 1e-6)), share[b, r], entropy[b, r]
         if full:
             _rest(o, nw + 3, b, x0, y0, x1, y1, h, w, fx, fy, cf, norm_area, kappa, gamma, has_green, ii, grey, grey2,
-                  below, green, anchor, cut_col, cut_row, corner)
+                  green, anchor, cut_col, cut_row, corner)
         for c in range(out.shape[1]):  # as torch.nan_to_num(nan=0, posinf=0, neginf=0)
             if not np.isfinite(o[c]):
                 o[c] = 0.0
@@ -348,7 +346,7 @@ def _features_kernel(grid_boxes: np.ndarray, window: np.ndarray, scores: np.ndar
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _rest(o: np.ndarray, j: int, b: int, x0: int, y0: int, x1: int, y1: int, h: int, w: int, fx: float, fy: float,
           cf: float, norm_area: bool, kappa: float, gamma: float, has_green: bool, ii: np.ndarray, grey: np.ndarray,
-          grey2: np.ndarray, below: np.ndarray, green: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray,
+          grey2: np.ndarray, green: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray,
           cut_row: np.ndarray, corner: np.ndarray) -> None:  # pragma: no cover - compiled
     """The columns after the cheap ones of one box, from column ``j`` of ``o``."""
     bw, bh = float(x1 - x0), float(y1 - y0)
@@ -366,9 +364,9 @@ def _rest(o: np.ndarray, j: int, b: int, x0: int, y0: int, x1: int, y1: int, h: 
     sh = max(int(np.rint(bh * SHADOW_STRIP)), 1)
     mx = min(int(np.floor(bw * SHADOW_MARGIN)), (x1 - x0 - 1) // 2)
     ncol = float(x1 - x0 - 2 * mx)
-    g_in = _s(below, b, x0 + mx, y1 - sh, x1 - mx, y1) / (sh * ncol)
+    g_in = _s(grey, b, x0 + mx, y1 - sh, x1 - mx, y1) / (sh * ncol)
     rows = min(max(h - y1, 0), sh)
-    g_below = _s(below, b, x0 + mx, y1, x1 - mx, y1 + sh) / max(rows * ncol, 1.0)
+    g_below = _s(grey, b, x0 + mx, y1, x1 - mx, y1 + rows) / max(rows * ncol, 1.0)
     shadow = min(max((g_below - g_in) / max(g_below, 1e-3), 0.0), 1.0) if rows > 0 else 0.0
     vx0, vx1 = _grow(x0, x1, -BORDER, 0, w)
     vy0, vy1 = _grow(y0, y1, -BORDER, 0, h)
@@ -440,10 +438,10 @@ def box_features_cpu(maps: BoxMaps, grid_boxes: Tensor, window: Tensor, scores: 
     out = np.empty((len(bi), cheap_count(n_cls) if cheap else len(feature_names(n_cls))), np.float32)
     none = np.zeros((1, 1, 1))
     t = maps.tables
-    tables = ((maps.ii_edges.numpy(), maps.ii_grey.numpy(), maps.ii_grey2.numpy(), maps.ii_grey_below.numpy(),
+    tables = ((maps.ii_edges.numpy(), maps.ii_grey.numpy(), maps.ii_grey2.numpy(),
                maps.green.numpy() if maps.green is not None else np.zeros((1, 1, 1), np.int32),
                t.anchor.numpy(), t.cut_col.numpy(), t.cut_row.numpy(), t.corner.numpy())
-              if not cheap else (none, none, none, none, np.zeros((1, 1, 1), np.int32), none, none, none, none))
+              if not cheap else (none, none, none, np.zeros((1, 1, 1), np.int32), none, none, none, none))
     args = (grid_boxes.numpy(), window.numpy(), scores.numpy(), share.double().numpy(), entropy.double().numpy(),
             region_of.numpy(), bi.numpy(), ni.numpy(), *tables, consts, out, not cheap)
     on_two_cores(lambda lo, hi: _features_kernel(*args, lo, hi), len(bi))
