@@ -11,7 +11,9 @@ ms/img, on the same KITTI frames; the JSON rows add the per-class recall at 0.7.
 R@0.7 of each folder and its pairing with the default there. ``--frames 0:39 40:59``
 (numeric ids, both ends included) adds the same for each range.
 
-Each row is also paired with the default on the same objects (R@2000, IoU 0.7): ``+g/-l``
+Each row is also paired with the default (or the ``--reference`` row: on the dev frames,
+whose objects the default's ranking model was fitted on, ``--reference training-free``) on
+the same objects (R@2000, IoU 0.7): ``+g/-l``
 counts the objects it finds that the default misses and the other way round, and ``p`` is
 the two-sided exact sign test of that split (:func:`reeb_torch.eval.metrics.compare_recall`).
 On the 106 dev frames a difference of a few objects is p ≈ 0.3-1: not a finding. The default's
@@ -181,6 +183,9 @@ def parse_args(argv: list[str] | None) -> tuple[argparse.Namespace, dict]:
                          "(as reeb propose --set), e.g. 'blur_sigma=1.5;kappa=1.5'; repeatable")
     add_frames_option(ap)
     ap.add_argument("--out", type=Path, default=Path("runs/ablations"))
+    ap.add_argument("--reference", default="default", choices=sorted(VARIANTS),
+                    help="the row every other row is paired with (default: the package default; on the "
+                         "frames its ranking model was fitted on, pair with training-free)")
     args = ap.parse_args(argv)
     extra = {}
     for text in args.variant:
@@ -220,25 +225,25 @@ def main(argv: list[str] | None = None) -> list[dict]:
     say(f"# {len(images)} images from {' + '.join(map(str, args.data))}, {sum(len(g) for g in gts)} objects "
         f"({sum(len(g) for g in gts_mod)} moderate), torch threads {torch.get_num_threads()}")
     say(f"{'variant':34s} {'NOTES':6s} {'R@.5':>6s} {'R@.7':>6s} {'mod.7':>6s} {'AR':>6s} {'ms/img':>7s}"
-        + "".join(f" {'.7 ' + g:>{max(9, len(g) + 3)}s}" for g, _ in groups) + "  vs default (+g/-l, p; per group)")
+        + "".join(f" {'.7 ' + g:>{max(9, len(g) + 3)}s}" for g, _ in groups) + f"  vs {args.reference} (+g/-l, p; per group)")
 
     def selected(name: str) -> bool:
         if name in extra:
             return True
         if args.only is None:  # with --variant: the default and those rows, not every named row
-            return not extra or name == "default"
+            return not extra or name == args.reference
         return not args.only or any(s in name for s in args.only)
 
     base_hits = None
-    if not selected("default"):  # every row is paired with the default: run it unlisted
-        base_hits = object_hits(run(D, images, args.batch)[0], gts)
+    if not selected(args.reference):  # every row is paired with the reference: run it unlisted
+        base_hits = object_hits(run(VARIANTS[args.reference][0], images, args.batch)[0], gts)
     rows = []
     for name, (cfg, note) in {**VARIANTS, **extra}.items():
         if not selected(name):
             continue
         boxes, ms = run(cfg, images, args.batch)
         hits = object_hits(boxes, gts)
-        if name == "default":
+        if name == args.reference:
             base_hits = hits
         row, text = measure(name, note, boxes, ms, hits, base_hits, gts, labels, classes, gts_mod, labels_mod, groups)
         say(text)

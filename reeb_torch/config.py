@@ -580,12 +580,15 @@ class ReebConfig:
     def paper(cls, **overrides: object) -> "ReebConfig":
         """The printed text wherever it can run as printed (see NOTES.md).
 
-        Full resolution, Sobel edges as they are (no thinning), plain connected components,
-        area normalisation (eq. 1), S >= 0.01, the road score as a reward (eq. 12), L
-        unnormalised (eq. 11), windows inside their regions, every row; eq. 8 and eq. 9 in
-        their corrected forms (their printed forms give no regions / no proposals).
+        No learned ranking (V ranks, with the training-free budget); full resolution, Sobel
+        edges as they are (no thinning), plain connected components, area normalisation
+        (eq. 1), S >= 0.01, the road score as a reward (eq. 12), L unnormalised (eq. 11),
+        windows inside their regions, every row; eq. 8 and eq. 9 in their corrected forms
+        (their printed forms give no regions / no proposals).
         """
         base = dict(
+            ranker="none",  # REEB ranks by V (eq. 12); the region budget of the training-free setting
+            candidates_per_region=12000,
             scale=1.0,
             grouping="connected",
             group_cell=None,

@@ -39,6 +39,7 @@ def test_presets_and_lookup():
     # the default ranks with the shipped model; training-free is it without the learned part
     assert ReebConfig().ranker == "kitti" and get_preset("training-free") == ReebConfig().training_free()
     assert get_preset("training-free").ranker == "none"
+    assert get_preset("paper").ranker == "none" == get_preset("paper-no-regions").ranker  # the printed text
     assert get_preset("default-no-regions") == get_preset("training-free-no-regions") == \
         get_preset("training-free").replace(use_regions=False)
     # the opt-in second scoring pass: training-free but for the rescore fields
