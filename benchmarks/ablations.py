@@ -238,7 +238,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
     if not selected(args.reference):  # every row is paired with the reference: run it unlisted
         base_hits = object_hits(run(VARIANTS[args.reference][0], images, args.batch)[0], gts)
     rows = []
-    for name, (cfg, note) in {**VARIANTS, **extra}.items():
+    table = {**VARIANTS, **extra}
+    order = sorted(table, key=lambda n: n != args.reference)  # the reference first: the others pair with it
+    for name in order:
+        cfg, note = table[name]
         if not selected(name):
             continue
         boxes, ms = run(cfg, images, args.batch)

@@ -62,6 +62,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--limit", type=int, default=None, help="only the first N frames of each folder")
     p.add_argument("--bootstrap", type=int, default=1000, help="frame-bootstrap draws for the intervals")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--ranker", default=None, metavar="WEIGHTS",
+                   help="the learned ranking's weights for the reeb arm (default: the shipped model; on frames "
+                        "it was fitted on, as the dev folders, give weights `reeb fit` fitted on --train alone)")
     return p.parse_args(argv)
 
 
@@ -113,7 +116,7 @@ def build_model(name: str, args: argparse.Namespace, items: list[dict]) -> tuple
 
     generator, proposal_s, key = None, 0.0, "learned"
     if name != "rpn":
-        source = make_source(name)  # SourceUnavailable: the caller skips the arm
+        source = make_source(name, args.ranker)  # SourceUnavailable: the caller skips the arm
         t0 = time.perf_counter()
         cached_proposals(items, source, args.cache)
         proposal_s = time.perf_counter() - t0

@@ -120,6 +120,16 @@ def test_ablation_variants_run_beside_the_default_only(tmp_path):
     assert rows[2]["recall_07"] == pytest.approx(rows[0]["recall_07"] - pair["lost"] / n)
 
 
+def test_ablations_pair_with_another_reference(tmp_path):
+    """--reference training-free: that row comes first and every other row pairs with it."""
+    ablations = _script("ablations")
+    root = _example_kitti(tmp_path / "kitti")
+    rows = ablations.main(["--data", str(root), "--batch", "2", "--out", str(tmp_path / "out"),
+                           "--reference", "training-free", "--only", "training-free", "paper"])
+    assert [r["variant"] for r in rows][:1] == ["training-free"] and rows[0]["versus_default"] is None
+    assert len(rows) > 1 and all(r["versus_default"] is not None for r in rows[1:])
+
+
 def test_ablations_pair_each_folder(tmp_path):
     """Two --data folders: each row's recall and pairing with the default per folder, and the
     pairing over both is the sum of the folders'."""

@@ -3,7 +3,8 @@
 A source turns one ``uint8 [3, H, W]`` RGB image into ranked boxes
 (``{"boxes": float32 [N, 4] (x1, y1, x2, y2) input pixels, best first, "scores": [N]}``):
 
-- ``reeb``: ``reeb_torch.ProposalGenerator()``, the package default at run time;
+- ``reeb``: ``reeb_torch.ProposalGenerator()``, the package default at run time (its learned
+  ranking with the shipped weights, or the weights ``make_source(..., ranker=PATH)`` names);
 - ``training-free``: ``ProposalGenerator(get_preset("training-free"))``, when that preset
   exists (:class:`SourceUnavailable` otherwise);
 - ``edgeboxes``, ``selective-search``: :mod:`reeb_torch.eval.baselines` with their
@@ -67,7 +68,7 @@ def _short_hash(text: str) -> str:
     return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 
-def _reeb_source(name: str, preset: str | None) -> ProposalSource:
+def _reeb_source(name: str, preset: str | None, ranker: str | None = None) -> ProposalSource:
     from .. import ProposalGenerator, __version__, get_preset
 
     if preset is not None:
@@ -77,8 +78,12 @@ def _reeb_source(name: str, preset: str | None) -> ProposalSource:
             raise SourceUnavailable(f"{name}: no REEB preset {preset!r} in this version ({e})") from None
         gen = ProposalGenerator(config)
     else:
-        gen = ProposalGenerator()
+        gen = ProposalGenerator() if ranker is None else ProposalGenerator(ranker=ranker)
     key = f"{name}-{gen.config.fingerprint()}-{_short_hash(__version__)}"
+    if gen.config.ranker != "none":  # the same name, other weights: other proposals
+        from ..ranker import resolve_ranker
+
+        key += "-" + hashlib.sha1(resolve_ranker(gen.config.ranker).read_bytes()).hexdigest()[:16]
     return ProposalSource(name, key, lambda image: gen([image])[0])
 
 
@@ -92,15 +97,16 @@ def _baseline_source(name: str) -> ProposalSource:
     return ProposalSource(name, f"{name}-{_short_hash(settings)}", baseline)
 
 
-def make_source(name: str) -> ProposalSource:
-    """Build the source ``name`` (one of :data:`SOURCES`).
+def make_source(name: str, ranker: str | None = None) -> ProposalSource:
+    """Build the source ``name`` (one of :data:`SOURCES`); ``ranker``: the weights the
+    ``reeb`` source ranks with (default: the package default's).
 
     Raises:
         SourceUnavailable: ``training-free`` without that preset.
         ValueError: an unknown name.
     """
     if name == "reeb":
-        return _reeb_source(name, None)
+        return _reeb_source(name, None, ranker)
     if name == "training-free":
         return _reeb_source(name, "training-free")
     if name in ("edgeboxes", "selective-search"):
