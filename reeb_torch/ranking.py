@@ -140,6 +140,28 @@ class ScoreMaps:
         return self._keep(("crossing", band), build)
 
 
+_NOT_SEEN_BY_RANKER = ("top_k", "ranker", "ranker_keep", "nms_iou", "region_quota")
+"""Fields a ranking model does not depend on (they act after it)."""
+
+
+def _warn_if_fitted_elsewhere(config: ReebConfig, fitted: dict | None) -> None:
+    """Warn (once per setting) when ``config`` differs from the one the ranking model was fitted
+    with in a field its features or candidates depend on: it still runs, likely worse."""
+    if not fitted:
+        return
+    import json
+    import warnings
+
+    now = json.loads(json.dumps(config.to_dict(), default=list))
+    differ = [k for k, v in now.items() if k in fitted and k not in _NOT_SEEN_BY_RANKER and fitted[k] != v]
+    if differ:
+        shown = ", ".join(f"{k}={now[k]!r} (fitted with {fitted[k]!r})" for k in differ[:3])
+        more = f" and {len(differ) - 3} more" if len(differ) > 3 else ""
+        warnings.warn(f"reeb: the ranker {config.ranker!r} was fitted with other settings: {shown}{more}; it "
+                      "ranks these candidates, likely worse than on its own (reeb fit fits one for them)",
+                      UserWarning, stacklevel=4)
+
+
 def _best_per_image(values: Tensor, counts: Tensor, keep: int) -> Tensor:
     """Indices of the best ``keep`` of each image's ``values`` (the images' values lie in
     consecutive runs of ``counts``), ties to the earlier; ascending. On the CPU a compiled
@@ -205,6 +227,7 @@ class Ranking:
             from .ranker import load_ranker
 
             self.model = load_ranker(config.ranker, self.feature_names())
+            _warn_if_fitted_elsewhere(config, self.model.meta.get("config"))
 
     # -- windows (Sec. 3.6) -----------------------------------------------------------------
     def window_grid(self, maps: ScoreMaps, bounds: Tensor) -> _windows.WindowGrid:

@@ -135,3 +135,13 @@ def test_cuda_ranking_matches_the_cpu(sample_image):
 
     iou = box_iou(cpu["boxes"][:200], gpu["boxes"][:200].cpu()).amax(1)
     assert float((iou > 0.99).float().mean()) > 0.9  # the prefilter and MLP round differently there
+
+
+def test_a_config_the_model_was_not_fitted_with_is_warned_about():
+    import warnings
+
+    with pytest.warns(UserWarning, match=r"fitted with other settings: horizon=0\.5 \(fitted with 0\.47\)"):
+        ProposalGenerator(horizon=0.5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ProposalGenerator(top_k=100, ranker_keep=5000, nms_iou=0.7)  # act after the model: no warning
