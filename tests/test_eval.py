@@ -158,7 +158,7 @@ def test_table3_on_bundled_frames(tmp_path, monkeypatch, layout):
     assert "with its 95 % interval" in text
     assert res["splits"]["all"]["versus_reference"] == {"reference": "reeb-default", "gained": 0, "lost": 0,
                                                         "p_value": 1.0}  # the default against itself
-    assert json.loads((out / "table3.json").read_text())["methods"]["reeb-default"]["label"] == "Ours** (default)"
+    assert json.loads((out / "table3.json").read_text())["methods"]["reeb-default"]["label"] == "Ours** + learned ranking (default)"
     rows = list(csv.DictReader(open(out / "table3.csv")))
     # 3 frame sets (all, 1, 8) x 2 object sets x (micro, class mean, 4 classes)
     assert len(rows) == 3 * 2 * 6
