@@ -62,6 +62,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--limit", type=int, default=None, help="only the first N frames of each folder")
     p.add_argument("--bootstrap", type=int, default=1000, help="frame-bootstrap draws for the intervals")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--hflip", action="store_true",
+                   help="train on each frame's mirror image half of the time (its maps and proposals are cached too)")
     p.add_argument("--ranker", default=None, metavar="WEIGHTS",
                    help="the learned ranking's weights for the reeb arm (default: the shipped model; on frames "
                         "it was fitted on, as the dev folders, give weights `reeb fit` fitted on --train alone)")
@@ -90,6 +92,16 @@ def load_frames(roots: list[Path], limit: int | None) -> list[dict[str, Any]]:
                           "occluded": it["occluded"], "truncated": it["truncated"], "objects": objects, "ignore": boxes_of(IGNORED), "dontcare": boxes_of(("DontCare",)),
                           "image_id": it["image_id"], "folder": root.name})
     return items
+
+
+def mirrored(it: dict[str, Any]) -> dict[str, Any]:
+    """A training item flipped left to right (the image and every box)."""
+    from reeb_torch.detection.head_training import mirror_boxes
+
+    w = it["image"].shape[-1]
+    return {**it, "image": it["image"].flip(-1).contiguous(), "boxes": mirror_boxes(it["boxes"], w),
+            "ignore": mirror_boxes(it["ignore"], w), "dontcare": mirror_boxes(it["dontcare"], w),
+            "image_id": f"{it['image_id']}-mirror"}
 
 
 def cached_frames(model: torch.nn.Module, items: list[dict], args: argparse.Namespace) -> list:
@@ -176,12 +188,15 @@ def run_arm(name: str, train: list[dict], test: list[dict], args: argparse.Names
     """Train the arm's heads on ``train``, score it on ``test``."""
     from reeb_torch.detection.head_training import TrainSettings, train_heads
 
-    model, proposal_s, key = build_model(name, args, train + test)
+    mirrors = [mirrored(it) for it in train] if args.hflip else []
+    model, proposal_s, key = build_model(name, args, train + mirrors + test)
     t0 = time.perf_counter()
     train_frames, test_frames = cached_frames(model, train, args), cached_frames(model, test, args)
+    for frame, mirror in zip(train_frames, cached_frames(model, mirrors, args) if mirrors else []):
+        frame.mirror = mirror
     features_s = time.perf_counter() - t0
     settings = TrainSettings(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
-                             max_steps=args.max_steps)
+                             max_steps=args.max_steps, hflip=args.hflip)
     history = train_heads(model, train_frames, settings)
     t0 = time.perf_counter()
     detections, proposals = test_proposals(model, test_frames)

@@ -627,6 +627,38 @@ def test_tiny_training_is_deterministic_and_matches_the_model(lite0, frames, tmp
         torch.testing.assert_close(a["scores"][:n], b["scores"][:n], atol=5e-3, rtol=0)
 
 
+def test_mirror_boxes_by_hand():
+    from reeb_torch.detection.head_training import mirror_boxes
+
+    boxes = torch.tensor([[10.0, 5, 30, 20], [0, 0, 100, 50]])
+    assert torch.equal(mirror_boxes(boxes, 100), torch.tensor([[70.0, 5, 90, 20], [0, 0, 100, 50]]))
+    assert torch.equal(mirror_boxes(mirror_boxes(boxes, 100), 100), boxes)
+    assert mirror_boxes(torch.zeros(0, 4), 100).shape == (0, 4)
+
+
+def test_hflip_training_draws_mirrors_deterministically(lite0, frames, tmp_path):
+    """TrainSettings.hflip: refused without mirrors; with them, seeded (the same losses twice)
+    and not the plain run's losses (some steps trained on the mirrors)."""
+    from reeb_torch.detection.head_training import TrainSettings, mirror_boxes, train_heads
+
+    flipped = [{**f, "image": f["image"].flip(-1).contiguous(),
+                "boxes": mirror_boxes(f["boxes"], f["image"].shape[-1])} for f in frames]
+    settings = TrainSettings(max_steps=3, warmup=1, lr=1e-3, hflip=True)
+    model = tiny_lite0("reeb", tmp_path)
+    train, _ = cached(model, frames, tmp_path)
+    with pytest.raises(ValueError, match="mirror"):
+        train_heads(model, train, settings, progress=False)
+    runs = []
+    for s in (settings, settings, TrainSettings(max_steps=3, warmup=1, lr=1e-3)):
+        model = tiny_lite0("reeb", tmp_path)
+        train, _ = cached(model, frames, tmp_path)
+        for frame, mirror in zip(train, cached(model, flipped, tmp_path)[0]):
+            assert mirror.features.image_size == frame.features.image_size
+            frame.mirror = mirror
+        runs.append(train_heads(model, train, s, progress=False)["losses"])
+    assert runs[0] == runs[1] and runs[0] != runs[2]
+
+
 def test_detection_benchmark_writes_its_table(lite0, tmp_path):
     import importlib.util
     import json

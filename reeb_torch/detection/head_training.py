@@ -14,8 +14,13 @@ the proposal's area inside it) or a neighbouring-class object (``Van``, ``Person
 IoU >= 0.5), and no target with IoU >= 0.5, are not sampled as background: KITTI's
 evaluation counts detections there as neither right nor wrong.
 
-Deterministic for a seed: the frame order comes from its own generator, the RoI and anchor
-samplers from ``torch.manual_seed(seed)`` set at the start.
+Augmentation (``TrainSettings.hflip``): each frame of a step is replaced by its mirror image
+with probability 1/2 — a :class:`CachedFrame` of the horizontally flipped image, with its own
+cached maps and proposals (:func:`mirror_boxes` flips the targets), since a frozen
+backbone's maps of a flipped image are not the flipped maps.
+
+Deterministic for a seed: the frame order and the mirror draws come from their own
+generator, the RoI and anchor samplers from ``torch.manual_seed(seed)`` set at the start.
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ from torchvision.ops import box_iou
 from .feature_cache import FrameFeatures
 from .rpn import ReebRPN
 
-__all__ = ["TrainSettings", "CachedFrame", "drop_ignored", "frame_forward", "train_heads", "detect"]
+__all__ = ["TrainSettings", "CachedFrame", "mirror_boxes", "drop_ignored", "frame_forward", "train_heads", "detect"]
 
 
 @dataclass(frozen=True)
@@ -50,6 +55,8 @@ class TrainSettings:
         warmup: warm-up steps.
         seed: seeds the frame order and torch's global generator (the samplers).
         max_steps: stop after this many steps (``None``: ``epochs`` full passes).
+        hflip: train on each frame's :attr:`CachedFrame.mirror` instead of the frame with
+            probability 1/2 (every frame must have one).
     """
 
     epochs: int = 12
@@ -59,6 +66,7 @@ class TrainSettings:
     warmup: int = 50
     seed: int = 0
     max_steps: int | None = None
+    hflip: bool = False
 
 
 @dataclass
@@ -70,6 +78,8 @@ class CachedFrame:
         features: its cached frozen maps.
         boxes: ``float32 [N, 4]`` targets, input pixels; ``labels``: ``int64 [N]``, 1..C.
         ignore: ``[M, 4]`` neighbouring-class objects; ``dontcare``: ``[K, 4]`` DontCare boxes.
+        mirror: the same frame flipped left to right (its own maps; boxes through
+            :func:`mirror_boxes`), for ``TrainSettings.hflip``; ``None``: none.
     """
 
     image: Tensor
@@ -78,6 +88,13 @@ class CachedFrame:
     labels: Tensor
     ignore: Tensor = field(default_factory=lambda: torch.zeros(0, 4))
     dontcare: Tensor = field(default_factory=lambda: torch.zeros(0, 4))
+    mirror: CachedFrame | None = None
+
+
+def mirror_boxes(boxes: Tensor, width: int) -> Tensor:
+    """``[N, 4]`` ``(x1, y1, x2, y2)`` boxes of an image ``width`` pixels wide, as they lie in
+    the image flipped left to right: ``(width − x2, y1, width − x1, y2)``."""
+    return torch.stack([width - boxes[:, 2], boxes[:, 1], width - boxes[:, 0], boxes[:, 3]], 1)
 
 
 def _ioa(a: Tensor, b: Tensor) -> Tensor:
@@ -163,6 +180,8 @@ def train_heads(model: nn.Module, frames: Sequence[CachedFrame], settings: Train
 
     if not frames:
         raise ValueError("no training frame")
+    if settings.hflip and any(f.mirror is None for f in frames):
+        raise ValueError("TrainSettings.hflip needs a mirror (CachedFrame.mirror) for every training frame")
     torch.manual_seed(settings.seed)
     order = torch.Generator().manual_seed(settings.seed)
     per_epoch = math.ceil(len(frames) / settings.batch_size)
@@ -178,7 +197,11 @@ def train_heads(model: nn.Module, frames: Sequence[CachedFrame], settings: Train
         pos = (step % per_epoch) * settings.batch_size
         for group in optimizer.param_groups:
             group["lr"] = _lr(step, total, settings)
-        losses.append(_step(model, [frames[i] for i in perm[pos:pos + settings.batch_size]], optimizer))
+        batch = [frames[i] for i in perm[pos:pos + settings.batch_size]]
+        if settings.hflip:
+            flips = torch.rand(len(batch), generator=order) < 0.5
+            batch = [f.mirror if flip else f for f, flip in zip(batch, flips.tolist())]
+        losses.append(_step(model, batch, optimizer))
         bar.set_postfix(loss=f"{losses[-1]:.3f}")
     model.eval()
     return {"losses": losses, "steps": total, "train_s": time.perf_counter() - t0}
