@@ -627,7 +627,7 @@ class Ranking:
         out = torch.full_like(scores, -math.inf)
         kept = torch.zeros_like(chosen)
         if len(bi):
-            out[bi, ni] = model(self._features_of(maps, grid, scores, share, entropy, bi, ni))
+            out[bi, ni] = model.rank(self._features_of(maps, grid, scores, share, entropy, bi, ni))
             kept[bi, ni] = True
         if self.on_rank is not None:
             self.on_rank(out, kept)

@@ -33,6 +33,22 @@ def test_model_contract():
     assert torch.allclose(two(x), (two.members[0](two.standardise(x)) + two.members[1](two.standardise(x))).squeeze(1) / 2)
 
 
+@pytest.mark.parametrize("members", [1, 2])
+def test_rank_is_forward_with_the_standardisation_folded_in(members):
+    """rank(): the inference path the generator takes gives forward()'s logits to float32
+    rounding, on features far from standardised (as the real ones are), and takes no grad."""
+    m = _model(members=members)
+    torch.manual_seed(1)
+    m.mean.copy_(torch.randn(47) * 50)
+    m.scale.copy_(torch.rand(47) * 20 + 0.1)
+    x = torch.randn(300, 47) * m.scale + m.mean
+    got = m.rank(x)
+    assert got.shape == (300,) and got.dtype == torch.float32 and not got.requires_grad
+    torch.testing.assert_close(got, m(x), rtol=1e-5, atol=1e-4)
+    with pytest.raises(ValueError, match=r"\[K, 47\]"):
+        m.rank(torch.randn(5, 46))
+
+
 def test_weights_round_trip(tmp_path):
     m = _model(3, hidden=(8,), members=2)
     p = save_ranker(m, tmp_path / "r.safetensors", provenance={"frames": 2}, config={"horizon": 0.5})

@@ -10,6 +10,7 @@ with the package, and ``reeb fit`` fits new ones on a user's labelled frames
 >>> from reeb_torch.ranker import load_ranker
 >>> model = load_ranker("kitti")              # a BoxRanker, eval mode
 >>> logits = model(features)                  # float [K, F] -> float32 [K]
+>>> logits = model.rank(features)             # the same for inference, faster on large K
 """
 
 from .model import BoxRanker
