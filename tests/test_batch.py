@@ -376,6 +376,30 @@ def test_show_picture_keeps_the_aspect_ratio(h, w):
         assert box.width / box.height == pytest.approx(w / h, rel=0.02)
 
 
+def test_show_picture_names_the_ranking_it_shows():
+    """Panel 3's title: the learned model's name under the default, eq. 12's terms without it."""
+    pytest.importorskip("matplotlib")
+    import torch
+
+    from reeb_torch import ReebConfig, get_preset
+    from reeb_torch.generator import Inspection
+    from reeb_torch.runs.viz import inspection_figure
+
+    h, w = 60, 200
+    insp = Inspection(boxes=torch.tensor([[1.0, 2.0, 30.0, 40.0]]), scores=torch.tensor([1.0]),
+                      edges=torch.zeros(h, w), road_mask=torch.zeros(h, w, dtype=torch.bool),
+                      regions=torch.tensor([[0.0, 0.0, float(w), float(h)]]),
+                      entropy=torch.tensor([1.0]), share=torch.tensor([1.0]), num_groups=1, num_windows=1)
+    titles = {}
+    for name, cfg in (("default", ReebConfig()), ("free", get_preset("training-free")),
+                      ("file", ReebConfig().replace(ranker="/some/where/mine.safetensors"))):
+        fig = inspection_figure(torch.zeros(3, h, w, dtype=torch.uint8), insp, config=cfg)
+        titles[name] = [ax.get_title(loc="left") for ax in fig.axes if ax.get_title(loc="left").startswith("3.")][0]
+    assert "learned model 'kitti'" in titles["default"]
+    assert "learned model 'mine.safetensors'" in titles["file"]
+    assert "learned" not in titles["free"] and "edge score S (eq. 1)" in titles["free"]
+
+
 def test_an_interrupt_wrapped_by_a_library_is_still_an_interrupt():
     # numba, loading a cached kernel when Ctrl-C lands, re-raises it as a SystemError
     from reeb_torch.runs.batch import caused_by_interrupt

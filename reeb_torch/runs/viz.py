@@ -442,9 +442,15 @@ def _proposals_panel(ax, rgb: np.ndarray, boxes: np.ndarray, gts: list, top: int
     extra = " × shadow underneath" if getattr(config, "shadow_score", "none") != "none" else ""
     if getattr(config, "vegetation_score", "none") != "none":
         extra += " × (1 − green share)^p"
-    ax.set_title(f"3. Top {len(shown)} of {len(boxes)} proposals: edge score S (eq. 1) × "
-                 f"(α·location L + β·road R) (eqs. 10–12){extra}, then NMS (eq. 13)",
-                 loc="left", fontsize=11)
+    ranker = getattr(config, "ranker", "none")
+    if ranker != "none":
+        name = Path(ranker).name  # "kitti", or a weights file's name
+        title = (f"3. Top {len(shown)} of {len(boxes)} proposals: REEB's candidates (score V: eqs. 1, 10–12{extra}) "
+                 f"ranked by the learned model '{name}', then NMS (eq. 13)")
+    else:
+        title = (f"3. Top {len(shown)} of {len(boxes)} proposals: edge score S (eq. 1) × "
+                 f"(α·location L + β·road R) (eqs. 10–12){extra}, then NMS (eq. 13)")
+    ax.set_title(title, loc="left", fontsize=11)
 
 
 def _gt_labels(ax, boxes: np.ndarray, gts: list, gt_hex: str, w: int, h: int, layout: dict) -> None:
