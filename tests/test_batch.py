@@ -144,6 +144,20 @@ def test_set_keeps_the_word_none_of_a_choice_field(field):
     assert getattr(build_config("default", None, [f"{field}= none "], None), field) == "none"
 
 
+def test_set_takes_the_ranker_as_written():
+    # a free-text field: 'none' is the training-free ranking's word, a path stays a path
+    from reeb_torch.runs.common import build_config
+
+    assert build_config("default", None, ["ranker=none"], None).ranker == "none"
+    assert build_config("default", None, ["ranker= none "], None).ranker == "none"
+    assert build_config("default", None, ['ranker="kitti"'], None).ranker == "kitti"
+    assert build_config("training-free", None, ["ranker=kitti"], None).ranker == "kitti"
+    assert build_config("default", None, ["ranker=runs/mine.safetensors"], None).ranker == "runs/mine.safetensors"
+    assert build_config("default", None, ["ranker=1"], None).ranker == "1"  # a file named 1, not the number
+    with pytest.raises(click.BadParameter, match="ranker"):
+        build_config("default", None, ["ranker= "], None)
+
+
 def test_set_takes_every_word_of_every_choice_field():
     # each Literal field of ReebConfig, each of its words, as --set writes it
     import dataclasses

@@ -104,9 +104,21 @@ def _parse_bool(field: str, text: str) -> bool:
             "or 1/0", param_hint="--set") from None
 
 
-def _field_kinds() -> tuple[set[str], dict[str, tuple[str, ...]]]:
+def _parse_text(text: str) -> str:
+    """A ``--set`` value for a free-text field (``ranker``): the text as written, a JSON
+    string's quotes removed (``ranker=none`` is the word ``'none'``, not None)."""
+    word = text.strip()
+    try:
+        value = json.loads(word)
+    except (json.JSONDecodeError, RecursionError):
+        return word
+    return value if isinstance(value, str) else word
+
+
+def _field_kinds() -> tuple[set[str], dict[str, tuple[str, ...] | None]]:
     """Names of the ReebConfig fields whose type is ``bool``, and the words of each field
-    whose type is a ``Literal`` of strings (from the dataclass)."""
+    whose type is a ``Literal`` of strings (from the dataclass); a free-text ``str`` field
+    maps to ``None`` in the second (any text, taken as written)."""
     import dataclasses
     import typing
 
@@ -121,6 +133,8 @@ def _field_kinds() -> tuple[set[str], dict[str, tuple[str, ...]]]:
             bools.add(f.name)
         elif typing.get_origin(hint) is typing.Literal:
             words[f.name] = tuple(a for a in typing.get_args(hint) if isinstance(a, str))
+        elif hint is str:
+            words[f.name] = None
     return bools, words
 
 
@@ -130,7 +144,8 @@ def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_
 
     A bool field given with ``--set`` takes true/false, yes/no, on/off or 1/0; a field of
     named choices takes one of its words as written (``shadow_score=none`` is the word
-    ``'none'``, not None); other fields take JSON (``3``, ``1.5``, ``[1, 2]``, ``null``) or a
+    ``'none'``, not None), a free-text field its text (``ranker=none``, ``ranker=mine.safetensors``);
+    other fields take JSON (``3``, ``1.5``, ``[1, 2]``, ``null``) or a
     bare string. Any error (a bad word, an unknown field, a value ReebConfig rejects) is a
     usage error, exit code 2.
     """
@@ -160,7 +175,12 @@ def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_
             raise click.BadParameter(f"{item!r}: expected FIELD=VALUE, e.g. scale=1.0",
                                      param_hint="--set")
         name = key.strip()
-        d[name] = _parse_bool(name, value) if name in bools else _parse_value(value, words.get(name, ()))
+        if name in bools:
+            d[name] = _parse_bool(name, value)
+        elif name in words and words[name] is None:
+            d[name] = _parse_text(value)
+        else:
+            d[name] = _parse_value(value, words.get(name, ()))
     if top_k is not None:
         d["top_k"] = top_k
     try:
