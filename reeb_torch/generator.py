@@ -121,7 +121,12 @@ class ProposalGenerator(nn.Module):
     on any device; it returns one dict per image with
 
     * ``boxes``: ``float32 [N, 4]`` (x1, y1, x2, y2) in that image's pixels, ranked;
-    * ``scores``: ``float32 [N]``, descending; ``N <= config.top_k``.
+    * ``scores``: ``float32 [N]``, descending; ``N <= config.top_k``;
+    * with a ranking model that has a class head (the shipped ``kitti`` one: Car,
+      Pedestrian, Cyclist, Truck; :attr:`classes`), also ``labels``: ``int64 [N]``, the
+      index in :attr:`classes` of the class each box looks like, and ``class_probs``:
+      ``float32 [N, C]``, the head's probability of each class were the box an object (a
+      hint, not a detection: the boxes are class-agnostic proposals).
 
     On the CPU a call runs compiled kernels on two threads (the calling thread and one
     helper, each taking half the images through the whole algorithm; one image has each
@@ -169,6 +174,13 @@ class ProposalGenerator(nn.Module):
     def extra_repr(self) -> str:
         c = self.config
         return f"top_k={c.top_k}, scale={c.scale}, use_regions={c.use_regions}, grouping={c.grouping!r}"
+
+    @property
+    def classes(self) -> tuple[str, ...] | None:
+        """The classes of the ``labels`` and ``class_probs`` of each output (the ranking
+        model's class head), or None where there are none (no ranker, or no class head)."""
+        model = self.ranking.model
+        return None if model is None else model.classes
 
     @property
     def min_side(self) -> int:
@@ -326,6 +338,7 @@ class ProposalGenerator(nn.Module):
             with self._stage("rescore", dev):
                 scores, chosen = self.ranking.rescore(maps, grid, scores, chosen)
         # the learned ranking of the candidates (not in the paper; ``ReebConfig.ranker``)
+        v_scores, hints = scores, self.classes is not None
         if cfg.ranker != "none":
             with self._stage("ranker", dev):
                 scores, chosen = self.ranking.rank_learned(maps, grid, scores, chosen, share, entropy)
@@ -335,8 +348,13 @@ class ProposalGenerator(nn.Module):
             with self._stage("refine", dev):
                 refined = self.ranking.refine(maps, grid, chosen, scores)
         # Sec. 3.8: Final_Proposals = NMS(Sorted_Proposals) (eq. 13)
+        windows: list[Tensor] | None = [] if hints else None
         with self._stage("nms", dev):
-            results = self.ranking.suppress(maps, grid, chosen, scores, share, refined)
+            results = self.ranking.suppress(maps, grid, chosen, scores, share, refined, windows)
+        if hints:  # which class each proposal looks like (the ranking model's class head)
+            with self._stage("ranker", dev):
+                for r, probs in zip(results, self.ranking.class_hints(maps, grid, v_scores, share, entropy, windows)):
+                    r["labels"], r["class_probs"] = probs.argmax(1), probs
         if not self._warned_empty and any(len(r["boxes"]) == 0 for r in results):
             self._warn_empty(tuple(images[0].shape[-2:]), grid.count, share)
         extra = self._kept_maps(maps, bounds, entropy, share, grid.count) if keep else {}

@@ -654,6 +654,21 @@ class Ranking:
                                        model.scale[nw: nw + 3], first.weight[:, nw:], last.weight[0],
                                        float(last.bias[0]))
 
+    def class_hints(self, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor, share: Tensor,
+                    entropy: Tensor, windows: list[Tensor]) -> list[Tensor]:
+        """The class head's probabilities (:meth:`~reeb_torch.ranker.BoxRanker.class_probs`) of
+        the windows ``windows[i]`` (``int64 [N_i]``) of each image, ``float32 [N_i, C]``, from
+        their features under REEB's scores V (``scores [B, N]``, before the learned ranking)."""
+        model = self._model_on(scores.device)
+        counts = [len(w) for w in windows]
+        dev = scores.device
+        bi = torch.repeat_interleave(torch.arange(len(windows), device=dev), torch.tensor(counts, device=dev))
+        ni = torch.cat(windows).to(dev) if windows else bi
+        if not len(ni):
+            return [scores.new_zeros(0, len(model.classes)) for _ in windows]
+        probs = model.class_probs(self._features_of(maps, grid, scores, share, entropy, bi, ni))
+        return list(probs.split(counts))
+
     def _model_on(self, device: torch.device):
         """:attr:`model` on ``device`` (the shared CPU model, or a copy per device)."""
         if device.type == "cpu":
@@ -820,13 +835,15 @@ class Ranking:
 
     # -- eq. 13: the final proposals ----------------------------------------------------------
     def suppress(self, maps: ScoreMaps, grid: _windows.WindowGrid, chosen: Tensor, scores: Tensor, share: Tensor,
-                 refined: tuple[list[Tensor], list[Tensor]] | None = None) -> list[dict[str, Tensor]]:
+                 refined: tuple[list[Tensor], list[Tensor]] | None = None,
+                 windows_out: list[Tensor] | None = None) -> list[dict[str, Tensor]]:
         """Greedy NMS (eq. 13) of each image's candidates, best first, stopping at ``top_k``
         (with ``region_quota``, each region's share of the output first: :meth:`quota`):
         one dict per image, ``boxes`` ``float32 [N, 4]`` in input pixels and ``scores``
         ``float32 [N]``. ``refined``: :meth:`refine`'s boxes and scores of the candidates
         (else the windows themselves, gathered, sorted and suppressed in one compiled pass
-        on the CPU: :func:`reeb_torch.stages.nms.nms_windows_cpu`)."""
+        on the CPU: :func:`reeb_torch.stages.nms.nms_windows_cpu`). ``windows_out``, if
+        given, gets each image's ``int64 [N]`` window index of each output row."""
         cfg = self.config
         b, dev = scores.shape[0], scores.device
         fx, fy = maps.fx, maps.fy
@@ -840,6 +857,7 @@ class Ranking:
             ok = (self._grid_cached(("boxes_ok", fx, fy), grid, lambda: boxes_valid(boxes_in))
                   if dev.type == "cpu" and boxes_in.dtype == torch.float32 else None)
             kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, grid.count if quota else cfg.top_k, ok)
+        cands = None
         if kept is not None:
             pairs = [(boxes_in, scores[i]) for i in range(b)]
             windows = kept
@@ -856,6 +874,8 @@ class Ranking:
         for i, ((bx, sc), keep_idx, win) in enumerate(zip(pairs, kept, windows)):
             if quota:
                 keep_idx = self.quota(keep_idx, region_of[win], share[i])[: cfg.top_k]
+            if windows_out is not None:
+                windows_out.append(keep_idx if cands is None else cands[i][keep_idx])
             # the contract 0 <= x1 < x2 <= W, 0 <= y1 < y2 <= H in input pixels: a window on
             # the last working column maps back to W plus a rounding error (odd sides at
             # scale 0.5: 99.0000076 for W = 99); after NMS, so the ranking is unchanged

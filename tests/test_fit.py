@@ -62,6 +62,45 @@ def test_fit_is_seeded_and_learns():
                      feature_names(4), opts)
 
 
+def test_class_head_is_seeded_learns_and_leaves_the_ranking_alone():
+    """Given classes, a class head is fitted on the positives after the ranking parts: the
+    ranking's weights are those of the fit without it, bit for bit; the head tells the
+    classes apart on new rows; the same seed gives the same head."""
+    def samples(seed, n=20000):
+        g = torch.Generator().manual_seed(seed)
+        x = torch.randn(n, 47, generator=g)
+        y = (x[:, 0] + 0.3 * torch.randn(n, generator=g) > 1).float()
+        label = torch.where(x[:, 1] > 0.3, 1, 0)  # the class shows in another column
+        return [F.Sample(x, y, torch.ones(n), torch.where(y > 0, label, -1))]
+
+    opts = F.FitOptions(epochs=20, hidden=(8,), batch=512, class_hidden=(8,))
+    plain = F.fit_ranker(samples(0), feature_names(4), opts)
+    a = F.fit_ranker(samples(0), feature_names(4), opts, ("Car", "Pedestrian"))
+    b = F.fit_ranker(samples(0), feature_names(4), opts, ("Car", "Pedestrian"))
+    assert plain.classifier is None and a.classes == ("Car", "Pedestrian")
+    for name, p in plain.state_dict().items():
+        assert torch.equal(p, a.state_dict()[name]), name
+    assert all(torch.equal(p, q) for p, q in zip(a.state_dict().values(), b.state_dict().values()))
+    test = samples(1)[0]
+    probs = a.class_probs(test.features[test.target == 1])
+    assert probs.shape == (int(test.target.sum()), 2)
+    torch.testing.assert_close(probs.sum(1), torch.ones(len(probs)))
+    truth = test.label[test.target == 1]
+    assert float((probs.argmax(1) == truth).float().mean()) > 0.85
+    assert F.fit_ranker(samples(0), feature_names(4), F.FitOptions(epochs=2, hidden=(8,), class_hidden=None),
+                        ("Car", "Pedestrian")).classifier is None
+
+
+def test_hinted_classes_by_hand():
+    gts = [torch.tensor([[0.0, 0, 10, 10], [20, 20, 30, 30], [50, 50, 60, 60]]), torch.zeros(0, 4)]
+    out = {"boxes": torch.tensor([[0.0, 0, 10, 9], [0, 0, 10, 10], [20, 20, 30, 31], [50, 50, 51, 51]]),
+           "labels": torch.tensor([2, 1, 0, 3])}
+    got = F.hinted_classes([out, {"boxes": torch.zeros(0, 4), "labels": torch.zeros(0, dtype=torch.long)}], gts)
+    assert got[0].tolist() == [1, 0, -1] and got[1].shape == (0,)  # the best box's hint; a miss is -1
+    assert F.hinted_classes([out], gts[:1], k=1)[0].tolist() == [2, -1, -1]  # only the top k count
+    assert F.hinted_classes([{"boxes": out["boxes"]}], gts[:1])[0].tolist() == [-1, -1, -1]  # no hints
+
+
 def test_folds_keep_neighbouring_frames_of_a_drive_apart():
     ids = [f"{i:06d}" for i in range(6)] + [f"t0000_{i:06d}" for i in range(0, 30, 3)]
     folders = ["kitti"] * 6 + ["kitti_tracking"] * 10
@@ -127,6 +166,7 @@ def test_shipped_weights_refit_bit_for_bit(kitti_dir):
     frames = F.load_fit_frames(dirs)
     assert len(frames) == prov["frames"]
     samples = F.frame_samples(FrameCache(frames), ReebConfig(), opts)
-    model = F.fit_ranker(samples, shipped.feature_names, opts)
+    model = F.fit_ranker(samples, shipped.feature_names, opts, shipped.classes)
+    assert list(model.state_dict()) == list(shipped.state_dict())
     for (name, a), b in zip(shipped.state_dict().items(), model.state_dict().values()):
         assert torch.equal(a, b), name

@@ -59,6 +59,11 @@ def test_weights_round_trip(tmp_path):
     save_ranker(m, tmp_path / "s.safetensors", provenance={"frames": 2}, config={"horizon": 0.5})
     assert (tmp_path / "r.safetensors").read_bytes() == (tmp_path / "s.safetensors").read_bytes()
     assert not any(p.requires_grad for p in got.parameters())
+    hinted = _model(4, classes=("Car", "Pedestrian"), class_hidden=(6,))
+    got = load_ranker(str(save_ranker(hinted, tmp_path / "c.safetensors")))
+    assert got.classes == ("Car", "Pedestrian") and got.class_hidden == (6,)
+    assert list(got.state_dict()) == list(hinted.state_dict())
+    assert all(torch.equal(a, b) for a, b in zip(hinted.state_dict().values(), got.state_dict().values()))
 
 
 def test_bad_weights_files_are_one_line_errors(tmp_path):
@@ -120,6 +125,29 @@ def test_generator_with_ranker_contract(sample_image):
     batch = gen([sample_image, sample_image.flip(-1), sample_image])
     assert torch.equal(batch[0]["boxes"], b) and torch.equal(batch[2]["scores"], s)
     assert torch.equal(gen(sample_image[None].float() / 255)[0]["boxes"], b)
+    # the class hints of the shipped model's class head, one per box, alone as in a batch
+    assert gen.classes == ("Car", "Pedestrian", "Cyclist", "Truck")
+    labels, probs = out["labels"], out["class_probs"]
+    assert labels.dtype == torch.int64 and labels.shape == (len(b),) and probs.shape == (len(b), 4)
+    assert probs.dtype == torch.float32 and torch.equal(labels, probs.argmax(1))
+    torch.testing.assert_close(probs.sum(1), torch.ones(len(b)))
+    assert torch.equal(batch[2]["labels"], labels) and torch.equal(batch[0]["class_probs"], probs)
+    # kitti_000001's car at (387, 181)-(423, 203): its best box is hinted a car
+    car = torch.tensor([[387.0, 181, 423, 203]])
+    from torchvision.ops import box_iou
+
+    best = box_iou(car, b)[0].argmax()
+    assert gen.classes[int(labels[best])] == "Car"
+
+
+def test_no_class_hints_without_a_class_head(sample_image, tmp_path):
+    free = ProposalGenerator(ReebConfig().training_free())
+    assert free.classes is None and set(free([sample_image])[0]) == {"boxes", "scores"}
+    path = save_ranker(_model(), tmp_path / "plain.safetensors")  # a ranker fitted without classes
+    plain = ProposalGenerator(ranker=str(path))
+    assert plain.classes is None and set(plain([sample_image])[0]) == {"boxes", "scores"}
+    with pytest.raises(ValueError, match="no class head"):
+        plain.ranking.model.class_probs(torch.randn(3, 47))
 
 
 def test_ranker_none_is_the_training_free_ranking(sample_image):

@@ -37,7 +37,7 @@ from .tune import FrameCache, Frames
 
 __all__ = ["FitFrames", "FitOptions", "Sample", "FitCrossValidation", "load_fit_frames", "frame_sample",
            "frame_samples", "fit_ranker", "frame_folds", "similar_frames", "training_frames", "cross_validate",
-           "drive_of"]
+           "hinted_classes", "drive_of"]
 
 
 @dataclass
@@ -87,6 +87,10 @@ class FitOptions:
         lr, weight_decay: AdamW's (a one-cycle schedule peaks at ``lr``).
         batch: rows per step.
         seed: seeds the negatives' sample and the fit.
+        class_hidden: widths of the class head's hidden layers (fitted on the positives,
+            weighted cross-entropy), or None for no class head.
+        class_epochs, class_batch: the class head's passes and rows per step (its rows, the
+            positives, are few: ~2400 on the 106 dev frames).
     """
 
     hidden: tuple[int, ...] = (64, 64)
@@ -101,6 +105,9 @@ class FitOptions:
     weight_decay: float = 1e-4
     batch: int = 4096
     seed: int = 0
+    class_hidden: tuple[int, ...] | None = (32,)
+    class_epochs: int = 60
+    class_batch: int = 256
 
 
 @dataclass
@@ -160,10 +167,14 @@ def frame_samples(cache: FrameCache, cfg: ReebConfig, opts: FitOptions, indices:
     return out
 
 
-def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: FitOptions) -> BoxRanker:
+def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: FitOptions,
+               classes: Sequence[str] | None = None) -> BoxRanker:
     """A :class:`BoxRanker` fitted on ``samples`` (weighted logistic loss; the positives'
-    total weight is made the negatives'), its prefilter on the same rows. Runs on one CPU thread with seeded draws, so the
-    same samples and options give the same weights bit for bit.
+    total weight is made the negatives'), its prefilter on the same rows, and, given the
+    ``classes`` the samples' labels index (and ``opts.class_hidden``), a class head on the
+    positives (weighted cross-entropy, each class's objects weighed as in the ranking; fitted
+    last, so the ranking's weights do not depend on it). Runs on one CPU thread with seeded
+    draws, so the same samples and options give the same weights bit for bit.
 
     Raises:
         ValueError: no positive or no negative row (no labelled object found by a candidate).
@@ -174,13 +185,16 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
     if not bool((y == 1).any()) or not bool((y == 0).any()):
         raise ValueError("no candidate overlaps a labelled object at the positive IoU (or none is background): "
                          "the ranking cannot be fitted on these frames")
+    w_object = w  # each object's positives weigh 1 together (the class head's weights)
     if opts.balance:  # each class's objects weigh (objects / the class's objects)^balance
         label = torch.cat([s.label for s in samples])
         per_class = torch.bincount(label[y == 1], weights=w[y == 1])
         factor = torch.where(per_class > 0, (per_class.sum() / per_class.clamp(min=1e-9)) ** opts.balance, 0.0)
         w = torch.where(y == 1, w * factor[label.clamp(min=0)].float(), w)
     w = torch.where(y == 1, w * (w[y == 0].sum() / w[y == 1].sum()), w)
-    model = BoxRanker(feature_names, opts.hidden, opts.members, opts.prefilter)
+    heads = classes is not None and opts.class_hidden is not None
+    model = BoxRanker(feature_names, opts.hidden, opts.members, opts.prefilter,
+                      classes if heads else None, opts.class_hidden or ())
     model.mean.copy_(x.mean(0))
     model.scale.copy_(x.std(0).clamp(min=1e-6))
     threads = torch.get_num_threads()
@@ -191,12 +205,29 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
             _fit_member(member, xs, y, w, opts, opts.seed * 1000 + m)
         if model.prefilter is not None:
             _fit_member(model.prefilter, xs[:, : model.cheap], y, w, opts, opts.seed * 1000 + 999)
+        if model.classifier is not None:
+            pos = y == 1
+            label = torch.cat([s.label for s in samples])[pos]
+            _fit_member(model.classifier, xs[pos], label, w_object[pos],
+                        dataclasses.replace(opts, epochs=opts.class_epochs, batch=opts.class_batch),
+                        opts.seed * 1000 + 998, _class_loss)
     finally:
         torch.set_num_threads(threads)
     return model.eval().requires_grad_(False)
 
 
-def _fit_member(net: torch.nn.Module, x: Tensor, y: Tensor, w: Tensor, opts: FitOptions, seed: int) -> None:
+def _logistic_loss(logits: Tensor, y: Tensor, w: Tensor) -> Tensor:
+    return torch.nn.functional.binary_cross_entropy_with_logits(logits.squeeze(1), y, weight=w, reduction="sum")
+
+
+def _class_loss(logits: Tensor, y: Tensor, w: Tensor) -> Tensor:
+    return (torch.nn.functional.cross_entropy(logits, y, reduction="none") * w).sum()
+
+
+def _fit_member(net: torch.nn.Module, x: Tensor, y: Tensor, w: Tensor, opts: FitOptions, seed: int,
+                loss_fn: Callable[[Tensor, Tensor, Tensor], Tensor] = _logistic_loss) -> None:
+    """Fit ``net`` on rows ``x`` with targets ``y`` and row weights ``w`` (``loss_fn``: the
+    weighted sum over a step's rows, divided by their weight): AdamW, one-cycle, seeded."""
     gen = torch.Generator().manual_seed(seed)
     for p in net.parameters():  # the same initial weights for the same seed, whatever ran before
         if p.ndim == 2:
@@ -213,8 +244,7 @@ def _fit_member(net: torch.nn.Module, x: Tensor, y: Tensor, w: Tensor, opts: Fit
         perm = torch.randperm(n, generator=gen)
         for s in range(0, n, opts.batch):
             b = perm[s: s + opts.batch]
-            logits = net(x[b]).squeeze(1)
-            loss = torch.nn.functional.binary_cross_entropy_with_logits(logits, y[b], weight=w[b], reduction="sum")
+            loss = loss_fn(net(x[b]), y[b], w[b])
             opt.zero_grad()
             (loss / w[b].sum()).backward()
             opt.step()
@@ -290,13 +320,34 @@ class FitCrossValidation:
             generator with the model fitted without that frame's block finds, and ``base``'s.
         per_fold: per block, ``(ranked recall, base recall)``.
         trained: per block, how many frames its model was fitted on.
+        hinted: per frame, ``int64 [N_i]``: the class (index into the frames' classes) the
+            held-out model hints for each object it finds (:func:`hinted_classes`), -1 for
+            one it misses or where the model has no class head.
     """
 
     folds: list[list[int]]
     ranked_hits: list[Tensor] = field(repr=False)
     base_hits: list[Tensor] = field(repr=False)
     per_fold: list[tuple[float, float]] = field(default_factory=list)
+    hinted: list[Tensor] = field(default_factory=list, repr=False)
     trained: list[int] = field(default_factory=list)
+
+
+def hinted_classes(outputs: Sequence[dict[str, Tensor]], gts: Sequence[Tensor], k: int = 2000,
+                   iou: float = 0.7) -> list[Tensor]:
+    """Per frame, ``int64 [N_i]``: for each object (``gts[i]``, ``[N_i, 4]``) that the top
+    ``k`` proposals find at ``iou``, the class hinted (``labels``) by the proposal that
+    overlaps it most; -1 where none finds it, or the outputs hold no ``labels``."""
+    out = []
+    for o, g in zip(outputs, gts):
+        hint = torch.full((len(g),), -1, dtype=torch.long)
+        boxes = o["boxes"][:k]
+        if len(g) and len(boxes) and "labels" in o:
+            best, which = box_iou(g.float(), boxes.float()).max(1)
+            found = best >= iou
+            hint[found] = o["labels"][:k][which[found]]
+        out.append(hint)
+    return out
 
 
 def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples: Sequence[Sample],
@@ -305,6 +356,7 @@ def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples
     """For each of ``folds`` blocks of frames: fit on the others (:func:`training_frames`),
     run the generator of ``cfg`` with that model on the block, and pair its hits with
     ``base``'s on the same objects."""
+    from .metrics import object_hits
     from .tune import objective
 
     frames = cache.frames
@@ -313,18 +365,22 @@ def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples
     names = cache.candidates(cfg.replace(ranker="none"), 0).feature_names
     r_hits: list = [None] * len(frames)
     b_hits: list = [None] * len(frames)
+    hinted: list = [None] * len(frames)
     per_fold, trained = [], []
     with tempfile.TemporaryDirectory(prefix="reeb-fit-") as tmp:
         for f in progress(range(len(blocks))) if progress else range(len(blocks)):
             block = blocks[f]
             train = training_frames(blocks, f, frames.ids, frames.folders, similar, gap)
-            model = fit_ranker([samples[i] for i in train], names, opts)
+            model = fit_ranker([samples[i] for i in train], names, opts, frames.classes)
             path = save_ranker(model, Path(tmp) / f"fold{f}.safetensors")
-            for i, rh, bh in zip(block, cache.hits(cfg.replace(ranker=str(path)), block, k, iou),
-                                 cache.hits(base, block, k, iou)):
-                r_hits[i], b_hits[i] = rh, bh
+            outputs = cache.outputs(cfg.replace(ranker=str(path)), block)
+            gts = [frames.gts[i] for i in block]
+            ranked = object_hits([o["boxes"] for o in outputs], gts, k, iou)
+            for i, rh, bh, hc in zip(block, ranked, cache.hits(base, block, k, iou),
+                                     hinted_classes(outputs, gts, k, iou)):
+                r_hits[i], b_hits[i], hinted[i] = rh, bh, hc
             labels = [frames.labels[i] for i in block]
             per_fold.append((objective([r_hits[i] for i in block], labels),
                              objective([b_hits[i] for i in block], labels)))
             trained.append(len(train))
-    return FitCrossValidation(blocks, r_hits, b_hits, per_fold, trained)
+    return FitCrossValidation(blocks, r_hits, b_hits, per_fold=per_fold, trained=trained, hinted=hinted)

@@ -113,15 +113,20 @@ class FrameCache:
             self.front_computed += 1
         return gen, img, self._front[i]
 
-    def proposals(self, cfg: ReebConfig, indices: Sequence[int]) -> list[Tensor]:
-        """Ranked boxes ``Tensor[P_i, 4]`` (``P_i <= cfg.top_k``) for the frames ``indices``."""
+    def outputs(self, cfg: ReebConfig, indices: Sequence[int]) -> list[dict[str, Tensor]]:
+        """``ProposalGenerator(cfg)``'s output dict (``boxes``, ``scores``, and ``labels``,
+        ``class_probs`` where the ranker hints classes) for each of the frames ``indices``."""
         out = []
         with torch.no_grad():
             for i in indices:
                 gen, img, front = self._front_of(cfg, i)
                 results, _ = gen._back_end(img, front)
-                out.append(results[0]["boxes"].detach().cpu())
+                out.append({k: v.detach().cpu() for k, v in results[0].items()})
         return out
+
+    def proposals(self, cfg: ReebConfig, indices: Sequence[int]) -> list[Tensor]:
+        """Ranked boxes ``Tensor[P_i, 4]`` (``P_i <= cfg.top_k``) for the frames ``indices``."""
+        return [o["boxes"] for o in self.outputs(cfg, indices)]
 
     def candidates(self, cfg: ReebConfig, i: int):
         """Frame ``i``'s candidates and their features under ``cfg``

@@ -26,12 +26,12 @@ from ..stages.features import cheap_count
 __all__ = ["BoxRanker"]
 
 
-def _mlp(inputs: int, hidden: Sequence[int]) -> nn.Sequential:
+def _mlp(inputs: int, hidden: Sequence[int], outputs: int = 1) -> nn.Sequential:
     layers: list[nn.Module] = []
     for width in hidden:
         layers += [nn.Linear(inputs, width), nn.ReLU()]
         inputs = width
-    layers.append(nn.Linear(inputs, 1))
+    layers.append(nn.Linear(inputs, outputs))
     return nn.Sequential(*layers)
 
 
@@ -45,6 +45,9 @@ class BoxRanker(nn.Module):
         members: how many MLPs (fitted from different seeds) are averaged.
         prefilter: the widths of the prefilter's hidden layers (``()``: a linear prefilter),
             or None for none (every candidate gets all the features).
+        classes: the object classes a box may be hinted as (e.g. ``("Car", "Pedestrian",
+            "Cyclist", "Truck")``), or None for no class head.
+        class_hidden: the widths of the class head's hidden layers.
 
     Attributes:
         mean, scale: ``float32 [F]`` buffers; a feature enters the MLPs as ``(x − mean) / scale``.
@@ -53,11 +56,13 @@ class BoxRanker(nn.Module):
     """
 
     def __init__(self, feature_names: Sequence[str], hidden: Sequence[int] = (64, 64), members: int = 1,
-                 prefilter: Sequence[int] | None = (16,)) -> None:
+                 prefilter: Sequence[int] | None = (16,), classes: Sequence[str] | None = None,
+                 class_hidden: Sequence[int] = (32,)) -> None:
         super().__init__()
-        if members < 1 or not hidden or min(hidden) < 1 or (prefilter and min(prefilter) < 1):
-            raise ValueError(f"BoxRanker needs members >= 1 and hidden widths >= 1, got {members}, {tuple(hidden)}, "
-                             f"prefilter {prefilter}")
+        if members < 1 or not hidden or min(hidden) < 1 or (prefilter and min(prefilter) < 1) \
+                or (classes is not None and (len(classes) < 2 or (class_hidden and min(class_hidden) < 1))):
+            raise ValueError(f"BoxRanker needs members >= 1, hidden widths >= 1 and 2 classes or more, got {members}, "
+                             f"{tuple(hidden)}, prefilter {prefilter}, classes {classes}, class_hidden {class_hidden}")
         self.feature_names = tuple(feature_names)
         self.hidden = tuple(int(h) for h in hidden)
         f = len(self.feature_names)
@@ -68,11 +73,16 @@ class BoxRanker(nn.Module):
         self.cheap = cheap_count(sum(1 for n in self.feature_names if n.startswith("class_fit_")))
         """How many first columns the prefilter reads (:func:`~reeb_torch.stages.features.cheap_count`)."""
         self.prefilter = None if prefilter is None else _mlp(self.cheap, self.prefilter_hidden)
+        self.classes = None if classes is None else tuple(str(c) for c in classes)
+        """The classes of :meth:`class_probs`'s columns, or None without a class head."""
+        self.class_hidden = tuple(int(h) for h in class_hidden)
+        self.classifier = None if classes is None else _mlp(f, self.class_hidden, len(self.classes))
+        """The class head: which class a box looks like, were it an object (softmax logits)."""
         self.meta: dict = {}
 
     def extra_repr(self) -> str:
         return (f"features={len(self.feature_names)}, hidden={self.hidden}, members={len(self.members)}, "
-                f"prefilter={self.prefilter_hidden}")
+                f"prefilter={self.prefilter_hidden}, classes={self.classes}")
 
     def prefilter_scores(self, cheap: Tensor) -> Tensor:
         """``float [K, cheap]`` (the first :attr:`cheap` columns of the features) -> ``float32 [K]``
@@ -83,6 +93,21 @@ class BoxRanker(nn.Module):
             raise ValueError(f"BoxRanker.prefilter_scores expects [K, {self.cheap}], got {tuple(cheap.shape)}")
         x = (cheap.float() - self.mean[: self.cheap]) / self.scale[: self.cheap]
         return self.prefilter(x).squeeze(1)
+
+    @torch.no_grad()
+    def class_probs(self, features: Tensor) -> Tensor:
+        """``float [K, F] -> float32 [K, C]``: for each box, the probability of each of
+        :attr:`classes` were it an object (rows sum to 1; the class head was fitted on the
+        boxes that overlap an object at IoU ≥ 0.7). Raises ValueError without a class head."""
+        if self.classifier is None:
+            raise ValueError("this BoxRanker has no class head (fit one with reeb fit)")
+        self._check(features)
+        return torch.softmax(self.classifier(self.standardise(features)), 1)
+
+    def _check(self, features: Tensor) -> None:
+        if features.ndim != 2 or features.shape[1] != len(self.feature_names):
+            raise ValueError(f"BoxRanker expects features of shape [K, {len(self.feature_names)}], "
+                             f"got {tuple(features.shape)}")
 
     def standardise(self, features: Tensor) -> Tensor:
         """``(features − mean) / scale``, float32."""
@@ -96,9 +121,7 @@ class BoxRanker(nn.Module):
         ``[K, F]`` and ``[K, hidden]`` temporaries of :meth:`forward` are not made (at batch 8,
         ~100000 rows, they cost more than the products). The same logits to float32 rounding
         (~1e-5)."""
-        if features.ndim != 2 or features.shape[1] != len(self.feature_names):
-            raise ValueError(f"BoxRanker expects features of shape [K, {len(self.feature_names)}], "
-                             f"got {tuple(features.shape)}")
+        self._check(features)
         x = features.float()
         out = None
         for member in self.members:
@@ -112,9 +135,7 @@ class BoxRanker(nn.Module):
         return (out / len(self.members)).squeeze(1)
 
     def forward(self, features: Tensor) -> Tensor:
-        if features.ndim != 2 or features.shape[1] != len(self.feature_names):
-            raise ValueError(f"BoxRanker expects features of shape [K, {len(self.feature_names)}], "
-                             f"got {tuple(features.shape)}")
+        self._check(features)
         x = self.standardise(features)
         out = self.members[0](x)
         for m in self.members[1:]:

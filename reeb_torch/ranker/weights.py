@@ -122,7 +122,8 @@ def _read(path: Path, spec: str) -> BoxRanker:
         raise RankerWeightsError(f"ranker weights {spec!r} ({path}) were fitted on features version {version}, "
                                  f"but this reeb-torch computes version {FEATURES_VERSION}: refit them with `reeb fit`")
     try:
-        model = BoxRanker(info["feature_names"], info["hidden"], info["members"], info["prefilter"])
+        model = BoxRanker(info["feature_names"], info["hidden"], info["members"], info["prefilter"],
+                          info.get("classes"), info.get("class_hidden", (32,)))
         model.load_state_dict(tensors, strict=True)
         model.meta = {k: info[k] for k in ("provenance", "config") if k in info}
     except (KeyError, ValueError, RuntimeError, TypeError) as e:
@@ -142,6 +143,8 @@ def save_ranker(model: BoxRanker, path: str | os.PathLike, provenance: dict | No
     info = {"features_version": FEATURES_VERSION, "feature_names": list(model.feature_names),
             "hidden": list(model.hidden), "members": len(model.members),
             "prefilter": None if model.prefilter_hidden is None else list(model.prefilter_hidden)}
+    if model.classes is not None:  # files without a class head keep the earlier bytes
+        info["classes"], info["class_hidden"] = list(model.classes), list(model.class_hidden)
     if provenance is not None:
         info["provenance"] = provenance
     if config is not None:

@@ -88,6 +88,25 @@ def _report(frames: F.FitFrames, rows: dict[str, list], ref: list) -> tuple[list
     return lines, record
 
 
+def _hint_report(frames: F.FitFrames, hinted: list) -> tuple[list[str], dict[str, Any]]:
+    """How often the cross-validated models' class hints name the class of the objects their
+    proposals find (the hint of each object's best proposal), overall and per class."""
+    pairs = [(c, h) for lab, hint in zip(frames.labels, hinted) for c, h in zip(lab.tolist(), hint.tolist()) if h >= 0]
+    if not pairs:
+        return [], {}
+    per_class = {}
+    for c, name in enumerate(frames.classes):
+        hints = [h for t, h in pairs if t == c]
+        if hints:
+            per_class[name] = {"right": sum(h == c for h in hints), "found": len(hints),
+                               "taken_for": {frames.classes[o]: hints.count(o) for o in sorted(set(hints)) if o != c}}
+    right = sum(t == h for t, h in pairs)
+    shown = ", ".join(f"{n} {v['right']}/{v['found']}" for n, v in per_class.items())
+    line = (f"class hints (cross-validated; the hint of each found object's best proposal): "
+            f"{100 * right / len(pairs):.1f} % right of {len(pairs)} ({shown})")
+    return [line], {"right": right, "found": len(pairs), "per_class": per_class}
+
+
 def _shipped_hits(cache: FrameCache, cfg: ReebConfig, k: int, iou: float) -> list | None:
     """The shipped model's hits on the frames, or None where it cannot rank this config's features."""
     from ..ranker import RankerWeightsError
@@ -120,9 +139,10 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions,
     samples = F.frame_samples(cache, cfg, opts, progress=_iterate("candidates", quiet))
     cv = F.cross_validate(cache, cfg, base, samples, opts, folds, k, iou, progress=_iterate("folds", quiet))
     names = cache.candidates(cfg.replace(ranker="none"), 0).feature_names
-    model = F.fit_ranker(samples, names, opts)
+    model = F.fit_ranker(samples, names, opts, frames.classes)
     rows = {"training-free": cv.base_hits, "fitted (cross-validated)": cv.ranked_hits}
     table, record = _report(frames, rows, cv.base_hits)  # kept in the weights: the same for the same frames
+    hint_lines, hint_record = _hint_report(frames, cv.hinted)
     shipped = _shipped_hits(cache, cfg, k, iou)
     if shipped is not None:
         table = _report(frames, {**rows, "shipped kitti model": shipped}, cv.base_hits)[0]
@@ -132,6 +152,8 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions,
         "options": dataclasses.asdict(opts), "folds": folds, "k": k, "iou": iou, "command": command,
         "cross_validated": record,
     }
+    if hint_record:
+        provenance["class_hints"] = hint_record
     path = save_ranker(model, out, provenance, cfg.to_dict())
     config_path = Path(out).with_suffix(".json")
     config_path.write_text(json.dumps({**_changed(cfg), "ranker": str(out)}, indent=2) + "\n", encoding="utf-8")
@@ -144,7 +166,8 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions,
     if shipped is not None and load_ranker("kitti").meta.get("provenance", {}).get("frames_digest") == \
             provenance["frames_digest"]:
         note = ["  (the shipped model was fitted on these frames: its row is no estimate)"]
-    text = "\n".join([head] + table + note + [f"wrote {path} and {config_path} (reeb propose --config {config_path})"])
+    text = "\n".join([head] + table + note + hint_lines
+                     + [f"wrote {path} and {config_path} (reeb propose --config {config_path})"])
     return {"provenance": provenance, "text": text, "weights": str(path), "config": str(config_path)}
 
 
