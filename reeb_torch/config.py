@@ -587,8 +587,7 @@ class ReebConfig:
         (their printed forms give no regions / no proposals).
         """
         base = dict(
-            ranker="none",  # REEB ranks by V (eq. 12); the region budget of the training-free setting
-            candidates_per_region=12000,
+            **TRAINING_FREE,  # REEB ranks by V (eq. 12), with the training-free region budget
             scale=1.0,
             grouping="connected",
             group_cell=None,

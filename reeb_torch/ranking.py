@@ -594,8 +594,11 @@ class Ranking:
         """The window columns of every window of ``grid`` (:func:`~reeb_torch.stages.features.window_features`),
         ``float32 [N, 11 + C]`` (as the features hold them), computed once per grid."""
         dev = maps.edges.device
-        return self._grid_cached(("window_features", maps.fx, maps.fy, str(dev)), grid, lambda: _features.window_features(
-            self.box_maps(maps, geometry_only=True), self._device_tensor(grid.boxes, dev).round().long()).float())
+        def build() -> Tensor:
+            boxes = self._device_tensor(grid.boxes, dev).round().long()
+            return _features.window_features(self.box_maps(maps, geometry_only=True), boxes).float()
+
+        return self._grid_cached(("window_features", maps.fx, maps.fy, str(dev)), grid, build)
 
     def _features_of(self, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor, share: Tensor,
                      entropy: Tensor, bi: Tensor, ni: Tensor, cheap: bool = False) -> Tensor:

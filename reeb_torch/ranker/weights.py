@@ -1,12 +1,13 @@
 """Weights files of the learned ranking: safetensors (no pickle), with what made them.
 
 A file holds the tensors of a :class:`~reeb_torch.ranker.model.BoxRanker` (``mean``,
-``scale``, ``members.<i>.<layer>.weight|bias``, ``prefilter.<layer>.weight|bias``) and one
-metadata entry, ``reeb-ranker``: a JSON object (keys sorted, so the same model gives the
-same bytes) with
+``scale``, ``members.<i>.<layer>.weight|bias``, ``prefilter.<layer>.weight|bias``, and with a
+class head ``classifier.<layer>.weight|bias``) and one metadata entry, ``reeb-ranker``: a
+JSON object (keys sorted, so the same model gives the same bytes) with
 
 * ``features_version``: the :data:`~reeb_torch.stages.features.FEATURES_VERSION` it was
   fitted on; ``feature_names``, ``hidden``, ``members``, ``prefilter``: its shape;
+  ``classes``, ``class_hidden``: its class head's, where it has one (older files have none);
 * ``provenance``: the frames it was fitted on, the command that refits it, its
   cross-validated recall, the fit's options and seed;
 * ``config``: the :class:`~reeb_torch.ReebConfig` fields it was fitted with.

@@ -62,8 +62,6 @@ SHADOW_STRIP, SHADOW_MARGIN = 0.2, 0.15
 """The shadow strips (``ReebConfig.shadow_strip`` / ``shadow_margin``'s defaults, fixed here)."""
 
 
-
-
 def window_names(classes: int) -> tuple[str, ...]:
     """The first columns, which depend on the window alone (its geometry, its location fit L
     and each of the ``classes`` classes' fits): :func:`window_features`, computed once per
