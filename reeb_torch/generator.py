@@ -339,9 +339,11 @@ class ProposalGenerator(nn.Module):
                 scores, chosen = self.ranking.rescore(maps, grid, scores, chosen)
         # the learned ranking of the candidates (not in the paper; ``ReebConfig.ranker``)
         v_scores, hints = scores, self.classes is not None
+        ranked: list = []  # the ranked candidates' features, for the class hints
         if cfg.ranker != "none":
             with self._stage("ranker", dev):
-                scores, chosen = self.ranking.rank_learned(maps, grid, scores, chosen, share, entropy)
+                scores, chosen = self.ranking.rank_learned(maps, grid, scores, chosen, share, entropy,
+                                                           ranked if hints else None)
         # Edge Boxes' refinement of the candidates (not in the paper; ``ReebConfig.refine``)
         refined = None
         if cfg.refine:
@@ -353,7 +355,8 @@ class ProposalGenerator(nn.Module):
             results = self.ranking.suppress(maps, grid, chosen, scores, share, refined, windows)
         if hints:  # which class each proposal looks like (the ranking model's class head)
             with self._stage("ranker", dev):
-                for r, probs in zip(results, self.ranking.class_hints(maps, grid, v_scores, share, entropy, windows)):
+                for r, probs in zip(results, self.ranking.class_hints(maps, grid, v_scores, share, entropy, windows,
+                                                                      ranked[0] if ranked else None)):
                     r["labels"], r["class_probs"] = probs.argmax(1), probs
         if not self._warned_empty and any(len(r["boxes"]) == 0 for r in results):
             self._warn_empty(tuple(images[0].shape[-2:]), grid.count, share)

@@ -615,11 +615,14 @@ class Ranking:
                                       cheap)
 
     def rank_learned(self, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor, chosen: Tensor,
-                     share: Tensor, entropy: Tensor) -> tuple[Tensor, Tensor]:
+                     share: Tensor, entropy: Tensor,
+                     features_out: list[tuple[Tensor, Tensor, Tensor]] | None = None) -> tuple[Tensor, Tensor]:
         """``ranker``: the candidates ranked by the model, for :meth:`suppress`: ``(scores
         float32 [B, N], chosen bool [B, N])``, the model's logit of each candidate it ranks
         (``-inf`` elsewhere) and which those are: where the model has a prefilter, each
-        image's best ``ranker_keep`` candidates by the prefilter; all of them otherwise."""
+        image's best ``ranker_keep`` candidates by the prefilter; all of them otherwise.
+        ``features_out``, if given, gets ``(bi, ni, features)`` of the candidates it ranked
+        (in ``nonzero(chosen)`` order), so that :meth:`class_hints` need not compute them again."""
         model = self._model_on(scores.device)
         bi, ni = torch.nonzero(chosen, as_tuple=True)
         keep = self.config.ranker_keep
@@ -630,8 +633,11 @@ class Ranking:
         out = torch.full_like(scores, -math.inf)
         kept = torch.zeros_like(chosen)
         if len(bi):
-            out[bi, ni] = model.rank(self._features_of(maps, grid, scores, share, entropy, bi, ni))
+            feats = self._features_of(maps, grid, scores, share, entropy, bi, ni)
+            out[bi, ni] = model.rank(feats)
             kept[bi, ni] = True
+            if features_out is not None:
+                features_out.append((bi, ni, feats))
         if self.on_rank is not None:
             self.on_rank(out, kept)
         return out, kept
@@ -658,10 +664,13 @@ class Ranking:
                                        float(last.bias[0]))
 
     def class_hints(self, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor, share: Tensor,
-                    entropy: Tensor, windows: list[Tensor]) -> list[Tensor]:
+                    entropy: Tensor, windows: list[Tensor],
+                    ranked: tuple[Tensor, Tensor, Tensor] | None = None) -> list[Tensor]:
         """The class head's probabilities (:meth:`~reeb_torch.ranker.BoxRanker.class_probs`) of
         the windows ``windows[i]`` (``int64 [N_i]``) of each image, ``float32 [N_i, C]``, from
-        their features under REEB's scores V (``scores [B, N]``, before the learned ranking)."""
+        their features under REEB's scores V (``scores [B, N]``, before the learned ranking).
+        ``ranked``: :meth:`rank_learned`'s ``(bi, ni, features)`` under the same V; the rows of
+        the windows among them are taken from there (the same numbers), the others computed."""
         model = self._model_on(scores.device)
         counts = [len(w) for w in windows]
         dev = scores.device
@@ -669,7 +678,21 @@ class Ranking:
         ni = torch.cat(windows).to(dev) if windows else bi
         if not len(ni):
             return [scores.new_zeros(0, len(model.classes)) for _ in windows]
-        probs = model.class_probs(self._features_of(maps, grid, scores, share, entropy, bi, ni))
+        feats = None
+        if ranked is not None and len(ranked[0]):
+            rb, rn, rf = ranked
+            n = scores.shape[1]
+            known = rb * n + rn  # ascending: nonzero order
+            key = bi * n + ni
+            at = torch.searchsorted(known, key).clamp_(max=len(known) - 1)
+            found = known[at] == key
+            feats = rf[at]
+            if not bool(found.all()):
+                miss = ~found
+                feats[miss] = self._features_of(maps, grid, scores, share, entropy, bi[miss], ni[miss])
+        if feats is None:
+            feats = self._features_of(maps, grid, scores, share, entropy, bi, ni)
+        probs = model.class_probs(feats)
         return list(probs.split(counts))
 
     def _model_on(self, device: torch.device):

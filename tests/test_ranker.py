@@ -34,9 +34,11 @@ def test_model_contract():
 
 
 @pytest.mark.parametrize("members", [1, 2])
-def test_rank_is_forward_with_the_standardisation_folded_in(members):
+def test_rank_is_forward_with_the_standardisation_folded_in(members, monkeypatch):
     """rank(): the inference path the generator takes gives forward()'s logits to float32
     rounding, on features far from standardised (as the real ones are), and takes no grad."""
+    from reeb_torch.ranker import model as model_module
+
     m = _model(members=members)
     torch.manual_seed(1)
     m.mean.copy_(torch.randn(47) * 50)
@@ -45,6 +47,10 @@ def test_rank_is_forward_with_the_standardisation_folded_in(members):
     got = m.rank(x)
     assert got.shape == (300,) and got.dtype == torch.float32 and not got.requires_grad
     torch.testing.assert_close(got, m(x), rtol=1e-5, atol=1e-4)
+    # taken in blocks of rows (the last one short): the same logits
+    monkeypatch.setattr(model_module, "RANK_ROWS", 64)
+    torch.testing.assert_close(m.rank(x), got, rtol=1e-6, atol=1e-6)
+    assert m.rank(x[:0]).shape == (0,)
     with pytest.raises(ValueError, match=r"\[K, 47\]"):
         m.rank(torch.randn(5, 46))
 
@@ -138,6 +144,32 @@ def test_generator_with_ranker_contract(sample_image):
 
     best = box_iou(car, b)[0].argmax()
     assert gen.classes[int(labels[best])] == "Car"
+
+
+def test_class_hints_reuse_the_ranked_features(sample_image):
+    """The hints read the features the ranking computed (rows looked up, not recomputed):
+    the same probabilities as features computed afresh, and a window the ranking did not
+    rank (here: every other one dropped from what it hands over) is computed."""
+    from reeb_torch._checks import check_images
+
+    gen = ProposalGenerator()
+    rk = gen.ranking
+    x = check_images([sample_image, sample_image.flip(-1)], gen.min_side, gen.config, keep_uint8=True)
+    work, maps = gen._front_end(x)
+    bounds, entropy, share = gen._regions(work.gray)
+    grid = rk.window_grid(maps, bounds)
+    scores = rk.score(maps, grid)
+    chosen = rk.select(scores, grid, share)
+    ranked: list = []
+    _, kept = rk.rank_learned(maps, grid, scores, chosen, share, entropy, ranked)
+    bi, ni, feats = ranked[0]
+    assert feats.shape == (int(kept.sum()), 47)
+    assert torch.equal(torch.stack([bi, ni]), torch.stack(kept.nonzero(as_tuple=True)))
+    windows = [torch.nonzero(kept[i]).squeeze(1)[::7] for i in range(2)]
+    fresh = rk.class_hints(maps, grid, scores, share, entropy, windows)
+    for part in (ranked[0], tuple(t[::2] for t in ranked[0])):
+        for a, b in zip(rk.class_hints(maps, grid, scores, share, entropy, windows, part), fresh):
+            assert torch.equal(a, b)
 
 
 def test_no_class_hints_without_a_class_head(sample_image, tmp_path):
