@@ -162,6 +162,19 @@ def _warn_if_fitted_elsewhere(config: ReebConfig, fitted: dict | None) -> None:
                       UserWarning, stacklevel=4)
 
 
+def _chosen(chosen: Tensor) -> tuple[Tensor, Tensor]:
+    """``torch.nonzero(chosen, as_tuple=True)`` of a ``bool [B, N]`` mask: ``(bi, ni)``
+    ``int64``, image-major, windows ascending. On the CPU numpy's ``flatnonzero``, an image
+    at a time (torch's 2-D nonzero took 3 ms for 4 KITTI images' 170 000 windows; this 0.4)."""
+    if chosen.device.type != "cpu":
+        return torch.nonzero(chosen, as_tuple=True)
+    mask = chosen.numpy()
+    parts = [np.flatnonzero(row) for row in mask]
+    ni = np.concatenate(parts) if parts else np.zeros(0, np.int64)
+    bi = np.repeat(np.arange(len(parts)), [len(p) for p in parts])
+    return torch.from_numpy(bi.astype(np.int64, copy=False)), torch.from_numpy(ni.astype(np.int64, copy=False))
+
+
 def _best_per_image(values: Tensor, counts: Tensor, keep: int) -> Tensor:
     """Indices of the best ``keep`` of each image's ``values`` (the images' values lie in
     consecutive runs of ``counts``), ties to the earlier; ascending. On the CPU a compiled
@@ -587,7 +600,7 @@ class Ranking:
         """The features of every candidate: ``(bi int64 [K], ni int64 [K], float32 [K, F])``,
         the image and window index of each candidate (``nonzero(chosen)`` order) and its
         features (:func:`~reeb_torch.stages.features.box_features`; compiled on the CPU)."""
-        bi, ni = torch.nonzero(chosen, as_tuple=True)
+        bi, ni = _chosen(chosen)
         return bi, ni, self._features_of(maps, grid, scores, share, entropy, bi, ni)
 
     def _window_table(self, maps: ScoreMaps, grid: _windows.WindowGrid) -> Tensor:
@@ -624,7 +637,7 @@ class Ranking:
         ``features_out``, if given, gets ``(bi, ni, features)`` of the candidates it ranked
         (in ``nonzero(chosen)`` order), so that :meth:`class_hints` need not compute them again."""
         model = self._model_on(scores.device)
-        bi, ni = torch.nonzero(chosen, as_tuple=True)
+        bi, ni = _chosen(chosen)
         keep = self.config.ranker_keep
         counts = torch.bincount(bi, minlength=scores.shape[0])
         if model.prefilter is not None and len(bi) and int(counts.max()) > keep:

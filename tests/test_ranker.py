@@ -221,3 +221,15 @@ def test_a_config_the_model_was_not_fitted_with_is_warned_about():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         ProposalGenerator(top_k=100, ranker_keep=5000, nms_iou=0.7)  # act after the model: no warning
+
+
+def test_chosen_pairs_are_torch_nonzero():
+    """The CPU's candidate pairs (numpy, an image at a time) are torch.nonzero's, in its order."""
+    from reeb_torch.ranking import _chosen
+
+    torch.manual_seed(0)
+    for mask in (torch.rand(3, 1000) < 0.3, torch.zeros(2, 50, dtype=torch.bool), torch.ones(1, 7, dtype=torch.bool),
+                 torch.zeros(0, 9, dtype=torch.bool), (torch.rand(4, 64) < 0.5)[:, ::2]):
+        bi, ni = _chosen(mask)
+        want = torch.nonzero(mask, as_tuple=True)
+        assert bi.dtype == ni.dtype == torch.int64 and torch.equal(bi, want[0]) and torch.equal(ni, want[1])
