@@ -187,9 +187,9 @@ def _best_per_image(values: Tensor, counts: Tensor, keep: int) -> Tensor:
         elif values.device.type == "cpu":
             v = part.detach().float().contiguous().numpy()
             thr = kth_largest(v, keep)
-            above = np.flatnonzero(v > thr)
-            ties = np.flatnonzero(v == thr)[: keep - len(above)]
-            sel = torch.from_numpy(np.sort(np.concatenate([above, ties])))
+            mask = v > thr
+            mask[np.flatnonzero(v == thr)[: keep - int(mask.sum())]] = True  # ascending, without a sort
+            sel = torch.from_numpy(np.flatnonzero(mask))
         else:
             sel = torch.sort(part, descending=True, stable=True).indices[:keep].sort().values
         out.append(sel + start)
@@ -698,8 +698,8 @@ class Ranking:
             known = rb * n + rn  # ascending: nonzero order
             key = bi * n + ni
             at = torch.searchsorted(known, key).clamp_(max=len(known) - 1)
-            found = known[at] == key
-            feats = rf[at]
+            found = known.index_select(0, at) == key
+            feats = rf.index_select(0, at)
             if not bool(found.all()):
                 miss = ~found
                 feats[miss] = self._features_of(maps, grid, scores, share, entropy, bi[miss], ni[miss])

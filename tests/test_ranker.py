@@ -233,3 +233,19 @@ def test_chosen_pairs_are_torch_nonzero():
         bi, ni = _chosen(mask)
         want = torch.nonzero(mask, as_tuple=True)
         assert bi.dtype == ni.dtype == torch.int64 and torch.equal(bi, want[0]) and torch.equal(ni, want[1])
+
+
+def test_best_per_image_keeps_the_best_ties_to_the_earlier():
+    """Each image's best `keep` values, ties to the earlier, ascending: as a stable sort."""
+    from reeb_torch.ranking import _best_per_image
+
+    torch.manual_seed(0)
+    values = torch.randint(0, 20, (300,)).float()  # many ties
+    counts = torch.tensor([120, 5, 0, 175])
+    got = _best_per_image(values, counts, 30)
+    want, start = [], 0
+    for n in counts.tolist():
+        part = values[start: start + n]
+        want.append(torch.sort(part, descending=True, stable=True).indices[:30].sort().values + start)
+        start += n
+    assert torch.equal(got, torch.cat(want))
