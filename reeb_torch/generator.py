@@ -339,11 +339,14 @@ class ProposalGenerator(nn.Module):
                 scores, chosen = self.ranking.rescore(maps, grid, scores, chosen)
         # the learned ranking of the candidates (not in the paper; ``ReebConfig.ranker``)
         v_scores, hints = scores, self.classes is not None
-        ranked: list = []  # the ranked candidates' features, for the class hints
+        ranked: list = []  # the ranked candidates' features, for the class hints and quota
+        class_of = None
         if cfg.ranker != "none":
             with self._stage("ranker", dev):
                 scores, chosen = self.ranking.rank_learned(maps, grid, scores, chosen, share, entropy,
-                                                           ranked if hints else None)
+                                                           ranked if hints or cfg.class_quota else None)
+                if cfg.class_quota and ranked:
+                    class_of = self.ranking.class_map(ranked[0], tuple(scores.shape))
         # Edge Boxes' refinement of the candidates (not in the paper; ``ReebConfig.refine``)
         refined = None
         if cfg.refine:
@@ -352,7 +355,7 @@ class ProposalGenerator(nn.Module):
         # Sec. 3.8: Final_Proposals = NMS(Sorted_Proposals) (eq. 13)
         windows: list[Tensor] | None = [] if hints else None
         with self._stage("nms", dev):
-            results = self.ranking.suppress(maps, grid, chosen, scores, share, refined, windows)
+            results = self.ranking.suppress(maps, grid, chosen, scores, share, refined, windows, class_of)
         if hints:  # which class each proposal looks like (the ranking model's class head)
             with self._stage("ranker", dev):
                 for r, probs in zip(results, self.ranking.class_hints(maps, grid, v_scores, share, entropy, windows,

@@ -140,7 +140,7 @@ class ScoreMaps:
         return self._keep(("crossing", band), build)
 
 
-_NOT_SEEN_BY_RANKER = ("top_k", "ranker", "ranker_keep", "nms_iou", "region_quota")
+_NOT_SEEN_BY_RANKER = ("top_k", "ranker", "ranker_keep", "nms_iou", "region_quota", "class_quota")
 """Fields a ranking model does not depend on (they act after it)."""
 
 
@@ -241,6 +241,12 @@ class Ranking:
 
             self.model = load_ranker(config.ranker, self.feature_names())
             _warn_if_fitted_elsewhere(config, self.model.meta.get("config"))
+            classes = self.model.classes
+            if config.class_quota and (classes is None or len(classes) != len(config.class_quota)):
+                has = "no class head" if classes is None else f"the classes {', '.join(classes)}"
+                raise ValueError(f"ReebConfig.class_quota has {len(config.class_quota)} shares, but the ranker "
+                                 f"{config.ranker!r} has {has}: give one share per class, in its order, or "
+                                 "class_quota=()")
 
     # -- windows (Sec. 3.6) -----------------------------------------------------------------
     def window_grid(self, maps: ScoreMaps, bounds: Tensor) -> _windows.WindowGrid:
@@ -655,6 +661,16 @@ class Ranking:
             self.on_rank(out, kept)
         return out, kept
 
+    def class_map(self, ranked: tuple[Tensor, Tensor, Tensor], shape: tuple[int, int]) -> Tensor:
+        """``int8 [B, N]``: the class the model's head hints for each candidate :meth:`rank_learned`
+        ranked (``ranked``: its ``(bi, ni, features)``; the index into the model's classes),
+        ``-1`` elsewhere: what ``class_quota`` shares the output by (:meth:`suppress`)."""
+        bi, ni, feats = ranked
+        out = torch.full(shape, -1, dtype=torch.int8, device=feats.device)
+        if len(bi):
+            out[bi, ni] = self._model_on(feats.device).class_probs(feats).argmax(1).to(torch.int8)
+        return out
+
     def _prefilter(self, model, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor, share: Tensor,
                    entropy: Tensor, bi: Tensor, ni: Tensor) -> Tensor:
         """The prefilter's logit of each candidate ``(bi, ni)``, ``float32 [K]``: on the CPU,
@@ -875,9 +891,11 @@ class Ranking:
     # -- eq. 13: the final proposals ----------------------------------------------------------
     def suppress(self, maps: ScoreMaps, grid: _windows.WindowGrid, chosen: Tensor, scores: Tensor, share: Tensor,
                  refined: tuple[list[Tensor], list[Tensor]] | None = None,
-                 windows_out: list[Tensor] | None = None) -> list[dict[str, Tensor]]:
+                 windows_out: list[Tensor] | None = None,
+                 class_of: Tensor | None = None) -> list[dict[str, Tensor]]:
         """Greedy NMS (eq. 13) of each image's candidates, best first, stopping at ``top_k``
-        (with ``region_quota``, each region's share of the output first: :meth:`quota`):
+        (with ``region_quota``, each region's share of the output first: :meth:`quota`; with
+        ``class_of``, :meth:`class_map`'s hints, each class's ``class_quota`` share first):
         one dict per image, ``boxes`` ``float32 [N, 4]`` in input pixels and ``scores``
         ``float32 [N]``. ``refined``: :meth:`refine`'s boxes and scores of the candidates
         (else the windows themselves, gathered, sorted and suppressed in one compiled pass
@@ -890,7 +908,8 @@ class Ranking:
         boxes_in = self._grid_cached(("boxes_in", fx, fy, str(dev)), grid,
                                      lambda: self._device_tensor(grid.boxes, dev) / to_input)
         region_of = self._device_tensor(grid.region_of, dev)
-        quota = cfg.region_quota and share.shape[1] > 1
+        by_class = class_of is not None and bool(cfg.class_quota)
+        quota = (cfg.region_quota and share.shape[1] > 1) or by_class
         kept = None
         if refined is None:  # the windows themselves: gathered, sorted and suppressed compiled
             ok = (self._grid_cached(("boxes_ok", fx, fy), grid, lambda: boxes_valid(boxes_in))
@@ -911,7 +930,10 @@ class Ranking:
         results = []
         h_in, w_in = maps.input_size
         for i, ((bx, sc), keep_idx, win) in enumerate(zip(pairs, kept, windows)):
-            if quota:
+            if by_class:
+                keep_idx = self.quota(keep_idx, class_of[i, win].long().clamp(min=0),
+                                      torch.tensor(cfg.class_quota, device=dev), whole=True)[: cfg.top_k]
+            elif quota:
                 keep_idx = self.quota(keep_idx, region_of[win], share[i])[: cfg.top_k]
             if windows_out is not None:
                 windows_out.append(keep_idx if cands is None else cands[i][keep_idx])
@@ -931,14 +953,16 @@ class Ranking:
             results.append({"boxes": boxes, "scores": sc[keep_idx].contiguous()})
         return results
 
-    def quota(self, keep: Tensor, region: Tensor, share: Tensor) -> Tensor:
+    def quota(self, keep: Tensor, region: Tensor, share: Tensor, whole: bool = False) -> Tensor:
         """Eq. 9 on the output: of the ``top_k`` proposals, region r gets up to
         ``top_k · share_r / Σ share`` (its best after NMS); places a region leaves empty go
-        to the best of the rest. ``keep`` is in descending score order and stays so."""
+        to the best of the rest. ``keep`` is in descending score order and stays so. With
+        ``whole``, the shares are fractions of ``top_k`` as they are (not normalised): the
+        class quota (``region`` then each box's class)."""
         k = self.config.top_k
         if keep.numel() <= k:
             return keep
-        total = float(share.sum())
+        total = 1.0 if whole else float(share.sum())
         if total <= 0:
             return keep
         quota = torch.floor(share * (k / total)).long()  # (R,)

@@ -203,6 +203,41 @@ def test_bad_ranker_settings():
         ReebConfig(ranker_keep=0)
 
 
+def test_class_quota_shares_the_output_by_the_hints(sample_image):
+    """class_quota: each class's share of top_k goes first to its best boxes after NMS (by
+    the class head's hint), the rest to the best of the others, in score order."""
+    shares = (0.0, 0.5, 0.25, 0.25)
+    every = ProposalGenerator(class_quota=shares, top_k=10**6)([sample_image])[0]  # all NMS survivors
+    got = ProposalGenerator(class_quota=shares, top_k=200)([sample_image])[0]
+    assert len(got["boxes"]) == 200 and bool((got["scores"][:-1] >= got["scores"][1:]).all())
+    assert torch.equal(got["labels"], got["class_probs"].argmax(1))
+    key = lambda o: {tuple(b) for b in o["boxes"].tolist()}  # noqa: E731
+    assert key(got) <= key(every)
+    for c, share in enumerate(shares):
+        best = every["boxes"][every["labels"] == c][: int(share * 200)]
+        assert {tuple(b) for b in best.tolist()} <= key(got)  # the class's best, whatever their rank
+    # without a quota the same generator ranks all classes as one
+    plain = ProposalGenerator(top_k=200)([sample_image])[0]
+    assert int((plain["labels"] == 1).sum()) < int((got["labels"] == 1).sum())
+
+
+def test_bad_class_quotas(tmp_path):
+    with pytest.raises(ValueError, match="class_quota must be shares >= 0 that sum to at most 1"):
+        ReebConfig(class_quota=(0.5, 0.6))
+    with pytest.raises(ValueError, match="a ranker .* with class_quota"):
+        ReebConfig(class_quota=(0.2,), ranker="none")
+    with pytest.raises(ValueError, match="one output quota at a time"):
+        ReebConfig(class_quota=(0.2,), region_quota=True)
+    with pytest.raises(ValueError, match="class_quota has 2 shares, but the ranker 'kitti' has the classes Car, "
+                                         "Pedestrian, Cyclist, Truck"):
+        ProposalGenerator(class_quota=(0.5, 0.5))
+    path = save_ranker(_model(), tmp_path / "plain.safetensors")
+    with pytest.raises(ValueError, match="has no class head"):
+        ProposalGenerator(ranker=str(path), class_quota=(0.1,))
+    # the training-free copy of a class-quota config drops the quota with the ranker
+    assert ReebConfig(class_quota=(0, 0.3, 0.1, 0.05)).training_free() == ReebConfig().training_free()
+
+
 @pytest.mark.cuda
 def test_cuda_ranking_matches_the_cpu(sample_image):
     cpu = ProposalGenerator()([sample_image])[0]
