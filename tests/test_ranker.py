@@ -208,7 +208,10 @@ def test_class_quota_shares_the_output_by_the_hints(sample_image):
     the class head's hint), the rest to the best of the others, in score order."""
     shares = (0.0, 0.5, 0.25, 0.25)
     every = ProposalGenerator(class_quota=shares, top_k=10**6)([sample_image])[0]  # all NMS survivors
-    got = ProposalGenerator(class_quota=shares, top_k=200)([sample_image])[0]
+    gen = ProposalGenerator(class_quota=shares, top_k=200)
+    got = gen([sample_image])[0]
+    batch = gen([sample_image.flip(-1), sample_image])  # alone as in a batch
+    assert all(torch.equal(batch[1][k], got[k]) for k in got)
     assert len(got["boxes"]) == 200 and bool((got["scores"][:-1] >= got["scores"][1:]).all())
     assert torch.equal(got["labels"], got["class_probs"].argmax(1))
     key = lambda o: {tuple(b) for b in o["boxes"].tolist()}  # noqa: E731
