@@ -153,8 +153,10 @@ class ProposalGenerator(nn.Module):
         their cache: :func:`warmup`) before its own work; not in :attr:`stage_times`."""
         self.stage_times: dict[str, float] | None = None
         """Set to ``{}`` to accumulate wall seconds per stage (edges, groups, road,
-        regions, scoring, refine, nms) over calls; ``None`` (default) records nothing. Where
-        the two halves of a CPU batch run side by side, each records half its time."""
+        regions, scoring, rescore, ranker, refine, nms) over calls; ``None`` (default) records
+        nothing. The learned ranking's parts are also recorded on their own, within ``ranker``:
+        ``ranker.prefilter``, ``ranker.features``, ``ranker.model`` and ``ranker.class_head``.
+        Where the two halves of a CPU batch run side by side, each records half its time."""
 
     @contextmanager
     def _stage(self, name: str, device: torch.device) -> Iterator[None]:
@@ -344,9 +346,11 @@ class ProposalGenerator(nn.Module):
         if cfg.ranker != "none":
             with self._stage("ranker", dev):
                 scores, chosen = self.ranking.rank_learned(maps, grid, scores, chosen, share, entropy,
-                                                           ranked if hints or cfg.class_quota else None)
+                                                           ranked if hints or cfg.class_quota else None,
+                                                           self._stage if self.stage_times is not None else None)
                 if cfg.class_quota and ranked:
-                    class_of = self.ranking.class_map(ranked[0], tuple(scores.shape))
+                    with self._stage("ranker.class_head", dev):
+                        class_of = self.ranking.class_map(ranked[0], tuple(scores.shape))
         # Edge Boxes' refinement of the candidates (not in the paper; ``ReebConfig.refine``)
         refined = None
         if cfg.refine:
@@ -357,7 +361,7 @@ class ProposalGenerator(nn.Module):
         with self._stage("nms", dev):
             results = self.ranking.suppress(maps, grid, chosen, scores, share, refined, windows, class_of)
         if hints:  # which class each proposal looks like (the ranking model's class head)
-            with self._stage("ranker", dev):
+            with self._stage("ranker", dev), self._stage("ranker.class_head", dev):
                 for r, probs in zip(results, self.ranking.class_hints(maps, grid, v_scores, share, entropy, windows,
                                                                       ranked[0] if ranked else None)):
                     r["labels"], r["class_probs"] = probs.argmax(1), probs

@@ -32,7 +32,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Literal
+from contextlib import nullcontext
+from typing import Callable, ContextManager, Literal
 
 import numpy as np
 import torch
@@ -635,26 +636,35 @@ class Ranking:
 
     def rank_learned(self, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor, chosen: Tensor,
                      share: Tensor, entropy: Tensor,
-                     features_out: list[tuple[Tensor, Tensor, Tensor]] | None = None) -> tuple[Tensor, Tensor]:
+                     features_out: list[tuple[Tensor, Tensor, Tensor]] | None = None,
+                     timer: Callable[[str, torch.device], ContextManager] | None = None) -> tuple[Tensor, Tensor]:
         """``ranker``: the candidates ranked by the model, for :meth:`suppress`: ``(scores
         float32 [B, N], chosen bool [B, N])``, the model's logit of each candidate it ranks
         (``-inf`` elsewhere) and which those are: where the model has a prefilter, each
         image's best ``ranker_keep`` candidates by the prefilter; all of them otherwise.
         ``features_out``, if given, gets ``(bi, ni, features)`` of the candidates it ranked
-        (in ``nonzero(chosen)`` order), so that :meth:`class_hints` need not compute them again."""
+        (in ``nonzero(chosen)`` order), so that :meth:`class_hints` need not compute them again.
+        ``timer(name, device)``, if given, times its parts (``ranker.prefilter``: the pairs, the
+        prefilter and its cut; ``ranker.features``; ``ranker.model``: the MLP and the scatter)."""
         model = self._model_on(scores.device)
-        bi, ni = _chosen(chosen)
-        keep = self.config.ranker_keep
-        counts = torch.bincount(bi, minlength=scores.shape[0])
-        if model.prefilter is not None and len(bi) and int(counts.max()) > keep:
-            sel = _best_per_image(self._prefilter(model, maps, grid, scores, share, entropy, bi, ni), counts, keep)
-            bi, ni = bi[sel], ni[sel]
+        dev = scores.device
+        timed = timer if timer is not None else (lambda name, device: nullcontext())
+        with timed("ranker.prefilter", dev):
+            bi, ni = _chosen(chosen)
+            keep = self.config.ranker_keep
+            counts = torch.bincount(bi, minlength=scores.shape[0])
+            if model.prefilter is not None and len(bi) and int(counts.max()) > keep:
+                sel = _best_per_image(self._prefilter(model, maps, grid, scores, share, entropy, bi, ni), counts,
+                                      keep)
+                bi, ni = bi[sel], ni[sel]
         out = torch.full_like(scores, -math.inf)
         kept = torch.zeros_like(chosen)
         if len(bi):
-            feats = self._features_of(maps, grid, scores, share, entropy, bi, ni)
-            out[bi, ni] = model.rank(feats)
-            kept[bi, ni] = True
+            with timed("ranker.features", dev):
+                feats = self._features_of(maps, grid, scores, share, entropy, bi, ni)
+            with timed("ranker.model", dev):
+                out[bi, ni] = model.rank(feats)
+                kept[bi, ni] = True
             if features_out is not None:
                 features_out.append((bi, ni, feats))
         if self.on_rank is not None:

@@ -193,8 +193,11 @@ def test_stage_times_are_recorded(crop):
     gen.stage_times = {}
     gen([crop])
     # no road term in the default score: the road mask is not computed at all
-    assert set(gen.stage_times) == {"edges", "groups", "regions", "scoring", "ranker", "nms"}
+    parts = {"ranker.prefilter", "ranker.features", "ranker.model", "ranker.class_head"}
+    assert set(gen.stage_times) == {"edges", "groups", "regions", "scoring", "ranker", "nms"} | parts
     assert all(v >= 0 for v in gen.stage_times.values())
+    # the learned ranking's parts lie within its stage
+    assert sum(gen.stage_times[k] for k in parts) <= gen.stage_times["ranker"]
     gen = ProposalGenerator(**SMALL, ranker="none", road_score="reward", refine=True)
     gen.stage_times = {}
     gen([crop])
