@@ -62,7 +62,7 @@ def cross_validated_hits(cache: FrameCache, configs: list[ReebConfig], seed: int
     opts = F.FitOptions(seed=seed)
     base = ReebConfig()
     samples = F.frame_samples(cache, base, opts)
-    names = cache.candidates(base.replace(ranker="none"), 0).feature_names
+    names = cache.candidates(base.unranked(), 0).feature_names
     blocks = F.frame_folds(len(frames), folds)
     similar = F.similar_frames(frames.images)
     hits: list[list] = [[None] * len(frames) for _ in configs]

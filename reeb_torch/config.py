@@ -627,6 +627,11 @@ class ReebConfig:
         V ranks best and no class quota (:data:`TRAINING_FREE`)."""
         return self.replace(**TRAINING_FREE)
 
+    def unranked(self) -> "ReebConfig":
+        """A copy that ranks its candidates by V: ``ranker='none'``, and no ``class_quota``
+        (which reads a ranker's class head); the candidates stay those of this config."""
+        return self.replace(ranker="none", class_quota=())
+
     def replace(self, **changes: object) -> "ReebConfig":
         """A copy with ``changes`` applied (validated)."""
         return dataclasses.replace(self, **changes)  # type: ignore[arg-type]

@@ -237,8 +237,10 @@ def test_bad_class_quotas(tmp_path):
     path = save_ranker(_model(), tmp_path / "plain.safetensors")
     with pytest.raises(ValueError, match="has no class head"):
         ProposalGenerator(ranker=str(path), class_quota=(0.1,))
-    # the training-free copy of a class-quota config drops the quota with the ranker
+    # the training-free copy of a class-quota config drops the quota with the ranker,
     assert ReebConfig(class_quota=(0, 0.3, 0.1, 0.05)).training_free() == ReebConfig().training_free()
+    # and its unranked copy (the candidates ranked by V, as reeb fit takes them) too
+    assert ReebConfig(class_quota=(0, 0.3, 0.1, 0.05)).unranked() == ReebConfig(ranker="none")
 
 
 @pytest.mark.cuda

@@ -157,7 +157,7 @@ def frame_samples(cache: FrameCache, cfg: ReebConfig, opts: FitOptions, indices:
     frame ``i``'s negatives are drawn by a generator seeded with ``(opts.seed, i)``."""
     frames = cache.frames
     idx = range(len(frames)) if indices is None else indices
-    cfg = cfg.replace(ranker="none", class_quota=())  # the candidates do not depend on the ranker
+    cfg = cfg.unranked()  # the candidates do not depend on the ranker
     out = []
     for i in (progress(idx) if progress else idx):
         c = cache.candidates(cfg, i)
@@ -362,7 +362,7 @@ def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples
     frames = cache.frames
     blocks = frame_folds(len(frames), folds)
     similar = similar_frames(frames.images)
-    names = cache.candidates(cfg.replace(ranker="none", class_quota=()), 0).feature_names
+    names = cache.candidates(cfg.unranked(), 0).feature_names
     r_hits: list = [None] * len(frames)
     b_hits: list = [None] * len(frames)
     hinted: list = [None] * len(frames)

@@ -138,7 +138,7 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions,
     base = cfg.training_free()
     samples = F.frame_samples(cache, cfg, opts, progress=_iterate("candidates", quiet))
     cv = F.cross_validate(cache, cfg, base, samples, opts, folds, k, iou, progress=_iterate("folds", quiet))
-    names = cache.candidates(cfg.replace(ranker="none", class_quota=()), 0).feature_names
+    names = cache.candidates(cfg.unranked(), 0).feature_names
     model = F.fit_ranker(samples, names, opts, frames.classes)
     rows = {"training-free": cv.base_hits, "fitted (cross-validated)": cv.ranked_hits}
     table, record = _report(frames, rows, cv.base_hits)  # kept in the weights: the same for the same frames
