@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -31,9 +30,8 @@ from _common import default_dev_dirs, environment, rerun_line  # noqa: E402
 
 from reeb_torch import ReebConfig, get_preset  # noqa: E402
 from reeb_torch.eval import fit as F  # noqa: E402
-from reeb_torch.eval.metrics import compare_recall, object_hits  # noqa: E402
+from reeb_torch.eval.metrics import compare_recall  # noqa: E402
 from reeb_torch.eval.tune import FrameCache, bootstrap_interval  # noqa: E402
-from reeb_torch.ranker import save_ranker  # noqa: E402
 from reeb_torch.ranking import _NOT_SEEN_BY_RANKER  # noqa: E402
 from reeb_torch.runs.common import build_config  # noqa: E402
 
@@ -57,26 +55,14 @@ def parse_variant(text: str) -> ReebConfig:
 
 def cross_validated_hits(cache: FrameCache, configs: list[ReebConfig], seed: int, folds: int,
                          k: int = 2000, iou: float = 0.7) -> list[list]:
-    """Per config, per frame, the held-out hits, every config run with the same fold models."""
-    frames = cache.frames
+    """Per frame, the held-out hits of the default, then of each of ``configs``, all run with
+    the same fold models (:func:`reeb_torch.eval.fit.cross_validate`, fitted as ``reeb fit``
+    fits, on the default's candidates)."""
     opts = F.FitOptions(seed=seed)
     base = ReebConfig()
     samples = F.frame_samples(cache, base, opts)
-    names = cache.candidates(base.unranked(), 0).feature_names
-    blocks = F.frame_folds(len(frames), folds)
-    similar = F.similar_frames(frames.images)
-    hits: list[list] = [[None] * len(frames) for _ in configs]
-    with tempfile.TemporaryDirectory(prefix="reeb-cv-") as tmp:
-        for f, block in enumerate(blocks):
-            train = F.training_frames(blocks, f, frames.ids, frames.folders, similar)
-            path = save_ranker(F.fit_ranker([samples[i] for i in train], names, opts, frames.classes),
-                               Path(tmp) / f"fold{f}.safetensors")
-            gts = [frames.gts[i] for i in block]
-            for c, cfg in enumerate(configs):
-                outputs = cache.outputs(cfg.replace(ranker=str(path)), block)
-                for i, h in zip(block, object_hits([o["boxes"] for o in outputs], gts, k, iou)):
-                    hits[c][i] = h
-    return hits
+    cv = F.cross_validate(cache, base, base.training_free(), samples, opts, folds, k, iou, also=configs)
+    return [cv.ranked_hits, *cv.also_hits]
 
 
 def describe(frames, hits: list, ref: list | None, idx: list[int]) -> dict:
@@ -126,7 +112,7 @@ def main(argv: list[str] | None = None) -> dict:
     text = [f"# rerun: {rerun_line('benchmarks/cv_paired.py', argv if argv is not None else sys.argv[1:])}"]
     record: dict = {"seeds": {}, "environment": environment()}
     for seed in args.seeds:
-        hits = cross_validated_hits(cache, [ReebConfig(), *variants.values()], seed, args.folds)
+        hits = cross_validated_hits(cache, list(variants.values()), seed, args.folds)
         text.append(f"fit seed {seed}: {len(frames)} frames, {args.folds} folds of blocks of frames; recall at "
                     "2000 proposals, IoU 0.7, 95 % frame-bootstrap intervals")
         record["seeds"][seed] = {}

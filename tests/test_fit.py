@@ -128,6 +128,26 @@ def test_similar_frames_finds_near_copies(sample_image):
 
 
 @pytest.mark.kitti
+def test_cross_validate_runs_after_the_model_settings_with_the_same_fold_models(kitti_dir):
+    """``also``: each config runs with the very fold models of ``cfg`` (cv_paired.py's
+    pairing): the same config gives the same hits, a shorter output a subset of them."""
+    import dataclasses
+
+    from reeb_torch import ReebConfig
+    from reeb_torch.eval.tune import FrameCache
+
+    frames = F.load_fit_frames([str(kitti_dir)], limit=6)
+    cache = FrameCache(frames)
+    cfg, opts = ReebConfig(), dataclasses.replace(F.FitOptions(), epochs=2, class_hidden=None)
+    samples = F.frame_samples(cache, cfg, opts)
+    cv = F.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 2, also=[cfg, cfg.replace(top_k=100)])
+    same, short = cv.also_hits
+    assert all(torch.equal(a, b) for a, b in zip(same, cv.ranked_hits))
+    assert all(bool((b <= a).all()) for a, b in zip(cv.ranked_hits, short))
+    assert F.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 2).also_hits == []
+
+
+@pytest.mark.kitti
 def test_reeb_fit_end_to_end(kitti_dir, tmp_path):
     out = tmp_path / "mine.safetensors"
     r = subprocess.run([sys.executable, "-m", "reeb_torch.runs.cli", "fit", str(kitti_dir), "--limit", "8",

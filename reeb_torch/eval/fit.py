@@ -323,6 +323,8 @@ class FitCrossValidation:
         hinted: per frame, ``int64 [N_i]``: the class (index into the frames' classes) the
             held-out model hints for each object it finds (:func:`hinted_classes`), -1 for
             one it misses or where the model has no class head.
+        also_hits: per config of :func:`cross_validate`'s ``also``, per frame, its hits with
+            the same held-out models (settings that act after the model, paired exactly).
     """
 
     folds: list[list[int]]
@@ -331,6 +333,7 @@ class FitCrossValidation:
     per_fold: list[tuple[float, float]] = field(default_factory=list)
     hinted: list[Tensor] = field(default_factory=list, repr=False)
     trained: list[int] = field(default_factory=list)
+    also_hits: list[list[Tensor]] = field(default_factory=list, repr=False)
 
 
 def hinted_classes(outputs: Sequence[dict[str, Tensor]], gts: Sequence[Tensor], k: int = 2000,
@@ -352,10 +355,11 @@ def hinted_classes(outputs: Sequence[dict[str, Tensor]], gts: Sequence[Tensor], 
 
 def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples: Sequence[Sample],
                    opts: FitOptions, folds: int, k: int = 2000, iou: float = 0.7, gap: int = 2,
-                   progress: Callable | None = None) -> FitCrossValidation:
+                   progress: Callable | None = None, also: Sequence[ReebConfig] = ()) -> FitCrossValidation:
     """For each of ``folds`` blocks of frames: fit on the others (:func:`training_frames`),
     run the generator of ``cfg`` with that model on the block, and pair its hits with
-    ``base``'s on the same objects."""
+    ``base``'s on the same objects; each config of ``also`` (settings that act after the
+    model: ``class_quota``, ``top_k``, ...) runs with the same model too (``also_hits``)."""
     from .metrics import object_hits
     from .tune import objective
 
@@ -366,6 +370,7 @@ def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples
     r_hits: list = [None] * len(frames)
     b_hits: list = [None] * len(frames)
     hinted: list = [None] * len(frames)
+    also_hits: list[list] = [[None] * len(frames) for _ in also]
     per_fold, trained = [], []
     with tempfile.TemporaryDirectory(prefix="reeb-fit-") as tmp:
         for f in progress(range(len(blocks))) if progress else range(len(blocks)):
@@ -379,8 +384,14 @@ def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples
             for i, rh, bh, hc in zip(block, ranked, cache.hits(base, block, k, iou),
                                      hinted_classes(outputs, gts, k, iou)):
                 r_hits[i], b_hits[i], hinted[i] = rh, bh, hc
+            for other, hits in zip(also, also_hits):
+                found = object_hits([o["boxes"] for o in cache.outputs(other.replace(ranker=str(path)), block)],
+                                    gts, k, iou)
+                for i, h in zip(block, found):
+                    hits[i] = h
             labels = [frames.labels[i] for i in block]
             per_fold.append((objective([r_hits[i] for i in block], labels),
                              objective([b_hits[i] for i in block], labels)))
             trained.append(len(train))
-    return FitCrossValidation(blocks, r_hits, b_hits, per_fold=per_fold, trained=trained, hinted=hinted)
+    return FitCrossValidation(blocks, r_hits, b_hits, per_fold=per_fold, trained=trained, hinted=hinted,
+                              also_hits=also_hits)
