@@ -717,7 +717,6 @@ class Ranking:
         ni = torch.cat(windows).to(dev) if windows else bi
         if not len(ni):
             return [scores.new_zeros(0, len(model.classes)) for _ in windows]
-        feats = None
         if ranked is not None and len(ranked[0]):
             rb, rn, rf = ranked
             n = scores.shape[1]
@@ -729,7 +728,7 @@ class Ranking:
             if not bool(found.all()):
                 miss = ~found
                 feats[miss] = self._features_of(maps, grid, scores, share, entropy, bi[miss], ni[miss])
-        if feats is None:
+        else:
             feats = self._features_of(maps, grid, scores, share, entropy, bi, ni)
         probs = model.class_probs(feats)
         return list(probs.split(counts))
@@ -918,8 +917,8 @@ class Ranking:
         boxes_in = self._grid_cached(("boxes_in", fx, fy, str(dev)), grid,
                                      lambda: self._device_tensor(grid.boxes, dev) / to_input)
         region_of = self._device_tensor(grid.region_of, dev)
-        by_class = class_of is not None and bool(cfg.class_quota)
-        quota = (cfg.region_quota and share.shape[1] > 1) or by_class
+        class_share = torch.tensor(cfg.class_quota, device=dev) if class_of is not None and cfg.class_quota else None
+        quota = (cfg.region_quota and share.shape[1] > 1) or class_share is not None
         kept = None
         if refined is None:  # the windows themselves: gathered, sorted and suppressed compiled
             ok = (self._grid_cached(("boxes_ok", fx, fy), grid, lambda: boxes_valid(boxes_in))
@@ -940,9 +939,9 @@ class Ranking:
         results = []
         h_in, w_in = maps.input_size
         for i, ((bx, sc), keep_idx, win) in enumerate(zip(pairs, kept, windows)):
-            if by_class:
-                keep_idx = self.quota(keep_idx, class_of[i, win].long().clamp(min=0),
-                                      torch.tensor(cfg.class_quota, device=dev), whole=True)[: cfg.top_k]
+            if class_share is not None:
+                keep_idx = self.quota(keep_idx, class_of[i, win].long().clamp(min=0), class_share,
+                                      whole=True)[: cfg.top_k]
             elif quota:
                 keep_idx = self.quota(keep_idx, region_of[win], share[i])[: cfg.top_k]
             if windows_out is not None:

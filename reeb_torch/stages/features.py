@@ -341,10 +341,10 @@ def _features_kernel(grid_boxes: np.ndarray, window: np.ndarray, scores: np.ndar
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _rest(o: np.ndarray, lg: np.ndarray, j: int, b: int, x0: int, y0: int, x1: int, y1: int, h: int, w: int, fx: float, fy: float,
-          cf: float, norm_area: bool, kappa: float, gamma: float, has_green: bool, ii: np.ndarray, grey: np.ndarray,
-          grey2: np.ndarray, green: np.ndarray, anchor: np.ndarray, cut_col: np.ndarray,
-          cut_row: np.ndarray, corner: np.ndarray) -> None:  # pragma: no cover - compiled
+def _rest(o: np.ndarray, lg: np.ndarray, j: int, b: int, x0: int, y0: int, x1: int, y1: int, h: int, w: int,
+          fx: float, fy: float, cf: float, norm_area: bool, kappa: float, gamma: float, has_green: bool,
+          ii: np.ndarray, grey: np.ndarray, grey2: np.ndarray, green: np.ndarray, anchor: np.ndarray,
+          cut_col: np.ndarray, cut_row: np.ndarray, corner: np.ndarray) -> None:  # pragma: no cover - compiled
     """The columns after the cheap ones of one box, from column ``j`` of ``o``; the arguments
     of their logarithms in ``lg[1:]``."""
     bw, bh = float(x1 - x0), float(y1 - y0)
