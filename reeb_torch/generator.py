@@ -67,6 +67,8 @@ class Inspection:
         share: ``float32 [R]`` fraction of the region's candidate budget it gets (eq. 9).
         num_groups: number of edge groups (Sec. 3.7).
         num_windows: number of sliding windows scored.
+        labels: ``int64 [N]`` the class hint of each box (indices into
+            :attr:`ProposalGenerator.classes`), or None where the settings give none.
     """
 
     boxes: Tensor
@@ -78,6 +80,7 @@ class Inspection:
     share: Tensor
     num_groups: int
     num_windows: int
+    labels: Tensor | None = None
 
 
 @dataclass
@@ -253,7 +256,7 @@ class ProposalGenerator(nn.Module):
             edges=up(extra["edges"], "bilinear"),
             road_mask=up(extra["road"], "nearest") > 0.5,
             regions=extra["regions"], entropy=extra["entropy"][0], share=extra["share"][0],
-            num_groups=extra["num_groups"], num_windows=extra["num_windows"],
+            num_groups=extra["num_groups"], num_windows=extra["num_windows"], labels=out[0].get("labels"),
         )
 
     @torch.no_grad()

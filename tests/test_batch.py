@@ -21,8 +21,9 @@ import pytest
 
 from test_cli import FAST, _start, _wait_for_rows, good_folder, no_temp_files, read_jsonl, reeb, small_frame
 
+KITTI_CLASSES = ("Car", "Pedestrian", "Cyclist", "Truck")
 ROW_FIELDS = {"format_version", "image", "resolved", "width", "height", "boxes", "scores",
-              "status", "config"}
+              "labels", "status", "config"}
 
 
 # -- 1. concurrent writers ---------------------------------------------------------------
@@ -271,7 +272,7 @@ def test_rows_in_input_order_with_error_rows_and_sizes(tmp_path):
     assert (rows[3]["width"], rows[3]["height"]) == (12, 10)  # the tiny image's size is known
     assert rows[1]["width"] is None
     for row in rows:
-        assert set(row) == ROW_FIELDS and row["format_version"] == 1
+        assert set(row) == ROW_FIELDS and row["format_version"] == 2
     assert "3 ok, 2 failed" in r.stderr
 
 
@@ -289,7 +290,31 @@ def test_parquet_rows_carry_the_schema(tmp_path):
     reeb("propose", "imgs", "-o", "p.parquet", *FAST, cwd=tmp_path, check_rc=1)
     rows = pq.read_table(tmp_path / "p.parquet").to_pylist()
     assert [Path(r["image"]).name for r in rows] == ["bad.png", "frame_000.png"]
-    assert set(rows[0]) == ROW_FIELDS and {r["format_version"] for r in rows} == {1}
+    assert set(rows[0]) == ROW_FIELDS and {r["format_version"] for r in rows} == {2}
+    bad, good = rows
+    assert bad["labels"] is None and bad["boxes"] == []
+    assert len(good["labels"]) == len(good["boxes"]) > 0 and set(good["labels"]) <= set(KITTI_CLASSES)
+
+
+def test_rows_carry_class_hints_only_where_the_settings_give_them(tmp_path):
+    good_folder(tmp_path / "imgs", 1)
+    reeb("propose", "imgs", "-o", "free.jsonl", "--preset", "training-free", *FAST, cwd=tmp_path, check_rc=0)
+    (free,) = read_jsonl(tmp_path / "free.jsonl")
+    assert free["labels"] is None and len(free["boxes"]) > 0  # no ranker: no class head
+
+
+def test_resume_keeps_rows_of_the_previous_format(tmp_path):
+    # a file written before the rows had labels (format 1): its rows are kept as they were,
+    # the new image's row has them
+    good_folder(tmp_path / "imgs", 2)
+    reeb("propose", "imgs/frame_000.png", "-o", "p.jsonl", *FAST, cwd=tmp_path, check_rc=0)
+    (old,) = read_jsonl(tmp_path / "p.jsonl")
+    old = {k: v for k, v in old.items() if k != "labels"} | {"format_version": 1}
+    (tmp_path / "p.jsonl").write_text(json.dumps(old) + "\n")
+    reeb("propose", "imgs", "-o", "p.jsonl", "--resume", *FAST, cwd=tmp_path, check_rc=0)
+    rows = {Path(r["image"]).name: r for r in read_jsonl(tmp_path / "p.jsonl")}
+    assert rows["frame_000.png"] == old
+    assert rows["frame_001.png"]["format_version"] == 2 and len(rows["frame_001.png"]["labels"]) > 0
 
 
 # -- 11. folder scan and reader agree ---------------------------------------------------------

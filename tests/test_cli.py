@@ -73,7 +73,7 @@ def check_ok_row(row: dict, w: int, h: int, k: int = 100) -> None:
 
 def test_propose_without_arguments_uses_the_bundled_sample(tmp_path):
     r = reeb("propose", "--top-k", "100", cwd=tmp_path, check_rc=0)
-    assert "kitti_000001.png" in r.stdout and "rank" in r.stdout
+    assert "kitti_000001.png" in r.stdout and "rank" in r.stdout and "hint" in r.stdout  # class hints column
     assert len([l for l in r.stdout.splitlines() if l.strip()[:1].isdigit()]) == 10  # top-10 table
     png = tmp_path / "reeb_proposals.png"
     img = cv2.imread(str(png))
@@ -107,7 +107,7 @@ def test_jsonl_and_parquet_outputs(tmp_path):
     rows = read_jsonl(tmp_path / "p.jsonl")
     assert sorted(r["image"] for r in rows) == sorted(str(p.relative_to(tmp_path)) for p in paths)
     assert set(rows[0]) == {"format_version", "image", "resolved", "width", "height", "boxes",
-                            "scores", "status", "config"}
+                            "scores", "labels", "status", "config"}
     for row in rows:
         check_ok_row(row, 160, 48)
     assert sorted(p.name for p in (tmp_path / "viz").iterdir()) == ["frame_000.png", "frame_001.png"]
@@ -118,8 +118,9 @@ def test_jsonl_and_parquet_outputs(tmp_path):
     table = pq.read_table(tmp_path / "p.parquet")
     assert set(table.column_names) == set(rows[0])
     prow = {r["image"]: r for r in table.to_pylist()}
-    for row in rows:  # same proposals in both formats (JSONL rounds to 0.01 px)
+    for row in rows:  # same proposals and class hints in both formats (JSONL rounds to 0.01 px)
         check_ok_row(prow[row["image"]], 160, 48)
+        assert prow[row["image"]]["labels"] == row["labels"] and len(row["labels"]) == len(row["boxes"])
         np.testing.assert_allclose(np.asarray(prow[row["image"]]["boxes"]), np.asarray(row["boxes"]),
                                    atol=0.006)
     assert no_temp_files(tmp_path)

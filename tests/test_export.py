@@ -146,3 +146,15 @@ def test_result_row_numbers_are_those_of_round_and_format(sample_image):
     assert all(type(v) is float for r in row["boxes"] for v in r) and all(type(v) is float for v in row["scores"])
     empty = B.result_row("x.png", 4, 4, torch.zeros(0, 4), torch.zeros(0), "cfg")
     assert empty["boxes"] == [] and empty["scores"] == []
+    assert row["labels"] is None  # no hints given
+    hinted = B.result_row("x.png", 1242, 375, out["boxes"], out["scores"], "cfg", labels=["Car"] * len(out["boxes"]))
+    assert hinted["labels"] == ["Car"] * len(out["boxes"])
+    with pytest.raises(ValueError, match="1 labels for"):
+        B.result_row("x.png", 1242, 375, out["boxes"], out["scores"], "cfg", labels=["Car"])
+    assert B.error_row("x.png", "x.png: broken", "cfg")["labels"] is None
+
+
+def test_hint_names_are_the_classes_of_the_labels():
+    assert B.hint_names(("Car", "Pedestrian"), {"labels": torch.tensor([1, 0, 1])}) == ["Pedestrian", "Car", "Pedestrian"]
+    assert B.hint_names(None, {"labels": torch.tensor([0])}) is None
+    assert B.hint_names(("Car", "Pedestrian"), {"boxes": torch.zeros(0, 4)}) is None

@@ -20,7 +20,8 @@ holds a lock beside it (:func:`lock_output`): a second run on the same output fa
 with :class:`OutputBusyError`. Rows left in a temporary file by a killed run are found by
 :func:`stale_temp_files` and recovered by ``--resume``.
 
-Row schema (one row per image, JSON Lines or Parquet; :data:`FORMAT_VERSION` 1):
+Row schema (one row per image, JSON Lines or Parquet; :data:`FORMAT_VERSION` 2, which
+added ``labels``; rows of version 1 read the same, without it):
 
 ==============  ==========================  =============================================
 field           type                        meaning
@@ -36,6 +37,12 @@ width           int or null                 image width in pixels as viewed (EXI
 height          int or null                 image height in pixels, likewise
 boxes           list of [x1, y1, x2, y2]    proposals in image pixels, ranked best first
 scores          list of float               one score per box, descending
+labels          list of str or null         the class each box looks like (the learned
+                                            ranking's class hint, one of
+                                            ``ProposalGenerator.classes``), one per box;
+                                            null where the settings give none
+                                            (``ranker='none'``, or a model without a
+                                            class head) and in an error row
 status          str                         ``"ok"`` or ``"error: <file>: <reason>"``
 config          str                         :meth:`ReebConfig.fingerprint` of the settings used
 ==============  ==========================  =============================================
@@ -81,6 +88,7 @@ __all__ = [
     "decoded_images",
     "size_batches",
     "result_row",
+    "hint_names",
     "error_row",
     "OUTPUT_FORMATS",
     "output_format",
@@ -106,7 +114,7 @@ class OutputBusyError(OutputError):
 
 
 #: Version of the row schema (see the module docstring); written in every row.
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 
 def resolved_path(path: str | os.PathLike) -> str:
@@ -568,9 +576,13 @@ def significant_like_python(values: np.ndarray, digits: int = 6) -> np.ndarray:
 
 
 def result_row(path: str, width: int, height: int, boxes: torch.Tensor, scores: torch.Tensor,
-               config: str, decimals: int = 2) -> dict:
+               config: str, decimals: int = 2, labels: Sequence[str] | None = None) -> dict:
     """The output row of one processed image (boxes rounded to ``decimals`` pixels, scores
-    to 6 significant digits, as Python's ``round`` and ``.6g`` format give them)."""
+    to 6 significant digits, as Python's ``round`` and ``.6g`` format give them; ``labels``:
+    the class hint of each box, or None for none). Raises ValueError when ``labels`` is not
+    one per box."""
+    if labels is not None and len(labels) != len(boxes):
+        raise ValueError(f"result_row: {len(labels)} labels for {len(boxes)} boxes (one per box)")
     b = boxes.detach().to("cpu", torch.float64).numpy()
     s = scores.detach().to("cpu", torch.float64).numpy()
     return {
@@ -581,16 +593,26 @@ def result_row(path: str, width: int, height: int, boxes: torch.Tensor, scores: 
         "height": int(height),
         "boxes": round_like_python(b, decimals).reshape(-1, 4).tolist(),
         "scores": significant_like_python(s).tolist(),
+        "labels": None if labels is None else [str(x) for x in labels],
         "status": "ok",
         "config": config,
     }
+
+
+def hint_names(classes: Sequence[str] | None, result: dict) -> list[str] | None:
+    """The class hint of each box of one generator output (``result["labels"]``, indices into
+    ``classes``, :attr:`ProposalGenerator.classes <reeb_torch.ProposalGenerator.classes>`) as
+    names, or None where the settings give none."""
+    if classes is None or "labels" not in result:
+        return None
+    return [classes[i] for i in result["labels"].tolist()]
 
 
 def error_row(path: str, message: str, config: str, size: tuple[int, int] | None = None) -> dict:
     """The output row of an image that failed; ``message`` names the file."""
     w, h = (int(size[0]), int(size[1])) if size is not None else (None, None)
     return {"format_version": FORMAT_VERSION, "image": text_path(path), "resolved": row_key(path),
-            "width": w, "height": h, "boxes": [], "scores": [],
+            "width": w, "height": h, "boxes": [], "scores": [], "labels": None,
             "status": f"error: {text_path(_one_line(message))}", "config": config}
 
 
@@ -816,6 +838,7 @@ class ParquetWriter(ResultWriter):
             ("height", pa.int32()),
             ("boxes", pa.list_(pa.list_(pa.float32(), 4))),
             ("scores", pa.list_(pa.float32())),
+            ("labels", pa.list_(pa.string())),
             ("status", pa.string()),
             ("config", pa.string()),
         ])

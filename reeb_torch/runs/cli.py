@@ -239,7 +239,7 @@ def show(image, label, no_label, top, out, preset, config_file, sets, top_k, dev
     their share of the proposal budget; the top proposals, coloured by rank, with the
     ground-truth boxes (and each one's best IoU over all proposals).
     """
-    from .batch import file_error
+    from .batch import file_error, hint_names
     from ..io import read_image
 
     cfg = build_config(preset, config_file, sets, top_k)
@@ -284,8 +284,9 @@ def show(image, label, no_label, top, out, preset, config_file, sets, top_k, dev
     except OSError as e:
         raise Failure(f"{out}: cannot write ({e.strerror or e})")
 
+    hints = None if insp.labels is None else hint_names(gen.classes, {"labels": insp.labels.cpu()})
     click.echo(box_table(str(path), (w, h), insp.boxes.cpu(), insp.scores.cpu(), min(top, 10),
-                          len(insp.boxes)))
+                         len(insp.boxes), hints))
     ent = ", ".join(f"R{i + 1} H={float(hv):.2f} {100 * float(s):.0f}%"
                     for i, (hv, s) in enumerate(zip(insp.entropy.tolist(), insp.share.tolist())))
     click.echo(f"regions: {ent}")

@@ -246,15 +246,21 @@ def read_labels(path: Path) -> list:
     return [o for o in objs if o.type != "DontCare"]
 
 
-def box_table(name: str, size: tuple[int, int], boxes, scores, n: int, total: int) -> str:
-    """The top ``n`` of ``total`` boxes of one image as a printed table (``reeb propose``, ``reeb show``)."""
+def box_table(name: str, size: tuple[int, int], boxes, scores, n: int, total: int,
+              labels: Sequence[str] | None = None) -> str:
+    """The top ``n`` of ``total`` boxes of one image as a printed table (``reeb propose``, ``reeb show``),
+    with a column of each box's class hint where ``labels`` (one per box) are given."""
     w, h = size
     lines = [f"{name}  {w}×{h} px  {total} proposals" + (f" (top {min(n, total)})" if total else "")]
     if total:
-        lines.append(f"{'rank':>5} {'x1':>8} {'y1':>8} {'x2':>8} {'y2':>8} {'score':>10}")
+        lines.append(f"{'rank':>5} {'x1':>8} {'y1':>8} {'x2':>8} {'y2':>8} {'score':>10}"
+                     + ("  hint" if labels is not None else ""))
+        hints = list(labels[:n]) if labels is not None else None
         for i, (b, s) in enumerate(zip(boxes[:n].tolist(), scores[:n].tolist()), 1):
-            lines.append(f"{i:>5} {b[0]:8.1f} {b[1]:8.1f} {b[2]:8.1f} {b[3]:8.1f} {s:10.4f}")
+            lines.append(f"{i:>5} {b[0]:8.1f} {b[1]:8.1f} {b[2]:8.1f} {b[3]:8.1f} {s:10.4f}"
+                         + (f"  {hints[i - 1]}" if hints is not None else ""))
     return "\n".join(lines)
+
 
 
 def ms_per_img(seconds: float, n: int) -> str:

@@ -334,14 +334,15 @@ class _LocalRun:
     def _finish(self, item, result) -> None:
         h, w = item.image.shape[-2:]
         boxes, scores = result["boxes"].cpu(), result["scores"].cpu()
+        hints = B.hint_names(self.gen.classes, result)
         with self.cs:
             self.stats["ok"] += 1
             self.stats["proposals"] += len(boxes)
-            self._emit(item.index, B.result_row(item.path, w, h, boxes, scores, self.fingerprint)
+            self._emit(item.index, B.result_row(item.path, w, h, boxes, scores, self.fingerprint, labels=hints)
                        if self.writer is not None else None)
         if self.print_top:
-            self.bar.write(box_table(B.text_path(item.path), (w, h), boxes, scores, self.print_top, len(boxes)) + "\n",
-                           file=sys.stdout)
+            self.bar.write(box_table(B.text_path(item.path), (w, h), boxes, scores, self.print_top, len(boxes),
+                                     hints) + "\n", file=sys.stdout)
         self._pictures(item, boxes, scores)
 
     def _pictures(self, item, boxes, scores) -> None:
