@@ -35,3 +35,16 @@ def test_sheet_takes_arrays_and_rejects_bad_layouts(sample_image):
         crop_sheet([(hwc, (0, 0, 5, 5), None, "x")], columns=0)
     with pytest.raises(ValueError, match="shape"):
         crop_sheet([(torch.zeros(4, 8, 8), (0, 0, 5, 5), None, "x")])
+
+
+def test_the_best_boxes_carry_their_class_hint():
+    from reeb_torch.runs.viz import draw_proposals
+
+    img = torch.zeros(3, 120, 200, dtype=torch.uint8)
+    boxes = torch.tensor([[20.0, 60.0, 60.0, 110.0], [120.0, 60.0, 180.0, 110.0]])
+    plain = draw_proposals(img, boxes, top=2)
+    hinted = draw_proposals(img, boxes, top=2, hints=["Pedestrian", "Car"])
+    assert plain.shape == hinted.shape == (120, 200, 3)
+    # the tag above each box is wider with its hint (the number alone ends within a few pixels)
+    tag = lambda pic, x1: int((pic[40:56, x1 + 12: x1 + 40].max(axis=2) > 0).sum())  # noqa: E731
+    assert tag(plain, 20) == 0 and tag(hinted, 20) > 0 and tag(hinted, 120) > 0

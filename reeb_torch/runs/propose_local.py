@@ -343,9 +343,9 @@ class _LocalRun:
         if self.print_top:
             self.bar.write(box_table(B.text_path(item.path), (w, h), boxes, scores, self.print_top, len(boxes),
                                      hints) + "\n", file=sys.stdout)
-        self._pictures(item, boxes, scores)
+        self._pictures(item, boxes, scores, hints)
 
-    def _pictures(self, item, boxes, scores) -> None:
+    def _pictures(self, item, boxes, scores, hints=None) -> None:
         """The ``--viz`` picture of an image (and ``reeb_proposals.png`` for the sample)."""
         from .viz import draw_proposals, save_png
 
@@ -359,7 +359,8 @@ class _LocalRun:
             title = f"{Path(item.path).name}: top {min(viz_top, len(boxes))} of {len(boxes)} proposals"
             try:
                 save_png(pic, draw_proposals(item.image, boxes, scores, top=viz_top,
-                                             gt=self.gt if pic == self.sample_png else None, title=title))
+                                             gt=self.gt if pic == self.sample_png else None, title=title,
+                                             hints=hints))
             except OSError as e:
                 self.bar.write(f"warning: {pic}: cannot write picture ({e.strerror or e})", file=sys.stderr)
 

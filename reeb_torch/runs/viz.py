@@ -97,13 +97,15 @@ def draw_proposals(
     top: int = 10,
     gt: Sequence[Any] | None = None,
     title: str | None = None,
+    hints: Sequence[str] | None = None,
 ) -> np.ndarray:
     """Draw the ``top`` best proposals (and ground truth) over ``image`` with OpenCV.
 
     Proposals are coloured by rank (rank 1 bright yellow and thickest, the last dim purple,
-    drawn first so that the best lie on top) and the best five carry their rank number.
-    Ground truth boxes are green with their class name. ``title`` goes in a dark band above
-    the image. Returns an RGB ``uint8`` array ``(H', W, 3)``.
+    drawn first so that the best lie on top) and the best five carry their rank number, and
+    their class hint where ``hints`` (one per box, e.g. ``"Car"``) are given. Ground truth
+    boxes are green with their class name. ``title`` goes in a dark band above the image.
+    Returns an RGB ``uint8`` array ``(H', W, 3)``.
     """
     import cv2
 
@@ -119,7 +121,7 @@ def draw_proposals(
         thick = 2 if i < 3 else 1
         cv2.rectangle(canvas, (x1, y1), (x2, y2), c, thick, cv2.LINE_AA)
         if i < 5:
-            label = str(i + 1)
+            label = f"{i + 1} {hints[i]}" if hints is not None else str(i + 1)
             (tw, th), _ = cv2.getTextSize(label, font, fs, 1)
             ty = max(th + 2, y1 - 2)
             cv2.rectangle(canvas, (x1, ty - th - 2), (x1 + tw + 2, ty + 1), c, -1)
