@@ -185,7 +185,7 @@ def test_ctrl_c_after_the_run_has_finished_keeps_its_exit_code(tmp_path, when, r
 
 # -- a full disk, a config nested too deeply -------------------------------------------------
 
-@pytest.mark.parametrize("where", ["_write", "_close"])
+@pytest.mark.parametrize("where", ["_write", "fsync"])
 def test_a_full_disk_is_one_line_naming_the_output(tmp_path, monkeypatch, where):
     import errno
 
@@ -201,7 +201,13 @@ def test_a_full_disk_is_one_line_naming_the_output(tmp_path, monkeypatch, where)
     def full(self, *a):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(B.JsonlWriter, where, full)
+    if where == "fsync":  # the disk fills as the file is closed: the file is closed all the same
+        opened = []
+        real_open = open
+        monkeypatch.setattr(B, "open", lambda *a, **k: opened.append(real_open(*a, **k)) or opened[-1], raising=False)
+        monkeypatch.setattr(B.os, "fsync", lambda fd: full(None))
+    else:
+        monkeypatch.setattr(B.JsonlWriter, where, full)
     monkeypatch.chdir(tmp_path)
     res = CliRunner().invoke(main, ["propose", "imgs", "-o", "o.jsonl", "--overwrite", "-j", "0", "-q", *FAST])
     assert res.exit_code == 1, res.output
@@ -211,6 +217,8 @@ def test_a_full_disk_is_one_line_naming_the_output(tmp_path, monkeypatch, where)
     assert "the results (No space left on device)" in lines[0], res.output
     assert out.read_text() == "old\n"  # the atomic write held
     assert no_temp_files(tmp_path)
+    if where == "fsync":
+        assert opened and all(f.closed for f in opened)
 
 
 @pytest.mark.parametrize("where", ["config", "set"])

@@ -816,9 +816,11 @@ class JsonlWriter(ResultWriter):
 
     def _close(self) -> None:
         if not self._f.closed:
-            self._f.flush()
-            os.fsync(self._f.fileno())
-            self._f.close()
+            try:  # a full disk raises here: the file is closed all the same
+                self._f.flush()
+                os.fsync(self._f.fileno())
+            finally:
+                self._f.close()
 
 
 class ParquetWriter(ResultWriter):
