@@ -7,10 +7,13 @@ ranking's prefilter keeps (``ranker_keep``; all of them without a ranker), (4) t
 ``top_k`` after NMS. Recall at IoU 0.5 and 0.7 over all objects (micro) and over
 KITTI-moderate objects (height >= 25 px, occlusion <= 1, truncation <= 0.3), and recall at
 IoU 0.7 of each class, on the frames of a KITTI-format folder. ``--frames 0:39 40:59``
-(numeric ids, both ends included) also reports each range on its own.
+(numeric ids, both ends included) also reports each range on its own. ``--folds N``: the
+learned ranking's stages on frames it never saw — each frame is run with a model fitted
+without its block of frames, as ``reeb fit --folds N`` estimates (``--seed``: the fit's);
+without it the settings' own model runs on every frame (the shipped one saw the dev frames).
 
 Rerun: ``python benchmarks/diagnose_recall.py [--data DIR ...] [--limit N] [--preset NAME]
-[--set FIELD=VALUE ...] [--frames A:B ...] [--lost [--show IMAGE]] [--json PATH]`` (``--set``
+[--set FIELD=VALUE ...] [--frames A:B ...] [--folds N [--seed S]] [--lost [--show IMAGE]] [--json PATH]`` (``--set``
 as in ``reeb propose``, e.g. ``--set min_window=12``; ``--lost`` lists each missed object with
 the stage that lost it, ``--show`` draws them all in one picture)
 """
@@ -20,7 +23,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 from pathlib import Path
+from typing import Callable
 
 import click
 import torch
@@ -200,8 +205,45 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--show", type=Path, default=None, metavar="IMAGE",
                     help="with --lost: draw every missed object (its box green, the nearest proposal "
                          "orange, the stage that lost it below) in one picture (.png, or .jpg)")
+    ap.add_argument("--folds", type=int, default=None, metavar="N",
+                    help="run each frame with a ranking model fitted without its block of N blocks of frames "
+                         "(reeb fit's cross-validation), not with the settings' own model")
+    ap.add_argument("--seed", type=int, default=0, help="with --folds: the fit's seed (reeb fit --seed)")
     ap.add_argument("--json", type=Path, default=None, help="also write the numbers to this JSON file")
     return ap
+
+
+def held_out_generators(data: list[Path], limit: int | None, config, folds: int, seed: int,
+                        tmp: Path) -> dict[tuple[str, str], Callable[[], ProposalGenerator]]:
+    """Per frame ``(folder, image id)``, a function that makes the generator of ``config``
+    with a ranking model fitted without the frame's block (:func:`reeb_torch.eval.fit.cross_validate`'s
+    folds, training frames and fit; the weights saved in ``tmp``), the one generator per block
+    made once, when its first frame asks."""
+    from reeb_torch.eval import fit as F
+    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.ranker import save_ranker
+
+    frames = F.load_fit_frames(data, limit)
+    cache = FrameCache(frames)
+    opts = F.FitOptions(seed=seed)
+    samples = F.frame_samples(cache, config, opts)
+    blocks = F.frame_folds(len(frames), folds)
+    similar = F.similar_frames(frames.images)
+    names = cache.candidates(config.unranked(), 0).feature_names
+    made: dict[int, ProposalGenerator] = {}
+
+    def maker(f: int) -> Callable[[], ProposalGenerator]:
+        def make() -> ProposalGenerator:
+            if f not in made:
+                made.clear()  # one block's generator at a time: the frames come block by block
+                train = F.training_frames(blocks, f, frames.ids, frames.folders, similar)
+                model = F.fit_ranker([samples[i] for i in train], names, opts, frames.classes)
+                path = save_ranker(model, tmp / f"fold{f}.safetensors")
+                made[f] = ProposalGenerator(config.replace(ranker=str(path)))
+            return made[f]
+        return make
+
+    return {(frames.folders[i], frames.ids[i]): maker(f) for f, block in enumerate(blocks) for i in block}
 
 
 def _write_sheet(path: Path, crops: list, lost: list[dict]) -> None:
@@ -233,13 +275,22 @@ def main(argv: list[str] | None = None) -> dict:
         config = build_config(args.preset, None, args.sets, None)
     except click.ClickException as e:  # an unknown field, a bad value
         ap.error(e.format_message())
+    if args.folds is not None and config.ranker == "none":
+        ap.error("--folds fits the learned ranking: these settings have none (ranker='none')")
     gen = ProposalGenerator(config)
+    tmp = tempfile.TemporaryDirectory(prefix="reeb-diagnose-")
+    try:
+        held_out = (held_out_generators(args.data, args.limit, config, args.folds, args.seed, Path(tmp.name))
+                    if args.folds is not None else None)
+    except ValueError as e:  # fewer frames than folds, no labelled object
+        ap.error(str(e))
     acc: dict[str, list[torch.Tensor]] = {s: [] for s in STAGES}
     labels, moderate, frame_of, folder_of, lost, crops = [], [], [], [], [], []
     for item in items:
         if len(item["boxes"]) == 0:
             continue
-        best_item, details = stage_ious(gen, item["image"], item["boxes"], lost_detail=args.lost)
+        run = held_out[(item["folder"], str(item["image_id"]))]() if held_out is not None else gen
+        best_item, details = stage_ious(run, item["image"], item["boxes"], lost_detail=args.lost)
         for k, v in best_item.items():
             acc[k].append(v)
         for d in details:
@@ -256,11 +307,14 @@ def main(argv: list[str] | None = None) -> dict:
         moderate.append(kitti_difficulty_mask(item["boxes"], item["occluded"], item["truncated"]))
         frame_of += [item["image_id"]] * len(item["boxes"])
         folder_of += [item["folder"]] * len(item["boxes"])
+    tmp.cleanup()
     best = {k: torch.cat(v) if v else torch.zeros(0) for k, v in acc.items()}
     lab = torch.cat(labels) if labels else torch.zeros(0, dtype=torch.int64)
     mod = torch.cat(moderate) if moderate else torch.zeros(0, dtype=torch.bool)
     n = len(lab)
     preset = args.preset + "".join(f", {kv}" for kv in args.sets)
+    if args.folds is not None:
+        preset += f"; each frame ranked by a model fitted without its block ({args.folds} folds, seed {args.seed})"
     print(f"# {len(items)} frames, {n} objects ({int(mod.sum())} moderate), preset {preset}; "
           "recall (%) at IoU 0.7 unless named")
     splits = [("all", torch.ones(n, dtype=torch.bool))]
@@ -270,7 +324,8 @@ def main(argv: list[str] | None = None) -> dict:
         for r in args.frames:
             splits.append((r.text, torch.tensor([int(f) in r for f in frame_of], dtype=torch.bool)))
     record: dict = {"rerun": rerun_line("benchmarks/diagnose_recall.py", argv if argv is not None else sys.argv[1:]),
-                    "preset": args.preset, "sets": args.sets, "classes": list(classes), "splits": {}}
+                    "preset": args.preset, "sets": args.sets, "folds": args.folds, "seed": args.seed,
+                    "classes": list(classes), "splits": {}}
     for name, m in splits:
         table = stage_table({k: b[m] for k, b in best.items()}, lab[m], mod[m], classes)
         kind = "frames" if name.replace(":", "").isdigit() else "folder"

@@ -97,6 +97,27 @@ def test_show_needs_lost(diagnose, tmp_path):
     assert info.value.code == 2
 
 
+def test_folds_rank_each_frame_by_a_model_fitted_without_its_block(diagnose, tmp_path):
+    from reeb_torch.eval import fit as F
+    from reeb_torch.eval.tune import FrameCache
+
+    root = _example_kitti(tmp_path / "kitti")
+    record = diagnose.main(["--data", str(root), "--folds", "2", "--set", "top_k=150"])
+    # the very folds, fits and hits of reeb fit's cross-validation, not the shipped model's
+    frames = F.load_fit_frames([root])
+    cache, cfg, opts = FrameCache(frames), ReebConfig(top_k=150), F.FitOptions()
+    cv = F.cross_validate(cache, cfg, cfg.training_free(), F.frame_samples(cache, cfg, opts), opts, 2, k=150)
+    held_out = 100.0 * float(torch.cat(cv.ranked_hits).float().mean())
+    final = record["splits"]["all"]["stages"]
+    assert final["final top-k"]["R@0.7"] == pytest.approx(held_out) and record["folds"] == 2
+    shipped = diagnose.main(["--data", str(root), "--set", "top_k=150"])["splits"]["all"]["stages"]
+    same = json.dumps(shipped["region candidates"]) == json.dumps(final["region candidates"])  # NaN for no object
+    assert same  # the candidates do not depend on the model
+    with pytest.raises(SystemExit) as info:  # training-free settings have no ranking to fit
+        diagnose.main(["--data", str(root), "--folds", "2", "--preset", "training-free"])
+    assert info.value.code == 2
+
+
 def test_lost_table_prints_every_object(run, diagnose):
     _, record, _ = run
     text = diagnose.format_lost(record["lost"])
