@@ -6,6 +6,9 @@ the model does not see) can be paired with the default exactly: each fold's mode
 fitted once (on the default's candidates, as ``reeb fit`` does) and every setting runs with
 it on the held-out block. Per fit seed: recall at 2000 proposals / IoU 0.7 with its
 frame-bootstrap interval, per class and per folder, and the sign test against the default.
+With several seeds, also over all of them: each object counts once, as gained when the
+setting finds it with more fit seeds than the default does, as lost with fewer (the sign
+test on those: the seeds' noise averaged within each object, the objects the unit).
 
     python benchmarks/cv_paired.py --variant "class_quota=[0,0.3,0.1,0.05]" --seeds 0 1 2 \\
         --out docs/results/ranker/class_quota
@@ -24,13 +27,14 @@ import time
 from pathlib import Path
 
 import click
+import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_dev_dirs, environment, rerun_line  # noqa: E402
 
 from reeb_torch import ReebConfig, get_preset  # noqa: E402
 from reeb_torch.eval import fit as F  # noqa: E402
-from reeb_torch.eval.metrics import compare_recall  # noqa: E402
+from reeb_torch.eval.metrics import compare_recall, sign_test  # noqa: E402
 from reeb_torch.eval.tune import FrameCache, bootstrap_interval  # noqa: E402
 from reeb_torch.ranking import _NOT_SEEN_BY_RANKER  # noqa: E402
 from reeb_torch.runs.common import build_config  # noqa: E402
@@ -81,6 +85,14 @@ def describe(frames, hits: list, ref: list | None, idx: list[int]) -> dict:
     return row
 
 
+def over_seeds(per_seed: list[list], variant: int, idx: list[int]) -> dict:
+    """Objects of the frames ``idx`` found with more / fewer fit seeds by ``variant`` (the
+    index into each seed's hits; 0 is the default) than by the default, and the sign test."""
+    diff = torch.cat([sum(h[variant][i].int() - h[0][i].int() for h in per_seed) for i in idx])
+    gained, lost = int((diff > 0).sum()), int((diff < 0).sum())
+    return {"gained": gained, "lost": lost, "p_value": sign_test(gained, lost)}
+
+
 def line(name: str, row: dict) -> str:
     classes = ", ".join(f"{c} {v['found']}/{v['objects']}" for c, v in row["per_class"].items())
     paired = ""
@@ -111,8 +123,10 @@ def main(argv: list[str] | None = None) -> dict:
         groups += [(n, [i for i, f in enumerate(frames.folders) if f == n]) for n in folders]
     text = [f"# rerun: {rerun_line('benchmarks/cv_paired.py', argv if argv is not None else sys.argv[1:])}"]
     record: dict = {"seeds": {}, "environment": environment()}
+    per_seed: list[list] = []
     for seed in args.seeds:
         hits = cross_validated_hits(cache, list(variants.values()), seed, args.folds)
+        per_seed.append(hits)
         text.append(f"fit seed {seed}: {len(frames)} frames, {args.folds} folds of blocks of frames; recall at "
                     "2000 proposals, IoU 0.7, 95 % frame-bootstrap intervals")
         record["seeds"][seed] = {}
@@ -123,6 +137,16 @@ def main(argv: list[str] | None = None) -> dict:
             text += [line(name, row) for name, row in rows.items()]
             record["seeds"][seed][title] = rows
         print("\n".join(text[-(1 + len(groups) * (2 + len(variants))):]), flush=True)
+    if len(args.seeds) > 1:
+        text.append(f"over the {len(args.seeds)} fit seeds: objects found with more / fewer seeds than by the "
+                    "default, sign test")
+        record["over_seeds"] = {}
+        for title, idx in groups:
+            rows = {v: over_seeds(per_seed, j + 1, idx) for j, v in enumerate(variants)}
+            text += [f" {title}: " + "; ".join(f"{v} +{r['gained']} / -{r['lost']}, p {r['p_value']:.2g}"
+                                               for v, r in rows.items())]
+            record["over_seeds"][title] = rows
+        print("\n".join(text[-(1 + len(groups)):]), flush=True)
     text.append(f"({time.monotonic() - t0:.0f} s)")
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "cv_paired.txt").write_text("\n".join(text) + "\n", encoding="utf-8")

@@ -250,6 +250,7 @@ _RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "nms_iou": _in(0, 1, lo_open=True),
     "top_k": _at_least(1),
     "ranker_keep": _at_least(1),
+    "ranker_keep_v": _at_least(0),
     "class_quota": ((lambda t: all(x >= 0 for x in t) and sum(t) <= 1), "shares >= 0 that sum to at most 1"),
     "ranker": ((lambda v: v.strip() != ""), "'none', a shipped ranker name ('kitti') or the path of a weights file"),
 }
@@ -273,6 +274,8 @@ _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
      "a ranker (its class head hints each box's class) with class_quota, or class_quota=()"),
     (("class_quota", "region_quota"), lambda c: not (c.class_quota and c.region_quota),
      "one output quota at a time: class_quota=() or region_quota=off"),
+    (("ranker_keep_v", "ranker_keep"), lambda c: c.ranker_keep_v <= c.ranker_keep,
+     "in order, ranker_keep_v <= ranker_keep (V's best are a part of the candidates kept)"),
     (("camera_height_m", "vertical_fov_deg", "horizontal_fov_deg", "max_object_width_m",
       "region_width_round", "region_overlap"), lambda c: _region_count(c) <= _MAX_REGIONS,
      f"a camera and overlap giving at most {_MAX_REGIONS} regions (eqs. 5-8)"),
@@ -539,6 +542,12 @@ class ReebConfig:
     """With ``ranker``: the candidates of each image its prefilter keeps (a tiny model over the
     box's geometry, V and region, which need no box sum) for the full features and model; the
     others are dropped before NMS. Larger is slower and ranks more boxes."""
+    ranker_keep_v: int = 0
+    """Of those ``ranker_keep``, each image's best ``ranker_keep_v`` by REEB's own score V are
+    kept whatever the prefilter says, the rest being the prefilter's best (not in the paper):
+    V is not fitted to any frames, so it keeps what a prefilter fitted on other frames
+    misjudges. ``0``: the prefilter alone. The same number of boxes get the features and the
+    model, so it costs only the cut by V."""
     class_quota: tuple[float, ...] = ()
     """With a ranker that has a class head (``kitti``: Car, Pedestrian, Cyclist, Truck): the
     share of the ``top_k`` proposals each of its classes gets first, in the model's class

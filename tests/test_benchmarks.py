@@ -306,3 +306,14 @@ def test_cv_paired_takes_only_settings_after_the_model():
         cv.parse_variant("candidates_per_region=20000")
     with pytest.raises(ValueError, match="'training-free' changes candidates_per_region, ranker"):
         cv.parse_variant("training-free")
+
+
+def test_cv_paired_over_seeds_counts_each_object_once():
+    cv = _script("cv_paired")
+    t, f = torch.tensor([True]), torch.tensor([False])
+    # per seed: [default hits, variant hits], per frame; 3 objects over 2 frames
+    seeds = [[[torch.tensor([True, False]), t], [torch.tensor([True, True]), f]],
+             [[torch.tensor([False, False]), t], [torch.tensor([True, False]), t]]]
+    # object 0: 1 seed against 2 (gained); object 1: 0 against 1 (gained); object 2: 2 against 1 (lost)
+    assert cv.over_seeds(seeds, 1, [0, 1]) == {"gained": 2, "lost": 1, "p_value": 1.0}
+    assert cv.over_seeds(seeds, 1, [1]) == {"gained": 0, "lost": 1, "p_value": 1.0}

@@ -194,6 +194,39 @@ def test_ranker_keep_bounds_the_ranked_candidates(sample_image):
     assert len(gen([sample_image])[0]["boxes"]) <= 500
 
 
+def _ranked_with(gen: ProposalGenerator, images: list) -> list[tuple]:
+    """Per call of rank_learned: (V [B, N], the region cut's chosen, the candidates it ranked)."""
+    calls, rank = [], gen.ranking.rank_learned
+
+    def spy(maps, grid, scores, chosen, *a, **k):
+        out, kept = rank(maps, grid, scores, chosen, *a, **k)
+        calls.append((scores.clone(), chosen.clone(), kept.clone()))
+        return out, kept
+
+    gen.ranking.rank_learned = spy
+    gen(images)
+    return calls
+
+
+def test_ranker_keep_v_keeps_each_images_best_by_v_among_the_prefilters(sample_image):
+    keep, by_v = 3000, 1000
+    ((v, chosen, kept),) = _ranked_with(ProposalGenerator(ranker_keep=keep, ranker_keep_v=by_v), [sample_image])
+    ((_, _, alone),) = _ranked_with(ProposalGenerator(ranker_keep=keep), [sample_image])
+    ((_, _, all_v),) = _ranked_with(ProposalGenerator(ranker_keep=keep, ranker_keep_v=keep), [sample_image])
+    cand = torch.where(chosen[0], v[0], torch.tensor(float("-inf")))
+    order = torch.sort(cand, descending=True, stable=True).indices
+    assert int(kept.sum()) == int(alone.sum()) == keep < int(chosen.sum())  # the same number ranked
+    assert bool(kept[0, order[:by_v]].all())  # V's best, whatever the prefilter says
+    assert not bool(alone[0, order[:by_v]].all())  # (the prefilter alone drops some of them)
+    assert torch.equal(all_v[0].nonzero().squeeze(1), order[:keep].sort().values)  # all by V: V's best
+    rest = kept[0].clone()
+    rest[order[:by_v]] = False
+    assert bool((rest <= alone[0]).all())  # the others are the prefilter's best
+    gen = ProposalGenerator(ranker_keep=keep, ranker_keep_v=by_v)
+    assert all(torch.equal(a, b) for a, b in zip(gen([sample_image.flip(-1), sample_image])[1].values(),
+                                                   gen([sample_image])[0].values()))  # alone as in a batch
+
+
 def test_bad_ranker_settings():
     with pytest.raises(ValueError, match="ReebConfig.ranker must be"):
         ReebConfig(ranker="")
@@ -201,6 +234,10 @@ def test_bad_ranker_settings():
         ReebConfig(refine=True)
     with pytest.raises(ValueError, match="ranker_keep"):
         ReebConfig(ranker_keep=0)
+    with pytest.raises(ValueError, match="ranker_keep_v <= ranker_keep"):
+        ReebConfig(ranker_keep_v=12001)
+    with pytest.raises(ValueError, match="ranker_keep_v must be >= 0"):
+        ReebConfig(ranker_keep_v=-1)
 
 
 def test_class_quota_shares_the_output_by_the_hints(sample_image):
