@@ -250,7 +250,7 @@ _RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "nms_iou": _in(0, 1, lo_open=True),
     "top_k": _at_least(1),
     "ranker_keep": _at_least(1),
-    "ranker_keep_v": _at_least(0),
+    "ranker_v_share": _in(0, 1),
     "class_quota": ((lambda t: all(x >= 0 for x in t) and sum(t) <= 1), "shares >= 0 that sum to at most 1"),
     "ranker": ((lambda v: v.strip() != ""), "'none', a shipped ranker name ('kitti') or the path of a weights file"),
 }
@@ -274,8 +274,6 @@ _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
      "a ranker (its class head hints each box's class) with class_quota, or class_quota=()"),
     (("class_quota", "region_quota"), lambda c: not (c.class_quota and c.region_quota),
      "one output quota at a time: class_quota=() or region_quota=off"),
-    (("ranker_keep_v", "ranker_keep"), lambda c: c.ranker_keep_v <= c.ranker_keep,
-     "in order, ranker_keep_v <= ranker_keep (V's best are a part of the candidates kept)"),
     (("camera_height_m", "vertical_fov_deg", "horizontal_fov_deg", "max_object_width_m",
       "region_width_round", "region_overlap"), lambda c: _region_count(c) <= _MAX_REGIONS,
      f"a camera and overlap giving at most {_MAX_REGIONS} regions (eqs. 5-8)"),
@@ -538,16 +536,17 @@ class ReebConfig:
     the 106 KITTI dev frames; the path of a weights file ``reeb fit`` wrote for another camera;
     or ``none``: rank by V (training-free, as printed; :meth:`training_free` also sets the
     budget V ranks best with). Scores are then the model's logits."""
-    ranker_keep: int = 12000
-    """With ``ranker``: the candidates of each image its prefilter keeps (a tiny model over the
-    box's geometry, V and region, which need no box sum) for the full features and model; the
-    others are dropped before NMS. Larger is slower and ranks more boxes."""
-    ranker_keep_v: int = 0
-    """Of those ``ranker_keep``, each image's best ``ranker_keep_v`` by REEB's own score V are
-    kept whatever the prefilter says, the rest being the prefilter's best (not in the paper):
-    V is not fitted to any frames, so it keeps what a prefilter fitted on other frames
-    misjudges. ``0``: the prefilter alone. The same number of boxes get the features and the
-    model, so it costs only the cut by V."""
+    ranker_keep: int = 8000
+    """With ``ranker``: the candidates of each image that get the full features and the model;
+    the others are dropped before NMS. ``ranker_v_share`` of them are the image's best by V,
+    the rest the best by the model's prefilter (a tiny model over the box's geometry, V and
+    region, which need no box sum). Larger is slower and ranks more boxes (12000 until this
+    round, with the prefilter alone: docs/results.md)."""
+    ranker_v_share: float = 0.5
+    """The share of the ``ranker_keep`` candidates that are each image's best by REEB's own
+    score V whatever the prefilter says (not in the paper): V is fitted to no frames, so it
+    keeps what a prefilter fitted on other frames misjudges. ``0``: the prefilter alone;
+    ``1``: V alone (the prefilter is then not run). The cut by V costs ~0.1 ms/img."""
     class_quota: tuple[float, ...] = ()
     """With a ranker that has a class head (``kitti``: Car, Pedestrian, Cyclist, Truck): the
     share of the ``top_k`` proposals each of its classes gets first, in the model's class

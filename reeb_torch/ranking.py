@@ -141,7 +141,7 @@ class ScoreMaps:
         return self._keep(("crossing", band), build)
 
 
-_NOT_SEEN_BY_RANKER = ("top_k", "ranker", "ranker_keep", "ranker_keep_v", "nms_iou", "region_quota",
+_NOT_SEEN_BY_RANKER = ("top_k", "ranker", "ranker_keep", "ranker_v_share", "nms_iou", "region_quota",
                        "class_quota")
 """Fields a ranking model does not depend on (they act after it)."""
 
@@ -642,8 +642,8 @@ class Ranking:
         """``ranker``: the candidates ranked by the model, for :meth:`suppress`: ``(scores
         float32 [B, N], chosen bool [B, N])``, the model's logit of each candidate it ranks
         (``-inf`` elsewhere) and which those are: where the model has a prefilter, each
-        image's best ``ranker_keep`` candidates by the prefilter (its best ``ranker_keep_v`` by V
-        among them, whatever the prefilter says); all of them otherwise.
+        image's best ``ranker_keep`` candidates: ``ranker_v_share`` of them its best by V, the
+        rest its best by the prefilter; all of them otherwise.
         ``features_out``, if given, gets ``(bi, ni, features)`` of the candidates it ranked
         (in ``nonzero(chosen)`` order), so that :meth:`class_hints` need not compute them again.
         ``timer(name, device)``, if given, times its parts (``ranker.prefilter``: the pairs, the
@@ -655,11 +655,16 @@ class Ranking:
             bi, ni = _chosen(chosen)
             keep = self.config.ranker_keep
             counts = torch.bincount(bi, minlength=scores.shape[0])
+            by_v = round(self.config.ranker_v_share * keep)
             if model.prefilter is not None and len(bi) and int(counts.max()) > keep:
-                pre = self._prefilter(model, maps, grid, scores, share, entropy, bi, ni)
-                if self.config.ranker_keep_v:  # each image's best by V first, whatever the prefilter says
-                    pre[_best_per_image(scores[bi, ni], counts, self.config.ranker_keep_v)] = math.inf
-                sel = _best_per_image(pre, counts, keep)
+                v = scores[bi, ni]
+                if by_v >= keep:  # V alone
+                    sel = _best_per_image(v, counts, keep)
+                else:
+                    pre = self._prefilter(model, maps, grid, scores, share, entropy, bi, ni)
+                    if by_v:  # each image's best by V first, whatever the prefilter says
+                        pre[_best_per_image(v, counts, by_v)] = math.inf
+                    sel = _best_per_image(pre, counts, keep)
                 bi, ni = bi[sel], ni[sel]
         out = torch.full_like(scores, -math.inf)
         kept = torch.zeros_like(chosen)

@@ -208,23 +208,25 @@ def _ranked_with(gen: ProposalGenerator, images: list) -> list[tuple]:
     return calls
 
 
-def test_ranker_keep_v_keeps_each_images_best_by_v_among_the_prefilters(sample_image):
+def test_ranker_v_share_keeps_each_images_best_by_v_beside_the_prefilters(sample_image):
     keep, by_v = 3000, 1000
-    ((v, chosen, kept),) = _ranked_with(ProposalGenerator(ranker_keep=keep, ranker_keep_v=by_v), [sample_image])
-    ((_, _, alone),) = _ranked_with(ProposalGenerator(ranker_keep=keep), [sample_image])
-    ((_, _, all_v),) = _ranked_with(ProposalGenerator(ranker_keep=keep, ranker_keep_v=keep), [sample_image])
+    share = by_v / keep
+    ((v, chosen, kept),) = _ranked_with(ProposalGenerator(ranker_keep=keep, ranker_v_share=share), [sample_image])
+    ((_, _, alone),) = _ranked_with(ProposalGenerator(ranker_keep=keep, ranker_v_share=0), [sample_image])
+    ((_, _, all_v),) = _ranked_with(ProposalGenerator(ranker_keep=keep, ranker_v_share=1), [sample_image])
     cand = torch.where(chosen[0], v[0], torch.tensor(float("-inf")))
     order = torch.sort(cand, descending=True, stable=True).indices
-    assert int(kept.sum()) == int(alone.sum()) == keep < int(chosen.sum())  # the same number ranked
+    assert int(kept.sum()) == int(alone.sum()) == int(all_v.sum()) == keep < int(chosen.sum())  # as many ranked
     assert bool(kept[0, order[:by_v]].all())  # V's best, whatever the prefilter says
     assert not bool(alone[0, order[:by_v]].all())  # (the prefilter alone drops some of them)
     assert torch.equal(all_v[0].nonzero().squeeze(1), order[:keep].sort().values)  # all by V: V's best
     rest = kept[0].clone()
     rest[order[:by_v]] = False
     assert bool((rest <= alone[0]).all())  # the others are the prefilter's best
-    gen = ProposalGenerator(ranker_keep=keep, ranker_keep_v=by_v)
+    gen = ProposalGenerator(ranker_keep=keep, ranker_v_share=share)
     assert all(torch.equal(a, b) for a, b in zip(gen([sample_image.flip(-1), sample_image])[1].values(),
                                                    gen([sample_image])[0].values()))  # alone as in a batch
+    assert ReebConfig().ranker_keep == 8000 and ReebConfig().ranker_v_share == 0.5  # the default: 4000 by V
 
 
 def test_bad_ranker_settings():
@@ -234,10 +236,9 @@ def test_bad_ranker_settings():
         ReebConfig(refine=True)
     with pytest.raises(ValueError, match="ranker_keep"):
         ReebConfig(ranker_keep=0)
-    with pytest.raises(ValueError, match="ranker_keep_v <= ranker_keep"):
-        ReebConfig(ranker_keep_v=12001)
-    with pytest.raises(ValueError, match="ranker_keep_v must be >= 0"):
-        ReebConfig(ranker_keep_v=-1)
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="ranker_v_share must be"):
+            ReebConfig(ranker_v_share=bad)
 
 
 def test_class_quota_shares_the_output_by_the_hints(sample_image):
