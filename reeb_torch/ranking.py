@@ -657,13 +657,12 @@ class Ranking:
             counts = torch.bincount(bi, minlength=scores.shape[0])
             by_v = round(self.config.ranker_v_share * keep)
             if model.prefilter is not None and len(bi) and int(counts.max()) > keep:
-                v = scores[bi, ni]
                 if by_v >= keep:  # V alone
-                    sel = _best_per_image(v, counts, keep)
+                    sel = _best_per_image(scores[bi, ni], counts, keep)
                 else:
                     pre = self._prefilter(model, maps, grid, scores, share, entropy, bi, ni)
                     if by_v:  # each image's best by V first, whatever the prefilter says
-                        pre[_best_per_image(v, counts, by_v)] = math.inf
+                        pre[_best_per_image(scores[bi, ni], counts, by_v)] = math.inf
                     sel = _best_per_image(pre, counts, keep)
                 bi, ni = bi[sel], ni[sel]
         out = torch.full_like(scores, -math.inf)

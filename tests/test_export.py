@@ -155,6 +155,6 @@ def test_result_row_numbers_are_those_of_round_and_format(sample_image):
 
 
 def test_hint_names_are_the_classes_of_the_labels():
-    assert B.hint_names(("Car", "Pedestrian"), {"labels": torch.tensor([1, 0, 1])}) == ["Pedestrian", "Car", "Pedestrian"]
-    assert B.hint_names(None, {"labels": torch.tensor([0])}) is None
-    assert B.hint_names(("Car", "Pedestrian"), {"boxes": torch.zeros(0, 4)}) is None
+    assert B.hint_names(("Car", "Pedestrian"), torch.tensor([1, 0, 1])) == ["Pedestrian", "Car", "Pedestrian"]
+    assert B.hint_names(None, torch.tensor([0])) is None
+    assert B.hint_names(("Car", "Pedestrian"), None) is None

@@ -599,13 +599,13 @@ def result_row(path: str, width: int, height: int, boxes: torch.Tensor, scores: 
     }
 
 
-def hint_names(classes: Sequence[str] | None, result: dict) -> list[str] | None:
-    """The class hint of each box of one generator output (``result["labels"]``, indices into
-    ``classes``, :attr:`ProposalGenerator.classes <reeb_torch.ProposalGenerator.classes>`) as
-    names, or None where the settings give none."""
-    if classes is None or "labels" not in result:
+def hint_names(classes: Sequence[str] | None, labels: torch.Tensor | None) -> list[str] | None:
+    """The class hint of each box as a name: ``labels`` (``int64 [N]``, a generator output's
+    ``"labels"``) indexes ``classes`` (:attr:`ProposalGenerator.classes
+    <reeb_torch.ProposalGenerator.classes>`); None where the settings give none."""
+    if classes is None or labels is None:
         return None
-    return [classes[i] for i in result["labels"].tolist()]
+    return [classes[i] for i in labels.tolist()]
 
 
 def error_row(path: str, message: str, config: str, size: tuple[int, int] | None = None) -> dict:

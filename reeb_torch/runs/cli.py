@@ -284,7 +284,7 @@ def show(image, label, no_label, top, out, preset, config_file, sets, top_k, dev
     except OSError as e:
         raise Failure(f"{out}: cannot write ({e.strerror or e})")
 
-    hints = None if insp.labels is None else hint_names(gen.classes, {"labels": insp.labels.cpu()})
+    hints = hint_names(gen.classes, insp.labels)
     click.echo(box_table(str(path), (w, h), insp.boxes.cpu(), insp.scores.cpu(), min(top, 10),
                          len(insp.boxes), hints))
     ent = ", ".join(f"R{i + 1} H={float(hv):.2f} {100 * float(s):.0f}%"

@@ -262,7 +262,6 @@ def box_table(name: str, size: tuple[int, int], boxes, scores, n: int, total: in
     return "\n".join(lines)
 
 
-
 def ms_per_img(seconds: float, n: int) -> str:
     """``seconds`` over ``n`` images as ``"12.3 ms/img"`` (``"n/a"`` for none)."""
     return f"{1000 * seconds / n:.1f} ms/img" if n else "n/a"

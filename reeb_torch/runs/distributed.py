@@ -194,7 +194,7 @@ class ProposalActor:
         for it, r in zip(items, results):
             h, w = it.image.shape[-2:]
             rows.append(B.result_row(it.path, w, h, r["boxes"].cpu(), r["scores"].cpu(),
-                                     self.fingerprint, labels=B.hint_names(self.gen.classes, r)))
+                                     self.fingerprint, labels=B.hint_names(self.gen.classes, r.get("labels"))))
         return rows
 
     @staticmethod

@@ -334,7 +334,7 @@ class _LocalRun:
     def _finish(self, item, result) -> None:
         h, w = item.image.shape[-2:]
         boxes, scores = result["boxes"].cpu(), result["scores"].cpu()
-        hints = B.hint_names(self.gen.classes, result)
+        hints = B.hint_names(self.gen.classes, result.get("labels"))
         with self.cs:
             self.stats["ok"] += 1
             self.stats["proposals"] += len(boxes)
