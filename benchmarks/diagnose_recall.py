@@ -213,12 +213,12 @@ def _parser() -> argparse.ArgumentParser:
     return ap
 
 
-def held_out_generators(data: list[Path], limit: int | None, config, folds: int, seed: int,
-                        tmp: Path) -> dict[tuple[str, str], Callable[[], ProposalGenerator]]:
+def held_out_generators(data: list[Path], limit: int | None, config, folds: int,
+                        seed: int) -> dict[tuple[str, str], Callable[[], ProposalGenerator]]:
     """Per frame ``(folder, image id)``, a function that makes the generator of ``config``
     with a ranking model fitted without the frame's block (:func:`reeb_torch.eval.fit.cross_validate`'s
-    folds, training frames and fit; the weights saved in ``tmp``), the one generator per block
-    made once, when its first frame asks."""
+    folds, training frames and fit; the weights saved in a temporary folder that lives as
+    long as the functions), the one generator per block made once, when its first frame asks."""
     from reeb_torch.eval import fit as F
     from reeb_torch.eval.tune import FrameCache
     from reeb_torch.ranker import save_ranker
@@ -231,6 +231,7 @@ def held_out_generators(data: list[Path], limit: int | None, config, folds: int,
     similar = F.similar_frames(frames.images)
     names = cache.candidates(config.unranked(), 0).feature_names
     made: dict[int, ProposalGenerator] = {}
+    tmp = tempfile.TemporaryDirectory(prefix="reeb-diagnose-")
 
     def maker(f: int) -> Callable[[], ProposalGenerator]:
         def make() -> ProposalGenerator:
@@ -238,12 +239,27 @@ def held_out_generators(data: list[Path], limit: int | None, config, folds: int,
                 made.clear()  # one block's generator at a time: the frames come block by block
                 train = F.training_frames(blocks, f, frames.ids, frames.folders, similar)
                 model = F.fit_ranker([samples[i] for i in train], names, opts, frames.classes)
-                path = save_ranker(model, tmp / f"fold{f}.safetensors")
+                path = save_ranker(model, Path(tmp.name) / f"fold{f}.safetensors")
                 made[f] = ProposalGenerator(config.replace(ranker=str(path)))
             return made[f]
         return make
 
     return {(frames.folders[i], frames.ids[i]): maker(f) for f, block in enumerate(blocks) for i in block}
+
+
+def _generators(ap: argparse.ArgumentParser, args: argparse.Namespace, config) -> Callable[[dict], ProposalGenerator]:
+    """The generator that runs each frame (an item of ``load_folders``): the settings' own, or
+    with ``--folds`` the one whose model was fitted without the frame's block."""
+    if args.folds is None:
+        gen = ProposalGenerator(config)
+        return lambda item: gen
+    if config.ranker == "none":
+        ap.error("--folds fits the learned ranking: these settings have none (ranker='none')")
+    try:
+        held_out = held_out_generators(args.data, args.limit, config, args.folds, args.seed)
+    except ValueError as e:  # fewer frames than folds, no labelled object
+        ap.error(str(e))
+    return lambda item: held_out[(item["folder"], str(item["image_id"]))]()
 
 
 def _write_sheet(path: Path, crops: list, lost: list[dict]) -> None:
@@ -275,22 +291,13 @@ def main(argv: list[str] | None = None) -> dict:
         config = build_config(args.preset, None, args.sets, None)
     except click.ClickException as e:  # an unknown field, a bad value
         ap.error(e.format_message())
-    if args.folds is not None and config.ranker == "none":
-        ap.error("--folds fits the learned ranking: these settings have none (ranker='none')")
-    gen = ProposalGenerator(config)
-    tmp = tempfile.TemporaryDirectory(prefix="reeb-diagnose-")
-    try:
-        held_out = (held_out_generators(args.data, args.limit, config, args.folds, args.seed, Path(tmp.name))
-                    if args.folds is not None else None)
-    except ValueError as e:  # fewer frames than folds, no labelled object
-        ap.error(str(e))
+    run_for = _generators(ap, args, config)
     acc: dict[str, list[torch.Tensor]] = {s: [] for s in STAGES}
     labels, moderate, frame_of, folder_of, lost, crops = [], [], [], [], [], []
     for item in items:
         if len(item["boxes"]) == 0:
             continue
-        run = held_out[(item["folder"], str(item["image_id"]))]() if held_out is not None else gen
-        best_item, details = stage_ious(run, item["image"], item["boxes"], lost_detail=args.lost)
+        best_item, details = stage_ious(run_for(item), item["image"], item["boxes"], lost_detail=args.lost)
         for k, v in best_item.items():
             acc[k].append(v)
         for d in details:
@@ -307,7 +314,6 @@ def main(argv: list[str] | None = None) -> dict:
         moderate.append(kitti_difficulty_mask(item["boxes"], item["occluded"], item["truncated"]))
         frame_of += [item["image_id"]] * len(item["boxes"])
         folder_of += [item["folder"]] * len(item["boxes"])
-    tmp.cleanup()
     best = {k: torch.cat(v) if v else torch.zeros(0) for k, v in acc.items()}
     lab = torch.cat(labels) if labels else torch.zeros(0, dtype=torch.int64)
     mod = torch.cat(moderate) if moderate else torch.zeros(0, dtype=torch.bool)
