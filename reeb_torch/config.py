@@ -546,8 +546,8 @@ class ReebConfig:
     """The share of the ``ranker_keep`` candidates that are each image's best by REEB's own
     score V whatever the prefilter says (not in the paper): V is fitted to no frames, so it
     keeps what a prefilter fitted on other frames misjudges. ``0``: the prefilter alone;
-    ``1``: V alone (the prefilter is then not run). The cut by V is cheap: the ranking's
-    prefilter stage took 3.15 against 2.95 ms/img on one core with it and without (8000 kept)."""
+    ``1``: V alone (the prefilter is then not run). The cut by V is one more selection over
+    the candidates, cheap beside the prefilter (docs/results.md)."""
     class_quota: tuple[float, ...] = ()
     """With a ranker that has a class head (``kitti``: Car, Pedestrian, Cyclist, Truck): the
     share of the ``top_k`` proposals each of its classes gets first, in the model's class
