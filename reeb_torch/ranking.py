@@ -31,6 +31,7 @@ NMS                :func:`~reeb_torch.stages.nms.nms_windows_cpu`  :func:`~reeb_
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from contextlib import nullcontext
 from typing import Callable, ContextManager, Literal
@@ -141,6 +142,9 @@ class ScoreMaps:
         return self._keep(("crossing", band), build)
 
 
+PLAN_GRIDS = 16
+"""Window grids (image sizes) whose per-size tables :class:`Ranking` keeps, the latest used."""
+
 _NOT_SEEN_BY_RANKER = ("top_k", "ranker", "ranker_keep", "ranker_v_share", "nms_iou", "region_quota",
                        "class_quota")
 """Fields a ranking model does not depend on (they act after it)."""
@@ -235,7 +239,7 @@ class Ranking:
         """Called as ``on_rank(scores, chosen)`` with what :meth:`rank_learned` returns
         (diagnostics; live memory as for :attr:`on_select`); ``None`` (default) calls nothing."""
         self._device_cache: dict = {}
-        self._plan_cache: dict = {}
+        self._plan_cache: OrderedDict[int, tuple[_windows.WindowGrid, dict]] = OrderedDict()
         self.model = None
         """The learned ranking's :class:`~reeb_torch.ranker.BoxRanker` (``config.ranker``), or None."""
         if config.ranker != "none":
@@ -994,16 +998,22 @@ class Ranking:
     # -- what depends on the image size only, kept per window grid ------------------------------
     def _grid_cached(self, key: tuple, grid: _windows.WindowGrid, build):
         """``build()``, cached per ``key`` and window grid (grids are cached themselves, so
-        one is recognised by identity; the entry keeps it alive so its id is not reused)."""
-        key = (id(grid), *key)
-        hit = self._plan_cache.get(key)
-        if hit is not None and hit[0] is grid:
-            return hit[1]
-        value = build()
-        if len(self._plan_cache) >= 32:  # grids of many image sizes: start afresh
-            self._plan_cache.clear()
-        self._plan_cache[key] = (grid, value)
-        return value
+        one is recognised by identity; the entry keeps it alive so its id is not reused).
+        The values of the :data:`PLAN_GRIDS` grids used last are kept, whatever their number
+        of keys: a cap on entries cleared every value at each batch once the image sizes
+        times the keys per grid (8 for the default) passed it (KITTI's 4 sizes are 32)."""
+        slot = self._plan_cache.get(id(grid))
+        if slot is None or slot[0] is not grid:
+            slot = (grid, {})
+            self._plan_cache[id(grid)] = slot
+            while len(self._plan_cache) > PLAN_GRIDS:
+                self._plan_cache.popitem(last=False)
+        else:
+            self._plan_cache.move_to_end(id(grid))
+        values = slot[1]
+        if key not in values:
+            values[key] = build()
+        return values[key]
 
     def _device_tensor(self, t: Tensor, device: torch.device) -> Tensor:
         """``t`` on ``device``, copied once per tensor and device."""

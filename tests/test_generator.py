@@ -319,3 +319,27 @@ def test_compiled_front_end_gives_the_tensor_front_ends_proposals(sample_image, 
     for a, b in zip(fast, slow):
         assert torch.equal(a["boxes"], b["boxes"]) and torch.equal(a["scores"], b["scores"])
         assert a["boxes"].shape[0] > 100
+
+
+def test_per_size_tables_stay_cached_for_many_image_sizes(crop):
+    """Each image size's tables are built once, however many sizes alternate (a cap on entries
+    once cleared them all at every batch past 4 sizes x 8 keys) and the oldest size goes first."""
+    from reeb_torch import ranking as _ranking
+
+    gen = ProposalGenerator(get_preset("default"), top_k=50)
+    built: list[tuple] = []
+    cached = gen.ranking._grid_cached
+
+    def counting(key, grid, build):
+        return cached(key, grid, lambda: built.append((id(grid), key)) or build())
+
+    gen.ranking._grid_cached = counting
+    sizes = [crop[:, : 160 - 4 * i, : 240 - 4 * i] for i in range(6)]
+    for im in sizes:
+        gen([im])
+    first = len(built)
+    assert first >= 6 * 4
+    for im in sizes:  # every size again: nothing rebuilt
+        gen([im])
+    assert len(built) == first
+    assert len(gen.ranking._plan_cache) == 6 <= _ranking.PLAN_GRIDS
