@@ -353,7 +353,8 @@ class ProposalGenerator(nn.Module):
                                                            self._stage if self.stage_times is not None else None)
                 if cfg.class_quota and ranked:
                     with self._stage("ranker.class_head", dev):
-                        class_of = self.ranking.class_map(ranked[0], tuple(scores.shape))
+                        class_of, probs = self.ranking.class_map(ranked[0], tuple(scores.shape))
+                        ranked[0] = (*ranked[0], probs)
         # Edge Boxes' refinement of the candidates (not in the paper; ``ReebConfig.refine``)
         refined = None
         if cfg.refine:

@@ -10,7 +10,7 @@ import json
 import pytest
 import torch
 
-from reeb_torch import ProposalGenerator, ReebConfig
+from reeb_torch import ProposalGenerator, ReebConfig, get_preset
 from reeb_torch.ranker import SHIPPED, BoxRanker, RankerWeightsError, load_ranker, save_ranker, shipped_path
 from reeb_torch.stages.features import FEATURES_VERSION, feature_names
 
@@ -327,3 +327,27 @@ def test_best_per_image_keeps_the_best_ties_to_the_earlier():
         want.append(torch.sort(part, descending=True, stable=True).indices[:30].sort().values + start)
         start += n
     assert torch.equal(got, torch.cat(want))
+
+
+def test_class_hints_take_the_quotas_probabilities_of_the_ranked_rows(sample_image):
+    """On the class_quota path the head runs once over the ranked rows (class_map); the hints
+    of the output read those rows' probabilities, the same as the head run on them anew."""
+    from reeb_torch._checks import check_images
+
+    gen = ProposalGenerator(get_preset("class-quota"), top_k=300)
+    rk = gen.ranking
+    work, maps = gen._front_end(check_images([sample_image], gen.min_side, gen.config, keep_uint8=True))
+    bounds, entropy, share = gen._regions(work.gray)
+    grid = rk.window_grid(maps, bounds)
+    scores = rk.score(maps, grid)
+    chosen = rk.select(scores, grid, share)
+    ranked: list = []
+    _, kept = rk.rank_learned(maps, grid, scores, chosen, share, entropy, ranked)
+    class_of, probs = rk.class_map(ranked[0], tuple(scores.shape))
+    assert probs.shape == (int(kept.sum()), len(gen.classes))
+    assert torch.equal(class_of[kept].long(), probs.argmax(1))
+    windows = [torch.nonzero(kept[0]).squeeze(1)[::5], torch.nonzero(~kept[0]).squeeze(1)[:7]]  # 7 misses
+    windows = [torch.cat(windows).sort().values]
+    fresh = rk.class_hints(maps, grid, scores, share, entropy, windows)
+    reused = rk.class_hints(maps, grid, scores, share, entropy, windows, (*ranked[0], probs))
+    torch.testing.assert_close(reused[0], fresh[0], rtol=0, atol=1e-5)
