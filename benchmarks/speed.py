@@ -17,7 +17,8 @@ total to it, with the lowest and highest pass beside the medians (for the ratio,
 pass's total over the same pass's OpenCV time: the short OpenCV pass swings more than
 REEB's, so these spread wider than the ratio of the medians).
 
-Rerun: ``python benchmarks/speed.py [--data DIR] [--limit N] [--batch 8] [--top-k 2000] [--threads N]``
+Rerun: ``python benchmarks/speed.py [--data DIR] [--limit N] [--batch 8] [--top-k 2000] [--threads N]
+[--presets NAME ...] [--variant LABEL "FIELD=VALUE;..."]``
 """
 
 from __future__ import annotations
@@ -36,9 +37,10 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_kitti_dir, environment, rerun_line  # noqa: E402
 
-from reeb_torch import ProposalGenerator, get_preset  # noqa: E402
+from reeb_torch import ProposalGenerator, ReebConfig, get_preset  # noqa: E402
 from reeb_torch.eval.data import KittiDataset  # noqa: E402
 from reeb_torch.io import read_image  # noqa: E402
+from reeb_torch.runs.common import build_config  # noqa: E402
 
 STAGES = [
     ("Edge detection (resize, blur, Sobel, thinning)", "edges"),
@@ -79,7 +81,7 @@ def _timed_pass(gen: ProposalGenerator, imgs: list[torch.Tensor], batch: int, de
     return total, {k: v * 1000 / len(imgs) for k, v in gen.stage_times.items()}
 
 
-def measure(preset: str, images: list[torch.Tensor], batches: list[int], top_k: int, repeats: int,
+def measure(preset: str | ReebConfig, images: list[torch.Tensor], batches: list[int], top_k: int, repeats: int,
             device: str) -> dict:
     """Time one preset on every (input kind, batch size), interleaved: each pass runs every
     variant once, in an order that rotates from pass to pass, so that a slow spell of the
@@ -91,7 +93,8 @@ def measure(preset: str, images: list[torch.Tensor], batches: list[int], top_k: 
     nearest the median, all passes' totals, each pass's total over the same pass's OpenCV
     time (``"to_opencv"``), the first call's ms and the other sizes' mean first-call ms;
     and ``"opencv_ms"`` (median) and ``"opencv_all"`` for the OpenCV pass."""
-    gen = ProposalGenerator(get_preset(preset), top_k=top_k).to(device)
+    config = get_preset(preset) if isinstance(preset, str) else preset
+    gen = ProposalGenerator(config, top_k=top_k).to(device)
     inputs = {k: [im.to(device) for im in as_input(images, k)] for k in INPUTS}
     variants = [(k, b) for b in batches for k in INPUTS]
     first, new_size = {}, {}
@@ -186,6 +189,15 @@ def _table(res: dict, presets: list[str], batches: list[int]) -> str:
     return "\n".join(lines)
 
 
+def columns(presets: list[str], variants: list[tuple[str, str]]) -> dict[str, str | ReebConfig]:
+    """The table's columns: each preset by its name, then each ``(label, "FIELD=VALUE;...")``
+    variant of the default (as ``reeb propose --set``) under its label."""
+    out: dict[str, str | ReebConfig] = {p: p for p in presets}
+    for label, settings in variants:
+        out[label] = build_config("default", None, [x for x in settings.split(";") if x.strip()], None)
+    return out
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=default_kitti_dir())
@@ -197,6 +209,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--presets", nargs="*", default=["default", "training-free"])
+    ap.add_argument("--variant", nargs=2, action="append", default=[], metavar=("LABEL", "SETTINGS"),
+                    help="one more column: the default with SETTINGS (FIELD=VALUE;..., as reeb propose --set)")
     ap.add_argument("--out", type=Path, default=Path("runs/speed"))
     args = ap.parse_args(argv)
     if args.threads:
@@ -207,8 +221,9 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"# {len(images)} frames of {args.data}, batch {args.batch}, top-{args.top_k}, device {args.device}, "
           f"torch threads {torch.get_num_threads()}; median of {args.repeats} passes, ms per image")
     batches = [args.batch] + ([args.latency_batch] if args.latency_batch and args.latency_batch != args.batch else [])
-    res = {p: measure(p, images, batches, args.top_k, args.repeats, args.device) for p in args.presets}
-    table = _table(res, args.presets, batches)
+    configs = columns(args.presets, args.variant)
+    res = {name: measure(c, images, batches, args.top_k, args.repeats, args.device) for name, c in configs.items()}
+    table = _table(res, list(configs), batches)
     print(table)
     args.out.mkdir(parents=True, exist_ok=True)
     record = {"results": res, "table": table, "args": {k: str(v) for k, v in vars(args).items()}, "env": environment()}

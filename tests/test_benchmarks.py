@@ -10,6 +10,7 @@ import importlib.util
 import json
 from pathlib import Path
 
+import click
 import pytest
 import torch
 from torchvision.ops import box_iou
@@ -294,6 +295,15 @@ def test_speed_table_gives_the_ratio_of_medians_and_each_pass_spread():
     spreads = [ln.split()[-1] for ln in lines if "lowest-highest" in ln]
     assert spreads == [f"{min(main['all_totals']):.1f}-{max(main['all_totals']):.1f}",
                        f"{min(main['to_opencv']):.1f}-{max(main['to_opencv']):.1f}"]
+
+
+def test_speed_columns_are_presets_then_labelled_variants_of_the_default():
+    speed = _script("speed")
+    cols = speed.columns(["training-free"], [("keep 6000", "ranker_keep=6000; nms_iou=0.7")])
+    assert list(cols) == ["training-free", "keep 6000"] and cols["training-free"] == "training-free"
+    assert cols["keep 6000"] == ReebConfig(ranker_keep=6000, nms_iou=0.7)
+    with pytest.raises(click.BadParameter, match="no_such_field"):  # as reeb propose --set
+        speed.columns([], [("bad", "no_such_field=1")])
 
 
 def test_cv_paired_takes_only_settings_after_the_model():
