@@ -16,11 +16,19 @@ test on those: the seeds' noise averaged within each object, the objects the uni
 ``--variant`` takes ``FIELD=VALUE`` pairs separated by ``;`` (as ``reeb propose --set``) or
 a preset name; a field the model reads (the candidates, the features), or the ranker
 itself, is refused.
+
+``--refit`` takes the same pairs, and also :class:`~reeb_torch.eval.fit.FitOptions` fields
+(``hidden=32,32``, ``members=2``, ...: ``reeb fit``'s options) and the fields the model
+reads: each fold's model is fitted again with them (same seed, same folds), so the pairing
+is of two fits, not of one model under two settings:
+
+    python benchmarks/cv_paired.py --refit "hidden=32,32" --seeds 0 1 2 3 4 --out docs/results/ranker/h32
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -57,16 +65,58 @@ def parse_variant(text: str) -> ReebConfig:
     return cfg
 
 
+_FIT_FIELDS = {f.name for f in dataclasses.fields(F.FitOptions)} - {"seed"}
+
+
+def _fit_value(name: str, text: str) -> object:
+    """A :class:`~reeb_torch.eval.fit.FitOptions` value from text: widths as ``32,32``
+    (``none`` for no layer where the field allows it), numbers as numbers."""
+    default = getattr(F.FitOptions(), name)
+    text = text.strip()
+    if name in ("hidden", "prefilter", "class_hidden"):
+        if text.lower() in ("none", "null") and name != "hidden":
+            return None
+        return tuple(int(x) for x in text.split(",") if x.strip())
+    return type(default)(text)
+
+
+def parse_refit(text: str) -> tuple[ReebConfig, dict]:
+    """``FIELD=VALUE;...`` of ``--refit``: the config (fields of :class:`~reeb_torch.ReebConfig`
+    on the default, as ``reeb propose --set``) and the fit options (fields of
+    :class:`~reeb_torch.eval.fit.FitOptions` but the seed) the fold models are fitted with.
+    ValueError for a bad value or a ``ranker`` (the fit makes the model)."""
+    opts, pairs = {}, []
+    for pair in (p.strip() for p in text.split(";") if p.strip()):
+        name, _, value = pair.partition("=")
+        if name.strip() in _FIT_FIELDS:
+            try:
+                opts[name.strip()] = _fit_value(name.strip(), value)
+            except ValueError as e:
+                raise ValueError(f"--refit {pair!r}: {e}") from None
+        elif name.strip() == "ranker":
+            raise ValueError("--refit fits the fold models itself: no ranker=")
+        else:
+            pairs.append(pair)
+    return build_config("default", None, pairs, None), opts
+
+
 def cross_validated_hits(cache: FrameCache, configs: list[ReebConfig], seed: int, folds: int,
-                         k: int = 2000, iou: float = 0.7) -> list[list]:
+                         k: int = 2000, iou: float = 0.7,
+                         refits: list[tuple[ReebConfig, dict]] = ()) -> list[list]:
     """Per frame, the held-out hits of the default, then of each of ``configs``, all run with
     the same fold models (:func:`reeb_torch.eval.fit.cross_validate`, fitted as ``reeb fit``
-    fits, on the default's candidates)."""
+    fits, on the default's candidates); then of each ``(config, fit options)`` of ``refits``,
+    with fold models fitted on the same folds with those options, for that config."""
     opts = F.FitOptions(seed=seed)
     base = ReebConfig()
     samples = F.frame_samples(cache, base, opts)
     cv = F.cross_validate(cache, base, base.training_free(), samples, opts, folds, k, iou, also=configs)
-    return [cv.ranked_hits, *cv.also_hits]
+    out = [cv.ranked_hits, *cv.also_hits]
+    for cfg, changes in refits:
+        o = dataclasses.replace(opts, **changes)
+        s = F.frame_samples(cache, cfg, o)
+        out.append(F.cross_validate(cache, cfg, cfg.training_free(), s, o, folds, k, iou).ranked_hits)
+    return out
 
 
 def describe(frames, hits: list, ref: list | None, idx: list[int]) -> dict:
@@ -105,13 +155,19 @@ def line(name: str, row: dict) -> str:
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, nargs="+", default=default_dev_dirs())
-    ap.add_argument("--variant", action="append", required=True, metavar="SETTINGS")
+    ap.add_argument("--variant", action="append", default=[], metavar="SETTINGS",
+                    help="a setting run with the default's fold models (fields after the model)")
+    ap.add_argument("--refit", action="append", default=[], metavar="SETTINGS",
+                    help="a setting whose fold models are fitted again (fit options, fields the model reads)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--folds", type=int, default=10)
     ap.add_argument("--out", type=Path, default=Path("runs/cv_paired"))
     args = ap.parse_args(argv)
+    if not args.variant and not args.refit:
+        ap.error("give at least one --variant or --refit")
     try:
         variants = {v: parse_variant(v) for v in args.variant}
+        refits = {f"refit {r}": parse_refit(r) for r in args.refit}
     except (ValueError, click.ClickException) as e:
         ap.error(str(getattr(e, "message", e)))
     t0 = time.monotonic()
@@ -125,7 +181,7 @@ def main(argv: list[str] | None = None) -> dict:
     record: dict = {"seeds": {}, "environment": environment()}
     per_seed: list[list] = []
     for seed in args.seeds:
-        hits = cross_validated_hits(cache, list(variants.values()), seed, args.folds)
+        hits = cross_validated_hits(cache, list(variants.values()), seed, args.folds, refits=list(refits.values()))
         per_seed.append(hits)
         text.append(f"fit seed {seed}: {len(frames)} frames, {args.folds} folds of blocks of frames; recall at "
                     "2000 proposals, IoU 0.7, 95 % frame-bootstrap intervals")
@@ -133,16 +189,16 @@ def main(argv: list[str] | None = None) -> dict:
         for title, idx in groups:
             text.append(f" {title} ({len(idx)} frames):")
             rows = {"default": describe(frames, hits[0], None, idx)}
-            rows.update({v: describe(frames, h, hits[0], idx) for v, h in zip(variants, hits[1:])})
+            rows.update({v: describe(frames, h, hits[0], idx) for v, h in zip([*variants, *refits], hits[1:])})
             text += [line(name, row) for name, row in rows.items()]
             record["seeds"][seed][title] = rows
-        print("\n".join(text[-(1 + len(groups) * (2 + len(variants))):]), flush=True)
+        print("\n".join(text[-(1 + len(groups) * (2 + len(variants) + len(refits))):]), flush=True)
     if len(args.seeds) > 1:
         text.append(f"over the {len(args.seeds)} fit seeds: objects found with more / fewer seeds than by the "
                     "default, sign test")
         record["over_seeds"] = {}
         for title, idx in groups:
-            rows = {v: over_seeds(per_seed, j + 1, idx) for j, v in enumerate(variants)}
+            rows = {v: over_seeds(per_seed, j + 1, idx) for j, v in enumerate([*variants, *refits])}
             text += [f" {title}: " + "; ".join(f"{v} +{r['gained']} / -{r['lost']}, p {r['p_value']:.2g}"
                                                for v, r in rows.items())]
             record["over_seeds"][title] = rows

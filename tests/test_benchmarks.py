@@ -318,6 +318,30 @@ def test_cv_paired_takes_only_settings_after_the_model():
         cv.parse_variant("training-free")
 
 
+def test_cv_paired_refit_takes_fit_options_and_the_fields_the_model_reads():
+    cv = _script("cv_paired")
+    cfg, opts = cv.parse_refit("hidden=32,32; members=2; candidates_per_region=20000; class_hidden=none")
+    assert cfg == ReebConfig(candidates_per_region=20000)
+    assert opts == {"hidden": (32, 32), "members": 2, "class_hidden": None}
+    assert cv.parse_refit("balance=1") == (ReebConfig(), {"balance": 1.0})
+    with pytest.raises(ValueError, match="no ranker="):
+        cv.parse_refit("ranker=mine.safetensors")
+    with pytest.raises(ValueError, match="members=two"):
+        cv.parse_refit("members=two")
+
+
+@pytest.mark.kitti
+def test_cv_paired_refit_with_the_defaults_options_gives_the_defaults_hits(kitti_dir):
+    """A refit that changes nothing fits the very fold models again (seeded): the same hits."""
+    from reeb_torch.eval import fit as F
+    from reeb_torch.eval.tune import FrameCache
+
+    cv = _script("cv_paired")
+    cache = FrameCache(F.load_fit_frames([str(kitti_dir)], limit=6))
+    default, again = cv.cross_validated_hits(cache, [], 0, 2, refits=[cv.parse_refit("")])
+    assert all(torch.equal(a, b) for a, b in zip(default, again))
+
+
 def test_cv_paired_over_seeds_counts_each_object_once():
     cv = _script("cv_paired")
     t, f = torch.tensor([True]), torch.tensor([False])
