@@ -949,7 +949,11 @@ class Ranking:
         if refined is None:  # the windows themselves: gathered, sorted and suppressed compiled
             ok = (self._grid_cached(("boxes_ok", fx, fy), grid, lambda: boxes_valid(boxes_in))
                   if dev.type == "cpu" and boxes_in.dtype == torch.float32 else None)
-            kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, grid.count if quota else cfg.top_k, ok)
+            if class_share is not None:  # past top_k only until each class has its share of the kept boxes
+                kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, cfg.top_k, ok, class_of.long().clamp(min=0),
+                                       self.quota_counts(class_share))
+            else:
+                kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, grid.count if quota else cfg.top_k, ok)
         cands = None
         if kept is not None:
             pairs = [(boxes_in, scores[i]) for i in range(b)]
@@ -1000,7 +1004,7 @@ class Ranking:
         total = 1.0 if whole else float(share.sum())
         if total <= 0:
             return keep
-        quota = torch.floor(share * (k / total)).long()  # (R,)
+        quota = self.quota_counts(share, total)  # (R,)
         onehot = torch.nn.functional.one_hot(region, share.numel())
         rank = (onehot.cumsum(0) * onehot).sum(1)  # 1-based rank within its region
         first = rank <= quota[region]
@@ -1008,6 +1012,11 @@ class Ranking:
         rest = torch.nonzero(~first).squeeze(1)[: max(0, k - n_first)]
         sel = torch.cat([torch.nonzero(first).squeeze(1), rest]).sort().values
         return keep[sel]
+
+    def quota_counts(self, share: Tensor, total: float = 1.0) -> Tensor:
+        """``int64 [R]``: how many of the ``top_k`` proposals each share draws in :meth:`quota`
+        (``floor(top_k · share / total)``)."""
+        return torch.floor(share * (self.config.top_k / total)).long()
 
     # -- what depends on the image size only, kept per window grid ------------------------------
     def _grid_cached(self, key: tuple, grid: _windows.WindowGrid, build):

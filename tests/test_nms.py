@@ -196,6 +196,38 @@ def test_nms_windows_cpu_equals_nms_top_k_on_the_chosen_windows():
     assert nms_windows_cpu(chosen, b.double(), scores, 0.7, 10) is None
 
 
+def test_nms_windows_cpu_with_class_needs_stops_where_the_quota_is_decided():
+    """With an output quota per class the NMS goes past k only until each class has its need
+    among the kept boxes: the quota's output is that of the NMS run to the end (NaN and bad
+    boxes, the checked path, included), and it stops early where the needs fill."""
+    from reeb_torch import ReebConfig
+    from reeb_torch.ranking import Ranking
+    from reeb_torch.stages.nms import nms_windows_cpu
+
+    gen = torch.Generator().manual_seed(5)
+    b, s = _messy_boxes(3000, gen, torch.float32)
+    scores = torch.stack([s, -s, torch.rand(3000, generator=gen), s.clone()])
+    scores[3, :5] = float("nan")
+    chosen = torch.rand(4, 3000, generator=gen) < 0.6
+    classes = torch.multinomial(torch.tensor([0.8, 0.12, 0.06, 0.02]), 4 * 3000, True, generator=gen).view(4, 3000)
+    for k, share in ((100, [0.0, 0.3, 0.1, 0.05]), (100, [0.0, 0.0, 0.0, 0.0]), (40, [0.0, 0.2, 0.05, 0.9 / 40])):
+        rk = Ranking(ReebConfig(top_k=k))
+        share = torch.tensor(share)
+        need = rk.quota_counts(share)
+        for boxes in (b, b.clone().index_put_((chosen[1].nonzero()[0, 0],), torch.tensor([5.0, 5.0, 1.0, 9.0]))):
+            short = nms_windows_cpu(chosen, boxes, scores, 0.7, k, None, classes, need)
+            full = nms_windows_cpu(chosen, boxes, scores, 0.7, 3000)
+            for i in range(4):
+                assert torch.equal(full[i][: len(short[i])], short[i])  # a prefix of the whole NMS
+                assert torch.equal(rk.quota(short[i], classes[i, short[i]], share, whole=True)[:k],
+                                   rk.quota(full[i], classes[i, full[i]], share, whole=True)[:k]), (k, i)
+            if boxes is b and not bool(need.any()):  # no quota: k, as without classes (NaN: the checked path)
+                assert len(short[0]) == len(short[1]) == len(short[2]) == k
+    # where every need fills early, far fewer boxes than the whole NMS
+    few = nms_windows_cpu(chosen, b, scores, 0.7, 100, None, classes, torch.tensor([0, 5, 2, 1]))
+    assert all(100 <= len(x) < 200 for x in few[:3])
+
+
 def test_descending_radix_order_equals_torch_stable_sort():
     from reeb_torch.stages._radix import descending_order
 

@@ -34,6 +34,9 @@ from ._threads import on_two_cores
 
 __all__ = ["nms_top_k", "nms_top_k_many", "nms_windows_cpu"]
 
+NO_CLASSES = np.zeros(0, np.int64)
+"""The empty ``labels`` and ``need`` of :func:`_grid_nms_sorted`: stop at ``k`` kept boxes."""
+
 _GRID_CELLS = 16
 """Cells along the longer side of the boxes' extent in the grid-bucketed kernel."""
 _SIZE_BINS = 32
@@ -57,13 +60,23 @@ def _size_bin(edge: np.ndarray, size: float) -> int:  # pragma: no cover - compi
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")  # 0/0 -> NaN, as in C++
-def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pragma: no cover - compiled
+def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int, labels: np.ndarray,
+                     wanted: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     """Rows of ``boxes`` (``[N, 4]`` x1, y1, x2, y2, best first, finite, x1 <= x2, y1 <= y2)
-    that greedy NMS keeps at threshold ``iou >= 0.5``, the first ``k`` of them, in order."""
+    that greedy NMS keeps at threshold ``iou >= 0.5``, the first ``k`` of them, in order.
+    With ``wanted`` (``int64 [C]``, else empty) and ``labels`` (``int64 [N]`` in ``0..C-1``, else
+    empty): the first ones until ``k`` are kept *and* each class ``c`` has ``wanted[c]`` of its
+    boxes among them (or all): what an output quota per class draws from (:data:`NO_CLASSES`)."""
     n = boxes.shape[0]
-    keep = np.empty(min(n, k), np.int64)
+    nc = wanted.shape[0]
+    keep = np.empty(n if nc else min(n, k), np.int64)
     if n == 0 or k <= 0:
         return keep[:0]
+    count = np.zeros(max(nc, 1), np.int64)
+    short = 0  # classes whose need is not met yet
+    for j in range(nc):
+        if wanted[j] > 0:
+            short += 1
     # plain loops, no array expressions: each of those is a function of its own to compile
     x1 = np.empty(n, boxes.dtype)
     y1 = np.empty(n, boxes.dtype)
@@ -134,7 +147,12 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int) -> np.ndarray:  # pr
             continue
         keep[nk] = i
         nk += 1
-        if nk == k:
+        if nc:
+            lab = labels[i]
+            count[lab] += 1
+            if count[lab] == wanted[lab]:
+                short -= 1
+        if nk >= k and short == 0:
             break
         # register box i in the cells a box it suppresses can have its centre in, with a
         # margin for rounding: IoU > t >= 0.5 needs the widths to overlap by more than
@@ -233,7 +251,7 @@ def nms_top_k_many(pairs: list[tuple[Tensor, Tensor]], iou: float, k: int,
 
     def run(lo: int, hi: int) -> None:
         for j in range(lo, hi):
-            kept[j] = _grid_nms_sorted(todo[j][2], float(iou), int(k))
+            kept[j] = _grid_nms_sorted(todo[j][2], float(iou), int(k), NO_CLASSES, NO_CLASSES)
 
     on_two_cores(run, len(todo))
     for (i, order, _), keep in zip(todo, kept):
@@ -242,7 +260,8 @@ def nms_top_k_many(pairs: list[tuple[Tensor, Tensor]], iou: float, k: int,
 
 
 def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k: int,
-                    boxes_ok: bool | None = None) -> list[Tensor] | None:
+                    boxes_ok: bool | None = None, classes: Tensor | None = None,
+                    need: Tensor | None = None) -> list[Tensor] | None:
     """For each image ``b``, the windows (indices into ``boxes``) that
     ``nms_top_k(boxes[c], scores[b, c], iou, k)`` keeps, best first, with ``c`` the
     chosen windows ``chosen[b].nonzero()``: the same indices (tested), but the whole
@@ -255,30 +274,40 @@ def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k
         scores: ``float32 [B, N]``.
         boxes_ok: :func:`boxes_valid` of ``boxes`` where the caller knows it (a grid's
             windows are the same batch after batch); ``None``: checked here.
+        classes, need: an output quota per class (``ReebConfig.class_quota``): ``classes``
+            ``int [B, N]`` each window's class (``0..C-1``), ``need`` ``int [C]`` how many
+            kept boxes of each class it draws; the NMS goes on past ``k`` kept boxes until
+            each class has its ``need`` among them (or the candidates run out), so that the
+            quota's output is the same as from all of them (the first boxes of each class
+            and the best of the rest all lie in that prefix).
 
     Returns ``None`` where this path does not apply (not CPU float32, ``iou < 0.5``); an
     image whose candidates hold NaN scores or boxes that are not finite with
-    ``x1 <= x2, y1 <= y2`` is done by :func:`nms_top_k` (as the grid kernel needs)."""
+    ``x1 <= x2, y1 <= y2`` is done by :func:`nms_top_k` (as the grid kernel needs; with
+    ``classes``, all of its candidates)."""
     if (boxes.device.type != "cpu" or boxes.dtype != torch.float32 or scores.dtype != torch.float32
             or not iou >= 0.5):
         return None
     ch = chosen.contiguous().numpy()
     bx = boxes.contiguous().numpy()
     sc = scores.contiguous().numpy()
+    cl = classes.to(torch.int64).contiguous().numpy() if classes is not None else None
+    nd = need.to(torch.int64).contiguous().numpy() if classes is not None else NO_CLASSES
     out: list[np.ndarray | None] = [np.empty(0, np.int64)] * ch.shape[0]
     if boxes_ok is None:
         boxes_ok = boxes_valid(boxes)
 
     def run(lo: int, hi: int) -> None:
         for i in range(lo, hi):
-            out[i] = _nms_window_image(ch[i], bx, sc[i], float(iou), int(k), boxes_ok)
+            out[i] = _nms_window_image(ch[i], bx, sc[i], float(iou), int(k), boxes_ok,
+                                       cl[i] if cl is not None else None, nd)
 
     on_two_cores(run, ch.shape[0])
     result = []
     for i, keep in enumerate(out):
         if keep is None:  # NaN or bad boxes: the checked path
             cand = torch.nonzero(chosen[i]).squeeze(1)
-            result.append(cand[nms_top_k(boxes[cand], scores[i, cand], iou, k)])
+            result.append(cand[nms_top_k(boxes[cand], scores[i, cand], iou, k if cl is None else len(cand))])
         else:
             result.append(torch.from_numpy(keep))
     return result
@@ -299,11 +328,13 @@ prefix keeps fewer than ``k`` does it sort and suppress all of them."""
 
 
 def _nms_window_image(chosen: np.ndarray, boxes: np.ndarray, scores: np.ndarray, iou: float, k: int,
-                      boxes_ok: bool) -> np.ndarray | None:
+                      boxes_ok: bool, classes: np.ndarray | None = None,
+                      need: np.ndarray = NO_CLASSES) -> np.ndarray | None:
     """:func:`nms_windows_cpu` for one image, in compiled steps (each its own kernel, so each
     compiles on its own and quickly); ``None`` where the checked path must run.
     ``boxes_ok``: every row of ``boxes`` is finite with ``x1 <= x2, y1 <= y2`` (checked
-    once per batch), so only the best ``_PREFIX · k`` candidates need sorting first."""
+    once per batch), so only the best ``_PREFIX · k`` candidates need sorting first.
+    ``classes`` (``int64 [N]``, the windows') and ``need``: as :func:`nms_windows_cpu`'s."""
     cand, vals, has_nan = _candidate_scores(chosen, scores)
     if has_nan:
         return None
@@ -311,14 +342,17 @@ def _nms_window_image(chosen: np.ndarray, boxes: np.ndarray, scores: np.ndarray,
     if boxes_ok and 0 < m < len(cand):
         sel = np.flatnonzero(vals >= kth_largest(vals, m))  # the best m and their ties, in window order
         order, sb, _ = _sorted_boxes(sel, cand, vals, boxes)  # valid: boxes_ok
-        keep = _grid_nms_sorted(sb, iou, k)
-        if len(keep) == k:
+        labels = classes[cand[sel[order]]] if classes is not None else NO_CLASSES
+        keep = _grid_nms_sorted(sb, iou, k, labels, need)
+        if len(keep) >= k and (classes is None or bool((np.bincount(labels[keep], minlength=len(need))
+                                                         >= need).all())):
             return cand[sel[order[keep]]]
     sel = np.arange(len(cand))
     order, sb, ok = _sorted_boxes(sel, cand, vals, boxes)
     if not ok:
         return None
-    return cand[order[_grid_nms_sorted(sb, iou, k)]]
+    labels = classes[cand[order]] if classes is not None else NO_CLASSES
+    return cand[order[_grid_nms_sorted(sb, iou, k, labels, need)]]
 
 
 @numba.njit(cache=True, nogil=True)
