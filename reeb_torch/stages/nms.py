@@ -334,18 +334,18 @@ def _nms_window_image(chosen: np.ndarray, boxes: np.ndarray, scores: np.ndarray,
     compiles on its own and quickly); ``None`` where the checked path must run.
     ``boxes_ok``: every row of ``boxes`` is finite with ``x1 <= x2, y1 <= y2`` (checked
     once per batch), so only the best ``_PREFIX · k`` candidates need sorting first.
-    ``classes`` (``int64 [N]``, the windows') and ``need``: as :func:`nms_windows_cpu`'s."""
+    ``classes`` (``int64 [N]``, the windows') and ``need``: as :func:`nms_windows_cpu`'s; all
+    the candidates are sorted then (the rare classes' needs mostly reach past the prefix, and
+    a prefix that falls short is work thrown away), the NMS stopping where the needs are met."""
     cand, vals, has_nan = _candidate_scores(chosen, scores)
     if has_nan:
         return None
     m = _PREFIX * k
-    if boxes_ok and 0 < m < len(cand):
+    if boxes_ok and 0 < m < len(cand) and classes is None:  # (a quota's needs often outrun the prefix)
         sel = np.flatnonzero(vals >= kth_largest(vals, m))  # the best m and their ties, in window order
         order, sb, _ = _sorted_boxes(sel, cand, vals, boxes)  # valid: boxes_ok
-        labels = classes[cand[sel[order]]] if classes is not None else NO_CLASSES
-        keep = _grid_nms_sorted(sb, iou, k, labels, need)
-        if len(keep) >= k and (classes is None or bool((np.bincount(labels[keep], minlength=len(need))
-                                                         >= need).all())):
+        keep = _grid_nms_sorted(sb, iou, k, NO_CLASSES, NO_CLASSES)
+        if len(keep) == k:
             return cand[sel[order[keep]]]
     sel = np.arange(len(cand))
     order, sb, ok = _sorted_boxes(sel, cand, vals, boxes)
