@@ -146,22 +146,30 @@ def test_generator_with_ranker_contract(sample_image):
     assert gen.classes[int(labels[best])] == "Car"
 
 
-def test_class_hints_reuse_the_ranked_features(sample_image):
-    """The hints read the features the ranking computed (rows looked up, not recomputed):
-    the same probabilities as features computed afresh, and a window the ranking did not
-    rank (here: every other one dropped from what it hands over) is computed."""
+
+def _ranked(gen: ProposalGenerator, images: list) -> tuple:
+    """The generator's stages up to the learned ranking on ``images``: ``(maps, grid, scores
+    (V), share, entropy, kept, ranked)``, ``ranked`` holding ``rank_learned``'s ``(bi, ni,
+    features)``."""
     from reeb_torch._checks import check_images
 
-    gen = ProposalGenerator()
     rk = gen.ranking
-    x = check_images([sample_image, sample_image.flip(-1)], gen.min_side, gen.config, keep_uint8=True)
-    work, maps = gen._front_end(x)
+    work, maps = gen._front_end(check_images(images, gen.min_side, gen.config, keep_uint8=True))
     bounds, entropy, share = gen._regions(work.gray)
     grid = rk.window_grid(maps, bounds)
     scores = rk.score(maps, grid)
     chosen = rk.select(scores, grid, share)
     ranked: list = []
     _, kept = rk.rank_learned(maps, grid, scores, chosen, share, entropy, ranked)
+    return maps, grid, scores, share, entropy, kept, ranked
+
+def test_class_hints_reuse_the_ranked_features(sample_image):
+    """The hints read the features the ranking computed (rows looked up, not recomputed):
+    the same probabilities as features computed afresh, and a window the ranking did not
+    rank (here: every other one dropped from what it hands over) is computed."""
+    gen = ProposalGenerator()
+    rk = gen.ranking
+    maps, grid, scores, share, entropy, kept, ranked = _ranked(gen, [sample_image, sample_image.flip(-1)])
     bi, ni, feats = ranked[0]
     assert feats.shape == (int(kept.sum()), 47)
     assert torch.equal(torch.stack([bi, ni]), torch.stack(kept.nonzero(as_tuple=True)))
@@ -332,17 +340,9 @@ def test_best_per_image_keeps_the_best_ties_to_the_earlier():
 def test_class_hints_take_the_quotas_probabilities_of_the_ranked_rows(sample_image):
     """On the class_quota path the head runs once over the ranked rows (class_map); the hints
     of the output read those rows' probabilities, the same as the head run on them anew."""
-    from reeb_torch._checks import check_images
-
     gen = ProposalGenerator(get_preset("class-quota"), top_k=300)
     rk = gen.ranking
-    work, maps = gen._front_end(check_images([sample_image], gen.min_side, gen.config, keep_uint8=True))
-    bounds, entropy, share = gen._regions(work.gray)
-    grid = rk.window_grid(maps, bounds)
-    scores = rk.score(maps, grid)
-    chosen = rk.select(scores, grid, share)
-    ranked: list = []
-    _, kept = rk.rank_learned(maps, grid, scores, chosen, share, entropy, ranked)
+    maps, grid, scores, share, entropy, kept, ranked = _ranked(gen, [sample_image])
     class_of, probs = rk.class_map(ranked[0], tuple(scores.shape))
     assert probs.shape == (int(kept.sum()), len(gen.classes))
     assert torch.equal(class_of[kept].long(), probs.argmax(1))
