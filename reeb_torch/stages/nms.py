@@ -35,7 +35,7 @@ from ._threads import on_two_cores
 __all__ = ["nms_top_k", "nms_top_k_many", "nms_windows_cpu"]
 
 NO_CLASSES = np.zeros(0, np.int64)
-"""The empty ``labels`` and ``need`` of :func:`_grid_nms_sorted`: stop at ``k`` kept boxes."""
+"""The empty ``labels`` and ``wanted`` of :func:`_grid_nms_sorted`: stop at ``k`` kept boxes."""
 
 _GRID_CELLS = 16
 """Cells along the longer side of the boxes' extent in the grid-bucketed kernel."""
