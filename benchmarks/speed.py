@@ -7,8 +7,8 @@ hand over: ``uint8`` as decoded and float32 RGB in [0, 1] (``uint8 / 255``, what
 torchvision detectors pass). The first call of each (input, batch) is timed apart (the
 very first one compiles the numba kernels, or loads them from their cache), and so is the
 first image of each other size (window grids and tables are built once per size); then
-passes over all frames, every variant once per pass in a rotating order (interleaved: a
-slow spell of the machine hits all alike), and the median over ``--repeats`` passes is
+passes over all frames, every (column, input, batch) once per pass in a rotating order
+(interleaved across the columns too: a slow spell of the machine hits all alike), and the median over ``--repeats`` passes is
 reported, at ``--batch`` and at ``--latency-batch`` (1: the latency a detector sees
 calling one image at a time). Beside the table: an OpenCV pass (grey, Gaussian blur,
 Sobel x and y) over the same images, timed in the same rotation (once per pass), the floor
@@ -83,45 +83,55 @@ def _timed_pass(gen: ProposalGenerator, imgs: list[torch.Tensor], batch: int, de
 
 def measure(preset: str | ReebConfig, images: list[torch.Tensor], batches: list[int], top_k: int, repeats: int,
             device: str) -> dict:
-    """Time one preset on every (input kind, batch size), interleaved: each pass runs every
-    variant once, in an order that rotates from pass to pass, so that a slow spell of the
-    machine hits them alike; the OpenCV pass (:func:`opencv_pass`) is one more variant, so
-    that the ratio to it compares runs of the same spell. The first call of each variant is
-    timed apart (the very first one compiles the numba kernels, or loads them from their
-    cache), and so are the first calls at the other image sizes (:func:`_other_sizes`).
-    Returns per variant ``"uint8/b8"``: the median ms per image, the per-stage ms of the pass
-    nearest the median, all passes' totals, each pass's total over the same pass's OpenCV
-    time (``"to_opencv"``), the first call's ms and the other sizes' mean first-call ms;
-    and ``"opencv_ms"`` (median) and ``"opencv_all"`` for the OpenCV pass."""
-    config = get_preset(preset) if isinstance(preset, str) else preset
-    gen = ProposalGenerator(config, top_k=top_k).to(device)
+    """:func:`measure_all` of one preset (or config)."""
+    return measure_all({"_": preset}, images, batches, top_k, repeats, device)["_"]
+
+
+def measure_all(columns: dict[str, str | ReebConfig], images: list[torch.Tensor], batches: list[int], top_k: int,
+                repeats: int, device: str) -> dict[str, dict]:
+    """Time each column (a preset name or a config) on every (input kind, batch size),
+    interleaved: each pass runs every (column, input, batch) once, in an order that rotates
+    from pass to pass, so that a slow spell of the machine hits them all alike (columns timed
+    one after the other were compared across spells); the OpenCV pass (:func:`opencv_pass`)
+    is one more entry, so that the ratio to it compares runs of the same spell. The first
+    call of each is timed apart (the very first one compiles the numba kernels, or loads
+    them from their cache), and so are the first calls at the other image sizes
+    (:func:`_other_sizes`). Returns per column, per variant ``"uint8/b8"``: the median ms per
+    image, the per-stage ms of the pass nearest the median, all passes' totals, each pass's
+    total over the same pass's OpenCV time (``"to_opencv"``), the first call's ms and the
+    other sizes' mean first-call ms; and ``"opencv_ms"`` (median) and ``"opencv_all"`` for
+    the OpenCV pass (the same for every column)."""
     inputs = {k: [im.to(device) for im in as_input(images, k)] for k in INPUTS}
     variants = [(k, b) for b in batches for k in INPUTS]
-    first, new_size = {}, {}
-    for k, b in variants:
-        t0 = time.perf_counter()
-        gen(inputs[k][:b])  # warm-up: numba compile (or cache load), window grids
-        first[(k, b)] = (time.perf_counter() - t0) * 1000
-        new_size[(k, b)] = _other_sizes(gen, inputs[k])
-    runs: dict = {v: [] for v in variants}
+    gens, first, new_size = {}, {}, {}
+    for name, preset in columns.items():
+        config = get_preset(preset) if isinstance(preset, str) else preset
+        gens[name] = gen = ProposalGenerator(config, top_k=top_k).to(device)
+        for k, b in variants:
+            t0 = time.perf_counter()
+            gen(inputs[k][:b])  # warm-up: numba compile (or cache load), window grids
+            first[(name, k, b)] = (time.perf_counter() - t0) * 1000
+            new_size[(name, k, b)] = _other_sizes(gen, inputs[k])
+    runs: dict = {(name, *v): [] for name in columns for v in variants}
     arrays = [np.ascontiguousarray(im.permute(1, 2, 0).cpu().numpy()) for im in images]
     sigma, floors = get_preset("default").blur_sigma, []
-    rotation = [*variants, "opencv"]
+    rotation = [*runs, "opencv"]
     for r in range(repeats):
         for j in range(len(rotation)):
             v = rotation[(j + r) % len(rotation)]
             if v == "opencv":
                 floors.append(opencv_pass(arrays, sigma))
             else:
-                runs[v].append(_timed_pass(gen, inputs[v[0]], v[1], device))
-    out = {"opencv_ms": statistics.median(floors), "opencv_all": floors}
-    for (k, b), passes in runs.items():
+                name, k, b = v
+                runs[v].append(_timed_pass(gens[name], inputs[k], b, device))
+    out: dict[str, dict] = {name: {"opencv_ms": statistics.median(floors), "opencv_all": floors} for name in columns}
+    for (name, k, b), passes in runs.items():
         totals = [t for t, _ in passes]
         med = statistics.median(totals)
         best = min(range(len(passes)), key=lambda i: abs(totals[i] - med))
-        out[f"{k}/b{b}"] = {"total": med, "stages": passes[best][1], "all_totals": totals,
-                            "to_opencv": [t / f for t, f in zip(totals, floors)],
-                            "first_call_ms": first[(k, b)], "new_size_ms": new_size[(k, b)]}
+        out[name][f"{k}/b{b}"] = {"total": med, "stages": passes[best][1], "all_totals": totals,
+                                  "to_opencv": [t / f for t, f in zip(totals, floors)],
+                                  "first_call_ms": first[(name, k, b)], "new_size_ms": new_size[(name, k, b)]}
     return out
 
 
@@ -222,7 +232,7 @@ def main(argv: list[str] | None = None) -> dict:
           f"torch threads {torch.get_num_threads()}; median of {args.repeats} passes, ms per image")
     batches = [args.batch] + ([args.latency_batch] if args.latency_batch and args.latency_batch != args.batch else [])
     configs = columns(args.presets, args.variant)
-    res = {name: measure(c, images, batches, args.top_k, args.repeats, args.device) for name, c in configs.items()}
+    res = measure_all(configs, images, batches, args.top_k, args.repeats, args.device)
     table = _table(res, list(configs), batches)
     print(table)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -297,6 +297,23 @@ def test_speed_table_gives_the_ratio_of_medians_and_each_pass_spread():
                        f"{min(main['to_opencv']):.1f}-{max(main['to_opencv']):.1f}"]
 
 
+def test_speed_interleaves_the_columns_in_each_pass(monkeypatch):
+    """Every pass runs every (column, input, batch) once, in a rotating order, so that the
+    columns meet the same spells of the machine (they were timed one after another)."""
+    from reeb_torch.io import read_image
+
+    speed = _script("speed")
+    order: list[str] = []
+    timed = speed._timed_pass
+    monkeypatch.setattr(speed, "_timed_pass", lambda gen, imgs, b, dev: order.append(gen.config.ranker) or
+                        timed(gen, imgs, b, dev))
+    images = [read_image(p) for p in sorted((REPO / "examples" / "data").glob("kitti_*.png"))][:1]
+    res = speed.measure_all({"a": "training-free", "b": "default"}, images, [1], 50, 2, "cpu")
+    assert len(order) == 2 * 2 * 2  # 2 passes x 2 columns x 2 inputs
+    assert order[:4] != order[4:] and sorted(order[:4]) == sorted(order[4:]) == ["kitti", "kitti", "none", "none"]
+    assert res["a"]["opencv_all"] == res["b"]["opencv_all"] and len(res["a"]["uint8/b1"]["all_totals"]) == 2
+
+
 def test_speed_columns_are_presets_then_labelled_variants_of_the_default():
     speed = _script("speed")
     cols = speed.columns(["training-free"], [("keep 6000", "ranker_keep=6000; nms_iou=0.7")])
