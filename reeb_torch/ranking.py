@@ -949,11 +949,14 @@ class Ranking:
         if refined is None:  # the windows themselves: gathered, sorted and suppressed compiled
             ok = (self._grid_cached(("boxes_ok", fx, fy), grid, lambda: boxes_valid(boxes_in))
                   if dev.type == "cpu" and boxes_in.dtype == torch.float32 else None)
-            if class_share is not None:  # past top_k only until each class has its share of the kept boxes
-                kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, cfg.top_k, ok, class_of.long().clamp(min=0),
-                                       self.quota_counts(class_share))
-            else:
-                kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, grid.count if quota else cfg.top_k, ok)
+            groups = need = None  # with a quota: past top_k only until each group has its share of the kept boxes
+            if class_share is not None:
+                groups, need = class_of.long().clamp(min=0), self.quota_counts(class_share)
+            elif quota:  # each image's regions, by its own shares (none where they sum to 0: quota keeps the best)
+                groups = region_of.expand(b, -1)
+                need = torch.stack([self.quota_counts(s, float(s.sum())) if float(s.sum()) > 0
+                                    else torch.zeros(len(s), dtype=torch.long, device=dev) for s in share])
+            kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, cfg.top_k, ok, groups, need)
         cands = None
         if kept is not None:
             pairs = [(boxes_in, scores[i]) for i in range(b)]

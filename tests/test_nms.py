@@ -118,7 +118,8 @@ def test_generator_candidates_equal_torchvision():
     path = Path(__file__).resolve().parents[1] / "examples" / "data" / "kitti_000001.png"
     caught = []
 
-    def spy(chosen, boxes, scores, iou, k, boxes_ok=None):
+    def spy(chosen, boxes, scores, iou, k, boxes_ok=None, classes=None, need=None):
+        assert classes is None and need is None  # no quota here
         for i in range(chosen.shape[0]):
             cand = chosen[i].nonzero().squeeze(1)
             caught.append((boxes[cand], scores[i, cand], iou, k))
@@ -197,7 +198,7 @@ def test_nms_windows_cpu_equals_nms_top_k_on_the_chosen_windows():
 
 
 def test_nms_windows_cpu_with_class_needs_stops_where_the_quota_is_decided():
-    """With an output quota per class the NMS goes past k only until each class has its need
+    """With an output quota per class (or region) the NMS goes past k only until each has its need
     among the kept boxes: the quota's output is that of the NMS run to the end (NaN and bad
     boxes, the checked path, included), and it stops early where the needs fill."""
     from reeb_torch import ReebConfig
@@ -223,6 +224,16 @@ def test_nms_windows_cpu_with_class_needs_stops_where_the_quota_is_decided():
                                    rk.quota(full[i], classes[i, full[i]], share, whole=True)[:k]), (k, i)
             if boxes is b and not bool(need.any()):  # no quota: k, as without classes (NaN: the checked path)
                 assert len(short[0]) == len(short[1]) == len(short[2]) == k
+    # needs per image (region_quota: each image's regions by its own shares)
+    rk = Ranking(ReebConfig(top_k=100))
+    shares = torch.tensor([[0.5, 0.3, 0.2, 0.0], [0.1, 0.1, 0.1, 0.7], [0.0, 0.0, 0.0, 1.0], [0.25, 0.25, 0.25, 0.25]])
+    need = torch.stack([rk.quota_counts(sh, float(sh.sum())) for sh in shares])
+    short = nms_windows_cpu(chosen, b, scores, 0.7, 100, None, classes, need)
+    full = nms_windows_cpu(chosen, b, scores, 0.7, 3000)
+    for i in range(4):
+        assert torch.equal(full[i][: len(short[i])], short[i])
+        assert torch.equal(rk.quota(short[i], classes[i, short[i]], shares[i])[:100],
+                           rk.quota(full[i], classes[i, full[i]], shares[i])[:100]), i
     # where every need fills early, far fewer boxes than the whole NMS
     few = nms_windows_cpu(chosen, b, scores, 0.7, 100, None, classes, torch.tensor([0, 5, 2, 1]))
     assert all(100 <= len(x) < 200 for x in few[:3])

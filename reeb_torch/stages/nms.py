@@ -274,12 +274,13 @@ def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k
         scores: ``float32 [B, N]``.
         boxes_ok: :func:`boxes_valid` of ``boxes`` where the caller knows it (a grid's
             windows are the same batch after batch); ``None``: checked here.
-        classes, need: an output quota per class (``ReebConfig.class_quota``): ``classes``
-            ``int [B, N]`` each window's class (``0..C-1``), ``need`` ``int [C]`` how many
-            kept boxes of each class it draws; the NMS goes on past ``k`` kept boxes until
-            each class has its ``need`` among them (or the candidates run out), so that the
-            quota's output is the same as from all of them (the first boxes of each class
-            and the best of the rest all lie in that prefix).
+        classes, need: an output quota per group (``ReebConfig.class_quota``'s classes,
+            ``region_quota``'s regions): ``classes`` ``int [B, N]`` each window's group
+            (``0..C-1``), ``need`` ``int [C]`` (or ``[B, C]``, per image) how many kept boxes
+            of each group the quota draws; the NMS goes on past ``k`` kept boxes until each
+            group has its ``need`` among them (or the candidates run out), so that the quota's
+            output is the same as from all of them (the first boxes of each group and the best
+            of the rest all lie in that prefix).
 
     Returns ``None`` where this path does not apply (not CPU float32, ``iou < 0.5``); an
     image whose candidates hold NaN scores or boxes that are not finite with
@@ -292,7 +293,7 @@ def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k
     bx = boxes.contiguous().numpy()
     sc = scores.contiguous().numpy()
     cl = classes.to(torch.int64).contiguous().numpy() if classes is not None else None
-    nd = need.to(torch.int64).contiguous().numpy() if classes is not None else NO_CLASSES
+    nd = need.to(torch.int64).expand(ch.shape[0], -1).contiguous().numpy() if classes is not None else None
     out: list[np.ndarray | None] = [np.empty(0, np.int64)] * ch.shape[0]
     if boxes_ok is None:
         boxes_ok = boxes_valid(boxes)
@@ -300,7 +301,7 @@ def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k
     def run(lo: int, hi: int) -> None:
         for i in range(lo, hi):
             out[i] = _nms_window_image(ch[i], bx, sc[i], float(iou), int(k), boxes_ok,
-                                       cl[i] if cl is not None else None, nd)
+                                       cl[i] if cl is not None else None, nd[i] if nd is not None else NO_CLASSES)
 
     on_two_cores(run, ch.shape[0])
     result = []
