@@ -345,7 +345,7 @@ class ProposalGenerator(nn.Module):
         # the learned ranking of the candidates (not in the paper; ``ReebConfig.ranker``)
         v_scores, hints = scores, self.classes is not None
         ranked: list = []  # the ranked candidates' features, for the class hints and quota
-        class_of = None
+        class_of = ranked_probs = None
         if cfg.ranker != "none":
             with self._stage("ranker", dev):
                 scores, chosen = self.ranking.rank_learned(maps, grid, scores, chosen, share, entropy,
@@ -353,8 +353,7 @@ class ProposalGenerator(nn.Module):
                                                            self._stage if self.stage_times is not None else None)
                 if cfg.class_quota and ranked:
                     with self._stage("ranker.class_head", dev):
-                        class_of, probs = self.ranking.class_map(ranked[0], tuple(scores.shape))
-                        ranked[0] = (*ranked[0], probs)
+                        class_of, ranked_probs = self.ranking.class_map(ranked[0], tuple(scores.shape))
         # Edge Boxes' refinement of the candidates (not in the paper; ``ReebConfig.refine``)
         refined = None
         if cfg.refine:
@@ -367,7 +366,7 @@ class ProposalGenerator(nn.Module):
         if hints:  # which class each proposal looks like (the ranking model's class head)
             with self._stage("ranker", dev), self._stage("ranker.class_head", dev):
                 for r, probs in zip(results, self.ranking.class_hints(maps, grid, v_scores, share, entropy, windows,
-                                                                      ranked[0] if ranked else None)):
+                                                                      ranked[0] if ranked else None, ranked_probs)):
                     r["labels"], r["class_probs"] = probs.argmax(1), probs
         if not self._warned_empty and any(len(r["boxes"]) == 0 for r in results):
             self._warn_empty(tuple(images[0].shape[-2:]), grid.count, share)

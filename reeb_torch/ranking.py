@@ -683,13 +683,13 @@ class Ranking:
             self.on_rank(out, kept)
         return out, kept
 
-    def class_map(self, ranked: tuple[Tensor, ...], shape: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    def class_map(self, ranked: tuple[Tensor, Tensor, Tensor], shape: tuple[int, int]) -> tuple[Tensor, Tensor]:
         """``int8 [B, N]``: the class the model's head hints for each candidate :meth:`rank_learned`
         ranked (``ranked``: its ``(bi, ni, features)``; the index into the model's classes),
         ``-1`` elsewhere: what ``class_quota`` shares the output by (:meth:`suppress`); and the
         head's probabilities of those candidates, ``float32 [K, C]`` in their order (so that
         :meth:`class_hints` need not run the head again over the output)."""
-        bi, ni, feats = ranked[:3]
+        bi, ni, feats = ranked
         out = torch.full(shape, -1, dtype=torch.int8, device=feats.device)
         model = self._model_on(feats.device)
         probs = feats.new_zeros(0, len(model.classes))
@@ -721,15 +721,16 @@ class Ranking:
 
     def class_hints(self, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor, share: Tensor,
                     entropy: Tensor, windows: list[Tensor],
-                    ranked: tuple[Tensor, ...] | None = None) -> list[Tensor]:
+                    ranked: tuple[Tensor, Tensor, Tensor] | None = None,
+                    ranked_probs: Tensor | None = None) -> list[Tensor]:
         """The class head's probabilities (:meth:`~reeb_torch.ranker.BoxRanker.class_probs`) of
         the windows ``windows[i]`` (``int64 [N_i]``) of each image, ``float32 [N_i, C]``, from
         their features under REEB's scores V (``scores [B, N]``, before the learned ranking).
         ``ranked``: :meth:`rank_learned`'s ``(bi, ni, features)`` under the same V; the rows of
         the windows among them are taken from there (the same numbers), the others computed.
-        With a fourth member, :meth:`class_map`'s probabilities of those rows, the windows
-        among them take their probabilities from there (to float32 rounding: the head ran
-        over more rows at once)."""
+        ``ranked_probs``: :meth:`class_map`'s probabilities of those rows, if it ran; the
+        windows among them take their probabilities from there (to float32 rounding: the head
+        ran over more rows at once)."""
         model = self._model_on(scores.device)
         counts = [len(w) for w in windows]
         dev = scores.device
@@ -738,15 +739,15 @@ class Ranking:
         if not len(ni):
             return [scores.new_zeros(0, len(model.classes)) for _ in windows]
         if ranked is not None and len(ranked[0]):
-            rb, rn, rf = ranked[:3]
+            rb, rn, rf = ranked
             n = scores.shape[1]
             known = rb * n + rn  # ascending: nonzero order
             key = bi * n + ni
             at = torch.searchsorted(known, key).clamp_(max=len(known) - 1)
             found = known.index_select(0, at) == key
             miss = ~found
-            if len(ranked) > 3:  # the head's probabilities of the ranked rows: only the misses run it
-                probs = ranked[3].index_select(0, at)
+            if ranked_probs is not None:  # the head's probabilities of the ranked rows: only the misses run it
+                probs = ranked_probs.index_select(0, at)
                 if bool(miss.any()):
                     probs[miss] = model.class_probs(
                         self._features_of(maps, grid, scores, share, entropy, bi[miss], ni[miss]))

@@ -146,7 +146,6 @@ def test_generator_with_ranker_contract(sample_image):
     assert gen.classes[int(labels[best])] == "Car"
 
 
-
 def _ranked(gen: ProposalGenerator, images: list) -> tuple:
     """The generator's stages up to the learned ranking on ``images``: ``(maps, grid, scores
     (V), share, entropy, kept, ranked)``, ``ranked`` holding ``rank_learned``'s ``(bi, ni,
@@ -162,6 +161,7 @@ def _ranked(gen: ProposalGenerator, images: list) -> tuple:
     ranked: list = []
     _, kept = rk.rank_learned(maps, grid, scores, chosen, share, entropy, ranked)
     return maps, grid, scores, share, entropy, kept, ranked
+
 
 def test_class_hints_reuse_the_ranked_features(sample_image):
     """The hints read the features the ranking computed (rows looked up, not recomputed):
@@ -349,5 +349,5 @@ def test_class_hints_take_the_quotas_probabilities_of_the_ranked_rows(sample_ima
     windows = [torch.nonzero(kept[0]).squeeze(1)[::5], torch.nonzero(~kept[0]).squeeze(1)[:7]]  # 7 misses
     windows = [torch.cat(windows).sort().values]
     fresh = rk.class_hints(maps, grid, scores, share, entropy, windows)
-    reused = rk.class_hints(maps, grid, scores, share, entropy, windows, (*ranked[0], probs))
+    reused = rk.class_hints(maps, grid, scores, share, entropy, windows, ranked[0], probs)
     torch.testing.assert_close(reused[0], fresh[0], rtol=0, atol=1e-5)
