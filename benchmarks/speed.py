@@ -8,8 +8,8 @@ torchvision detectors pass). The first call of each (input, batch) is timed apar
 very first one compiles the numba kernels, or loads them from their cache), and so is the
 first image of each other size (window grids and tables are built once per size); then
 passes over all frames, every (column, input, batch) once per pass in a rotating order
-(interleaved across the columns too: a slow spell of the machine hits all alike), and the median over ``--repeats`` passes is
-reported, at ``--batch`` and at ``--latency-batch`` (1: the latency a detector sees
+(interleaved across the columns too: a slow spell of the machine hits all alike), and the
+median over ``--repeats`` passes is reported, at ``--batch`` and at ``--latency-batch`` (1: the latency a detector sees
 calling one image at a time). Beside the table: an OpenCV pass (grey, Gaussian blur,
 Sobel x and y) over the same images, timed in the same rotation (once per pass), the floor
 the paper compares with (15 ms total vs about 3 ms for edges), and the ratio of REEB's
