@@ -178,6 +178,17 @@ def _frac_box(b: tuple[float, ...]) -> bool:
     return 0 <= x1 < x2 <= 1 and 0 <= y1 < y2 <= 1
 
 
+def _quota_ok(t: tuple) -> bool:
+    """``class_quota``: all shares or all ``(name, share)`` pairs (distinct names), each share
+    >= 0, summing to at most 1."""
+    named = [isinstance(x, tuple) for x in t]
+    if any(named) and not all(named):
+        return False
+    shares = [x[1] for x in t] if any(named) else list(t)
+    names = [x[0] for x in t] if any(named) else []
+    return all(x >= 0 for x in shares) and sum(shares) <= 1 and len(set(names)) == len(names)
+
+
 def _templates_ok(ts: tuple[tuple[float, float, float, float], ...]) -> bool:
     return len(ts) > 0 and all(0 < hl <= hh and 0 < wl <= wh for hl, hh, wl, wh in ts)
 
@@ -251,7 +262,9 @@ _RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "top_k": _at_least(1),
     "ranker_keep": _at_least(1),
     "ranker_v_share": _in(0, 1),
-    "class_quota": ((lambda t: all(x >= 0 for x in t) and sum(t) <= 1), "shares >= 0 that sum to at most 1"),
+    "class_quota": ((lambda t: _quota_ok(t)),
+                    "shares >= 0 that sum to at most 1: one a class in the ranker's order, or "
+                    "(class name, share) pairs ({'Pedestrian': 0.2}) with distinct names"),
     "ranker": ((lambda v: v.strip() != ""), "'none', a shipped ranker name ('kitti') or the path of a weights file"),
 }
 
@@ -270,8 +283,9 @@ _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
      "grouping='connected' with rescore='affinity' or 'orientation' (they read connected groups)"),
     (("rescore", "refine", "ranker"), lambda c: c.ranker == "none" or (c.rescore == "none" and not c.refine),
      "rescore='none' and refine=off when a ranker is set (the ranker orders the windows themselves), or ranker='none'"),
-    (("class_quota", "ranker"), lambda c: not c.class_quota or c.ranker != "none",
-     "a ranker (its class head hints each box's class) with class_quota, or class_quota=()"),
+    (("class_quota", "ranker"), lambda c: not c.class_quota or c.ranker != "none" or isinstance(c.class_quota[0], tuple),
+     "a ranker (its class head hints each box's class) with class_quota given in the ranker's class order, "
+     "class_quota by class name ({'Pedestrian': 0.2}: ignored without a class head), or class_quota=()"),
     (("class_quota", "region_quota"), lambda c: not (c.class_quota and c.region_quota),
      "one output quota at a time: class_quota=() or region_quota=off"),
     (("camera_height_m", "vertical_fov_deg", "horizontal_fov_deg", "max_object_width_m",
@@ -548,14 +562,18 @@ class ReebConfig:
     keeps what a prefilter fitted on other frames misjudges. ``0``: the prefilter alone;
     ``1``: V alone (the prefilter is then not run). The cut by V is one more selection over
     the candidates, cheap beside the prefilter (docs/results.md)."""
-    class_quota: tuple[float, ...] = ()
+    class_quota: tuple[tuple[str, float], ...] | tuple[float, ...] = ()
     """With a ranker that has a class head (``kitti``: Car, Pedestrian, Cyclist, Truck): the
-    share of the ``top_k`` proposals each of its classes gets first, in the model's class
-    order — the best boxes after NMS that the head hints as that class — the rest going to
-    the best of the others (as ``region_quota`` does for the regions). ``()`` (default): one
-    ranking for all. The ``class-quota`` preset sets ``(0, 0.3, 0.1, 0.05)``: more pedestrians
-    and trucks, fewer cars (not in the paper; measured in docs/results.md). It costs the class
-    head over every ranked candidate and an NMS that runs to the end."""
+    share of the ``top_k`` proposals a class gets first — the best boxes after NMS that the
+    head hints as that class — the rest going to the best of all the others (as
+    ``region_quota`` does for the regions). By class name, ``{"Pedestrian": 0.2}`` (kept as
+    ``(("Pedestrian", 0.2),)``): classes not named get no share of their own, a name the head
+    does not have is an error, and without a class head (``ranker='none'``, or a weights file
+    fitted without one) the quota is ignored. Or one share a class in the head's order,
+    ``(0, 0.2, 0.05, 0)``, which needs a head with that many classes. ``()`` (default): one
+    ranking for all. The ``class-quota`` preset sets Pedestrian 0.3, Cyclist 0.1, Truck 0.05:
+    more pedestrians and trucks, fewer cars (not in the paper; measured in docs/results.md).
+    It costs the class head over every ranked candidate and a longer NMS."""
 
     # -- eq. 13: NMS and output ----------------------------------------------------------
     nms_iou: float = 0.75
@@ -577,6 +595,8 @@ class ReebConfig:
         equal, hashable configs with equal fingerprints (JSON round trips included).
         """
         hints = _field_hints(type(self))
+        if isinstance(self.class_quota, typing.Mapping):  # {"Pedestrian": 0.2}: kept as pairs, hashable
+            object.__setattr__(self, "class_quota", tuple(self.class_quota.items()))
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             hint = hints.get(f.name)
@@ -640,6 +660,39 @@ class ReebConfig:
         """A copy that ranks its candidates by V: ``ranker='none'``, and no ``class_quota``
         (which reads a ranker's class head); the candidates stay those of this config."""
         return self.replace(ranker="none", class_quota=())
+
+    def class_shares(self, classes: typing.Sequence[str] | None) -> tuple[float, ...] | None:
+        """``class_quota`` as one share per class of a ranker's class head (``classes``, in its
+        order; None without a head), or None for no quota (``class_quota=()``, or by name
+        without a head).
+
+        Raises:
+            ValueError: a share for each class in order, but no head or another number of
+                classes; or a class name the head does not have (both name what it has).
+        """
+        quota = self.class_quota
+        if not quota:
+            return None
+        named = isinstance(quota[0], tuple)
+        if classes is None:
+            if named:
+                return None
+            raise ValueError(f"ReebConfig.class_quota has {len(quota)} shares, one a class in order, but the "
+                             f"ranker {self.ranker!r} has no class head: give the shares by class name "
+                             "({'Pedestrian': 0.2}; ignored without a class head) or class_quota=()")
+        classes = tuple(classes)
+        if not named:
+            if len(quota) != len(classes):
+                raise ValueError(f"ReebConfig.class_quota has {len(quota)} shares, but the ranker {self.ranker!r} "
+                                 f"has the classes {', '.join(classes)}: give one share a class, in its order, "
+                                 "or the shares by class name")
+            return tuple(float(x) for x in quota)
+        unknown = [name for name, _ in quota if name not in classes]
+        if unknown:
+            raise ValueError(f"ReebConfig.class_quota names {', '.join(map(repr, unknown))}, but the ranker "
+                             f"{self.ranker!r} hints the classes {', '.join(classes)}")
+        by_name = dict(quota)
+        return tuple(float(by_name.get(c, 0.0)) for c in classes)
 
     def replace(self, **changes: object) -> "ReebConfig":
         """A copy with ``changes`` applied (validated)."""
@@ -733,7 +786,7 @@ def _build_presets() -> None:
     # cyclists 0.1, trucks 0.05 of it first): every class >= 60 % cross-validated with fit
     # seeds 0-2, overall 79.8 against 79.2 with seed 0, but it loses on the kitti folder
     # (docs/results.md); not yet checked on other frames
-    PRESETS["class-quota"] = ReebConfig(class_quota=(0.0, 0.3, 0.1, 0.05))
+    PRESETS["class-quota"] = ReebConfig(class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05})
     # opt-in: the second scoring pass that won on the dev frames (+13 / -3, p 0.02) but was the
     # best of 21 rows there and costs ~3.5x the time; not yet checked on frames kept apart
     PRESETS["persons"] = ReebConfig().training_free().replace(rescore="orientation", rescore_scope="persons",
@@ -755,7 +808,7 @@ def get_preset(name: str) -> ReebConfig:
     * ``paper``, ``paper-no-regions``: the printed text wherever it can run
       (:meth:`ReebConfig.paper`).
     * ``class-quota``: opt-in, the default with the output shared among the classes its
-      model hints (``class_quota=(0, 0.3, 0.1, 0.05)``: Car, Pedestrian, Cyclist, Truck):
+      model hints (``class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05}``):
       pedestrians and trucks gain, cars lose (docs/results.md).
     * ``persons``: opt-in, the training-free setting with a second scoring pass that ranks person-shaped
       windows (no taller than 2.3 m on the road) by the spread of their edge orientations

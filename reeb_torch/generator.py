@@ -345,15 +345,16 @@ class ProposalGenerator(nn.Module):
         # the learned ranking of the candidates (not in the paper; ``ReebConfig.ranker``)
         v_scores, hints = scores, self.classes is not None
         ranked: list = []  # the ranked candidates' features, for the class hints and quota
-        class_of = ranked_probs = None
+        class_of = ranked_logits = None
+        quota = self.ranking.class_share is not None
         if cfg.ranker != "none":
             with self._stage("ranker", dev):
                 scores, chosen = self.ranking.rank_learned(maps, grid, scores, chosen, share, entropy,
-                                                           ranked if hints or cfg.class_quota else None,
+                                                           ranked if hints or quota else None,
                                                            self._stage if self.stage_times is not None else None)
-                if cfg.class_quota and ranked:
+                if quota and ranked:
                     with self._stage("ranker.class_head", dev):
-                        class_of, ranked_probs = self.ranking.class_map(ranked[0], tuple(scores.shape))
+                        class_of, ranked_logits = self.ranking.class_map(ranked[0], tuple(scores.shape))
         # Edge Boxes' refinement of the candidates (not in the paper; ``ReebConfig.refine``)
         refined = None
         if cfg.refine:
@@ -366,7 +367,7 @@ class ProposalGenerator(nn.Module):
         if hints:  # which class each proposal looks like (the ranking model's class head)
             with self._stage("ranker", dev), self._stage("ranker.class_head", dev):
                 for r, probs in zip(results, self.ranking.class_hints(maps, grid, v_scores, share, entropy, windows,
-                                                                      ranked[0] if ranked else None, ranked_probs)):
+                                                                      ranked[0] if ranked else None, ranked_logits)):
                     r["labels"], r["class_probs"] = probs.argmax(1), probs
         if not self._warned_empty and any(len(r["boxes"]) == 0 for r in results):
             self._warn_empty(tuple(images[0].shape[-2:]), grid.count, share)

@@ -50,6 +50,7 @@ from .stages import windows as _windows
 from .stages import features as _features
 from .stages.groups import EdgeGroups
 from .stages._radix import kth_largest
+from .ranker.model import softmax_rows
 from .stages.nms import boxes_valid, nms_top_k_many, nms_windows_cpu
 
 __all__ = ["ScoreMaps", "Ranking"]
@@ -242,17 +243,20 @@ class Ranking:
         self._plan_cache: OrderedDict[int, tuple[_windows.WindowGrid, dict]] = OrderedDict()
         self.model = None
         """The learned ranking's :class:`~reeb_torch.ranker.BoxRanker` (``config.ranker``), or None."""
+        self.class_share: tuple[float, ...] | None = None
+        """``config.class_quota`` as one share a class of the model's class head
+        (:meth:`~reeb_torch.config.ReebConfig.class_shares`), or None: no class quota."""
         if config.ranker != "none":
             from .ranker import load_ranker
 
             self.model = load_ranker(config.ranker, self.feature_names())
             _warn_if_fitted_elsewhere(config, self.model.meta.get("config"))
-            classes = self.model.classes
-            if config.class_quota and (classes is None or len(classes) != len(config.class_quota)):
-                has = "no class head" if classes is None else f"the classes {', '.join(classes)}"
-                raise ValueError(f"ReebConfig.class_quota has {len(config.class_quota)} shares, but the ranker "
-                                 f"{config.ranker!r} has {has}: give one share per class, in its order, or "
-                                 "class_quota=()")
+            self.class_share = config.class_shares(self.model.classes)
+            if config.class_quota and self.class_share is None:
+                import warnings
+
+                warnings.warn(f"ReebConfig.class_quota is ignored: the ranker {config.ranker!r} has no class head "
+                              "(fit one with reeb fit, whose models have one by default)", UserWarning, stacklevel=3)
 
     # -- windows (Sec. 3.6) -----------------------------------------------------------------
     def window_grid(self, maps: ScoreMaps, bounds: Tensor) -> _windows.WindowGrid:
@@ -687,16 +691,16 @@ class Ranking:
         """``int8 [B, N]``: the class the model's head hints for each candidate :meth:`rank_learned`
         ranked (``ranked``: its ``(bi, ni, features)``; the index into the model's classes),
         ``-1`` elsewhere: what ``class_quota`` shares the output by (:meth:`suppress`); and the
-        head's probabilities of those candidates, ``float32 [K, C]`` in their order (so that
+        head's logits of those candidates, ``float32 [K, C]`` in their order (so that
         :meth:`class_hints` need not run the head again over the output)."""
         bi, ni, feats = ranked
         out = torch.full(shape, -1, dtype=torch.int8, device=feats.device)
         model = self._model_on(feats.device)
-        probs = feats.new_zeros(0, len(model.classes))
+        logits = feats.new_zeros(0, len(model.classes))
         if len(bi):
-            probs = model.class_probs(feats)
-            out[bi, ni] = probs.argmax(1).to(torch.int8)
-        return out, probs
+            logits = model.class_logits(feats)
+            out[bi, ni] = logits.argmax(1).to(torch.int8)
+        return out, logits
 
     def _prefilter(self, model, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor, share: Tensor,
                    entropy: Tensor, bi: Tensor, ni: Tensor) -> Tensor:
@@ -722,15 +726,14 @@ class Ranking:
     def class_hints(self, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor, share: Tensor,
                     entropy: Tensor, windows: list[Tensor],
                     ranked: tuple[Tensor, Tensor, Tensor] | None = None,
-                    ranked_probs: Tensor | None = None) -> list[Tensor]:
+                    ranked_logits: Tensor | None = None) -> list[Tensor]:
         """The class head's probabilities (:meth:`~reeb_torch.ranker.BoxRanker.class_probs`) of
         the windows ``windows[i]`` (``int64 [N_i]``) of each image, ``float32 [N_i, C]``, from
         their features under REEB's scores V (``scores [B, N]``, before the learned ranking).
         ``ranked``: :meth:`rank_learned`'s ``(bi, ni, features)`` under the same V; the rows of
         the windows among them are taken from there (the same numbers), the others computed.
-        ``ranked_probs``: :meth:`class_map`'s probabilities of those rows, if it ran; the
-        windows among them take their probabilities from there (to float32 rounding: the head
-        ran over more rows at once)."""
+        ``ranked_logits``: :meth:`class_map`'s logits of those rows, if it ran; the windows
+        among them take their logits from there (the same numbers: the head runs row by row)."""
         model = self._model_on(scores.device)
         counts = [len(w) for w in windows]
         dev = scores.device
@@ -746,12 +749,12 @@ class Ranking:
             at = torch.searchsorted(known, key).clamp_(max=len(known) - 1)
             found = known.index_select(0, at) == key
             miss = ~found
-            if ranked_probs is not None:  # the head's probabilities of the ranked rows: only the misses run it
-                probs = ranked_probs.index_select(0, at)
+            if ranked_logits is not None:  # the head's logits of the ranked rows: only the misses run it
+                logits = ranked_logits.index_select(0, at)
                 if bool(miss.any()):
-                    probs[miss] = model.class_probs(
+                    logits[miss] = model.class_logits(
                         self._features_of(maps, grid, scores, share, entropy, bi[miss], ni[miss]))
-                return list(probs.split(counts))
+                return list(softmax_rows(logits).split(counts))
             feats = rf.index_select(0, at)
             if bool(miss.any()):
                 feats[miss] = self._features_of(maps, grid, scores, share, entropy, bi[miss], ni[miss])
@@ -944,7 +947,8 @@ class Ranking:
         boxes_in = self._grid_cached(("boxes_in", fx, fy, str(dev)), grid,
                                      lambda: self._device_tensor(grid.boxes, dev) / to_input)
         region_of = self._device_tensor(grid.region_of, dev)
-        class_share = torch.tensor(cfg.class_quota, device=dev) if class_of is not None and cfg.class_quota else None
+        class_share = (torch.tensor(self.class_share, device=dev)
+                       if class_of is not None and self.class_share is not None else None)
         quota = (cfg.region_quota and share.shape[1] > 1) or class_share is not None
         kept = None
         if refined is None:  # the windows themselves: gathered, sorted and suppressed compiled

@@ -37,7 +37,8 @@ def test_presets_and_lookup():
     assert set(PRESETS) == {"default", "training-free", "training-free-no-regions", "default-no-regions", "paper",
                             "paper-no-regions", "persons", "class-quota"}
     # the opt-in class quota: the default but for the output's shares per hinted class
-    assert get_preset("class-quota") == ReebConfig().replace(class_quota=(0.0, 0.3, 0.1, 0.05))
+    assert get_preset("class-quota") == ReebConfig().replace(
+        class_quota=(("Pedestrian", 0.3), ("Cyclist", 0.1), ("Truck", 0.05)))
     # the default ranks with the shipped model; training-free is it without the learned part
     assert ReebConfig().ranker == "kitti" and get_preset("training-free") == ReebConfig().training_free()
     assert get_preset("training-free").ranker == "none"

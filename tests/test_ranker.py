@@ -55,6 +55,28 @@ def test_rank_is_forward_with_the_standardisation_folded_in(members, monkeypatch
         m.rank(torch.randn(5, 46))
 
 
+def test_class_logits_are_the_head_with_the_standardisation_folded_in(monkeypatch):
+    """class_logits(): the class head's logits as the head computes them on standardised
+    features (to float32 rounding), in blocks of rows too; class_probs() is their softmax."""
+    from reeb_torch.ranker import model as model_module
+
+    m = _model(classes=("Car", "Pedestrian", "Cyclist"))
+    torch.manual_seed(2)
+    m.mean.copy_(torch.randn(47) * 50)
+    m.scale.copy_(torch.rand(47) * 20 + 0.1)
+    x = torch.randn(300, 47) * m.scale + m.mean
+    got = m.class_logits(x)
+    assert got.shape == (300, 3) and got.dtype == torch.float32 and not got.requires_grad
+    with torch.no_grad():
+        want = m.classifier(m.standardise(x))
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-4)
+    torch.testing.assert_close(m.class_probs(x), torch.softmax(want, 1), rtol=1e-5, atol=1e-5)
+    monkeypatch.setattr(model_module, "RANK_ROWS", 64)
+    torch.testing.assert_close(m.class_logits(x), got, rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="no class head"):
+        _model().class_logits(x)
+
+
 def test_weights_round_trip(tmp_path):
     m = _model(3, hidden=(8,), members=2)
     p = save_ranker(m, tmp_path / "r.safetensors", provenance={"frames": 2}, config={"horizon": 0.5})
@@ -273,20 +295,55 @@ def test_class_quota_shares_the_output_by_the_hints(sample_image):
 def test_bad_class_quotas(tmp_path):
     with pytest.raises(ValueError, match="class_quota must be shares >= 0 that sum to at most 1"):
         ReebConfig(class_quota=(0.5, 0.6))
-    with pytest.raises(ValueError, match="a ranker .* with class_quota"):
+    with pytest.raises(ValueError, match="class_quota must be shares >= 0 .* distinct names"):
+        ReebConfig(class_quota={"Pedestrian": 0.6, "Cyclist": 0.5})
+    with pytest.raises(ValueError, match="class_quota must be shares >= 0 .* distinct names"):
+        ReebConfig(class_quota=(("Pedestrian", 0.2), ("Pedestrian", 0.1)))
+    with pytest.raises(TypeError, match="class_quota must be a tuple of tuples"):
+        ReebConfig(class_quota=(("Pedestrian", 0.2), 0.1))
+    with pytest.raises(ValueError, match="a ranker .* with class_quota given in the ranker's class order"):
         ReebConfig(class_quota=(0.2,), ranker="none")
     with pytest.raises(ValueError, match="one output quota at a time"):
         ReebConfig(class_quota=(0.2,), region_quota=True)
     with pytest.raises(ValueError, match="class_quota has 2 shares, but the ranker 'kitti' has the classes Car, "
                                          "Pedestrian, Cyclist, Truck"):
         ProposalGenerator(class_quota=(0.5, 0.5))
+    with pytest.raises(ValueError, match="class_quota names 'Person', but the ranker 'kitti' hints the classes Car, "
+                                         "Pedestrian, Cyclist, Truck"):
+        ProposalGenerator(class_quota={"Person": 0.2})
     path = save_ranker(_model(), tmp_path / "plain.safetensors")
-    with pytest.raises(ValueError, match="has no class head"):
+    with pytest.raises(ValueError, match="has no class head: give the shares by class name"):
         ProposalGenerator(ranker=str(path), class_quota=(0.1,))
     # the training-free copy of a class-quota config drops the quota with the ranker,
     assert ReebConfig(class_quota=(0, 0.3, 0.1, 0.05)).training_free() == ReebConfig().training_free()
     # and its unranked copy (the candidates ranked by V, as reeb fit takes them) too
     assert ReebConfig(class_quota=(0, 0.3, 0.1, 0.05)).unranked() == ReebConfig(ranker="none")
+
+
+def test_class_quota_by_name(tmp_path, sample_image):
+    """class_quota by class name: the same quota as the shares in the head's order (classes
+    not named get none), kept as hashable pairs that survive a JSON round trip; without a
+    class head it gives way (ranker='none' silently, a head-less weights file with a warning)."""
+    import json
+
+    named = ReebConfig(class_quota={"Cyclist": 0.05, "Pedestrian": 0.2})
+    assert named.class_quota == (("Cyclist", 0.05), ("Pedestrian", 0.2)) and hash(named) == hash(named.replace())
+    assert ReebConfig.from_dict(json.loads(json.dumps(named.to_dict()))) == named
+    assert named.class_shares(("Car", "Pedestrian", "Cyclist", "Truck")) == (0.0, 0.2, 0.05, 0.0)
+    assert named.class_shares(None) is None and ReebConfig().class_shares(("Car",)) is None
+    by_name = ProposalGenerator(named, top_k=200)
+    assert by_name.ranking.class_share == (0.0, 0.2, 0.05, 0.0)
+    got = by_name([sample_image])[0]
+    want = ProposalGenerator(class_quota=(0.0, 0.2, 0.05, 0.0), top_k=200)([sample_image])[0]
+    assert all(torch.equal(got[k], want[k]) for k in want)
+    # no class head: no quota
+    none = ProposalGenerator(named.replace(ranker="none"), top_k=200)
+    assert none.ranking.class_share is None
+    assert torch.equal(none([sample_image])[0]["boxes"], ProposalGenerator(ranker="none", top_k=200)([sample_image])[0]["boxes"])
+    path = save_ranker(_model(), tmp_path / "plain.safetensors")
+    with pytest.warns(UserWarning, match="class_quota is ignored: the ranker .* has no class head"):
+        plain = ProposalGenerator(ranker=str(path), class_quota={"Pedestrian": 0.2})
+    assert plain.ranking.class_share is None
 
 
 @pytest.mark.cuda
@@ -337,17 +394,17 @@ def test_best_per_image_keeps_the_best_ties_to_the_earlier():
     assert torch.equal(got, torch.cat(want))
 
 
-def test_class_hints_take_the_quotas_probabilities_of_the_ranked_rows(sample_image):
+def test_class_hints_take_the_quotas_logits_of_the_ranked_rows(sample_image):
     """On the class_quota path the head runs once over the ranked rows (class_map); the hints
-    of the output read those rows' probabilities, the same as the head run on them anew."""
+    of the output read those rows' logits: the same probabilities as the head run on them anew."""
     gen = ProposalGenerator(get_preset("class-quota"), top_k=300)
     rk = gen.ranking
     maps, grid, scores, share, entropy, kept, ranked = _ranked(gen, [sample_image])
-    class_of, probs = rk.class_map(ranked[0], tuple(scores.shape))
-    assert probs.shape == (int(kept.sum()), len(gen.classes))
-    assert torch.equal(class_of[kept].long(), probs.argmax(1))
+    class_of, logits = rk.class_map(ranked[0], tuple(scores.shape))
+    assert logits.shape == (int(kept.sum()), len(gen.classes))
+    assert torch.equal(class_of[kept].long(), logits.argmax(1))
     windows = [torch.nonzero(kept[0]).squeeze(1)[::5], torch.nonzero(~kept[0]).squeeze(1)[:7]]  # 7 misses
     windows = [torch.cat(windows).sort().values]
     fresh = rk.class_hints(maps, grid, scores, share, entropy, windows)
-    reused = rk.class_hints(maps, grid, scores, share, entropy, windows, ranked[0], probs)
-    torch.testing.assert_close(reused[0], fresh[0], rtol=0, atol=1e-5)
+    reused = rk.class_hints(maps, grid, scores, share, entropy, windows, ranked[0], logits)
+    torch.testing.assert_close(reused[0], fresh[0], rtol=0, atol=1e-6)

@@ -23,11 +23,18 @@ from torch import Tensor, nn
 from ..stages.features import cheap_count
 
 
-__all__ = ["BoxRanker", "RANK_ROWS"]
+__all__ = ["BoxRanker", "RANK_ROWS", "softmax_rows"]
 
 RANK_ROWS = 4096
 """Rows :meth:`BoxRanker.rank` takes at a time (a block's ``[rows, 64]`` activations, 1 MiB,
 stay in a core's L2 cache between the layers)."""
+
+
+def softmax_rows(logits: Tensor) -> Tensor:
+    """The softmax of each row of ``logits`` ``float [K, C]``, ``float32 [K, C]``: along the
+    rows of the transposed logits (torch's softmax over a last dimension of 4 was 8x slower
+    than over a contiguous first one)."""
+    return torch.softmax(logits.T.contiguous(), 0).T.contiguous()
 
 
 def _mlp(inputs: int, hidden: Sequence[int], outputs: int = 1) -> nn.Sequential:
@@ -99,17 +106,23 @@ class BoxRanker(nn.Module):
         return self.prefilter(x).squeeze(1)
 
     @torch.no_grad()
-    def class_probs(self, features: Tensor) -> Tensor:
-        """``float [K, F] -> float32 [K, C]``: for each box, the probability of each of
-        :attr:`classes` were it an object (rows sum to 1; the class head was fitted on the
-        boxes that overlap an object at IoU ≥ 0.7). Raises ValueError without a class head."""
+    def class_logits(self, features: Tensor) -> Tensor:
+        """``float [K, F] -> float32 [K, C]``: the class head's logits of each box over
+        :attr:`classes` (their argmax is :meth:`class_probs`'s), computed as :meth:`rank`
+        computes the ranking's: the standardisation folded into the first layer, the rows in
+        blocks. Raises ValueError without a class head."""
         if self.classifier is None:
             raise ValueError("this BoxRanker has no class head (fit one with reeb fit)")
         self._check(features)
-        logits = self.classifier(self.standardise(features))
-        # along the rows of the transposed logits: torch's softmax over a last dimension of
-        # 4 was 8x slower than over a contiguous first one
-        return torch.softmax(logits.T.contiguous(), 0).T.contiguous()
+        return self._run_folded([self._folded(self.classifier)], features.float(), len(self.classes))
+
+    @torch.no_grad()
+    def class_probs(self, features: Tensor) -> Tensor:
+        """``float [K, F] -> float32 [K, C]``: for each box, the probability of each of
+        :attr:`classes` were it an object (rows sum to 1; the class head was fitted on the
+        boxes that overlap an object at IoU ≥ 0.7): the softmax of :meth:`class_logits`.
+        Raises ValueError without a class head."""
+        return softmax_rows(self.class_logits(features))
 
     def _check(self, features: Tensor) -> None:
         if features.ndim != 2 or features.shape[1] != len(self.feature_names):
@@ -129,26 +142,33 @@ class BoxRanker(nn.Module):
         ~50000 rows a core, the whole ``[K, hidden]`` would not) and the activations computed
         in place. The same logits to float32 rounding (~1e-5)."""
         self._check(features)
-        x = features.float()
-        out = x.new_empty(len(x))
-        folded = []
-        for member in self.members:
-            layers = [m for m in member if isinstance(m, nn.Linear)]
-            w = layers[0].weight / self.scale
-            folded.append([(layers[0].bias - w @ self.mean, w.T)]
-                          + [(layer.bias, layer.weight.T) for layer in layers[1:]])
+        out = self._run_folded([self._folded(m) for m in self.members], features.float(), 1).squeeze(1)
+        return out / len(self.members) if len(self.members) > 1 else out
+
+    def _folded(self, mlp: nn.Sequential) -> list[tuple[Tensor, Tensor]]:
+        """``mlp``'s layers as ``(bias, weight.T)`` with the standardisation folded into the
+        first (weights ``W / scale``, bias ``b − (W / scale) · mean``)."""
+        layers = [m for m in mlp if isinstance(m, nn.Linear)]
+        w = layers[0].weight / self.scale
+        return [(layers[0].bias - w @ self.mean, w.T)] + [(layer.bias, layer.weight.T) for layer in layers[1:]]
+
+    @staticmethod
+    def _run_folded(mlps: list[list[tuple[Tensor, Tensor]]], x: Tensor, outputs: int) -> Tensor:
+        """The sum of the folded ``mlps`` (ReLU between layers) over the rows of ``x``,
+        ``float32 [K, outputs]``, :data:`RANK_ROWS` rows at a time, activations in place."""
+        out = x.new_empty(len(x), outputs)
         for start in range(0, len(x), RANK_ROWS):
             rows = x[start: start + RANK_ROWS]
             acc = None
-            for layers in folded:
+            for layers in mlps:
                 h = rows
                 for i, (bias, weight_t) in enumerate(layers):
                     h = torch.addmm(bias, h, weight_t)
                     if i < len(layers) - 1:
                         h.relu_()
                 acc = h if acc is None else acc.add_(h)
-            out[start: start + len(rows)] = acc.squeeze(1)
-        return out / len(self.members) if len(self.members) > 1 else out
+            out[start: start + len(rows)] = acc
+        return out
 
     def forward(self, features: Tensor) -> Tensor:
         self._check(features)
