@@ -77,6 +77,8 @@ def _fit_value(name: str, text: str) -> object:
         if text.lower() in ("none", "null") and name != "hidden":
             return None
         return tuple(int(x) for x in text.split(",") if x.strip())
+    if default is None or isinstance(default, float):  # prefilter_balance: a number, or none
+        return None if text.lower() in ("none", "null") and default is None else float(text)
     return type(default)(text)
 
 

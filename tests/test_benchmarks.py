@@ -341,6 +341,8 @@ def test_cv_paired_refit_takes_fit_options_and_the_fields_the_model_reads():
     assert cfg == ReebConfig(candidates_per_region=20000)
     assert opts == {"hidden": (32, 32), "members": 2, "class_hidden": None}
     assert cv.parse_refit("balance=1") == (ReebConfig(), {"balance": 1.0})
+    assert cv.parse_refit("prefilter_balance=1") == (ReebConfig(), {"prefilter_balance": 1.0})
+    assert cv.parse_refit("prefilter_balance=none") == (ReebConfig(), {"prefilter_balance": None})
     with pytest.raises(ValueError, match="no ranker="):
         cv.parse_refit("ranker=mine.safetensors")
     with pytest.raises(ValueError, match="members=two"):

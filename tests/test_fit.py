@@ -5,6 +5,7 @@ weights refitted bit for bit from the frames and options they name."""
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 
@@ -89,6 +90,25 @@ def test_class_head_is_seeded_learns_and_leaves_the_ranking_alone():
     assert float((probs.argmax(1) == truth).float().mean()) > 0.85
     assert F.fit_ranker(samples(0), feature_names(4), F.FitOptions(epochs=2, hidden=(8,), class_hidden=None),
                         ("Car", "Pedestrian")).classifier is None
+
+
+def test_prefilter_balance_weighs_only_the_prefilter():
+    """prefilter_balance: the prefilter's class weights apart from the MLP's; the MLP's weights
+    are those of the fit without it, bit for bit, and None is the balance's own."""
+    g = torch.Generator().manual_seed(3)
+    n = 20000
+    x = torch.randn(n, 47, generator=g)
+    y = (x[:, 0] + 0.3 * torch.randn(n, generator=g) > 1).float()
+    label = torch.where(x[:, 1] > 1.0, 1, 0)  # a rare class among the positives
+    samples = [F.Sample(x, y, torch.ones(n), torch.where(y > 0, label, -1))]
+    opts = F.FitOptions(epochs=3, hidden=(8,), batch=512, class_hidden=None)
+    base = F.fit_ranker(samples, feature_names(4), opts)
+    same = F.fit_ranker(samples, feature_names(4), dataclasses.replace(opts, prefilter_balance=opts.balance))
+    other = F.fit_ranker(samples, feature_names(4), dataclasses.replace(opts, prefilter_balance=1.0))
+    assert all(torch.equal(p, q) for p, q in zip(base.state_dict().values(), same.state_dict().values()))
+    assert all(torch.equal(p, q) for p, q in zip(base.members.state_dict().values(), other.members.state_dict().values()))
+    assert not all(torch.equal(p, q) for p, q in zip(base.prefilter.state_dict().values(),
+                                                     other.prefilter.state_dict().values()))
 
 
 def test_hinted_classes_by_hand():

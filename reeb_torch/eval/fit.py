@@ -84,6 +84,8 @@ class FitOptions:
             others are left out).
         balance: each class's objects weigh (all objects / the class's objects)^balance (0:
             every object weighs the same; 1: every class does).
+        prefilter_balance: the prefilter's ``balance`` (it decides which candidates the model
+            sees), or None: ``balance``.
         lr, weight_decay: AdamW's (a one-cycle schedule peaks at ``lr``).
         batch: rows per step.
         seed: seeds the negatives' sample and the fit.
@@ -101,6 +103,7 @@ class FitOptions:
     positive_iou: float = 0.7
     negative_iou: float = 0.5
     balance: float = 0.5
+    prefilter_balance: float | None = None
     lr: float = 3e-3
     weight_decay: float = 1e-4
     batch: int = 4096
@@ -167,6 +170,16 @@ def frame_samples(cache: FrameCache, cfg: ReebConfig, opts: FitOptions, indices:
     return out
 
 
+def _balanced(w: Tensor, y: Tensor, label: Tensor, balance: float) -> Tensor:
+    """The rows' weights ``w`` with each class's objects weighed (objects / the class's
+    objects)^``balance``, then the positives' total made the negatives'."""
+    if balance:
+        per_class = torch.bincount(label[y == 1], weights=w[y == 1])
+        factor = torch.where(per_class > 0, (per_class.sum() / per_class.clamp(min=1e-9)) ** balance, 0.0)
+        w = torch.where(y == 1, w * factor[label.clamp(min=0)].float(), w)
+    return torch.where(y == 1, w * (w[y == 0].sum() / w[y == 1].sum()), w)
+
+
 def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: FitOptions,
                classes: Sequence[str] | None = None) -> BoxRanker:
     """A :class:`BoxRanker` fitted on ``samples`` (weighted logistic loss; the positives'
@@ -186,12 +199,9 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
         raise ValueError("no candidate overlaps a labelled object at the positive IoU (or none is background): "
                          "the ranking cannot be fitted on these frames")
     w_object = w  # each object's positives weigh 1 together (the class head's weights)
-    if opts.balance:  # each class's objects weigh (objects / the class's objects)^balance
-        label = torch.cat([s.label for s in samples])
-        per_class = torch.bincount(label[y == 1], weights=w[y == 1])
-        factor = torch.where(per_class > 0, (per_class.sum() / per_class.clamp(min=1e-9)) ** opts.balance, 0.0)
-        w = torch.where(y == 1, w * factor[label.clamp(min=0)].float(), w)
-    w = torch.where(y == 1, w * (w[y == 0].sum() / w[y == 1].sum()), w)
+    label = torch.cat([s.label for s in samples])
+    w = _balanced(w_object, y, label, opts.balance)
+    w_pre = w if opts.prefilter_balance is None else _balanced(w_object, y, label, opts.prefilter_balance)
     heads = classes is not None and opts.class_hidden is not None
     model = BoxRanker(feature_names, opts.hidden, opts.members, opts.prefilter,
                       classes if heads else None, opts.class_hidden or ())
@@ -204,7 +214,7 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
         for m, member in enumerate(model.members):
             _fit_member(member, xs, y, w, opts, opts.seed * 1000 + m)
         if model.prefilter is not None:
-            _fit_member(model.prefilter, xs[:, : model.cheap], y, w, opts, opts.seed * 1000 + 999)
+            _fit_member(model.prefilter, xs[:, : model.cheap], y, w_pre, opts, opts.seed * 1000 + 999)
         if model.classifier is not None:
             pos = y == 1
             label = torch.cat([s.label for s in samples])[pos]
