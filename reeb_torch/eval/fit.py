@@ -217,8 +217,7 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
             _fit_member(model.prefilter, xs[:, : model.cheap], y, w_pre, opts, opts.seed * 1000 + 999)
         if model.classifier is not None:
             pos = y == 1
-            label = torch.cat([s.label for s in samples])[pos]
-            _fit_member(model.classifier, xs[pos], label, w_object[pos],
+            _fit_member(model.classifier, xs[pos], label[pos], w_object[pos],
                         dataclasses.replace(opts, epochs=opts.class_epochs, batch=opts.class_batch),
                         opts.seed * 1000 + 998, _class_loss)
     finally:
