@@ -182,6 +182,20 @@ def _chosen(chosen: Tensor) -> tuple[Tensor, Tensor]:
     return torch.from_numpy(bi.astype(np.int64, copy=False)), torch.from_numpy(ni.astype(np.int64, copy=False))
 
 
+def _gather(values: Tensor, bi: Tensor, ni: Tensor, counts: Tensor) -> Tensor:
+    """``values[bi, ni]`` for :func:`_chosen`'s ``(bi, ni)`` (image-major, ``counts`` a
+    image): on the CPU numpy's take, an image row at a time (torch's 2-D gather took 0.25 ms
+    for a KITTI image's 77 000 candidates; this 0.07)."""
+    if values.device.type != "cpu":
+        return values[bi, ni]
+    rows, idx = values.numpy(), ni.numpy()
+    parts, start = [], 0
+    for b, n in enumerate(counts.tolist()):
+        parts.append(np.take(rows[b], idx[start: start + n]))
+        start += n
+    return torch.from_numpy(np.concatenate(parts) if parts else rows.reshape(-1)[:0].copy())
+
+
 def _best_per_image(values: Tensor, counts: Tensor, keep: int) -> Tensor:
     """Indices of the best ``keep`` of each image's ``values`` (the images' values lie in
     consecutive runs of ``counts``), ties to the earlier; ascending. On the CPU a compiled
@@ -666,11 +680,11 @@ class Ranking:
             by_v = round(self.config.ranker_v_share * keep)
             if model.prefilter is not None and len(bi) and int(counts.max()) > keep:
                 if by_v >= keep:  # V alone
-                    sel = _best_per_image(scores[bi, ni], counts, keep)
+                    sel = _best_per_image(_gather(scores, bi, ni, counts), counts, keep)
                 else:
                     pre = self._prefilter(model, maps, grid, scores, share, entropy, bi, ni)
                     if by_v:  # each image's best by V first, whatever the prefilter says
-                        pre[_best_per_image(scores[bi, ni], counts, by_v)] = math.inf
+                        pre[_best_per_image(_gather(scores, bi, ni, counts), counts, by_v)] = math.inf
                     sel = _best_per_image(pre, counts, keep)
                 bi, ni = bi[sel], ni[sel]
         out = torch.full_like(scores, -math.inf)

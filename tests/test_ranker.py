@@ -366,9 +366,10 @@ def test_a_config_the_model_was_not_fitted_with_is_warned_about():
         ProposalGenerator(top_k=100, ranker_keep=5000, nms_iou=0.7)  # act after the model: no warning
 
 
-def test_chosen_pairs_are_torch_nonzero():
-    """The CPU's candidate pairs (numpy, an image at a time) are torch.nonzero's, in its order."""
-    from reeb_torch.ranking import _chosen
+def test_chosen_pairs_are_torch_nonzero_and_gather_reads_them():
+    """The CPU's candidate pairs (numpy, an image at a time) are torch.nonzero's, in its order;
+    _gather reads the values at them as torch's indexing does."""
+    from reeb_torch.ranking import _chosen, _gather
 
     torch.manual_seed(0)
     for mask in (torch.rand(3, 1000) < 0.3, torch.zeros(2, 50, dtype=torch.bool), torch.ones(1, 7, dtype=torch.bool),
@@ -376,6 +377,10 @@ def test_chosen_pairs_are_torch_nonzero():
         bi, ni = _chosen(mask)
         want = torch.nonzero(mask, as_tuple=True)
         assert bi.dtype == ni.dtype == torch.int64 and torch.equal(bi, want[0]) and torch.equal(ni, want[1])
+        # and the values at those pairs, gathered an image row at a time, are torch's
+        values = torch.randn(len(mask), 2 * mask.shape[1])[:, ::2]  # strided, as a view may be
+        got = _gather(values, bi, ni, torch.bincount(bi, minlength=len(mask)))
+        assert got.dtype == torch.float32 and torch.equal(got, values[bi, ni])
 
 
 def test_best_per_image_keeps_the_best_ties_to_the_earlier():
