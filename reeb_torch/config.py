@@ -783,9 +783,9 @@ def _build_presets() -> None:
     PRESETS["paper-no-regions"] = _no_regions(ReebConfig.paper())
 
     # opt-in: the output shared among the classes the ranking model hints (pedestrians 0.3,
-    # cyclists 0.1, trucks 0.05 of it first): every class >= 60 % cross-validated with fit
-    # seeds 0-2, overall 79.8 against 79.2 with seed 0, but it loses on the kitti folder
-    # (docs/results.md); not yet checked on other frames
+    # cyclists 0.1, trucks 0.05 of it first): every class >= 60 % cross-validated with each of
+    # fit seeds 0-4, overall 79.8 against 79.2 with seed 0, but it loses cars on the kitti
+    # folder (docs/results.md); not yet checked on other frames
     PRESETS["class-quota"] = ReebConfig(class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05})
     # opt-in: the second scoring pass that won on the dev frames (+13 / -3, p 0.02) but was the
     # best of 21 rows there and costs ~3.5x the time; not yet checked on frames kept apart
