@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 __all__ = ["REPO_ROOT", "default_kitti_dir", "default_dev_dirs", "rerun_line", "environment", "timed", "run_captured",
-           "sign_test_p", "paired_ratios"]
+           "sign_test_p", "paired_ratios", "setting_pairs", "settings_config"]
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 """The repository root (the folder holding ``benchmarks/``)."""
@@ -40,6 +40,19 @@ def environment() -> dict[str, Any]:
     from reeb_torch.eval.common import environment as _environment
 
     return _environment()
+
+
+def setting_pairs(text: str) -> list[str]:
+    """A ``--variant``'s ``FIELD=VALUE;...`` as the pairs ``reeb propose --set`` takes."""
+    return [p.strip() for p in text.split(";") if p.strip()]
+
+
+def settings_config(text: str) -> Any:
+    """The package default with ``FIELD=VALUE;...`` applied, as ``reeb propose --set`` applies
+    them (a :class:`~reeb_torch.ReebConfig`; ``click.ClickException`` for a bad field or value)."""
+    from reeb_torch.runs.common import build_config
+
+    return build_config("default", None, setting_pairs(text), None)
 
 
 def run_captured(gen: Any, image: Any) -> tuple[dict, dict]:

@@ -41,10 +41,9 @@ import click
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import default_dev_dirs, environment, rerun_line  # noqa: E402
+from _common import default_dev_dirs, environment, rerun_line, setting_pairs, settings_config  # noqa: E402
 
 from reeb_torch import ProposalGenerator, ReebConfig, get_preset  # noqa: E402
-from reeb_torch.runs.common import build_config  # noqa: E402
 from reeb_torch.eval.common import add_data_option, add_frames_option, folder_splits, load_folders  # noqa: E402
 from reeb_torch.eval.table3 import moderate_masks  # noqa: E402
 from reeb_torch.eval.metrics import (  # noqa: E402
@@ -190,9 +189,8 @@ def parse_args(argv: list[str] | None) -> tuple[argparse.Namespace, dict]:
     args = ap.parse_args(argv)
     extra = {}
     for text in args.variant:
-        pairs = [p.strip() for p in text.split(";") if p.strip()]
         try:
-            extra[", ".join(pairs)] = (build_config("default", None, pairs, None), "set")
+            extra[", ".join(setting_pairs(text))] = (settings_config(text), "set")
         except click.ClickException as e:  # an unknown field, a bad value: before any work
             ap.error(f"--variant {text!r}: {e.format_message()}")
     try:

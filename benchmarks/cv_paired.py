@@ -38,7 +38,7 @@ import click
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import default_dev_dirs, environment, rerun_line  # noqa: E402
+from _common import default_dev_dirs, environment, rerun_line, setting_pairs, settings_config  # noqa: E402
 
 from reeb_torch import ReebConfig, get_preset  # noqa: E402
 from reeb_torch.eval import fit as F  # noqa: E402
@@ -54,8 +54,7 @@ def parse_variant(text: str) -> ReebConfig:
     try:
         cfg = get_preset(text)
     except ValueError:
-        pairs = [p.strip() for p in text.split(";") if p.strip()]
-        cfg = build_config("default", None, pairs, None)
+        cfg = settings_config(text)
     base = ReebConfig().to_dict()
     seen = sorted(k for k, v in cfg.to_dict().items()
                   if base[k] != v and (k not in _NOT_SEEN_BY_RANKER or k == "ranker"))
@@ -88,7 +87,7 @@ def parse_refit(text: str) -> tuple[ReebConfig, dict]:
     :class:`~reeb_torch.eval.fit.FitOptions` but the seed) the fold models are fitted with.
     ValueError for a bad value or a ``ranker`` (the fit makes the model)."""
     opts, pairs = {}, []
-    for pair in (p.strip() for p in text.split(";") if p.strip()):
+    for pair in setting_pairs(text):
         name, _, value = pair.partition("=")
         if name.strip() in _FIT_FIELDS:
             try:

@@ -35,12 +35,11 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import default_kitti_dir, environment, rerun_line  # noqa: E402
+from _common import default_kitti_dir, environment, rerun_line, settings_config  # noqa: E402
 
 from reeb_torch import ProposalGenerator, ReebConfig, get_preset  # noqa: E402
 from reeb_torch.eval.data import KittiDataset  # noqa: E402
 from reeb_torch.io import read_image  # noqa: E402
-from reeb_torch.runs.common import build_config  # noqa: E402
 
 STAGES = [
     ("Edge detection (resize, blur, Sobel, thinning)", "edges"),
@@ -204,7 +203,7 @@ def columns(presets: list[str], variants: list[tuple[str, str]]) -> dict[str, st
     variant of the default (as ``reeb propose --set``) under its label."""
     out: dict[str, str | ReebConfig] = {p: p for p in presets}
     for label, settings in variants:
-        out[label] = build_config("default", None, [x for x in settings.split(";") if x.strip()], None)
+        out[label] = settings_config(settings)
     return out
 
 
