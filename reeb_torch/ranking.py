@@ -183,7 +183,7 @@ def _chosen(chosen: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _gather(values: Tensor, bi: Tensor, ni: Tensor, counts: Tensor) -> Tensor:
-    """``values[bi, ni]`` for :func:`_chosen`'s ``(bi, ni)`` (image-major, ``counts`` a
+    """``values[bi, ni]`` for :func:`_chosen`'s ``(bi, ni)`` (image-major, ``counts`` an
     image): on the CPU numpy's take, an image row at a time (torch's 2-D gather took 0.25 ms
     for a KITTI image's 77 000 candidates; this 0.07)."""
     if values.device.type != "cpu":
@@ -761,8 +761,7 @@ class Ranking:
             known = rb * n + rn  # ascending: nonzero order
             key = bi * n + ni
             at = torch.searchsorted(known, key).clamp_(max=len(known) - 1)
-            found = known.index_select(0, at) == key
-            miss = ~found
+            miss = known.index_select(0, at) != key
             if ranked_logits is not None:  # the head's logits of the ranked rows: only the misses run it
                 logits = ranked_logits.index_select(0, at)
                 if bool(miss.any()):
