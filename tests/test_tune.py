@@ -107,6 +107,31 @@ def test_cache_gives_the_generators_boxes(small_kitti):
     assert cache.front_computed == 3
 
 
+def test_cache_reads_a_weights_file_written_again(small_kitti, tmp_path):
+    """A weights file written again under the same path ranks with its new weights (the
+    generator of a config reads its model once: the cache keys it by the file too)."""
+    import os
+
+    from reeb_torch.ranker import load_ranker, save_ranker
+
+    frames = T.load_frames([small_kitti], limit=1)
+    cache = T.FrameCache(frames)
+    path = tmp_path / "model.safetensors"
+    shipped = load_ranker("kitti")
+    save_ranker(shipped, path)
+    cfg = ReebConfig(ranker=str(path), top_k=300)
+    first = cache.outputs(cfg, [0])[0]["scores"]
+    flipped = __import__("copy").deepcopy(shipped)
+    for m in flipped.members:
+        m[-1].weight.neg_()
+        m[-1].bias.neg_()
+    save_ranker(flipped, path)
+    os.utime(path, ns=(1, 1))  # another stamp even where the clock is coarse
+    again = cache.outputs(cfg, [0])[0]["scores"]
+    want = ProposalGenerator(cfg)([frames.images[0]])[0]["scores"]
+    assert torch.equal(again, want) and not torch.equal(again, first)
+
+
 def _tune(root, out, **kw):
     from reeb_torch.runs.tune import run_tune
 

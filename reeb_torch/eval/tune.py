@@ -76,6 +76,20 @@ def load_frames(roots: Sequence[str | os.PathLike], limit: int | None = None) ->
     return frames
 
 
+def _weights_stamp(ranker: str) -> tuple[int, int] | None:
+    """The modification time and size of the weights file ``ranker`` names; None for none, a
+    shipped name, or a file that cannot be read (the generator then says what is wrong)."""
+    from ..ranker import SHIPPED
+
+    if ranker in ("none", *SHIPPED):
+        return None
+    try:
+        st = os.stat(os.path.expanduser(ranker))
+    except OSError:
+        return None
+    return st.st_mtime_ns, st.st_size
+
+
 class FrameCache:
     """Proposals of many configs on the same frames, computing each frame's front end (edges,
     groups, road mask) once per setting of :data:`~reeb_torch.generator.FRONT_END_FIELDS` (the
@@ -87,16 +101,18 @@ class FrameCache:
         self._front: dict[int, Any] = {}
         self.front_computed = 0
         """How many frames' front ends were computed (for tests and the summary)."""
-        self._generators: dict[ReebConfig, ProposalGenerator] = {}
+        self._generators: dict[tuple, ProposalGenerator] = {}
 
     def _generator(self, cfg: ReebConfig) -> ProposalGenerator:
         """The generator of ``cfg``, kept for the last few configs: its ranking keeps the window
-        plans per image size (the base config is scored again and again)."""
-        if cfg not in self._generators:
+        plans per image size (the base config is scored again and again). A weights file
+        written again under the same path is a new generator (its model is read once)."""
+        key = (cfg, _weights_stamp(cfg.ranker))
+        if key not in self._generators:
             if len(self._generators) >= 4:
                 self._generators.pop(next(iter(self._generators)))
-            self._generators[cfg] = ProposalGenerator(cfg)
-        return self._generators[cfg]
+            self._generators[key] = ProposalGenerator(cfg)
+        return self._generators[key]
 
     def _front_of(self, cfg: ReebConfig, i: int) -> tuple[ProposalGenerator, list[Tensor], Any]:
         """The generator of ``cfg``, frame ``i`` as its input, and that frame's front end (cached)."""
