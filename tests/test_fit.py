@@ -111,6 +111,53 @@ def test_prefilter_balance_weighs_only_the_prefilter():
                                                      other.prefilter.state_dict().values()))
 
 
+def test_fine_tuning_starts_from_the_model_keeps_its_shape_and_leaves_it_alone(tmp_path):
+    """FitOptions.init: the model's widths and standardisation are kept (the options' widths
+    do not apply); with no pass the weights are the model's, bit for bit; a pass moves them,
+    the same seed the same way; the loaded (shared) model is not touched; its class head is
+    tuned on the classes it has, by name."""
+    from reeb_torch.ranker import load_ranker, save_ranker
+
+    names = feature_names(4)
+    start = F.fit_ranker(_samples(0), names, F.FitOptions(epochs=3, hidden=(8,), batch=512, class_hidden=(4,)),
+                         ("Car", "Pedestrian"))
+    path = save_ranker(start, tmp_path / "start.safetensors", {"frames_digest": "abc"})
+    shared = load_ranker(str(path))
+    before = {k: v.clone() for k, v in shared.state_dict().items()}
+    opts = F.FitOptions(init=str(path), hidden=(64, 64), prefilter=None, tune_batch=512)
+    samples = _samples(1)  # labels 0 (a positive's class, "Car" here) and -1
+    none = F.fit_ranker(samples, names, dataclasses.replace(opts, tune_epochs=0), ("Car", "Pedestrian"))
+    assert all(torch.equal(p, q) for p, q in zip(none.state_dict().values(), before.values()))
+    a = F.fit_ranker(samples, names, opts, ("Car", "Pedestrian"))
+    b = F.fit_ranker(samples, names, opts, ("Car", "Pedestrian"))
+    assert a.hidden == (8,) and a.prefilter is not None and a.classes == ("Car", "Pedestrian")
+    assert torch.equal(a.mean, shared.mean) and torch.equal(a.scale, shared.scale)
+    assert all(torch.equal(p, q) for p, q in zip(a.state_dict().values(), b.state_dict().values()))
+    for part in ("members", "prefilter", "classifier"):
+        moved = [not torch.equal(p, before[f"{part}.{k}"]) for k, p in getattr(a, part).state_dict().items()]
+        assert any(moved), part
+    assert all(torch.equal(p, before[k]) for k, p in shared.state_dict().items())  # the shared model is untouched
+    assert a.meta["provenance"] == {"frames_digest": "abc"} and not any(p.requires_grad for p in a.parameters())
+    # a head without the frames' classes is left as it is; by name, not by position
+    other = F.fit_ranker(samples, names, opts, ("Truck", "Tram"))
+    assert all(torch.equal(p, before[f"classifier.{k}"]) for k, p in other.classifier.state_dict().items())
+    assert F._relabelled(torch.tensor([0, 1, -1, 2]), ("Pedestrian", "Car", "Van"), ("Car", "Pedestrian")).tolist() \
+        == [1, 0, -1, -1]
+
+
+def test_fine_tuning_refuses_a_model_it_cannot_tune(tmp_path):
+    from reeb_torch.ranker import RankerWeightsError, save_ranker
+
+    with pytest.raises(RankerWeightsError, match="no such file"):
+        F.fit_ranker(_samples(0), feature_names(4), F.FitOptions(init=str(tmp_path / "nope.safetensors")))
+    path = save_ranker(F.fit_ranker(_samples(0), feature_names(4), F.FitOptions(epochs=1, hidden=(4,))),
+                       tmp_path / "four.safetensors")
+    x = _samples(0)[0]
+    three = [F.Sample(x.features[:, :42], x.target, x.weight, x.label)]
+    with pytest.raises(RankerWeightsError, match="read 47 features"):
+        F.fit_ranker(three, feature_names(3), F.FitOptions(init=str(path)))
+
+
 def test_hinted_classes_by_hand():
     gts = [torch.tensor([[0.0, 0, 10, 10], [20, 20, 30, 30], [50, 50, 60, 60]]), torch.zeros(0, 4)]
     out = {"boxes": torch.tensor([[0.0, 0, 10, 9], [0, 0, 10, 10], [20, 20, 30, 31], [50, 50, 51, 51]]),
@@ -184,6 +231,21 @@ def test_reeb_fit_end_to_end(kitti_dir, tmp_path):
     assert load_ranker(str(out)).meta["provenance"]["frames"] == 8
     gen = ProposalGenerator(ReebConfig.from_dict(cfg))
     assert gen.ranking.model is load_ranker(str(out))
+    tuned = tmp_path / "tuned.safetensors"
+    r = subprocess.run([sys.executable, "-m", "reeb_torch.runs.cli", "fit", str(kitti_dir), "--limit", "6",
+                        "--folds", "2", "--epochs", "1", "--init", str(out), "-q", "-o", str(tuned)],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "fine-tuned (cross-validated)" in r.stdout and "mine.safetensors as it is" in r.stdout
+    meta = load_ranker(str(tuned)).meta["provenance"]
+    assert meta["init"]["model"] == str(out) and meta["init"]["frames_digest"] == \
+        load_ranker(str(out)).meta["provenance"]["frames_digest"] and meta["options"]["tune_epochs"] == 1
+    for args, message in ((["--init", "kitti", "--hidden", "8"], "give --hidden or --init"),
+                          (["--init", str(tmp_path / "none.safetensors")], "no such file")):
+        bad = subprocess.run([sys.executable, "-m", "reeb_torch.runs.cli", "fit", str(kitti_dir), "--limit", "4",
+                              "--folds", "2", "-q", "-o", str(tmp_path / "x.safetensors"), *args],
+                             capture_output=True, text=True, timeout=300)
+        assert bad.returncode == 2 and message in bad.stderr, bad.stderr
     bad = subprocess.run([sys.executable, "-m", "reeb_torch.runs.cli", "fit", str(kitti_dir), "--limit", "1",
                           "--folds", "2", "-o", str(tmp_path / "x.safetensors")], capture_output=True, text=True,
                          timeout=300)

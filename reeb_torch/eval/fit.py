@@ -17,6 +17,7 @@ frames, and estimate by cross-validation how it does on frames it never saw.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import os
@@ -36,7 +37,7 @@ from ..ranker import BoxRanker, save_ranker
 from .tune import FrameCache, Frames
 
 __all__ = ["FitFrames", "FitOptions", "Sample", "FitCrossValidation", "load_fit_frames", "frame_sample",
-           "frame_samples", "fit_ranker", "frame_folds", "similar_frames", "training_frames", "cross_validate",
+           "frame_samples", "fit_ranker", "initial_model", "frame_folds", "similar_frames", "training_frames", "cross_validate",
            "hinted_classes", "drive_of"]
 
 
@@ -93,6 +94,14 @@ class FitOptions:
             weighted cross-entropy), or None for no class head.
         class_epochs, class_batch: the class head's passes and rows per step (its rows, the
             positives, are few: ~2400 on the 106 dev frames).
+        init: fine-tune this model (a shipped name such as ``"kitti"``, or a weights file)
+            instead of fitting one from scratch: its widths, its standardisation and its
+            weights are the start, and ``hidden``, ``members``, ``prefilter``,
+            ``class_hidden``, ``epochs``, ``lr``, ``batch`` do not apply. For a few labelled
+            frames of another camera.
+        tune_epochs, tune_lr, tune_batch: the fine-tuning's passes, its constant AdamW
+            learning rate (no weight decay: the start, not zero, is what it should stay near)
+            and rows per step.
     """
 
     hidden: tuple[int, ...] = (64, 64)
@@ -111,6 +120,10 @@ class FitOptions:
     class_hidden: tuple[int, ...] | None = (32,)
     class_epochs: int = 60
     class_batch: int = 256
+    init: str | None = None
+    tune_epochs: int = 10
+    tune_lr: float = 1e-3
+    tune_batch: int = 1024
 
 
 @dataclass
@@ -189,8 +202,13 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
     last, so the ranking's weights do not depend on it). Runs on one CPU thread with seeded
     draws, so the same samples and options give the same weights bit for bit.
 
+    With ``opts.init`` it fine-tunes that model instead (:func:`initial_model`): every MLP
+    from its weights, on its standardisation, ``opts.tune_*``'s schedule; its class head on
+    the positives of the classes it has.
+
     Raises:
         ValueError: no positive or no negative row (no labelled object found by a candidate).
+        RankerWeightsError: ``opts.init`` cannot be read, or reads other features.
     """
     x = torch.cat([s.features for s in samples]).float()
     y = torch.cat([s.target for s in samples])
@@ -202,27 +220,60 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
     label = torch.cat([s.label for s in samples])
     w = _balanced(w_object, y, label, opts.balance)
     w_pre = w if opts.prefilter_balance is None else _balanced(w_object, y, label, opts.prefilter_balance)
-    heads = classes is not None and opts.class_hidden is not None
-    model = BoxRanker(feature_names, opts.hidden, opts.members, opts.prefilter,
-                      classes if heads else None, opts.class_hidden or ())
-    model.mean.copy_(x.mean(0))
-    model.scale.copy_(x.std(0).clamp(min=1e-6))
+    if opts.init is not None:
+        model = initial_model(opts.init, feature_names)
+        label = _relabelled(label, classes, model.classes)
+        fit = dataclasses.replace(opts, epochs=opts.tune_epochs, lr=opts.tune_lr, batch=opts.tune_batch,
+                                  class_epochs=opts.tune_epochs, class_batch=opts.tune_batch, weight_decay=0.0)
+    else:
+        heads = classes is not None and opts.class_hidden is not None
+        model = BoxRanker(feature_names, opts.hidden, opts.members, opts.prefilter,
+                          classes if heads else None, opts.class_hidden or ())
+        model.mean.copy_(x.mean(0))
+        model.scale.copy_(x.std(0).clamp(min=1e-6))
+        fit = opts
+    fresh = opts.init is None
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         xs = model.standardise(x)
         for m, member in enumerate(model.members):
-            _fit_member(member, xs, y, w, opts, opts.seed * 1000 + m)
+            _fit_member(member, xs, y, w, fit, opts.seed * 1000 + m, fresh=fresh)
         if model.prefilter is not None:
-            _fit_member(model.prefilter, xs[:, : model.cheap], y, w_pre, opts, opts.seed * 1000 + 999)
-        if model.classifier is not None:
-            pos = y == 1
+            _fit_member(model.prefilter, xs[:, : model.cheap], y, w_pre, fit, opts.seed * 1000 + 999, fresh=fresh)
+        pos = (y == 1) & (label >= 0)
+        if model.classifier is not None and bool(pos.any()):
             _fit_member(model.classifier, xs[pos], label[pos], w_object[pos],
-                        dataclasses.replace(opts, epochs=opts.class_epochs, batch=opts.class_batch),
-                        opts.seed * 1000 + 998, _class_loss)
+                        dataclasses.replace(fit, epochs=fit.class_epochs, batch=fit.class_batch),
+                        opts.seed * 1000 + 998, _class_loss, fresh=fresh)
     finally:
         torch.set_num_threads(threads)
     return model.eval().requires_grad_(False)
+
+
+def initial_model(spec: str, feature_names: Sequence[str]) -> BoxRanker:
+    """A trainable copy of the model ``spec`` (a shipped name or a weights file) to fine-tune
+    (:attr:`FitOptions.init`), its ``meta`` kept.
+
+    Raises:
+        RankerWeightsError: as :func:`~reeb_torch.ranker.load_ranker` (missing, damaged, or
+            fitted on other features than ``feature_names``).
+    """
+    from ..ranker import load_ranker
+
+    shared = load_ranker(spec, tuple(feature_names))  # shared, read-only: tune a copy
+    model = copy.deepcopy(shared)
+    model.meta = copy.deepcopy(shared.meta)
+    return model.requires_grad_(True)
+
+
+def _relabelled(label: Tensor, classes: Sequence[str] | None, head: Sequence[str] | None) -> Tensor:
+    """The positives' labels (indices into ``classes``) as indices into a class head's
+    classes ``head``; -1 for a negative, or a class the head lacks (left out of its fit)."""
+    if head is None or classes is None:
+        return label
+    to_head = torch.tensor([head.index(c) if c in head else -1 for c in classes] + [-1])
+    return to_head[label]  # label -1 takes the last entry
 
 
 def _logistic_loss(logits: Tensor, y: Tensor, w: Tensor) -> Tensor:
@@ -234,20 +285,23 @@ def _class_loss(logits: Tensor, y: Tensor, w: Tensor) -> Tensor:
 
 
 def _fit_member(net: torch.nn.Module, x: Tensor, y: Tensor, w: Tensor, opts: FitOptions, seed: int,
-                loss_fn: Callable[[Tensor, Tensor, Tensor], Tensor] = _logistic_loss) -> None:
+                loss_fn: Callable[[Tensor, Tensor, Tensor], Tensor] = _logistic_loss, fresh: bool = True) -> None:
     """Fit ``net`` on rows ``x`` with targets ``y`` and row weights ``w`` (``loss_fn``: the
-    weighted sum over a step's rows, divided by their weight): AdamW, one-cycle, seeded."""
+    weighted sum over a step's rows, divided by their weight): AdamW, seeded; ``fresh``: from
+    seeded initial weights with a one-cycle schedule, else from ``net``'s weights at a
+    constant rate (fine-tuning)."""
     gen = torch.Generator().manual_seed(seed)
-    for p in net.parameters():  # the same initial weights for the same seed, whatever ran before
-        if p.ndim == 2:
-            bound = 1.0 / math.sqrt(p.shape[1])
-            p.data.uniform_(-bound, bound, generator=gen)
-        else:
-            p.data.zero_()
+    if fresh:
+        for p in net.parameters():  # the same initial weights for the same seed, whatever ran before
+            if p.ndim == 2:
+                bound = 1.0 / math.sqrt(p.shape[1])
+                p.data.uniform_(-bound, bound, generator=gen)
+            else:
+                p.data.zero_()
     opt = torch.optim.AdamW(net.parameters(), lr=opts.lr, weight_decay=opts.weight_decay)
     n = len(x)
     steps = opts.epochs * math.ceil(n / opts.batch)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=opts.lr, total_steps=steps)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=opts.lr, total_steps=steps) if fresh else None
     net.train()
     for _ in range(opts.epochs):
         perm = torch.randperm(n, generator=gen)
@@ -257,7 +311,8 @@ def _fit_member(net: torch.nn.Module, x: Tensor, y: Tensor, w: Tensor, opts: Fit
             opt.zero_grad()
             (loss / w[b].sum()).backward()
             opt.step()
-            sched.step()
+            if sched is not None:
+                sched.step()
     net.eval()
 
 

@@ -502,8 +502,12 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
 @click.option("--folds", type=click.IntRange(min=2), default=5, show_default=True,
               help="Blocks of frames for the cross-validated estimate.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the negatives' sample and the fit.")
-@click.option("--epochs", type=click.IntRange(min=1), default=15, show_default=True, help="Passes over the rows.")
-@click.option("--hidden", default="64,64", show_default=True, help="Hidden layer widths, comma-separated.")
+@click.option("--epochs", type=click.IntRange(min=1),
+              help="Passes over the rows [default: 15; with --init, 10].")
+@click.option("--hidden", help="Hidden layer widths, comma-separated [default: 64,64].")
+@click.option("--init", "init", metavar="MODEL",
+              help="Fine-tune MODEL (a shipped name such as kitti, or a weights file) on DIRS instead of "
+                   "fitting from scratch: for a few labelled frames of another camera (its widths are its own).")
 @click.option("--balance", type=click.FloatRange(0, 2), default=0.5, show_default=True,
               help="Weigh each class's objects by (objects / the class's objects)^BALANCE (1: classes equal).")
 @click.option("-k", "--proposals", "k", type=click.IntRange(min=1), default=2000, show_default=True,
@@ -516,21 +520,31 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
               help="JSON config over the preset (e.g. reeb calibrate's camera.json).")
 @click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE", help="Change a field (repeatable).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
-def fit(dirs, out, folds, seed, epochs, hidden, balance, k, iou, limit, preset, config_file, sets, quiet):
+def fit(dirs, out, folds, seed, epochs, hidden, init, balance, k, iou, limit, preset, config_file, sets, quiet):
     """Fit the learned ranking on labelled KITTI-format folders (DIRS) for another camera, and
     estimate by cross-validation over blocks of frames how it does on frames it never saw,
     beside the training-free settings and the shipped model on the same frames. Writes the
     weights (OUT, safetensors) and a config that reeb propose --config takes. Runs on the CPU.
+
+    With a few labelled frames (a dozen or so), fine-tune the shipped model (--init kitti)
+    rather than fit one from scratch.
     """
+    import dataclasses
+
     from ..eval.fit import FitOptions
     from . import fit as R
 
     cfg = build_config(preset, config_file, sets, None)
+    if init and hidden:
+        raise click.BadParameter("a fine-tuned model keeps its own widths: give --hidden or --init, not both",
+                                 param_hint="--hidden")
     try:
-        widths = tuple(int(w) for w in hidden.split(","))
+        widths = tuple(int(w) for w in (hidden or "64,64").split(","))
     except ValueError:
         raise click.BadParameter(f"{hidden!r}: expected widths such as 64,64", param_hint="--hidden") from None
-    opts = FitOptions(hidden=widths, epochs=epochs, seed=seed, balance=balance)
+    opts = FitOptions(hidden=widths, seed=seed, balance=balance, init=init)
+    if epochs is not None:
+        opts = dataclasses.replace(opts, **{"tune_epochs" if init else "epochs": epochs})
     command = " ".join(["reeb fit", *map(shlex.quote, sys.argv[2:])])
     try:
         record = R.run_fit(dirs, out, cfg, opts, folds, k, iou, limit, quiet, command)

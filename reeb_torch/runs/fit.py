@@ -67,7 +67,7 @@ def _fmt(row: dict[str, Any]) -> str:
     if "paired" in row:
         p = row["paired"]
         paired = f"; against training-free +{p['gained']} / -{p['lost']}, p {p['p_value']:.2g}"
-    return (f"  {row['name']:<24} {row['recall']:5.1f} % ({row['low']:.1f}-{row['high']:.1f}; {classes})"
+    return (f"  {row['name']:<28} {row['recall']:5.1f} % ({row['low']:.1f}-{row['high']:.1f}; {classes})"
             f"{paired}")
 
 
@@ -127,7 +127,8 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions,
     can rank these features, the shipped ``kitti`` model, on the same frames.
 
     Raises:
-        ValueError: no labels, fewer frames than folds, nothing to fit on.
+        ValueError: no labels, fewer frames than folds, nothing to fit on; a ``--init`` model that
+            cannot be read or reads other features (:class:`~reeb_torch.ranker.RankerWeightsError`).
     """
     from ..ranker import load_ranker, save_ranker
 
@@ -136,22 +137,33 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions,
     F.frame_folds(len(frames), folds)  # refuse fewer frames than folds before any work
     cache = FrameCache(frames)
     base = cfg.training_free()
+    names = cache.candidates(cfg.unranked(), 0).feature_names
+    if opts.init:
+        F.initial_model(opts.init, names)  # a model that cannot be tuned here fails before any work
     samples = F.frame_samples(cache, cfg, opts, progress=_iterate("candidates", quiet))
     cv = F.cross_validate(cache, cfg, base, samples, opts, folds, k, iou, progress=_iterate("folds", quiet))
-    names = cache.candidates(cfg.unranked(), 0).feature_names
     model = F.fit_ranker(samples, names, opts, frames.classes)
-    rows = {"training-free": cv.base_hits, "fitted (cross-validated)": cv.ranked_hits}
+    fitted = "fine-tuned (cross-validated)" if opts.init else "fitted (cross-validated)"
+    rows = {"training-free": cv.base_hits, fitted: cv.ranked_hits}
     table, record = _report(frames, rows, cv.base_hits)  # kept in the weights: the same for the same frames
     hint_lines, hint_record = _hint_report(frames, cv.hinted)
+    shown = dict(rows)
+    if opts.init and opts.init != "kitti":
+        shown[f"{Path(opts.init).name} as it is"] = cache.hits(cfg.replace(ranker=opts.init), range(len(frames)), k, iou)
     shipped = _shipped_hits(cache, cfg, k, iou)
     if shipped is not None:
-        table = _report(frames, {**rows, "shipped kitti model": shipped}, cv.base_hits)[0]
+        shown["shipped kitti model"] = shipped
+    if len(shown) > len(rows):
+        table = _report(frames, shown, cv.base_hits)[0]
     provenance = {
         "data": [os.path.basename(os.path.normpath(r)) for r in roots], "frames": len(frames),
         "objects": sum(len(g) for g in frames.gts), "frames_digest": frames_digest(frames),
         "options": dataclasses.asdict(opts), "folds": folds, "k": k, "iou": iou, "command": command,
         "cross_validated": record,
     }
+    if opts.init:
+        was = model.meta.get("provenance", {})
+        provenance["init"] = {"model": opts.init, "data": was.get("data"), "frames_digest": was.get("frames_digest")}
     if hint_record:
         provenance["class_hints"] = hint_record
     path = save_ranker(model, out, provenance, cfg.to_dict())
@@ -166,6 +178,9 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions,
     if shipped is not None and load_ranker("kitti").meta.get("provenance", {}).get("frames_digest") == \
             provenance["frames_digest"]:
         note = ["  (the shipped model was fitted on these frames: its row is no estimate)"]
+    if opts.init and provenance["init"]["frames_digest"] == provenance["frames_digest"]:
+        note.append(f"  (the model fine-tuned, {opts.init}, was fitted on these frames: the {fitted} row "
+                    "is no estimate either)")
     text = "\n".join([head] + table + note + hint_lines
                      + [f"wrote {path} and {config_path} (reeb propose --config {config_path})"])
     return {"provenance": provenance, "text": text, "weights": str(path), "config": str(config_path)}
