@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 __all__ = ["REPO_ROOT", "default_kitti_dir", "default_dev_dirs", "rerun_line", "environment", "timed", "run_captured",
-           "sign_test_p", "paired_ratios", "setting_pairs", "settings_config"]
+           "sign_test_p", "paired_ratios", "setting_pairs", "settings_config", "write_outputs"]
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 """The repository root (the folder holding ``benchmarks/``)."""
@@ -102,3 +102,15 @@ def paired_ratios(base: Sequence[float], this: Sequence[float]) -> tuple[list[fl
     ratios = [t / b for b, t in zip(base, this)]
     faster, slower = sum(r < 1 for r in ratios), sum(r > 1 for r in ratios)
     return ratios, faster, slower, sign_test_p(faster, slower)
+
+
+def write_outputs(out: Path, stem: str, text: list[str], record: dict) -> Path:
+    """Write ``out/<stem>.txt`` (the lines of ``text``) and ``out/<stem>.json`` (``record``),
+    making ``out``; print and return the text file's path."""
+    import json
+
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{stem}.txt").write_text("\n".join(text) + "\n", encoding="utf-8")
+    (out / f"{stem}.json").write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
+    print(f"wrote {out / f'{stem}.txt'}")
+    return out / f"{stem}.txt"

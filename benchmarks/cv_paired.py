@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -38,7 +37,8 @@ import click
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import default_dev_dirs, environment, rerun_line, setting_pairs, settings_config  # noqa: E402
+from _common import (default_dev_dirs, environment, rerun_line, setting_pairs, settings_config,  # noqa: E402
+                     write_outputs)
 
 from reeb_torch import ReebConfig, get_preset  # noqa: E402
 from reeb_torch.eval import fit as F  # noqa: E402
@@ -72,6 +72,8 @@ def _fit_value(name: str, text: str) -> object:
     (``none`` for no layer where the field allows it), numbers as numbers."""
     default = getattr(F.FitOptions(), name)
     text = text.strip()
+    if name == "init":  # a model to fine-tune: a shipped name or a weights file
+        return None if text.lower() in ("none", "null") else text
     if name in ("hidden", "prefilter", "class_hidden"):
         if text.lower() in ("none", "null") and name != "hidden":
             return None
@@ -205,10 +207,7 @@ def main(argv: list[str] | None = None) -> dict:
             record["over_seeds"][title] = rows
         print("\n".join(text[-(1 + len(groups)):]), flush=True)
     text.append(f"({time.monotonic() - t0:.0f} s)")
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "cv_paired.txt").write_text("\n".join(text) + "\n", encoding="utf-8")
-    (args.out / "cv_paired.json").write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
-    print(f"wrote {args.out / 'cv_paired.txt'}")
+    write_outputs(args.out, "cv_paired", text, record)
     return record
 
 

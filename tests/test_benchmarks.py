@@ -343,6 +343,8 @@ def test_cv_paired_refit_takes_fit_options_and_the_fields_the_model_reads():
     assert cv.parse_refit("balance=1") == (ReebConfig(), {"balance": 1.0})
     assert cv.parse_refit("prefilter_balance=1") == (ReebConfig(), {"prefilter_balance": 1.0})
     assert cv.parse_refit("prefilter_balance=none") == (ReebConfig(), {"prefilter_balance": None})
+    assert cv.parse_refit("init=kitti; tune_lr=3e-4; tune_epochs=20") == \
+        (ReebConfig(), {"init": "kitti", "tune_lr": 3e-4, "tune_epochs": 20})
     with pytest.raises(ValueError, match="no ranker="):
         cv.parse_refit("ranker=mine.safetensors")
     with pytest.raises(ValueError, match="members=two"):
