@@ -372,3 +372,30 @@ def test_cv_paired_over_seeds_counts_each_object_once():
     # object 0: 1 seed against 2 (gained); object 1: 0 against 1 (gained); object 2: 2 against 1 (lost)
     assert cv.over_seeds(seeds, 1, [0, 1]) == {"gained": 2, "lost": 1, "p_value": 1.0}
     assert cv.over_seeds(seeds, 1, [1]) == {"gained": 0, "lost": 1, "p_value": 1.0}
+
+
+def test_adapt_scores_four_ways_on_frames_away_from_the_adapt_block(tmp_path):
+    """adapt.py: per ordered pair of folders, a base model fitted on the source, the first /
+    last k target frames to adapt with, the other target frames to test on; the record
+    holds each condition's recall and the fine-tuned model's pairings."""
+    import shutil
+
+    adapt = _script("adapt")
+    a = _example_kitti(tmp_path / "a")
+    b = tmp_path / "b"
+    shutil.copytree(a, b)
+    frames = __import__("reeb_torch.eval.fit", fromlist=["x"]).load_fit_frames([str(a), str(b)])
+    scens = adapt.scenarios(frames, [1], gap=2)
+    assert [s["name"] for s in scens] == ["a -> b, first 1", "a -> b, last 1", "b -> a, first 1", "b -> a, last 1"]
+    for s in scens:
+        assert not set(s["test"]) & set(s["adapt"]) and set(s["source"]).isdisjoint(s["test"] + s["adapt"])
+        assert len(s["test"]) == 1 and len(s["adapt"]) == 1
+    record = adapt.main(["--data", str(a), str(b), "--k", "1", "--seeds", "0", "--out", str(tmp_path / "out")])
+    assert set(record["scenarios"]) == {s["name"] for s in scens}
+    for row in record["scenarios"].values():
+        assert set(row["mean_recall"]) == set(adapt.CONDITIONS)
+        assert all(0 <= v <= 100 for v in row["mean_recall"].values())
+    for pairs in record["paired"].values():
+        assert set(pairs) == {"training-free", "base", "scratch"}
+        assert all(p["low"] <= p["points"] <= p["high"] for p in pairs.values())
+    assert (tmp_path / "out" / "adapt.txt").read_text().startswith("# rerun: python benchmarks/adapt.py")

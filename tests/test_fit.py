@@ -222,6 +222,7 @@ def test_reeb_fit_end_to_end(kitti_dir, tmp_path):
                        timeout=600)
     assert r.returncode == 0, r.stderr
     assert "training-free" in r.stdout and "fitted (cross-validated)" in r.stdout and "shipped kitti model" in r.stdout
+    assert "8 frames: with 5 or 10 frames of a drive, fine-tuning" in r.stdout  # the hint for few frames
     from reeb_torch import ProposalGenerator, ReebConfig
     from reeb_torch.ranker import load_ranker
     import json
@@ -237,6 +238,7 @@ def test_reeb_fit_end_to_end(kitti_dir, tmp_path):
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
     assert "fine-tuned (cross-validated)" in r.stdout and "mine.safetensors as it is" in r.stdout
+    assert "fine-tuning a model fitted elsewhere" not in r.stdout
     meta = load_ranker(str(tuned)).meta["provenance"]
     assert meta["init"]["model"] == str(out) and meta["init"]["frames_digest"] == \
         load_ranker(str(out)).meta["provenance"]["frames_digest"] and meta["options"]["tune_epochs"] == 1

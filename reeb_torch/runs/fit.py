@@ -18,7 +18,10 @@ from ..eval import fit as F
 from ..eval.metrics import compare_recall
 from ..eval.tune import FrameCache, bootstrap_interval, objective
 
-__all__ = ["run_fit", "frames_digest"]
+__all__ = ["run_fit", "frames_digest", "FEW_FRAMES"]
+
+FEW_FRAMES = 20
+"""Below this many frames, a fit from scratch prints a hint to fine-tune instead (``--init``)."""
 
 
 def _bar(total: int, desc: str, quiet: bool) -> Any:
@@ -178,6 +181,9 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions,
     if shipped is not None and load_ranker("kitti").meta.get("provenance", {}).get("frames_digest") == \
             provenance["frames_digest"]:
         note = ["  (the shipped model was fitted on these frames: its row is no estimate)"]
+    if not opts.init and len(frames) < FEW_FRAMES:
+        note.append(f"  ({len(frames)} frames: with 5 or 10 frames of a drive, fine-tuning a model fitted elsewhere "
+                    "(--init kitti) beat a fit from scratch on the dev folders; see reeb fit in docs/cli.md)")
     if opts.init and provenance["init"]["frames_digest"] == provenance["frames_digest"]:
         note.append(f"  (the model fine-tuned, {opts.init}, was fitted on these frames: the {fitted} row "
                     "is no estimate either)")
