@@ -37,8 +37,8 @@ from ..ranker import BoxRanker, save_ranker
 from .tune import FrameCache, Frames
 
 __all__ = ["FitFrames", "FitOptions", "Sample", "FitCrossValidation", "load_fit_frames", "frame_sample",
-           "frame_samples", "fit_ranker", "initial_model", "frame_folds", "similar_frames", "training_frames", "cross_validate",
-           "hinted_classes", "drive_of"]
+           "frame_samples", "fit_ranker", "initial_model", "frame_folds", "similar_frames", "training_frames",
+           "cross_validate", "hinted_classes", "drive_of"]
 
 
 @dataclass
@@ -225,14 +225,14 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
         label = _relabelled(label, classes, model.classes)
         fit = dataclasses.replace(opts, epochs=opts.tune_epochs, lr=opts.tune_lr, batch=opts.tune_batch,
                                   class_epochs=opts.tune_epochs, class_batch=opts.tune_batch, weight_decay=0.0)
+        fresh = False
     else:
         heads = classes is not None and opts.class_hidden is not None
         model = BoxRanker(feature_names, opts.hidden, opts.members, opts.prefilter,
                           classes if heads else None, opts.class_hidden or ())
         model.mean.copy_(x.mean(0))
         model.scale.copy_(x.std(0).clamp(min=1e-6))
-        fit = opts
-    fresh = opts.init is None
+        fit, fresh = opts, True
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:

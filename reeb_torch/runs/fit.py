@@ -152,7 +152,8 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions,
     hint_lines, hint_record = _hint_report(frames, cv.hinted)
     shown = dict(rows)
     if opts.init and opts.init != "kitti":
-        shown[f"{Path(opts.init).name} as it is"] = cache.hits(cfg.replace(ranker=opts.init), range(len(frames)), k, iou)
+        start = cfg.replace(ranker=opts.init)
+        shown[f"{Path(opts.init).name} as it is"] = cache.hits(start, range(len(frames)), k, iou)
     shipped = _shipped_hits(cache, cfg, k, iou)
     if shipped is not None:
         shown["shipped kitti model"] = shipped
