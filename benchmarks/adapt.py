@@ -11,7 +11,10 @@ their drive within ``--gap`` of them, none that looks nearly the same:
 * ``training-free``: REEB alone;
 * ``base``: the source's model as it is;
 * ``scratch``: a model fitted on the ``k`` frames alone (``reeb fit``);
-* ``fine-tuned``: the base model fine-tuned on the ``k`` frames (``reeb fit --init``).
+* ``fine-tuned``: the base model fine-tuned on the ``k`` frames (``reeb fit --init``);
+
+and, for the three models, how often the class hint of each found object's best proposal
+names its class.
 
 Per fit seed and adapt block, then per direction over the seeds: fine-tuning's recall
 minus each other's, averaged over the seeds, with a 95 % bootstrap interval over the
@@ -66,7 +69,9 @@ def scenarios(frames: F.FitFrames, ks: list[int], gap: int) -> list[dict]:
 
 
 def run_seed(cache: FrameCache, cfg: ReebConfig, scens: list[dict], seed: int, tmp: Path) -> dict[str, dict]:
-    """Per scenario, per condition: the test objects' hits (``bool [N]``, frames in order)."""
+    """Per scenario, per condition: the test objects' hits (``bool [N]``, frames in order),
+    and under ``"hints"``, per condition with a class head, ``(right, found)``: of the test
+    objects it finds, how many its best proposal's class hint names rightly."""
     frames = cache.frames
     opts = F.FitOptions(seed=seed)
     samples = F.frame_samples(cache, cfg, opts)
@@ -74,9 +79,14 @@ def run_seed(cache: FrameCache, cfg: ReebConfig, scens: list[dict], seed: int, t
     bases: dict[tuple, Path] = {}
     out = {}
 
-    def hits(ranker: str, test: list[int]) -> torch.Tensor:
-        boxes = cache.proposals(cfg.replace(ranker=ranker), test)
-        return torch.cat(object_hits(boxes, [frames.gts[i] for i in test], 2000, 0.7))
+    def hits(ranker: str, test: list[int], hints: dict, name: str) -> torch.Tensor:
+        outputs = cache.outputs(cfg.replace(ranker=ranker), test)
+        gts = [frames.gts[i] for i in test]
+        if ranker != "none":
+            hinted = torch.cat(F.hinted_classes(outputs, gts))
+            truth = torch.cat([frames.labels[i] for i in test])
+            hints[name] = (int((hinted == truth).sum()), int((hinted >= 0).sum()))
+        return torch.cat(object_hits([o["boxes"] for o in outputs], gts, 2000, 0.7))
 
     for s in scens:
         key = tuple(s["source"])
@@ -88,9 +98,10 @@ def run_seed(cache: FrameCache, cfg: ReebConfig, scens: list[dict], seed: int, t
         scratch = save_ranker(F.fit_ranker(adapt, names, opts, frames.classes), tmp / f"scratch{tag}.safetensors")
         tuned = F.fit_ranker(adapt, names, dataclasses.replace(opts, init=str(bases[key])), frames.classes)
         tuned_path = save_ranker(tuned, tmp / f"tuned{tag}.safetensors")
-        test = s["test"]
-        out[s["name"]] = {"training-free": hits("none", test), "base": hits(str(bases[key]), test),
-                          "scratch": hits(str(scratch), test), "fine-tuned": hits(str(tuned_path), test)}
+        hints: dict = {}
+        out[s["name"]] = {c: hits(r, s["test"], hints, c) for c, r in
+                          zip(CONDITIONS, ("none", str(bases[key]), str(scratch), str(tuned_path)))}
+        out[s["name"]]["hints"] = hints
     return out
 
 
@@ -148,13 +159,18 @@ def main(argv: list[str] | None = None) -> dict:
                             + ", ".join(f"{c} {100 * float(h[c].float().mean()):.1f}" for c in CONDITIONS))
             print("\n".join(text[-len(scens):]), flush=True)
     record: dict = {"seeds": args.seeds, "k": args.k, "environment": environment(), "scenarios": {}, "paired": {}}
-    text.append(f"over fit seeds {', '.join(map(str, args.seeds))}: mean recall (%)")
+    text.append(f"over fit seeds {', '.join(map(str, args.seeds))}: mean recall (%); of the objects each model "
+                "finds, the share whose best proposal's class hint is right")
     for s in scens:
         means = {c: 100 * sum(float(r[s["name"]][c].float().mean()) for r in per_seed) / len(per_seed)
                  for c in CONDITIONS}
         record["scenarios"][s["name"]] = {"frames": len(s["test"]), "objects": int(len(per_seed[0][s["name"]]["base"])),
                                           "adapt": [frames.ids[i] for i in s["adapt"]], "mean_recall": means}
-        text.append(f"  {s['name']:<34} " + "  ".join(f"{c} {v:5.1f}" for c, v in means.items()))
+        hinted = {c: [sum(r[s["name"]]["hints"][c][j] for r in per_seed) for j in (0, 1)] for c in CONDITIONS[1:]}
+        record["scenarios"][s["name"]]["hints_right"] = {c: 100 * a / max(1, b) for c, (a, b) in hinted.items()}
+        text.append(f"  {s['name']:<34} " + "  ".join(f"{c} {v:5.1f}" for c, v in means.items())
+                    + "  | hints right: "
+                    + ", ".join(f"{c} {100 * a / max(1, b):.0f} %" for c, (a, b) in hinted.items()))
     text.append("fine-tuned against each: the difference in recall averaged over the seeds (points), 95 % "
                 "bootstrap interval over (block, frame); seeds where fine-tuned finds more / fewer (sign test)")
     for direction in dict.fromkeys(s["direction"] for s in scens):

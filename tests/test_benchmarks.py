@@ -394,6 +394,8 @@ def test_adapt_scores_four_ways_on_frames_away_from_the_adapt_block(tmp_path):
     assert set(record["scenarios"]) == {s["name"] for s in scens}
     for row in record["scenarios"].values():
         assert set(row["mean_recall"]) == set(adapt.CONDITIONS)
+        assert set(row["hints_right"]) == {"base", "scratch", "fine-tuned"}
+        assert all(0 <= v <= 100 for v in row["hints_right"].values())
         assert all(0 <= v <= 100 for v in row["mean_recall"].values())
     for pairs in record["paired"].values():
         assert set(pairs) == {"training-free", "base", "scratch"}

@@ -101,7 +101,8 @@ class FitOptions:
             frames of another camera.
         tune_epochs, tune_lr, tune_batch: the fine-tuning's passes, its constant AdamW
             learning rate (no weight decay: the start, not zero, is what it should stay near)
-            and rows per step.
+            and rows per step; the class head is tuned at ``tune_lr`` with its own
+            ``class_epochs`` and ``class_batch`` (its rows, the positives, are fewer still).
     """
 
     hidden: tuple[int, ...] = (64, 64)
@@ -203,8 +204,10 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
     draws, so the same samples and options give the same weights bit for bit.
 
     With ``opts.init`` it fine-tunes that model instead (:func:`initial_model`): every MLP
-    from its weights, on its standardisation, ``opts.tune_*``'s schedule; its class head on
-    the positives of the classes it has.
+    from its weights, on its standardisation, at ``opts.tune_lr`` without weight decay; the
+    ranking and the prefilter ``opts.tune_epochs`` passes of ``opts.tune_batch`` rows, the
+    class head ``opts.class_epochs`` of ``opts.class_batch`` on the positives of the classes
+    it has.
 
     Raises:
         ValueError: no positive or no negative row (no labelled object found by a candidate).
@@ -224,7 +227,7 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
         model = initial_model(opts.init, feature_names)
         label = _relabelled(label, classes, model.classes)
         fit = dataclasses.replace(opts, epochs=opts.tune_epochs, lr=opts.tune_lr, batch=opts.tune_batch,
-                                  class_epochs=opts.tune_epochs, class_batch=opts.tune_batch, weight_decay=0.0)
+                                  weight_decay=0.0)
         fresh = False
     else:
         heads = classes is not None and opts.class_hidden is not None
