@@ -6,9 +6,16 @@
 >>> out[0]["boxes"], out[0]["scores"]      # Tensor[N, 4] (x1, y1, x2, y2), Tensor[N]
 """
 
+from typing import TYPE_CHECKING
+
 # every name is imported on its first use (PEP 562), not by ``import reeb_torch``: the
 # settings import numba (~0.4 s), the generator torch; so the ``reeb`` command's own Ctrl-C
 # handling (exit 130, one line) is in place before either loads (reeb_torch.runs._ctrl_c)
+if TYPE_CHECKING:  # the same names, as type checkers read them (py.typed)
+    from .config import PRESETS, ReebConfig, get_preset
+    from .generator import Inspection, ProposalGenerator, propose, warmup
+    from .io import ImageReadError, read_image
+
 _LAZY = {"ReebConfig": "config", "PRESETS": "config", "get_preset": "config",
          "ProposalGenerator": "generator", "propose": "generator", "Inspection": "generator",
          "warmup": "generator", "read_image": "io", "ImageReadError": "io"}

@@ -29,6 +29,10 @@ ShadowScore = Literal["underneath", "none"]
 VegetationScore = Literal["green", "none"]
 Rescore = Literal["none", "affinity", "density", "contrast", "orientation"]
 RescoreScope = Literal["all", "persons"]
+if typing.TYPE_CHECKING:  # what a caller may give: shares in the head's order, or by class name
+    ClassQuota = tuple[tuple[str, float], ...] | tuple[float, ...] | typing.Mapping[str, float]
+else:  # what the field holds, and what __post_init__ checks (a mapping is made pairs first)
+    ClassQuota = tuple[tuple[str, float], ...] | tuple[float, ...]
 
 
 # -- validation (ReebConfig.__post_init__) ---------------------------------------------------
@@ -197,6 +201,11 @@ _MAX_REGIONS = 1024
 """Most region strips a camera setting may give (eq. 8); more is a setting error."""
 
 
+def _by_name(quota: object) -> bool:
+    """Whether a ``class_quota`` gives its shares by class name (``(name, share)`` pairs)."""
+    return isinstance(quota, tuple) and bool(quota) and isinstance(quota[0], tuple)
+
+
 def _region_count(c: "ReebConfig") -> int:
     from .stages.regions import region_count, region_width_fraction
 
@@ -283,7 +292,7 @@ _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
      "grouping='connected' with rescore='affinity' or 'orientation' (they read connected groups)"),
     (("rescore", "refine", "ranker"), lambda c: c.ranker == "none" or (c.rescore == "none" and not c.refine),
      "rescore='none' and refine=off when a ranker is set (the ranker orders the windows themselves), or ranker='none'"),
-    (("class_quota", "ranker"), lambda c: not c.class_quota or c.ranker != "none" or isinstance(c.class_quota[0], tuple),
+    (("class_quota", "ranker"), lambda c: not c.class_quota or c.ranker != "none" or _by_name(c.class_quota),
      "a ranker (its class head hints each box's class) with class_quota given in the ranker's class order, "
      "class_quota by class name ({'Pedestrian': 0.2}: ignored without a class head), or class_quota=()"),
     (("class_quota", "region_quota"), lambda c: not (c.class_quota and c.region_quota),
@@ -562,7 +571,7 @@ class ReebConfig:
     keeps what a prefilter fitted on other frames misjudges. ``0``: the prefilter alone;
     ``1``: V alone (the prefilter is then not run). The cut by V is one more selection over
     the candidates, cheap beside the prefilter (docs/results.md)."""
-    class_quota: tuple[tuple[str, float], ...] | tuple[float, ...] = ()
+    class_quota: ClassQuota = ()
     """With a ranker that has a class head (``kitti``: Car, Pedestrian, Cyclist, Truck): the
     share of the ``top_k`` proposals a class gets first — the best boxes after NMS that the
     head hints as that class — the rest going to the best of all the others (as
@@ -670,10 +679,10 @@ class ReebConfig:
             ValueError: a share for each class in order, but no head or another number of
                 classes; or a class name the head does not have (both name what it has).
         """
-        quota = self.class_quota
+        quota = self.class_quota  # a mapping became (name, share) pairs in __post_init__
         if not quota:
             return None
-        named = isinstance(quota[0], tuple)
+        named = _by_name(quota)
         if classes is None:
             if named:
                 return None
@@ -682,16 +691,17 @@ class ReebConfig:
                              "({'Pedestrian': 0.2}; ignored without a class head) or class_quota=()")
         classes = tuple(classes)
         if not named:
-            if len(quota) != len(classes):
-                raise ValueError(f"ReebConfig.class_quota has {len(quota)} shares, but the ranker {self.ranker!r} "
+            shares = typing.cast("tuple[float, ...]", quota)
+            if len(shares) != len(classes):
+                raise ValueError(f"ReebConfig.class_quota has {len(shares)} shares, but the ranker {self.ranker!r} "
                                  f"has the classes {', '.join(classes)}: give one share a class, in its order, "
                                  "or the shares by class name")
-            return tuple(float(x) for x in quota)
-        unknown = [name for name, _ in quota if name not in classes]
+            return tuple(float(x) for x in shares)
+        by_name = dict(typing.cast("tuple[tuple[str, float], ...]", quota))
+        unknown = [name for name in by_name if name not in classes]
         if unknown:
             raise ValueError(f"ReebConfig.class_quota names {', '.join(map(repr, unknown))}, but the ranker "
                              f"{self.ranker!r} hints the classes {', '.join(classes)}")
-        by_name = dict(quota)
         return tuple(float(by_name.get(c, 0.0)) for c in classes)
 
     def replace(self, **changes: object) -> "ReebConfig":
@@ -713,7 +723,7 @@ class ReebConfig:
         unknown = sorted(set(d) - names)
         if unknown:
             raise ValueError(f"unknown ReebConfig field(s): {', '.join(unknown)}")
-        fixed = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        fixed: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
         return cls(**fixed)
 
     def with_camera(self, fx: float, fy: float, width: int, height: int,

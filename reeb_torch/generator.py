@@ -17,7 +17,7 @@ import time
 import warnings
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
 
 import torch
 import torch.nn.functional as F
@@ -193,6 +193,9 @@ class ProposalGenerator(nn.Module):
         return self.config.min_window
 
     # ------------------------------------------------------------------------------------
+    if TYPE_CHECKING:  # nn.Module's __call__ is untyped: type checkers read forward's contract
+        def __call__(self, images: ImageBatch) -> list[dict[str, Tensor]]: ...
+
     @torch.no_grad()
     def forward(self, images: ImageBatch) -> list[dict[str, Tensor]]:
         unchecked: list[int] = []  # float32 CPU images: their values are checked as they are read

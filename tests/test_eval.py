@@ -234,6 +234,7 @@ def test_reeb_eval_from_a_wheel_outside_the_checkout(tmp_path):
     where = subprocess.run([str(py), "-c", "import reeb_torch.eval as e; print(e.__file__)"], cwd=work,
                            capture_output=True, text=True, check=True).stdout.strip()
     assert Path(where).is_relative_to(purelib), where  # the wheel's copy, not the checkout
+    assert Path(purelib, "reeb_torch", "py.typed").is_file()  # PEP 561: type checkers read its annotations
     r = subprocess.run([str(env_dir / "bin" / "reeb"), "eval", str(data), "--methods", "reeb-default",
                         "--frames", "1", "--batch", "0", "-o", "t3"], cwd=work, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr[-2000:]
