@@ -63,6 +63,7 @@ def load_fit_frames(roots: Sequence[str | os.PathLike], limit: int | None = None
     ignore: list[Tensor] = []
     for root in roots:
         ds = KittiDataset(root, limit=limit)
+        assert ds.label_dir is not None  # load_frames refused a folder without labels
         for image_id in ds.ids:
             others = [o.box for o in read_kitti_labels(ds.label_dir / f"{image_id}.txt")
                       if o.type not in DEFAULT_CLASSES]

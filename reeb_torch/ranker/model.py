@@ -66,6 +66,12 @@ class BoxRanker(nn.Module):
             with); ``{}`` for a model made here.
     """
 
+    mean: Tensor
+    scale: Tensor
+    members: nn.ModuleList
+    prefilter: nn.Sequential | None
+    classifier: nn.Sequential | None
+
     def __init__(self, feature_names: Sequence[str], hidden: Sequence[int] = (64, 64), members: int = 1,
                  prefilter: Sequence[int] | None = (16,), classes: Sequence[str] | None = None,
                  class_hidden: Sequence[int] = (32,)) -> None:
@@ -83,11 +89,11 @@ class BoxRanker(nn.Module):
         self.prefilter_hidden = None if prefilter is None else tuple(int(h) for h in prefilter)
         self.cheap = cheap_count(sum(1 for n in self.feature_names if n.startswith("class_fit_")))
         """How many first columns the prefilter reads (:func:`~reeb_torch.stages.features.cheap_count`)."""
-        self.prefilter = None if prefilter is None else _mlp(self.cheap, self.prefilter_hidden)
+        self.prefilter = None if prefilter is None else _mlp(self.cheap, prefilter)
         self.classes = None if classes is None else tuple(str(c) for c in classes)
         """The classes of :meth:`class_probs`'s columns, or None without a class head."""
         self.class_hidden = tuple(int(h) for h in class_hidden)
-        self.classifier = None if classes is None else _mlp(f, self.class_hidden, len(self.classes))
+        self.classifier = None if classes is None else _mlp(f, self.class_hidden, len(classes))
         """The class head: which class a box looks like, were it an object (softmax logits)."""
         self.meta: dict = {}
 
@@ -111,7 +117,7 @@ class BoxRanker(nn.Module):
         :attr:`classes` (their argmax is :meth:`class_probs`'s), computed as :meth:`rank`
         computes the ranking's: the standardisation folded into the first layer, the rows in
         blocks. Raises ValueError without a class head."""
-        if self.classifier is None:
+        if self.classifier is None or self.classes is None:
             raise ValueError("this BoxRanker has no class head (fit one with reeb fit)")
         self._check(features)
         return self._run_folded([self._folded(self.classifier)], features.float(), len(self.classes))
@@ -145,10 +151,10 @@ class BoxRanker(nn.Module):
         out = self._run_folded([self._folded(m) for m in self.members], features.float(), 1).squeeze(1)
         return out / len(self.members) if len(self.members) > 1 else out
 
-    def _folded(self, mlp: nn.Sequential) -> list[tuple[Tensor, Tensor]]:
+    def _folded(self, mlp: nn.Module) -> list[tuple[Tensor, Tensor]]:
         """``mlp``'s layers as ``(bias, weight.T)`` with the standardisation folded into the
         first (weights ``W / scale``, bias ``b − (W / scale) · mean``)."""
-        layers = [m for m in mlp if isinstance(m, nn.Linear)]
+        layers = [m for m in mlp.children() if isinstance(m, nn.Linear)]
         w = layers[0].weight / self.scale
         return [(layers[0].bias - w @ self.mean, w.T)] + [(layer.bias, layer.weight.T) for layer in layers[1:]]
 
@@ -159,7 +165,7 @@ class BoxRanker(nn.Module):
         out = x.new_empty(len(x), outputs)
         for start in range(0, len(x), RANK_ROWS):
             rows = x[start: start + RANK_ROWS]
-            acc = None
+            acc: Tensor | None = None
             for layers in mlps:
                 h = rows
                 for i, (bias, weight_t) in enumerate(layers):
@@ -167,6 +173,7 @@ class BoxRanker(nn.Module):
                     if i < len(layers) - 1:
                         h.relu_()
                 acc = h if acc is None else acc.add_(h)
+            assert acc is not None  # one MLP at least
             out[start: start + len(rows)] = acc
         return out
 

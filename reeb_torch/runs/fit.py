@@ -80,7 +80,8 @@ def _report(frames: F.FitFrames, rows: dict[str, list], ref: list) -> tuple[list
     names = list(dict.fromkeys(frames.folders))
     if len(names) > 1:
         groups += [(n, [i for i, f in enumerate(frames.folders) if f == n]) for n in names]
-    lines, record = [], {}
+    lines: list[str] = []
+    record: dict[str, Any] = {}
     for title, idx in groups:
         lines.append(f"{title} ({len(idx)} frames):")
         record[title] = []
@@ -159,7 +160,7 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions,
         shown["shipped kitti model"] = shipped
     if len(shown) > len(rows):
         table = _report(frames, shown, cv.base_hits)[0]
-    provenance = {
+    provenance: dict[str, Any] = {
         "data": [os.path.basename(os.path.normpath(r)) for r in roots], "frames": len(frames),
         "objects": sum(len(g) for g in frames.gts), "frames_digest": frames_digest(frames),
         "options": dataclasses.asdict(opts), "folds": folds, "k": k, "iou": iou, "command": command,
