@@ -90,6 +90,26 @@ def test_compiled_path_is_the_tensor_path(batch):
         assert torch.equal(got, ref)
 
 
+def test_box_features_need_the_tables_past_the_cheap_columns(batch):
+    """BoxMaps made for the geometry alone serve the cheap columns, on both paths, and refuse
+    the others with a message that says what is missing."""
+    b = batch
+    bi, ni = torch.nonzero(b["chosen"], as_tuple=True)
+    bi, ni = bi[:50], ni[:50]
+    geometry = b["rk"].box_maps(b["maps"], geometry_only=True)
+    assert geometry.tables is None
+    boxes = b["grid"].boxes[ni].round().long()
+    region = b["grid"].region_of[ni]
+    args = (b["scores"][bi, ni], b["share"][bi, region], b["entropy"][bi, region])
+    assert torch.equal(F.box_features(geometry, boxes, bi, *args, cheap=True), _tensor_features(b, bi, ni, True))
+    with pytest.raises(ValueError, match="integral images and the groups' enclosed-sum tables"):
+        F.box_features(geometry, boxes, bi, *args)
+    window = b["rk"]._window_table(b["maps"], b["grid"])
+    with pytest.raises(ValueError, match="geometry_only=True"):
+        F.box_features_cpu(geometry, b["grid"].boxes, window, b["scores"], b["share"], b["entropy"],
+                           b["grid"].region_of, bi, ni, False)
+
+
 def test_window_table_is_cached_per_grid(batch):
     b = batch
     t1 = b["rk"]._window_table(b["maps"], b["grid"])

@@ -24,6 +24,7 @@ loads of cached memory in the compiled loop.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -133,7 +134,29 @@ class BoxMaps:
 
 # -- the tensor path ------------------------------------------------------------------------------
 
-def _grown(x0: Tensor, y0: Tensor, x1: Tensor, y1: Tensor, f: float, h: int, w: int) -> tuple[Tensor, ...]:
+Box = tuple[Tensor, Tensor, Tensor, Tensor]
+"""Boxes as four ``int64 [K]`` columns ``(x0, y0, x1, y1)``, working pixels, ends exclusive."""
+
+
+class _Sums(NamedTuple):
+    """The tables the columns past the cheap ones read (:attr:`BoxMaps.ii_edges`, ...)."""
+
+    edges: Tensor
+    grey: Tensor
+    grey2: Tensor
+    tables: EnclosedTables
+
+
+def _sums(maps: BoxMaps) -> _Sums:
+    """``maps``' integral images and enclosed-sum tables; ValueError where it was made
+    without them (they are None for :func:`window_features` and the cheap columns)."""
+    if maps.ii_edges is None or maps.ii_grey is None or maps.ii_grey2 is None or maps.tables is None:
+        raise ValueError("the box features past the cheap columns read the integral images and the groups' "
+                         "enclosed-sum tables, which these BoxMaps lack (made with geometry_only=True)")
+    return _Sums(maps.ii_edges, maps.ii_grey, maps.ii_grey2, maps.tables)
+
+
+def _grown(x0: Tensor, y0: Tensor, x1: Tensor, y1: Tensor, f: float, h: int, w: int) -> Box:
     """The boxes grown (``f > 0``) or shrunk (``f < 0``) by ``round(f · side)`` on each side,
     clipped to the image; at least one pixel stays."""
     dx = ((x1 - x0).double() * f).round().long()
@@ -143,7 +166,7 @@ def _grown(x0: Tensor, y0: Tensor, x1: Tensor, y1: Tensor, f: float, h: int, w: 
     return gx0, gy0, gx1, gy1
 
 
-def _area(b: tuple[Tensor, ...]) -> Tensor:
+def _area(b: Box) -> Tensor:
     return ((b[2] - b[0]) * (b[3] - b[1])).double()
 
 
@@ -173,12 +196,14 @@ def box_features(maps: BoxMaps, boxes: Tensor, bi: Tensor, scores: Tensor, regio
 
     Every column is finite: logarithms are of clamped values, means of empty areas are 0.
     """
-    box = tuple(boxes.unbind(1))
+    x0, y0, x1, y1 = boxes.unbind(1)
+    box: Box = (x0, y0, x1, y1)
     cols = list((window_features(maps, boxes) if window is None else window.double()).unbind(1))
     cols += [torch.log(scores.double().clamp(min=1e-6)), region_share.double(), region_entropy.double()]
     if not cheap:
-        cols += _terms(maps, box, bi) + _edge_stats(maps, box, bi) + _grey_stats(maps, box, bi)
-        cols += _edge_layout(maps, box, bi)
+        sums = _sums(maps)
+        cols += _terms(maps, sums, box, bi) + _edge_stats(maps, sums, box, bi) + _grey_stats(maps, sums, box, bi)
+        cols += _edge_layout(maps, sums, box, bi)
     out = torch.stack([c.to(torch.float64) for c in cols], 1)
     return torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).float()
 
@@ -204,7 +229,7 @@ def _class_fits(maps: BoxMaps, y1: Tensor, bw: Tensor, bh: Tensor) -> list[Tenso
     return [a * b for a, b in zip(fits, widths)]
 
 
-def _terms(maps: BoxMaps, box: tuple[Tensor, ...], bi: Tensor) -> list[Tensor]:
+def _terms(maps: BoxMaps, sums: _Sums, box: Box, bi: Tensor) -> list[Tensor]:
     """REEB's own terms that read the image: S (eq. 1), the shadow and vegetation shares."""
     h, w = maps.size
     x0, y0, x1, y1 = box
@@ -215,79 +240,79 @@ def _terms(maps: BoxMaps, box: tuple[Tensor, ...], bi: Tensor) -> list[Tensor]:
     cx0 = x0 + torch.div(x1 - x0 - cw, 2, rounding_mode="floor")
     cy0 = y0 + torch.div(y1 - y0 - ch, 2, rounding_mode="floor")
     unit = 2.0 / (maps.fx + maps.fy)
-    centre = at(maps.ii_edges, bi, cx0, cy0, cx0 + cw, cy0 + ch)
-    enclosed = enclosed_at(maps.tables, bi, x0, y0, x1, y1)
+    centre = at(sums.edges, bi, cx0, cy0, cx0 + cw, cy0 + ch)
+    enclosed = enclosed_at(sums.tables, bi, x0, y0, x1, y1)
     s = (enclosed * unit - centre * unit) / edge_norm(bw / maps.fx, bh / maps.fy, maps.score_norm, maps.kappa,
                                                       maps.gamma)
     sh = (bh * SHADOW_STRIP).round().long().clamp(min=1)
     mx = torch.minimum((bw * SHADOW_MARGIN).floor().long(), torch.div(x1 - x0 - 1, 2, rounding_mode="floor"))
     cols = (x1 - x0 - 2 * mx).double()
-    g_in = at(maps.ii_grey, bi, x0 + mx, y1 - sh, x1 - mx, y1) / (sh.double() * cols)
+    g_in = at(sums.grey, bi, x0 + mx, y1 - sh, x1 - mx, y1) / (sh.double() * cols)
     rows = torch.minimum((h - y1).clamp(min=0), sh)  # the strip below, cut at the image's bottom
-    g_below = at(maps.ii_grey, bi, x0 + mx, y1, x1 - mx, y1 + rows) / (rows.double() * cols).clamp(min=1)
+    g_below = at(sums.grey, bi, x0 + mx, y1, x1 - mx, y1 + rows) / (rows.double() * cols).clamp(min=1)
     shadow = torch.where(rows > 0, ((g_below - g_in) / g_below.clamp(min=1e-3)).clamp(0, 1), torch.zeros_like(g_in))
     c = _grown(x0, y0, x1, y1, -BORDER, h, w)
     green = (at(maps.green, bi, *c).double() / _area(c) if maps.green is not None else torch.zeros_like(bw))
     return [torch.log(s.clamp(min=1e-4)), shadow, green]
 
 
-def _edge_stats(maps: BoxMaps, box: tuple[Tensor, ...], bi: Tensor) -> list[Tensor]:
+def _edge_stats(maps: BoxMaps, sums: _Sums, box: Box, bi: Tensor) -> list[Tensor]:
     """Mean edge magnitude inside, in the centre and in the ring; the enclosed groups' share;
     left/right and top/bottom balance; the inner border band."""
     h, w = maps.size
     x0, y0, x1, y1 = box
     at = box_sum_at
     area = _area(box)
-    e_in = at(maps.ii_edges, bi, *box)
+    e_in = at(sums.edges, bi, *box)
     c = _grown(*box, -CENTRE, h, w)
     r = _grown(*box, RING, h, w)
     r_area = _area(r) - area
-    e_ring = torch.where(r_area > 0, (at(maps.ii_edges, bi, *r) - e_in) / r_area.clamp(min=1), torch.zeros_like(e_in))
+    e_ring = torch.where(r_area > 0, (at(sums.edges, bi, *r) - e_in) / r_area.clamp(min=1), torch.zeros_like(e_in))
     mean_in = e_in / area
-    enclosed = enclosed_at(maps.tables, bi, *box)  # exact for boxes larger than every group
-    e_left = at(maps.ii_edges, bi, x0, y0, torch.div(x0 + x1, 2, rounding_mode="floor"), y1)
-    e_top = at(maps.ii_edges, bi, x0, y0, x1, torch.div(y0 + y1, 2, rounding_mode="floor"))
+    enclosed = enclosed_at(sums.tables, bi, *box)  # exact for boxes larger than every group
+    e_left = at(sums.edges, bi, x0, y0, torch.div(x0 + x1, 2, rounding_mode="floor"), y1)
+    e_top = at(sums.edges, bi, x0, y0, x1, torch.div(y0 + y1, 2, rounding_mode="floor"))
     denom = e_in.clamp(min=1e-9)
     i = _grown(*box, -BORDER, h, w)
-    band = (e_in - at(maps.ii_edges, bi, *i)) / (area - _area(i)).clamp(min=1)
-    return [mean_in, at(maps.ii_edges, bi, *c) / _area(c), e_ring, mean_in - e_ring, (enclosed / denom).clamp(0, 1),
+    band = (e_in - at(sums.edges, bi, *i)) / (area - _area(i)).clamp(min=1)
+    return [mean_in, at(sums.edges, bi, *c) / _area(c), e_ring, mean_in - e_ring, (enclosed / denom).clamp(0, 1),
             ((2 * e_left - e_in) / denom).abs(), (2 * e_top - e_in) / denom, band]
 
 
-def _grey_stats(maps: BoxMaps, box: tuple[Tensor, ...], bi: Tensor) -> list[Tensor]:
+def _grey_stats(maps: BoxMaps, sums: _Sums, box: Box, bi: Tensor) -> list[Tensor]:
     """Mean and spread of the grey image inside, its mean in the ring, their contrast, the green share."""
     h, w = maps.size
     at = box_sum_at
     area = _area(box)
     r = _grown(*box, RING, h, w)
     r_area = _area(r) - area
-    g_sum = at(maps.ii_grey, bi, *box)
+    g_sum = at(sums.grey, bi, *box)
     g_mean = g_sum / area
-    g_var = (at(maps.ii_grey2, bi, *box) / area - g_mean * g_mean).clamp(min=0)
-    g_ring = torch.where(r_area > 0, (at(maps.ii_grey, bi, *r) - g_sum) / r_area.clamp(min=1), g_mean)
+    g_var = (at(sums.grey2, bi, *box) / area - g_mean * g_mean).clamp(min=0)
+    g_ring = torch.where(r_area > 0, (at(sums.grey, bi, *r) - g_sum) / r_area.clamp(min=1), g_mean)
     green = at(maps.green, bi, *box).double() / area if maps.green is not None else torch.zeros_like(area)
     return [g_mean, g_var.sqrt(), g_ring, (g_mean - g_ring).abs(), green]
 
 
-def _edge_layout(maps: BoxMaps, box: tuple[Tensor, ...], bi: Tensor) -> list[Tensor]:
+def _edge_layout(maps: BoxMaps, sums: _Sums, box: Box, bi: Tensor) -> list[Tensor]:
     """Where the edges lie: the mean edge magnitude of each cell of a 3 × 3 grid over the box
     and of the ring's four strips beside its sides, each as ``log((m + ε) / (mean inside + ε))``."""
     h, w = maps.size
     x0, y0, x1, y1 = box
     at = box_sum_at
     eps = 1e-4
-    ref = (at(maps.ii_edges, bi, *box) / _area(box)).clamp(min=1e-6) + eps
+    ref = (at(sums.edges, bi, *box) / _area(box)).clamp(min=1e-6) + eps
     xs = [x0 + torch.div((x1 - x0) * k, 3, rounding_mode="floor") for k in range(4)]
     ys = [y0 + torch.div((y1 - y0) * k, 3, rounding_mode="floor") for k in range(4)]
     out = []
     for i in range(3):
         for j in range(3):
             cell = (xs[j], ys[i], torch.maximum(xs[j + 1], xs[j] + 1), torch.maximum(ys[i + 1], ys[i] + 1))
-            out.append(torch.log((at(maps.ii_edges, bi, *cell) / _area(cell) + eps) / ref))
+            out.append(torch.log((at(sums.edges, bi, *cell) / _area(cell) + eps) / ref))
     rx0, ry0, rx1, ry1 = _grown(*box, RING, h, w)
     for a, b, c, d in ((rx0, y0, x0, y1), (x1, y0, rx1, y1), (x0, ry0, x1, y0), (x0, y1, x1, ry1)):
         n = ((c - a) * (d - b)).double()
-        m = torch.where(n > 0, at(maps.ii_edges, bi, a, b, c, d) / n.clamp(min=1), torch.zeros_like(n))
+        m = torch.where(n > 0, at(sums.edges, bi, a, b, c, d) / n.clamp(min=1), torch.zeros_like(n))
         out.append(torch.log((m + eps) / ref))
     return out
 
@@ -433,11 +458,14 @@ def box_features_cpu(maps: BoxMaps, grid_boxes: Tensor, window: Tensor, scores: 
     n_cls = len(maps.class_ratios)
     out = np.empty((len(bi), cheap_count(n_cls) if cheap else len(feature_names(n_cls))), np.float32)
     none = np.zeros((1, 1, 1))
-    t = maps.tables
-    tables = ((maps.ii_edges.numpy(), maps.ii_grey.numpy(), maps.ii_grey2.numpy(),
-               maps.green.numpy() if maps.green is not None else np.zeros((1, 1, 1), np.int32),
-               t.anchor.numpy(), t.cut_col.numpy(), t.cut_row.numpy(), t.corner.numpy())
-              if not cheap else (none, none, none, np.zeros((1, 1, 1), np.int32), none, none, none, none))
+    if cheap:
+        tables = (none, none, none, np.zeros((1, 1, 1), np.int32), none, none, none, none)
+    else:
+        sums = _sums(maps)
+        t = sums.tables
+        tables = (sums.edges.numpy(), sums.grey.numpy(), sums.grey2.numpy(),
+                  maps.green.numpy() if maps.green is not None else np.zeros((1, 1, 1), np.int32),
+                  t.anchor.numpy(), t.cut_col.numpy(), t.cut_row.numpy(), t.corner.numpy())
     logs = np.empty((len(bi), 1 if cheap else len(_LOG_COLUMNS)))
     args = (grid_boxes.numpy(), window.numpy(), scores.numpy(), share.double().numpy(), entropy.double().numpy(),
             region_of.numpy(), bi.numpy(), ni.numpy(), *tables, consts, out, logs, not cheap)
