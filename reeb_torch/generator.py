@@ -312,9 +312,10 @@ class ProposalGenerator(nn.Module):
         road = None
         if needs_road:
             with self._stage("road", dev):
+                assert work.colour is not None  # needs_colour=needs_road made it
                 road = _road.road_mask(work.colour, cfg.road_samples, cfg.road_band, cfg.road_tolerance,
                                        cfg.road_combine, cfg.seed)
-        maps = ScoreMaps(work.edges, groups, tuple(images[0].shape[-2:]), road=road, green=work.green,
+        maps = ScoreMaps(work.edges, groups, (images[0].shape[-2], images[0].shape[-1]), road=road, green=work.green,
                          crossing=work.crossing, grey=work.gray[:, 0])
         return work, maps
 
@@ -357,7 +358,7 @@ class ProposalGenerator(nn.Module):
                                                            self._stage if self.stage_times is not None else None)
                 if quota and ranked:
                     with self._stage("ranker.class_head", dev):
-                        class_of, ranked_logits = self.ranking.class_map(ranked[0], tuple(scores.shape))
+                        class_of, ranked_logits = self.ranking.class_map(ranked[0], (scores.shape[0], scores.shape[1]))
         # Edge Boxes' refinement of the candidates (not in the paper; ``ReebConfig.refine``)
         refined = None
         if cfg.refine:
@@ -368,6 +369,7 @@ class ProposalGenerator(nn.Module):
         with self._stage("nms", dev):
             results = self.ranking.suppress(maps, grid, chosen, scores, share, refined, windows, class_of)
         if hints:  # which class each proposal looks like (the ranking model's class head)
+            assert windows is not None  # the NMS kept each proposal's window for the hints
             with self._stage("ranker", dev), self._stage("ranker.class_head", dev):
                 for r, probs in zip(results, self.ranking.class_hints(maps, grid, v_scores, share, entropy, windows,
                                                                       ranked[0] if ranked else None, ranked_logits)):
@@ -404,7 +406,9 @@ class ProposalGenerator(nn.Module):
         compiled front end counts the values outside [0, 1] as it reads them (a float image
         read once, not twice: 0.3 ms per KITTI image), else :func:`check_range` does."""
         cfg = self.config
-        colour = gray = green = None
+        colour: Tensor | None = None
+        gray: Tensor | None = None
+        green: Tensor | None = None
         want_green = cfg.vegetation_score != "none"
         pending = [(j, i) for j, i in enumerate(check_at or ()) if i is not None]
         if cfg.edge_channels == "gray" and not needs_colour:
@@ -420,6 +424,7 @@ class ProposalGenerator(nn.Module):
             gray = _edges.to_gray(colour)
             green = _scoring.count_integral(_edges.green_mask(colour)) if want_green else None
         src = gray if cfg.edge_channels == "gray" else colour
+        assert src is not None  # RGB edges take the colour images made above (never the compiled grey front end)
         crossing = None
         if cfg.straddle_weight > 0:  # edge orientations for the straddling term
             edges, gx, gy = _edges.edge_map(src, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated,

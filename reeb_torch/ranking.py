@@ -136,6 +136,7 @@ class ScoreMaps:
         """Integral images of the straddling term's two maps, padded by ``band`` so that
         sides at the image border read zeros."""
         def build() -> tuple[Tensor, Tensor]:
+            assert self.crossing is not None, "the straddling term's maps were not made"
             cols, rows = self.crossing
             return (_scoring.integral_image(F.pad(cols, (band, band, band, band))),
                     _scoring.integral_image(F.pad(rows, (band, band, band, band))))
@@ -174,7 +175,8 @@ def _chosen(chosen: Tensor) -> tuple[Tensor, Tensor]:
     ``int64``, image-major, windows ascending. On the CPU numpy's ``flatnonzero``, an image
     at a time (torch's 2-D nonzero took 3 ms for 4 KITTI images' 170 000 windows; this 0.4)."""
     if chosen.device.type != "cpu":
-        return torch.nonzero(chosen, as_tuple=True)
+        images, windows = torch.nonzero(chosen, as_tuple=True)
+        return images, windows
     mask = chosen.numpy()
     parts = [np.flatnonzero(row) for row in mask]
     ni = np.concatenate(parts) if parts else np.zeros(0, np.int64)
@@ -375,6 +377,7 @@ class Ranking:
                 else torch.zeros_like(sc)
             if cfg.road_score == "stand":  # road just below the box, little road inside it
                 sh = max(1, int(round(cfg.road_strip * s.h)))
+                assert ii_road_below is not None  # made above for road_score='stand'
                 below = _scoring.box_sums(ii_road_below, 0, s.h, s.w, sh, s) / (s.w * sh)
                 r = (below.float() * (1.0 - r)).clamp_(0, 1)
             key = self._loc_key(s)
@@ -392,6 +395,7 @@ class Ranking:
             v = torch.where(sc >= cfg.min_edge_score, v, -math.inf)
             out[:, off: off + s.count] = v.reshape(b, -1)
             if shadow is not None:  # the darker bottom strip of a vehicle over the road below it
+                assert ii_grey_below is not None and maps.grey is not None  # made with the shadow term
                 sh, mx = _scoring.shadow_strips(s.w, s.h, cfg.shadow_strip, cfg.shadow_margin)
                 inside = _scoring.box_sums(ii_grey_below, mx, s.h - sh, s.w - 2 * mx, sh, s)
                 below = _scoring.box_sums(ii_grey_below, mx, s.h, s.w - 2 * mx, sh, s)
@@ -615,13 +619,16 @@ class Ranking:
         grey = maps.grey
         widths = (tuple((t[2], t[3]) for t in cfg.object_templates)
                   if cfg.location_fit == "shape" and len(cfg.object_templates) == len(cfg.class_heights_m) else None)
-        if geometry_only:
-            tables = (None,) * 5
-        else:
-            tables = (maps.integral("edges"), maps.integral("grey"),
-                      maps._keep("grey2", lambda: _scoring.integral_image(grey * grey)), maps.green, maps.tables())
+        ii_edges = ii_grey = ii_grey2 = green = None
+        tables = None
+        if not geometry_only:
+            assert grey is not None, "the per-box features read the grey image (ScoreMaps.grey)"
+            ii_edges, ii_grey = maps.integral("edges"), maps.integral("grey")
+            ii_grey2 = maps._keep("grey2", lambda: _scoring.integral_image(grey * grey))
+            green, tables = maps.green, maps.tables()
         return _features.BoxMaps(
-            tuple(maps.edges.shape[-2:]), *tables, cfg.horizon, cfg.camera_height_m,
+            (maps.edges.shape[-2], maps.edges.shape[-1]), ii_edges, ii_grey, ii_grey2, green, tables, cfg.horizon,
+            cfg.camera_height_m,
             tuple(h / cfg.camera_height_m for h in cfg.class_heights_m), tuple(cfg.class_weights), widths,
             cfg.ground_log_sigma, maps.fx, maps.fy, cfg.center_fraction, cfg.score_norm, cfg.kappa, cfg.gamma)
 
@@ -778,6 +785,7 @@ class Ranking:
 
     def _model_on(self, device: torch.device):
         """:attr:`model` on ``device`` (the shared CPU model, or a copy per device)."""
+        assert self.model is not None, "no ranking model (ranker='none')"
         if device.type == "cpu":
             return self.model
         key = ("model", str(device))
@@ -866,9 +874,10 @@ class Ranking:
                 loc_h = self._location(bottom, bh, bh, h_in, w_in).expand(hk + 1, hk + 1)[None]
                 loc_w = torch.ones((1, hk + 1, wk + 1), dtype=torch.float64)
             else:
-                loc_h = torch.stack(_scoring.class_height_fits(bottom, bh, float(h_in), cfg.horizon,
-                                                               self._ground_ratios(), cfg.ground_log_sigma,
-                                                               self._class_weights()))
+                ratios = self._ground_ratios()
+                assert isinstance(ratios, tuple)  # one a class: widths are fitted only with location_score='classes'
+                loc_h = torch.stack(_scoring.class_height_fits(bottom, bh, float(h_in), cfg.horizon, ratios,
+                                                               cfg.ground_log_sigma, self._class_weights()))
                 loc_w = torch.stack(_scoring.class_width_fits(bottom, bw, float(h_in), cfg.horizon, widths,
                                                               cfg.ground_log_sigma, cfg.camera_height_m))
             norm = _scoring.edge_norm(bw.T, bh, cfg.score_norm, cfg.kappa, cfg.gamma)
@@ -969,6 +978,7 @@ class Ranking:
                   if dev.type == "cpu" and boxes_in.dtype == torch.float32 else None)
             groups = need = None  # with a quota: past top_k only until each group has its share of the kept boxes
             if class_share is not None:
+                assert class_of is not None  # class_share is made only with it
                 groups, need = class_of.long().clamp(min=0), self.quota_counts(class_share)
             elif quota:  # each image's regions, by its own shares (none where they sum to 0: quota keeps the best)
                 groups = region_of.expand(b, -1)
@@ -991,6 +1001,7 @@ class Ranking:
         h_in, w_in = maps.input_size
         for i, ((bx, sc), keep_idx, win) in enumerate(zip(pairs, kept, windows)):
             if class_share is not None:
+                assert class_of is not None  # class_share is made only with it
                 keep_idx = self.quota(keep_idx, class_of[i, win].long().clamp(min=0), class_share,
                                       whole=True)[: cfg.top_k]
             elif quota:

@@ -188,7 +188,7 @@ def enclosed_sums(groups: EdgeGroups, batch: int, sizes: list[WindowSize]) -> li
     return out
 
 
-def edge_score(enclosed: Tensor, centre: Tensor, w: float, h: float, norm: str, kappa: float,
+def edge_score(enclosed: Tensor, centre: Tensor, w: float | Tensor, h: float | Tensor, norm: str, kappa: float,
                gamma: float) -> Tensor:
     """Eq. 1: S = (Σ_n w_n m_n − Σ_c m_c) / normaliser, with ``w``, ``h`` the window's size
     in the units the sums are in. ``perimeter``: (2(w + h))^κ (Edge Boxes);
