@@ -139,7 +139,7 @@ def check_images(images: ImageBatch, min_side: int, config: ReebConfig | None = 
         defer = (unchecked is not None and isinstance(img, Tensor) and img.dtype == torch.float32
                  and img.device.type == "cpu")
         x = _check_one(img, f"image {i}", keep_uint8, defer)
-        if defer:
+        if defer and unchecked is not None:
             unchecked.append(i)
         h, w = x.shape[-2:]
         if h < min_side or w < min_side:

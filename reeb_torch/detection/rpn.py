@@ -36,6 +36,7 @@ the content of each input image (:func:`~reeb_torch.detection.cache.image_digest
 
 from __future__ import annotations
 
+import os
 import warnings
 from typing import Literal, Sequence
 
@@ -114,7 +115,7 @@ class ReebRPN(nn.Module):
         *,
         post_nms_top_n_train: int = 1000,
         post_nms_top_n_test: int = 300,
-        cache: ProposalCache | str | None = None,
+        cache: ProposalCache | str | os.PathLike | None = None,
         on_miss: Literal["error", "compute"] = "error",
         min_size: float = 1e-3,
         image_mean: Sequence[float] = IMAGENET_MEAN,
@@ -136,7 +137,7 @@ class ReebRPN(nn.Module):
         self.min_size = min_size
         self.image_mean = tuple(float(v) for v in image_mean)
         self.image_std = tuple(float(v) for v in image_std)
-        if isinstance(cache, (str, bytes)) or hasattr(cache, "__fspath__"):
+        if isinstance(cache, (str, bytes, os.PathLike)):
             cache = ProposalCache.load(cache, config=config)
         elif cache is not None:
             cache.check_config(config)
@@ -161,7 +162,7 @@ class ReebRPN(nn.Module):
         model.rpn = self
         if not getattr(model, "_reeb_hooked", False):
             model.register_forward_pre_hook(_stash_inputs, with_kwargs=True)
-            model._reeb_hooked = True
+            setattr(model, "_reeb_hooked", True)  # nn.Module's attributes are typed as tensors and modules
         return model
 
     def post_nms_top_n(self) -> int:

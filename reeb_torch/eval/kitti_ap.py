@@ -212,7 +212,9 @@ def average_precision(stats: Sequence[FrameStats]) -> float:
     thresholds = get_thresholds(tp_scores, num_gt)
     if len(thresholds) == 0:
         return 0.0
-    totals = sum(s.at(thresholds) for s in stats)
+    totals = stats[0].at(thresholds)  # stats is not empty: there are thresholds
+    for s in stats[1:]:
+        totals = totals + s.at(thresholds)
     tp, fp = totals[:, 0].astype(np.float64), totals[:, 1].astype(np.float64)
     precision = np.zeros(N_SAMPLE_PTS)
     n = min(len(thresholds), N_SAMPLE_PTS)

@@ -498,7 +498,7 @@ def select_objects(
         if m.shape[0] != g.shape[0]:
             raise ValueError(f"masks[{i}] has {m.shape[0]} entries for {g.shape[0]} boxes")
         out_gts.append(g[m])
-        if out_labels is not None:
+        if out_labels is not None and gt_labels is not None:
             out_labels.append(torch.as_tensor(gt_labels[i]).reshape(-1)[m.cpu()])
     return out_gts, out_labels
 

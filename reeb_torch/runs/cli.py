@@ -95,7 +95,7 @@ class _Reeb(click.Group):
 
     def invoke(self, ctx: click.Context):
         _ctrl_c.interrupts()  # the runs catch KeyboardInterrupt to save what is done
-        ended = None
+        ended: BaseException | None = None
         try:
             return super().invoke(ctx)
         except KeyboardInterrupt:

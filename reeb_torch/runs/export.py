@@ -29,6 +29,7 @@ import json
 import os
 import pickle
 from pathlib import Path
+import typing
 from typing import Iterable, Mapping
 
 import numpy as np
@@ -125,7 +126,7 @@ def image_ids(images: Iterable[str], id_map: Mapping[str, object] | None = None,
             id_ = p.stem
         if id_type == "int":
             try:
-                id_ = int(id_)
+                id_ = int(typing.cast("typing.SupportsInt | str", id_))  # a mapping's value, or a stem
             except (TypeError, ValueError):
                 raise ExportError(f"{image}: id {id_!r} is not an integer (--id-type int)") from None
         if str(id_) in seen:

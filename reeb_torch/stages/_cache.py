@@ -331,7 +331,7 @@ class _KernelCache(_caching.FunctionCache):
         super().__init__(py_func)
         self._ours = isinstance(self._impl.locator, _PackageCacheLocator)
         if self._ours:
-            old = self._cache_file
+            old = self._cache_file  # type: ignore[has-type]  # numba's attribute
             self._cache_file = _CheckedCacheFile(self._cache_path, self._impl.filename_base, old._source_stamp)
             if self._impl.locator.root is None:
                 self.disable()
@@ -361,5 +361,5 @@ class _KernelCache(_caching.FunctionCache):
 
 if _PackageCacheLocator not in _caching.CacheImpl._locator_classes:
     _caching.CacheImpl._locator_classes.insert(0, _PackageCacheLocator)
-if _dispatcher.FunctionCache is _caching.FunctionCache:  # what njit(cache=True) makes
-    _dispatcher.FunctionCache = _KernelCache
+if _dispatcher.FunctionCache is _caching.FunctionCache:  # type: ignore[attr-defined]  # what njit(cache=True) makes
+    _dispatcher.FunctionCache = _KernelCache  # type: ignore[attr-defined]

@@ -41,7 +41,7 @@ def working_images(images: list[Tensor], scale: float) -> Tensor:
     images = [x.float().div_(255.0) if x.dtype == torch.uint8 else x for x in images]
     if scale == 1.0:
         return torch.stack(images) if len(images) > 1 else images[0][None]
-    size = working_size(*images[0].shape[-2:], scale)
+    size = working_size(images[0].shape[-2], images[0].shape[-1], scale)
     small = [F.interpolate(x[None], size=size, mode="bilinear", align_corners=False, antialias=scale < 1)
              for x in images]
     return torch.cat(small) if len(small) > 1 else small[0]

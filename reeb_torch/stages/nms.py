@@ -292,8 +292,11 @@ def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k
     ch = chosen.contiguous().numpy()
     bx = boxes.contiguous().numpy()
     sc = scores.contiguous().numpy()
-    cl = classes.to(torch.int64).contiguous().numpy() if classes is not None else None
-    nd = need.to(torch.int64).expand(ch.shape[0], -1).contiguous().numpy() if classes is not None else None
+    cl = nd = None
+    if classes is not None:
+        assert need is not None, "a class quota needs each class's count (need)"
+        cl = classes.to(torch.int64).contiguous().numpy()
+        nd = need.to(torch.int64).expand(ch.shape[0], -1).contiguous().numpy()
     out: list[np.ndarray | None] = [np.empty(0, np.int64)] * ch.shape[0]
     if boxes_ok is None:
         boxes_ok = boxes_valid(boxes)

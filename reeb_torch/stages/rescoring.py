@@ -288,7 +288,7 @@ def _rows_by_image(b_np: np.ndarray) -> list[tuple[int, np.ndarray]]:
     order = np.argsort(b_np, kind="stable")
     ends = np.cumsum(np.bincount(b_np))
     starts = ends - np.bincount(b_np)
-    return [(i, order[starts[i]:ends[i]]) for i in np.flatnonzero(ends - starts)]
+    return [(int(i), order[starts[i]:ends[i]]) for i in np.flatnonzero(ends - starts)]
 
 
 def group_graph(edges: np.ndarray, cell: int | None, radius: int = 2) -> tuple[np.ndarray, ...]:
