@@ -1,8 +1,8 @@
 """The annotations users' type checkers read (``reeb_torch/py.typed``): the README's code
 type-checks with the types it says (``tests/typing/user_code.py``), and mistakes are
 caught (``tests/typing/misuse.py``), as mypy sees the installed package (its own modules
-followed silently: a user sees only their own code's errors). The lazily imported
-top-level names are declared for type checkers too."""
+followed silently: a user sees only their own code's errors); the package itself checks
+clean. The lazily imported top-level names are declared for type checkers too."""
 
 from __future__ import annotations
 
@@ -40,6 +40,15 @@ def test_mistakes_are_caught_where_they_are(cache):
     r = _mypy(path, cache)
     flagged = {int(line.split(":")[1]) for line in r.stdout.splitlines() if ": error:" in line}
     assert marked and flagged == marked, r.stdout
+
+
+def test_the_package_type_checks(cache):
+    """mypy over the whole package, with the settings in pyproject.toml ([tool.mypy]: numba
+    and OpenCV read as Any): no finding."""
+    pytest.importorskip("mypy", reason="mypy (in the dev extra) checks the package's annotations")
+    r = subprocess.run([sys.executable, "-m", "mypy", "--no-color-output", "--cache-dir", str(cache), "reeb_torch"],
+                       capture_output=True, text=True, cwd=HERE.parent, timeout=900)
+    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-2000:]
 
 
 def test_lazy_names_are_declared_for_type_checkers():

@@ -26,6 +26,7 @@ import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+import typing
 from typing import Any
 
 import torch
@@ -104,14 +105,15 @@ def compute_features(model: torch.nn.Module, image: Tensor) -> FrameFeatures:
     transform (resize, normalise, pad to 32) on the image alone, then the frozen backbone,
     exactly as ``model([image])`` computes them."""
     x = image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
-    was_training = model.transform.training
-    model.transform.eval()
+    det: Any = model  # a detector: nn.Module leaves its parts (transform, backbone, ...) untyped
+    was_training = det.transform.training
+    det.transform.eval()
     try:
-        batch, _ = model.transform([x])
+        batch, _ = det.transform([x])
     finally:
-        model.transform.train(was_training)
-    levels = model.backbone.frozen(batch.tensors)
-    return FrameFeatures({k: v[0].half() for k, v in levels.items()}, tuple(image.shape[-2:]),
+        det.transform.train(was_training)
+    levels = det.backbone.frozen(batch.tensors)
+    return FrameFeatures({k: v[0].half() for k, v in levels.items()}, (image.shape[-2], image.shape[-1]),
                          tuple(batch.image_sizes[0]), tuple(batch.tensors.shape[-2:]))
 
 

@@ -27,8 +27,10 @@ from __future__ import annotations
 
 import math
 import time
+import typing
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -130,21 +132,22 @@ def frame_forward(model: nn.Module, frame: CachedFrame) -> dict[str, Tensor]:
     """One frame through neck, proposals and box head: the losses in training mode, the
     detections (``boxes`` in input pixels, ``labels``, ``scores``) in evaluation mode."""
     f = frame.features
-    features = model.backbone.neck({k: v[None] for k, v in f.levels.items()})
+    det: Any = model  # a detector: nn.Module leaves its parts (transform, backbone, ...) untyped
+    features = det.backbone.neck({k: v[None] for k, v in f.levels.items()})
     images = ImageList(torch.zeros(()).expand(1, 3, *f.padded_size), [tuple(f.image_size)])
     targets = None
-    if model.training:
+    if det.training:
         targets = [{"boxes": _resized(frame.boxes, f), "labels": frame.labels}]
-    if isinstance(model.rpn, ReebRPN):
-        model.rpn._inputs = [frame.image]
-    proposals, rpn_losses = model.rpn(images, features, targets)
+    if isinstance(det.rpn, ReebRPN):
+        det.rpn._inputs = [frame.image]
+    proposals, rpn_losses = det.rpn(images, features, targets)
     if targets is not None:
         proposals = [drop_ignored(proposals[0], targets[0]["boxes"], _resized(frame.ignore, f),
                                   _resized(frame.dontcare, f))]
-    detections, roi_losses = model.roi_heads(features, proposals, images.image_sizes, targets)
-    if model.training:
+    detections, roi_losses = det.roi_heads(features, proposals, images.image_sizes, targets)
+    if det.training:
         return {**rpn_losses, **roi_losses}
-    return model.transform.postprocess(detections, images.image_sizes, [tuple(f.original_size)])[0]
+    return det.transform.postprocess(detections, images.image_sizes, [tuple(f.original_size)])[0]
 
 
 def _lr(step: int, total: int, s: TrainSettings) -> float:
@@ -159,7 +162,7 @@ def _step(model: nn.Module, frames: Sequence[CachedFrame], optimizer: torch.opti
     optimizer.zero_grad(set_to_none=True)
     total = 0.0
     for frame in frames:
-        loss = sum(frame_forward(model, frame).values()) / len(frames)
+        loss = typing.cast(Tensor, sum(frame_forward(model, frame).values())) / len(frames)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"non-finite training loss {loss.item()}")
         loss.backward()

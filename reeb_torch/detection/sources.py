@@ -27,6 +27,7 @@ import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+import typing
 from typing import Any
 
 import torch
@@ -93,7 +94,7 @@ def _baseline_source(name: str) -> ProposalSource:
     from ..eval.baselines import BASELINES
 
     baseline = BASELINES[name]()
-    settings = repr(sorted(dataclasses.asdict(baseline).items())) + cv2.__version__
+    settings = repr(sorted(dataclasses.asdict(typing.cast(Any, baseline)).items())) + cv2.__version__
     return ProposalSource(name, f"{name}-{_short_hash(settings)}", baseline)
 
 

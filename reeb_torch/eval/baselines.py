@@ -50,7 +50,7 @@ import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import torch
@@ -402,7 +402,7 @@ class BingBaseline:
         if missing:
             raise FileNotFoundError(f"BING model folder {self.model_dir} lacks {', '.join(missing)}")
         self._tmp = tempfile.TemporaryDirectory(prefix="reeb-bing-")
-        self._bing = cv2.saliency.ObjectnessBING_create()
+        self._bing = cv2.saliency.ObjectnessBING_create()  # type: ignore[attr-defined]  # contrib, not in cv2's stubs
         self._bing.setTrainingPath(str(self.model_dir))
         self._bing.setBBResDir(self._tmp.name)
 
@@ -493,16 +493,16 @@ class SelectiveSearchBaseline:
         rects = self._ss.process()
         if rects is None or len(rects) == 0:
             return _result(np.zeros((0, 4)), np.zeros(0))
-        rects = np.asarray(rects, dtype=np.float64).reshape(-1, 4)[: self.max_proposals]
+        xywh = np.asarray(rects, dtype=np.float64).reshape(-1, 4)[: self.max_proposals]
         sh, sw = bgr.shape[:2]
-        boxes = xywh_to_xyxy(rects, sw, sh)
+        boxes = xywh_to_xyxy(xywh, sw, sh)
         if self.scale != 1.0:
             boxes = _clip(boxes * np.array([w / sw, h / sh, w / sw, h / sh], dtype=np.float32), w, h)
         n = len(rects)
         return _result(boxes, 1.0 - np.arange(n, dtype=np.float32) / n)
 
 
-BASELINES: dict[str, Callable[..., object]] = {
+BASELINES: dict[str, Callable[..., Callable[..., Any]]] = {
     "edgeboxes": EdgeBoxesBaseline,
     "bing": BingBaseline,
     "selective-search": SelectiveSearchBaseline,

@@ -556,6 +556,8 @@ def _method_record(method: Method, boxes: list[torch.Tensor], timing: dict, hits
 def _pair_with_reference(results: dict[str, Any], hits: dict[str, list[torch.Tensor]],
                          splits: list[tuple[str, list[int]]], done: list[str], reference: str | None) -> None:
     """Each method's objects found and lost against ``reference``, with the sign test, per split."""
+    if reference is None:
+        return
     for k in done:
         for split, idx in splits:
             c = compare_recall([hits[reference][i] for i in idx], [hits[k][i] for i in idx])
@@ -653,7 +655,7 @@ def _interval_block(split: str, results: dict[str, Any], done: list[str], refere
         ci_rows.append(f"{results[k]['label']:<30} {100 * ci['recall']:5.1f}   {100 * ci['low']:5.1f} - "
                        f"{100 * ci['high']:5.1f}")
     for k in done:
-        if k != reference:
+        if reference is not None and k != reference:
             v = results[k]["splits"][split]["versus_reference"]
             ci_rows.append(f"{results[k]['label']:<30} vs {results[reference]['label']}: +{v['gained']} / "
                            f"-{v['lost']} objects, p = {v['p_value']:.2g}")

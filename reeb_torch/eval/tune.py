@@ -24,7 +24,7 @@ import json
 import os
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Sequence, cast
 
 import numpy as np
 import torch
@@ -219,20 +219,28 @@ class Param:
     log: bool = False
     choices: tuple = ()
 
+    def _range(self) -> tuple[float, float]:
+        """``(low, high)`` of a numeric parameter."""
+        if self.low is None or self.high is None:
+            raise ValueError(f"a {self.kind!r} parameter needs low and high")
+        return self.low, self.high
+
     def suggest(self, trial: Any, name: str) -> Any:
+        if self.kind == "categorical":
+            return trial.suggest_categorical(name, list(self.choices))
+        lo, hi = self._range()
         if self.kind == "float":
-            return trial.suggest_float(name, self.low, self.high, step=self.step, log=self.log)
-        if self.kind == "int":
-            return trial.suggest_int(name, int(self.low), int(self.high), step=int(self.step or 1), log=self.log)
-        return trial.suggest_categorical(name, list(self.choices))
+            return trial.suggest_float(name, lo, hi, step=self.step, log=self.log)
+        return trial.suggest_int(name, int(lo), int(hi), step=int(self.step or 1), log=self.log)
 
     def contains(self, value: Any) -> bool:
         if self.kind == "categorical":
             return value in self.choices
-        return isinstance(value, (int, float)) and self.low <= value <= self.high
+        lo, hi = self._range()
+        return isinstance(value, (int, float)) and lo <= value <= hi
 
     def to_dict(self) -> dict[str, Any]:
-        d = {"type": self.kind}
+        d: dict[str, Any] = {"type": self.kind}
         if self.kind == "categorical":
             d["choices"] = list(self.choices)
         else:
@@ -276,8 +284,10 @@ def _param(name: str, spec: Any, hints: dict[str, Any]) -> Param:
         values = list(p.choices)
     else:
         lo, hi = spec.get("low"), spec.get("high")
-        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (lo, hi)) or not lo <= hi:
+        numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (lo, hi))
+        if not numbers or not cast(float, lo) <= cast(float, hi):
             raise ValueError(f"{where}: needs numbers low <= high, got low={lo!r}, high={hi!r}")
+        lo, hi = cast(float, lo), cast(float, hi)
         if kind == "int" and not (float(lo).is_integer() and float(hi).is_integer()):
             raise ValueError(f"{where}: an int entry needs whole low and high, got {lo}, {hi}")
         p = Param(kind, lo, hi, spec.get("step"), bool(spec.get("log", False)))
@@ -408,7 +418,8 @@ def run_study(cache: FrameCache, base: ReebConfig, space: dict[str, Param], indi
     if opts.deadline is not None:
         timeout = (opts.deadline - time.monotonic()) / max(1, studies_left)
     if left > 0 and (timeout is None or timeout > 0):
-        callbacks = [lambda s, t: opts.on_trial()] if opts.on_trial else []
+        on_trial = opts.on_trial
+        callbacks = [lambda s, t: on_trial()] if on_trial is not None else []
         study.optimize(run, n_trials=left, timeout=timeout, callbacks=callbacks, catch=())
     try:
         return dict(study.best_params), study

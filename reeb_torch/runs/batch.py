@@ -59,7 +59,7 @@ import signal
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Iterator, Sequence
+from typing import Any, Generator, Iterable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -342,7 +342,7 @@ class Decoded:
         return self.error is None
 
 
-def _one_line(msg: str) -> str:
+def _one_line(msg: object) -> str:
     return " ".join(str(msg).split())
 
 
@@ -396,6 +396,8 @@ class _stderr_dropped:
     """Send file descriptor 2 to /dev/null for a moment: the C decoders (libpng, libjpeg)
     write their complaints there, which duplicate the one-line message a failed file gets."""
 
+    _saved: int | None = None
+
     def __enter__(self) -> None:
         try:
             self._saved = os.dup(2)
@@ -411,7 +413,7 @@ class _stderr_dropped:
             os.close(self._saved)
 
 
-def _keep(item: Decoded) -> Decoded:
+def _keep(item: Any) -> Any:  # batch_size=None: the loader hands each item on as it is
     return item
 
 
@@ -470,7 +472,7 @@ def decoded_images(
     prefetch: int = 4,
     pin_memory: bool = False,
     quiet: bool = False,
-) -> Iterator[Decoded]:
+) -> Generator[Decoded, None, None]:
     """Decode ``paths`` with ``workers`` DataLoader processes (0 = in this process).
 
     Yields one :class:`Decoded` per path, in input order; ``quiet``: the C decoders' own
@@ -521,7 +523,8 @@ def size_batches(items: Iterable[Decoded], batch_size: int,
         if not item.ok:
             yield [item]
             continue
-        key = tuple(item.image.shape[-2:])
+        assert item.image is not None  # an ok item holds its image
+        key = (item.image.shape[-2], item.image.shape[-1])
         group = pending.setdefault(key, [])
         group.append(item)
         if len(group) >= batch_size:

@@ -126,7 +126,7 @@ def _field_kinds() -> tuple[set[str], dict[str, tuple[str, ...] | None]]:
 
     hints = typing.get_type_hints(ReebConfig)
     bools: set[str] = set()
-    words: dict[str, tuple[str, ...]] = {}
+    words: dict[str, tuple[str, ...] | None] = {}
     for f in dataclasses.fields(ReebConfig):
         hint = hints.get(f.name)
         if hint is bool:
@@ -180,7 +180,7 @@ def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_
         elif name in words and words[name] is None:
             d[name] = _parse_text(value)
         else:
-            d[name] = _parse_value(value, words.get(name, ()))
+            d[name] = _parse_value(value, words.get(name) or ())
     if top_k is not None:
         d["top_k"] = top_k
     try:

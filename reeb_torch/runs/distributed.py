@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
+import typing
 from typing import TYPE_CHECKING, Any, Iterable, Sequence
 
 from ..config import ReebConfig
@@ -217,7 +218,7 @@ class ProposalActor:
         out: list[dict | None] = [None] * len(items)
         for group in B.size_batches(items, self.group_size):
             if not group[0].ok:
-                out[group[0].index] = B.error_row(group[0].path, group[0].error, self.fingerprint,
+                out[group[0].index] = B.error_row(group[0].path, group[0].error or "", self.fingerprint,
                                                   getattr(group[0], "size", None))
                 continue
             try:
@@ -228,12 +229,13 @@ class ProposalActor:
                     try:
                         rows += self._run([it])
                     except (ValueError, TypeError, RuntimeError) as e:
+                        assert it.image is not None  # an ok item holds its image
                         h, w = it.image.shape[-2:]
                         rows.append(B.error_row(it.path, B.file_error(it.path, e),
                                                 self.fingerprint, (w, h)))
             for it, row in zip(group, rows):
                 out[it.index] = row
-        return [self._resolved(r, str(o)) for r, o in zip(out, opened)]  # type: ignore[return-value]
+        return [self._resolved(typing.cast(dict, r), str(o)) for r, o in zip(out, opened)]  # every row is set
 
     def __call__(self, batch: dict) -> Any:
         import pyarrow as pa

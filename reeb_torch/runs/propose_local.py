@@ -15,7 +15,7 @@ import signal
 import sys
 import time
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import click
 
@@ -73,7 +73,8 @@ class _LocalRun:
         self.failures: list[str] = []
         self.saved_now = 0  # rows of this run in the writer
         self.interrupted = False
-        self.first_done = None  # (time, images done, algorithm seconds) after the first computed batch
+        self.first_done: tuple[float, float, float] | None = None
+        """(time, images done, algorithm seconds) after the first computed batch."""
         self.compile_s = self.size_warm_s = 0.0  # warm-up, kept out of the times (compute)
         self.sized = False
 
@@ -125,6 +126,7 @@ class _LocalRun:
         """The finished rows in the temporary files killed runs left beside ``--out`` (we hold
         the lock: none is live); files with nothing to keep are removed."""
         out = self.out
+        assert out is not None  # only with an output file
         stale = B.stale_temp_files(out)
         stale_rows: list[dict] = []
         if stale and not overwrite:
@@ -148,6 +150,7 @@ class _LocalRun:
     def _resume(self, exists: bool, stale_rows: list[dict]) -> bool:
         """``--resume``: keep the rows of ``--out`` and of killed runs, compute only the rest."""
         out = self.out
+        assert out is not None  # only with an output file
         rows: list[dict] = []
         if exists:
             try:
@@ -219,8 +222,9 @@ class _LocalRun:
             self._write(self.plan.first_rows)
         self.cs = B.CriticalSection()  # a row is written whole, and counted, or not at all
         images = self.images
-        self.gt = read_labels(label_for(images[0])) if self.sample_mode and label_for(images[0]) else None
-        self.stats = dict(images=len(images), ok=0, failed=0, proposals=0, algo_s=0.0)
+        label = label_for(images[0]) if self.sample_mode else None
+        self.gt = read_labels(label) if label else None
+        self.stats: dict[str, Any] = dict(images=len(images), ok=0, failed=0, proposals=0, algo_s=0.0)
         from tqdm import tqdm
 
         self.bar = tqdm(total=len(images), unit="img", disable=True if self.quiet else None, file=sys.stderr,
@@ -258,7 +262,7 @@ class _LocalRun:
         # rows held back to be written in input order
         for group in B.size_batches(stream, self.batch_size, max_lag=max(64, 4 * self.batch_size)):
             if not group[0].ok:
-                self._fail(group[0], group[0].error)
+                self._fail(group[0], group[0].error or "")
             else:
                 # only the computing is retried image by image (to find the culprit): a row
                 # that was written is never put back, and an error in writing is not an
@@ -317,6 +321,7 @@ class _LocalRun:
             self.saved_now += sum(new for _, new in rows)
 
     def _write(self, rows: list[dict]) -> None:
+        assert self.writer is not None  # only with an output file
         try:
             self.writer.write(rows)
         except OSError as e:  # a full disk, a quota, a lost network share: one line, exit 1
@@ -420,7 +425,7 @@ class _LocalRun:
                          f"batch {self.batch_size}, {dev})"
                          + (f"; warm-up before (kernels compiled or loaded, tables for the image size) "
                             f"{self.compile_s:.1f} s, not counted" if self.compile_s >= 0.05 else ""))
-        if saved:
+        if saved and writer is not None:
             lines.append(f"wrote {saved} ({writer.rows_written} rows"
                          + (f", {self.plan.kept_written} kept from before" if self.plan.kept_written else "") + ")")
         if self.viz_path is not None and stats["ok"]:
@@ -464,7 +469,7 @@ class _ResumePlan:
         self.images = list(images)
         self.keys = [row_key(p) for p in self.images]
         self.first_rows: list[dict] = []
-        self.slots: dict[int, tuple[dict, bool]] = {}  # input position -> (row, new in this run)
+        self.slots: dict[int, tuple[dict | None, bool]] = {}  # input position -> (row or None, new in this run)
         self.todo = list(range(len(self.images)))  # input positions to compute
         self.kept = self.duplicates = self.kept_written = 0
         self._next = 0
@@ -512,13 +517,13 @@ class _ResumePlan:
         while self._next in self.slots:
             out.append(self.slots.pop(self._next))
             self._next += 1
-        return self._count([o for o in out if o[0] is not None])
+        return self._count([(row, new) for row, new in out if row is not None])
 
     def rest(self) -> list[tuple[dict, bool]]:
         """All rows still held back, in input order (at the end, or after an interrupt)."""
         out = [self.slots.pop(i) for i in sorted(self.slots)]
         self._next = len(self.images)
-        return self._count([o for o in out if o[0] is not None])
+        return self._count([(row, new) for row, new in out if row is not None])
 
     def _count(self, rows: list[tuple[dict, bool]]) -> list[tuple[dict, bool]]:
         self.kept_written += sum(not new for _, new in rows)

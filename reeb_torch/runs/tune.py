@@ -118,7 +118,7 @@ def run_tune(roots: Sequence[str], out: str, base: ReebConfig, space_file: str |
     full = T.score_config(cache, tuned, k=k, iou=iou, balanced=balanced)[0]
     lines.append(f"tuned on all frames (optimistic, the frames it was tuned on): {full}")
     lines.append(f"  settings: { {n: getattr(tuned, n) for n in space} }")
-    record = {
+    record: dict[str, Any] = {
         "config": _changed(base, tuned),
         "tune": {
             "objective": objective, "k": k, "iou": iou, "balanced": balanced, "data": list(map(str, roots)),
@@ -133,8 +133,8 @@ def run_tune(roots: Sequence[str], out: str, base: ReebConfig, space_file: str |
         },
     }
     Path(out).write_text(json.dumps(record, indent=2, default=str) + "\n", encoding="utf-8")
-    plots = plot_study(study, Path(out).with_suffix("")) if plots else []
-    record["text"] = "\n".join(lines + [f"wrote {out}" + "".join(f", {p}" for p in plots)])
+    pictures = plot_study(study, Path(out).with_suffix("")) if plots else []
+    record["text"] = "\n".join(lines + [f"wrote {out}" + "".join(f", {p}" for p in pictures)])
     return record
 
 

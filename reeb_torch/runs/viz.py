@@ -72,7 +72,8 @@ def gt_pairs(objects: Sequence[Any] | None) -> list[tuple[str, tuple[float, floa
             label, box = getattr(o, "type", "object"), o.box
         else:
             label, box = o
-        out.append((str(label), tuple(float(v) for v in box)))
+        x1, y1, x2, y2 = (float(v) for v in box)
+        out.append((str(label), (x1, y1, x2, y2)))
     return out
 
 
@@ -126,8 +127,8 @@ def draw_proposals(
             ty = max(th + 2, y1 - 2)
             cv2.rectangle(canvas, (x1, ty - th - 2), (x1 + tw + 2, ty + 1), c, -1)
             cv2.putText(canvas, label, (x1 + 1, ty - 1), font, fs, (0, 0, 0), 1, cv2.LINE_AA)
-    for label, (x1, y1, x2, y2) in gt_pairs(gt):
-        p1, p2 = (int(round(x1)), int(round(y1))), (int(round(x2)), int(round(y2)))
+    for label, (gx1, gy1, gx2, gy2) in gt_pairs(gt):
+        p1, p2 = (int(round(gx1)), int(round(gy1))), (int(round(gx2)), int(round(gy2)))
         cv2.rectangle(canvas, p1, p2, GT_COLOR, 1, cv2.LINE_AA)
         cv2.putText(canvas, label, (p1[0], min(h - 3, p2[1] + int(14 * fs / 0.5))), font, fs,
                     GT_COLOR, 1, cv2.LINE_AA)
@@ -340,7 +341,8 @@ def _edges_panel(ax, rgb: np.ndarray, inspection: Any, config: Any) -> None:
     ax.imshow(np.clip(layer, 0, 1), extent=(0, w, h, 0), interpolation="antialiased",
               aspect="auto")
     road_pct = 100.0 * float(road.mean()) if road.size else 0.0
-    handles = [Patch(facecolor=road_rgb, alpha=0.6, label=f"road mask ({road_pct:.0f} % of pixels)"),
+    handles: list[Any] = [Patch(facecolor=tuple(road_rgb.tolist()), alpha=0.6,
+                                label=f"road mask ({road_pct:.0f} % of pixels)"),
                Patch(facecolor="white", edgecolor="0.5", label="edge magnitude")]
     band = getattr(config, "road_band", None)
     if band is not None:
@@ -431,7 +433,7 @@ def _proposals_panel(ax, rgb: np.ndarray, boxes: np.ndarray, gts: list, top: int
                     bbox=dict(boxstyle="square,pad=0.1", fc=colors[i], ec="none"))
     gt_hex = "#%02x%02x%02x" % GT_COLOR
     _gt_labels(ax, boxes, gts, gt_hex, w, h, layout)
-    handles = []
+    handles: list[Any] = []
     if len(shown):
         handles.append(Patch(facecolor=colors[0], label="rank 1 (best)"))
         if len(shown) > 1:
