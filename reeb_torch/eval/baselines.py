@@ -498,7 +498,7 @@ class SelectiveSearchBaseline:
         boxes = xywh_to_xyxy(xywh, sw, sh)
         if self.scale != 1.0:
             boxes = _clip(boxes * np.array([w / sw, h / sh, w / sw, h / sh], dtype=np.float32), w, h)
-        n = len(rects)
+        n = len(xywh)
         return _result(boxes, 1.0 - np.arange(n, dtype=np.float32) / n)
 
 
