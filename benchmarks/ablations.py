@@ -223,8 +223,6 @@ def main(argv: list[str] | None = None) -> list[dict]:
     groups = groups_of(args, items)
     say(f"# {len(images)} images from {' + '.join(map(str, args.data))}, {sum(len(g) for g in gts)} objects "
         f"({sum(len(g) for g in gts_mod)} moderate), torch threads {torch.get_num_threads()}")
-    say(f"{'variant':34s} {'NOTES':6s} {'R@.5':>6s} {'R@.7':>6s} {'mod.7':>6s} {'AR':>6s} {'ms/img':>7s}"
-        + "".join(f" {'.7 ' + g:>{max(9, len(g) + 3)}s}" for g, _ in groups) + f"  vs {args.reference} (+g/-l, p; per group)")
 
     def selected(name: str) -> bool:
         if name in extra:
@@ -233,6 +231,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
             return not extra or name == args.reference
         return not args.only or any(s in name for s in args.only)
 
+    say_in_sample(say, {table_cfg.ranker for name, (table_cfg, _) in {**VARIANTS, **extra}.items()
+                        if selected(name) or name == args.reference}, images, items)
+    say(f"{'variant':34s} {'NOTES':6s} {'R@.5':>6s} {'R@.7':>6s} {'mod.7':>6s} {'AR':>6s} {'ms/img':>7s}"
+        + "".join(f" {'.7 ' + g:>{max(9, len(g) + 3)}s}" for g, _ in groups) + f"  vs {args.reference} (+g/-l, p; per group)")
     base_hits = None
     if not selected(args.reference):  # every row is paired with the reference: run it unlisted
         base_hits = object_hits(run(VARIANTS[args.reference][0], images, args.batch)[0], gts)
@@ -254,6 +256,18 @@ def main(argv: list[str] | None = None) -> list[dict]:
     (args.out / "ablations.json").write_text(json.dumps({"rows": rows, "env": environment()}, indent=2))
     (args.out / "ablations.txt").write_text("\n".join(lines) + "\n")
     return rows
+
+
+def say_in_sample(say, rankers: set[str], images, items) -> None:
+    """A line per learned ranking among the rows: how many of the frames it was fitted on
+    (the same pictures, :func:`reeb_torch.ranker.fitted_frames`): its rows are in-sample there."""
+    from reeb_torch.ranker import fitted_frames, load_ranker
+
+    for spec in sorted(r for r in rankers if r != "none"):
+        seen = [str(it["image_id"]) for it, n in zip(items, fitted_frames(load_ranker(spec), images)) if n]
+        shown = ", ".join(seen[:6]) + (f" and {len(seen) - 6} more" if len(seen) > 6 else "")
+        say(f"# ranking {spec!r}: fitted on {len(seen)} of these {len(images)} frames"
+            + (f" ({shown}): its rows are in-sample there" if seen else " (the same pictures, by frame hash)"))
 
 
 def measure(name, note, boxes, ms, hits, base_hits, gts, labels, classes, gts_mod, labels_mod, groups):

@@ -140,6 +140,9 @@ def test_ablation_variants_run_beside_the_default_only(tmp_path):
     pair = rows[2]["versus_default"]
     assert pair["gained"] == 0 and pair["lost"] > 0
     assert rows[2]["recall_07"] == pytest.approx(rows[0]["recall_07"] - pair["lost"] / n)
+    # the bundled frames are KITTI frames the shipped ranking was fitted on: the table says so
+    text = (tmp_path / "out" / "ablations.txt").read_text()
+    assert "# ranking 'kitti': fitted on 2 of these 2 frames (000001, 000008): its rows are in-sample" in text
 
 
 def test_ablations_pair_with_another_reference(tmp_path):

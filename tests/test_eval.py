@@ -152,6 +152,14 @@ def test_table3_on_bundled_frames(tmp_path, monkeypatch, layout):
 
     text = (out / "table3.txt").read_text()
     assert "over all objects (micro" in text and "headline" in text
+    # both bundled frames are KITTI frames the shipped ranking was fitted on: said, not hidden
+    assert record["in_sample"] == {"reeb-default": {"000001": "kitti/000001", "000008": "kitti/000008"}}
+    assert "In-sample: 2 of these 2 frames are pictures the learned ranking was fitted on" in text
+    from types import SimpleNamespace
+
+    two = SimpleNamespace(images=[ds[0]["image"], ds[1]["image"].flip(2)], ids=list(FRAMES))
+    assert table3.in_sample_frames(["reeb-default", "reeb-training-free"], two) == \
+        {"reeb-default": {"000001": "kitti/000001"}}  # a mirrored frame is another picture; V learns nothing
     assert "KITTI-moderate objects (micro, 5 objects" in text
     assert "Per-class recall (%) at 2000 proposals, IoU 0.7" in text
     assert "=== frames 1:" in text and "=== frames 8:" in text

@@ -188,6 +188,35 @@ def test_folds_keep_neighbouring_frames_of_a_drive_apart():
     assert F.drive_of("t0016_000002", "x") == "x/t0016" and F.drive_of("000002", "x") is None
 
 
+def test_reeb_fit_says_where_a_model_saw_some_of_the_frames(sample_image):
+    """A model that saw some of the frames (the same pictures, whatever their names) makes
+    its row in-sample there; one that saw all of them, or whose file records only the frame
+    list's digest, no estimate; one that saw none, nothing."""
+    from reeb_torch.ranker import BoxRanker, frame_hash
+    from reeb_torch.runs.fit import _seen_note
+    from reeb_torch.stages.features import feature_names
+
+    model = BoxRanker(feature_names(4))
+    model.meta = {"provenance": {"frame_hashes": {"kitti/000001": frame_hash(sample_image)}}}
+    some = _seen_note("the model", model, _Frames([sample_image, sample_image.flip(2), sample_image.flip(1)]),
+                      "d", "its row")
+    assert some == ["  (the model was fitted on 1 of these 3 frames: its row is in-sample there)"]
+    assert _seen_note("the model", model, _Frames([sample_image]), "d", "its row") == \
+        ["  (the model was fitted on these frames: its row is no estimate)"]
+    assert _seen_note("the model", model, _Frames([sample_image.flip(2)]), "d", "its row") == []
+    model.meta = {"provenance": {"frames_digest": "d"}}  # a file written before frame hashes
+    assert _seen_note("the model", model, _Frames([sample_image.flip(2)]), "d", "its row") == \
+        ["  (the model was fitted on these frames: its row is no estimate)"]
+
+
+class _Frames(list):
+    """Frames as :func:`_seen_note` reads them: ``images`` and a length."""
+
+    @property
+    def images(self):
+        return list(self)
+
+
 def test_similar_frames_finds_near_copies(sample_image):
     other = torch.roll(sample_image, 300, dims=2)
     frames = [sample_image, sample_image.clone(), other, sample_image.flip(1)]
@@ -224,6 +253,7 @@ def test_reeb_fit_end_to_end(kitti_dir, tmp_path):
     assert r.returncode == 0, r.stderr
     assert "training-free" in r.stdout and "fitted (cross-validated)" in r.stdout and "shipped kitti model" in r.stdout
     assert "8 frames: with 5 or 10 frames of a drive, fine-tuning" in r.stdout  # the hint for few frames
+    assert "the shipped model was fitted on these frames: its row is no estimate" in r.stdout  # 000000-000007
     from reeb_torch import ProposalGenerator, ReebConfig
     from reeb_torch.ranker import load_ranker
     import json
@@ -240,7 +270,9 @@ def test_reeb_fit_end_to_end(kitti_dir, tmp_path):
     assert r.returncode == 0, r.stderr
     assert "fine-tuned (cross-validated)" in r.stdout and "mine.safetensors as it is" in r.stdout
     assert "fine-tuning a model fitted elsewhere" not in r.stdout
+    assert f"the model fine-tuned, {out}, was fitted on these frames: the fine-tuned" in r.stdout
     meta = load_ranker(str(tuned)).meta["provenance"]
+    assert len(meta["frame_hashes"]) == 6 and len(meta["init"]["frame_hashes"]) == 8
     assert meta["init"]["model"] == str(out) and meta["init"]["frames_digest"] == \
         load_ranker(str(out)).meta["provenance"]["frames_digest"] and meta["options"]["tune_epochs"] == 1
     for args, message in ((["--init", "kitti", "--hidden", "8"], "give --hidden or --init"),

@@ -6,6 +6,7 @@ refused in one line naming the file), the shipped model, and the generator with 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -139,6 +140,41 @@ def test_shipped_weights_load_and_say_where_they_come_from():
     prov = m.meta["provenance"]
     assert prov["frames"] == 106 and prov["command"].startswith("reeb fit ")
     assert load_ranker("kitti") is m  # loaded once
+    assert len(prov["frame_hashes"]) == 106 and "kitti/000001" in prov["frame_hashes"]
+
+
+def test_frame_hash_survives_encoding_and_size_and_tells_frames_apart(sample_image):
+    import cv2
+
+    from reeb_torch.io import read_image
+    from reeb_torch.ranker import SAME_IMAGE_BITS, frame_hash, hash_distance
+
+    h = frame_hash(sample_image)
+    assert len(h) == 64 and int(h, 16) >= 0
+    assert frame_hash(sample_image.float() / 255) == h  # float in [0, 1] as uint8
+    ok, jpeg = cv2.imencode(".jpg", sample_image.permute(1, 2, 0).numpy()[:, :, ::-1].copy(),
+                            [cv2.IMWRITE_JPEG_QUALITY, 70])
+    again = torch.from_numpy(cv2.imdecode(jpeg, cv2.IMREAD_COLOR)[:, :, ::-1].copy()).permute(2, 0, 1)
+    half = torch.nn.functional.interpolate(sample_image[None].float(), scale_factor=0.5, mode="area")[0]
+    assert hash_distance(frame_hash(again), h) <= SAME_IMAGE_BITS
+    assert hash_distance(frame_hash(half.round().to(torch.uint8)), h) <= SAME_IMAGE_BITS
+    other = read_image(Path(__file__).resolve().parents[1] / "examples" / "data" / "kitti_000008.png")
+    assert hash_distance(frame_hash(other), h) > 4 * SAME_IMAGE_BITS
+    assert hash_distance(frame_hash(sample_image.flip(2)), h) > 4 * SAME_IMAGE_BITS
+    with pytest.raises(ValueError, match=r"\[3, H, W\]"):
+        frame_hash(sample_image[0])
+
+
+def test_fitted_frames_names_the_pictures_a_model_saw(sample_image):
+    from reeb_torch.ranker import fitted_frames, frame_hash
+
+    shipped = load_ranker("kitti")  # fitted on KITTI object frames 000000-000059, the sample among them
+    assert fitted_frames(shipped, [sample_image, sample_image.flip(2)]) == ["kitti/000001", None]
+    made = BoxRanker(feature_names(4))
+    assert fitted_frames(made, [sample_image]) == [None]  # no record: nothing said
+    made.meta = {"provenance": {"frame_hashes": {"mine/a": frame_hash(sample_image.flip(2))},
+                                "init": {"model": "kitti", "frame_hashes": {"kitti/000001": frame_hash(sample_image)}}}}
+    assert fitted_frames(made, [sample_image.flip(2), sample_image]) == ["mine/a", "kitti:kitti/000001"]
 
 
 def test_generator_with_ranker_contract(sample_image):

@@ -57,7 +57,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import torch
 
@@ -117,6 +117,8 @@ class Method:
     """``build(max_proposals, **options)`` -> a callable on one uint8 (3, H, W) image."""
     batched: bool = False
     """Accepts a list of images (REEB), so batch timing applies."""
+    preset: str | None = None
+    """The REEB preset of a REEB row (its ranking model, if any, is checked against the frames)."""
 
 
 def _reeb(preset: str) -> Callable[..., Callable]:
@@ -148,11 +150,12 @@ METHODS: dict[str, Method] = {
         Method("selective-search", "Selective Search", _baseline("selective-search")),
         Method("edgeboxes", "Edge Boxes (Sobel)", _baseline("edgeboxes")),
         Method("reeb-default-no-regions", "Ours* (training-free, no regions)", _reeb("training-free-no-regions"),
-               True),
-        Method("reeb-training-free", "Ours** (training-free)", _reeb("training-free"), True),
-        Method("reeb-default", "Ours** + learned ranking (default)", _reeb("default"), True),
-        Method("reeb-paper-no-regions", "REEB paper preset, no regions", _reeb("paper-no-regions"), True),
-        Method("reeb-paper", "REEB paper preset", _reeb("paper"), True),
+               True, "training-free-no-regions"),
+        Method("reeb-training-free", "Ours** (training-free)", _reeb("training-free"), True, "training-free"),
+        Method("reeb-default", "Ours** + learned ranking (default)", _reeb("default"), True, "default"),
+        Method("reeb-paper-no-regions", "REEB paper preset, no regions", _reeb("paper-no-regions"), True,
+               "paper-no-regions"),
+        Method("reeb-paper", "REEB paper preset", _reeb("paper"), True, "paper"),
     ]
 }
 
@@ -434,12 +437,14 @@ def main(
     reference = "reeb-default" if "reeb-default" in done else (done[0] if done else None)
     _pair_with_reference(results, hits, splits, done, reference)
     env = environment()
-    text = _report(args, rerun, env, frames, splits, results, done, reference)
+    seen = in_sample_frames([k for k in done if METHODS[k].preset], frames)
+    text = _report(args, rerun, env, frames, splits, results, done, reference, seen)
     print("\n" + text, flush=True)
     (args.out / "table3.txt").write_text(text)
     _write_csv(args.out / "table3.csv", results, done, splits, frames.classes, args.batch)
     plots = _plot(curves, args.out) if curves else []
     record = _record(args, rerun, env, frames, splits, results, plots)
+    record["in_sample"] = seen
     (args.out / "table3.json").write_text(json.dumps(record, indent=1))
     print(f"wrote {args.out}/table3.txt, table3.csv, table3.json"
           + (f", {', '.join(plots)}" if plots else ""), flush=True)
@@ -565,10 +570,45 @@ def _pair_with_reference(results: dict[str, Any], hits: dict[str, list[torch.Ten
                 "reference": reference, "gained": c.gained, "lost": c.lost, "p_value": c.p_value}
 
 
+def in_sample_frames(keys: Sequence[str], frames: _Frames) -> dict[str, dict[str, str]]:
+    """For each REEB row ``keys`` whose preset ranks with a learned model: the frames that model
+    was fitted on (the same pictures, :func:`~reeb_torch.ranker.fitted_frames`), ``{frame id:
+    the model's name for it}``; rows whose model saw none of them are left out. Its recall
+    there is in-sample, not an estimate."""
+    from .. import get_preset
+    from ..ranker import fitted_frames, load_ranker
+
+    out: dict[str, dict[str, str]] = {}
+    looked: dict[str, dict[str, str]] = {}
+    for k in keys:
+        spec = get_preset(METHODS[k].preset or "default").ranker
+        if spec == "none":
+            continue
+        if spec not in looked:
+            names = fitted_frames(load_ranker(spec), frames.images)
+            looked[spec] = {i: n for i, n in zip(frames.ids, names) if n is not None}
+        if looked[spec]:
+            out[k] = looked[spec]
+    return out
+
+
+def _in_sample_note(seen: dict[str, dict[str, str]], frames: _Frames, results: dict[str, Any]) -> str:
+    if not seen:
+        return ""
+    ids = next(iter(seen.values()))
+    shown = ", ".join(list(ids)[:8]) + (f" and {len(ids) - 8} more" if len(ids) > 8 else "")
+    rows = ", ".join(results[k]["label"] for k in seen)
+    return (f"In-sample: {len(ids)} of these {len(frames.images)} frames are pictures the learned ranking was "
+            f"fitted on ({shown}; table3.json: in_sample), so the rows ranked by it ({rows}) are not an "
+            "estimate there; select the other frames (--frames) for one.")
+
+
 def _report(args: argparse.Namespace, rerun: str, env: dict, frames: _Frames, splits: list[tuple[str, list[int]]],
-            results: dict[str, Any], done: list[str], reference: str | None) -> str:
-    """The text of ``table3.txt``: the rerun line, the header, then the tables of each split,
-    the AR lines and the paper's Table 3."""
+            results: dict[str, Any], done: list[str], reference: str | None,
+            seen: dict[str, dict[str, str]] | None = None) -> str:
+    """The text of ``table3.txt``: the rerun line, the header (with a note where a learned
+    ranking was fitted on some of the frames: ``seen``, :func:`in_sample_frames`), then the
+    tables of each split, the AR lines and the paper's Table 3."""
     blocks = []
     for split, idx in splits:
         blocks += _split_blocks(args, frames, split, idx, len(splits), results, done, reference)
@@ -590,7 +630,8 @@ def _report(args: argparse.Namespace, rerun: str, env: dict, frames: _Frames, sp
               f"{f'; REEB also at batch {args.batch} (@b{args.batch})' if args.batch > 1 else ''}; "
               f"{env['processor']}, {env['cpu_count']} cores, torch threads {env['torch_threads']}, "
               f"OpenCV threads {env['opencv_threads']}, CUDA {'yes' if env['cuda'] else 'no'}.")
-    return "\n\n".join([f"Rerun: {rerun}", header, *blocks]) + "\n"
+    note = _in_sample_note(seen or {}, frames, results)
+    return "\n\n".join([f"Rerun: {rerun}", header, *([note] if note else []), *blocks]) + "\n"
 
 
 def _split_blocks(args: argparse.Namespace, frames: _Frames, split: str, idx: list[int], n_splits: int,

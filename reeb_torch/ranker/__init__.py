@@ -14,7 +14,8 @@ with the package, and ``reeb fit`` fits new ones on a user's labelled frames
 """
 
 from .model import BoxRanker
-from .weights import SHIPPED, RankerWeightsError, load_ranker, resolve_ranker, save_ranker, shipped_path
+from .weights import (SAME_IMAGE_BITS, SHIPPED, RankerWeightsError, fitted_frames, frame_hash, hash_distance,
+                      load_ranker, resolve_ranker, save_ranker, seen_hashes, shipped_path)
 
 __all__ = ["BoxRanker", "SHIPPED", "RankerWeightsError", "load_ranker", "resolve_ranker", "save_ranker",
-           "shipped_path"]
+           "shipped_path", "frame_hash", "hash_distance", "seen_hashes", "fitted_frames", "SAME_IMAGE_BITS"]

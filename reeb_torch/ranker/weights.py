@@ -8,8 +8,10 @@ JSON object (keys sorted, so the same model gives the same bytes) with
 * ``features_version``: the :data:`~reeb_torch.stages.features.FEATURES_VERSION` it was
   fitted on; ``feature_names``, ``hidden``, ``members``, ``prefilter``: its shape;
   ``classes``, ``class_hidden``: its class head's, where it has one (older files have none);
-* ``provenance``: the frames it was fitted on, the command that refits it, its
-  cross-validated recall, the fit's options and seed;
+* ``provenance``: the frames it was fitted on (their folders, ids and, in files
+  written since frame hashes were added, ``frame_hashes``: a :func:`frame_hash` of each image, so that :func:`fitted_frames` can say
+  which of someone's frames the model saw whatever they are named), the command that refits
+  it, its cross-validated recall, the fit's options and seed;
 * ``config``: the :class:`~reeb_torch.ReebConfig` fields it was fitted with.
 
 :func:`load_ranker` takes a shipped name (:data:`SHIPPED`, files inside the package) or a
@@ -26,11 +28,13 @@ from importlib import resources
 from pathlib import Path
 
 import torch
+from torch import Tensor
 
 from ..stages.features import FEATURES_VERSION
 from .model import BoxRanker
 
-__all__ = ["SHIPPED", "RankerWeightsError", "load_ranker", "save_ranker", "resolve_ranker", "shipped_path"]
+__all__ = ["SHIPPED", "RankerWeightsError", "load_ranker", "save_ranker", "resolve_ranker", "shipped_path",
+           "frame_hash", "hash_distance", "seen_hashes", "fitted_frames", "SAME_IMAGE_BITS"]
 
 SHIPPED: dict[str, str] = {
     "kitti": "kitti.safetensors",
@@ -155,4 +159,61 @@ def save_ranker(model: BoxRanker, path: str | os.PathLike, provenance: dict | No
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     save_file(tensors, str(out), metadata=meta)
+    return out
+
+
+_HASH_SIDE = 16
+SAME_IMAGE_BITS = 12
+"""Most bits of :func:`frame_hash`'s 256 by which two images may differ and still count as the
+same picture. On the 106 dev frames: the same frame as float or uint8, or re-encoded as JPEG
+at quality 70, 0 bits; at half its size, 6; two distinct frames 19 or more (two moments of
+one drive), 122 at the median."""
+
+
+def frame_hash(image: Tensor) -> str:
+    """A 256-bit difference hash of ``image`` (``[3, H, W]`` RGB, uint8 or float in [0, 1]),
+    as 64 hex digits: its grey (the channels' mean) shrunk to 16 × 17 by area averaging, one
+    bit per pair of horizontal neighbours (set where the right one is brighter). Survives
+    re-encoding and resizing (:data:`SAME_IMAGE_BITS`); not a cryptographic hash."""
+    if image.ndim != 3 or image.shape[0] != 3:
+        raise ValueError(f"frame_hash expects an RGB image [3, H, W], got shape {tuple(image.shape)}")
+    x = image.detach().to("cpu", torch.float32)
+    if image.dtype == torch.uint8:
+        x = x / 255.0
+    grey = x.mean(0)[None, None]
+    small = torch.nn.functional.interpolate(grey, size=(_HASH_SIDE, _HASH_SIDE + 1), mode="area")[0, 0]
+    bits = (small[:, 1:] > small[:, :-1]).flatten().tolist()
+    return f"{int(''.join('1' if b else '0' for b in bits), 2):0{_HASH_SIDE * _HASH_SIDE // 4}x}"
+
+
+def hash_distance(a: str, b: str) -> int:
+    """How many bits two :func:`frame_hash` values differ by (0–256)."""
+    return bin(int(a, 16) ^ int(b, 16)).count("1")
+
+
+def seen_hashes(provenance: dict) -> dict[str, str]:
+    """The :func:`frame_hash` of every frame a model's ``provenance`` says it learned from,
+    by ``"folder/id"``: its own frames and, for a fine-tuned model, those of the model it
+    started from (``provenance["init"]["frame_hashes"]``, named ``"<start>:folder/id"``)."""
+    out = dict(provenance.get("frame_hashes") or {})
+    init = provenance.get("init") or {}
+    out.update({f"{init.get('model')}:{k}": v for k, v in (init.get("frame_hashes") or {}).items()})
+    return out
+
+
+def fitted_frames(model: BoxRanker, images: "list[Tensor] | tuple[Tensor, ...]",
+                  max_bits: int = SAME_IMAGE_BITS) -> list[str | None]:
+    """For each of ``images`` (``[3, H, W]``), the frame ``model`` was fitted on that shows the
+    same picture (``"folder/id"``, within ``max_bits`` of its :func:`frame_hash`), or None:
+    where a recall measured with the model is in-sample. All None for a model whose file
+    records no frame hashes (written before they were added, or a model made here)."""
+    known = seen_hashes(model.meta.get("provenance", {}))
+    if not known:
+        return [None] * len(images)
+    names, values = list(known), [int(v, 16) for v in known.values()]
+    out: list[str | None] = []
+    for image in images:
+        h = int(frame_hash(image), 16)
+        best = min(range(len(values)), key=lambda i: bin(h ^ values[i]).count("1"))
+        out.append(names[best] if bin(h ^ values[best]).count("1") <= max_bits else None)
     return out

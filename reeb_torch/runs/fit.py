@@ -11,12 +11,15 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 from ..config import ReebConfig
 from ..eval import fit as F
 from ..eval.metrics import compare_recall
 from ..eval.tune import FrameCache, bootstrap_interval, objective
+
+if TYPE_CHECKING:
+    from ..ranker import BoxRanker
 
 __all__ = ["run_fit", "frames_digest", "FEW_FRAMES"]
 
@@ -134,7 +137,7 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions,
         ValueError: no labels, fewer frames than folds, nothing to fit on; a ``--init`` model that
             cannot be read or reads other features (:class:`~reeb_torch.ranker.RankerWeightsError`).
     """
-    from ..ranker import load_ranker, save_ranker
+    from ..ranker import frame_hash, load_ranker, save_ranker, seen_hashes
 
     t0 = time.monotonic()
     frames = F.load_fit_frames(roots, limit=limit)
@@ -163,12 +166,15 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions,
     provenance: dict[str, Any] = {
         "data": [os.path.basename(os.path.normpath(r)) for r in roots], "frames": len(frames),
         "objects": sum(len(g) for g in frames.gts), "frames_digest": frames_digest(frames),
+        "frame_hashes": {f"{os.path.basename(os.path.normpath(f))}/{i}": frame_hash(im)
+                         for f, i, im in zip(frames.folders, frames.ids, frames.images)},
         "options": dataclasses.asdict(opts), "folds": folds, "k": k, "iou": iou, "command": command,
         "cross_validated": record,
     }
     if opts.init:
         was = model.meta.get("provenance", {})
-        provenance["init"] = {"model": opts.init, "data": was.get("data"), "frames_digest": was.get("frames_digest")}
+        provenance["init"] = {"model": opts.init, "data": was.get("data"), "frames_digest": was.get("frames_digest"),
+                              "frame_hashes": seen_hashes(was)}
     if hint_record:
         provenance["class_hints"] = hint_record
     path = save_ranker(model, out, provenance, cfg.to_dict())
@@ -180,18 +186,32 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions,
             "95 % frame-bootstrap intervals; "
             f"{time.monotonic() - t0:.0f} s")
     note = []
-    if shipped is not None and load_ranker("kitti").meta.get("provenance", {}).get("frames_digest") == \
-            provenance["frames_digest"]:
-        note = ["  (the shipped model was fitted on these frames: its row is no estimate)"]
+    if shipped is not None:
+        note += _seen_note("the shipped model", load_ranker("kitti"), frames, provenance["frames_digest"],
+                           "its row")
     if not opts.init and len(frames) < FEW_FRAMES:
         note.append(f"  ({len(frames)} frames: with 5 or 10 frames of a drive, fine-tuning a model fitted elsewhere "
                     "(--init kitti) beat a fit from scratch on the dev folders; see reeb fit in docs/cli.md)")
-    if opts.init and provenance["init"]["frames_digest"] == provenance["frames_digest"]:
-        note.append(f"  (the model fine-tuned, {opts.init}, was fitted on these frames: the {fitted} row "
-                    "is no estimate either)")
+    if opts.init:
+        note += _seen_note(f"the model fine-tuned, {opts.init},", load_ranker(opts.init), frames,
+                           provenance["frames_digest"], f"the {fitted} row")
     text = "\n".join([head] + table + note + hint_lines
                      + [f"wrote {path} and {config_path} (reeb propose --config {config_path})"])
     return {"provenance": provenance, "text": text, "weights": str(path), "config": str(config_path)}
+
+
+def _seen_note(who: str, model: BoxRanker, frames: F.FitFrames, digest: str, row: str) -> list[str]:
+    """A line where ``model`` was fitted on some or all of ``frames`` (the same pictures, by
+    :func:`~reeb_torch.ranker.fitted_frames`, or the same frame list by its digest, for files
+    without frame hashes): there its recall is in-sample."""
+    from ..ranker import fitted_frames
+
+    seen = sum(s is not None for s in fitted_frames(model, frames.images))
+    if seen == len(frames) or model.meta.get("provenance", {}).get("frames_digest") == digest:
+        return [f"  ({who} was fitted on these frames: {row} is no estimate)"]
+    if seen:
+        return [f"  ({who} was fitted on {seen} of these {len(frames)} frames: {row} is in-sample there)"]
+    return []
 
 
 def _changed(cfg: ReebConfig) -> dict[str, Any]:
