@@ -265,9 +265,10 @@ def test_reeb_fit_end_to_end(kitti_dir, tmp_path):
     assert gen.ranking.model is load_ranker(str(out))
     tuned = tmp_path / "tuned.safetensors"
     r = subprocess.run([sys.executable, "-m", "reeb_torch.runs.cli", "fit", str(kitti_dir), "--limit", "6",
-                        "--folds", "2", "--epochs", "1", "--init", str(out), "-q", "-o", str(tuned)],
-                       capture_output=True, text=True, timeout=600)
+                        "--folds", "2", "--epochs", "1", "--init", str(out), "-q", "-o", str(tuned),
+                        "--set", "horizon=0.48"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
+    assert "fitted with other settings" not in r.stderr  # the start and the shipped model, on purpose
     assert "fine-tuned (cross-validated)" in r.stdout and "mine.safetensors as it is" in r.stdout
     assert "fine-tuning a model fitted elsewhere" not in r.stdout
     assert f"the model fine-tuned, {out}, was fitted on these frames: the fine-tuned" in r.stdout

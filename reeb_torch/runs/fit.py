@@ -137,6 +137,18 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions,
         ValueError: no labels, fewer frames than folds, nothing to fit on; a ``--init`` model that
             cannot be read or reads other features (:class:`~reeb_torch.ranker.RankerWeightsError`).
     """
+    import warnings
+
+    with warnings.catch_warnings():
+        # the shipped model's row and a --init model run on this config by design: the
+        # generator's warning that they were fitted with other settings is no news here
+        warnings.filterwarnings("ignore", message=r"reeb: the ranker .* was fitted with other settings",
+                                category=UserWarning)
+        return _run_fit(roots, out, cfg, opts, folds, k, iou, limit, quiet, command)
+
+
+def _run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions, folds: int, k: int,
+             iou: float, limit: int | None, quiet: bool, command: str) -> dict[str, Any]:
     from ..ranker import frame_hash, load_ranker, save_ranker, seen_hashes
 
     t0 = time.monotonic()
