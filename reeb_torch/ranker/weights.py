@@ -167,7 +167,8 @@ SAME_IMAGE_BITS = 12
 """Most bits of :func:`frame_hash`'s 256 by which two images may differ and still count as the
 same picture. On the 106 dev frames: the same frame as float or uint8, or re-encoded as JPEG
 at quality 70, 0 bits; at half its size, 6; two distinct frames 19 or more (two moments of
-one drive), 122 at the median."""
+one drive), 122 at the median. Among more frames, a near-copy (the same street a moment
+later) may come within it: for a recall, nearly as in-sample as the frame itself."""
 
 
 def frame_hash(image: Tensor) -> str:
