@@ -175,6 +175,11 @@ def test_fitted_frames_names_the_pictures_a_model_saw(sample_image):
     made.meta = {"provenance": {"frame_hashes": {"mine/a": frame_hash(sample_image.flip(2))},
                                 "init": {"model": "kitti", "frame_hashes": {"kitti/000001": frame_hash(sample_image)}}}}
     assert fitted_frames(made, [sample_image.flip(2), sample_image]) == ["mine/a", "kitti:kitti/000001"]
+    made.meta = {"provenance": {"frame_hashes": {"x": "not hex", "y": 7, "z": frame_hash(sample_image)},
+                                "init": "kitti"}}  # a hand-edited file: what can be read is used
+    assert fitted_frames(made, [sample_image]) == ["z"]
+    made.meta = {"provenance": ["not", "a", "record"]}
+    assert fitted_frames(made, [sample_image]) == [None]
 
 
 def test_generator_with_ranker_contract(sample_image):

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import threading
 from importlib import resources
 from pathlib import Path
@@ -163,6 +164,7 @@ def save_ranker(model: BoxRanker, path: str | os.PathLike, provenance: dict | No
 
 
 _HASH_SIDE = 16
+_HEX = re.compile(f"[0-9a-f]{{{_HASH_SIDE * _HASH_SIDE // 4}}}")
 SAME_IMAGE_BITS = 12
 """Most bits of :func:`frame_hash`'s 256 by which two images may differ and still count as the
 same picture. On the 106 dev frames: the same frame as float or uint8, or re-encoded as JPEG
@@ -196,9 +198,17 @@ def seen_hashes(provenance: dict) -> dict[str, str]:
     """The :func:`frame_hash` of every frame a model's ``provenance`` says it learned from,
     by ``"folder/id"``: its own frames and, for a fine-tuned model, those of the model it
     started from (``provenance["init"]["frame_hashes"]``, named ``"<start>:folder/id"``)."""
-    out = dict(provenance.get("frame_hashes") or {})
-    init = provenance.get("init") or {}
-    out.update({f"{init.get('model')}:{k}": v for k, v in (init.get("frame_hashes") or {}).items()})
+    def valid(table: object) -> dict[str, str]:  # a hand-edited file's stray entries are left out
+        if not isinstance(table, dict):
+            return {}
+        return {str(k): v for k, v in table.items() if isinstance(v, str) and _HEX.fullmatch(v)}
+
+    if not isinstance(provenance, dict):
+        return {}
+    out = valid(provenance.get("frame_hashes"))
+    init = provenance.get("init")
+    if isinstance(init, dict):
+        out.update({f"{init.get('model')}:{k}": v for k, v in valid(init.get("frame_hashes")).items()})
     return out
 
 
