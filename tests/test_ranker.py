@@ -124,6 +124,15 @@ def test_bad_weights_files_are_one_line_errors(tmp_path):
     stale.write_bytes(len(blob).to_bytes(8, "little") + blob + raw[8 + n:])
     with pytest.raises(RankerWeightsError, match=f"version {FEATURES_VERSION - 1}.*version {FEATURES_VERSION}"):
         load_ranker(str(stale))
+    info["features_version"], info["provenance"] = FEATURES_VERSION, ["not", "a", "record"]
+    header["__metadata__"]["reeb-ranker"] = json.dumps(info)
+    blob = json.dumps(header).encode()
+    blob += b" " * (-len(blob) % 8)
+    edited = tmp_path / "edited.safetensors"
+    edited.write_bytes(len(blob).to_bytes(8, "little") + blob + raw[8 + n:])
+    with pytest.raises(RankerWeightsError, match="'provenance' metadata is not a JSON object") as e:
+        load_ranker(str(edited))
+    assert "\n" not in str(e.value) and str(edited) in str(e.value)
 
 
 def test_weights_for_other_features_are_refused(tmp_path):

@@ -132,6 +132,9 @@ def _read(path: Path, spec: str) -> BoxRanker:
                           info.get("classes"), info.get("class_hidden", (32,)))
         model.load_state_dict(tensors, strict=True)
         model.meta = {k: info[k] for k in ("provenance", "config") if k in info}
+        bad = [k for k, v in model.meta.items() if not isinstance(v, dict)]
+        if bad:
+            raise ValueError(f"its {bad[0]!r} metadata is not a JSON object")
     except (KeyError, ValueError, RuntimeError, TypeError) as e:
         reason = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise RankerWeightsError(f"ranker weights {spec!r} ({path}) do not hold a ranker: {reason}") from None
