@@ -250,6 +250,41 @@ def test_reeb_eval_from_a_wheel_outside_the_checkout(tmp_path):
     assert json.loads((work / "t3" / "table3.json").read_text())["num_objects"] == 3
 
 
+def test_table3_exclude_fitted_leaves_out_the_frames_the_learned_ranking_saw(tmp_path, monkeypatch, capsys):
+    """--exclude-fitted: the bundled frames (KITTI frames the shipped model was fitted on) are
+    left out, a mirrored frame (another picture) stays; with nothing else, a usage error."""
+    import cv2
+
+    data = _example_kitti(tmp_path / "kitti")
+    image = cv2.imread(str(data / "images" / "000008.png"))
+    cv2.imwrite(str(data / "images" / "000009.png"), image[:, ::-1])
+    width = image.shape[1]
+    lines = []
+    for line in (data / "labels" / "000008.txt").read_text().splitlines():
+        f = line.split()
+        f[4], f[6] = f"{width - float(f[6]):.2f}", f"{width - float(f[4]):.2f}"
+        lines.append(" ".join(f))
+    (data / "labels" / "000009.txt").write_text("\n".join(lines) + "\n")
+    shutil.copy(data / "calib" / "000008.txt", data / "calib" / "000009.txt")
+    monkeypatch.chdir(tmp_path)
+    record = table3.main(["--data", str(data), "--methods", "reeb-default", "reeb-training-free", "--batch", "0",
+                          "--out", "t3", "--exclude-fitted"])
+    assert record["image_ids"] == ["000009"] and record["in_sample"] == {}
+    assert record["excluded_fitted"] == {"000001": "kitti/000001", "000008": "kitti/000008"}
+    assert "--exclude-fitted: left out 2 frames the learned ranking was fitted on (000001, 000008)" in \
+        capsys.readouterr().out
+    assert "In-sample" not in (tmp_path / "t3" / "table3.txt").read_text()
+    (data / "images" / "000009.png").unlink()
+    with pytest.raises(SystemExit) as info:
+        table3.main(["--data", str(data), "--methods", "reeb-default", "--batch", "0", "--out", "t3b",
+                     "--exclude-fitted"])
+    assert info.value.code == 2 and "--exclude-fitted leaves 0 of the 2 frames" in capsys.readouterr().err
+    # training-free rows alone learn nothing: nothing is left out
+    free = table3.main(["--data", str(data), "--methods", "reeb-training-free", "--batch", "0", "--out", "t3c",
+                        "--exclude-fitted"])
+    assert free["image_ids"] == ["000001", "000008"] and free["excluded_fitted"] == {}
+
+
 def test_table3_on_two_folders_reports_each_and_both(tmp_path, monkeypatch):
     """Several --data folders: one run, every table for each folder and for all of them, each
     folder's numbers equal to a run on that folder alone."""

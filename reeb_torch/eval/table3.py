@@ -370,6 +370,10 @@ def build_parser(prog: str = "python -m reeb_torch.eval",
     p.add_argument("--max-proposals", type=int, default=max(KS), help="proposals per image; default: %(default)s")
     p.add_argument("--batch", type=int, default=8,
                    help="also time REEB in batches of this many images (0 or 1: skip); default: %(default)s")
+    p.add_argument("--exclude-fitted", action="store_true",
+                   help="leave out the frames a learned ranking among the methods was fitted on (the same "
+                        "pictures, whatever their names: reeb_torch.ranker.fitted_frames), so that every row "
+                        "is an estimate (the shipped model saw KITTI training frames)")
     p.add_argument("--bing-model", type=Path, default=None,
                    help="folder of BING's nine ObjNessB2W8*.yml.gz files; default: the package's "
                         "default (reeb_torch.eval.baselines.default_bing_model_dir), else bing_model/ "
@@ -428,6 +432,9 @@ def main(
     rerun = rerun_line(prog, argv)
     print(f"Rerun: {rerun}   (from {os.getcwd()})", flush=True)
     frames = _load_frames(args, parser)
+    excluded: dict[str, str] = {}
+    if args.exclude_fitted:
+        frames, excluded = _without_fitted(frames, [k for k in args.methods if METHODS[k].preset], args, parser)
     splits = _splits(args, frames)
     bing_model = _bing_model(args)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -445,6 +452,7 @@ def main(
     plots = _plot(curves, args.out) if curves else []
     record = _record(args, rerun, env, frames, splits, results, plots)
     record["in_sample"] = seen
+    record["excluded_fitted"] = excluded
     (args.out / "table3.json").write_text(json.dumps(record, indent=1))
     print(f"wrote {args.out}/table3.txt, table3.csv, table3.json"
           + (f", {', '.join(plots)}" if plots else ""), flush=True)
@@ -476,6 +484,27 @@ def _load_frames(args: argparse.Namespace, parser: argparse.ArgumentParser) -> _
     print(f"{len(frames.images)} frames from {_data_text(args)} ({frames.n_obj} objects of {', '.join(classes)}), "
           f"decoded in {time.perf_counter() - t0:.1f} s", flush=True)
     return frames
+
+
+def _without_fitted(frames: _Frames, keys: Sequence[str], args: argparse.Namespace,
+                    parser: argparse.ArgumentParser) -> tuple[_Frames, dict[str, str]]:
+    """``--exclude-fitted``: ``frames`` less those a learned ranking of the REEB rows ``keys``
+    was fitted on, and those left out (``{id: the model's name for it}``); a usage error when
+    nothing with an object is left."""
+    left: dict[str, str] = {}
+    for seen in in_sample_frames(keys, frames).values():
+        left.update(seen)
+    keep = [i for i, f in enumerate(frames.ids) if f not in left]
+    pick = lambda xs: [xs[i] for i in keep]  # noqa: E731
+    out = _Frames(pick(frames.items), frames.classes, pick(frames.images), pick(frames.gts), pick(frames.labels),
+                  pick(frames.ids), sum(int(frames.gts[i].shape[0]) for i in keep))
+    if out.n_obj == 0:
+        parser.exit(2, f"{parser.prog}: error: --exclude-fitted leaves {len(keep)} of the {len(frames.ids)} frames "
+                       f"of {_data_text(args)}, with no object: the learned ranking was fitted on the others\n")
+    shown = ", ".join(list(left)[:8]) + (f" and {len(left) - 8} more" if len(left) > 8 else "")
+    print(f"--exclude-fitted: left out {len(left)} frames the learned ranking was fitted on"
+          + (f" ({shown})" if left else ""), flush=True)
+    return out, left
 
 
 def _data_text(args: argparse.Namespace) -> str:
@@ -600,7 +629,7 @@ def _in_sample_note(seen: dict[str, dict[str, str]], frames: _Frames, results: d
     rows = ", ".join(results[k]["label"] for k in seen)
     return (f"In-sample: {len(ids)} of these {len(frames.images)} frames are pictures the learned ranking was "
             f"fitted on ({shown}; table3.json: in_sample), so the rows ranked by it ({rows}) are not an "
-            "estimate there; select the other frames (--frames) for one.")
+            "estimate there; --exclude-fitted leaves them out.")
 
 
 def _report(args: argparse.Namespace, rerun: str, env: dict, frames: _Frames, splits: list[tuple[str, list[int]]],
@@ -624,6 +653,8 @@ def _report(args: argparse.Namespace, rerun: str, env: dict, frames: _Frames, sp
         [(n, v, f"{t:,}") for n, (v, t) in PAPER_TABLE3.items()]))
     counts = ", ".join(f"{c} {n}" for c, n in zip(frames.classes, _class_counts(frames.labels, len(frames.classes))))
     frames_note = f", --frames {' '.join(r.text for r in args.frames)}" if args.frames else ""
+    if getattr(args, "exclude_fitted", False):
+        frames_note += ", --exclude-fitted: frames a learned ranking was fitted on left out"
     header = (f"Table 3 on {len(frames.images)} frames of {_data_text(args)} ({_frame_span(frames.ids)}{frames_note}; "
               f"{frames.n_obj} objects: {counts}).\n"
               f"Time: wall ms per image of the proposal call only (decoding excluded), batch size 1"
