@@ -21,6 +21,10 @@ minus each other's, averaged over the seeds, with a 95 % bootstrap interval over
 (block, test frame) units, and how many seeds it finds more objects with (sign test).
 
     python benchmarks/adapt.py --k 5 10 --seeds 0 1 2 3 4 --out docs/results/ranker/adapt
+
+Beside ``adapt.txt`` and ``adapt.json`` it draws ``adapt.png`` (with matplotlib, the
+``extras`` extra): each scenario's mean recall per condition, and fine-tuning's paired
+differences with their intervals. ``--plot adapt.json`` redraws it from a saved record.
 """
 
 from __future__ import annotations
@@ -130,8 +134,62 @@ def paired_difference(frames: F.FitFrames, per_seed: list[dict], scens: list[dic
             "p_seeds": sign_test(more, fewer)}
 
 
+def plot(record: dict, path: Path) -> bool:
+    """Draw ``record`` (:func:`main`'s) to ``path``: per direction, each adapt block's mean
+    recall of the four conditions (bars), and fine-tuning minus each other condition over
+    the seeds with its 95 % interval. False (and a line) without matplotlib."""
+    try:
+        import matplotlib
+    except ImportError:
+        print("adapt.png skipped: matplotlib is not installed (pip install 'reeb-torch[extras]')", flush=True)
+        return False
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    directions = list(record["paired"])
+    colours = {"training-free": "#9e9e9e", "base": "#64b5f6", "scratch": "#ffb74d", "fine-tuned": "#2e7d32"}
+    fig, axes = plt.subplots(2, len(directions), figsize=(5.2 * len(directions), 7.2),
+                             gridspec_kw={"height_ratios": [3, 2]}, squeeze=False)
+    seeds = len(record["seeds"])
+    for col, direction in enumerate(directions):
+        names = [n for n in record["scenarios"] if n.startswith(direction + ",")]
+        ax = axes[0][col]
+        width = 0.8 / len(CONDITIONS)
+        for j, c in enumerate(CONDITIONS):
+            ax.bar([i + (j - 1.5) * width for i in range(len(names))],
+                   [record["scenarios"][n]["mean_recall"][c] for n in names], width, label=c, color=colours[c])
+        ax.set_xticks(range(len(names)))
+        ax.set_xticklabels([n.split(", ", 1)[1] + f"\n({record['scenarios'][n]['objects']} obj.)" for n in names],
+                           fontsize=8)
+        ax.set_ylim(0, 100)
+        ax.set_ylabel("recall @2000, IoU 0.7 (%)")
+        ax.set_title(f"{direction}: adapt on the target's first / last k frames", fontsize=9)
+        ax.grid(True, axis="y", alpha=0.3)
+        ax = axes[1][col]
+        others = ["training-free", "base", "scratch"]
+        rows = [record["paired"][direction][o] for o in others]
+        ax.barh(range(len(others)), [r["points"] for r in rows], color=[colours[o] for o in others],
+                xerr=[[r["points"] - r["low"] for r in rows], [r["high"] - r["points"] for r in rows]], capsize=4)
+        ax.axvline(0, color="black", lw=0.8)
+        ax.set_yticks(range(len(others)))
+        ax.set_yticklabels([f"vs {o}\n({r['seeds_more']} / {r['seeds_fewer']} seeds)" for o, r in zip(others, rows)],
+                           fontsize=8)
+        ax.set_xlabel("fine-tuned minus the other (points, 95 % interval)", fontsize=9)
+        ax.grid(True, axis="x", alpha=0.3)
+    fig.suptitle("A few labelled frames of another drive: reeb fit --init against the alternatives "
+                 f"(mean of {seeds} fit seeds)", fontsize=10)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="upper center", ncol=len(CONDITIONS), fontsize=8, bbox_to_anchor=(0.5, 0.955))
+    fig.tight_layout(rect=(0, 0, 1, 0.93))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--plot", type=Path, metavar="ADAPT_JSON",
+                    help="only redraw adapt.png beside this saved adapt.json")
     ap.add_argument("--data", type=Path, nargs="+", default=default_dev_dirs(),
                     help="two or more labelled folders (default: the dev folders)")
     ap.add_argument("--k", type=int, nargs="+", default=[5, 10], help="frames to adapt with")
@@ -139,6 +197,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--gap", type=int, default=2, help="frames of a drive kept out beside the adapt block")
     ap.add_argument("--out", type=Path, default=Path("runs/adapt"))
     args = ap.parse_args(argv)
+    if args.plot is not None:
+        import json
+
+        record = json.loads(args.plot.read_text())
+        plot(record, args.plot.with_name("adapt.png"))
+        return record
     if len(args.data) < 2:
         ap.error("give two folders or more (--data): a source and a target")
     t0 = time.monotonic()
@@ -186,6 +250,7 @@ def main(argv: list[str] | None = None) -> dict:
     text.append(f"({time.monotonic() - t0:.0f} s)")
     print("\n".join(text[-(2 + len(scens) + len(record['paired'])):]))
     write_outputs(args.out, "adapt", text, record)
+    plot(record, args.out / "adapt.png")
     return record
 
 

@@ -404,3 +404,8 @@ def test_adapt_scores_four_ways_on_frames_away_from_the_adapt_block(tmp_path):
         assert set(pairs) == {"training-free", "base", "scratch"}
         assert all(p["low"] <= p["points"] <= p["high"] for p in pairs.values())
     assert (tmp_path / "out" / "adapt.txt").read_text().startswith("# rerun: python benchmarks/adapt.py")
+    png = tmp_path / "out" / "adapt.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    png.unlink()
+    assert adapt.main(["--plot", str(tmp_path / "out" / "adapt.json")]) == json.loads(
+        (tmp_path / "out" / "adapt.json").read_text()) and png.is_file()  # redrawn from the record
