@@ -261,10 +261,15 @@ def main(argv: list[str] | None = None) -> list[dict]:
 def say_in_sample(say, rankers: set[str], images, items) -> None:
     """A line per learned ranking among the rows: how many of the frames it was fitted on
     (the same pictures, :func:`reeb_torch.ranker.fitted_frames`): its rows are in-sample there."""
-    from reeb_torch.ranker import fitted_frames, load_ranker
+    from reeb_torch.ranker import fitted_frames, load_ranker, seen_hashes
 
     for spec in sorted(r for r in rankers if r != "none"):
-        seen = [str(it["image_id"]) for it, n in zip(items, fitted_frames(load_ranker(spec), images)) if n]
+        model = load_ranker(spec)
+        if not seen_hashes(model.meta.get("provenance", {})):
+            say(f"# ranking {spec!r}: its file records no frame hashes (written before they were kept): "
+                "which of these frames it saw is unknown")
+            continue
+        seen = [str(it["image_id"]) for it, n in zip(items, fitted_frames(model, images)) if n]
         shown = ", ".join(seen[:6]) + (f" and {len(seen) - 6} more" if len(seen) > 6 else "")
         say(f"# ranking {spec!r}: fitted on {len(seen)} of these {len(images)} frames"
             + (f" ({shown}): its rows are in-sample there" if seen else " (the same pictures, by frame hash)"))

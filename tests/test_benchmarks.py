@@ -145,6 +145,20 @@ def test_ablation_variants_run_beside_the_default_only(tmp_path):
     assert "# ranking 'kitti': fitted on 2 of these 2 frames (000001, 000008): its rows are in-sample" in text
 
 
+def test_ablations_say_when_a_model_cannot_tell_which_frames_it_saw(tmp_path, sample_image):
+    from reeb_torch.ranker import BoxRanker, save_ranker
+    from reeb_torch.stages.features import feature_names
+
+    ablations = _script("ablations")
+    old = save_ranker(BoxRanker(feature_names(4)), tmp_path / "old.safetensors", {"frames": 3})
+    lines: list[str] = []
+    ablations.say_in_sample(lines.append, {"none", "kitti", str(old)}, [sample_image.flip(2)],
+                            [{"image_id": "000009"}])
+    assert lines == [f"# ranking {str(old)!r}: its file records no frame hashes (written before they were kept): "
+                     "which of these frames it saw is unknown",
+                     "# ranking 'kitti': fitted on 0 of these 1 frames (the same pictures, by frame hash)"]
+
+
 def test_ablations_pair_with_another_reference(tmp_path):
     """--reference training-free: that row comes first and every other row pairs with it."""
     ablations = _script("ablations")
