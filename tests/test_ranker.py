@@ -95,6 +95,20 @@ def test_weights_round_trip(tmp_path):
     assert all(torch.equal(a, b) for a, b in zip(hinted.state_dict().values(), got.state_dict().values()))
 
 
+def test_weights_files_get_the_umasks_permissions(tmp_path):
+    """A weights file is as readable as any file the user writes (a team's folder, Ray workers
+    running as another user), not its owner's alone."""
+    import os
+    import stat
+
+    old = os.umask(0o022)
+    try:
+        p = save_ranker(_model(), tmp_path / "shared.safetensors")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(p.stat().st_mode) == 0o644
+
+
 def test_bad_weights_files_are_one_line_errors(tmp_path):
     with pytest.raises(RankerWeightsError, match="no such file") as e:
         load_ranker(str(tmp_path / "missing.safetensors"))

@@ -147,7 +147,7 @@ def save_ranker(model: BoxRanker, path: str | os.PathLike, provenance: dict | No
 
     ``provenance`` and ``config`` (JSON-able dicts) are kept as metadata (:data:`BoxRanker.meta`
     once loaded)."""
-    from safetensors.torch import save_file
+    from safetensors.torch import save
 
     info = {"features_version": FEATURES_VERSION, "feature_names": list(model.feature_names),
             "hidden": list(model.hidden), "members": len(model.members),
@@ -162,7 +162,9 @@ def save_ranker(model: BoxRanker, path: str | os.PathLike, provenance: dict | No
     tensors = {k: v.detach().to("cpu", torch.float32).contiguous() for k, v in model.state_dict().items()}
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    save_file(tensors, str(out), metadata=meta)
+    # the bytes through Python's open: the file gets the umask's permissions (safetensors'
+    # save_file made it readable by its owner alone: 0600, whatever the umask)
+    out.write_bytes(save(tensors, metadata=meta))
     return out
 
 
