@@ -44,7 +44,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_dev_dirs, environment, rerun_line, setting_pairs, settings_config  # noqa: E402
 
 from reeb_torch import ProposalGenerator, ReebConfig, get_preset  # noqa: E402
-from reeb_torch.eval.common import add_data_option, add_frames_option, folder_splits, load_folders  # noqa: E402
+from reeb_torch.eval.common import (add_data_option, add_frames_option, first_few, folder_splits,  # noqa: E402
+                                   load_folders)
 from reeb_torch.eval.table3 import moderate_masks  # noqa: E402
 from reeb_torch.eval.metrics import (  # noqa: E402
     average_recall,
@@ -270,9 +271,9 @@ def say_in_sample(say, rankers: set[str], images, items) -> None:
                 "which of these frames it saw is unknown")
             continue
         seen = [str(it["image_id"]) for it, n in zip(items, fitted_frames(model, images)) if n]
-        shown = ", ".join(seen[:6]) + (f" and {len(seen) - 6} more" if len(seen) > 6 else "")
         say(f"# ranking {spec!r}: fitted on {len(seen)} of these {len(images)} frames"
-            + (f" ({shown}): its rows are in-sample there" if seen else " (the same pictures, by frame hash)"))
+            + (f" ({first_few(seen, 6)}): its rows are in-sample there" if seen
+               else " (the same pictures, by frame hash)"))
 
 
 def measure(name, note, boxes, ms, hits, base_hits, gts, labels, classes, gts_mod, labels_mod, groups):

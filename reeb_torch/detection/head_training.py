@@ -27,10 +27,9 @@ from __future__ import annotations
 
 import math
 import time
-import typing
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import Tensor, nn
@@ -162,7 +161,7 @@ def _step(model: nn.Module, frames: Sequence[CachedFrame], optimizer: torch.opti
     optimizer.zero_grad(set_to_none=True)
     total = 0.0
     for frame in frames:
-        loss = typing.cast(Tensor, sum(frame_forward(model, frame).values())) / len(frames)
+        loss = cast(Tensor, sum(frame_forward(model, frame).values())) / len(frames)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"non-finite training loss {loss.item()}")
         loss.backward()

@@ -27,8 +27,7 @@ import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-import typing
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import Tensor, nn
@@ -94,7 +93,7 @@ def _baseline_source(name: str) -> ProposalSource:
     from ..eval.baselines import BASELINES
 
     baseline = BASELINES[name]()
-    settings = repr(sorted(dataclasses.asdict(typing.cast(Any, baseline)).items())) + cv2.__version__
+    settings = repr(sorted(dataclasses.asdict(cast(Any, baseline)).items())) + cv2.__version__
     return ProposalSource(name, f"{name}-{_short_hash(settings)}", baseline)
 
 

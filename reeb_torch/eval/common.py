@@ -25,6 +25,7 @@ __all__ = [
     "load_folders",
     "folder_names",
     "folder_splits",
+    "first_few",
     "add_frames_option",
     "add_data_option",
     "rerun_line",
@@ -171,6 +172,12 @@ def folder_splits(items: Sequence[dict[str, Any]]) -> list[tuple[str, list[int]]
     for i, it in enumerate(items):
         out.setdefault(it.get("folder", ""), []).append(i)
     return list(out.items()) if len(out) > 1 else []
+
+
+def first_few(names: Sequence[str], n: int = 8) -> str:
+    """``names`` joined with commas, the first ``n`` of them and how many more."""
+    shown = ", ".join(list(names)[:n])
+    return shown + (f" and {len(names) - n} more" if len(names) > n else "")
 
 
 def add_data_option(parser: Any, default: Sequence[str | os.PathLike] | None = None) -> None:

@@ -57,7 +57,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import torch
 
@@ -74,7 +74,8 @@ from .metrics import (
     recall_vs_proposals,
     select_objects,
 )
-from .common import add_data_option, add_frames_option, environment, folder_splits, load_folders, rerun_line
+from .common import (add_data_option, add_frames_option, environment, first_few, folder_splits, load_folders,
+                     rerun_line)
 
 __all__ = [
     "KS",
@@ -444,7 +445,8 @@ def main(
     reference = "reeb-default" if "reeb-default" in done else (done[0] if done else None)
     _pair_with_reference(results, hits, splits, done, reference)
     env = environment()
-    seen = in_sample_frames([k for k in done if METHODS[k].preset], frames)
+    # after --exclude-fitted no frame left was seen: no need to hash them again
+    seen = {} if args.exclude_fitted else in_sample_frames([k for k in done if METHODS[k].preset], frames)
     text = _report(args, rerun, env, frames, splits, results, done, reference, seen)
     print("\n" + text, flush=True)
     (args.out / "table3.txt").write_text(text)
@@ -501,9 +503,8 @@ def _without_fitted(frames: _Frames, keys: Sequence[str], args: argparse.Namespa
     if out.n_obj == 0:
         parser.exit(2, f"{parser.prog}: error: --exclude-fitted leaves {len(keep)} of the {len(frames.ids)} frames "
                        f"of {_data_text(args)}, with no object: the learned ranking was fitted on the others\n")
-    shown = ", ".join(list(left)[:8]) + (f" and {len(left) - 8} more" if len(left) > 8 else "")
     print(f"--exclude-fitted: left out {len(left)} frames the learned ranking was fitted on"
-          + (f" ({shown})" if left else ""), flush=True)
+          + (f" ({first_few(list(left))})" if left else ""), flush=True)
     return out, left
 
 
@@ -625,10 +626,9 @@ def _in_sample_note(seen: dict[str, dict[str, str]], frames: _Frames, results: d
     if not seen:
         return ""
     ids = next(iter(seen.values()))
-    shown = ", ".join(list(ids)[:8]) + (f" and {len(ids) - 8} more" if len(ids) > 8 else "")
     rows = ", ".join(results[k]["label"] for k in seen)
     return (f"In-sample: {len(ids)} of these {len(frames.images)} frames are pictures the learned ranking was "
-            f"fitted on ({shown}; table3.json: in_sample), so the rows ranked by it ({rows}) are not an "
+            f"fitted on ({first_few(list(ids))}; table3.json: in_sample), so the rows ranked by it ({rows}) are not an "
             "estimate there; --exclude-fitted leaves them out.")
 
 
@@ -653,7 +653,7 @@ def _report(args: argparse.Namespace, rerun: str, env: dict, frames: _Frames, sp
         [(n, v, f"{t:,}") for n, (v, t) in PAPER_TABLE3.items()]))
     counts = ", ".join(f"{c} {n}" for c, n in zip(frames.classes, _class_counts(frames.labels, len(frames.classes))))
     frames_note = f", --frames {' '.join(r.text for r in args.frames)}" if args.frames else ""
-    if getattr(args, "exclude_fitted", False):
+    if args.exclude_fitted:
         frames_note += ", --exclude-fitted: frames a learned ranking was fitted on left out"
     header = (f"Table 3 on {len(frames.images)} frames of {_data_text(args)} ({_frame_span(frames.ids)}{frames_note}; "
               f"{frames.n_obj} objects: {counts}).\n"

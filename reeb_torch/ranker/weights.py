@@ -8,10 +8,11 @@ JSON object (keys sorted, so the same model gives the same bytes) with
 * ``features_version``: the :data:`~reeb_torch.stages.features.FEATURES_VERSION` it was
   fitted on; ``feature_names``, ``hidden``, ``members``, ``prefilter``: its shape;
   ``classes``, ``class_hidden``: its class head's, where it has one (older files have none);
-* ``provenance``: the frames it was fitted on (their folders, ids and, in files
-  written since frame hashes were added, ``frame_hashes``: a :func:`frame_hash` of each image, so that :func:`fitted_frames` can say
-  which of someone's frames the model saw whatever they are named), the command that refits
-  it, its cross-validated recall, the fit's options and seed;
+* ``provenance``: the frames it was fitted on (their folders, ids and, in files written
+  since frame hashes were added, ``frame_hashes``: a :func:`frame_hash` of each image, so
+  that :func:`fitted_frames` can say which of someone's frames the model saw whatever they
+  are named), the command that refits it, its cross-validated recall, the fit's options and
+  seed;
 * ``config``: the :class:`~reeb_torch.ReebConfig` fields it was fitted with.
 
 :func:`load_ranker` takes a shipped name (:data:`SHIPPED`, files inside the package) or a
@@ -230,6 +231,7 @@ def fitted_frames(model: BoxRanker, images: "list[Tensor] | tuple[Tensor, ...]",
     out: list[str | None] = []
     for image in images:
         h = int(frame_hash(image), 16)
-        best = min(range(len(values)), key=lambda i: bin(h ^ values[i]).count("1"))
-        out.append(names[best] if bin(h ^ values[best]).count("1") <= max_bits else None)
+        bits = [bin(h ^ v).count("1") for v in values]
+        best = min(range(len(bits)), key=bits.__getitem__)
+        out.append(names[best] if bits[best] <= max_bits else None)
     return out

@@ -35,8 +35,7 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
-import typing
-from typing import TYPE_CHECKING, Any, Iterable, Sequence
+from typing import TYPE_CHECKING, Any, Iterable, Sequence, cast
 
 from ..config import ReebConfig
 from .batch import read_result_dir, result_files
@@ -235,7 +234,7 @@ class ProposalActor:
                                                 self.fingerprint, (w, h)))
             for it, row in zip(group, rows):
                 out[it.index] = row
-        return [self._resolved(typing.cast(dict, r), str(o)) for r, o in zip(out, opened)]  # every row is set
+        return [self._resolved(cast(dict, r), str(o)) for r, o in zip(out, opened)]  # every row is set
 
     def __call__(self, batch: dict) -> Any:
         import pyarrow as pa
