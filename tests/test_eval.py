@@ -196,6 +196,8 @@ def test_table3_usage_errors_exit_2(tmp_path, capsys):
         (["--data", str(data), "--frames", "20:30"], "no frame with an id in 20:30"),
         (["--data", str(data), "--frames", "9:3"], "first id 9 is after last id 3"),
         (["--data", str(data), "--max-proposals", "100"], "--max-proposals must be >= 2000"),
+        (["--data", str(data), "--cross-validate", "1"], "--cross-validate needs at least 2 folds, got 1"),
+        (["--data", str(data), "--cross-validate", "3"], "--cross-validate 3 needs at least as many frames, got 2"),
     ]
     for argv, message in cases:
         with pytest.raises(SystemExit) as e:
@@ -312,3 +314,37 @@ def test_folder_names_and_splits():
     items = [{"folder": "k"}, {"folder": "t"}, {"folder": "k"}]
     assert folder_splits(items) == [("k", [0, 2]), ("t", [1])]
     assert folder_splits([{"folder": "k"}] * 3) == []  # one folder: no split of its own
+
+
+@pytest.mark.kitti
+def test_table3_cross_validated_row_is_reeb_fits_estimate(kitti_dir, tmp_path, monkeypatch):
+    """--cross-validate: a row of the default ranked by the models reeb fit's cross-validation
+    fits on the same frames (its hits are cross_validate's), placed after the default's own
+    row, which is in sample; every row is then paired with training-free."""
+    from reeb_torch import ReebConfig
+    from reeb_torch.eval import fit as F
+    from reeb_torch.eval.tune import FrameCache
+
+    monkeypatch.chdir(tmp_path)
+    record = table3.main(["--data", str(kitti_dir), "--limit", "6", "--methods", "reeb-training-free",
+                          "reeb-default", "--batch", "0", "--out", "t3", "--cross-validate", "2"])
+    assert list(record["methods"]) == ["reeb-training-free", "reeb-default", "reeb-default-cv"]
+    row = record["methods"]["reeb-default-cv"]
+    assert row["timing"]["ms_per_img"] is None and row["timing"]["folds"] == 2
+    frames = F.load_fit_frames([str(kitti_dir)], limit=6)
+    cache = FrameCache(frames)
+    cfg, opts = ReebConfig(), F.FitOptions()
+    cv = F.cross_validate(cache, cfg, cfg.training_free(), F.frame_samples(cache, cfg, opts), opts, 2)
+    found = sum(int(h.sum()) for h in cv.ranked_hits)
+    objects = sum(h.numel() for h in cv.ranked_hits)
+    assert row["splits"]["all"]["headline_interval"]["recall"] == pytest.approx(found / objects)
+    assert row["recall"]["micro"]["2000"]["0.7"] == pytest.approx(found / objects)
+    paired = row["splits"]["all"]["versus_reference"]
+    assert paired["reference"] == "reeb-training-free"
+    assert (paired["gained"], paired["lost"]) == (
+        sum(int((r & ~b).sum()) for r, b in zip(cv.ranked_hits, cv.base_hits)),
+        sum(int((b & ~r).sum()) for r, b in zip(cv.ranked_hits, cv.base_hits)))
+    text = (tmp_path / "t3" / "table3.txt").read_text()
+    assert "Cross-validated: the row Ours** + learned ranking (cross-validated) ranks each of 2 blocks" in text
+    assert "In-sample: 6 of these 6 frames" in text  # the default's own row
+    assert "(fit " in text

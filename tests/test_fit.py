@@ -244,6 +244,29 @@ def test_cross_validate_runs_after_the_model_settings_with_the_same_fold_models(
     assert F.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 2).also_hits == []
 
 
+def test_held_out_outputs_are_the_cross_validated_models(kitti_dir):
+    """held_out_outputs: each frame's proposals from the model fitted without its block, the
+    very models of cross_validate (the same hits)."""
+    import dataclasses
+
+    from reeb_torch import ReebConfig
+    from reeb_torch.eval.metrics import object_hits
+    from reeb_torch.eval.tune import FrameCache
+
+    frames = F.load_fit_frames([str(kitti_dir)], limit=6)
+    cache = FrameCache(frames)
+    cfg, opts = ReebConfig(), dataclasses.replace(F.FitOptions(), epochs=2, class_hidden=None)
+    samples = F.frame_samples(cache, cfg, opts)
+    outputs = F.held_out_outputs(cache, cfg, samples, opts, 3)
+    cv = F.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 3)
+    hits = object_hits([o["boxes"] for o in outputs], frames.gts, 2000, 0.7)
+    assert all(torch.equal(a, b) for a, b in zip(hits, cv.ranked_hits))
+    assert all(0 < len(o["boxes"]) <= 2000 and "labels" not in o for o in outputs)  # no class head here
+    others = F.other_boxes(kitti_dir, frames.ids)
+    assert len(others) == 6 and all(torch.equal(a, b) for a, b in zip(others, frames.ignore))
+    assert sum(len(b) for b in others) > 0  # vans, DontCare, ... in the first frames
+
+
 @pytest.mark.kitti
 def test_reeb_fit_end_to_end(kitti_dir, tmp_path):
     out = tmp_path / "mine.safetensors"

@@ -25,7 +25,7 @@ import re
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -38,7 +38,7 @@ from .tune import FrameCache, Frames
 
 __all__ = ["FitFrames", "FitOptions", "Sample", "FitCrossValidation", "load_fit_frames", "frame_sample",
            "frame_samples", "fit_ranker", "initial_model", "frame_folds", "similar_frames", "training_frames",
-           "cross_validate", "hinted_classes", "drive_of"]
+           "cross_validate", "held_out_outputs", "hinted_classes", "drive_of", "other_boxes"]
 
 
 @dataclass
@@ -56,19 +56,30 @@ def load_fit_frames(roots: Sequence[str | os.PathLike], limit: int | None = None
     Raises:
         ValueError: as :func:`~reeb_torch.eval.tune.load_frames`.
     """
-    from .data import DEFAULT_CLASSES, KittiDataset, read_kitti_labels
+    from .data import KittiDataset
     from .tune import load_frames
 
     frames = load_frames(roots, limit)
     ignore: list[Tensor] = []
     for root in roots:
-        ds = KittiDataset(root, limit=limit)
-        assert ds.label_dir is not None  # load_frames refused a folder without labels
-        for image_id in ds.ids:
-            others = [o.box for o in read_kitti_labels(ds.label_dir / f"{image_id}.txt")
-                      if o.type not in DEFAULT_CLASSES]
-            ignore.append(torch.tensor(others, dtype=torch.float32).reshape(-1, 4))
+        ignore += other_boxes(root, KittiDataset(root, limit=limit).ids)
     return FitFrames(**{f.name: getattr(frames, f.name) for f in dataclasses.fields(Frames)}, ignore=ignore)
+
+
+def other_boxes(root: str | os.PathLike, image_ids: Sequence[str]) -> list[Tensor]:
+    """Per frame ``image_ids`` of the KITTI-format folder ``root``, ``float32 [M, 4]``: its
+    labelled boxes of no target class (vans, trams, ``DontCare``, ...): :attr:`FitFrames.ignore`.
+
+    Raises:
+        ValueError: ``root`` has no labels.
+    """
+    from .data import DEFAULT_CLASSES, KittiDataset, read_kitti_labels
+
+    label_dir = KittiDataset(root).label_dir
+    if label_dir is None:
+        raise ValueError(f"{root}: no label_2 folder: the frames to fit on need labels")
+    return [torch.tensor([o.box for o in read_kitti_labels(label_dir / f"{i}.txt") if o.type not in DEFAULT_CLASSES],
+                         dtype=torch.float32).reshape(-1, 4) for i in image_ids]
 
 
 @dataclass(frozen=True)
@@ -421,6 +432,39 @@ def hinted_classes(outputs: Sequence[dict[str, Tensor]], gts: Sequence[Tensor], 
     return out
 
 
+def _held_out_models(cache: FrameCache, names: Sequence[str], samples: Sequence[Sample], opts: FitOptions,
+                     folds: int, gap: int, progress: Callable | None) -> Iterator[tuple[list[int], int, Path]]:
+    """Per block of :func:`frame_folds`, in turn: its frames, how many frames the model fitted
+    without it was fitted on (:func:`training_frames`: no drive neighbour or near-copy of the
+    block), and that model's weights file, in a temporary folder removed at the end."""
+    frames = cache.frames
+    blocks = frame_folds(len(frames), folds)
+    similar = similar_frames(frames.images)
+    with tempfile.TemporaryDirectory(prefix="reeb-fit-") as tmp:
+        for f in progress(range(len(blocks))) if progress else range(len(blocks)):
+            train = training_frames(blocks, f, frames.ids, frames.folders, similar, gap)
+            model = fit_ranker([samples[i] for i in train], names, opts, frames.classes)
+            yield blocks[f], len(train), save_ranker(model, Path(tmp) / f"fold{f}.safetensors")
+
+
+def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[Sample], opts: FitOptions, folds: int,
+                     gap: int = 2, progress: Callable | None = None) -> list[dict[str, Tensor]]:
+    """Per frame (in frame order), ``ProposalGenerator(cfg)``'s output dict with the ranking
+    fitted without the frame's block (the folds and models of :func:`cross_validate`, from
+    ``samples`` = :func:`frame_samples` under ``cfg``): proposals from a model that never saw
+    the frame, for any recall table.
+
+    Raises:
+        ValueError: fewer than 2 folds, or fewer frames than folds.
+    """
+    names = cache.candidates(cfg.unranked(), 0).feature_names
+    out: list = [None] * len(cache.frames)
+    for block, _, path in _held_out_models(cache, names, samples, opts, folds, gap, progress):
+        for i, o in zip(block, cache.outputs(cfg.replace(ranker=str(path)), block)):
+            out[i] = o
+    return out
+
+
 def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples: Sequence[Sample],
                    opts: FitOptions, folds: int, k: int = 2000, iou: float = 0.7, gap: int = 2,
                    progress: Callable | None = None, also: Sequence[ReebConfig] = ()) -> FitCrossValidation:
@@ -432,34 +476,28 @@ def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples
     from .tune import objective
 
     frames = cache.frames
-    blocks = frame_folds(len(frames), folds)
-    similar = similar_frames(frames.images)
     names = cache.candidates(cfg.unranked(), 0).feature_names
     r_hits: list = [None] * len(frames)
     b_hits: list = [None] * len(frames)
     hinted: list = [None] * len(frames)
     also_hits: list[list] = [[None] * len(frames) for _ in also]
-    per_fold, trained = [], []
-    with tempfile.TemporaryDirectory(prefix="reeb-fit-") as tmp:
-        for f in progress(range(len(blocks))) if progress else range(len(blocks)):
-            block = blocks[f]
-            train = training_frames(blocks, f, frames.ids, frames.folders, similar, gap)
-            model = fit_ranker([samples[i] for i in train], names, opts, frames.classes)
-            path = save_ranker(model, Path(tmp) / f"fold{f}.safetensors")
-            outputs = cache.outputs(cfg.replace(ranker=str(path)), block)
-            gts = [frames.gts[i] for i in block]
-            ranked = object_hits([o["boxes"] for o in outputs], gts, k, iou)
-            for i, rh, bh, hc in zip(block, ranked, cache.hits(base, block, k, iou),
-                                     hinted_classes(outputs, gts, k, iou)):
-                r_hits[i], b_hits[i], hinted[i] = rh, bh, hc
-            for other, hits in zip(also, also_hits):
-                found = object_hits([o["boxes"] for o in cache.outputs(other.replace(ranker=str(path)), block)],
-                                    gts, k, iou)
-                for i, h in zip(block, found):
-                    hits[i] = h
-            labels = [frames.labels[i] for i in block]
-            per_fold.append((objective([r_hits[i] for i in block], labels),
-                             objective([b_hits[i] for i in block], labels)))
-            trained.append(len(train))
+    blocks, per_fold, trained = [], [], []
+    for block, n_train, path in _held_out_models(cache, names, samples, opts, folds, gap, progress):
+        outputs = cache.outputs(cfg.replace(ranker=str(path)), block)
+        gts = [frames.gts[i] for i in block]
+        ranked = object_hits([o["boxes"] for o in outputs], gts, k, iou)
+        for i, rh, bh, hc in zip(block, ranked, cache.hits(base, block, k, iou),
+                                 hinted_classes(outputs, gts, k, iou)):
+            r_hits[i], b_hits[i], hinted[i] = rh, bh, hc
+        for other, hits in zip(also, also_hits):
+            found = object_hits([o["boxes"] for o in cache.outputs(other.replace(ranker=str(path)), block)],
+                                gts, k, iou)
+            for i, h in zip(block, found):
+                hits[i] = h
+        labels = [frames.labels[i] for i in block]
+        per_fold.append((objective([r_hits[i] for i in block], labels),
+                         objective([b_hits[i] for i in block], labels)))
+        blocks.append(block)
+        trained.append(n_train)
     return FitCrossValidation(blocks, r_hits, b_hits, per_fold=per_fold, trained=trained, hinted=hinted,
                               also_hits=also_hits)

@@ -10,6 +10,11 @@ Rows are methods, columns are recall (%) at IoU 0.3 / 0.5 / 0.7 for the top 500 
 - Ours** + learned ranking [reeb-default]: the package default, REEB's windows ordered by the
   shipped model (``ranker='kitti'``; fitted on the 106 dev frames, so on those frames its row
   is no estimate: ``reeb fit`` cross-validates it);
+- Ours** + learned ranking, cross-validated [reeb-default-cv, with ``--cross-validate FOLDS``]:
+  the default with, for each block of frames, a ranking fitted on the other blocks of the
+  frames measured (``reeb fit``'s folds, options and seed: no drive neighbour of a block on
+  the training side): an estimate on labelled frames the shipped model saw; the other rows are
+  then paired with ``training-free`` (the default's own row is in sample there);
 - REEB as printed [reeb-paper-no-regions, reeb-paper]: the ``paper`` preset.
 
 Recall counts every non-DontCare object of the four classes (Car, Pedestrian, Cyclist,
@@ -42,7 +47,7 @@ number, the settings and the machine), and ``recall_vs_proposals_iou0.7.png`` /
 ``recall_vs_iou_k2000.png`` (with matplotlib, the ``extras``).
 
 Run: ``reeb eval DIR``, ``python -m reeb_torch.eval --data DIR [--limit N] [--frames A:B ...]
-[--methods ...]``, or from code ``main(argv)`` (returns the JSON record).
+[--methods ...] [--cross-validate FOLDS]``, or from code ``main(argv)`` (returns the JSON record).
 """
 
 from __future__ import annotations
@@ -97,6 +102,8 @@ HEADLINE = (2000, 0.7)
 CURVE_IOUS = tuple(round(0.3 + 0.05 * i, 2) for i in range(15))  # 0.3 .. 1.0
 OBJECT_SETS = ("all", "moderate")
 """Which objects are counted: every object, or KITTI-moderate ones only."""
+CROSS_VALIDATED = "reeb-default-cv"
+"""The key of the cross-validated row (``--cross-validate``; not a ``--methods`` choice)."""
 
 # The paper's Table 3 (KITTI training set, all 7481 frames; micro or class mean is not said).
 PAPER_TABLE3: dict[str, tuple[list[float], float]] = {
@@ -120,6 +127,9 @@ class Method:
     """Accepts a list of images (REEB), so batch timing applies."""
     preset: str | None = None
     """The REEB preset of a REEB row (its ranking model, if any, is checked against the frames)."""
+    cross_validated: bool = False
+    """Ranked by models fitted on the measured frames' other blocks (``--cross-validate``):
+    its boxes come from :func:`cross_validated_boxes`, not from ``build``."""
 
 
 def _reeb(preset: str) -> Callable[..., Callable]:
@@ -154,6 +164,8 @@ METHODS: dict[str, Method] = {
                True, "training-free-no-regions"),
         Method("reeb-training-free", "Ours** (training-free)", _reeb("training-free"), True, "training-free"),
         Method("reeb-default", "Ours** + learned ranking (default)", _reeb("default"), True, "default"),
+        Method(CROSS_VALIDATED, "Ours** + learned ranking (cross-validated)", _reeb("default"), True,
+               cross_validated=True),
         Method("reeb-paper-no-regions", "REEB paper preset, no regions", _reeb("paper-no-regions"), True,
                "paper-no-regions"),
         Method("reeb-paper", "REEB paper preset", _reeb("paper"), True, "paper"),
@@ -366,8 +378,9 @@ def build_parser(prog: str = "python -m reeb_torch.eval",
     p.add_argument("--limit", type=int, default=None, help="use only the first N frames (after --frames)")
     add_frames_option(p)
     p.add_argument("--out", type=Path, default=Path("runs/table3"), help="output folder; default: %(default)s")
-    p.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS), metavar="METHOD",
-                   help=f"methods to run, in table order; choose from {', '.join(METHODS)} (default: all)")
+    chosen = [k for k, m in METHODS.items() if not m.cross_validated]
+    p.add_argument("--methods", nargs="+", default=chosen, choices=chosen, metavar="METHOD",
+                   help=f"methods to run, in table order; choose from {', '.join(chosen)} (default: all)")
     p.add_argument("--max-proposals", type=int, default=max(KS), help="proposals per image; default: %(default)s")
     p.add_argument("--batch", type=int, default=8,
                    help="also time REEB in batches of this many images (0 or 1: skip); default: %(default)s")
@@ -375,6 +388,11 @@ def build_parser(prog: str = "python -m reeb_torch.eval",
                    help="leave out the frames a learned ranking among the methods was fitted on (the same "
                         "pictures, whatever their names: reeb_torch.ranker.fitted_frames), so that every row "
                         "is an estimate (the shipped model saw KITTI training frames)")
+    p.add_argument("--cross-validate", type=int, default=0, metavar="FOLDS",
+                   help="also the default ranked, on each block of frames, by a model fitted on the other "
+                        "blocks (FOLDS folds of blocks of frames, no drive neighbours on both sides, reeb fit's "
+                        "options and seed): an estimate on labelled frames the shipped model saw. Fits FOLDS "
+                        "models (about a minute for 100 frames); the rows are then paired with training-free")
     p.add_argument("--bing-model", type=Path, default=None,
                    help="folder of BING's nine ObjNessB2W8*.yml.gz files; default: the package's "
                         "default (reeb_torch.eval.baselines.default_bing_model_dir), else bing_model/ "
@@ -436,13 +454,15 @@ def main(
     excluded: dict[str, str] = {}
     if args.exclude_fitted:
         frames, excluded = _without_fitted(frames, [k for k in args.methods if METHODS[k].preset], args, parser)
+    if args.cross_validate > len(frames.images):
+        parser.exit(2, f"{parser.prog}: error: --cross-validate {args.cross_validate} needs at least as many "
+                       f"frames, got {len(frames.images)}\n")
     splits = _splits(args, frames)
     bing_model = _bing_model(args)
     args.out.mkdir(parents=True, exist_ok=True)
     results, curves, hits = _run_methods(args, frames, splits, bing_model)
     done = [k for k in args.methods if "recall" in results[k]]
-    # every row paired with the package default (or the first row run) on the same objects
-    reference = "reeb-default" if "reeb-default" in done else (done[0] if done else None)
+    reference = _reference(done)
     _pair_with_reference(results, hits, splits, done, reference)
     env = environment()
     # after --exclude-fitted no frame left was seen: no need to hash them again
@@ -461,12 +481,25 @@ def main(
     return record
 
 
+def _reference(done: Sequence[str]) -> str | None:
+    """The row every row is paired with on the same objects: the package default; where a
+    cross-validated row ran (the frames are labelled ones the shipped model may have seen),
+    ``training-free``; else the first row run."""
+    order = (["reeb-training-free", "reeb-default"] if CROSS_VALIDATED in done else ["reeb-default"])
+    return next((k for k in order if k in done), done[0] if done else None)
+
+
 def _parse_args(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if args.max_proposals < max(KS):
         parser.error(f"--max-proposals must be >= {max(KS)} for Table 3's columns, got {args.max_proposals}")
     if args.limit is not None and args.limit < 1:
         parser.error(f"--limit must be >= 1, got {args.limit}")
+    if args.cross_validate:
+        if args.cross_validate < 2:
+            parser.error(f"--cross-validate needs at least 2 folds, got {args.cross_validate}")
+        at = args.methods.index("reeb-default") + 1 if "reeb-default" in args.methods else len(args.methods)
+        args.methods = [*args.methods[:at], CROSS_VALIDATED, *args.methods[at:]]
     return args
 
 
@@ -536,7 +569,11 @@ def _run_methods(args: argparse.Namespace, frames: _Frames, splits: list[tuple[s
     for key in args.methods:
         method = METHODS[key]
         try:
-            boxes, timing = run_method(method, frames.images, args.max_proposals, args.batch, bing_model=bing_model)
+            if method.cross_validated:
+                boxes, timing = cross_validated_boxes(frames, args.data, args.cross_validate, args.max_proposals)
+            else:
+                boxes, timing = run_method(method, frames.images, args.max_proposals, args.batch,
+                                           bing_model=bing_model)
         except (FileNotFoundError, ImportError) as e:  # e.g. the BING model folder is absent
             print(f"skipped {method.label}: {e}", flush=True)
             results[key] = {"label": method.label, "skipped": str(e)}
@@ -552,8 +589,44 @@ def _run_methods(args: argparse.Namespace, frames: _Frames, splits: list[tuple[s
         mod = whole["moderate"]["recall"]["micro"][str(hk)][f"{ht:g}"]
         micro = whole["all"]["recall"]["micro"][str(hk)][f"{ht:g}"]
         print(f"  {method.label}: recall@2000 IoU0.7 micro {_fmt(_pct(micro))} %, "
-              f"moderate {_fmt(_pct(mod))} %, {timing['ms_per_img']:.0f} ms/img", flush=True)
+              f"moderate {_fmt(_pct(mod))} %, {_fmt(timing['ms_per_img'], 0)} ms/img", flush=True)
     return results, curves, hits
+
+
+def cross_validated_boxes(frames: _Frames, roots: Sequence[Path], folds: int,
+                          max_proposals: int) -> tuple[list[torch.Tensor], dict[str, Any]]:
+    """The default's ranked boxes (``Tensor[N_i, 4]``, at most ``max_proposals``) on each of
+    ``frames`` (read from the folders ``roots``), each ranked by a model fitted without the
+    frame's block of ``folds`` (:func:`reeb_torch.eval.fit.held_out_outputs`, with ``reeb fit``'s
+    default options and seed: the same models as ``reeb fit ROOTS --folds FOLDS``), and the
+    seconds it took (``fit_s``: candidates, fits, proposals; no ms per image: the row runs the
+    default's code, whose row times it)."""
+    from tqdm import tqdm
+
+    from .. import get_preset
+    from .common import folder_names
+    from .fit import FitFrames, FitOptions, frame_samples, held_out_outputs, other_boxes
+    from .tune import FrameCache
+
+    t0 = time.perf_counter()
+    root_of = dict(zip(folder_names(roots), roots))
+    folders = [it["folder"] for it in frames.items]
+    ignore: list[torch.Tensor] = [torch.zeros(0, 4)] * len(frames.ids)
+    for name, idx in folder_splits(frames.items) or [(folders[0], list(range(len(folders))))]:
+        for i, box in zip(idx, other_boxes(root_of[name], [frames.ids[i] for i in idx])):
+            ignore[i] = box
+    fit_frames = FitFrames(frames.images, frames.gts, frames.labels, frames.classes, frames.ids, folders, ignore)
+    cfg, opts, cache = get_preset("default").replace(top_k=max_proposals), FitOptions(), FrameCache(fit_frames)
+
+    def bar(desc: str) -> Callable:
+        return lambda items: tqdm(items, desc=f"{'cross-validated: ' + desc:<30}", file=sys.stderr, dynamic_ncols=True)
+
+    samples = frame_samples(cache, cfg, opts, progress=bar("candidates"))
+    outputs = held_out_outputs(cache, cfg, samples, opts, folds, progress=bar("folds"))
+    boxes = [o["boxes"][:max_proposals] for o in outputs]
+    timing = {"ms_per_img": None, "fit_s": time.perf_counter() - t0, "folds": folds, "batch_size": 1,
+              "num_proposals_mean": sum(b.shape[0] for b in boxes) / len(boxes)}
+    return boxes, timing
 
 
 def _method_record(method: Method, boxes: list[torch.Tensor], timing: dict, hits: list[torch.Tensor], curve: dict,
@@ -643,9 +716,10 @@ def _report(args: argparse.Namespace, rerun: str, env: dict, frames: _Frames, sp
         blocks += _split_blocks(args, frames, split, idx, len(splits), results, done, reference)
     ar_lines = ["Average recall (%, IoU 0.5:0.05:0.95, all objects)   micro @500 / @1000 / @2000  |  "
                 "class mean @500 / @1000 / @2000"]
+    width = _label_width(results, done)
     for k in done:
         a, c = results[k]["ar_micro"], results[k]["ar_class_mean"]
-        ar_lines.append(f"{results[k]['label']:<30} " + " / ".join(f"{_fmt(_pct(a[str(kk)])):>5}" for kk in KS)
+        ar_lines.append(f"{results[k]['label']:<{width}} " + " / ".join(f"{_fmt(_pct(a[str(kk)])):>5}" for kk in KS)
                         + "  |  " + " / ".join(f"{_fmt(_pct(c[str(kk)])):>5}" for kk in KS))
     blocks.append("\n".join(ar_lines))
     blocks.append(format_table(
@@ -661,8 +735,19 @@ def _report(args: argparse.Namespace, rerun: str, env: dict, frames: _Frames, sp
               f"{f'; REEB also at batch {args.batch} (@b{args.batch})' if args.batch > 1 else ''}; "
               f"{env['processor']}, {env['cpu_count']} cores, torch threads {env['torch_threads']}, "
               f"OpenCV threads {env['opencv_threads']}, CUDA {'yes' if env['cuda'] else 'no'}.")
-    note = _in_sample_note(seen or {}, frames, results)
-    return "\n\n".join([f"Rerun: {rerun}", header, *([note] if note else []), *blocks]) + "\n"
+    notes = [n for n in (_in_sample_note(seen or {}, frames, results), _cross_validated_note(results, done)) if n]
+    return "\n\n".join([f"Rerun: {rerun}", header, *notes, *blocks]) + "\n"
+
+
+def _cross_validated_note(results: dict[str, Any], done: Sequence[str]) -> str:
+    if CROSS_VALIDATED not in done:
+        return ""
+    t = results[CROSS_VALIDATED]["timing"]
+    return (f"Cross-validated: the row {results[CROSS_VALIDATED]['label']} ranks each of {t['folds']} blocks of "
+            "these frames with a model fitted on the other blocks (no drive neighbour or near-copy of a block on "
+            f"the training side; reeb fit's options and seed, the same models as reeb fit --folds {t['folds']}; "
+            f"{t['fit_s']:.0f} s in all): an estimate; the other rows are paired with "
+            f"{results[_reference(done) or CROSS_VALIDATED]['label']}.")
 
 
 def _split_blocks(args: argparse.Namespace, frames: _Frames, split: str, idx: list[int], n_splits: int,
@@ -671,6 +756,8 @@ def _split_blocks(args: argparse.Namespace, frames: _Frames, split: str, idx: li
     class mean), the headline with its interval and pairings, the per-class table."""
     def time_cell(k: str) -> str:
         t = results[k]["timing"]
+        if t["ms_per_img"] is None:
+            return f"(fit {t['fit_s']:.0f} s)"
         s = f"{t['ms_per_img']:.0f}"
         bk = f"ms_per_img_batch{args.batch}"
         return s + (f" ({t[bk]:.0f} @b{args.batch})" if bk in t else "")
@@ -713,6 +800,11 @@ def _split_blocks(args: argparse.Namespace, frames: _Frames, split: str, idx: li
     return blocks
 
 
+def _label_width(results: dict[str, Any], done: Sequence[str]) -> int:
+    """The width of the label column of the one-line-per-method blocks."""
+    return max([30, *(len(results[k]["label"]) for k in done)])
+
+
 def _split_name(split: str) -> str:
     """How the tables name a split: ``frames 0:39`` for a frame range, ``folder kitti`` for a
     data folder."""
@@ -722,14 +814,15 @@ def _split_name(split: str) -> str:
 def _interval_block(split: str, results: dict[str, Any], done: list[str], reference: str | None) -> str:
     """The headline of each method with its 95 % interval, and its pairing with the reference."""
     ci_rows = []
+    width = _label_width(results, done)
     for k in done:
         ci = results[k]["splits"][split]["headline_interval"]
-        ci_rows.append(f"{results[k]['label']:<30} {100 * ci['recall']:5.1f}   {100 * ci['low']:5.1f} - "
+        ci_rows.append(f"{results[k]['label']:<{width}} {100 * ci['recall']:5.1f}   {100 * ci['low']:5.1f} - "
                        f"{100 * ci['high']:5.1f}")
     for k in done:
         if reference is not None and k != reference:
             v = results[k]["splits"][split]["versus_reference"]
-            ci_rows.append(f"{results[k]['label']:<30} vs {results[reference]['label']}: +{v['gained']} / "
+            ci_rows.append(f"{results[k]['label']:<{width}} vs {results[reference]['label']}: +{v['gained']} / "
                            f"-{v['lost']} objects, p = {v['p_value']:.2g}")
     return "\n".join([f"Recall (%) at {HEADLINE[0]} proposals, IoU {HEADLINE[1]:g}, all objects, with its "
                       "95 % interval (frames drawn with replacement, 4000 draws); each row paired with "
@@ -758,7 +851,7 @@ def _write_csv(path: Path, results: dict[str, Any], done: list[str], splits: lis
                         w.writerow([k, r["label"], split, objects, average, n]
                                    + [_fmt(_pct(grid[str(kk)][f"{t:g}"]), 2) for kk in KS for t in IOUS]
                                    + [_fmt(_pct(ar[str(kk)]), 2) for kk in KS]
-                                   + [f"{r['timing']['ms_per_img']:.1f}",
+                                   + [_fmt(r["timing"]["ms_per_img"], 1),
                                       _fmt(r["timing"].get(f"ms_per_img_batch{batch}"), 1)])
 
 
