@@ -325,11 +325,13 @@ def format_per_class(title: str, rows: list[tuple[str, dict[str, dict]]], classe
     return "\n".join(lines)
 
 
-def _style(label: str) -> str:
-    return "--" if "no regions" in label else "-"
+def _style(label: str, in_sample: bool = False) -> str:
+    return ":" if in_sample else "--" if "no regions" in label else "-"
 
 
-def _plot(curves: dict[str, dict], out: Path) -> list[str]:
+def _plot(curves: dict[str, dict], out: Path, in_sample: Sequence[str] = ()) -> list[str]:
+    """The two recall plots, a line per method (``curves`` by label); the methods labelled
+    ``in_sample`` (ranked by a model fitted on these frames) dotted, and said so."""
     try:
         import matplotlib
     except ImportError:
@@ -343,7 +345,9 @@ def _plot(curves: dict[str, dict], out: Path) -> list[str]:
     def line_plot(x: str, y: str, xlabel: str, ylabel: str, title: str, name: str, log: bool) -> None:
         fig, ax = plt.subplots(figsize=(6.4, 4.4))
         for label, c in curves.items():
-            ax.plot(c[x], [100 * r for r in c[y]], label=label, ls=_style(label))
+            seen = label in in_sample
+            ax.plot(c[x], [100 * r for r in c[y]], label=label + (" - in sample, no estimate" if seen else ""),
+                    ls=_style(label, seen))
         if log:
             ax.set_xscale("log")
         ax.set_xlabel(xlabel)
@@ -471,7 +475,7 @@ def main(
     print("\n" + text, flush=True)
     (args.out / "table3.txt").write_text(text)
     _write_csv(args.out / "table3.csv", results, done, splits, frames.classes, args.batch)
-    plots = _plot(curves, args.out) if curves else []
+    plots = _plot(curves, args.out, [results[k]["label"] for k in seen]) if curves else []
     record = _record(args, rerun, env, frames, splits, results, plots)
     record["in_sample"] = seen
     record["excluded_fitted"] = excluded
