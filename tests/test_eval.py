@@ -198,6 +198,7 @@ def test_table3_usage_errors_exit_2(tmp_path, capsys):
         (["--data", str(data), "--max-proposals", "100"], "--max-proposals must be >= 2000"),
         (["--data", str(data), "--cross-validate", "1"], "--cross-validate needs at least 2 folds, got 1"),
         (["--data", str(data), "--cross-validate", "3"], "--cross-validate 3 needs at least as many frames, got 2"),
+        (["--data", str(data), "--leave-folder-out"], "--leave-folder-out needs two or more --data folders"),
     ]
     for argv, message in cases:
         with pytest.raises(SystemExit) as e:

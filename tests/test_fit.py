@@ -261,6 +261,8 @@ def test_held_out_outputs_are_the_cross_validated_models(kitti_dir):
     cv = F.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 3)
     hits = object_hits([o["boxes"] for o in outputs], frames.gts, 2000, 0.7)
     assert all(torch.equal(a, b) for a, b in zip(hits, cv.ranked_hits))
+    given = F.held_out_outputs(cache, cfg, samples, opts, F.frame_folds(6, 3))  # the blocks themselves
+    assert all(torch.equal(a["boxes"], b["boxes"]) for a, b in zip(given, outputs))
     assert all(0 < len(o["boxes"]) <= 2000 and "labels" not in o for o in outputs)  # no class head here
     others = F.other_boxes(kitti_dir, frames.ids)
     assert len(others) == 6 and all(torch.equal(a, b) for a, b in zip(others, frames.ignore))

@@ -433,12 +433,14 @@ def hinted_classes(outputs: Sequence[dict[str, Tensor]], gts: Sequence[Tensor], 
 
 
 def _held_out_models(cache: FrameCache, names: Sequence[str], samples: Sequence[Sample], opts: FitOptions,
-                     folds: int, gap: int, progress: Callable | None) -> Iterator[tuple[list[int], int, Path]]:
-    """Per block of :func:`frame_folds`, in turn: its frames, how many frames the model fitted
-    without it was fitted on (:func:`training_frames`: no drive neighbour or near-copy of the
-    block), and that model's weights file, in a temporary folder removed at the end."""
+                     folds: int | Sequence[Sequence[int]], gap: int,
+                     progress: Callable | None) -> Iterator[tuple[list[int], int, Path]]:
+    """Per block (``folds`` blocks of :func:`frame_folds`, or the blocks ``folds``), in turn:
+    its frames, how many frames the model fitted without it was fitted on
+    (:func:`training_frames`: no drive neighbour or near-copy of the block), and that model's
+    weights file, in a temporary folder removed at the end."""
     frames = cache.frames
-    blocks = frame_folds(len(frames), folds)
+    blocks = frame_folds(len(frames), folds) if isinstance(folds, int) else [list(b) for b in folds]
     similar = similar_frames(frames.images)
     with tempfile.TemporaryDirectory(prefix="reeb-fit-") as tmp:
         for f in progress(range(len(blocks))) if progress else range(len(blocks)):
@@ -447,12 +449,14 @@ def _held_out_models(cache: FrameCache, names: Sequence[str], samples: Sequence[
             yield blocks[f], len(train), save_ranker(model, Path(tmp) / f"fold{f}.safetensors")
 
 
-def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[Sample], opts: FitOptions, folds: int,
-                     gap: int = 2, progress: Callable | None = None) -> list[dict[str, Tensor]]:
+def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[Sample], opts: FitOptions,
+                     folds: int | Sequence[Sequence[int]], gap: int = 2,
+                     progress: Callable | None = None) -> list[dict[str, Tensor]]:
     """Per frame (in frame order), ``ProposalGenerator(cfg)``'s output dict with the ranking
-    fitted without the frame's block (the folds and models of :func:`cross_validate`, from
-    ``samples`` = :func:`frame_samples` under ``cfg``): proposals from a model that never saw
-    the frame, for any recall table.
+    fitted without the frame's block (``folds`` blocks: the folds and models of
+    :func:`cross_validate`; or the blocks given, the frame indices of each, covering every
+    frame once; from ``samples`` = :func:`frame_samples` under ``cfg``): proposals from a model
+    that never saw the frame, for any recall table.
 
     Raises:
         ValueError: fewer than 2 folds, or fewer frames than folds.

@@ -15,6 +15,9 @@ Rows are methods, columns are recall (%) at IoU 0.3 / 0.5 / 0.7 for the top 500 
   frames measured (``reeb fit``'s folds, options and seed: no drive neighbour of a block on
   the training side): an estimate on labelled frames the shipped model saw; the other rows are
   then paired with ``training-free`` (the default's own row is in sample there);
+- Ours** + learned ranking, fitted on the other folders [reeb-default-lofo, with
+  ``--leave-folder-out``]: the same with one block per ``--data`` folder (another drive, another
+  camera set-up): how a model holds on frames unlike those it was fitted on;
 - REEB as printed [reeb-paper-no-regions, reeb-paper]: the ``paper`` preset.
 
 Recall counts every non-DontCare object of the four classes (Car, Pedestrian, Cyclist,
@@ -104,6 +107,8 @@ OBJECT_SETS = ("all", "moderate")
 """Which objects are counted: every object, or KITTI-moderate ones only."""
 CROSS_VALIDATED = "reeb-default-cv"
 """The key of the cross-validated row (``--cross-validate``; not a ``--methods`` choice)."""
+LEAVE_FOLDER_OUT = "reeb-default-lofo"
+"""The key of the row ranked by models fitted on the other folders (``--leave-folder-out``)."""
 
 # The paper's Table 3 (KITTI training set, all 7481 frames; micro or class mean is not said).
 PAPER_TABLE3: dict[str, tuple[list[float], float]] = {
@@ -165,6 +170,8 @@ METHODS: dict[str, Method] = {
         Method("reeb-training-free", "Ours** (training-free)", _reeb("training-free"), True, "training-free"),
         Method("reeb-default", "Ours** + learned ranking (default)", _reeb("default"), True, "default"),
         Method(CROSS_VALIDATED, "Ours** + learned ranking (cross-validated)", _reeb("default"), True,
+               cross_validated=True),
+        Method(LEAVE_FOLDER_OUT, "Ours** + learned ranking (fitted on the other folders)", _reeb("default"), True,
                cross_validated=True),
         Method("reeb-paper-no-regions", "REEB paper preset, no regions", _reeb("paper-no-regions"), True,
                "paper-no-regions"),
@@ -397,6 +404,9 @@ def build_parser(prog: str = "python -m reeb_torch.eval",
                         "blocks (FOLDS folds of blocks of frames, no drive neighbours on both sides, reeb fit's "
                         "options and seed): an estimate on labelled frames the shipped model saw. Fits FOLDS "
                         "models (about a minute for 100 frames); the rows are then paired with training-free")
+    p.add_argument("--leave-folder-out", action="store_true",
+                   help="also the default ranked, on each --data folder, by a model fitted on the other folders "
+                        "(as --cross-validate, a block per folder): how a model holds on another drive")
     p.add_argument("--bing-model", type=Path, default=None,
                    help="folder of BING's nine ObjNessB2W8*.yml.gz files; default: the package's "
                         "default (reeb_torch.eval.baselines.default_bing_model_dir), else bing_model/ "
@@ -489,7 +499,8 @@ def _reference(done: Sequence[str]) -> str | None:
     """The row every row is paired with on the same objects: the package default; where a
     cross-validated row ran (the frames are labelled ones the shipped model may have seen),
     ``training-free``; else the first row run."""
-    order = (["reeb-training-free", "reeb-default"] if CROSS_VALIDATED in done else ["reeb-default"])
+    held_out = any(METHODS[k].cross_validated for k in done)
+    order = ["reeb-training-free", "reeb-default"] if held_out else ["reeb-default"]
     return next((k for k in order if k in done), done[0] if done else None)
 
 
@@ -499,11 +510,14 @@ def _parse_args(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Na
         parser.error(f"--max-proposals must be >= {max(KS)} for Table 3's columns, got {args.max_proposals}")
     if args.limit is not None and args.limit < 1:
         parser.error(f"--limit must be >= 1, got {args.limit}")
-    if args.cross_validate:
-        if args.cross_validate < 2:
-            parser.error(f"--cross-validate needs at least 2 folds, got {args.cross_validate}")
-        at = args.methods.index("reeb-default") + 1 if "reeb-default" in args.methods else len(args.methods)
-        args.methods = [*args.methods[:at], CROSS_VALIDATED, *args.methods[at:]]
+    if args.cross_validate and args.cross_validate < 2:
+        parser.error(f"--cross-validate needs at least 2 folds, got {args.cross_validate}")
+    if args.leave_folder_out and len(args.data) < 2:
+        parser.error("--leave-folder-out needs two or more --data folders")
+    held_out = [k for k, on in ((CROSS_VALIDATED, args.cross_validate), (LEAVE_FOLDER_OUT, args.leave_folder_out))
+                if on]
+    at = args.methods.index("reeb-default") + 1 if "reeb-default" in args.methods else len(args.methods)
+    args.methods = [*args.methods[:at], *held_out, *args.methods[at:]]
     return args
 
 
@@ -574,7 +588,9 @@ def _run_methods(args: argparse.Namespace, frames: _Frames, splits: list[tuple[s
         method = METHODS[key]
         try:
             if method.cross_validated:
-                boxes, timing = cross_validated_boxes(frames, args.data, args.cross_validate, args.max_proposals)
+                folds = (args.cross_validate if key == CROSS_VALIDATED
+                         else [idx for _, idx in folder_splits(frames.items)])
+                boxes, timing = cross_validated_boxes(frames, args.data, folds, args.max_proposals)
             else:
                 boxes, timing = run_method(method, frames.images, args.max_proposals, args.batch,
                                            bing_model=bing_model)
@@ -597,12 +613,13 @@ def _run_methods(args: argparse.Namespace, frames: _Frames, splits: list[tuple[s
     return results, curves, hits
 
 
-def cross_validated_boxes(frames: _Frames, roots: Sequence[Path], folds: int,
+def cross_validated_boxes(frames: _Frames, roots: Sequence[Path], folds: int | Sequence[Sequence[int]],
                           max_proposals: int) -> tuple[list[torch.Tensor], dict[str, Any]]:
     """The default's ranked boxes (``Tensor[N_i, 4]``, at most ``max_proposals``) on each of
     ``frames`` (read from the folders ``roots``), each ranked by a model fitted without the
-    frame's block of ``folds`` (:func:`reeb_torch.eval.fit.held_out_outputs`, with ``reeb fit``'s
-    default options and seed: the same models as ``reeb fit ROOTS --folds FOLDS``), and the
+    frame's block of ``folds`` (a number of blocks, or the blocks: the frame indices of each;
+    :func:`reeb_torch.eval.fit.held_out_outputs`, with ``reeb fit``'s default options and seed:
+    the same models as ``reeb fit ROOTS --folds FOLDS``), and the
     seconds it took (``fit_s``: candidates, fits, proposals; no ms per image: the row runs the
     default's code, whose row times it)."""
     from tqdm import tqdm
@@ -628,7 +645,8 @@ def cross_validated_boxes(frames: _Frames, roots: Sequence[Path], folds: int,
     samples = frame_samples(cache, cfg, opts, progress=bar("candidates"))
     outputs = held_out_outputs(cache, cfg, samples, opts, folds, progress=bar("folds"))
     boxes = [o["boxes"][:max_proposals] for o in outputs]
-    timing = {"ms_per_img": None, "fit_s": time.perf_counter() - t0, "folds": folds, "batch_size": 1,
+    timing = {"ms_per_img": None, "fit_s": time.perf_counter() - t0,
+              "folds": folds if isinstance(folds, int) else len(folds), "batch_size": 1,
               "num_proposals_mean": sum(b.shape[0] for b in boxes) / len(boxes)}
     return boxes, timing
 
@@ -739,19 +757,27 @@ def _report(args: argparse.Namespace, rerun: str, env: dict, frames: _Frames, sp
               f"{f'; REEB also at batch {args.batch} (@b{args.batch})' if args.batch > 1 else ''}; "
               f"{env['processor']}, {env['cpu_count']} cores, torch threads {env['torch_threads']}, "
               f"OpenCV threads {env['opencv_threads']}, CUDA {'yes' if env['cuda'] else 'no'}.")
-    notes = [n for n in (_in_sample_note(seen or {}, frames, results), _cross_validated_note(results, done)) if n]
+    notes = [n for n in (_in_sample_note(seen or {}, frames, results), _held_out_note(results, done)) if n]
     return "\n\n".join([f"Rerun: {rerun}", header, *notes, *blocks]) + "\n"
 
 
-def _cross_validated_note(results: dict[str, Any], done: Sequence[str]) -> str:
-    if CROSS_VALIDATED not in done:
-        return ""
-    t = results[CROSS_VALIDATED]["timing"]
-    return (f"Cross-validated: the row {results[CROSS_VALIDATED]['label']} ranks each of {t['folds']} blocks of "
-            "these frames with a model fitted on the other blocks (no drive neighbour or near-copy of a block on "
-            f"the training side; reeb fit's options and seed, the same models as reeb fit --folds {t['folds']}; "
-            f"{t['fit_s']:.0f} s in all): an estimate; the other rows are paired with "
-            f"{results[_reference(done) or CROSS_VALIDATED]['label']}.")
+def _held_out_note(results: dict[str, Any], done: Sequence[str]) -> str:
+    """What the rows ranked by held-out models (--cross-validate, --leave-folder-out) are."""
+    lines = []
+    for k in (CROSS_VALIDATED, LEAVE_FOLDER_OUT):
+        if k not in done:
+            continue
+        t, label = results[k]["timing"], results[k]["label"]
+        lines.append(
+            f"Cross-validated: the row {label} ranks each of {t['folds']} blocks of these frames with a model fitted "
+            "on the other blocks (no drive neighbour or near-copy of a block on the training side; reeb fit's "
+            f"options and seed, the same models as reeb fit --folds {t['folds']}; {t['fit_s']:.0f} s in all)."
+            if k == CROSS_VALIDATED else
+            f"Other folders: the row {label} ranks each data folder's frames with a model fitted on the other "
+            f"folders (reeb fit's options and seed; {t['fit_s']:.0f} s in all).")
+    if lines:
+        lines.append(f"These rows are estimates; every row is paired with {results[_reference(done) or done[0]]['label']}.")
+    return "\n".join(lines)
 
 
 def _split_blocks(args: argparse.Namespace, frames: _Frames, split: str, idx: list[int], n_splits: int,
