@@ -7,7 +7,8 @@ written into ``--out`` (default ``runs/table3``): ``table3.txt``, ``table3.csv``
 ``table3.json`` and two plots.
 
 Rerun: ``python benchmarks/table3.py [--data DIR ...] [--limit N] [--frames A:B ...]
-[--methods ...]``; ``--data`` defaults to the two dev folders beside the repository,
+[--methods ...] [--cross-validate FOLDS] [--leave-folder-out]`` (the README's table:
+``--cross-validate 10 --leave-folder-out --out docs/results/table3``); ``--data`` defaults to the two dev folders beside the repository,
 ``../shared/data/kitti`` and ``../shared/data/kitti_tracking``: every table is given for
 each folder and for both together. ``--frames`` selects numeric ids (KITTI object frames;
 select tracking frames by folder).
