@@ -314,6 +314,33 @@ def test_reeb_fit_end_to_end(kitti_dir, tmp_path):
 
 
 @pytest.mark.kitti
+def test_reeb_fit_on_two_folders_reports_a_model_fitted_on_the_other(kitti_dir, tmp_path):
+    """Frames of several folders: a row ranked, on each folder, by a model fitted on the
+    others (the blocks of held_out_outputs), paired with training-free; one folder: none."""
+    from reeb_torch import ReebConfig
+    from reeb_torch.eval.metrics import object_hits
+    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.runs.fit import run_fit
+
+    tracking = REPO_DATA / "kitti_tracking"
+    if not tracking.is_dir():
+        pytest.skip(f"{tracking} is absent")
+    opts = dataclasses.replace(F.FitOptions(), epochs=2, class_hidden=None)
+    roots = [str(kitti_dir), str(tracking)]
+    done = run_fit(roots, str(tmp_path / "m.safetensors"), ReebConfig(), opts, 2, limit=3, quiet=True)
+    line = next(x for x in done["text"].splitlines() if "fitted on other folders" in x)
+    frames = F.load_fit_frames(roots, limit=3)
+    cache = FrameCache(frames)
+    outputs = F.held_out_outputs(cache, ReebConfig(), F.frame_samples(cache, ReebConfig(), opts), opts,
+                                 [[0, 1, 2], [3, 4, 5]])
+    hits = object_hits([o["boxes"] for o in outputs], frames.gts, 2000, 0.7)
+    found, total = sum(int(h.sum()) for h in hits), sum(h.numel() for h in hits)
+    assert f"{100 * found / total:5.1f} %" in line and "against training-free" in line
+    alone = run_fit(roots[:1], str(tmp_path / "a.safetensors"), ReebConfig(), opts, 2, limit=3, quiet=True)
+    assert "other folders" not in alone["text"]
+
+
+@pytest.mark.kitti
 def test_shipped_weights_refit_bit_for_bit(kitti_dir):
     """The model in the shipped file is the fit on all the frames it names, with its options."""
     from reeb_torch import ReebConfig
