@@ -338,6 +338,22 @@ def test_reeb_fit_on_two_folders_reports_a_model_fitted_on_the_other(kitti_dir, 
     assert f"{100 * found / total:5.1f} %" in line and "against training-free" in line
     alone = run_fit(roots[:1], str(tmp_path / "a.safetensors"), ReebConfig(), opts, 2, limit=3, quiet=True)
     assert "other folders" not in alone["text"]
+    whole = run_fit(roots, str(tmp_path / "w.safetensors"), ReebConfig(), opts, 2, limit=3, quiet=True,
+                    whole_drives=True)
+    assert "no frame of a held-out block's drives on the training side" in whole["text"]
+    assert whole["provenance"]["whole_drives"] is True and "whole_drives" not in done["provenance"]
+
+
+
+def test_whole_drives_keeps_every_frame_of_a_held_out_drive_out(tmp_path):
+    """reeb fit --whole-drives: the training frames of a held-out block hold no frame of its
+    drives (gap = all frames); by default only those within 2 frames are left out."""
+    ids = [f"{i:06d}" for i in range(4)] + [f"t0000_{3 * i:06d}" for i in range(8)]
+    folders = ["kitti"] * 4 + ["kitti_tracking"] * 8
+    blocks = F.frame_folds(len(ids), 4)  # [0-2], [3-5], [6-8], [9-11]
+    near = F.training_frames(blocks, 2, ids, folders, gap=2)
+    whole = F.training_frames(blocks, 2, ids, folders, gap=len(ids))
+    assert near == [0, 1, 2, 3, 11] and whole == [0, 1, 2, 3]
 
 
 @pytest.mark.kitti

@@ -502,6 +502,10 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
 @click.option("--folds", type=click.IntRange(min=2), default=5, show_default=True,
               help="Blocks of frames for the cross-validated estimate.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the negatives' sample and the fit.")
+@click.option("--whole-drives", is_flag=True,
+              help="Leave every frame of a held-out block's drives out of its training frames (ids naming a drive, "
+                   "as KITTI tracking's t0000_000012), not only those within 2 frames: an estimate for drives "
+                   "the model never saw.")
 @click.option("--epochs", type=click.IntRange(min=1),
               help="Passes over the rows [default: 15; with --init, 10].")
 @click.option("--hidden", help="Hidden layer widths, comma-separated [default: 64,64].")
@@ -520,7 +524,8 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
               help="JSON config over the preset (e.g. reeb calibrate's camera.json).")
 @click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE", help="Change a field (repeatable).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
-def fit(dirs, out, folds, seed, epochs, hidden, init, balance, k, iou, limit, preset, config_file, sets, quiet):
+def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, k, iou, limit, preset, config_file,
+        sets, quiet):
     """Fit the learned ranking on labelled KITTI-format folders (DIRS) for another camera, and
     estimate by cross-validation over blocks of frames how it does on frames it never saw,
     beside the training-free settings and the shipped model on the same frames. Writes the
@@ -547,7 +552,7 @@ def fit(dirs, out, folds, seed, epochs, hidden, init, balance, k, iou, limit, pr
         opts = dataclasses.replace(opts, **{"tune_epochs" if init else "epochs": epochs})
     command = " ".join(["reeb fit", *map(shlex.quote, sys.argv[2:])])
     try:
-        record = R.run_fit(dirs, out, cfg, opts, folds, k, iou, limit, quiet, command)
+        record = R.run_fit(dirs, out, cfg, opts, folds, k, iou, limit, quiet, command, whole_drives)
     except (ValueError, FileNotFoundError) as e:
         raise UsageProblem(" ".join(str(e).split()))
     click.echo(record["text"])
