@@ -25,6 +25,7 @@ __all__ = [
     "load_folders",
     "folder_names",
     "folder_splits",
+    "folder_blocks",
     "first_few",
     "add_frames_option",
     "add_data_option",
@@ -168,9 +169,15 @@ def load_folders(
 def folder_splits(items: Sequence[dict[str, Any]]) -> list[tuple[str, list[int]]]:
     """``[(folder name, item indices)]`` in the order the folders were given, for items of
     :func:`load_folders`; empty when all items come from one folder."""
+    return folder_blocks([it.get("folder", "") for it in items])
+
+
+def folder_blocks(folders: Sequence[str]) -> list[tuple[str, list[int]]]:
+    """``[(folder name, indices)]`` of a list of per-frame folder names, in their first
+    order; empty when all frames come from one folder."""
     out: dict[str, list[int]] = {}
-    for i, it in enumerate(items):
-        out.setdefault(it.get("folder", ""), []).append(i)
+    for i, f in enumerate(folders):
+        out.setdefault(f, []).append(i)
     return list(out.items()) if len(out) > 1 else []
 
 

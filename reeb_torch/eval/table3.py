@@ -50,7 +50,8 @@ number, the settings and the machine), and ``recall_vs_proposals_iou0.7.png`` /
 ``recall_vs_iou_k2000.png`` (with matplotlib, the ``extras``).
 
 Run: ``reeb eval DIR``, ``python -m reeb_torch.eval --data DIR [--limit N] [--frames A:B ...]
-[--methods ...] [--cross-validate FOLDS]``, or from code ``main(argv)`` (returns the JSON record).
+[--methods ...] [--cross-validate FOLDS] [--leave-folder-out]``, or from code ``main(argv)``
+(returns the JSON record).
 """
 
 from __future__ import annotations

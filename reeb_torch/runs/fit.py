@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 from ..config import ReebConfig
 from ..eval import fit as F
+from ..eval.common import folder_blocks
 from ..eval.metrics import compare_recall
 from ..eval.tune import FrameCache, bootstrap_interval, objective
 
@@ -79,10 +80,7 @@ def _fmt(row: dict[str, Any]) -> str:
 
 def _report(frames: F.FitFrames, rows: dict[str, list], ref: list) -> tuple[list[str], dict[str, Any]]:
     """The table of each setting's recall over all frames and per folder."""
-    groups = [("all frames", list(range(len(frames))))]
-    names = list(dict.fromkeys(frames.folders))
-    if len(names) > 1:
-        groups += [(n, [i for i, f in enumerate(frames.folders) if f == n]) for n in names]
+    groups = [("all frames", list(range(len(frames)))), *folder_blocks(frames.folders)]
     lines: list[str] = []
     record: dict[str, Any] = {}
     for title, idx in groups:
@@ -131,11 +129,9 @@ def _other_folder_hits(cache: FrameCache, cfg: ReebConfig, samples: Sequence[F.S
     None for frames of one folder."""
     from ..eval.metrics import object_hits
 
-    folders = cache.frames.folders
-    names = list(dict.fromkeys(folders))
-    if len(names) < 2:
+    blocks = [idx for _, idx in folder_blocks(cache.frames.folders)]
+    if not blocks:
         return None
-    blocks = [[i for i, f in enumerate(folders) if f == n] for n in names]
     outputs = F.held_out_outputs(cache, cfg, samples, opts, blocks, progress=_iterate("other folders", quiet))
     return object_hits([o["boxes"] for o in outputs], cache.frames.gts, k, iou)
 
