@@ -585,13 +585,14 @@ def _run_methods(args: argparse.Namespace, frames: _Frames, splits: list[tuple[s
     results: dict[str, Any] = {}
     curves: dict[str, dict] = {}
     hits: dict[str, list[torch.Tensor]] = {}  # method -> per-frame headline hits
+    prepared: dict[str, Any] = {}  # the held-out rows' frames and candidates, taken once
     for key in args.methods:
         method = METHODS[key]
         try:
             if method.cross_validated:
                 folds = (args.cross_validate if key == CROSS_VALIDATED
                          else [idx for _, idx in folder_splits(frames.items)])
-                boxes, timing = cross_validated_boxes(frames, args.data, folds, args.max_proposals)
+                boxes, timing = cross_validated_boxes(frames, args.data, folds, args.max_proposals, prepared)
             else:
                 boxes, timing = run_method(method, frames.images, args.max_proposals, args.batch,
                                            bing_model=bing_model)
@@ -615,14 +616,17 @@ def _run_methods(args: argparse.Namespace, frames: _Frames, splits: list[tuple[s
 
 
 def cross_validated_boxes(frames: _Frames, roots: Sequence[Path], folds: int | Sequence[Sequence[int]],
-                          max_proposals: int) -> tuple[list[torch.Tensor], dict[str, Any]]:
+                          max_proposals: int,
+                          prepared: dict[str, Any] | None = None) -> tuple[list[torch.Tensor], dict[str, Any]]:
     """The default's ranked boxes (``Tensor[N_i, 4]``, at most ``max_proposals``) on each of
     ``frames`` (read from the folders ``roots``), each ranked by a model fitted without the
     frame's block of ``folds`` (a number of blocks, or the blocks: the frame indices of each;
     :func:`reeb_torch.eval.fit.held_out_outputs`, with ``reeb fit``'s default options and seed:
     the same models as ``reeb fit ROOTS --folds FOLDS``), and the
     seconds it took (``fit_s``: candidates, fits, proposals; no ms per image: the row runs the
-    default's code, whose row times it)."""
+    default's code, whose row times it). ``prepared``: a dict kept between calls on the same
+    frames, which holds their candidates and training rows after the first (then not timed
+    again)."""
     from tqdm import tqdm
 
     from .. import get_preset
@@ -630,21 +634,23 @@ def cross_validated_boxes(frames: _Frames, roots: Sequence[Path], folds: int | S
     from .fit import FitFrames, FitOptions, frame_samples, held_out_outputs, other_boxes
     from .tune import FrameCache
 
-    t0 = time.perf_counter()
-    root_of = dict(zip(folder_names(roots), roots))
-    folders = [it["folder"] for it in frames.items]
-    ignore: list[torch.Tensor] = [torch.zeros(0, 4)] * len(frames.ids)
-    for name, idx in folder_splits(frames.items) or [(folders[0], list(range(len(folders))))]:
-        for i, box in zip(idx, other_boxes(root_of[name], [frames.ids[i] for i in idx])):
-            ignore[i] = box
-    fit_frames = FitFrames(frames.images, frames.gts, frames.labels, frames.classes, frames.ids, folders, ignore)
-    cfg, opts, cache = get_preset("default").replace(top_k=max_proposals), FitOptions(), FrameCache(fit_frames)
-
     def bar(desc: str) -> Callable:
         return lambda items: tqdm(items, desc=f"{'cross-validated: ' + desc:<30}", file=sys.stderr, dynamic_ncols=True)
 
-    samples = frame_samples(cache, cfg, opts, progress=bar("candidates"))
-    outputs = held_out_outputs(cache, cfg, samples, opts, folds, progress=bar("folds"))
+    t0 = time.perf_counter()
+    cfg, opts = get_preset("default").replace(top_k=max_proposals), FitOptions()
+    prepared = {} if prepared is None else prepared
+    if not prepared:
+        root_of = dict(zip(folder_names(roots), roots))
+        folders = [it["folder"] for it in frames.items]
+        ignore: list[torch.Tensor] = [torch.zeros(0, 4)] * len(frames.ids)
+        for name, idx in folder_splits(frames.items) or [(folders[0], list(range(len(folders))))]:
+            for i, box in zip(idx, other_boxes(root_of[name], [frames.ids[i] for i in idx])):
+                ignore[i] = box
+        cache = FrameCache(FitFrames(frames.images, frames.gts, frames.labels, frames.classes, frames.ids, folders,
+                                     ignore))
+        prepared.update(cache=cache, samples=frame_samples(cache, cfg, opts, progress=bar("candidates")))
+    outputs = held_out_outputs(prepared["cache"], cfg, prepared["samples"], opts, folds, progress=bar("folds"))
     boxes = [o["boxes"][:max_proposals] for o in outputs]
     timing = {"ms_per_img": None, "fit_s": time.perf_counter() - t0,
               "folds": folds if isinstance(folds, int) else len(folds), "batch_size": 1,
