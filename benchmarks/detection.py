@@ -35,6 +35,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import environment, rerun_line  # noqa: E402
+from _detection_sources import SourceGenerator, SourceUnavailable, cached_proposals, make_source  # noqa: E402
 
 ARMS = ("reeb", "training-free", "edgeboxes", "selective-search", "rpn")
 CLASSES = ("Car", "Pedestrian", "Cyclist")
@@ -96,7 +97,7 @@ def load_frames(roots: list[Path], limit: int | None) -> list[dict[str, Any]]:
 
 def mirrored(it: dict[str, Any]) -> dict[str, Any]:
     """A training item flipped left to right (the image and every box)."""
-    from reeb_torch.detection.head_training import mirror_boxes
+    from reeb_torch.detection import mirror_boxes
 
     w = it["image"].shape[-1]
     return {**it, "image": it["image"].flip(-1).contiguous(), "boxes": mirror_boxes(it["boxes"], w),
@@ -106,9 +107,7 @@ def mirrored(it: dict[str, Any]) -> dict[str, Any]:
 
 def cached_frames(model: torch.nn.Module, items: list[dict], args: argparse.Namespace) -> list:
     """The items with their backbone maps (:func:`frozen_features`, cached)."""
-    from reeb_torch.detection.feature_cache import FeatureCache, frozen_features
-    from reeb_torch.detection.head_training import CachedFrame
-    from reeb_torch.detection.lite0 import weights_digest
+    from reeb_torch.detection import CachedFrame, FeatureCache, frozen_features, weights_digest
 
     cache = FeatureCache(args.cache, weights_digest(), args.min_size, args.max_size)
     feats = frozen_features(model, items, cache)
@@ -123,8 +122,7 @@ def build_model(name: str, args: argparse.Namespace, items: list[dict]) -> tuple
     """The arm's detector (same seed, same initial weights for every arm), the seconds spent
     computing its source's proposals for ``items`` (~0 when all were cached) and the source's
     key (its settings: the REEB config's fingerprint, the baseline's settings)."""
-    from reeb_torch.detection.lite0_detector import reeb_fasterrcnn_lite0
-    from reeb_torch.detection.sources import SourceGenerator, cached_proposals, make_source
+    from reeb_torch.detection import reeb_fasterrcnn_lite0
 
     generator, proposal_s, key = None, 0.0, "learned"
     if name != "rpn":
@@ -146,7 +144,7 @@ def test_proposals(model: torch.nn.Module, frames: list) -> tuple[list, list]:
     """Detections of every test frame and the proposals the box head saw (input pixels)."""
     from torchvision.models.detection.transform import resize_boxes
 
-    from reeb_torch.detection.head_training import detect
+    from reeb_torch.detection import detect
 
     seen: list[torch.Tensor] = []
     hook = model.rpn.register_forward_hook(lambda m, inp, out: seen.append(out[0][0].detach()))
@@ -186,7 +184,7 @@ def score(detections: list, items: list[dict], samples: int, seed: int) -> dict[
 
 def run_arm(name: str, train: list[dict], test: list[dict], args: argparse.Namespace) -> dict[str, Any]:
     """Train the arm's heads on ``train``, score it on ``test``."""
-    from reeb_torch.detection.head_training import TrainSettings, train_heads
+    from reeb_torch.detection import TrainSettings, train_heads
 
     mirrors = [mirrored(it) for it in train] if args.hflip else []
     model, proposal_s, key = build_model(name, args, train + mirrors + test)
@@ -231,8 +229,6 @@ def main(argv: list[str] | None = None) -> dict[str, dict]:
     train, test = load_frames(args.train, args.limit), load_frames(args.test, args.limit)
     print(f"train: {len(train)} frames, {sum(len(t['boxes']) for t in train)} objects; "
           f"test: {len(test)} frames; cache {args.cache}")
-    from reeb_torch.detection.sources import SourceUnavailable
-
     results: dict[str, dict] = {}
     for name in args.proposals:
         print(f"\n== {name}")

@@ -424,7 +424,7 @@ def test_train_script_trains_checkpoints_and_resumes(tmp_path):
     script.main(common + ["--iterations", "3", "--resume"])
     ckpt = torch.load(tmp_path / "run" / "last.pt", weights_only=True)  # tensors and plain values only
     assert ckpt["iteration"] == 3 and [h["iteration"] for h in ckpt["history"]] == [1, 2, 3]
-    # a checkpoint from elsewhere that runs code when unpickled in full: refused, never run (issue 37)
+    # a checkpoint from elsewhere that runs code when unpickled in full: refused, never run
     torch.save({"model": _RunsCode(tmp_path / "ran")}, tmp_path / "run" / "last.pt")
     with pytest.raises(SystemExit, match="not a checkpoint of this script"):
         script.main(common + ["--iterations", "4", "--resume"])
@@ -500,50 +500,8 @@ def test_missing_extra_is_one_clear_line(monkeypatch):
         lite0.lite0_weights_path()
 
 
-def stub_source(name: str = "stub"):
-    """A proposal source that returns a fixed set of boxes of each image, and counts calls."""
-    from reeb_torch.detection.sources import ProposalSource
-
-    calls = []
-
-    def fn(image):
-        calls.append(tuple(image.shape))
-        h, w = image.shape[-2:]
-        boxes = torch.cat([random_boxes(h, w, 40, seed=3), torch.tensor([[388.0, 182, 424, 203]])])
-        return {"boxes": boxes, "scores": torch.linspace(1, 0, len(boxes))}
-
-    return ProposalSource(name, f"{name}-v1", fn), calls
-
-
-def test_proposal_store_computes_once_and_refuses_other_keys(frames, tmp_path):
-    from reeb_torch.detection.sources import ProposalStore, SourceGenerator, cached_proposals
-
-    source, calls = stub_source()
-    first = cached_proposals(frames, source, tmp_path, progress=False)
-    again = SourceGenerator(source, tmp_path)([f["image"].float() / 255 for f in frames])
-    assert len(calls) == 2  # the second pass reads the store, float images included
-    assert all(torch.equal(a, b["boxes"]) for a, b in zip(first, again))
-    digest = image_digest(frames[0]["image"])
-    other = ProposalStore(tmp_path, "other-v2")
-    other.folder.mkdir(parents=True)
-    shutil.copy(ProposalStore(tmp_path, source.key).path(digest), other.path(digest))
-    with pytest.raises(StaleCacheError):
-        other.load(digest, (375, 1242))
-
-
-def test_unknown_and_unavailable_sources():
-    from reeb_torch import PRESETS
-    from reeb_torch.detection.sources import SourceUnavailable, make_source
-
-    with pytest.raises(ValueError, match="unknown proposal source"):
-        make_source("bing-ish")
-    if "training-free" not in PRESETS:
-        with pytest.raises(SourceUnavailable):
-            make_source("training-free")
-
-
 def test_drop_ignored_keeps_targets_and_drops_ignore_regions():
-    from reeb_torch.detection.head_training import drop_ignored
+    from reeb_torch.detection import drop_ignored
 
     proposals = torch.tensor([[0.0, 0, 10, 10], [20, 0, 30, 10], [41, 1, 49, 9], [60, 0, 70, 10], [0, 20, 10, 30]])
     targets = torch.tensor([[60.0, 0, 70, 10]])
@@ -557,19 +515,22 @@ TINY = dict(min_size=128, max_size=448, neck_channels=32, box_batch_size_per_ima
             rpn_post_nms_top_n_train=100, rpn_post_nms_top_n_test=50, box_score_thresh=0.0)
 
 
+def stub_boxes(image: torch.Tensor) -> torch.Tensor:
+    """Fixed proposals of an image: 40 random boxes and one on kitti_000001's car."""
+    h, w = image.shape[-2:]
+    return torch.cat([random_boxes(h, w, 40, seed=3), torch.tensor([[388.0, 182, 424, 203]])])
+
+
 def tiny_lite0(arm: str, root):
-    from reeb_torch.detection.lite0_detector import reeb_fasterrcnn_lite0
-    from reeb_torch.detection.sources import SourceGenerator
+    from reeb_torch.detection import reeb_fasterrcnn_lite0
 
     torch.manual_seed(0)
-    generator = SourceGenerator(stub_source()[0], root) if arm == "reeb" else None
+    generator = FixedGenerator(stub_boxes) if arm == "reeb" else None
     return reeb_fasterrcnn_lite0(4, proposals=arm, generator=generator, **TINY)
 
 
 def cached(model, frames, root):
-    from reeb_torch.detection.feature_cache import FeatureCache, frozen_features
-    from reeb_torch.detection.head_training import CachedFrame
-    from reeb_torch.detection.lite0 import weights_digest
+    from reeb_torch.detection import CachedFrame, FeatureCache, frozen_features, weights_digest
 
     cache = FeatureCache(root, weights_digest(), TINY["min_size"], TINY["max_size"])
     feats = frozen_features(model, frames, cache, progress=False)
@@ -579,7 +540,7 @@ def cached(model, frames, root):
 
 
 def test_feature_cache_refuses_stale_entries(lite0, frames, tmp_path):
-    from reeb_torch.detection.feature_cache import FeatureCache, frozen_features
+    from reeb_torch.detection import FeatureCache, frozen_features
 
     model = tiny_lite0("reeb", tmp_path)
     got, cache = cached(model, frames[:1], tmp_path)
@@ -604,7 +565,7 @@ def test_feature_cache_refuses_stale_entries(lite0, frames, tmp_path):
 def test_tiny_training_is_deterministic_and_matches_the_model(lite0, frames, tmp_path, arm):
     """2 frames, 3 steps, twice with the same seed: the same losses and weights, bit for bit;
     then the cached path detects what the model run on the images detects."""
-    from reeb_torch.detection.head_training import TrainSettings, detect, train_heads
+    from reeb_torch.detection import TrainSettings, detect, train_heads
 
     runs = []
     for _ in range(2):
@@ -628,7 +589,7 @@ def test_tiny_training_is_deterministic_and_matches_the_model(lite0, frames, tmp
 
 
 def test_mirror_boxes_by_hand():
-    from reeb_torch.detection.head_training import mirror_boxes
+    from reeb_torch.detection import mirror_boxes
 
     boxes = torch.tensor([[10.0, 5, 30, 20], [0, 0, 100, 50]])
     assert torch.equal(mirror_boxes(boxes, 100), torch.tensor([[70.0, 5, 90, 20], [0, 0, 100, 50]]))
@@ -639,7 +600,7 @@ def test_mirror_boxes_by_hand():
 def test_hflip_training_draws_mirrors_deterministically(lite0, frames, tmp_path):
     """TrainSettings.hflip: refused without mirrors; with them, seeded (the same losses twice)
     and not the plain run's losses (some steps trained on the mirrors)."""
-    from reeb_torch.detection.head_training import TrainSettings, mirror_boxes, train_heads
+    from reeb_torch.detection import TrainSettings, mirror_boxes, train_heads
 
     flipped = [{**f, "image": f["image"].flip(-1).contiguous(),
                 "boxes": mirror_boxes(f["boxes"], f["image"].shape[-1])} for f in frames]
@@ -657,26 +618,3 @@ def test_hflip_training_draws_mirrors_deterministically(lite0, frames, tmp_path)
             frame.mirror = mirror
         runs.append(train_heads(model, train, s, progress=False)["losses"])
     assert runs[0] == runs[1] and runs[0] != runs[2]
-
-
-def test_detection_benchmark_writes_its_table(lite0, tmp_path):
-    import importlib.util
-    import json
-
-    from test_eval import _example_kitti
-
-    spec = importlib.util.spec_from_file_location("detection_bench", ROOT / "benchmarks" / "detection.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    data = _example_kitti(tmp_path / "kitti")
-    out = tmp_path / "out"
-    bench.main(["--train", str(data), "--test", str(data), "--proposals", "reeb", "rpn", "--out", str(out),
-                "--cache", str(tmp_path / "cache"), "--max-steps", "2", "--min-size", "128", "--max-size", "448",
-                "--rois", "32", "--proposals-train", "100", "--proposals-test", "50", "--bootstrap", "20"])
-    summary = json.loads((out / "detection.json").read_text())
-    assert set(summary) == {"reeb", "rpn"}
-    for arm in summary.values():
-        assert set(arm) == {"Car", "Pedestrian", "Cyclist", "mAP", "train_s"}
-        assert arm["Car"] is not None and 0.0 <= arm["Car"] <= 100.0
-    details = json.loads((out / "detection_details.json").read_text())
-    assert details["command"].startswith("python benchmarks/detection.py --train")

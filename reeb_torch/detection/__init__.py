@@ -10,7 +10,7 @@
 >>> model = reeb_fasterrcnn_mobilenet_v3(num_classes=5, cache="proposals.pt")
 
 The pretrained detector (the ``detect`` extra): a frozen ImageNet EfficientNet-Lite0, its
-maps cached per frame, only the heads trained (``benchmarks/detection.py``):
+maps cached per frame, only the heads trained:
 
 >>> model = reeb_fasterrcnn_lite0(num_classes=4)                # Car, Pedestrian, Cyclist
 >>> frames = [CachedFrame(...), ...]                             # frozen_features(model, items, cache)
@@ -27,12 +27,11 @@ from .cache import (
     build_cache,
     image_digest,
 )
-from .feature_cache import FeatureCache, FrameFeatures, frozen_features
-from .head_training import CachedFrame, TrainSettings, detect, train_heads
-from .lite0 import EfficientNetLite0, load_lite0
+from .feature_cache import FeatureCache, FrameFeatures, compute_features, frozen_features
+from .head_training import CachedFrame, TrainSettings, detect, drop_ignored, frame_forward, mirror_boxes, train_heads
+from .lite0 import EfficientNetLite0, load_lite0, weights_digest
 from .lite0_detector import reeb_fasterrcnn_lite0
 from .rpn import ReebRPN, map_boxes
-from .sources import ProposalSource, SourceGenerator, SourceUnavailable, make_source
 
 __all__ = [
     "ReebRPN",
@@ -49,15 +48,16 @@ __all__ = [
     "reeb_fasterrcnn_lite0",
     "EfficientNetLite0",
     "load_lite0",
+    "weights_digest",
     "FeatureCache",
     "FrameFeatures",
+    "compute_features",
     "frozen_features",
     "CachedFrame",
     "TrainSettings",
     "train_heads",
     "detect",
-    "ProposalSource",
-    "SourceGenerator",
-    "SourceUnavailable",
-    "make_source",
+    "frame_forward",
+    "drop_ignored",
+    "mirror_boxes",
 ]

@@ -132,7 +132,7 @@ def reeb_fasterrcnn_lite0(
         proposals: ``"reeb"``: a :class:`ReebRPN`, attached, running ``generator`` (default
             ``ProposalGenerator(config)``); ``"learned"``: torchvision's RPN on the neck.
         generator: any module with the :class:`~reeb_torch.ProposalGenerator` contract
-            (e.g. :class:`~reeb_torch.detection.sources.SourceGenerator` for Edge Boxes).
+            (e.g. one serving another method's stored proposals).
         config: REEB settings when ``generator`` is ``None`` (default: ``ReebConfig()``).
         weights: the Lite0 state dict (default: the ``detect`` extra's file); ImportError
             naming the extra when it is missing.

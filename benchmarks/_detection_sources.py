@@ -1,4 +1,4 @@
-"""Training-free proposal sources for the detector, and their proposals cached per frame.
+"""The proposal sources the detection benchmark compares, and their proposals cached per frame.
 
 A source turns one ``uint8 [3, H, W]`` RGB image into ranked boxes
 (``{"boxes": float32 [N, 4] (x1, y1, x2, y2) input pixels, best first, "scores": [N]}``):
@@ -16,7 +16,7 @@ fingerprint and the library version, or the baseline's settings and OpenCV's ver
 ``root/proposals/<key>/<image digest>.pt`` and refuses (:class:`StaleCacheError`) an entry
 whose stored key, digest or image size differs from what is asked for.
 :class:`SourceGenerator` serves the stored boxes with the generator contract, so a
-:class:`~reeb_torch.detection.ReebRPN` proposes from any source.
+:class:`reeb_torch.detection.ReebRPN` proposes from any source.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from typing import Any, cast
 import torch
 from torch import Tensor, nn
 
-from .cache import StaleCacheError, image_digest
+from reeb_torch.detection import StaleCacheError, image_digest
 
 __all__ = [
     "SOURCES",
@@ -69,7 +69,7 @@ def _short_hash(text: str) -> str:
 
 
 def _reeb_source(name: str, preset: str | None, ranker: str | None = None) -> ProposalSource:
-    from .. import ProposalGenerator, __version__, get_preset
+    from reeb_torch import ProposalGenerator, __version__, get_preset
 
     if preset is not None:
         try:
@@ -81,7 +81,7 @@ def _reeb_source(name: str, preset: str | None, ranker: str | None = None) -> Pr
         gen = ProposalGenerator() if ranker is None else ProposalGenerator(ranker=ranker)
     key = f"{name}-{gen.config.fingerprint()}-{_short_hash(__version__)}"
     if gen.config.ranker != "none":  # the same name, other weights: other proposals
-        from ..ranker import resolve_ranker
+        from reeb_torch.ranker import resolve_ranker
 
         key += "-" + hashlib.sha1(resolve_ranker(gen.config.ranker).read_bytes()).hexdigest()[:16]
     return ProposalSource(name, key, lambda image: gen([image])[0])
@@ -90,7 +90,7 @@ def _reeb_source(name: str, preset: str | None, ranker: str | None = None) -> Pr
 def _baseline_source(name: str) -> ProposalSource:
     import cv2
 
-    from ..eval.baselines import BASELINES
+    from reeb_torch.eval.baselines import BASELINES
 
     baseline = BASELINES[name]()
     settings = repr(sorted(dataclasses.asdict(cast(Any, baseline)).items())) + cv2.__version__
@@ -176,7 +176,7 @@ def cached_proposals(items: Sequence[Mapping[str, Any]], source: ProposalSource,
 
 
 class SourceGenerator(nn.Module):
-    """A source's stored proposals behind the :class:`~reeb_torch.ProposalGenerator`
+    """A source's stored proposals behind the :class:`reeb_torch.ProposalGenerator`
     contract: ``forward(images) -> [{"boxes", "scores"}]``, looked up by image content,
     computed and stored on a miss. Hand it to ``ReebRPN(generator=...)``."""
 
