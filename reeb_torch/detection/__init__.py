@@ -1,4 +1,11 @@
-"""REEB proposals inside torchvision two-stage detectors.
+"""REEB proposals inside torchvision two-stage detectors, and a detector to train on your frames.
+
+>>> from reeb_torch.detection import ReebDetector
+>>> det = ReebDetector.fit(["my_frames/"])                      # labelled KITTI-format folders
+>>> det.save("det.safetensors"); det = ReebDetector.load("det.safetensors")
+>>> det([image])                 # [{"boxes": [D, 4] xyxy, "labels": [D] int64, "scores": [D]}]
+
+The parts, for those who build their own:
 
 >>> from reeb_torch.detection import ReebRPN, reeb_fasterrcnn_mobilenet_v3, build_cache
 >>> model = reeb_fasterrcnn_mobilenet_v3(num_classes=5)        # REEB proposals, from scratch
@@ -18,6 +25,8 @@ maps cached per frame, only the heads trained:
 """
 
 from .builder import load_backbone_weights, reeb_fasterrcnn_mobilenet_v3
+from .detector import PROPOSALS, DetectorSettings, ReebDetector, proposal_settings
+from .detector_file import DetectorFileError
 from .cache import (
     CACHE_FORMAT,
     CACHE_VERSION,
@@ -28,12 +37,26 @@ from .cache import (
     image_digest,
 )
 from .feature_cache import FeatureCache, FrameFeatures, compute_features, frozen_features
+from .fitting import default_cache_dir, evaluate_detector, format_scores
 from .head_training import CachedFrame, TrainSettings, detect, drop_ignored, frame_forward, mirror_boxes, train_heads
+from .kitti import KITTI_CLASSES, load_frames, result_lines, write_results
 from .lite0 import EfficientNetLite0, load_lite0, weights_digest
 from .lite0_detector import reeb_fasterrcnn_lite0
 from .rpn import ReebRPN, map_boxes
 
 __all__ = [
+    "ReebDetector",
+    "DetectorSettings",
+    "DetectorFileError",
+    "PROPOSALS",
+    "proposal_settings",
+    "evaluate_detector",
+    "format_scores",
+    "default_cache_dir",
+    "KITTI_CLASSES",
+    "load_frames",
+    "result_lines",
+    "write_results",
     "ReebRPN",
     "map_boxes",
     "reeb_fasterrcnn_mobilenet_v3",

@@ -145,6 +145,10 @@ class ProposalCache:
     def __getitem__(self, image_id: str) -> CacheEntry:
         return self.entries[image_id]
 
+    def has_image(self, image: Tensor) -> bool:
+        """Whether an entry holds proposals of an image with this content (any id)."""
+        return image_digest(image) in self._by_digest
+
     def add(self, image_id: str, entry: CacheEntry) -> None:
         old = self.entries.get(image_id)
         if old is not None and self._by_digest.get(old.digest) == image_id:

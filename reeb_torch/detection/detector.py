@@ -1,0 +1,262 @@
+"""A detector for your camera: REEB's proposals, a frozen pretrained backbone, trained heads.
+
+>>> from reeb_torch.detection import ReebDetector
+>>> det = ReebDetector.fit(["my_frames/"], epochs=12, seed=0)   # KITTI-format labelled folders
+>>> det.save("det.safetensors")
+>>> det = ReebDetector.load("det.safetensors")
+>>> out = det([image])            # image: uint8 [3, H, W] RGB (or float in [0, 1])
+>>> out[0]["boxes"], out[0]["labels"], out[0]["scores"]
+>>> det.categories[int(out[0]["labels"][0])]                   # "Car"
+
+The network is :func:`~reeb_torch.detection.reeb_fasterrcnn_lite0`: torchvision's Faster
+R-CNN on the frozen ImageNet EfficientNet-Lite0 (the ``detect`` extra), with a
+:class:`~reeb_torch.detection.ReebRPN` running REEB (its default settings with the learned
+ranking, the ``training-free`` preset, or the default ranking with other weights). Only the
+neck and the box head train (:meth:`ReebDetector.fit`, :mod:`reeb_torch.detection.fitting`);
+the file (:mod:`reeb_torch.detection.detector_file`) holds them and what made them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from ..config import ReebConfig
+from .detector_file import DetectorFileError, check_tensors, read_detector_file, trained_keys, write_detector_file
+from .head_training import TrainSettings
+from .kitti import KITTI_CLASSES
+
+__all__ = ["DetectorSettings", "ReebDetector", "proposal_settings", "PROPOSALS"]
+
+PROPOSALS = ("default", "training-free")
+"""The named proposal settings; a ranker weights file (``reeb fit``) is the third choice."""
+
+BACKBONE = "efficientnet-lite0"
+
+
+@dataclass(frozen=True)
+class DetectorSettings:
+    """The detector's shape and inference settings (stored in its file).
+
+    Attributes:
+        min_size, max_size: the input resize (shorter side; bound on the longer side).
+        neck_channels: channels of the neck and the pooled RoI features.
+        proposals_train, proposals_test: REEB proposals per image handed to the box head.
+        rois: RoIs sampled per image for the box head's loss.
+        score_thresh: detections below this score are dropped.
+        nms_thresh: per-class NMS IoU of the detections.
+        detections_per_img: at most this many detections per image.
+    """
+
+    min_size: int = 576
+    max_size: int = 2048
+    neck_channels: int = 128
+    proposals_train: int = 2000
+    proposals_test: int = 1000
+    rois: int = 256
+    score_thresh: float = 0.01
+    nms_thresh: float = 0.5
+    detections_per_img: int = 100
+
+
+def _sha256(path: str | os.PathLike) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def proposal_settings(spec: str, top_k: int) -> tuple[ReebConfig, dict[str, Any]]:
+    """REEB's settings for ``spec`` and what names them in a detector file.
+
+    Args:
+        spec: ``"default"`` (the learned ranking, shipped weights), ``"training-free"``, or
+            the path of ranker weights (``reeb fit``) used with the default settings.
+        top_k: proposals REEB keeps per image.
+
+    Returns:
+        ``(config, info)``; ``info``: ``{"spec", "config", "fingerprint", "ranker_sha256"}``.
+
+    Raises:
+        ValueError: an unknown name and no such file (one line).
+    """
+    from ..config import get_preset
+
+    if spec in PROPOSALS:
+        config = get_preset(spec)
+    elif Path(os.path.expanduser(spec)).is_file():
+        config = get_preset("default").replace(ranker=str(Path(os.path.expanduser(spec)).resolve()))
+    else:
+        raise ValueError(f"proposals {spec!r}: expected {' or '.join(PROPOSALS)} or a ranker weights file "
+                         "(reeb fit's .safetensors); no such file")
+    config = config.replace(top_k=int(top_k))
+    return config, _proposal_info(spec, config)
+
+
+def _proposal_info(spec: str | None, config: ReebConfig) -> dict[str, Any]:
+    ranker_sha = None
+    if config.ranker != "none":
+        from ..ranker import resolve_ranker
+
+        ranker_sha = _sha256(resolve_ranker(config.ranker))
+    return {"spec": spec, "config": config.to_dict(), "fingerprint": config.fingerprint(),
+            "ranker_sha256": ranker_sha}
+
+
+def _as_float(image: Tensor) -> Tensor:
+    if not isinstance(image, Tensor) or image.dim() != 3 or image.shape[0] != 3:
+        raise ValueError("ReebDetector expects RGB images [3, H, W], got "
+                         f"{tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__}")
+    if image.dtype == torch.uint8:
+        return image.float() / 255.0
+    if not image.is_floating_point():
+        raise ValueError(f"ReebDetector expects uint8 or float images in [0, 1], got {image.dtype}")
+    return image.float()
+
+
+class ReebDetector(nn.Module):
+    """Faster R-CNN with REEB's proposals for ``classes`` (see the module doc).
+
+    Args:
+        classes: the class names, labels 1..C (0 is the background); KITTI's by default.
+        proposals: ``"default"``, ``"training-free"`` or a ranker weights file
+            (:func:`proposal_settings`).
+        settings: the network's shape and inference settings.
+        config: REEB's settings, instead of ``proposals`` (as a file restores them).
+        weights: the EfficientNet-Lite0 state dict (default: the ``detect`` extra's).
+
+    ``forward(images)``: a list of ``[3, H, W]`` RGB images (uint8, or float in [0, 1]; sizes
+    may differ) -> one dict per image: ``boxes`` ``float32 [D, 4]`` xyxy input pixels,
+    ``labels`` ``int64 [D]`` (indices into :attr:`categories`), ``scores`` ``float32 [D]``,
+    best first. Always in evaluation mode, without gradients.
+    """
+
+    def __init__(self, classes: Sequence[str] = KITTI_CLASSES, proposals: str = "default",
+                 settings: DetectorSettings = DetectorSettings(), *, config: ReebConfig | None = None,
+                 weights: str | os.PathLike | None = None) -> None:
+        super().__init__()
+        from .lite0 import weights_digest
+        from .lite0_detector import reeb_fasterrcnn_lite0
+
+        if isinstance(classes, str) or not classes or len(set(classes)) != len(classes):
+            raise ValueError(f"classes must be distinct names, at least one; got {classes!r}")
+        self.classes: tuple[str, ...] = tuple(str(c) for c in classes)
+        self.categories: tuple[str, ...] = ("__background__", *self.classes)
+        self.settings = settings
+        top_k = max(settings.proposals_train, settings.proposals_test)
+        if config is None:
+            config, self.proposals = proposal_settings(proposals, top_k)
+        else:
+            self.proposals = _proposal_info(proposals, config)
+        self.backbone_sha256 = weights_digest(weights)
+        s = settings
+        self.model = reeb_fasterrcnn_lite0(
+            len(self.categories), proposals="reeb", config=config, weights=weights,
+            min_size=s.min_size, max_size=s.max_size, neck_channels=s.neck_channels,
+            rpn_post_nms_top_n_train=s.proposals_train, rpn_post_nms_top_n_test=s.proposals_test,
+            box_batch_size_per_image=s.rois, box_score_thresh=s.score_thresh, box_nms_thresh=s.nms_thresh,
+            box_detections_per_img=s.detections_per_img)
+        self.meta: dict[str, Any] = {}
+        """``{"provenance": {...}}``: the frames and command that trained it (from its file)."""
+        self.eval()
+
+    @property
+    def config(self) -> ReebConfig:
+        """REEB's settings of the proposals."""
+        return self.model.rpn.config
+
+    def forward(self, images: Sequence[Tensor]) -> list[dict[str, Tensor]]:
+        xs = [_as_float(im) for im in images]
+        self.model.eval()
+        with torch.no_grad():
+            return self.model(xs)
+
+    # -- file -------------------------------------------------------------------------------
+    def metadata(self) -> dict[str, Any]:
+        """What the file records beside the tensors (:mod:`~reeb_torch.detection.detector_file`)."""
+        return {"classes": list(self.classes), "settings": dataclasses.asdict(self.settings),
+                "backbone": {"name": BACKBONE, "sha256": self.backbone_sha256},
+                "proposals": self.proposals, "provenance": self.meta.get("provenance", {})}
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the trained tensors and :meth:`metadata` to ``path`` (safetensors, atomically)."""
+        return write_detector_file(path, trained_keys(self.model.state_dict()), self.metadata())
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, device: str | torch.device = "cpu") -> ReebDetector:
+        """The detector a :meth:`save` wrote, in evaluation mode on ``device``.
+
+        Raises:
+            DetectorFileError: a missing, damaged or foreign file, or one made on other
+                backbone weights or with proposal settings this installation cannot run;
+                one line naming the file and what is wrong.
+            ImportError: the ``detect`` extra is missing (one line naming it).
+        """
+        from .lite0 import weights_digest
+
+        tensors, meta = read_detector_file(path)
+        p = Path(os.path.expanduser(str(path)))
+        try:
+            settings = DetectorSettings(**meta["settings"])
+        except TypeError as e:
+            raise DetectorFileError(f"detector {p}: settings this version does not know ({e})") from None
+        here = weights_digest()
+        if meta["backbone"].get("sha256") != here or meta["backbone"].get("name") != BACKBONE:
+            raise DetectorFileError(f"detector {p}: trained on other backbone weights ({meta['backbone']}); this "
+                                    f"installation has {BACKBONE} {here[:16]}... (the 'detect' extra)")
+        config = _stored_config(p, meta["proposals"])
+        det = cls(meta["classes"], meta["proposals"].get("spec"), settings, config=config)
+        if meta["proposals"].get("ranker_sha256") != det.proposals["ranker_sha256"]:
+            warnings.warn(f"detector {p}: its proposals were ranked with other weights than {config.ranker!r} "
+                          "has here; detections may differ from those it was trained for", stacklevel=2)
+        check_tensors(p, tensors, trained_keys(det.model.state_dict()))
+        det.model.load_state_dict(tensors, strict=False)
+        provenance = meta.get("provenance")
+        det.meta = {"provenance": provenance if isinstance(provenance, dict) else {}}
+        return det.to(device).eval()
+
+    # -- training ---------------------------------------------------------------------------
+    @classmethod
+    def fit(cls, folders: Sequence[str | os.PathLike], *, classes: Sequence[str] = KITTI_CLASSES,
+            proposals: str = "default", epochs: int = 12, seed: int = 0,
+            settings: DetectorSettings = DetectorSettings(), training: TrainSettings | None = None,
+            cache_dir: str | os.PathLike | None = None, limit: int | None = None, hflip: bool = False,
+            progress: bool = True, command: str | None = None) -> ReebDetector:
+        """Train a detector on labelled KITTI-format ``folders`` (:func:`~reeb_torch.
+        detection.fitting.fit_detector`: the backbone's maps and REEB's proposals cached
+        per frame under ``cache_dir``, the heads trained for ``epochs`` with ``seed``);
+        deterministic for a seed. ``training`` overrides the optimiser's settings
+        (its ``epochs``, ``seed`` and ``hflip`` are these arguments')."""
+        from .fitting import fit_detector
+
+        base = training or TrainSettings()
+        train = dataclasses.replace(base, epochs=epochs, seed=seed, hflip=hflip)
+        return fit_detector(cls, folders, classes=classes, proposals=proposals, settings=settings, training=train,
+                            cache_dir=cache_dir, limit=limit, progress=progress, command=command)
+
+    def extra_repr(self) -> str:
+        return f"classes={self.classes}, proposals={self.proposals['spec']!r}, settings={self.settings}"
+
+
+def _stored_config(path: Path, info: dict[str, Any]) -> ReebConfig:
+    """REEB's settings a detector file records; one line when this installation cannot run them."""
+    from ..ranker import RankerWeightsError, resolve_ranker
+
+    try:
+        config = ReebConfig.from_dict(info["config"])
+    except (KeyError, TypeError, ValueError) as e:
+        reason = " ".join(str(e).split()) or type(e).__name__
+        raise DetectorFileError(f"detector {path}: proposal settings this version cannot use ({reason})") from None
+    if config.ranker != "none":
+        try:
+            resolve_ranker(config.ranker)
+        except RankerWeightsError:
+            raise DetectorFileError(f"detector {path}: its proposals rank with {config.ranker!r}, which is not "
+                                    "here; put that weights file back where it was") from None
+    return config

@@ -1,0 +1,115 @@
+"""KITTI-format frames in, KITTI result files out: the detector's data on disk.
+
+:func:`load_frames` reads labelled KITTI-format folders (``images/`` + ``labels/``, or
+KITTI's ``image_2/`` + ``label_2/``; :class:`reeb_torch.eval.data.KittiDataset`) into the
+items a detector trains on. :func:`result_lines` and :func:`write_results` write one KITTI
+result file per image, the format KITTI's object devkit (and its Python ports) scores::
+
+    Car -1 -1 -10 712.40 143.00 810.73 307.92 -1 -1 -1 -1000 -1000 -1000 -10 0.9731
+
+(type, truncated, occluded, alpha, the 2D box ``x1 y1 x2 y2`` in pixels, the 3D size,
+location and yaw unknown, the score). :func:`reeb_torch.eval.data.read_kitti_labels`
+reads them back.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+__all__ = ["KITTI_CLASSES", "NEIGHBOURS", "load_frames", "mirrored", "result_lines", "write_results", "write_text"]
+
+KITTI_CLASSES = ("Car", "Pedestrian", "Cyclist")
+"""The classes KITTI's 2D benchmark scores, as its label files name them."""
+
+NEIGHBOURS = ("Van", "Person_sitting")
+"""KITTI's neighbouring classes of Car and Pedestrian: neither target nor background in
+training (and ignored by KITTI's evaluation when it scores those classes)."""
+
+
+def _boxes_of(objects: Sequence[Any], types: Sequence[str]) -> Tensor:
+    return torch.tensor([o.box for o in objects if o.type in types], dtype=torch.float32).reshape(-1, 4)
+
+
+def load_frames(folders: Sequence[str | os.PathLike], classes: Sequence[str] = KITTI_CLASSES,
+                limit: int | None = None) -> list[dict[str, Any]]:
+    """Every labelled frame of ``folders``, in folder then id order.
+
+    Returns:
+        One dict per frame: ``image`` (``uint8 [3, H, W]``), ``boxes`` (``float32 [N, 4]``
+        xyxy pixels) and ``labels`` (``int64 [N]``, 1..C: the index in ``classes`` plus one,
+        0 being the background) of the objects of ``classes``; ``ignore`` (``[M, 4]``, the
+        :data:`NEIGHBOURS` not among ``classes``) and ``dontcare`` (``[K, 4]``); ``objects``
+        (every label line, for KITTI's AP); ``occluded``, ``truncated``; ``image_id``,
+        ``folder`` (the folder's name) and ``path``.
+
+    Raises:
+        ValueError: a folder without images or without labels (one line naming it).
+    """
+    from ..eval.data import KittiDataset, read_kitti_labels
+
+    neighbours = tuple(n for n in NEIGHBOURS if n not in classes)
+    items = []
+    for root in map(Path, folders):
+        ds = KittiDataset(root, classes=tuple(classes), limit=limit)
+        if ds.label_dir is None:
+            raise ValueError(f"{root}: no label folder (labels/ or label_2/): a detector trains on labelled frames")
+        for i in range(len(ds)):
+            it = ds[i]
+            objects = read_kitti_labels(ds.label_dir / f"{it['image_id']}.txt")
+            items.append({"image": it["image"], "boxes": it["boxes"], "labels": it["labels"] + 1,
+                          "occluded": it["occluded"], "truncated": it["truncated"], "objects": objects,
+                          "ignore": _boxes_of(objects, neighbours), "dontcare": _boxes_of(objects, ("DontCare",)),
+                          "image_id": str(it["image_id"]), "folder": root.name, "path": str(it["path"])})
+    return items
+
+
+def mirrored(item: dict[str, Any]) -> dict[str, Any]:
+    """A training item flipped left to right (the image and every box)."""
+    from .head_training import mirror_boxes
+
+    w = item["image"].shape[-1]
+    return {**item, "image": item["image"].flip(-1).contiguous(), "boxes": mirror_boxes(item["boxes"], w),
+            "ignore": mirror_boxes(item["ignore"], w), "dontcare": mirror_boxes(item["dontcare"], w),
+            "image_id": f"{item['image_id']}-mirror"}
+
+
+def result_lines(boxes: Tensor, labels: Tensor, scores: Tensor, categories: Sequence[str]) -> list[str]:
+    """KITTI result lines (module doc) of one image's detections.
+
+    Args:
+        boxes: ``float [D, 4]`` xyxy pixels; ``labels``: ``int64 [D]`` indices into
+            ``categories`` (``categories[0]`` the background); ``scores``: ``float [D]``.
+        categories: the class names (``ReebDetector.categories``); a name with a space is
+            written with ``_`` (KITTI's type is one field).
+    """
+    lines = []
+    for (x1, y1, x2, y2), label, score in zip(boxes.tolist(), labels.tolist(), scores.tolist()):
+        name = str(categories[int(label)]).replace(" ", "_")
+        lines.append(f"{name} -1 -1 -10 {x1:.2f} {y1:.2f} {x2:.2f} {y2:.2f} -1 -1 -1 -1000 -1000 -1000 -10 "
+                     f"{score:.4f}")
+    return lines
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` to ``path`` atomically: a temporary file beside it, then renamed."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def write_results(path: str | os.PathLike, detection: dict[str, Tensor], categories: Sequence[str]) -> Path:
+    """One image's KITTI result file (:func:`result_lines`, one line each), written
+    atomically; an image without detections gets an empty file."""
+    lines = result_lines(detection["boxes"], detection["labels"], detection["scores"], categories)
+    return write_text(path, "".join(line + "\n" for line in lines))
