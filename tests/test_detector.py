@@ -210,6 +210,14 @@ def test_detect_writes_an_error_row_for_a_corrupt_image_and_goes_on(saved, data,
         assert [o.score for o in objects] == pytest.approx(r["scores"], abs=5e-5)
         assert len({r["config"] for r in rows}) == 1 and r["config"].startswith("det-")
     assert "000005.png" in res.output and "2 ok, 1 failed" in res.output
+    # the image repaired, --resume: only it is computed, the rows stay in input order
+    shutil.copy(data / "images" / "000001.png", folder / "000005.png")
+    again = CliRunner().invoke(main, ["detect", str(folder), "--detector", str(saved), "-o", str(out), "--resume",
+                                      "-j", "0", "-q"])
+    assert again.exit_code == 0 and "resume: 2 images already" in again.output and "1 image: 1 ok" in again.output
+    resumed = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [r["status"] for r in resumed] == ["ok"] * 3 and resumed[::2] == rows[::2]
+    assert resumed[1]["boxes"] == rows[0]["boxes"]  # the same picture as 000001.png
 
 
 def test_detector_fit_command_writes_a_detector_that_loads(data, cache, tmp_path):

@@ -9,7 +9,8 @@
 ``reeb detect`` runs as ``reeb propose`` does (:mod:`.batch`): images found in files, folders
 and globs, decoded in worker processes, one row per image in input order (a file that cannot
 be read becomes an ``error:`` row and the run goes on), the output written to a temporary
-file and renamed into place, a lock against a second run on it, a progress bar. Rows have
+file and renamed into place, a lock against a second run on it, a progress bar; ``--resume``
+keeps the rows the same detector wrote and detects only on the images missing. Rows have
 ``reeb propose``'s schema: ``boxes`` (the detections, xyxy pixels, best first), ``scores``,
 ``labels`` (the class names) and ``config`` (``det-`` and the detector file's SHA-256, first
 16 digits). ``--kitti-dir`` writes one KITTI result file per image
@@ -320,6 +321,59 @@ class _DetectRun:
         return lines
 
 
+class _InOrder:
+    """Writes this run's rows with the rows kept from an earlier run (``--resume``), in input
+    order: ``kept`` has one entry per input, its kept row or ``None`` (computed now)."""
+
+    def __init__(self, writer: Any, first: list[dict], kept: list[dict | None]) -> None:
+        self.writer, self.kept, self.pos = writer, kept, 0
+        writer.write(first)  # kept rows of files that are not among the inputs
+        self._kept_run([])
+
+    def _kept_run(self, out: list[dict]) -> None:
+        while self.pos < len(self.kept) and self.kept[self.pos] is not None:
+            out.append(self.kept[self.pos])  # type: ignore[arg-type]
+            self.pos += 1
+        self.writer.write(out)
+
+    def write(self, rows: list[dict]) -> None:
+        out: list[dict] = []
+        for row in rows:
+            out.append(row)
+            self.pos += 1
+            self._kept_run(out)
+            out = []
+
+    def rest(self) -> None:
+        """The kept rows after the last computed one (after an interrupt too)."""
+        self.writer.write([r for r in self.kept[self.pos:] if r is not None])
+        self.pos = len(self.kept)
+
+
+def _resume_rows(out: str, det_id: str, images: Sequence[Path]) -> tuple[list[dict], list[dict | None]]:
+    """The ``ok`` rows of ``out`` made by this detector: those of files not among ``images``,
+    and per input its row or ``None`` (to compute)."""
+    from . import batch as B
+
+    try:
+        rows, problems = B.read_results(out)
+    except B.OutputError as e:
+        raise UsageProblem(str(e))
+    for p in problems:
+        click.echo(f"warning: {p}", err=True)
+    ok = [r for r in rows if r.get("status") == "ok"]
+    other = {str(r.get("config")) for r in ok} - {det_id}
+    if other:
+        raise UsageProblem(f"{out} holds detections of another detector ({', '.join(sorted(other))}, this one is "
+                           f"{det_id}); use another --out, or --overwrite")
+    by_key: dict[str, dict] = {}
+    for r in ok:
+        by_key.setdefault(str(r.get("resolved") or B.row_key(str(r["image"]))), r)
+    keys = [B.row_key(p) for p in images]
+    first = [r for k, r in by_key.items() if k not in set(keys)]
+    return first, [by_key.get(k) for k in keys]
+
+
 def _load_detector(path: str, device: str) -> tuple[Any, str, Any]:
     from ..detection import DetectorFileError, ReebDetector
 
@@ -352,6 +406,9 @@ def _out_folder(path: str | None, option: str) -> Path | None:
 @click.option("-o", "--out", type=click.Path(dir_okay=False),
               help="Write one row per image here: .jsonl (JSON Lines) or .parquet.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
+@click.option("--resume", is_flag=True,
+              help="Keep the rows this detector already wrote to --out; detect only on the images missing there "
+                   "(or that failed).")
 @click.option("--kitti-dir", type=click.Path(file_okay=False),
               help="Write one KITTI result file per image here (<image stem>.txt), as KITTI's devkit scores them.")
 @click.option("--viz", "viz_dir", type=click.Path(file_okay=False),
@@ -367,7 +424,7 @@ def _out_folder(path: str | None, option: str) -> Path | None:
 @click.option("--device", default="auto", show_default=True, help="cpu, cuda, cuda:N, or auto (CUDA when available).")
 @click.option("-r", "--recursive", is_flag=True, help="Look for images in sub-folders too.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar, no per-file messages.")
-def detect(paths, detector_path, out, overwrite, kitti_dir, viz_dir, min_score, viz_min_score, batch_size, workers,
+def detect(paths, detector_path, out, overwrite, resume, kitti_dir, viz_dir, min_score, viz_min_score, batch_size, workers,
            device, recursive, quiet):
     """Run a trained detector on images (PATHS: files, folders or globs) and write its
     detections: rows to OUT, KITTI result files to --kitti-dir, pictures to --viz.
@@ -383,7 +440,9 @@ def detect(paths, detector_path, out, overwrite, kitti_dir, viz_dir, min_score, 
         raise UsageProblem(str(e))
     for n in found.notes if not quiet else ():
         click.echo(f"note: {n}", err=True)
-    writer = None
+    images, first, kept = found.images, [], [None] * len(found.images)
+    if resume and not out:
+        raise UsageProblem("--resume needs --out (the file to continue)")
     if out:
         try:
             B.check_output(out)
@@ -391,20 +450,27 @@ def detect(paths, detector_path, out, overwrite, kitti_dir, viz_dir, min_score, 
         except B.OutputError as e:
             raise UsageProblem(str(e))
         click.get_current_context().call_on_close(lock.release)
-        if Path(out).exists() and not overwrite:
-            raise UsageProblem(f"{out} exists; add --overwrite to replace it")
+        if Path(out).exists() and resume and not overwrite:
+            first, kept = _resume_rows(out, det_id, images)
+            images = [p for p, r in zip(images, kept) if r is None]
+            click.echo(f"resume: {len(kept) - len(images)} images already in {out}; {len(images)} to do", err=True)
+        elif Path(out).exists() and not overwrite:
+            raise UsageProblem(f"{out} exists; add --resume to continue it or --overwrite to replace it")
     kitti, viz = _out_folder(kitti_dir, "--kitti-dir"), _out_folder(viz_dir, "--viz")
     run = _DetectRun(det, det_id, dev, kitti, viz, min_score, viz_min_score, quiet)
     t0 = time.perf_counter()
     writer = B.open_writer(out) if out else None
     try:
-        finished = run.run(found.images, B.default_workers() if workers is None else workers, batch_size, writer)
+        ordered = _InOrder(writer, first, kept) if writer is not None else None
+        finished = run.run(images, B.default_workers() if workers is None else workers, batch_size, ordered)
+        if ordered is not None:
+            ordered.rest()
         saved = writer.commit() if writer is not None else None
     except BaseException:
         if writer is not None:
             writer.discard()
         raise
-    lines = run.summary(len(found.images), time.perf_counter() - t0)
+    lines = run.summary(len(images), time.perf_counter() - t0)
     if saved is not None and writer is not None:
         lines.append(f"wrote {saved} ({writer.rows_written} rows)")
     if kitti is not None:
