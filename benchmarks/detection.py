@@ -39,7 +39,6 @@ from _detection_sources import SourceGenerator, SourceUnavailable, cached_propos
 
 ARMS = ("reeb", "training-free", "edgeboxes", "selective-search", "rpn")
 CLASSES = ("Car", "Pedestrian", "Cyclist")
-IGNORED = ("Van", "Person_sitting")  # KITTI's neighbouring classes of Car and Pedestrian
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -75,34 +74,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def load_frames(roots: list[Path], limit: int | None) -> list[dict[str, Any]]:
-    """Every frame of the folders: ``image`` (uint8), ``boxes`` and ``labels`` (1..3) of the
-    three classes, ``objects`` (every label line, for the AP), ``ignore``, ``dontcare``."""
-    from reeb_torch.eval.data import KittiDataset, read_kitti_labels
+    """Every frame of the folders (:func:`reeb_torch.detection.load_frames`: ``image``, the
+    three classes' ``boxes`` and ``labels`` 1..3, ``objects`` for the AP, ``ignore``,
+    ``dontcare``); a folder without labels ends the run with its one-line reason."""
+    from reeb_torch.detection import load_frames as read_frames
 
-    items = []
-    for root in roots:
-        ds = KittiDataset(root, classes=CLASSES, limit=limit)
-        if ds.label_dir is None:
-            raise SystemExit(f"{root}: no label folder")
-        for i in range(len(ds)):
-            it = ds[i]
-            objects = read_kitti_labels(ds.label_dir / f"{it['image_id']}.txt")
-            boxes_of = lambda types: torch.tensor(  # noqa: E731
-                [o.box for o in objects if o.type in types], dtype=torch.float32).reshape(-1, 4)
-            items.append({"image": it["image"], "boxes": it["boxes"], "labels": it["labels"] + 1,
-                          "occluded": it["occluded"], "truncated": it["truncated"], "objects": objects, "ignore": boxes_of(IGNORED), "dontcare": boxes_of(("DontCare",)),
-                          "image_id": it["image_id"], "folder": root.name})
-    return items
-
-
-def mirrored(it: dict[str, Any]) -> dict[str, Any]:
-    """A training item flipped left to right (the image and every box)."""
-    from reeb_torch.detection import mirror_boxes
-
-    w = it["image"].shape[-1]
-    return {**it, "image": it["image"].flip(-1).contiguous(), "boxes": mirror_boxes(it["boxes"], w),
-            "ignore": mirror_boxes(it["ignore"], w), "dontcare": mirror_boxes(it["dontcare"], w),
-            "image_id": f"{it['image_id']}-mirror"}
+    try:
+        return read_frames(roots, CLASSES, limit)
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
 
 
 def cached_frames(model: torch.nn.Module, items: list[dict], args: argparse.Namespace) -> list:
@@ -185,6 +165,8 @@ def score(detections: list, items: list[dict], samples: int, seed: int) -> dict[
 def run_arm(name: str, train: list[dict], test: list[dict], args: argparse.Namespace) -> dict[str, Any]:
     """Train the arm's heads on ``train``, score it on ``test``."""
     from reeb_torch.detection import TrainSettings, train_heads
+
+    from reeb_torch.detection import mirrored
 
     mirrors = [mirrored(it) for it in train] if args.hflip else []
     model, proposal_s, key = build_model(name, args, train + mirrors + test)

@@ -39,7 +39,7 @@ from .cache import (
 from .feature_cache import FeatureCache, FrameFeatures, compute_features, frozen_features
 from .fitting import default_cache_dir, evaluate_detector, format_scores
 from .head_training import CachedFrame, TrainSettings, detect, drop_ignored, frame_forward, mirror_boxes, train_heads
-from .kitti import KITTI_CLASSES, load_frames, result_lines, write_results
+from .kitti import KITTI_CLASSES, load_frames, mirrored, result_lines, write_results
 from .lite0 import EfficientNetLite0, load_lite0, weights_digest
 from .lite0_detector import reeb_fasterrcnn_lite0
 from .rpn import ReebRPN, map_boxes
@@ -55,6 +55,7 @@ __all__ = [
     "default_cache_dir",
     "KITTI_CLASSES",
     "load_frames",
+    "mirrored",
     "result_lines",
     "write_results",
     "ReebRPN",
