@@ -84,6 +84,7 @@ def test_save_load_round_trip_gives_the_same_detections(fitted, saved, images):
     prov = loaded.meta["provenance"]
     assert prov["command"] == "reeb detector fit kitti" and len(prov["frame_hashes"]) == 2
     assert set(prov["frame_hashes"]) == {"kitti/000001", "kitti/000008"}
+    assert loaded.trained_on([images[1], images[0].flip(-1)]) == ["kitti/000008", None]
     h, w = images[0].shape[-2:]
     boxes = ours[0]["boxes"]
     assert (boxes[:, 0] >= 0).all() and (boxes[:, 2] <= w).all() and (boxes[:, 3] <= h).all()
@@ -222,13 +223,15 @@ def test_detect_writes_an_error_row_for_a_corrupt_image_and_goes_on(saved, data,
 
 def test_detector_fit_command_writes_a_detector_that_loads(data, cache, tmp_path):
     out = tmp_path / "det.safetensors"
-    args = ["detector", "fit", str(data), "-o", str(out), "--cache", str(cache), "-q", *TINY_CLI]
+    args = ["detector", "fit", str(data), "-o", str(out), "--cache", str(cache), "--val", str(data), "-q", *TINY_CLI]
     res = CliRunner().invoke(main, args)
     assert res.exit_code == 0, res.output
     assert "trained on 2 frames" in res.output and f"wrote {out}" in res.output
+    assert "2 of these frames are training frames" in res.output  # --val on the training folder
     det = ReebDetector.load(out)
     assert det.meta["provenance"]["command"].startswith(f"reeb detector fit {data} -o {out} --proposals default")
     assert det.settings.min_size == 128 and det.settings.proposals_test == 50
+    assert det.meta["provenance"]["val"]["frames"] == 2 and "Car" in det.meta["provenance"]["val"]["ap"]
     again = CliRunner().invoke(main, args)
     assert again.exit_code == 2 and "--overwrite" in again.output
     bad = CliRunner().invoke(main, ["detector", "fit", str(data), "-o", str(tmp_path / "x.safetensors"),

@@ -221,6 +221,22 @@ class ReebDetector(nn.Module):
         det.meta = {"provenance": provenance if isinstance(provenance, dict) else {}}
         return det.to(device).eval()
 
+    def trained_on(self, images: Sequence[Tensor]) -> list[str | None]:
+        """For each image (``[3, H, W]``), the training frame that shows the same picture
+        (``"folder/id"``, by :func:`reeb_torch.ranker.frame_hash` within
+        :data:`~reeb_torch.ranker.SAME_IMAGE_BITS`), or ``None``: where a score measured with
+        this detector is in-sample. All ``None`` for a detector without frame hashes."""
+        from ..ranker import SAME_IMAGE_BITS, frame_hash, hash_distance, seen_hashes
+
+        known = seen_hashes(self.meta.get("provenance", {}))
+        out: list[str | None] = []
+        for image in images:
+            h = frame_hash(image)
+            near = [(hash_distance(h, v), k) for k, v in known.items()]
+            best = min(near, default=(SAME_IMAGE_BITS + 1, None))
+            out.append(best[1] if best[0] <= SAME_IMAGE_BITS else None)
+        return out
+
     # -- training ---------------------------------------------------------------------------
     @classmethod
     def fit(cls, folders: Sequence[str | os.PathLike], *, classes: Sequence[str] = KITTI_CLASSES,

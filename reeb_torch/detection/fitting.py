@@ -132,7 +132,8 @@ def evaluate_detector(det: Any, folders: Sequence[str | os.PathLike], *, limit: 
 
     Returns:
         ``{"ap": {class: %, "mAP": %}, "interval_95": {class: [lo, hi]}, "objects": {class:
-        moderate objects}, "frames": n}`` (``None`` for a class without objects).
+        moderate objects}, "frames": n, "training_frames": how many of them ``det`` was trained
+        on}`` (``None`` for a class without objects).
 
     Raises:
         ValueError: a class KITTI's evaluation has no overlap threshold for.
@@ -152,9 +153,11 @@ def evaluate_detector(det: Any, folders: Sequence[str | os.PathLike], *, limit: 
     def pct(v: float) -> float | None:
         return None if math.isnan(v) else round(100 * v, 2)
 
+    seen = sum(name is not None for name in det.trained_on([it["image"] for it in items]))
     return {"ap": {k: pct(v) for k, v in ap.items()},
             "interval_95": {k: [pct(lo), pct(hi)] for k, (lo, hi) in interval.items()},
-            "objects": {c: sum(s.num_gt for s in stats[c]) for c in det.classes}, "frames": len(items)}
+            "objects": {c: sum(s.num_gt for s in stats[c]) for c in det.classes}, "frames": len(items),
+            "training_frames": seen}
 
 
 def format_scores(result: dict[str, Any]) -> str:

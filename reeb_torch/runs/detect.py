@@ -132,8 +132,11 @@ def fit(dirs, out, overwrite, proposals, classes, epochs, seed, val, hflip, min_
         except ValueError as e:
             raise UsageProblem(" ".join(str(e).split()))
         prov["val"] = {"folders": list(val), **scores}
-        lines.append(f"KITTI 2D AP|R40 (moderate) on {scores['frames']} held-out frames of {', '.join(val)}:\n"
+        lines.append(f"KITTI 2D AP|R40 (moderate) on {scores['frames']} frames of {', '.join(val)}:\n"
                      + format_scores(scores))
+        if scores["training_frames"]:
+            lines.append(f"note: {scores['training_frames']} of these frames are training frames (the same "
+                         "pictures): that part of the estimate is in-sample")
     try:
         det.save(path)
     except OSError as e:
