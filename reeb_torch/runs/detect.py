@@ -219,7 +219,6 @@ class _DetectRun:
         self.viz_min_score = viz_min_score
         self.warm: tuple[int, float, dict[str, float]] | None = None
         """(images, detector seconds, stage seconds) of the first batch, which pays the warm-up."""
-        self.rows: list[dict] = []
         self.failures: list[str] = []
         self.ok = self.detections = 0
         self.detect_s = 0.0
@@ -340,12 +339,9 @@ class _InOrder:
         self.writer.write(out)
 
     def write(self, rows: list[dict]) -> None:
-        out: list[dict] = []
         for row in rows:
-            out.append(row)
             self.pos += 1
-            self._kept_run(out)
-            out = []
+            self._kept_run([row])
 
     def rest(self) -> None:
         """The kept rows after the last computed one (after an interrupt too)."""
@@ -373,7 +369,8 @@ def _resume_rows(out: str, det_id: str, images: Sequence[Path]) -> tuple[list[di
     for r in ok:
         by_key.setdefault(str(r.get("resolved") or B.row_key(str(r["image"]))), r)
     keys = [B.row_key(p) for p in images]
-    first = [r for k, r in by_key.items() if k not in set(keys)]
+    inputs = set(keys)
+    first = [r for k, r in by_key.items() if k not in inputs]
     return first, [by_key.get(k) for k in keys]
 
 
