@@ -232,6 +232,10 @@ def test_detector_fit_command_writes_a_detector_that_loads(data, cache, tmp_path
     assert det.meta["provenance"]["command"].startswith(f"reeb detector fit {data} -o {out} --proposals default")
     assert det.settings.min_size == 128 and det.settings.proposals_test == 50
     assert det.meta["provenance"]["val"]["frames"] == 2 and "Car" in det.meta["provenance"]["val"]["ap"]
+    shown = CliRunner().invoke(main, ["detector", "show", str(out)])
+    assert shown.exit_code == 0 and "a detector of Car, Pedestrian, Cyclist" in shown.output, shown.output
+    assert "trained on 2 frames" in shown.output and "command: reeb detector fit" in shown.output
+    assert "mAP" in shown.output  # the --val scores
     again = CliRunner().invoke(main, args)
     assert again.exit_code == 2 and "--overwrite" in again.output
     bad = CliRunner().invoke(main, ["detector", "fit", str(data), "-o", str(tmp_path / "x.safetensors"),

@@ -4,6 +4,7 @@
 
     reeb detector fit my_frames/ -o det.safetensors            # KITTI-format folders, labelled
     reeb detector fit a/ b/ -o det.safetensors --val held_out/ # and its AP on frames it never saw
+    reeb detector show det.safetensors                         # what it was trained on, its scores
     reeb detect images/ --detector det.safetensors -o dets.jsonl --kitti-dir out/ --viz pics/
 
 ``reeb detect`` runs as ``reeb propose`` does (:mod:`.batch`): images found in files, folders
@@ -36,7 +37,7 @@ import click
 
 from .common import Failure, UsageProblem, resolve_device
 
-__all__ = ["detector", "detect", "draw_detections"]
+__all__ = ["detector", "fit", "show", "detect", "draw_detections"]
 
 CONTEXT = dict(help_option_names=["-h", "--help"], max_content_width=100)
 CLASS_COLOURS = ((255, 200, 0), (0, 200, 255), (255, 80, 200), (120, 255, 80), (255, 120, 60), (160, 120, 255))
@@ -142,6 +143,38 @@ def fit(dirs, out, overwrite, proposals, classes, epochs, seed, val, hflip, min_
     except OSError as e:
         raise Failure(f"{out}: cannot write the detector ({e.strerror or e})")
     lines.append(f"wrote {path}; run it with: reeb detect IMAGES --detector {shlex.quote(str(path))} -o dets.jsonl")
+    click.echo("\n".join(lines))
+
+
+@detector.command("show", context_settings=CONTEXT)
+@click.argument("path", type=click.Path(dir_okay=False))
+def show(path):
+    """What a detector file (PATH) holds: its classes, settings, proposals, the frames it was
+    trained on, its held-out scores and the command that trains it again."""
+    from ..detection import DetectorFileError
+    from ..detection.detector_file import read_detector_file
+    from ..detection.fitting import format_scores
+
+    try:
+        tensors, meta = read_detector_file(path)
+    except DetectorFileError as e:
+        raise UsageProblem(str(e))
+    prov = meta.get("provenance") or {}
+    params = sum(t.numel() for t in tensors.values())
+    lines = [f"{path}: a detector of {', '.join(meta['classes'])} ({params / 1e6:.1f} M trained parameters)",
+             f"backbone: {meta['backbone'].get('name')} (weights {str(meta['backbone'].get('sha256'))[:16]}...)",
+             "settings: " + ", ".join(f"{k}={v}" for k, v in meta["settings"].items()),
+             f"proposals: {meta['proposals'].get('spec')} (REEB config {meta['proposals'].get('fingerprint')})"]
+    if prov.get("frames"):
+        lines.append(f"trained on {len(prov['frames'])} frames of {', '.join(prov.get('folders', []))}: "
+                     + ", ".join(f"{n} {c}" for c, n in (prov.get("objects") or {}).items()))
+    if isinstance(prov.get("val"), dict) and "ap" in prov["val"]:
+        seen = prov["val"].get("training_frames") or 0
+        lines.append(f"KITTI 2D AP|R40 (moderate) on {', '.join(prov['val'].get('folders', []))}"
+                     + (f" ({seen} of its frames are training frames)" if seen else "") + ":\n"
+                     + format_scores(prov["val"]))
+    if prov.get("command"):
+        lines.append(f"command: {prov['command']}")
     click.echo("\n".join(lines))
 
 
