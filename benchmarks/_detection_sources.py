@@ -141,7 +141,7 @@ class ProposalStore:
     def save(self, digest: str, size: Sequence[int], boxes: Tensor, scores: Tensor) -> None:
         """Write one entry (atomically: a temporary file, then renamed)."""
         self.folder.mkdir(parents=True, exist_ok=True)
-        tmp = self.path(digest).with_suffix(".tmp")
+        tmp = self.path(digest).with_suffix(f".{os.getpid()}.tmp")
         torch.save({"format": _FORMAT, "key": self.key, "digest": digest, "size": [int(s) for s in size],
                     "boxes": boxes.float().cpu().contiguous(), "scores": scores.float().cpu().contiguous()}, tmp)
         os.replace(tmp, self.path(digest))

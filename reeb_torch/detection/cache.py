@@ -203,10 +203,10 @@ class ProposalCache:
         }
 
     def save(self, path: str | os.PathLike) -> None:
-        """Write the cache (atomically: to ``path + '.tmp'``, then renamed)."""
+        """Write the cache (atomically: to a temporary file of this process beside it, then renamed)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # two processes never share one
         torch.save(self.to_dict(), tmp)
         os.replace(tmp, path)
 

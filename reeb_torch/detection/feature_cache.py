@@ -91,7 +91,7 @@ class FeatureCache:
     def save(self, digest: str, f: FrameFeatures) -> None:
         """Write one entry (atomically: a temporary file, then renamed)."""
         self.folder.mkdir(parents=True, exist_ok=True)
-        tmp = self.path(digest).with_suffix(".tmp")
+        tmp = self.path(digest).with_suffix(f".{os.getpid()}.tmp")  # two processes never share one
         torch.save({**self.key, "digest": digest, "original_size": list(f.original_size),
                     "image_size": list(f.image_size), "padded_size": list(f.padded_size),
                     "levels": {k: v.half().contiguous() for k, v in f.levels.items()}}, tmp)
