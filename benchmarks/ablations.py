@@ -44,8 +44,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_dev_dirs, environment, rerun_line, setting_pairs, settings_config  # noqa: E402
 
 from reeb_torch import ProposalGenerator, ReebConfig, get_preset  # noqa: E402
-from reeb_torch.eval.common import (add_data_option, add_frames_option, first_few, folder_splits,  # noqa: E402
-                                   load_folders)
+from _common import add_data_option, add_frames_option  # noqa: E402
+from reeb_torch.eval.common import first_few, folder_splits, load_folders  # noqa: E402
 from reeb_torch.eval.table3 import moderate_masks  # noqa: E402
 from reeb_torch.eval.metrics import (  # noqa: E402
     average_recall,
