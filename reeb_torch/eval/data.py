@@ -6,16 +6,16 @@ Box convention, kept everywhere in this package: ``Tensor[N, 4]`` of ``float32``
 ``(x1, y1, x2, y2)`` in pixels of the full-resolution image, 0-based, ``x1 <= x2``,
 ``y1 <= y2``, exactly as written in KITTI's ``label_2`` files (fields 5-8).
 
-Two folder layouts are recognised (see ``../shared/data/README.md``)::
+Two folder layouts are recognised::
 
-    root/images/<id>.png   root/labels/<id>.txt    root/calib/<id>.txt    (this project)
+    root/images/<id>.png   root/labels/<id>.txt    root/calib/<id>.txt    (short names)
     root/image_2/<id>.png  root/label_2/<id>.txt   root/calib/<id>.txt    (KITTI's own)
 
 KITTI's own layout is also found one level down, in ``root/training/``. Only the image
 folder is required: without labels every target is empty, without calib ``calib`` is
 ``None``.
 
->>> ds = KittiDataset("../shared/data/kitti")
+>>> ds = KittiDataset("data/kitti")                   # a KITTI-format folder
 >>> item = ds[0]
 >>> item["image"].shape, item["boxes"].shape          # (3, H, W) uint8, (N, 4) float32
 >>> loader = torch.utils.data.DataLoader(ds, batch_size=4, collate_fn=collate_keep_sizes)
