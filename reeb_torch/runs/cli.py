@@ -7,7 +7,7 @@
     reeb propose images/ --out p.jsonl --resume   # after an interruption: only what is missing
     reeb show                            # the bundled sample, explained: reeb_show.png
     reeb show frame.png --label frame.txt --top 30 --out frame_reeb.png
-    reeb eval ../shared/data/kitti --limit 20     # the paper's Table 3 (reeb_torch.eval.table3)
+    reeb eval data/kitti --limit 20               # the paper's Table 3 (reeb_torch.eval.command)
     reeb calibrate my_frames/ -o camera.json      # horizon and camera height from labelled boxes
     reeb tune my_frames/ --config camera.json -o tuned.json --trials 50 --storage sqlite:///tune.db
 
@@ -17,7 +17,7 @@ images found, output not writable, or being written by another run — all check
 any work); 130 interrupted (what was done is saved; ``--resume`` continues).
 
 Each command checks its options and hands on: ``propose`` to :mod:`.propose_local` or
-:mod:`.propose_ray`, ``export`` to :mod:`.export`, ``eval`` to :mod:`reeb_torch.eval.table3`;
+:mod:`.propose_ray`, ``export`` to :mod:`.export`, ``eval`` is :mod:`reeb_torch.eval.command`;
 what they share (errors, settings, device, summary lines) is :mod:`.common`.
 """
 
@@ -306,41 +306,9 @@ def show(image, label, no_label, top, out, preset, config_file, sets, top_k, dev
 
 # -- reeb eval ---------------------------------------------------------------------------
 
-@main.command(context_settings=dict(CONTEXT, ignore_unknown_options=True))
-@click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
-@click.option("-o", "--out", type=click.Path(file_okay=False), default="runs/table3",
-              show_default=True, help="Folder for the table, CSV/JSON and plots.")
-@click.option("--methods", help="Comma-separated methods (see python -m reeb_torch.eval --help).")
-@click.argument("args", nargs=-1, type=click.UNPROCESSED, metavar="KITTI_DIR... [TABLE3 OPTIONS]")
-def eval(args, limit, out, methods):  # noqa: A001 - the command's name
-    """Recall table (the paper's Table 3) and plots on KITTI-format folders: every table for
-    each folder and for all of them together.
+from ..eval.command import main as _eval  # noqa: E402 - a click command: imports click only
 
-    Runs reeb_torch.eval.table3 (as benchmarks/table3.py does). The folders come first;
-    further options (e.g. --frames 0:39 40:59, --max-proposals 1000, --batch 8) are passed
-    on to it.
-    """
-    from ..eval import table3 as table3_module
-
-    n = next((i for i, a in enumerate(args) if a.startswith("-")), len(args))
-    kitti_dirs, extra = args[:n], args[n:]
-    if not kitti_dirs:
-        raise click.UsageError("give one or more KITTI-format folders (KITTI_DIR...) before other options")
-    for d in kitti_dirs:
-        if not Path(d).is_dir():
-            raise click.UsageError(f"KITTI_DIR {d!r} is not a folder")
-    argv = ["--data", *kitti_dirs, "--out", str(out)]
-    if limit:
-        argv += ["--limit", str(limit)]
-    if methods:
-        argv += ["--methods", *[m.strip() for m in methods.split(",") if m.strip()]]
-    argv += list(extra)
-    try:
-        table3_module.main(argv, prog="python -m reeb_torch.eval")
-    except SystemExit as e:  # argparse errors (2), --help (0), or a message: exit 1
-        if e.code is None or isinstance(e.code, int):
-            sys.exit(e.code or 0)
-        raise Failure(" ".join(str(e.code).split()))
+main.add_command(_eval, "eval")
 
 
 # -- reeb export -------------------------------------------------------------------------
