@@ -400,7 +400,7 @@ def _method_record(method: Method, boxes: list[torch.Tensor], timing: dict, hits
     hk, ht = HEADLINE
     return {
         "label": method.label,
-        # kept as before: all objects of all selected frames
+        # the headline entries: all objects of all selected frames
         "recall": whole["all"]["recall"],
         "ar_micro": whole["all"]["ar"]["micro"],
         "ar_class_mean": whole["all"]["ar"]["class_mean"],
