@@ -35,13 +35,13 @@ def _example_kitti(root: Path, layout: str = "project") -> Path:
 
 def _eval(*args) -> dict:
     """``reeb eval ARGS`` (the folders first), called from Python: its JSON record."""
-    return command.main.main([str(a) for a in args], standalone_mode=False)
+    return command.main.main([str(a) for a in args], prog_name="reeb eval", standalone_mode=False)
 
 
 def _eval_exits(*args) -> int:
     """``reeb eval ARGS`` as from a shell (a usage error is a message and ``SystemExit``)."""
     with pytest.raises(SystemExit) as e:
-        command.main.main([str(a) for a in args])
+        command.main.main([str(a) for a in args], prog_name="reeb eval")
     return e.value.code
 
 
@@ -76,6 +76,26 @@ def test_package_never_imports_benchmarks():
             offenders.append(f"{path.relative_to(REPO)}: loads a file from the checkout")
     assert not offenders, offenders
     assert Path(table3.__file__).resolve().parent == PACKAGE / "eval"
+
+
+def test_the_evaluation_is_a_click_command_and_stays_inside_the_package():
+    """``reeb eval`` is click (no argparse in the package); no module of the evaluation
+    reaches beside the checkout for data or models (BING's folder is an option)."""
+    import click
+
+    assert isinstance(command.main, click.Command)
+    offenders = [f"{p.relative_to(REPO)}: argparse" for p in PACKAGE.rglob("*.py") if "argparse" in p.read_text()]
+    offenders += [f"{p.relative_to(REPO)}: {word}" for p in (PACKAGE / "eval").rglob("*.py")
+                  for word in ("../shared", '"shared"') if word in p.read_text()]
+    assert not offenders, offenders
+
+
+def test_reeb_eval_without_a_bing_model_skips_bing_with_a_note(tmp_path, capsys):
+    data = _example_kitti(tmp_path / "kitti")
+    record = _eval(data, "--methods", "bing", "--out", tmp_path / "t3")
+    assert record["methods"]["bing"]["skipped"].startswith("no BING model folder given (--bing-model DIR")
+    assert "skipped BING: no BING model folder given" in capsys.readouterr().out
+    assert record["rerun"] == f"reeb eval {data} --out {tmp_path / 't3'} --methods bing"
 
 
 @pytest.mark.parametrize(
