@@ -59,7 +59,7 @@ def test_second_writer_fails_at_once_and_loses_nothing(tmp_path):
 
 
 def test_a_run_on_a_locked_output_fails_before_any_work(tmp_path):
-    from reeb_torch.runs.batch import lock_output
+    from reeb_torch.runs.output_lock import lock_output
 
     good_folder(tmp_path / "B", 1)
     with lock_output(tmp_path / "cc.jsonl"):  # this test process plays the first run
@@ -70,13 +70,13 @@ def test_a_run_on_a_locked_output_fails_before_any_work(tmp_path):
 
 
 def test_lock_of_a_dead_run_is_taken_over(tmp_path):
-    from reeb_torch.runs.batch import OutputBusyError, lock_output
+    from reeb_torch.runs.output_lock import OutputBusyError, lock_output
 
     out = tmp_path / "o.jsonl"
     (tmp_path / ".o.jsonl.lock").write_text("999999\n")  # left by a killed run: not locked
     with lock_output(out):
         assert (tmp_path / ".o.jsonl.lock").read_text().strip() == str(os.getpid())
-        code = ("import sys; from reeb_torch.runs.batch import lock_output, OutputBusyError\n"
+        code = ("import sys; from reeb_torch.runs.output_lock import lock_output, OutputBusyError\n"
                 f"try:\n    lock_output({str(out)!r})\nexcept OutputBusyError as e:\n"
                 "    print(e); sys.exit(3)\n")
         r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
@@ -242,7 +242,7 @@ def test_interrupt_summary_counts_the_rows_in_the_file(tmp_path):
 
 
 def test_interrupt_is_deferred_while_a_row_is_written():
-    from reeb_torch.runs.batch import CriticalSection
+    from reeb_torch.runs.ctrl_c import CriticalSection
 
     cs = CriticalSection()
     with pytest.raises(KeyboardInterrupt):
@@ -322,7 +322,7 @@ def test_resume_keeps_rows_of_the_previous_format(tmp_path):
 def test_folder_scan_finds_every_format_the_reader_reads(tmp_path):
     from PIL import Image
 
-    from reeb_torch.runs.batch import find_images
+    from reeb_torch.runs.inputs import find_images
     from reeb_torch.io import IMAGE_EXTENSIONS, read_image
 
     rgb = np.random.default_rng(0).integers(0, 256, (20, 30, 3), dtype=np.uint8)
@@ -341,7 +341,7 @@ def test_folder_scan_finds_every_format_the_reader_reads(tmp_path):
 # -- 16. paths to the same file are named, not dropped silently (issue 37) ---------------------
 
 def test_scan_names_the_paths_to_the_same_file(tmp_path):
-    from reeb_torch.runs.batch import same_file_note, scan_images
+    from reeb_torch.runs.inputs import same_file_note, scan_images
 
     real = good_folder(tmp_path / "real", 3)
     (tmp_path / "links").mkdir()
@@ -441,7 +441,7 @@ def test_show_picture_names_the_ranking_it_shows():
 
 def test_an_interrupt_wrapped_by_a_library_is_still_an_interrupt():
     # numba, loading a cached kernel when Ctrl-C lands, re-raises it as a SystemError
-    from reeb_torch.runs.batch import caused_by_interrupt
+    from reeb_torch.runs.ctrl_c import caused_by_interrupt
 
     def wrapped() -> None:
         try:

@@ -180,7 +180,7 @@ def test_usage_errors_before_any_work(tmp_path):
 
 def test_api_takes_an_existing_dataset(local_ray, small_images):
     from reeb_torch import ReebConfig
-    from reeb_torch.runs.batch import ParquetWriter
+    from reeb_torch.runs.output_files import ParquetWriter
     from reeb_torch.runs.distributed import propose_dataset
 
     path = str(small_images / "b_small.png")

@@ -17,8 +17,9 @@ PACKAGE = Path(__file__).resolve().parents[1] / "reeb_torch"
 ALGORITHM = {"reeb_torch.config", "reeb_torch.generator", "reeb_torch.ranking", "reeb_torch._checks",
              "reeb_torch.camera", "reeb_torch.io", "reeb_torch.ranker", "reeb_torch.ranker.model",
              "reeb_torch.ranker.weights"}
-RUNS_LIBRARIES = {"reeb_torch.runs.batch", "reeb_torch.runs.distributed", "reeb_torch.runs.export",
-                  "reeb_torch.runs.viz"}
+RUNS_LIBRARIES = {"reeb_torch.runs.inputs", "reeb_torch.runs.decoding", "reeb_torch.runs.rows",
+                  "reeb_torch.runs.output_files", "reeb_torch.runs.output_lock", "reeb_torch.runs.ctrl_c",
+                  "reeb_torch.runs.distributed", "reeb_torch.runs.export", "reeb_torch.runs.viz"}
 COMMAND = {"reeb_torch.runs.cli", "reeb_torch.runs.common", "reeb_torch.runs.propose_local",
            "reeb_torch.runs.propose_ray"}
 LONG_FUNCTIONS = {

@@ -62,7 +62,8 @@ def _parquet_result(path: Path, image: str) -> None:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from reeb_torch.runs.batch import ParquetWriter, error_row
+    from reeb_torch.runs.output_files import ParquetWriter
+    from reeb_torch.runs.rows import error_row
 
     pq.write_table(pa.Table.from_pylist([error_row(image, f"{image}: x", "cfg")],
                                         schema=ParquetWriter.schema()), path)
@@ -71,7 +72,7 @@ def _parquet_result(path: Path, image: str) -> None:
 def test_ray_overwrite_takes_the_lock_before_deleting(tmp_path):
     pytest.importorskip("ray")
     pytest.importorskip("pyarrow")
-    from reeb_torch.runs.batch import lock_output
+    from reeb_torch.runs.output_lock import lock_output
 
     good_folder(tmp_path / "imgs", 1)
     out = tmp_path / "out.parquet"
@@ -191,7 +192,7 @@ def test_a_full_disk_is_one_line_naming_the_output(tmp_path, monkeypatch, where)
 
     from click.testing import CliRunner
 
-    from reeb_torch.runs import batch as B
+    from reeb_torch.runs import output_files
     from reeb_torch.runs.cli import main
 
     good_folder(tmp_path / "imgs", 2)
@@ -204,10 +205,10 @@ def test_a_full_disk_is_one_line_naming_the_output(tmp_path, monkeypatch, where)
     if where == "fsync":  # the disk fills as the file is closed: the file is closed all the same
         opened = []
         real_open = open
-        monkeypatch.setattr(B, "open", lambda *a, **k: opened.append(real_open(*a, **k)) or opened[-1], raising=False)
-        monkeypatch.setattr(B.os, "fsync", lambda fd: full(None))
+        monkeypatch.setattr(output_files, "open", lambda *a, **k: opened.append(real_open(*a, **k)) or opened[-1], raising=False)
+        monkeypatch.setattr(output_files.os, "fsync", lambda fd: full(None))
     else:
-        monkeypatch.setattr(B.JsonlWriter, where, full)
+        monkeypatch.setattr(output_files.JsonlWriter, where, full)
     monkeypatch.chdir(tmp_path)
     res = CliRunner().invoke(main, ["propose", "imgs", "-o", "o.jsonl", "--overwrite", "-j", "0", "-q", *FAST])
     assert res.exit_code == 1, res.output
@@ -281,7 +282,7 @@ def test_skipped_entries_are_named_and_named_files_get_error_rows(tmp_path):
 def test_export_names_the_row_that_breaks_the_schema(tmp_path, change, words):
     from click.testing import CliRunner
 
-    from reeb_torch.runs.batch import FORMAT_VERSION
+    from reeb_torch.runs.rows import FORMAT_VERSION
     from reeb_torch.runs.cli import main
 
     good = dict(format_version=FORMAT_VERSION, image="a.png", resolved="/a.png", width=10, height=10,
@@ -317,7 +318,7 @@ def test_a_long_legal_output_name_works(tmp_path):
 
 
 def test_an_output_symlink_writes_its_target_and_stays_a_link(tmp_path):
-    from reeb_torch.runs.batch import lock_output
+    from reeb_torch.runs.output_lock import lock_output
 
     good_folder(tmp_path / "d", 1)
     (tmp_path / "real").mkdir()
