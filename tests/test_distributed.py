@@ -19,12 +19,8 @@ pytest.importorskip("ray.data")
 pytest.importorskip("pyarrow")
 
 from reeb_torch.runs.cli import main  # noqa: E402
-from reeb_torch.runs.distributed import (  # noqa: E402
-    actor_cpus,
-    read_result_dir,
-    result_files,
-    torch_threads,
-)
+from reeb_torch.runs.distributed import actor_cpus, torch_threads  # noqa: E402
+from reeb_torch.runs.output_files import read_result_dir, result_files  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLES = REPO / "examples" / "data"

@@ -88,6 +88,7 @@ def test_ray_overwrite_takes_the_lock_before_deleting(tmp_path):
 def test_ray_resume_sets_aside_a_file_cut_short(tmp_path):
     pytest.importorskip("pyarrow")
     from reeb_torch.runs import distributed as D
+    from reeb_torch.runs.output_files import read_result_dir
 
     out = tmp_path / "out.parquet"
     out.mkdir()
@@ -97,7 +98,7 @@ def test_ray_resume_sets_aside_a_file_cut_short(tmp_path):
     (out / "b.parquet").write_bytes(data[: len(data) // 2])  # killed while Ray wrote it
     moved = D.set_aside_unfinished(out)
     assert [p.name for p in moved] == [".b.parquet.unfinished"]
-    assert [r["image"] for r in D.read_result_dir(out)] == ["a.png"]  # readable for --resume again
+    assert [r["image"] for r in read_result_dir(out)] == ["a.png"]  # readable for --resume again
 
 
 # -- Ctrl-C in the first seconds -------------------------------------------------------------
@@ -282,8 +283,8 @@ def test_skipped_entries_are_named_and_named_files_get_error_rows(tmp_path):
 def test_export_names_the_row_that_breaks_the_schema(tmp_path, change, words):
     from click.testing import CliRunner
 
-    from reeb_torch.runs.rows import FORMAT_VERSION
     from reeb_torch.runs.cli import main
+    from reeb_torch.runs.rows import FORMAT_VERSION
 
     good = dict(format_version=FORMAT_VERSION, image="a.png", resolved="/a.png", width=10, height=10,
                 boxes=[[0.0, 0.0, 5.0, 5.0]], scores=[0.9], status="ok", config="c")

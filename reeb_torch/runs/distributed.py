@@ -17,8 +17,8 @@ The pipeline reads top to bottom, like the single-machine one
    :meth:`reeb_torch.runs.output_files.ParquetWriter.schema`, so they are exactly what ``reeb propose``
    writes (image, width, height, boxes, scores, status, config);
 3. :func:`write_results` writes them with Ray's Parquet writer (``Dataset.write_parquet``)
-   into a folder; :func:`read_result_dir` (:mod:`reeb_torch.runs.output_files`, re-exported here)
-   reads such a folder back (for ``--resume``, the summary and ``reeb export``).
+   into a folder; :func:`reeb_torch.runs.output_files.read_result_dir` reads such a folder
+   back (for ``--resume``, the summary and ``reeb export``).
 
 ``reeb propose --engine ray`` is :mod:`reeb_torch.runs.propose_ray`, which calls this module;
 this module does not import the command line.
@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterable, Sequence, cast
 
 from ..config import ReebConfig
-from .output_files import read_result_dir, result_files
+from .output_files import result_files
 
 if TYPE_CHECKING:  # pragma: no cover
     import ray.data
@@ -55,8 +55,6 @@ __all__ = [
     "ProposalActor",
     "propose_dataset",
     "write_results",
-    "result_files",
-    "read_result_dir",
     "prune_rows",
     "set_aside_unfinished",
 ]

@@ -29,7 +29,7 @@ from .common import (
     resolve_device,
 )
 from .inputs import NoImagesError, same_file_note, scan_images
-from .output_files import OutputError, check_output
+from .output_files import OutputError, check_output, read_result_dir, result_files
 from .output_lock import lock_output
 from .rows import row_key
 
@@ -101,7 +101,7 @@ class _RayRun:
             for f in D.set_aside_unfinished(out_dir):
                 self.echo_err(f"warning: {f}: a Parquet file an interrupted run left unfinished; set "
                               "aside (its images are computed again)")
-        existing = D.result_files(out_dir) if out_dir.is_dir() else []
+        existing = result_files(out_dir) if out_dir.is_dir() else []
         if existing and not (resume or overwrite):
             raise UsageProblem(f"{out} holds results; add --resume to continue it or --overwrite to "
                                "replace it")
@@ -128,7 +128,7 @@ class _RayRun:
         """``--resume``: skip the images with an ``ok`` row in the folder; False if none is left."""
         out = self.out
         try:
-            rows = D.read_result_dir(self.out_dir)
+            rows = read_result_dir(self.out_dir)
         except OSError as e:
             raise UsageProblem(f"cannot read {out} for --resume: {e}")
         other = {r.get("config") for r in rows if r.get("status") == "ok"} - {self.fingerprint}
@@ -208,7 +208,7 @@ class _RayRun:
     def compute(self) -> None:
         """Run the dataset into the folder, then read back the rows this run wrote."""
         out_dir = self.out_dir
-        before_files = set(D.result_files(out_dir))
+        before_files = set(result_files(out_dir))
         ds = D.propose_dataset(self.images, self.cfg, actors=self.actors, cpus_per_actor=self.cpus,
                                batch_size=self.batch_size, device=str(self.dev))
         t1 = time.perf_counter()
@@ -221,8 +221,8 @@ class _RayRun:
             raise Failure(f"the Ray job failed: {' '.join(str(e).split())[:2000]}")
         self.wall = time.perf_counter() - t1
         if self.interrupted:  # files cut short: set aside, their images are done by --resume
-            D.set_aside_unfinished(out_dir, only=set(D.result_files(out_dir)) - before_files)
-        self.new_files = set(D.result_files(out_dir)) - before_files
+            D.set_aside_unfinished(out_dir, only=set(result_files(out_dir)) - before_files)
+        self.new_files = set(result_files(out_dir)) - before_files
         rows = []
         for f in sorted(self.new_files):
             try:
