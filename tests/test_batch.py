@@ -1,4 +1,4 @@
-"""Hardening of ``reeb propose`` and its batch output (issue 10): concurrent writers, resume
+"""``reeb propose`` and its batch output under stress: concurrent writers, resume
 from other folders, stale temporary files, row order, ``--set`` booleans, the row schema.
 
 Subprocess tests drive the command as a user would; small 160×48 images and --top-k 100
@@ -26,7 +26,7 @@ ROW_FIELDS = {"format_version", "image", "resolved", "width", "height", "boxes",
               "labels", "status", "config"}
 
 
-# -- 1. concurrent writers ---------------------------------------------------------------
+# -- concurrent writers ------------------------------------------------------------------------
 
 def test_second_writer_fails_at_once_and_loses_nothing(tmp_path):
     n = 300  # enough work that the other runs start while the first one is writing
@@ -85,7 +85,7 @@ def test_lock_of_a_dead_run_is_taken_over(tmp_path):
     assert issubclass(OutputBusyError, OSError)
 
 
-# -- 2. resume matches the resolved file ---------------------------------------------------
+# -- resume matches the resolved file ----------------------------------------------------------
 
 def test_resume_from_another_folder_symlink_and_absolute_path(tmp_path):
     paths = good_folder(tmp_path / "set", 5)
@@ -115,7 +115,7 @@ def test_resume_from_another_folder_symlink_and_absolute_path(tmp_path):
     assert sorted(r["resolved"] for r in rows) == sorted(os.path.realpath(p) for p in paths)
 
 
-# -- 3. --set booleans, config errors --------------------------------------------------------
+# -- --set booleans, config errors -------------------------------------------------------------
 
 @pytest.mark.parametrize("word, value", [("true", True), ("False", False), ("yes", True),
                                          ("no", False), ("on", True), ("OFF", False),
@@ -195,7 +195,7 @@ def test_config_errors_are_usage_errors_before_any_work(tmp_path):
         assert sorted(p.name for p in tmp_path.iterdir()) == ["imgs"]  # nothing written
 
 
-# -- 6, 7. kill -9 and Ctrl-C ------------------------------------------------------------------
+# -- kill -9 and Ctrl-C ------------------------------------------------------------------------
 
 def test_rows_of_a_killed_run_are_recovered_by_resume(tmp_path):
     n = 40
@@ -254,7 +254,7 @@ def test_interrupt_is_deferred_while_a_row_is_written():
         cs.interrupt()  # outside a write: at once
 
 
-# -- 8, 9, 12. row order, .json, sizes in error rows ---------------------------------------------
+# -- row order, .json, sizes in error rows -----------------------------------------------------
 
 def test_rows_in_input_order_with_error_rows_and_sizes(tmp_path):
     d = tmp_path / "mix"
@@ -317,7 +317,7 @@ def test_resume_keeps_rows_of_the_previous_format(tmp_path):
     assert rows["frame_001.png"]["format_version"] == 2 and len(rows["frame_001.png"]["labels"]) > 0
 
 
-# -- 11. folder scan and reader agree ---------------------------------------------------------
+# -- folder scan and reader agree --------------------------------------------------------------
 
 def test_folder_scan_finds_every_format_the_reader_reads(tmp_path):
     from PIL import Image
@@ -338,7 +338,7 @@ def test_folder_scan_finds_every_format_the_reader_reads(tmp_path):
             assert read_image(tmp_path / f"b{ext}").shape == (3, 20, 30), ext
 
 
-# -- 16. paths to the same file are named, not dropped silently (issue 37) ---------------------
+# -- paths to the same file are named, not dropped silently ------------------------------------
 
 def test_scan_names_the_paths_to_the_same_file(tmp_path):
     from reeb_torch.runs.inputs import same_file_note, scan_images
@@ -374,7 +374,7 @@ def test_a_folder_of_links_says_how_many_paths_were_the_same_file(tmp_path):
     assert json.loads((tmp_path / "s.json").read_text())["same_file"] == 6
 
 
-# -- 15. reeb eval without data ---------------------------------------------------------------
+# -- reeb eval without data --------------------------------------------------------------------
 
 def test_eval_without_frames_or_labels_is_a_usage_error(tmp_path):
     (tmp_path / "empty").mkdir()
@@ -383,7 +383,7 @@ def test_eval_without_frames_or_labels_is_a_usage_error(tmp_path):
     for folder, words in (("empty", "not a KITTI folder"), ("nolab", "label")):
         r = reeb("eval", folder, "--limit", "1", cwd=tmp_path, check_rc=2)
         assert words in r.stderr and "Traceback" not in r.stderr, r.stderr
-        assert len(r.stderr.strip().splitlines()) == 1, r.stderr  # one line, no usage block (issue 23)
+        assert len(r.stderr.strip().splitlines()) == 1, r.stderr  # one line, no usage block
 
 
 def test_show_on_a_folder_is_a_usage_error(tmp_path):
@@ -392,7 +392,7 @@ def test_show_on_a_folder_is_a_usage_error(tmp_path):
     assert "is a folder" in r.stderr, r.stderr
 
 
-# -- 13. reeb show keeps the aspect ratio ------------------------------------------------------
+# -- reeb show keeps the aspect ratio ----------------------------------------------------------
 
 @pytest.mark.parametrize("h, w", [(400, 60), (60, 400)])
 def test_show_picture_keeps_the_aspect_ratio(h, w):

@@ -1,4 +1,4 @@
-"""Second break-it round (issue 23): nothing lost, no tracebacks.
+"""Faults as users meet them: nothing lost, no tracebacks.
 
 Each test reproduces a fault as a user hit it: file names that are not UTF-8, the output
 lock taken before anything is deleted, boxes past the image edge, a full disk, configs
@@ -142,7 +142,7 @@ def _as_the_console_script(code: str, args: list[str], cwd: Path) -> subprocess.
 
 @pytest.mark.parametrize("module", ["click", "numba"])
 def test_ctrl_c_while_the_command_is_imported_exits_130_with_one_line(tmp_path, module):
-    """Issue 37: SIGINT while Python imports the command (click, the settings' numba), the
+    """SIGINT while Python imports the command (click, the settings' numba), the
     first ~0.5 s after reeb's own code starts."""
     hook = ("import os, signal, sys\n"
             "class Hit:\n"
@@ -157,7 +157,8 @@ def test_ctrl_c_while_the_command_is_imported_exits_130_with_one_line(tmp_path, 
 @pytest.mark.parametrize("when", ["right after the command", "in the exit functions", "as Python shuts down"])
 @pytest.mark.parametrize("rc", [0, 1])
 def test_ctrl_c_after_the_run_has_finished_keeps_its_exit_code(tmp_path, when, rc):
-    """Issue 37: SIGINT once the output is written (Python shutting down) exited -2."""
+    """SIGINT once the output is written (Python shutting down) keeps the run's exit code,
+    never -2 (killed by the signal)."""
     good_folder(tmp_path / "d", 1)
     if rc:
         (tmp_path / "d" / "bad.png").write_bytes(b"not an image")
