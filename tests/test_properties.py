@@ -385,7 +385,7 @@ _decimal_ties = st.builds(lambda n, d, e: n / 10.0 ** d + e, st.integers(-10**7,
 @given(values=st.lists(st.floats(allow_nan=False, allow_infinity=False) | _decimal_ties, min_size=1, max_size=64),
        decimals=st.integers(0, 4), digits=st.integers(1, 9))
 def test_row_rounding_is_pythons_for_any_floats(values, decimals, digits):
-    from reeb_torch.runs.batch import round_like_python, significant_like_python
+    from reeb_torch.runs.rows import round_like_python, significant_like_python
 
     v = np.array(values, np.float64)
     want = np.array([round(x, decimals) for x in values], np.float64)

@@ -23,9 +23,9 @@ what they share (errors, settings, device, summary lines) is :mod:`.common`.
 
 from __future__ import annotations
 
-from . import _ctrl_c
+from . import ctrl_c
 
-_BEFORE = _ctrl_c.exit_at_once()  # while this module's imports load (~0.5 s): see the end of the file
+_BEFORE = ctrl_c.exit_at_once()  # while this module's imports load (~0.5 s): see the end of the file
 
 import os  # noqa: E402
 import shlex  # noqa: E402
@@ -73,7 +73,7 @@ def config_options(f):
 # -- the command group -------------------------------------------------------------------
 
 class _Reeb(click.Group):
-    """The ``reeb`` group: a Ctrl-C at any time (:mod:`._ctrl_c`) exits 130 with one line and
+    """The ``reeb`` group: a Ctrl-C at any time (:mod:`.ctrl_c`) exits 130 with one line and
     no traceback, as an interrupted run does, instead of click's "Aborted!" and exit 1 or
     Python's traceback; once the command has finished, with its exit code (when the process
     is the command's: ``main()`` reads ``sys.argv``)."""
@@ -81,20 +81,20 @@ class _Reeb(click.Group):
     program = False  # this process runs the command line it was started with
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
-        before = _ctrl_c.exit_at_once()  # options parsed, nothing done yet
+        before = ctrl_c.exit_at_once()  # options parsed, nothing done yet
         type(self).program = args is None and standalone_mode
         try:
             return super().main(args, prog_name, complete_var, standalone_mode, **extra)
         except SystemExit as e:
             if self.program:  # --help, --version and usage errors too
-                _ctrl_c.exits_with(_ctrl_c.exit_code(e))
+                ctrl_c.exits_with(ctrl_c.exit_code(e))
             raise
         finally:
             if not self.program:  # called from Python (a test, a script): as it was
-                _ctrl_c.restore(before)
+                ctrl_c.restore(before)
 
     def invoke(self, ctx: click.Context):
-        _ctrl_c.interrupts()  # the runs catch KeyboardInterrupt to save what is done
+        ctrl_c.interrupts()  # the runs catch KeyboardInterrupt to save what is done
         ended: BaseException | None = None
         try:
             return super().invoke(ctx)
@@ -107,9 +107,9 @@ class _Reeb(click.Group):
             raise
         finally:
             if self.program:
-                _ctrl_c.exits_with(_ctrl_c.exit_code(ended))
+                ctrl_c.exits_with(ctrl_c.exit_code(ended))
             else:
-                _ctrl_c.exit_at_once()  # the rest of main(); it puts back the caller's handler
+                ctrl_c.exit_at_once()  # the rest of main(); it puts back the caller's handler
 
 
 @click.group(cls=_Reeb, context_settings=CONTEXT)
@@ -239,7 +239,7 @@ def show(image, label, no_label, top, out, preset, config_file, sets, top_k, dev
     their share of the proposal budget; the top proposals, coloured by rank, with the
     ground-truth boxes (and each one's best IoU over all proposals).
     """
-    from .batch import file_error, hint_names
+    from .rows import file_error, hint_names
     from ..io import read_image
 
     cfg = build_config(preset, config_file, sets, top_k)
@@ -526,7 +526,7 @@ def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, k, 
     click.echo(record["text"])
 
 
-_ctrl_c.restore(_BEFORE)  # the command's imports are done; main() takes over
+ctrl_c.restore(_BEFORE)  # the command's imports are done; main() takes over
 
 if __name__ == "__main__":
     main()
