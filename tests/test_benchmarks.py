@@ -346,7 +346,8 @@ def test_cv_paired_takes_only_settings_after_the_model():
     """cv_paired.py pairs settings that act after the ranking model (its fold models are the
     default's): a preset or --set pairs that change only those, and refuses the others."""
     cv = _script("cv_paired")
-    assert cv.parse_variant("class-quota") == ReebConfig(class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05})
+    assert cv.parse_variant('class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05}') == \
+        ReebConfig(class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05})
     assert cv.parse_variant("top_k=500;nms_iou=0.7") == ReebConfig(top_k=500, nms_iou=0.7)
     with pytest.raises(ValueError, match="changes candidates_per_region, which the ranking model reads"):
         cv.parse_variant("candidates_per_region=20000")
