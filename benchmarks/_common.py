@@ -1,15 +1,18 @@
-"""Helpers shared by the benchmark scripts: default paths, the rerun line, the machine."""
+"""Helpers shared by the benchmark scripts: default paths, their ``--data`` and ``--frames``
+options, the rerun line, the machine."""
 
 from __future__ import annotations
 
-import math
-import shlex
+import argparse
 import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-__all__ = ["REPO_ROOT", "default_kitti_dir", "default_dev_dirs", "rerun_line", "environment", "timed", "run_captured",
-           "sign_test_p", "paired_ratios", "setting_pairs", "settings_config", "write_outputs"]
+from reeb_torch.eval.common import parse_frame_range, rerun_line
+
+__all__ = ["REPO_ROOT", "default_kitti_dir", "default_dev_dirs", "add_data_option", "add_frames_option", "rerun_line",
+           "environment", "timed", "run_captured", "paired_ratios", "setting_pairs", "settings_config",
+           "write_outputs"]
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 """The repository root (the folder holding ``benchmarks/``)."""
@@ -29,9 +32,34 @@ def default_dev_dirs() -> list[Path]:
     return [d for d in dirs if d.is_dir()] or dirs
 
 
-def rerun_line(script: str, argv: Sequence[str]) -> str:
-    """The shell command that reruns ``script`` with ``argv``, from the repository root."""
-    return " ".join(["python", script, *map(shlex.quote, argv)])
+def add_data_option(parser: argparse.ArgumentParser, default: Sequence[str | Path] | None = None) -> None:
+    """Add ``--data DIR [DIR ...]`` (KITTI-format folders, reported each and together) to
+    ``parser``; without a ``default`` it is required."""
+    shown = " ".join(str(d) for d in default) if default else ""
+    parser.add_argument(
+        "--data", type=Path, nargs="+", default=list(default) if default else None, required=not default,
+        metavar="DIR",
+        help="KITTI-format folders (images/ + labels/, or image_2/ + label_2/); with several, every table "
+             "is given for each folder and for all together" + (f"; default: {shown}" if shown else ""),
+    )
+
+
+def _frame_range(text: str) -> Any:
+    """``type=`` of ``--frames``: :func:`reeb_torch.eval.common.parse_frame_range`."""
+    try:
+        return parse_frame_range(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def add_frames_option(parser: argparse.ArgumentParser) -> None:
+    """Add ``--frames A:B [A:B ...]`` (:class:`reeb_torch.eval.common.FrameRange` each) to ``parser``."""
+    parser.add_argument(
+        "--frames", nargs="+", type=_frame_range, default=[], metavar="A:B",
+        help="only frames whose numeric id is in these ranges (both ends included; "
+             "A:, :B and A also work), e.g. --frames 0:39 40:59; with two or more ranges "
+             "the recall is also reported for each range",
+    )
 
 
 def environment() -> dict[str, Any]:
@@ -86,22 +114,14 @@ def timed(fn: Callable[[], Any]) -> tuple[Any, float]:
     return out, time.perf_counter() - t0
 
 
-def sign_test_p(wins: int, losses: int) -> float:
-    """Exact two-sided sign-test p of ``wins`` against ``losses`` (ties left out)."""
-    n = wins + losses
-    if n == 0:
-        return 1.0
-    k = min(wins, losses)
-    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n
-    return min(1.0, 2 * tail)
-
-
 def paired_ratios(base: Sequence[float], this: Sequence[float]) -> tuple[list[float], int, int, float]:
     """Each pair's ratio ``this / base``, the pairs where ``this`` is faster and slower, and
-    the exact sign-test p of those counts (:func:`sign_test_p`)."""
+    the exact sign-test p of those counts (:func:`reeb_torch.eval.metrics.sign_test`)."""
+    from reeb_torch.eval.metrics import sign_test
+
     ratios = [t / b for b, t in zip(base, this)]
     faster, slower = sum(r < 1 for r in ratios), sum(r > 1 for r in ratios)
-    return ratios, faster, slower, sign_test_p(faster, slower)
+    return ratios, faster, slower, sign_test(faster, slower)
 
 
 def write_outputs(out: Path, stem: str, text: list[str], record: dict) -> Path:

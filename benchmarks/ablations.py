@@ -43,9 +43,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_dev_dirs, environment, rerun_line, setting_pairs, settings_config  # noqa: E402
 
-from reeb_torch import ProposalGenerator, ReebConfig, get_preset  # noqa: E402
-from reeb_torch.eval.common import (add_data_option, add_frames_option, first_few, folder_splits,  # noqa: E402
-                                   load_folders)
+from reeb_torch import ProposalGenerator, ReebConfig  # noqa: E402
+from _common import add_data_option, add_frames_option  # noqa: E402
+from reeb_torch.eval.common import first_few, folder_splits, load_folders  # noqa: E402
 from reeb_torch.eval.table3 import moderate_masks  # noqa: E402
 from reeb_torch.eval.metrics import (  # noqa: E402
     average_recall,
@@ -74,7 +74,7 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "ranker_keep=20000": (D.replace(ranker_keep=20000), "ranker"),
     "ranker, candidates_per_region=20000": (D.replace(candidates_per_region=20000), "ranker"),
     "ranker, nms_iou=0.7": (D.replace(nms_iou=0.7), "ranker"),
-    "class-quota": (get_preset("class-quota"), "ranker"),
+    "class-quota": (D.replace(class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05}), "ranker"),
     "paper": (P, "printed text"),
     "0.1 default (grid windows)": (V01, "0.1"),
     "window_geometry=grid": (TF.replace(window_geometry="grid"), "#13"),

@@ -47,7 +47,7 @@ def in_memory(paths: Sequence[Path], preset: str, top_k: int, batch_size: int) -
     import torch
 
     import reeb_torch
-    from reeb_torch.runs.batch import size_batches, Decoded
+    from reeb_torch.runs.decoding import Decoded, size_batches
 
     t0 = time.perf_counter()
     images = [reeb_torch.read_image(p) for p in paths]
@@ -92,7 +92,7 @@ def cli_run(folder: Path, limit: int | None, workers: int, preset: str, top_k: i
 
 
 def _list(folder: Path) -> list[Path]:
-    from reeb_torch.runs.batch import find_images
+    from reeb_torch.runs.inputs import find_images
 
     return find_images([folder])[0]
 

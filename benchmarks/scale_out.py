@@ -87,7 +87,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = ap.parse_args(argv)
     argv_list = list(argv) if argv is not None else sys.argv[1:]
 
-    from reeb_torch.runs.batch import find_images
+    from reeb_torch.runs.inputs import find_images
 
     folder = args.data / "images" if (args.data / "images").is_dir() else args.data
     images = find_images([folder])[0][: args.limit]

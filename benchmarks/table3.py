@@ -1,18 +1,21 @@
-"""The paper's Table 3 on a KITTI-format folder: recall of REEB and of the classical baselines.
+"""The paper's Table 3 on KITTI-format folders: recall of REEB and of the classical baselines.
 
-A thin script over :mod:`reeb_torch.eval.table3` (the same code ``reeb eval`` runs from an
-installed package); see there for the methods, the tables (all objects - the headline -,
-KITTI-moderate objects, class mean, per-class recall at 2000 / IoU 0.7, AR) and the files
-written into ``--out`` (default ``runs/table3``): ``table3.txt``, ``table3.csv``,
-``table3.json`` and two plots.
+The ``reeb eval`` command (:mod:`reeb_torch.eval.command`) with the project's defaults:
+``--data`` is the two dev folders beside the repository, ``../shared/data/kitti`` and
+``../shared/data/kitti_tracking`` (every table is given for each folder and for both
+together), and ``--bing-model`` is ``../shared/data/bing_model``. See
+:mod:`reeb_torch.eval.methods` for the rows, :mod:`reeb_torch.eval.report` for the tables
+(all objects - the headline -, KITTI-moderate objects, class mean, per-class recall at
+2000 / IoU 0.7, AR) and the files written into ``--out`` (default ``runs/table3``):
+``table3.txt``, ``table3.csv``, ``table3.json`` and two plots.
 
 Rerun: ``python benchmarks/table3.py [--data DIR ...] [--limit N] [--frames A:B ...]
-[--methods ...] [--cross-validate FOLDS] [--leave-folder-out]`` (the README's table:
-``--cross-validate 10 --leave-folder-out --out docs/results/table3``); ``--data`` defaults to the two dev folders beside the repository,
-``../shared/data/kitti`` and ``../shared/data/kitti_tracking``: every table is given for
-each folder and for both together. ``--frames`` selects numeric ids (KITTI object frames;
-select tracking frames by folder).
-From code, ``main(argv)`` (returns the JSON record).
+[--methods M,...] [--cross-validate FOLDS] [--leave-folder-out]`` (the README's table:
+``--cross-validate 10 --leave-folder-out --out docs/results/table3``); ``--data``,
+``--frames`` and ``--methods`` repeat (``--frames 0:39 --frames 40:59``) or take
+comma-separated values (``--frames 0:39,40:59``). ``--frames`` selects numeric ids (KITTI
+object frames; select tracking frames by folder). ``--help`` lists every option.
+From code, ``main(argv)`` returns the JSON record.
 """
 
 from __future__ import annotations
@@ -32,22 +35,20 @@ except ImportError:  # run as a script, or loaded from its file
     if "reeb_torch" not in sys.modules:
         sys.path.insert(0, str(REPO_ROOT))
 
-from reeb_torch.eval import table3 as _table3  # noqa: E402
-from reeb_torch.eval.table3 import (  # noqa: E402,F401 - re-exported for old imports
-    IOUS,
-    KS,
-    METHODS,
-    PAPER_TABLE3,
-    Method,
-    format_table,
-    run_method,
-)
+from reeb_torch.eval.command import table3_command  # noqa: E402
+
+PROG = "benchmarks/table3.py"
+BING_MODEL = REPO_ROOT.parent / "shared" / "data" / "bing_model"
+"""BING's model files in the shared data beside the repository (``--bing-model``'s default)."""
+
+command = table3_command(PROG, data_default=default_dev_dirs(), bing_default=BING_MODEL)
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    """Run the benchmark (``argv`` as on the command line) and return the JSON record."""
-    return _table3.main(argv, prog="benchmarks/table3.py", default_data=default_dev_dirs())
+    """Run the benchmark (``argv`` as on the command line) and return the JSON record; a bad
+    option or unusable data raises :class:`click.ClickException` (exit code 2 from a shell)."""
+    return command.main(args=list(argv) if argv is not None else None, prog_name=PROG, standalone_mode=False)
 
 
 if __name__ == "__main__":
-    main()
+    command.main(prog_name=PROG)

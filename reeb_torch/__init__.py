@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 # every name is imported on its first use (PEP 562), not by ``import reeb_torch``: the
 # settings import numba (~0.4 s), the generator torch; so the ``reeb`` command's own Ctrl-C
-# handling (exit 130, one line) is in place before either loads (reeb_torch.runs._ctrl_c)
+# handling (exit 130, one line) is in place before either loads (reeb_torch.runs.ctrl_c)
 if TYPE_CHECKING:  # the same names, as type checkers read them (py.typed)
     from .config import PRESETS, ReebConfig, get_preset
     from .generator import Inspection, ProposalGenerator, propose, warmup

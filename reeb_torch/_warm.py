@@ -20,10 +20,10 @@ from .stages import _cache
 __all__ = ["warm_picture", "Notice", "COMPILE_ESTIMATE_S", "gc_paused", "start_helper", "stop_helper",
            "compile_helper_part"]
 
-#: What compiling every kernel of the default takes (``reeb_torch.warmup()`` with an empty
-#: cache and the helper process: 7.7-12.1 s on this 2-core VM on 2026-12-03, 12.9-14.0 s in
-#: one process, by ``benchmarks/speed_ab.py --first-call``; it was 56 s in one process on two
-#: cores shared with other work); the notice says it.
+#: What compiling every kernel of the default takes, as the notice says it:
+#: ``reeb_torch.warmup()`` with an empty cache takes about 8-12 s on two CPU cores with the
+#: helper process and 13-14 s in one process (``benchmarks/speed_ab.py --first-call``), and
+#: up to about a minute in one process when those two cores are busy with other work.
 COMPILE_ESTIMATE_S = "10-40 s"
 
 

@@ -1,10 +1,8 @@
-"""One dataclass that holds every constant of the REEB algorithm.
+"""One dataclass that holds every constant of the REEB algorithm, and its presets.
 
 Each field names the paper section or equation it comes from. Where the printed paper is
-ambiguous or cannot run as printed (``../shared/paper/NOTES.md``), the field documents the
-choice and :meth:`ReebConfig.paper` keeps the printed reading. The package default
-(``ReebConfig()``) is the variant with the best recall measured on the 106 dev frames in
-``../shared/data`` (cross-validated where it was fitted to labels: ``reeb fit``).
+ambiguous or cannot run as printed (``NOTES #n``: the reading notes in ``docs/results.md``),
+the field documents the choice and :meth:`ReebConfig.paper` keeps the printed reading.
 """
 
 from __future__ import annotations
@@ -17,7 +15,7 @@ import typing
 from dataclasses import dataclass
 from typing import Any, Callable, Literal
 
-__all__ = ["ReebConfig", "PRESETS", "get_preset", "TRAINING_FREE"]
+__all__ = ["ReebConfig", "PRESETS", "get_preset", "TRAINING_FREE", "FRONT_END_FIELDS"]
 
 Grouping = Literal["connected", "cell"]
 ScoreNorm = Literal["perimeter", "area"]
@@ -31,125 +29,85 @@ Rescore = Literal["none", "affinity", "density", "contrast", "orientation"]
 RescoreScope = Literal["all", "persons"]
 if typing.TYPE_CHECKING:  # what a caller may give: shares in the head's order, or by class name
     ClassQuota = tuple[tuple[str, float], ...] | tuple[float, ...] | typing.Mapping[str, float]
-else:  # what the field holds, and what __post_init__ checks (a mapping is made pairs first)
+else:  # what the field holds, and what the checks see (a mapping is made pairs first)
     ClassQuota = tuple[tuple[str, float], ...] | tuple[float, ...]
 
 
 # -- validation (ReebConfig.__post_init__) ---------------------------------------------------
 # The type of every field is checked from its annotation, so a new field is checked as soon
-# as it is declared; its range goes into _RANGES (one line), joint conditions into _JOINT.
+# as it is declared; its range is declared with it (_knob), joint conditions go into _JOINT.
 
 
-class _Mismatch(Exception):
-    """A value does not fit an annotation; ``kind`` is TypeError (wrong type) or ValueError
-    (right type, value not allowed: not finite, not a choice, wrong tuple length)."""
-
-    def __init__(self, kind: type[Exception]) -> None:
-        super().__init__()
-        self.kind = kind
-
-
-_HINTS: dict[type, dict[str, Any]] = {}
-
-
-def _field_hints(cls: type) -> dict[str, Any]:
-    """The resolved annotations of ``cls``'s fields (cached; the module postpones them)."""
-    if cls not in _HINTS:
-        _HINTS[cls] = typing.get_type_hints(cls)
-    return _HINTS[cls]
+_NUMBERS = {bool: bool, int: numbers.Integral, float: numbers.Real}
 
 
 def _conform(value: Any, hint: Any) -> Any:
-    """``value`` checked against the annotation ``hint`` and normalised (float fields hold
-    floats, tuple fields tuples); raises :class:`_Mismatch`.
-
-    Understood: ``bool`` (only ``True``/``False``), ``int`` (not a bool), ``float`` (a finite
-    real, not a bool), ``str``, ``Literal[...]``, ``X | None`` / unions, ``tuple[X, Y]`` and
-    ``tuple[X, ...]`` (a tuple or list), plain classes. Other annotations are not checked.
-    """
-    if hint is Any:
-        return value
-    if hint is bool:
-        if isinstance(value, bool):
-            return value
-        raise _Mismatch(TypeError)
-    if hint is int:
-        if isinstance(value, numbers.Integral) and not isinstance(value, bool):
-            return value if type(value) is int else int(value)
-        raise _Mismatch(TypeError)
-    if hint is float:
-        if not isinstance(value, numbers.Real) or isinstance(value, bool):
-            raise _Mismatch(TypeError)
+    """``value`` checked against the annotation ``hint`` (``bool``, ``int`` and ``float``, never
+    a bool for a number; ``Literal``, unions, ``tuple[X, Y]``, ``tuple[X, ...]`` from a tuple or
+    list, plain classes; other annotations pass) and normalised: floats finite, -0.0 as 0.0,
+    tuples for lists. Raises a bare TypeError (wrong type) or ValueError (not finite, not a
+    choice, wrong tuple length)."""
+    if hint is bool or hint is int or hint is float:
+        exact = type(value) is hint
+        if not exact and (isinstance(value, bool) or not isinstance(value, _NUMBERS[hint])):
+            raise TypeError
+        if hint is not float:
+            return value if exact else int(value)
         try:
             x = float(value)
         except OverflowError:  # an int beyond the float range
-            raise _Mismatch(ValueError) from None
+            raise ValueError from None
         if not math.isfinite(x):
-            raise _Mismatch(ValueError)
-        if x == 0.0:  # -0.0 is 0.0: equal settings, one fingerprint
-            return 0.0
-        return value if type(value) is float else x
+            raise ValueError
+        return 0.0 if x == 0.0 else value if type(value) is float else x  # -0.0 is 0.0: one fingerprint
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin is Literal:
-        for choice in args:
-            if type(value) is type(choice) and value == choice:
+        for c in args:
+            if type(value) is type(c) and value == c:
                 return value
-        raise _Mismatch(ValueError if any(type(value) is type(c) for c in args) else TypeError)
+        raise ValueError if any(type(value) is type(c) for c in args) else TypeError
     if origin is typing.Union or origin is types.UnionType:
         if value is None and type(None) in args:
             return None
-        kind: type[Exception] = TypeError
+        kinds = set()
         for alt in args:
-            if alt is type(None):
-                continue
             try:
                 return _conform(value, alt)
-            except _Mismatch as e:
-                if e.kind is ValueError:
-                    kind = ValueError
-        raise _Mismatch(kind)
+            except (TypeError, ValueError) as e:
+                kinds.add(type(e))
+        raise ValueError if ValueError in kinds else TypeError
     if origin is tuple:
         if not isinstance(value, (tuple, list)):
-            raise _Mismatch(TypeError)
+            raise TypeError
         if len(args) == 2 and args[1] is Ellipsis:
-            items = [_conform(v, args[0]) for v in value]
-        elif args == ((),) or not args:  # tuple[()] / bare tuple
-            return tuple(value)
-        else:
-            if len(value) != len(args):
-                raise _Mismatch(ValueError)
-            items = [_conform(v, a) for v, a in zip(value, args)]
-        if type(value) is tuple and all(a is b for a, b in zip(items, value)):
-            return value
-        return tuple(items)
-    if isinstance(hint, type):
-        if isinstance(value, hint):
-            return value
-        raise _Mismatch(TypeError)
-    return value  # an annotation this checker does not know: left to _RANGES
+            args = (args[0],) * len(value)
+        elif len(value) != len(args):
+            raise ValueError
+        items = [_conform(v, a) for v, a in zip(value, args)]
+        same = type(value) is tuple and all(a is b for a, b in zip(items, value))
+        return value if same else tuple(items)
+    if not isinstance(hint, type) or isinstance(value, hint):
+        return value  # an annotation this checker does not know is left to the field's range
+    raise TypeError
 
 
 def _describe(hint: Any, plural: bool = False) -> str:
     """What ``hint`` expects, in words (``"a tuple of 2 finite numbers"``)."""
-    if hint is bool:
-        return "bools (True or False)" if plural else "True or False (a bool)"
-    if hint is int:
-        return "ints" if plural else "an int (not a bool)"
-    if hint is float:
-        return "finite numbers" if plural else "a finite number"
-    if hint is str:
-        return "strings" if plural else "a string"
+    words = {bool: ("True or False (a bool)", "bools (True or False)"), int: ("an int (not a bool)", "ints"),
+             float: ("a finite number", "finite numbers"), str: ("a string", "strings")}
+    if hint in words:
+        return words[hint][plural]
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin is Literal:
         return "one of " + ", ".join(repr(a) for a in args)
     if origin is typing.Union or origin is types.UnionType:
-        alts = [_describe(a) for a in args if a is not type(None)]
-        return ("None or " if type(None) in args else "") + " or ".join(alts)
+        alts = " or ".join(_describe(a) for a in args if a is not type(None))
+        return ("None or " if type(None) in args else "") + alts
     if origin is tuple:
         head = "tuples" if plural else "a tuple"
         if len(args) == 2 and args[1] is Ellipsis:
             return f"{head} of {_describe(args[0], plural=True)}"
-        if args and all(a == args[0] for a in args):
+        if all(a == args[0] for a in args):
             return f"{head} of {len(args)} {_describe(args[0], plural=True)}"
         return f"{head} ({', '.join(_describe(a) for a in args)})"
     return getattr(hint, "__name__", repr(hint))
@@ -161,25 +119,29 @@ def _show(value: Any, limit: int = 80) -> str:
     return r if len(r) <= limit else r[: limit - 4] + " ..."
 
 
-def _in(lo: float, hi: float, lo_open: bool = False, hi_open: bool = False) -> tuple[Callable[[Any], bool], str]:
-    """A range check for :data:`_RANGES` and its words (``"in (0, 4]"``)."""
-    def ok(v: Any) -> bool:
-        return (lo < v if lo_open else lo <= v) and (v < hi if hi_open else v <= hi)
-    text = f"in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
-    return ok, text
+_Check = tuple[Callable[[Any], bool], str]  # a range check and what it expects, in words
 
 
-def _positive() -> tuple[Callable[[Any], bool], str]:
-    return (lambda v: v > 0), "> 0"
-
-
-def _at_least(lo: float) -> tuple[Callable[[Any], bool], str]:
-    return (lambda v: v >= lo), f">= {lo:g}"
-
-
-def _frac_box(b: tuple[float, ...]) -> bool:
-    x1, y1, x2, y2 = b
-    return 0 <= x1 < x2 <= 1 and 0 <= y1 < y2 <= 1
+def _range(spec: str | _Check) -> _Check:
+    """A range check and its words: an interval as written in maths (``"(0, 4]"``, ``"> 0"``,
+    ``">= 1"``, after ``"None or "`` where None passes), or a ``(check, words)`` pair as is."""
+    if not isinstance(spec, str):
+        return spec
+    body = spec.removeprefix("None or ")
+    if body[0] in "([":
+        lo, hi = (float(x) for x in body[1:-1].split(","))
+        lo_open, hi_open = body[0] == "(", body[-1] == ")"
+        text = f"in {body[0]}{lo:g}, {hi:g}{body[-1]}"
+        def ok(v: Any) -> bool:
+            return (lo < v if lo_open else lo <= v) and (v < hi if hi_open else v <= hi)
+    else:
+        op, bound = body.split()[0], float(body.split()[1])
+        text = f"{op} {bound:g}"
+        def ok(v: Any) -> bool:
+            return v > bound if op == ">" else v >= bound
+    if body == spec:
+        return ok, text
+    return (lambda v: v is None or ok(v)), "None or " + text
 
 
 def _quota_ok(t: tuple) -> bool:
@@ -193,17 +155,13 @@ def _quota_ok(t: tuple) -> bool:
     return all(x >= 0 for x in shares) and sum(shares) <= 1 and len(set(names)) == len(names)
 
 
-def _templates_ok(ts: tuple[tuple[float, float, float, float], ...]) -> bool:
-    return len(ts) > 0 and all(0 < hl <= hh and 0 < wl <= wh for hl, hh, wl, wh in ts)
+def _by_name(quota: object) -> bool:
+    """Whether a ``class_quota`` gives its shares by class name (``(name, share)`` pairs)."""
+    return isinstance(quota, tuple) and bool(quota) and isinstance(quota[0], tuple)
 
 
 _MAX_REGIONS = 1024
 """Most region strips a camera setting may give (eq. 8); more is a setting error."""
-
-
-def _by_name(quota: object) -> bool:
-    """Whether a ``class_quota`` gives its shares by class name (``(name, share)`` pairs)."""
-    return isinstance(quota, tuple) and bool(quota) and isinstance(quota[0], tuple)
 
 
 def _region_count(c: "ReebConfig") -> int:
@@ -214,68 +172,22 @@ def _region_count(c: "ReebConfig") -> int:
     return region_count(frac, c.region_overlap) if frac > 0 else _MAX_REGIONS + 1
 
 
-_RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
-    # Range of each field once its type is right (its annotation). Numbers are finite here.
-    "scale": _in(0, 4, lo_open=True),
-    "blur_sigma": _positive(),  # too large for an image: ValueError at the door (_checks)
-    "edge_threshold": _in(0, 1, hi_open=True),
-    "group_cell": ((lambda v: v is None or v >= 2), "None or an int >= 2"),
-    "road_samples": _in(1, 1_000_000),
-    "road_band": (_frac_box, "fractions (x1, y1, x2, y2) with 0 <= x1 < x2 <= 1 and 0 <= y1 < y2 <= 1"),
-    "road_tolerance": ((lambda t: all(x >= 0 for x in t)), "three non-negative numbers (hue, saturation, value)"),
-    "seed": ((lambda v: -2**63 <= v < 2**64), "in [-2**63, 2**64) (what torch.Generator.manual_seed takes)"),
-    "camera_height_m": _positive(),
-    "vertical_fov_deg": _in(0, 180, lo_open=True, hi_open=True),
-    "horizontal_fov_deg": _in(0, 180, lo_open=True, hi_open=True),
-    "max_object_width_m": _positive(),
-    "region_overlap": _in(0, 1, lo_open=True),
-    "region_width_round": ((lambda v: v is None or 0 < v <= 1), "None or in (0, 1]"),
-    "entropy_bins": _in(2, 65536),
-    "entropy_sigma": _positive(),
-    "candidates_per_region": _at_least(1),
-    "candidates_without_regions": _at_least(1),
-    "min_window": _at_least(4),
-    "size_ratio": ((lambda v: 1 < v <= 16), "in (1, 16]"),
-    "window_step": _in(0, 1, lo_open=True),
-    "aspect_range": ((lambda a: 0 < a[0] <= a[1]), "(low, high) with 0 < low <= high"),
-    "ground_band": ((lambda g: g is None or 0 < g[0] < g[1]), "None or (r_lo, r_hi) with 0 < r_lo < r_hi"),
-    "object_templates": (_templates_ok, "a non-empty tuple of (height_lo, height_hi, width_lo, width_hi) "
-                                        "in metres with 0 < height_lo <= height_hi and 0 < width_lo <= width_hi"),
-    "horizon_slack": _in(0, 1, hi_open=True),
-    "gamma": _in(0, 4, lo_open=True),  # (area)^gamma: larger overflows, and means nothing
-    "kappa": _in(0, 8, lo_open=True),  # (perimeter)^kappa: Edge Boxes uses 1.5
-    "straddle_weight": _at_least(0),
-    "refine_min_aspect": _in(0, 100),
-    "straddle_band": _in(0, 64),
-    "rescore_top": _at_least(1),
-    "rescore_power": _in(0, 16),
-    "rescore_thin": _in(0, 100, lo_open=True),
-    "rescore_max_height_m": ((lambda v: v is None or v > 0), "None or > 0"),
-    "center_fraction": _in(0, 1, lo_open=True, hi_open=True),
-    "road_strip": _in(0, 1, lo_open=True),
-    "shadow_strip": _in(0, 1, lo_open=True),
-    "shadow_margin": _in(0, 0.5, hi_open=True),
-    "shadow_power": _in(0, 8, lo_open=True),
-    "shadow_floor": _in(0, 1, lo_open=True),
-    "vegetation_power": _in(1, 16),
-    "vegetation_box": _in(0, 1, lo_open=True),
-    "horizon": _in(0, 1, lo_open=True, hi_open=True),
-    "ground_ratio": _positive(),
-    "class_heights_m": ((lambda t: len(t) > 0 and all(x > 0 for x in t)), "a non-empty tuple of heights > 0"),
-    "class_weights": ((lambda t: all(x >= 0 for x in t) and any(x > 0 for x in t)),
-                      "weights >= 0, not all 0"),
-    "ground_log_sigma": _positive(),
-    "alpha": _at_least(0),
-    "beta": _at_least(0),
-    "nms_iou": _in(0, 1, lo_open=True),
-    "top_k": _at_least(1),
-    "ranker_keep": _at_least(1),
-    "ranker_v_share": _in(0, 1),
-    "class_quota": ((lambda t: _quota_ok(t)),
-                    "shares >= 0 that sum to at most 1: one a class in the ranker's order, or "
-                    "(class name, share) pairs ({'Pedestrian': 0.2}) with distinct names"),
-    "ranker": ((lambda v: v.strip() != ""), "'none', a shipped ranker name ('kitti') or the path of a weights file"),
-}
+# Checks that are not intervals, named by the fields that declare them (:func:`_knob`).
+_GROUP_CELL = (lambda v: v is None or v >= 2), "None or an int >= 2"
+_ROAD_BAND = ((lambda b: 0 <= b[0] < b[2] <= 1 and 0 <= b[1] < b[3] <= 1),
+              "fractions (x1, y1, x2, y2) with 0 <= x1 < x2 <= 1 and 0 <= y1 < y2 <= 1")
+_ROAD_TOLERANCE = (lambda t: all(x >= 0 for x in t)), "three non-negative numbers (hue, saturation, value)"
+_SEED = (lambda v: -2**63 <= v < 2**64), "in [-2**63, 2**64) (what torch.Generator.manual_seed takes)"
+_ASPECT_RANGE = (lambda a: 0 < a[0] <= a[1]), "(low, high) with 0 < low <= high"
+_GROUND_BAND = (lambda g: g is None or 0 < g[0] < g[1]), "None or (r_lo, r_hi) with 0 < r_lo < r_hi"
+_OBJECT_TEMPLATES = ((lambda ts: len(ts) > 0 and all(0 < hl <= hh and 0 < wl <= wh for hl, hh, wl, wh in ts)),
+                     "a non-empty tuple of (height_lo, height_hi, width_lo, width_hi) "
+                     "in metres with 0 < height_lo <= height_hi and 0 < width_lo <= width_hi")
+_CLASS_HEIGHTS_M = (lambda t: len(t) > 0 and all(x > 0 for x in t)), "a non-empty tuple of heights > 0"
+_CLASS_WEIGHTS = (lambda t: all(x >= 0 for x in t) and any(x > 0 for x in t)), "weights >= 0, not all 0"
+_CLASS_QUOTA = (_quota_ok, "shares >= 0 that sum to at most 1: one a class in the ranker's order, or "
+                           "(class name, share) pairs ({'Pedestrian': 0.2}) with distinct names")
+_RANKER = (lambda v: v.strip() != ""), "'none', a shipped ranker name ('kitti') or the path of a weights file"
 
 _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
     # Conditions between fields: (the fields, the check, what is expected).
@@ -302,6 +214,57 @@ _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
      f"a camera and overlap giving at most {_MAX_REGIONS} regions (eqs. 5-8)"),
 ]
 
+_PLANS: dict[type, tuple[dict[str, Any], dict[str, _Check]]] = {}
+
+
+def _plan(cls: type) -> tuple[dict[str, Any], dict[str, _Check]]:
+    """``cls``'s resolved field annotations (the module postpones them) and field ranges."""
+    if cls not in _PLANS:
+        _PLANS[cls] = (typing.get_type_hints(cls),
+                       {f.name: f.metadata["range"] for f in dataclasses.fields(cls) if "range" in f.metadata})
+    return _PLANS[cls]
+
+
+def _validate(cfg: "ReebConfig") -> None:
+    """Check every field of ``cfg`` in place: its type from its annotation (:func:`_conform`,
+    so new fields are checked too), then its declared range (:func:`_knob`), then :data:`_JOINT`.
+
+    Raises TypeError for a value of the wrong type (``top_k=True``, ``seed="a"``) and
+    ValueError for one of the right type out of range (``kappa=200``), both as
+    ``ReebConfig.<name> must be <expected>, got <value>``.
+    """
+    hints, ranges = _plan(type(cfg))
+    if isinstance(cfg.class_quota, typing.Mapping):  # {"Pedestrian": 0.2}: kept as pairs, hashable
+        object.__setattr__(cfg, "class_quota", tuple(cfg.class_quota.items()))
+    for name, hint in hints.items():
+        value = getattr(cfg, name)
+        try:
+            fixed = _conform(value, hint)
+        except (TypeError, ValueError) as e:
+            raise type(e)(f"ReebConfig.{name} must be {_describe(hint)}, got {_show(value)}") from None
+        if fixed is not value:
+            object.__setattr__(cfg, name, fixed)
+    for name, (ok, expected) in ranges.items():
+        if not ok(getattr(cfg, name)):
+            raise ValueError(f"ReebConfig.{name} must be {expected}, got {_show(getattr(cfg, name))}")
+    for names, ok, expected in _JOINT:
+        if all(n in hints for n in names) and not ok(cfg):
+            got = ", ".join(f"{n}={_show(getattr(cfg, n))}" for n in names)
+            fields = ", ".join(f"ReebConfig.{n}" for n in names[:-1]) + f" and ReebConfig.{names[-1]}"
+            raise ValueError(f"{fields} must be {expected}, got {got}")
+
+
+def _knob(default: Any, check: str | _Check | None = None, *, front: bool = False) -> Any:
+    """A field's default, with its range once its type is right (:func:`_range`: an interval
+    such as ``"(0, 4]"``, or a ``(check, words)`` pair) and, with ``front``, a place in
+    :data:`FRONT_END_FIELDS` (it changes the edges, groups, road mask or score maps)."""
+    meta: dict[str, Any] = {}
+    if check is not None:
+        meta["range"] = _range(check)
+    if front:
+        meta["stage"] = "front"
+    return dataclasses.field(default=default, metadata=meta)
+
 
 @dataclass(frozen=True)
 class ReebConfig:
@@ -309,72 +272,76 @@ class ReebConfig:
 
     All lengths in pixels refer to the *input* image unless the name says otherwise;
     ``scale`` sets the working resolution at which edges, groups and windows are computed,
-    and boxes are mapped back to input pixels at the end.
+    and boxes are mapped back to input pixels at the end. Fields that change the front end
+    are listed in :data:`FRONT_END_FIELDS`.
     """
 
     # -- working resolution --------------------------------------------------------------
-    scale: float = 0.5
+    scale: float = _knob(0.5, "(0, 4]", front=True)
     """Resize factor applied before edge detection (1.0 = full resolution, as the paper)."""
 
     # -- Sec. 3.4: denoising and edges ---------------------------------------------------
-    blur_sigma: float = 1.0
+    blur_sigma: float = _knob(1.0, "> 0", front=True)
     """Standard deviation of the Gaussian blur, in working pixels (kernel = 2*ceil(2σ)+1)."""
-    edge_threshold: float = 0.05
+    edge_threshold: float = _knob(0.05, "[0, 1)", front=True)
     """Sobel magnitude (of a [0, 1] grey image, normalised to [0, 1]) below which a pixel
     is no edge. The paper gives no value (NOTES #4)."""
-    edge_channels: Literal["gray", "rgb"] = "gray"
+    edge_channels: Literal["gray", "rgb"] = _knob("gray", front=True)
     """Sobel on the grey image (as printed) or on each RGB channel, keeping the strongest."""
-    thin_edges: bool = True
+    thin_edges: bool = _knob(True, front=True)
     """Keep only the one-pixel ridge of each edge (non-maximum suppression across the
-    edge, as the edge maps Edge Boxes scores). Not in the paper; measured."""
-    remove_isolated: bool = True
+    edge, as the edge maps Edge Boxes scores). Not in the paper."""
+    remove_isolated: bool = _knob(True, front=True)
     """Drop edge pixels with no edge pixel among their 8 neighbours (Sec. 3.4)."""
 
     # -- Sec. 3.7: edge groups -----------------------------------------------------------
-    grouping: Grouping = "connected"
+    grouping: Grouping = _knob("connected", front=True)
     """``connected``: 8-connected components of edge pixels, as printed. ``cell``: all
     edge pixels of one ``group_cell``×``group_cell`` tile form one group (fastest)."""
-    group_cell: int | None = 8
+    group_cell: int | None = _knob(8, _GROUP_CELL, front=True)
     """Side, in working pixels, of the tiles that bound a group. With ``connected``,
     components are cut at tile borders (NOTES #2: long chains are rarely enclosed);
     ``None`` = no bound, plain connected components as printed."""
 
     # -- Sec. 3.5, eqs. 3-4: road segmentation -------------------------------------------
-    road_samples: int = 300
+    road_samples: int = _knob(300, "[1, 1000000]", front=True)
     """Random pixels sampled to estimate the road colour ("hundreds", Sec. 3.5)."""
-    road_band: tuple[float, float, float, float] = (0.3, 0.8, 0.7, 1.0)
+    road_band: tuple[float, float, float, float] = _knob((0.3, 0.8, 0.7, 1.0), _ROAD_BAND, front=True)
     """Where road is likely, as fractions of the image (x1, y1, x2, y2): bottom centre."""
-    road_tolerance: tuple[float, float, float] = (0.5, 0.12, 0.12)
+    road_tolerance: tuple[float, float, float] = _knob((0.5, 0.12, 0.12), _ROAD_TOLERANCE, front=True)
     """Half-width of the in-range test around the sampled median, per HSV channel
     (hue in radians, circular; saturation and value in [0, 1]). Not given in the paper."""
-    road_combine: Literal["and", "or"] = "and"
+    road_combine: Literal["and", "or"] = _knob("and", front=True)
     """How the three channel masks are combined (eq. 4 prints AND, the text says OR)."""
-    seed: int = 0
+    seed: int = _knob(0, _SEED, front=True)
     """Seed of the road pixel sampling; the same pixels are sampled for every image of a
     given size, so results do not depend on the batch."""
 
     # -- Sec. 3.6, eqs. 5-8: region division ---------------------------------------------
     use_regions: bool = True
     """Region enhancement. ``False`` = one region, the whole image ("Ours*")."""
-    camera_height_m: float = 1.65
-    vertical_fov_deg: float = 35.0
-    horizontal_fov_deg: float = 90.0
-    max_object_width_m: float = 2.55
-    region_overlap: float = 0.5
+    camera_height_m: float = _knob(1.65, "> 0")
+    """Height of the camera above the road, in metres (eq. 5's h)."""
+    vertical_fov_deg: float = _knob(35.0, "(0, 180)")
+    """Vertical opening angle of the camera, in degrees (eq. 5's θv; :meth:`with_camera`)."""
+    horizontal_fov_deg: float = _knob(90.0, "(0, 180)")
+    """Horizontal opening angle of the camera, in degrees (eq. 6's θh; :meth:`with_camera`)."""
+    max_object_width_m: float = _knob(2.55, "> 0")
+    """Width of the widest object, in metres: it sets the region width (eq. 7's W)."""
+    region_overlap: float = _knob(0.5, "(0, 1]")
     """Stride between regions as a fraction of their width (eq. 8's ``overlap``)."""
     region_assign: Literal["contained", "nearest"] = "nearest"
-    """Which region's budget a window counts against. ``contained``: every region that
-    wholly contains it (as printed: windows are generated inside regions; a window wider
-    than the region stride can then fall in none). ``nearest``: the region whose centre
-    is nearest to the window's centre (every window no wider than a region has one)."""
-    region_width_round: float | None = 0.125
+    """Which region's budget a window counts against. ``contained``: every region that wholly
+    contains it (as printed; a window wider than the region stride can fall in none).
+    ``nearest``: the region whose centre is nearest to the window's centre."""
+    region_width_round: float | None = _knob(0.125, "None or (0, 1]")
     """Round the region width (fraction of image width) up to a multiple of this; the
     paper rounds 24.7 % to 25 %. ``None`` uses eq. 7 as computed."""
 
     # -- eqs. 2 and 9: entropy and proposal budget ---------------------------------------
-    entropy_bins: int = 256
+    entropy_bins: int = _knob(256, "[2, 65536]")
     """Grey levels of the entropy histogram (eq. 2's M). 256 = 8-bit grey, H in [0, 8]."""
-    entropy_sigma: float = 4.0
+    entropy_sigma: float = _knob(4.0, "> 0")
     """σ of eq. 9 (the paper's KITTI value)."""
     entropy_form: EntropyForm = "abs-diff"
     """``abs-diff``: %P = 1 − |σ − H|/σ (NOTES #9). ``printed``: |σ + H|, which gives
@@ -382,45 +349,41 @@ class ReebConfig:
     region_quota: bool = False
     """Also split the ``top_k`` output among the regions by their shares (eq. 9 applied to
     the final proposals, not only to the candidates)."""
-    candidates_per_region: int = 30000
+    candidates_per_region: int = _knob(30000, ">= 1")
     """Most windows a region may pass on to ranking (eq. 9's "maximum number of proposals
-    that the user wants to generate in a region"); the region passes share × this. 30000
-    gives the learned ranking a pool that holds a window at IoU 0.7 for 95 % of the dev
-    objects; V alone ranks best with 12000 (:meth:`training_free`)."""
-    candidates_without_regions: int = 8000
+    that the user wants to generate in a region"); the region passes share × this. The
+    default is the learned ranking's pool; :meth:`training_free` sets V's own budget."""
+    candidates_without_regions: int = _knob(8000, ">= 1")
     """Windows passed on to ranking when ``use_regions=False`` (the whole image is one
-    region with share 1); about ``top_k`` of them survive NMS on KITTI."""
+    region with share 1)."""
 
     # -- Sec. 3.6: sliding windows (NOTES #13) -------------------------------------------
-    min_window: int = 16
+    min_window: int = _knob(16, ">= 4")
     """Smallest window side, in input pixels."""
-    size_ratio: float = 1.25
+    size_ratio: float = _knob(1.25, "(1, 16]")
     """Ratio between consecutive window widths (and heights)."""
-    window_step: float = 0.15
+    window_step: float = _knob(0.15, "(0, 1]")
     """Stride of the sliding windows as a fraction of the window's side."""
-    aspect_range: tuple[float, float] = (0.25, 4.0)
+    aspect_range: tuple[float, float] = _knob((0.25, 4.0), _ASPECT_RANGE)
     """Allowed width/height ratios of the windows."""
-    ground_band: tuple[float, float] | None = (0.45, 3.0)
+    ground_band: tuple[float, float] | None = _knob((0.45, 3.0), _GROUND_BAND)
     """Keep only windows whose height h and bottom row y_b satisfy
     r_lo <= h / (y_b − horizon·H) <= r_hi: objects standing on the road (a flat-ground
     camera prior, in the spirit of eq. 11's "lower boxes are bigger"). ``None`` = all rows."""
     window_geometry: WindowGeometry = "camera"
-    """``camera``: window sizes and rows from the ground plane and ``object_templates``
-    (:func:`reeb_torch.stages.windows.camera_window_sizes`; regions set budgets, not the largest
-    window). ``grid``: every size of the two geometric series within ``aspect_range``, no
-    wider than a region, at the rows ``ground_band`` allows (the first release's grid)."""
-    object_templates: tuple[tuple[float, float, float, float], ...] = (
+    """``camera``: window sizes and rows from the ground plane and ``object_templates``.
+    ``grid``: every size of the two geometric series within ``aspect_range``, no wider than
+    a region, at the rows ``ground_band`` allows."""
+    object_templates: tuple[tuple[float, float, float, float], ...] = _knob((
         (1.2, 2.6, 1.3, 6.5),   # car / van: height, width of its 2D box at any yaw
         (2.2, 4.5, 1.8, 16.0),  # truck
         (0.9, 2.2, 0.3, 1.4),   # pedestrian (children to adults, arms and legs swinging)
         (1.1, 2.2, 0.4, 2.4),   # cyclist (front to side view)
-    )
+    ), _OBJECT_TEMPLATES)
     """Real extents, in metres, of the 2D boxes of each object class standing on the road:
-    ``(height_lo, height_hi, width_lo, width_hi)`` (the box width spans the object's width
-    to its length, by its yaw). With ``window_geometry='camera'``, a window is kept at the
-    rows where some template fits both its height and its width (camera at
-    ``camera_height_m``, horizon at ``horizon``)."""
-    horizon_slack: float = 0.0
+    ``(height_lo, height_hi, width_lo, width_hi)``. With ``window_geometry='camera'``, a window
+    is kept at the rows where some template fits both its height and its width."""
+    horizon_slack: float = _knob(0.0, "[0, 1)")
     """With ``window_geometry='camera'``: how far (fraction of the image height) the horizon
     may stray from ``horizon`` (camera pitch, road slope); widens each template's rows."""
     border_windows: bool = True
@@ -428,241 +391,160 @@ class ReebConfig:
     border at any width (objects cut by the border keep only their height)."""
     local_max: bool = False
     """Keep only windows whose score is a local maximum among the 8 neighbouring
-    positions of the same size before NMS (a cheap pre-NMS; costs recall at IoU 0.7)."""
+    positions of the same size before NMS (a cheap pre-NMS)."""
 
     # -- eq. 1: edge score ---------------------------------------------------------------
     score_norm: ScoreNorm = "perimeter"
     """``area``: divide by 2·area^γ (as printed); ``perimeter``: by (2(w+h))^κ, as Edge
     Boxes, whose score REEB adopts (NOTES #1)."""
-    gamma: float = 0.75
+    gamma: float = _knob(0.75, "(0, 4]")
     """Exponent of the area normalisation (no value printed; 0.75 ≈ Edge Boxes' κ/2)."""
-    kappa: float = 1.6
+    kappa: float = _knob(1.6, "(0, 8]")
     """Exponent of the perimeter normalisation (Edge Boxes' value)."""
-    straddle_weight: float = 0.0
+    straddle_weight: float = _knob(0.0, ">= 0", front=True)
     """Weight λ of a straddling term in eq. 1: S = (Σ wₙmₙ − Σ_c m_c − λ·Σ_cut m) / norm,
-    where Σ_cut m is the edge mass that crosses the box's sides (within ``straddle_band``
-    working pixels of each side, weighted by how much the contour runs across that side).
-    A cheap, exact-on-a-grid stand-in for Edge Boxes' affinity-weighted wₙ: a contour that
-    continues out of the box counts against it. 0 = off (as printed)."""
-    straddle_band: int = 1
+    Σ_cut m the edge mass crossing the box's sides (within ``straddle_band`` working pixels
+    of each side). 0 = off (as printed)."""
+    straddle_band: int = _knob(1, "[0, 64]")
     """Half-width, in working pixels, of the band around each box side for ``straddle_weight``."""
     refine: bool = False
     """Edge Boxes' refinement: before NMS, move each side of every candidate by halving
     steps while its score V improves (:mod:`reeb_torch.stages.refinement`; compiled on the CPU
-    unless the straddling or a road term is on, about twice the default's time). Not in
-    the paper."""
-    refine_min_aspect: float = 0.0
+    unless the straddling or a road term is on). Not in the paper."""
+    refine_min_aspect: float = _knob(0.0, "[0, 100]")
     """With ``refine``: only candidates at least this many times as wide as tall move (0:
-    all). Narrow, person-shaped boxes then keep their grid box: V's optimum near a person
-    is often not the person's box (refining every box finds fewer pedestrians)."""
+    all); narrow, person-shaped boxes keep their grid box."""
     rescore: Rescore = "none"
     """A second scoring pass after the region cut (:mod:`reeb_torch.stages.rescoring`; not in
-    the paper): the best ``rescore_top`` candidates of each image are ranked on V·f^p, f a
-    cue over its mean on those windows, p ``rescore_power``. ``affinity``: Edge Boxes'
-    affinity-weighted w_n, the share of the enclosed edge mass not chained to a group cut
-    by the box's border (compiled, CPU); ``density``: the box's mean edge magnitude;
-    ``contrast``: that over the mean of the ring around the box; ``orientation``: the spread
-    of the edge orientations in the box (poles and trunks: one direction). ``none`` (default): no
-    second pass. Candidates past ``rescore_top`` are dropped."""
-    rescore_top: int = 20000
+    the paper): each image's best ``rescore_top`` candidates ranked on V·f^p, f a cue over its
+    mean on them: ``affinity`` (Edge Boxes' affinity-weighted w_n), ``density`` (mean edge
+    magnitude), ``contrast`` (that over the ring around the box) or ``orientation`` (the
+    spread of the edge orientations). ``none``: no second pass."""
+    rescore_top: int = _knob(20000, ">= 1")
     """With ``rescore``: how many of each image's best candidates (by V) are re-scored and
     ranked; the others are dropped before NMS."""
-    rescore_power: float = 1.0
+    rescore_power: float = _knob(1.0, "[0, 16]")
     """With ``rescore``: the exponent p of the cue (0: the pass only cuts to ``rescore_top``)."""
     rescore_scope: RescoreScope = "all"
     """With ``rescore``: ``all`` windows get the cue, or only ``persons``: windows narrower than
     ``rescore_thin`` times their height (the pedestrian and cyclist shapes); the others keep V."""
-    rescore_thin: float = 0.8
+    rescore_thin: float = _knob(0.8, "(0, 100]")
     """With ``rescore_scope='persons'``: the width/height ratio below which a window is person-shaped."""
-    rescore_max_height_m: float | None = None
-    """With ``rescore_scope='persons'``: also the window's real height, from the flat-ground
-    camera (box height / (bottom row − horizon row) · ``camera_height_m``), must be at most
-    this (e.g. 2.3: the tallest pedestrian and cyclist template, 2.2 m, so the backs of
-    trucks are not person-shaped); windows whose bottom is above the horizon are not.
-    ``None`` (default): the shape alone."""
-    center_fraction: float = 0.5
+    rescore_max_height_m: float | None = _knob(None, "None or > 0")
+    """With ``rescore_scope='persons'``: also the window's real height on the flat ground, in
+    metres, must be at most this (the backs of trucks are not person-shaped). ``None``: shape alone."""
+    center_fraction: float = _knob(0.5, "(0, 1)")
     """Side of the centre region c relative to the box (eq. 1: half)."""
 
     # -- eqs. 10-12: road, location and combined score -----------------------------------
-    road_score: RoadScore = "none"
+    road_score: RoadScore = _knob("none", front=True)
     """``reward``: V adds β·R as printed (``paper``); ``penalize``: β·(1 − R) (NOTES #10);
     ``none``: no road term; ``flat``: R = 1, a constant β; ``stand``: objects stand *on* the
     road: R = (road fraction of the strip just below the box) · (1 − road fraction inside)."""
-    road_strip: float = 0.15
+    road_strip: float = _knob(0.15, "(0, 1]")
     """With ``road_score='stand'``: height of the strip just below a box, as a fraction of the
     box height, whose road fraction says the box stands on the road."""
-    shadow_score: ShadowScore = "underneath"
-    """``underneath``: V is multiplied by (``shadow_floor`` + U)^``shadow_power``, where U in
-    [0, 1] is how much darker the bottom strip of the box is than the road just below it,
-    U = clamp((g_below − g_inside) / g_below, 0, 1) on the grey image (the shadow a vehicle
-    casts on the road under itself, a classic training-free vehicle cue; not in the paper).
-    A box with no image row below it gets U = 0. ``none``: no such term (as printed)."""
-    shadow_strip: float = 0.2
+    shadow_score: ShadowScore = _knob("underneath", front=True)
+    """``underneath``: V is multiplied by (``shadow_floor`` + U)^``shadow_power``, U in [0, 1] how
+    much darker the box's bottom strip is than the road just below it on the grey image (the
+    shadow a vehicle casts under itself; not in the paper). ``none``: no such term (as printed)."""
+    shadow_strip: float = _knob(0.2, "(0, 1]")
     """With ``shadow_score='underneath'``: height of the two strips (the box's bottom rows
     and the rows just below it) as a fraction of the box height (at least one pixel)."""
-    shadow_margin: float = 0.15
+    shadow_margin: float = _knob(0.15, "[0, 0.5)")
     """With ``shadow_score='underneath'``: fraction of the box width left out of both strips
     on each side (wheels and the background beside a vehicle)."""
-    shadow_power: float = 0.5
+    shadow_power: float = _knob(0.5, "(0, 8]")
     """Exponent of the shadow factor (0.5: a square root, so it re-ranks without dominating S)."""
-    shadow_floor: float = 0.001
+    shadow_floor: float = _knob(0.001, "(0, 1]")
     """Added to U before the power, so a box without a shadow keeps a small score (> 0)."""
-    vegetation_score: VegetationScore = "green"
-    """``green``: V is multiplied by (1 − G)^``vegetation_power``, where G is the fraction of
-    the pixels of the window's centre (``vegetation_box``) that are green-dominant (G > R
-    and G > B at the working resolution): trees, hedges and verges, the main clutter of
-    road scenes, rank below objects (not in the paper). ``none``: no such term (as
-    printed)."""
-    vegetation_box: float = 0.7
+    vegetation_score: VegetationScore = _knob("green", front=True)
+    """``green``: V is multiplied by (1 − G)^``vegetation_power``, G the fraction of green-dominant
+    pixels (G > R and G > B) in the window's centre (``vegetation_box``): trees and verges rank
+    below objects (not in the paper). ``none``: no such term (as printed)."""
+    vegetation_box: float = _knob(0.7, "(0, 1]")
     """With ``vegetation_score='green'``: G is measured in the centred part of the window
-    this fraction of its width and height (1: the whole window; 0.7 keeps the trees
-    behind a vehicle's edges from counting against it)."""
-    vegetation_power: int = 5
+    this fraction of its width and height (1: the whole window)."""
+    vegetation_power: int = _knob(5, "[1, 16]")
     """With ``vegetation_score='green'``: the exponent, a whole number (the factor is a
     product, so every path computes the same numbers)."""
     location_score: LocationScore = "classes"
     """``paper``: L = b_y/(b_w·b_h)·W (eq. 11); ``ground``: how well the box height fits
-    a ground-plane object standing at its bottom row, in [0, 1]; ``none``: L = 1."""
-    horizon: float = 0.47
+    a ground-plane object standing at its bottom row, in [0, 1]; ``classes``: the best such
+    fit over the classes of ``class_heights_m``; ``none``: L = 1."""
+    horizon: float = _knob(0.47, "(0, 1)")
     """Horizon row as a fraction of the image height, for ``location_score='ground'`` /
     ``'classes'`` and ``window_geometry='camera'`` (KITTI: the principal point, cy/H ≈ 0.46–0.47)."""
-    ground_ratio: float = 1.0
+    ground_ratio: float = _knob(1.0, "> 0")
     """Expected box height / (bottom row − horizon) of an object on the ground; about
     object height / camera height (cars ≈ 0.9, pedestrians ≈ 1.05 on KITTI)."""
-    class_heights_m: tuple[float, ...] = (1.5, 3.2, 1.72, 1.72)
+    class_heights_m: tuple[float, ...] = _knob((1.5, 3.2, 1.72, 1.72), _CLASS_HEIGHTS_M)
     """Typical real heights (metres) of car, truck, pedestrian and cyclist, for
     ``location_score='classes'``: L is the best fit over the classes of a Gaussian in
     log(b_h / (b_y − horizon·H) / (height / camera_height_m))."""
-    class_weights: tuple[float, ...] = (1.0, 0.7, 1.0, 1.0)
+    class_weights: tuple[float, ...] = _knob((1.0, 0.7, 1.0, 1.0), _CLASS_WEIGHTS)
     """Weight of each class's fit in ``location_score='classes'`` (same order as
     ``class_heights_m``): rarer classes weigh less, so their windows don't crowd the budget."""
-    ground_log_sigma: float = 0.3
+    ground_log_sigma: float = _knob(0.3, "> 0")
     """Tolerance (in log units) of that ratio for ``location_score='ground'`` or ``'classes'``."""
     location_fit: Literal["height", "shape"] = "shape"
-    """What a class's fit in ``location_score='classes'`` reads (not in the paper):
-    ``height``: the box height alone; ``shape``: its height and its width, which must lie in
-    the class's width range of ``object_templates`` at the depth of its bottom row (a soft
-    interval: the fit falls off as a Gaussian of the log distance outside the range, with
-    ``ground_log_sigma``). A person-shaped box then fits the person classes only, a wide flat
-    one none, instead of taking a car's fit from its height. Other location scores ignore it."""
-    alpha: float = 0.6
-    beta: float = 0.4
+    """What a class's fit in ``location_score='classes'`` reads (not in the paper): ``height``:
+    the box height alone; ``shape``: also its width, softly within the class's width range of
+    ``object_templates`` at the depth of its bottom row (``ground_log_sigma``)."""
+    alpha: float = _knob(0.6, ">= 0")
+    """Weight of the location score in V = S·(α·L + β·R) (eq. 12)."""
+    beta: float = _knob(0.4, ">= 0")
+    """Weight of the road score in V = S·(α·L + β·R) (eq. 12)."""
     min_edge_score: float = 0.0
     """Windows with S below this are dropped (Sec. 3.7 prints 0.01, kept by ``paper``; the
-    scale of S depends on the edge map's, so the default only drops S <= 0, measured)."""
+    scale of S depends on the edge map's, so the default only drops S < 0)."""
 
     # -- the learned ranking (not in the paper) --------------------------------------------
-    ranker: str = "kitti"
-    """Orders the candidates of the region cut by a small learned model over per-box features
-    (:mod:`reeb_torch.ranker`, :mod:`reeb_torch.stages.features`) in place of V, before eq. 13's
-    NMS (not in the paper): ``kitti`` (default) the model shipped with the package, fitted on
-    the 106 KITTI dev frames; the path of a weights file ``reeb fit`` wrote for another camera;
-    or ``none``: rank by V (training-free, as printed; :meth:`training_free` also sets the
-    budget V ranks best with). Scores are then the model's logits."""
-    ranker_keep: int = 8000
+    ranker: str = _knob("kitti", _RANKER)
+    """Orders the region cut's candidates by a small learned model over per-box features in
+    place of V, before eq. 13's NMS (not in the paper; scores are then its logits): ``kitti``,
+    the shipped model; the path of a weights file ``reeb fit`` wrote for another camera; or
+    ``none``: rank by V (as printed; :meth:`training_free` also sets V's own budget)."""
+    ranker_keep: int = _knob(8000, ">= 1")
     """With ``ranker``: the candidates of each image that get the full features and the model;
     the others are dropped before NMS. ``ranker_v_share`` of them are the image's best by V,
-    the rest the best by the model's prefilter (a tiny model over the box's geometry, V and
-    region, which need no box sum). Larger is slower and ranks more boxes (12000 until this
-    round, with the prefilter alone: docs/results.md)."""
-    ranker_v_share: float = 0.5
-    """The share of the ``ranker_keep`` candidates that are each image's best by REEB's own
-    score V whatever the prefilter says (not in the paper): V is fitted to no frames, so it
-    keeps what a prefilter fitted on other frames misjudges. ``0``: the prefilter alone;
-    ``1``: V alone (the prefilter is then not run). The cut by V is one more selection over
-    the candidates, cheap beside the prefilter (docs/results.md)."""
-    class_quota: ClassQuota = ()
+    the rest the best by the model's prefilter (a tiny model over geometry, V and region)."""
+    ranker_v_share: float = _knob(0.5, "[0, 1]")
+    """The share of the ``ranker_keep`` candidates that are each image's best by V whatever
+    the prefilter says (not in the paper). ``0``: the prefilter alone; ``1``: V alone."""
+    class_quota: ClassQuota = _knob((), _CLASS_QUOTA)
     """With a ranker that has a class head (``kitti``: Car, Pedestrian, Cyclist, Truck): the
-    share of the ``top_k`` proposals a class gets first — the best boxes after NMS that the
-    head hints as that class — the rest going to the best of all the others (as
-    ``region_quota`` does for the regions). By class name, ``{"Pedestrian": 0.2}`` (kept as
-    ``(("Pedestrian", 0.2),)``): classes not named get no share of their own, a name the head
-    does not have is an error, and without a class head (``ranker='none'``, or a weights file
-    fitted without one) the quota is ignored. Or one share a class in the head's order,
-    ``(0, 0.2, 0.05, 0)``, which needs a head with that many classes. ``()`` (default): one
-    ranking for all. The ``class-quota`` preset sets Pedestrian 0.3, Cyclist 0.1, Truck 0.05:
-    more pedestrians and trucks, fewer cars (not in the paper; measured in docs/results.md).
-    It costs the class head over every ranked candidate and a longer NMS."""
+    share of the ``top_k`` proposals a class gets first (the best boxes after NMS the head
+    hints as that class), the rest going to the best of the others. By class name,
+    ``{"Pedestrian": 0.2}`` (kept as pairs; ignored without a class head), or one share a
+    class in the head's order, ``(0, 0.2, 0.05, 0)``. ``()``: one ranking. Not in the paper."""
 
     # -- eq. 13: NMS and output ----------------------------------------------------------
-    nms_iou: float = 0.75
-    """Eq. 13's threshold. The paper prints 0.7 (kept by ``paper``); 0.75 is Edge Boxes'
-    setting for recall at IoU 0.7 (β = 0.75) and measured better with the vegetation term
-    (near-duplicates around objects pay once clutter ranks lower); it costs about two
-    points of recall at IoU 0.5 (95.8 → 93.5 % on the 60 shared frames)."""
-    top_k: int = 2000
+    nms_iou: float = _knob(0.75, "(0, 1]")
+    """Eq. 13's IoU threshold. The paper prints 0.7 (kept by ``paper``); 0.75 is Edge Boxes'
+    setting for recall at IoU 0.7 (β = 0.75)."""
+    top_k: int = _knob(2000, ">= 1")
     """Proposals returned per image (at most)."""
 
     def __post_init__(self) -> None:
-        """Check every field: its type from the annotation (:func:`_conform`, so new fields
-        are checked too), then its range (:data:`_RANGES`), then the fields that go together.
-
-        Raises TypeError for a value of the wrong type (``top_k=True``, ``seed="a"``) and
-        ValueError for one of the right type out of range (``kappa=200``), both as
-        ``ReebConfig.<name> must be <expected>, got <value>``. Lists given for tuple fields
-        become tuples and ints given for float fields become floats, so equal settings give
-        equal, hashable configs with equal fingerprints (JSON round trips included).
-        """
-        hints = _field_hints(type(self))
-        if isinstance(self.class_quota, typing.Mapping):  # {"Pedestrian": 0.2}: kept as pairs, hashable
-            object.__setattr__(self, "class_quota", tuple(self.class_quota.items()))
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            hint = hints.get(f.name)
-            if hint is None:
-                continue
-            try:
-                fixed = _conform(value, hint)
-            except _Mismatch as e:
-                raise e.kind(f"ReebConfig.{f.name} must be {_describe(hint)}, got {_show(value)}") from None
-            if fixed is not value:
-                object.__setattr__(self, f.name, fixed)
-        for name, (ok, expected) in _RANGES.items():
-            if name in hints and not ok(getattr(self, name)):
-                raise ValueError(f"ReebConfig.{name} must be {expected}, got {_show(getattr(self, name))}")
-        for names, ok, expected in _JOINT:
-            if all(n in hints for n in names) and not ok(self):
-                got = ", ".join(f"{n}={_show(getattr(self, n))}" for n in names)
-                fields = ", ".join(f"ReebConfig.{n}" for n in names[:-1]) + f" and ReebConfig.{names[-1]}"
-                raise ValueError(f"{fields} must be {expected}, got {got}")
+        """Check every field (:func:`_validate`; TypeError, ValueError). Lists become tuples,
+        ints in float fields floats and -0.0 0.0: equal settings give equal, hashable configs
+        with equal fingerprints (JSON round trips included)."""
+        _validate(self)
 
     # -- presets -------------------------------------------------------------------------
     @classmethod
     def paper(cls, **overrides: object) -> "ReebConfig":
-        """The printed text wherever it can run as printed (see NOTES.md).
-
-        No learned ranking (V ranks, with the training-free budget); full resolution, Sobel
-        edges as they are (no thinning), plain connected components, area normalisation
-        (eq. 1), S >= 0.01, the road score as a reward (eq. 12), L unnormalised (eq. 11),
-        windows inside their regions, every row; eq. 8 and eq. 9 in their corrected forms
-        (their printed forms give no regions / no proposals).
-        """
-        base = dict(
-            **TRAINING_FREE,  # REEB ranks by V (eq. 12), with the training-free region budget
-            scale=1.0,
-            grouping="connected",
-            group_cell=None,
-            score_norm="area",
-            road_score="reward",
-            shadow_score="none",
-            vegetation_score="none",
-            nms_iou=0.7,
-            location_score="paper",
-            road_combine="and",
-            entropy_form="abs-diff",
-            local_max=False,
-            region_assign="contained",
-            thin_edges=False,
-            ground_band=None,
-            window_geometry="grid",
-            min_edge_score=0.01,
-        )
-        base.update(overrides)
-        return cls(**base)  # type: ignore[arg-type]
+        """The printed text wherever it can run as printed (NOTES), with ``overrides``: V ranks
+        (training-free budget); full resolution, Sobel edges as they are, plain connected
+        components, area normalisation (eq. 1), S >= 0.01, the road score as a reward (eq. 12),
+        L unnormalised (eq. 11), windows inside their regions, every row; eqs. 8 and 9 in their
+        corrected forms (their printed forms give no regions / no proposals)."""
+        return cls(**{**_PAPER, **overrides})  # type: ignore[arg-type]
 
     def training_free(self) -> "ReebConfig":
-        """A copy without the learned ranking: ``ranker='none'``, the candidate budget that
-        V ranks best and no class quota (:data:`TRAINING_FREE`)."""
+        """A copy without the learned ranking: ``ranker='none'``, V's own candidate budget
+        and no class quota (:data:`TRAINING_FREE`)."""
         return self.replace(**TRAINING_FREE)
 
     def unranked(self) -> "ReebConfig":
@@ -719,8 +601,7 @@ class ReebConfig:
         the field checks' TypeError / ValueError (:meth:`__post_init__`)."""
         if not isinstance(d, typing.Mapping):
             raise TypeError(f"ReebConfig.from_dict expects a dict of ReebConfig fields, got {type(d).__name__}")
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - names)
+        unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
         if unknown:
             raise ValueError(f"unknown ReebConfig field(s): {', '.join(unknown)}")
         fixed: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
@@ -729,18 +610,13 @@ class ReebConfig:
     def with_camera(self, fx: float, fy: float, width: int, height: int,
                     cy: float | None = None) -> "ReebConfig":
         """A copy whose opening angles (and, given the principal row ``cy``, the horizon)
-        come from a pinhole camera (focal lengths and ``cy`` in pixels).
-
-        θh = 2·atan(W / 2fx), θv = 2·atan(H / 2fy). For KITTI's P2 (fx = fy ≈ 721 px,
-        1242 × 375 px) this gives θh ≈ 81°, θv ≈ 29°. A camera looking level along a flat
-        road sees the horizon at its principal row: ``horizon = cy / H`` (KITTI ≈ 0.46).
-        """
+        come from a pinhole camera (focal lengths and ``cy`` in pixels): θh = 2·atan(W / 2fx),
+        θv = 2·atan(H / 2fy) (KITTI's P2: θh ≈ 81°, θv ≈ 29°), and, for a camera looking level
+        along a flat road, ``horizon = cy / H`` (KITTI ≈ 0.46)."""
         if not (fx > 0 and fy > 0 and width > 0 and height > 0):
             raise ValueError(f"with_camera needs positive fx, fy, width, height; got {fx}, {fy}, {width}, {height}")
-        changes: dict = dict(
-            horizontal_fov_deg=math.degrees(2 * math.atan(width / (2 * fx))),
-            vertical_fov_deg=math.degrees(2 * math.atan(height / (2 * fy))),
-        )
+        changes: dict = dict(horizontal_fov_deg=math.degrees(2 * math.atan(width / (2 * fx))),
+                             vertical_fov_deg=math.degrees(2 * math.atan(height / (2 * fy))))
         if cy is not None:
             if not 0 < cy < height:
                 raise ValueError(f"with_camera: the principal row cy={cy} must lie inside the image height {height}")
@@ -767,64 +643,50 @@ class ReebConfig:
 
 TRAINING_FREE: dict[str, object] = {"ranker": "none", "candidates_per_region": 12000, "class_quota": ()}
 """The fields :meth:`ReebConfig.training_free` sets: no learned ranking, and the candidate budget
-with which V alone ranks best (``benchmarks/ablations.py``)."""
+with which V alone ranks (``benchmarks/ablations.py``)."""
 
+_PAPER: dict[str, object] = dict(
+    **TRAINING_FREE,  # REEB ranks by V (eq. 12), with the training-free region budget
+    scale=1.0, grouping="connected", group_cell=None, score_norm="area", road_score="reward",
+    shadow_score="none", vegetation_score="none", nms_iou=0.7, location_score="paper", road_combine="and",
+    entropy_form="abs-diff", local_max=False, region_assign="contained", thin_edges=False, ground_band=None,
+    window_geometry="grid", min_edge_score=0.01,
+)
+"""The fields :meth:`ReebConfig.paper` sets: the printed reading of each."""
 
-def _no_regions(cfg: ReebConfig) -> ReebConfig:
-    return cfg.replace(use_regions=False)
+FRONT_END_FIELDS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(ReebConfig)
+                                          if f.metadata.get("stage") == "front")
+"""The fields that change the generator's front end (edges, groups, road mask, score maps): two
+configs equal in these share that work (``reeb tune`` computes it once per frame). A field
+joins by its declaration (``_knob(..., front=True)``)."""
 
+_RANGES: dict[str, _Check] = _plan(ReebConfig)[1]
+"""The range of each field that declares one (:func:`_knob`), once its type is right."""
 
-PRESETS: dict[str, ReebConfig] = {}
-
-_REMOVED_PRESETS = {
-    "refined": "it was removed: it lost on the KITTI frames the team keeps apart (59.2 against the "
-               "default's 61.4 % at IoU 0.7, +54 / -74 objects), and it does not win on the 106 dev frames "
-               "either (docs/results.md); the same setting is --set refine=on --set refine_min_aspect=0.6",
+PRESETS: dict[str, ReebConfig] = {
+    "default": ReebConfig(),
+    "training-free": ReebConfig().training_free(),
+    "training-free-no-regions": ReebConfig().training_free().replace(use_regions=False),
+    "paper": ReebConfig.paper(),
+    "paper-no-regions": ReebConfig.paper(use_regions=False),
+    "persons": ReebConfig().training_free().replace(rescore="orientation", rescore_scope="persons",
+                                                    rescore_max_height_m=2.3),
 }
-
-
-def _build_presets() -> None:
-    PRESETS["default"] = ReebConfig()
-    PRESETS["training-free"] = ReebConfig().training_free()
-    # the paper's Ours*: its ranking reads the regions, so without them the training-free one
-    PRESETS["training-free-no-regions"] = _no_regions(ReebConfig().training_free())
-    PRESETS["default-no-regions"] = PRESETS["training-free-no-regions"]
-    PRESETS["paper"] = ReebConfig.paper()
-    PRESETS["paper-no-regions"] = _no_regions(ReebConfig.paper())
-
-    # opt-in: the output shared among the classes the ranking model hints (pedestrians 0.3,
-    # cyclists 0.1, trucks 0.05 of it first): every class >= 60 % cross-validated with each of
-    # fit seeds 0-4, overall 79.8 against 79.2 with seed 0, but it loses cars on the kitti
-    # folder (docs/results.md); not yet checked on other frames
-    PRESETS["class-quota"] = ReebConfig(class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05})
-    # opt-in: the second scoring pass that won on the dev frames (+13 / -3, p 0.02) but was the
-    # best of 21 rows there and costs ~3.5x the time; not yet checked on frames kept apart
-    PRESETS["persons"] = ReebConfig().training_free().replace(rescore="orientation", rescore_scope="persons",
-                                                              rescore_max_height_m=2.3)
-
-
-_build_presets()
 
 
 def get_preset(name: str) -> ReebConfig:
     """Look up a named preset.
 
-    * ``default``: REEB's windows ranked by the shipped learned model (``ranker='kitti'``):
-      the best recall measured (cross-validated on the 106 dev frames; docs/results.md).
-    * ``training-free``: no learned part: the windows ranked by V (eq. 12), with the
-      budget V ranks best with (:meth:`ReebConfig.training_free`).
-    * ``training-free-no-regions`` (also ``default-no-regions``, its former name): that
-      without the region enhancement (the paper's Ours*; the learned ranking reads the regions).
+    * ``default``: REEB's windows ranked by the shipped learned model (``ranker='kitti'``).
+    * ``training-free``: no learned part: the windows ranked by V (eq. 12), with V's own
+      candidate budget (:meth:`ReebConfig.training_free`).
+    * ``training-free-no-regions``: that without the region enhancement (the paper's Ours*;
+      the learned ranking reads the regions).
     * ``paper``, ``paper-no-regions``: the printed text wherever it can run
-      (:meth:`ReebConfig.paper`).
-    * ``class-quota``: opt-in, the default with the output shared among the classes its
-      model hints (``class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05}``):
-      pedestrians and trucks gain, cars lose (docs/results.md).
-    * ``persons``: opt-in, the training-free setting with a second scoring pass that ranks person-shaped
-      windows (no taller than 2.3 m on the road) by the spread of their edge orientations
-      (``rescore='orientation'``, ``rescore_scope='persons'``): 72.2 against 69.1 % on the
-      106 dev frames (+13 / -3 objects, p 0.02; pedestrians 62.3, cyclists 58.5 %) at about
-      3.5 times the time; the best of 21 rows measured, not yet checked on other frames.
+      (:meth:`ReebConfig.paper`), with and without the regions.
+    * ``persons``: opt-in, the training-free setting with a second scoring pass that ranks
+      person-shaped windows (no taller than 2.3 m on the road) by the spread of their edge
+      orientations (``rescore='orientation'``, ``rescore_scope='persons'``); it is slower.
 
     Raises:
         ValueError: naming the unknown preset and the known ones.
@@ -832,5 +694,4 @@ def get_preset(name: str) -> ReebConfig:
     try:
         return PRESETS[name]
     except KeyError:
-        why = f" ({_REMOVED_PRESETS[name]})" if name in _REMOVED_PRESETS else ""
-        raise ValueError(f"unknown preset {name!r}{why}; choose one of {', '.join(sorted(PRESETS))}") from None
+        raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(sorted(PRESETS))}") from None

@@ -15,7 +15,6 @@ from reeb_torch.eval.baselines import (
     EdgeBoxesBaseline,
     SelectiveSearchBaseline,
     bing_to_xyxy,
-    default_bing_model_dir,
     edge_boxes_to_xyxy,
     edge_orientation,
     xywh_to_xyxy,
@@ -23,8 +22,10 @@ from reeb_torch.eval.baselines import (
 from reeb_torch.io import read_image
 
 SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "data" / "kitti_000001.png"
-HAVE_BING = default_bing_model_dir().is_dir()
-needs_bing = pytest.mark.skipif(not HAVE_BING, reason=f"BING model folder absent: {default_bing_model_dir()}")
+BING_MODEL = Path(__file__).resolve().parents[2] / "shared" / "data" / "bing_model"
+"""BING's nine model files, in the shared data beside the repository."""
+HAVE_BING = BING_MODEL.is_dir()
+needs_bing = pytest.mark.skipif(not HAVE_BING, reason=f"BING model folder absent: {BING_MODEL}")
 
 
 def _tensor(rgb: np.ndarray) -> torch.Tensor:
@@ -62,7 +63,7 @@ def test_edge_boxes_contract(kitti_image, max_proposals):
 @needs_bing
 @pytest.mark.parametrize("max_proposals", [2000, 50])
 def test_bing_contract(kitti_image, max_proposals):
-    _check_contract(BingBaseline(max_proposals=max_proposals)(kitti_image), kitti_image, max_proposals)
+    _check_contract(BingBaseline(BING_MODEL, max_proposals=max_proposals)(kitti_image), kitti_image, max_proposals)
 
 
 def test_selective_search_contract(kitti_image):
@@ -73,13 +74,13 @@ def test_selective_search_contract(kitti_image):
 @needs_bing
 def test_bing_rankings_agree_on_the_first_maxbgr_boxes(kitti_image):
     """Both orders start with the best MAXBGR boxes (rank keys 300 + i < HSV's first, 900)."""
-    a = BingBaseline(ranking="opencv")(kitti_image)
-    b = BingBaseline(ranking="interleaved")(kitti_image)
+    a = BingBaseline(BING_MODEL, ranking="opencv")(kitti_image)
+    b = BingBaseline(BING_MODEL, ranking="interleaved")(kitti_image)
     _check_contract(b, kitti_image, 2000)
     assert torch.equal(a["boxes"][:500], b["boxes"][:500])
     assert not torch.equal(a["boxes"], b["boxes"])
     with pytest.raises(ValueError, match="ranking"):
-        BingBaseline(ranking="descending")
+        BingBaseline(BING_MODEL, ranking="descending")
 
 
 def test_bing_missing_model_dir_raises(tmp_path):
@@ -155,7 +156,7 @@ def test_bing_box_sizes_are_powers_of_two(kitti_image):
     """BING windows are 2^i x 2^j pixels; with the right +1 handling every box not clipped
     by the image border is exactly that size (off by one otherwise)."""
     for image in (kitti_image, _tensor(np.pad(np.full((70, 120, 3), 255, np.uint8), ((50, 80), (80, 100), (0, 0))))):
-        b = BingBaseline()(image)["boxes"]
+        b = BingBaseline(BING_MODEL)(image)["boxes"]
         _, h, w = image.shape
         inner = (b[:, 2] < w) & (b[:, 3] < h)
         assert inner.sum() > 100

@@ -1,4 +1,4 @@
-"""Hardening of ``reeb propose`` and its batch output (issue 10): concurrent writers, resume
+"""``reeb propose`` and its batch output under stress: concurrent writers, resume
 from other folders, stale temporary files, row order, ``--set`` booleans, the row schema.
 
 Subprocess tests drive the command as a user would; small 160×48 images and --top-k 100
@@ -26,7 +26,7 @@ ROW_FIELDS = {"format_version", "image", "resolved", "width", "height", "boxes",
               "labels", "status", "config"}
 
 
-# -- 1. concurrent writers ---------------------------------------------------------------
+# -- concurrent writers ------------------------------------------------------------------------
 
 def test_second_writer_fails_at_once_and_loses_nothing(tmp_path):
     n = 300  # enough work that the other runs start while the first one is writing
@@ -59,7 +59,7 @@ def test_second_writer_fails_at_once_and_loses_nothing(tmp_path):
 
 
 def test_a_run_on_a_locked_output_fails_before_any_work(tmp_path):
-    from reeb_torch.runs.batch import lock_output
+    from reeb_torch.runs.output_lock import lock_output
 
     good_folder(tmp_path / "B", 1)
     with lock_output(tmp_path / "cc.jsonl"):  # this test process plays the first run
@@ -70,13 +70,13 @@ def test_a_run_on_a_locked_output_fails_before_any_work(tmp_path):
 
 
 def test_lock_of_a_dead_run_is_taken_over(tmp_path):
-    from reeb_torch.runs.batch import OutputBusyError, lock_output
+    from reeb_torch.runs.output_lock import OutputBusyError, lock_output
 
     out = tmp_path / "o.jsonl"
     (tmp_path / ".o.jsonl.lock").write_text("999999\n")  # left by a killed run: not locked
     with lock_output(out):
         assert (tmp_path / ".o.jsonl.lock").read_text().strip() == str(os.getpid())
-        code = ("import sys; from reeb_torch.runs.batch import lock_output, OutputBusyError\n"
+        code = ("import sys; from reeb_torch.runs.output_lock import lock_output, OutputBusyError\n"
                 f"try:\n    lock_output({str(out)!r})\nexcept OutputBusyError as e:\n"
                 "    print(e); sys.exit(3)\n")
         r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
@@ -85,7 +85,7 @@ def test_lock_of_a_dead_run_is_taken_over(tmp_path):
     assert issubclass(OutputBusyError, OSError)
 
 
-# -- 2. resume matches the resolved file ---------------------------------------------------
+# -- resume matches the resolved file ----------------------------------------------------------
 
 def test_resume_from_another_folder_symlink_and_absolute_path(tmp_path):
     paths = good_folder(tmp_path / "set", 5)
@@ -115,7 +115,7 @@ def test_resume_from_another_folder_symlink_and_absolute_path(tmp_path):
     assert sorted(r["resolved"] for r in rows) == sorted(os.path.realpath(p) for p in paths)
 
 
-# -- 3. --set booleans, config errors --------------------------------------------------------
+# -- --set booleans, config errors -------------------------------------------------------------
 
 @pytest.mark.parametrize("word, value", [("true", True), ("False", False), ("yes", True),
                                          ("no", False), ("on", True), ("OFF", False),
@@ -195,7 +195,7 @@ def test_config_errors_are_usage_errors_before_any_work(tmp_path):
         assert sorted(p.name for p in tmp_path.iterdir()) == ["imgs"]  # nothing written
 
 
-# -- 6, 7. kill -9 and Ctrl-C ------------------------------------------------------------------
+# -- kill -9 and Ctrl-C ------------------------------------------------------------------------
 
 def test_rows_of_a_killed_run_are_recovered_by_resume(tmp_path):
     n = 40
@@ -242,7 +242,7 @@ def test_interrupt_summary_counts_the_rows_in_the_file(tmp_path):
 
 
 def test_interrupt_is_deferred_while_a_row_is_written():
-    from reeb_torch.runs.batch import CriticalSection
+    from reeb_torch.runs.ctrl_c import CriticalSection
 
     cs = CriticalSection()
     with pytest.raises(KeyboardInterrupt):
@@ -254,7 +254,7 @@ def test_interrupt_is_deferred_while_a_row_is_written():
         cs.interrupt()  # outside a write: at once
 
 
-# -- 8, 9, 12. row order, .json, sizes in error rows ---------------------------------------------
+# -- row order, .json, sizes in error rows -----------------------------------------------------
 
 def test_rows_in_input_order_with_error_rows_and_sizes(tmp_path):
     d = tmp_path / "mix"
@@ -317,12 +317,12 @@ def test_resume_keeps_rows_of_the_previous_format(tmp_path):
     assert rows["frame_001.png"]["format_version"] == 2 and len(rows["frame_001.png"]["labels"]) > 0
 
 
-# -- 11. folder scan and reader agree ---------------------------------------------------------
+# -- folder scan and reader agree --------------------------------------------------------------
 
 def test_folder_scan_finds_every_format_the_reader_reads(tmp_path):
     from PIL import Image
 
-    from reeb_torch.runs.batch import find_images
+    from reeb_torch.runs.inputs import find_images
     from reeb_torch.io import IMAGE_EXTENSIONS, read_image
 
     rgb = np.random.default_rng(0).integers(0, 256, (20, 30, 3), dtype=np.uint8)
@@ -338,10 +338,10 @@ def test_folder_scan_finds_every_format_the_reader_reads(tmp_path):
             assert read_image(tmp_path / f"b{ext}").shape == (3, 20, 30), ext
 
 
-# -- 16. paths to the same file are named, not dropped silently (issue 37) ---------------------
+# -- paths to the same file are named, not dropped silently ------------------------------------
 
 def test_scan_names_the_paths_to_the_same_file(tmp_path):
-    from reeb_torch.runs.batch import same_file_note, scan_images
+    from reeb_torch.runs.inputs import same_file_note, scan_images
 
     real = good_folder(tmp_path / "real", 3)
     (tmp_path / "links").mkdir()
@@ -374,7 +374,7 @@ def test_a_folder_of_links_says_how_many_paths_were_the_same_file(tmp_path):
     assert json.loads((tmp_path / "s.json").read_text())["same_file"] == 6
 
 
-# -- 15. reeb eval without data ---------------------------------------------------------------
+# -- reeb eval without data --------------------------------------------------------------------
 
 def test_eval_without_frames_or_labels_is_a_usage_error(tmp_path):
     (tmp_path / "empty").mkdir()
@@ -383,7 +383,7 @@ def test_eval_without_frames_or_labels_is_a_usage_error(tmp_path):
     for folder, words in (("empty", "not a KITTI folder"), ("nolab", "label")):
         r = reeb("eval", folder, "--limit", "1", cwd=tmp_path, check_rc=2)
         assert words in r.stderr and "Traceback" not in r.stderr, r.stderr
-        assert len(r.stderr.strip().splitlines()) == 1, r.stderr  # one line, no usage block (issue 23)
+        assert len(r.stderr.strip().splitlines()) == 1, r.stderr  # one line, no usage block
 
 
 def test_show_on_a_folder_is_a_usage_error(tmp_path):
@@ -392,7 +392,7 @@ def test_show_on_a_folder_is_a_usage_error(tmp_path):
     assert "is a folder" in r.stderr, r.stderr
 
 
-# -- 13. reeb show keeps the aspect ratio ------------------------------------------------------
+# -- reeb show keeps the aspect ratio ----------------------------------------------------------
 
 @pytest.mark.parametrize("h, w", [(400, 60), (60, 400)])
 def test_show_picture_keeps_the_aspect_ratio(h, w):
@@ -441,7 +441,7 @@ def test_show_picture_names_the_ranking_it_shows():
 
 def test_an_interrupt_wrapped_by_a_library_is_still_an_interrupt():
     # numba, loading a cached kernel when Ctrl-C lands, re-raises it as a SystemError
-    from reeb_torch.runs.batch import caused_by_interrupt
+    from reeb_torch.runs.ctrl_c import caused_by_interrupt
 
     def wrapped() -> None:
         try:

@@ -251,10 +251,12 @@ def test_selection_variants_script_prints_paired_rows(variants_mod, tmp_path, ca
 
 
 def test_speed_ab_pairs_runs_and_gives_the_exact_sign_test():
-    ab, common = _script("speed_ab"), _script("_common")
-    assert common.sign_test_p(6, 0) == pytest.approx(2 / 64)  # all six pairs one way: p = 0.031
-    assert common.sign_test_p(5, 1) == pytest.approx(2 * 7 / 64)
-    assert common.sign_test_p(0, 0) == 1.0 and common.sign_test_p(3, 3) == 1.0
+    from reeb_torch.eval.metrics import sign_test
+
+    ab = _script("speed_ab")
+    assert sign_test(6, 0) == pytest.approx(2 / 64)  # all six pairs one way: p = 0.031
+    assert sign_test(5, 1) == pytest.approx(2 * 7 / 64)
+    assert sign_test(0, 0) == 1.0 and sign_test(3, 3) == 1.0
     pairs = [({"batch 8": 6.0, "batch 1": 9.0}, {"batch 8": 5.0, "batch 1": 9.9}),
              ({"batch 8": 7.0, "batch 1": 10.0}, {"batch 8": 6.3, "batch 1": 9.0}),
              ({"batch 8": 5.0, "batch 1": 8.0}, {"batch 8": 5.5, "batch 1": 7.2})]
@@ -344,7 +346,8 @@ def test_cv_paired_takes_only_settings_after_the_model():
     """cv_paired.py pairs settings that act after the ranking model (its fold models are the
     default's): a preset or --set pairs that change only those, and refuses the others."""
     cv = _script("cv_paired")
-    assert cv.parse_variant("class-quota") == ReebConfig(class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05})
+    assert cv.parse_variant('class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05}') == \
+        ReebConfig(class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05})
     assert cv.parse_variant("top_k=500;nms_iou=0.7") == ReebConfig(top_k=500, nms_iou=0.7)
     with pytest.raises(ValueError, match="changes candidates_per_region, which the ranking model reads"):
         cv.parse_variant("candidates_per_region=20000")

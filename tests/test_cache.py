@@ -1,4 +1,4 @@
-"""The kernels' disk cache (stages/_cache.py, issue 37): it heals itself when its files are
+"""The kernels' disk cache (stages/_cache.py): it heals itself when its files are
 damaged, it is private (nobody else can write where it loads pickles from), and it says
 where the kernels actually go.
 

@@ -273,7 +273,7 @@ def test_interrupt_kill_and_resume(tmp_path):
 # -- the pieces behind the commands, in process (fast) -----------------------------------
 
 def test_find_images_rules(tmp_path):
-    from reeb_torch.runs.batch import NoImagesError, find_images
+    from reeb_torch.runs.inputs import NoImagesError, find_images
 
     for name in ("f10.png", "f2.png", "f1.jpg", "labels.txt"):
         (tmp_path / name).write_bytes(b"x")
@@ -295,7 +295,7 @@ def test_find_images_rules(tmp_path):
 
 
 def test_output_checks_and_atomic_writer(tmp_path):
-    from reeb_torch.runs.batch import OutputError, check_output, open_writer, read_results
+    from reeb_torch.runs.output_files import OutputError, check_output, open_writer, read_results
 
     with pytest.raises(OutputError, match="unknown output format"):
         check_output(tmp_path / "out.csv")
@@ -323,7 +323,7 @@ def test_output_checks_and_atomic_writer(tmp_path):
 def test_size_batches_groups_equal_sizes():
     import torch
 
-    from reeb_torch.runs.batch import Decoded, size_batches
+    from reeb_torch.runs.decoding import Decoded, size_batches
 
     def item(i, h, w):
         return Decoded(i, f"{i}.png", image=torch.zeros(3, h, w, dtype=torch.uint8))

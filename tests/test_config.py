@@ -34,17 +34,17 @@ def test_paper_preset_follows_the_printed_text():
 
 
 def test_presets_and_lookup():
-    assert set(PRESETS) == {"default", "training-free", "training-free-no-regions", "default-no-regions", "paper",
-                            "paper-no-regions", "persons", "class-quota"}
-    # the opt-in class quota: the default but for the output's shares per hinted class
-    assert get_preset("class-quota") == ReebConfig().replace(
+    assert set(PRESETS) == {"default", "training-free", "training-free-no-regions", "paper", "paper-no-regions",
+                            "persons"}
+    # the class quota is a field a user sets: the default but for the output's shares per hinted class
+    assert ReebConfig(class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05}) == ReebConfig().replace(
         class_quota=(("Pedestrian", 0.3), ("Cyclist", 0.1), ("Truck", 0.05)))
     # the default ranks with the shipped model; training-free is it without the learned part
     assert ReebConfig().ranker == "kitti" and get_preset("training-free") == ReebConfig().training_free()
     assert get_preset("training-free").ranker == "none"
     assert get_preset("paper").ranker == "none" == get_preset("paper-no-regions").ranker  # the printed text
-    assert get_preset("default-no-regions") == get_preset("training-free-no-regions") == \
-        get_preset("training-free").replace(use_regions=False)
+    assert get_preset("training-free-no-regions") == get_preset("training-free").replace(use_regions=False)
+    assert get_preset("paper-no-regions") == get_preset("paper").replace(use_regions=False)
     # the opt-in second scoring pass: training-free but for the rescore fields
     persons = get_preset("persons")
     assert (persons.rescore, persons.rescore_scope, persons.rescore_max_height_m) == ("orientation", "persons", 2.3)
@@ -52,11 +52,35 @@ def test_presets_and_lookup():
         get_preset("training-free")
     assert not get_preset("paper-no-regions").use_regions
     assert not ReebConfig().refine
-    with pytest.raises(ValueError, match="unknown preset"):
-        get_preset("nope")
-    # the removed preset says why and what the same setting is
-    with pytest.raises(ValueError, match=r"unknown preset 'refined' \(it was removed.*refine=on"):
-        get_preset("refined")
+    # an unknown name (a removed preset or a former alias too) is one line naming the valid ones
+    for name in ("nope", "refined", "class-quota", "default-no-regions"):
+        with pytest.raises(ValueError) as info:
+            get_preset(name)
+        assert str(info.value) == f"unknown preset {name!r}; choose one of {', '.join(sorted(PRESETS))}"
+
+
+def test_front_end_fields_come_from_the_field_declarations():
+    """The fields that change the front end are marked where they are declared; the
+    generator's cache key (``reeb tune``) reads the same names."""
+    from reeb_torch import generator
+
+    assert set(_config.FRONT_END_FIELDS) == set(generator.FRONT_END_FIELDS) == {
+        "scale", "blur_sigma", "edge_threshold", "edge_channels", "thin_edges", "remove_isolated", "grouping",
+        "group_cell", "straddle_weight", "vegetation_score", "road_score", "road_samples", "road_band",
+        "road_tolerance", "road_combine", "seed", "shadow_score"}
+    marked = [f.name for f in dataclasses.fields(ReebConfig) if f.metadata.get("stage") == "front"]
+    assert list(_config.FRONT_END_FIELDS) == marked
+
+
+def test_no_figures_in_the_configs_words():
+    """Docstrings and messages say what a knob does, not how it scored (the record is in docs)."""
+    import inspect
+    import re
+
+    text = inspect.getsource(_config)
+    for pattern in (r"\bp [<=]? ?0\.\d", r"\+\d+ / [-−]\d+", r"\d+(\.\d+)? against \d", r"\.\./shared",
+                    r"\b(dev|kept-apart) frames\b"):
+        assert not re.search(pattern, text), pattern
 
 
 @pytest.mark.parametrize(
@@ -79,7 +103,7 @@ def test_dict_round_trip_and_fingerprint():
         ReebConfig.from_dict({"speed": 3})
 
 
-# -- strict types and ranges (issue 10, items 3 and 5) ------------------------------------
+# -- strict types and ranges ---------------------------------------------------------------
 
 BOOL_FIELDS = [f.name for f in dataclasses.fields(ReebConfig) if isinstance(getattr(ReebConfig(), f.name), bool)]
 
@@ -134,14 +158,14 @@ def test_every_field_is_type_checked_from_its_annotation():
 
 
 def test_numeric_fields_have_a_range():
-    """Each int/float field has a line in the range table (or is free by design): a new
-    numeric field must say its range in config._RANGES."""
+    """Each int/float field declares its range (or is free by design): a new numeric field
+    must say its range where it is declared (``_knob(default, "(0, 1]")``)."""
     free = {"min_edge_score"}  # a threshold on S: any finite number (negative keeps all)
     hints = typing.get_type_hints(ReebConfig)
     numeric = {n for n, h in hints.items()
                if h in (int, float) or set(typing.get_args(h)) - {type(None)} in ({int}, {float})}
     missing = sorted(numeric - set(_config._RANGES) - free)
-    assert not missing, f"add a range for {missing} to reeb_torch.config._RANGES"
+    assert not missing, f"declare a range for {missing} in reeb_torch.config (_knob)"
     assert set(_config._RANGES) <= set(hints), "range table names a field ReebConfig no longer has"
 
 
@@ -204,7 +228,7 @@ def test_json_round_trip_with_nested_tuples():
     (dict(scale=0.05, blur_sigma=1.0), (40, 300), ["scale=0.05", "300x40", "15x2 pixels"]),
 ])
 def test_a_config_too_large_for_the_image_is_a_value_error_at_the_door(overrides, size, words):
-    """Item 5: the kernel that cannot fit is reported with the image size, not as a padding
+    """The kernel that cannot fit is reported with the image size, not as a padding
     RuntimeError from inside the blur; ``inspect`` checks the same."""
     g = ProposalGenerator(**overrides)
     x = torch.rand(1, 3, *size)

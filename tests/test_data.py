@@ -9,12 +9,11 @@ import numpy as np
 import pytest
 import torch
 
+from reeb_torch.camera import camera_intrinsics, read_kitti_calib
 from reeb_torch.eval.data import (
     DEFAULT_CLASSES,
     KittiDataset,
-    camera_intrinsics,
     collate_keep_sizes,
-    read_kitti_calib,
     read_kitti_labels,
 )
 
@@ -272,15 +271,16 @@ def test_real_kitti_folder():
     assert sum(len(vans.load_target(i)["boxes"]) for i in range(len(vans))) == 18
 
 
-# -- camera (reeb_torch.camera; data re-exports the readers) ------------------------------
+# -- camera (reeb_torch.camera) ----------------------------------------------------------
 
 
-def test_camera_module_is_the_source_of_the_readers():
+def test_camera_module_is_the_one_home_of_the_readers():
     from reeb_torch import camera
     from reeb_torch.eval import data
 
-    assert data.read_kitti_calib is camera.read_kitti_calib
-    assert data.camera_intrinsics is camera.camera_intrinsics
+    assert "read_kitti_calib" in camera.__all__ and "camera_intrinsics" in camera.__all__
+    assert "read_kitti_calib" not in data.__all__ and "camera_intrinsics" not in data.__all__
+    assert not hasattr(data, "camera_intrinsics")
 
 
 def test_camera_from_kitti_calib_and_fov(tmp_path):

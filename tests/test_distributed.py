@@ -19,12 +19,8 @@ pytest.importorskip("ray.data")
 pytest.importorskip("pyarrow")
 
 from reeb_torch.runs.cli import main  # noqa: E402
-from reeb_torch.runs.distributed import (  # noqa: E402
-    actor_cpus,
-    read_result_dir,
-    result_files,
-    torch_threads,
-)
+from reeb_torch.runs.distributed import actor_cpus, torch_threads  # noqa: E402
+from reeb_torch.runs.output_files import read_result_dir, result_files  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLES = REPO / "examples" / "data"
@@ -180,7 +176,7 @@ def test_usage_errors_before_any_work(tmp_path):
 
 def test_api_takes_an_existing_dataset(local_ray, small_images):
     from reeb_torch import ReebConfig
-    from reeb_torch.runs.batch import ParquetWriter
+    from reeb_torch.runs.output_files import ParquetWriter
     from reeb_torch.runs.distributed import propose_dataset
 
     path = str(small_images / "b_small.png")

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from reeb_torch.eval import table3
+from reeb_torch.eval import command, table3
 from reeb_torch.eval.common import FrameRange, parse_frame_range, select_frames
 
 REPO = Path(__file__).resolve().parents[1]
@@ -31,6 +31,18 @@ def _example_kitti(root: Path, layout: str = "project") -> Path:
         shutil.copy(EXAMPLES / f"kitti_{i}.txt", root / lab / f"{i}.txt")
         shutil.copy(EXAMPLES / f"kitti_{i}_calib.txt", root / "calib" / f"{i}.txt")
     return root
+
+
+def _eval(*args) -> dict:
+    """``reeb eval ARGS`` (the folders first), called from Python: its JSON record."""
+    return command.main.main([str(a) for a in args], prog_name="reeb eval", standalone_mode=False)
+
+
+def _eval_exits(*args) -> int:
+    """``reeb eval ARGS`` as from a shell (a usage error is a message and ``SystemExit``)."""
+    with pytest.raises(SystemExit) as e:
+        command.main.main([str(a) for a in args], prog_name="reeb eval")
+    return e.value.code
 
 
 def _count_by_hand() -> tuple[dict[str, int], dict[str, int]]:
@@ -64,6 +76,26 @@ def test_package_never_imports_benchmarks():
             offenders.append(f"{path.relative_to(REPO)}: loads a file from the checkout")
     assert not offenders, offenders
     assert Path(table3.__file__).resolve().parent == PACKAGE / "eval"
+
+
+def test_the_evaluation_is_a_click_command_and_stays_inside_the_package():
+    """``reeb eval`` is click (no argparse in the package); no module of the evaluation
+    reaches beside the checkout for data or models (BING's folder is an option)."""
+    import click
+
+    assert isinstance(command.main, click.Command)
+    offenders = [f"{p.relative_to(REPO)}: argparse" for p in PACKAGE.rglob("*.py") if "argparse" in p.read_text()]
+    offenders += [f"{p.relative_to(REPO)}: {word}" for p in (PACKAGE / "eval").rglob("*.py")
+                  for word in ("../shared", '"shared"') if word in p.read_text()]
+    assert not offenders, offenders
+
+
+def test_reeb_eval_without_a_bing_model_skips_bing_with_a_note(tmp_path, capsys):
+    data = _example_kitti(tmp_path / "kitti")
+    record = _eval(data, "--methods", "bing", "--out", tmp_path / "t3")
+    assert record["methods"]["bing"]["skipped"].startswith("no BING model folder given (--bing-model DIR")
+    assert "skipped BING: no BING model folder given" in capsys.readouterr().out
+    assert record["rerun"] == f"reeb eval {data} --out {tmp_path / 't3'} --methods bing"
 
 
 @pytest.mark.parametrize(
@@ -107,8 +139,7 @@ def test_table3_on_bundled_frames(tmp_path, monkeypatch, layout):
     monkeypatch.setattr(table3, "run_method", spy)
     monkeypatch.chdir(tmp_path)  # nothing is read from the checkout
     out = tmp_path / "t3"
-    record = table3.main(["--data", str(data), "--methods", "reeb-default", "--batch", "0",
-                          "--out", str(out), "--frames", "1", "8"])
+    record = _eval(data, "--methods", "reeb-default", "--batch", "0", "--out", out, "--frames", "1", "--frames", "8")
 
     every, moderate = _count_by_hand()
     assert record["num_images"] == 2 and record["image_ids"] == list(FRAMES)
@@ -191,19 +222,18 @@ def test_table3_usage_errors_exit_2(tmp_path, capsys):
     shutil.copy(EXAMPLES / "kitti_000001.png", no_labels / "images" / "000001.png")
     data = _example_kitti(tmp_path / "kitti")
     cases = [
-        (["--data", str(empty)], "no images"),
-        (["--data", str(no_labels)], "no label folder"),
-        (["--data", str(data), "--frames", "20:30"], "no frame with an id in 20:30"),
-        (["--data", str(data), "--frames", "9:3"], "first id 9 is after last id 3"),
-        (["--data", str(data), "--max-proposals", "100"], "--max-proposals must be >= 2000"),
-        (["--data", str(data), "--cross-validate", "1"], "--cross-validate needs at least 2 folds, got 1"),
-        (["--data", str(data), "--cross-validate", "3"], "--cross-validate 3 needs at least as many frames, got 2"),
-        (["--data", str(data), "--leave-folder-out"], "--leave-folder-out needs two or more --data folders"),
+        ([empty], "no images"),
+        ([no_labels], "no label folder"),
+        ([data, "--frames", "20:30"], "no frame with an id in 20:30"),
+        ([data, "--frames", "9:3"], "first id 9 is after last id 3"),
+        ([data, "--max-proposals", "100"], "--max-proposals must be >= 2000"),
+        ([data, "--cross-validate", "1"], "--cross-validate needs at least 2 folds, got 1"),
+        ([data, "--cross-validate", "3"], "--cross-validate 3 needs at least as many frames, got 2"),
+        ([data, "--leave-folder-out"], "--leave-folder-out needs two or more --data folders"),
     ]
     for argv, message in cases:
-        with pytest.raises(SystemExit) as e:
-            table3.main(argv + ["--out", str(tmp_path / "o")])
-        assert e.value.code == 2, argv
+        code = _eval_exits(*argv, "--out", tmp_path / "o")
+        assert code == 2, argv
         assert message in capsys.readouterr().err, argv
 
 
@@ -270,21 +300,18 @@ def test_table3_exclude_fitted_leaves_out_the_frames_the_learned_ranking_saw(tmp
     (data / "labels" / "000009.txt").write_text("\n".join(lines) + "\n")
     shutil.copy(data / "calib" / "000008.txt", data / "calib" / "000009.txt")
     monkeypatch.chdir(tmp_path)
-    record = table3.main(["--data", str(data), "--methods", "reeb-default", "reeb-training-free", "--batch", "0",
-                          "--out", "t3", "--exclude-fitted"])
+    record = _eval(data, "--methods", "reeb-default,reeb-training-free", "--batch", "0", "--out", "t3",
+                   "--exclude-fitted")
     assert record["image_ids"] == ["000009"] and record["in_sample"] == {}
     assert record["excluded_fitted"] == {"000001": "kitti/000001", "000008": "kitti/000008"}
     assert "--exclude-fitted: left out 2 frames the learned ranking was fitted on (000001, 000008)" in \
         capsys.readouterr().out
     assert "In-sample" not in (tmp_path / "t3" / "table3.txt").read_text()
     (data / "images" / "000009.png").unlink()
-    with pytest.raises(SystemExit) as info:
-        table3.main(["--data", str(data), "--methods", "reeb-default", "--batch", "0", "--out", "t3b",
-                     "--exclude-fitted"])
-    assert info.value.code == 2 and "--exclude-fitted leaves 0 of the 2 frames" in capsys.readouterr().err
+    code = _eval_exits(data, "--methods", "reeb-default", "--batch", "0", "--out", "t3b", "--exclude-fitted")
+    assert code == 2 and "--exclude-fitted leaves 0 of the 2 frames" in capsys.readouterr().err
     # training-free rows alone learn nothing: nothing is left out
-    free = table3.main(["--data", str(data), "--methods", "reeb-training-free", "--batch", "0", "--out", "t3c",
-                        "--exclude-fitted"])
+    free = _eval(data, "--methods", "reeb-training-free", "--batch", "0", "--out", "t3c", "--exclude-fitted")
     assert free["image_ids"] == ["000001", "000008"] and free["excluded_fitted"] == {}
 
 
@@ -295,11 +322,11 @@ def test_table3_on_two_folders_reports_each_and_both(tmp_path, monkeypatch):
     b = _example_kitti(tmp_path / "b" / "kitti")  # same name: told apart by the path
     (b / "images" / "000008.png").unlink()  # b holds frame 1 only
     monkeypatch.chdir(tmp_path)
-    both = table3.main(["--data", str(a), str(b), "--methods", "reeb-default", "--batch", "0", "--out", "t3"])
+    both = _eval(a, b, "--methods", "reeb-default", "--batch", "0", "--out", "t3")
     assert both["data"] == [str(a), str(b)]
     assert both["splits"] == {"all": ["000001", "000008", "000001"], "a/kitti": ["000001", "000008"],
                               "b/kitti": ["000001"]}
-    alone = table3.main(["--data", str(a), "--methods", "reeb-default", "--batch", "0", "--out", "t3a"])
+    alone = _eval(a, "--methods", "reeb-default", "--batch", "0", "--out", "t3a")
     split = both["methods"]["reeb-default"]["splits"]
     assert split["a/kitti"]["all"]["recall"] == alone["methods"]["reeb-default"]["recall"]
     assert both["num_objects"] == alone["num_objects"] + split["b/kitti"]["all"]["recall"]["num_objects"]
@@ -327,8 +354,8 @@ def test_table3_cross_validated_row_is_reeb_fits_estimate(kitti_dir, tmp_path, m
     from reeb_torch.eval.tune import FrameCache
 
     monkeypatch.chdir(tmp_path)
-    record = table3.main(["--data", str(kitti_dir), "--limit", "6", "--methods", "reeb-training-free",
-                          "reeb-default", "--batch", "0", "--out", "t3", "--cross-validate", "2"])
+    record = _eval(kitti_dir, "--limit", "6", "--methods", "reeb-training-free,reeb-default", "--batch", "0",
+                   "--out", "t3", "--cross-validate", "2")
     assert list(record["methods"]) == ["reeb-training-free", "reeb-default", "reeb-default-cv"]
     row = record["methods"]["reeb-default-cv"]
     assert row["timing"]["ms_per_img"] is None and row["timing"]["folds"] == 2

@@ -17,9 +17,10 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from reeb_torch.runs import batch as B
 from reeb_torch.runs.cli import main
 from reeb_torch.runs.export import ExportError, detectron2_proposals, image_ids, read_id_map
+from reeb_torch.runs.output_files import open_writer
+from reeb_torch.runs.rows import error_row, hint_names, result_row, round_like_python, significant_like_python
 
 
 def _rows():
@@ -30,8 +31,8 @@ def _rows():
         wh = torch.rand(n, 2, generator=g) * 100 + 1
         boxes = torch.cat([xy, xy + wh], 1)
         scores = torch.sort(torch.rand(n, generator=g), descending=True).values
-        rows.append(B.result_row(name, 640, 480, boxes, scores, "cfg"))
-    rows.append(B.error_row("data/broken.png", "data/broken.png: corrupt", "cfg"))
+        rows.append(result_row(name, 640, 480, boxes, scores, "cfg"))
+    rows.append(error_row("data/broken.png", "data/broken.png: corrupt", "cfg"))
     return rows
 
 
@@ -40,7 +41,7 @@ def results_file(request, tmp_path):
     if request.param == "parquet":
         pytest.importorskip("pyarrow")
     path = tmp_path / f"p.{request.param}"
-    w = B.open_writer(path)
+    w = open_writer(path)
     w.write(_rows())
     w.commit()
     return path
@@ -91,8 +92,8 @@ def test_id_rules():
     with pytest.raises(ExportError, match="not an integer"):
         image_ids(["a/x.png"], id_type="int")
     # a resumed run: the ok row wins over an earlier error row of the same image
-    rows = [B.error_row("a/1.png", "a/1.png: gone", "c"),
-            B.result_row("a/1.png", 10, 10, torch.tensor([[0., 0., 5., 5.]]), torch.tensor([.5]), "c")]
+    rows = [error_row("a/1.png", "a/1.png: gone", "c"),
+            result_row("a/1.png", 10, 10, torch.tensor([[0., 0., 5., 5.]]), torch.tensor([.5]), "c")]
     d, failed = detectron2_proposals(rows)
     assert d["ids"] == ["1"] and failed == [] and d["boxes"][0].shape == (1, 4)
 
@@ -127,11 +128,11 @@ def _adversarial(rng: np.random.Generator) -> np.ndarray:
 def test_vectorised_rounding_is_pythons_bit_for_bit():
     vals = _adversarial(np.random.default_rng(7))
     for d in (0, 1, 2, 3, 6):
-        got = B.round_like_python(vals, d)
+        got = round_like_python(vals, d)
         want = np.array([round(float(v), d) for v in vals])
         assert np.array_equal(got.view(np.int64), want.view(np.int64)), d  # -0.0 and 0.0 told apart too
     for digits in (3, 6, 9):
-        got = B.significant_like_python(vals, digits)
+        got = significant_like_python(vals, digits)
         want = np.array([float(f"{float(v):.{digits}g}") for v in vals])
         assert np.array_equal(got.view(np.int64), want.view(np.int64)), digits
 
@@ -140,21 +141,21 @@ def test_result_row_numbers_are_those_of_round_and_format(sample_image):
     from reeb_torch import ProposalGenerator
 
     out = ProposalGenerator(top_k=500)([sample_image])[0]
-    row = B.result_row("x.png", 1242, 375, out["boxes"], out["scores"], "cfg")
+    row = result_row("x.png", 1242, 375, out["boxes"], out["scores"], "cfg")
     assert row["boxes"] == [[round(v, 2) for v in r] for r in out["boxes"].double().tolist()]
     assert row["scores"] == [float(f"{v:.6g}") for v in out["scores"].double().tolist()]
     assert all(type(v) is float for r in row["boxes"] for v in r) and all(type(v) is float for v in row["scores"])
-    empty = B.result_row("x.png", 4, 4, torch.zeros(0, 4), torch.zeros(0), "cfg")
+    empty = result_row("x.png", 4, 4, torch.zeros(0, 4), torch.zeros(0), "cfg")
     assert empty["boxes"] == [] and empty["scores"] == []
     assert row["labels"] is None  # no hints given
-    hinted = B.result_row("x.png", 1242, 375, out["boxes"], out["scores"], "cfg", labels=["Car"] * len(out["boxes"]))
+    hinted = result_row("x.png", 1242, 375, out["boxes"], out["scores"], "cfg", labels=["Car"] * len(out["boxes"]))
     assert hinted["labels"] == ["Car"] * len(out["boxes"])
     with pytest.raises(ValueError, match="1 labels for"):
-        B.result_row("x.png", 1242, 375, out["boxes"], out["scores"], "cfg", labels=["Car"])
-    assert B.error_row("x.png", "x.png: broken", "cfg")["labels"] is None
+        result_row("x.png", 1242, 375, out["boxes"], out["scores"], "cfg", labels=["Car"])
+    assert error_row("x.png", "x.png: broken", "cfg")["labels"] is None
 
 
 def test_hint_names_are_the_classes_of_the_labels():
-    assert B.hint_names(("Car", "Pedestrian"), torch.tensor([1, 0, 1])) == ["Pedestrian", "Car", "Pedestrian"]
-    assert B.hint_names(None, torch.tensor([0])) is None
-    assert B.hint_names(("Car", "Pedestrian"), None) is None
+    assert hint_names(("Car", "Pedestrian"), torch.tensor([1, 0, 1])) == ["Pedestrian", "Car", "Pedestrian"]
+    assert hint_names(None, torch.tensor([0])) is None
+    assert hint_names(("Car", "Pedestrian"), None) is None

@@ -69,7 +69,7 @@ def test_inspect(crop):
     assert ins.num_groups > 0 and ins.num_windows > ins.boxes.shape[0]
 
 
-@pytest.mark.parametrize("preset", ["default-no-regions", "paper", "paper-no-regions"])
+@pytest.mark.parametrize("preset", ["training-free-no-regions", "paper", "paper-no-regions"])
 def test_presets_run(crop, preset):
     cfg = get_preset(preset).replace(**SMALL)
     _check(ProposalGenerator(cfg)([crop])[0], *crop.shape[-2:], SMALL["top_k"])

@@ -1,7 +1,7 @@
 """The package's layout keeps its design (docs/architecture.md): no import circles, the
 stages import only stages, the algorithm imports none of the runs, the evaluation or the
-detectors, the libraries of runs/ do not import the command, and the documented import
-paths of earlier releases still work.
+detectors, the libraries of runs/ do not import the command, and there is one import path
+per name (no compatibility modules).
 
 Imports are read from the source (``ast``), module-level and inside functions alike."""
 
@@ -17,8 +17,9 @@ PACKAGE = Path(__file__).resolve().parents[1] / "reeb_torch"
 ALGORITHM = {"reeb_torch.config", "reeb_torch.generator", "reeb_torch.ranking", "reeb_torch._checks",
              "reeb_torch.camera", "reeb_torch.io", "reeb_torch.ranker", "reeb_torch.ranker.model",
              "reeb_torch.ranker.weights"}
-RUNS_LIBRARIES = {"reeb_torch.runs.batch", "reeb_torch.runs.distributed", "reeb_torch.runs.export",
-                  "reeb_torch.runs.viz"}
+RUNS_LIBRARIES = {"reeb_torch.runs.inputs", "reeb_torch.runs.decoding", "reeb_torch.runs.rows",
+                  "reeb_torch.runs.output_files", "reeb_torch.runs.output_lock", "reeb_torch.runs.ctrl_c",
+                  "reeb_torch.runs.distributed", "reeb_torch.runs.export", "reeb_torch.runs.viz"}
 COMMAND = {"reeb_torch.runs.cli", "reeb_torch.runs.common", "reeb_torch.runs.propose_local",
            "reeb_torch.runs.propose_ray"}
 LONG_FUNCTIONS = {
@@ -126,24 +127,24 @@ def test_functions_are_short():
     assert long <= LONG_FUNCTIONS, f"over 80 lines: {sorted(long - LONG_FUNCTIONS)}"
 
 
-def test_documented_import_paths_keep_working():
+def test_no_compatibility_shims():
+    """One import path per name: the old top-level modules are gone, the public names of
+    ``reeb_torch`` are there, and the ``reeb`` script points at the command itself."""
     import reeb_torch
-    from reeb_torch import cli, data, distributed, metrics
-    from reeb_torch.eval import data as eval_data
-    from reeb_torch.eval import metrics as eval_metrics
-    from reeb_torch.runs import cli as runs_cli
-    from reeb_torch.runs import distributed as runs_distributed
 
+    for shim in ("cli", "data", "distributed", "metrics"):
+        assert not (PACKAGE / f"{shim}.py").exists(), f"reeb_torch/{shim}.py is back"
+    from reeb_torch.eval import data as eval_data
+
+    assert not {"read_kitti_calib", "camera_intrinsics"} & set(eval_data.__all__)
+    for name in reeb_torch.__all__:
+        assert getattr(reeb_torch, name) is not None, name
     for name in ("ProposalGenerator", "ReebConfig", "propose", "get_preset", "PRESETS", "read_image",
                  "ImageReadError", "Inspection"):
-        assert hasattr(reeb_torch, name), name
-    assert distributed.propose_dataset is runs_distributed.propose_dataset
-    assert distributed.write_results is runs_distributed.write_results
-    assert metrics.recall_table is eval_metrics.recall_table
-    assert metrics.compare_recall is eval_metrics.compare_recall
-    assert metrics.recall_interval is eval_metrics.recall_interval
-    assert data.KittiDataset is eval_data.KittiDataset
-    assert data.read_kitti_labels is eval_data.read_kitti_labels
-    assert cli.main is runs_cli.main
+        assert name in reeb_torch.__all__, name
+    pyproject = (PACKAGE.parent / "pyproject.toml").read_text(encoding="utf-8")
+    assert 'reeb = "reeb_torch.runs.cli:main"' in pyproject
     from reeb_torch.detection import ReebRPN, build_cache  # noqa: F401
     from reeb_torch.eval import main, table3  # noqa: F401
+    from reeb_torch.runs.cli import main as cli_main  # noqa: F401
+    from reeb_torch.runs.distributed import propose_dataset, write_results  # noqa: F401

@@ -1,9 +1,9 @@
-"""Property tests (hypothesis) of the API contract and of ReebConfig (issue 10).
+"""Property tests (hypothesis) of the API contract and of ReebConfig.
 
 * Any input — random sizes, dtypes, memory layouts, batch forms — gives valid boxes or a
   ValueError/TypeError, never another exception; valid inputs give the same boxes as the
   contiguous float32 batch (layout invariance), and a uint8 image the same as ``u / 255``.
-* Batch ≡ single at random sizes (issue 10 item 4: exact float64 sums, fixed-order blur).
+* Batch ≡ single at random sizes (exact float64 sums, fixed-order blur).
 * Any value for any ReebConfig field gives a valid (hashable, JSON round-tripping) config
   or a ValueError/TypeError whose message names the field; any valid config runs on any
   image or stops at the door with a ValueError.
@@ -149,7 +149,7 @@ def test_any_input_gives_valid_boxes_or_a_value_or_type_error(frame, gen, h, w, 
 
 
 def test_boxes_stay_inside_an_odd_sized_image():
-    """Issue 23: windows on the last working column mapped back to 99.0000076 for W = 99."""
+    """Windows on the last working column map back inside the image (not 99.0000076 for W = 99)."""
     torch.manual_seed(35)
     _assert_valid(ProposalGenerator()(torch.rand(1, 3, 157, 99))[0], 157, 99, 2000)
 
@@ -193,7 +193,7 @@ def test_uint8_is_the_same_as_float_over_255(frame, gen, h, w, y, x):
 
 
 @pytest.mark.parametrize("make, error, words", [
-    (lambda: torch.rand(1, 3, 64, 64, device="meta"), TypeError, "meta"),  # issue 10 item 14
+    (lambda: torch.rand(1, 3, 64, 64, device="meta"), TypeError, "meta"),
     (lambda: [torch.rand(3, 64, 64, device="meta")], TypeError, "meta"),
     (lambda: torch.rand(1, 3, 64, 64).to_sparse(), TypeError, "dense"),
     (lambda: [torch.rand(3, 64, 64).to_sparse()], TypeError, "dense"),
@@ -334,7 +334,8 @@ def _equal_spelling(value, how: int):
 @settings(max_examples=40, **SETTINGS)
 @given(changes=st.fixed_dictionaries({}, optional=_RUNNABLE), how=st.integers(0, 5))
 def test_equal_configs_give_equal_fingerprints(changes, how):
-    """Issue 23: horizon_slack=-0.0 and 0.0 were equal configs with different fingerprints."""
+    """Equal settings spelled differently (horizon_slack=-0.0 and 0.0, 1 and 1.0, a list and a
+    tuple) give equal configs with equal fingerprints."""
     try:
         cfg = ReebConfig(**changes)
     except ValueError:
@@ -385,7 +386,7 @@ _decimal_ties = st.builds(lambda n, d, e: n / 10.0 ** d + e, st.integers(-10**7,
 @given(values=st.lists(st.floats(allow_nan=False, allow_infinity=False) | _decimal_ties, min_size=1, max_size=64),
        decimals=st.integers(0, 4), digits=st.integers(1, 9))
 def test_row_rounding_is_pythons_for_any_floats(values, decimals, digits):
-    from reeb_torch.runs.batch import round_like_python, significant_like_python
+    from reeb_torch.runs.rows import round_like_python, significant_like_python
 
     v = np.array(values, np.float64)
     want = np.array([round(x, decimals) for x in values], np.float64)

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from reeb_torch import ProposalGenerator, ReebConfig, get_preset
+from reeb_torch import ProposalGenerator, ReebConfig
 from reeb_torch.ranker import SHIPPED, BoxRanker, RankerWeightsError, load_ranker, save_ranker, shipped_path
 from reeb_torch.stages.features import FEATURES_VERSION, feature_names
 
@@ -466,7 +466,7 @@ def test_best_per_image_keeps_the_best_ties_to_the_earlier():
 def test_class_hints_take_the_quotas_logits_of_the_ranked_rows(sample_image):
     """On the class_quota path the head runs once over the ranked rows (class_map); the hints
     of the output read those rows' logits: the same probabilities as the head run on them anew."""
-    gen = ProposalGenerator(get_preset("class-quota"), top_k=300)
+    gen = ProposalGenerator(class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05}, top_k=300)
     rk = gen.ranking
     maps, grid, scores, share, entropy, kept, ranked = _ranked(gen, [sample_image])
     class_of, logits = rk.class_map(ranked[0], tuple(scores.shape))

@@ -1,4 +1,4 @@
-"""Second break-it round (issue 23): nothing lost, no tracebacks.
+"""Faults as users meet them: nothing lost, no tracebacks.
 
 Each test reproduces a fault as a user hit it: file names that are not UTF-8, the output
 lock taken before anything is deleted, boxes past the image edge, a full disk, configs
@@ -62,7 +62,8 @@ def _parquet_result(path: Path, image: str) -> None:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from reeb_torch.runs.batch import ParquetWriter, error_row
+    from reeb_torch.runs.output_files import ParquetWriter
+    from reeb_torch.runs.rows import error_row
 
     pq.write_table(pa.Table.from_pylist([error_row(image, f"{image}: x", "cfg")],
                                         schema=ParquetWriter.schema()), path)
@@ -71,7 +72,7 @@ def _parquet_result(path: Path, image: str) -> None:
 def test_ray_overwrite_takes_the_lock_before_deleting(tmp_path):
     pytest.importorskip("ray")
     pytest.importorskip("pyarrow")
-    from reeb_torch.runs.batch import lock_output
+    from reeb_torch.runs.output_lock import lock_output
 
     good_folder(tmp_path / "imgs", 1)
     out = tmp_path / "out.parquet"
@@ -87,6 +88,7 @@ def test_ray_overwrite_takes_the_lock_before_deleting(tmp_path):
 def test_ray_resume_sets_aside_a_file_cut_short(tmp_path):
     pytest.importorskip("pyarrow")
     from reeb_torch.runs import distributed as D
+    from reeb_torch.runs.output_files import read_result_dir
 
     out = tmp_path / "out.parquet"
     out.mkdir()
@@ -96,7 +98,7 @@ def test_ray_resume_sets_aside_a_file_cut_short(tmp_path):
     (out / "b.parquet").write_bytes(data[: len(data) // 2])  # killed while Ray wrote it
     moved = D.set_aside_unfinished(out)
     assert [p.name for p in moved] == [".b.parquet.unfinished"]
-    assert [r["image"] for r in D.read_result_dir(out)] == ["a.png"]  # readable for --resume again
+    assert [r["image"] for r in read_result_dir(out)] == ["a.png"]  # readable for --resume again
 
 
 # -- Ctrl-C in the first seconds -------------------------------------------------------------
@@ -140,7 +142,7 @@ def _as_the_console_script(code: str, args: list[str], cwd: Path) -> subprocess.
 
 @pytest.mark.parametrize("module", ["click", "numba"])
 def test_ctrl_c_while_the_command_is_imported_exits_130_with_one_line(tmp_path, module):
-    """Issue 37: SIGINT while Python imports the command (click, the settings' numba), the
+    """SIGINT while Python imports the command (click, the settings' numba), the
     first ~0.5 s after reeb's own code starts."""
     hook = ("import os, signal, sys\n"
             "class Hit:\n"
@@ -155,7 +157,8 @@ def test_ctrl_c_while_the_command_is_imported_exits_130_with_one_line(tmp_path, 
 @pytest.mark.parametrize("when", ["right after the command", "in the exit functions", "as Python shuts down"])
 @pytest.mark.parametrize("rc", [0, 1])
 def test_ctrl_c_after_the_run_has_finished_keeps_its_exit_code(tmp_path, when, rc):
-    """Issue 37: SIGINT once the output is written (Python shutting down) exited -2."""
+    """SIGINT once the output is written (Python shutting down) keeps the run's exit code,
+    never -2 (killed by the signal)."""
     good_folder(tmp_path / "d", 1)
     if rc:
         (tmp_path / "d" / "bad.png").write_bytes(b"not an image")
@@ -191,7 +194,7 @@ def test_a_full_disk_is_one_line_naming_the_output(tmp_path, monkeypatch, where)
 
     from click.testing import CliRunner
 
-    from reeb_torch.runs import batch as B
+    from reeb_torch.runs import output_files
     from reeb_torch.runs.cli import main
 
     good_folder(tmp_path / "imgs", 2)
@@ -204,10 +207,10 @@ def test_a_full_disk_is_one_line_naming_the_output(tmp_path, monkeypatch, where)
     if where == "fsync":  # the disk fills as the file is closed: the file is closed all the same
         opened = []
         real_open = open
-        monkeypatch.setattr(B, "open", lambda *a, **k: opened.append(real_open(*a, **k)) or opened[-1], raising=False)
-        monkeypatch.setattr(B.os, "fsync", lambda fd: full(None))
+        monkeypatch.setattr(output_files, "open", lambda *a, **k: opened.append(real_open(*a, **k)) or opened[-1], raising=False)
+        monkeypatch.setattr(output_files.os, "fsync", lambda fd: full(None))
     else:
-        monkeypatch.setattr(B.JsonlWriter, where, full)
+        monkeypatch.setattr(output_files.JsonlWriter, where, full)
     monkeypatch.chdir(tmp_path)
     res = CliRunner().invoke(main, ["propose", "imgs", "-o", "o.jsonl", "--overwrite", "-j", "0", "-q", *FAST])
     assert res.exit_code == 1, res.output
@@ -281,8 +284,8 @@ def test_skipped_entries_are_named_and_named_files_get_error_rows(tmp_path):
 def test_export_names_the_row_that_breaks_the_schema(tmp_path, change, words):
     from click.testing import CliRunner
 
-    from reeb_torch.runs.batch import FORMAT_VERSION
     from reeb_torch.runs.cli import main
+    from reeb_torch.runs.rows import FORMAT_VERSION
 
     good = dict(format_version=FORMAT_VERSION, image="a.png", resolved="/a.png", width=10, height=10,
                 boxes=[[0.0, 0.0, 5.0, 5.0]], scores=[0.9], status="ok", config="c")
@@ -317,7 +320,7 @@ def test_a_long_legal_output_name_works(tmp_path):
 
 
 def test_an_output_symlink_writes_its_target_and_stays_a_link(tmp_path):
-    from reeb_torch.runs.batch import lock_output
+    from reeb_torch.runs.output_lock import lock_output
 
     good_folder(tmp_path / "d", 1)
     (tmp_path / "real").mkdir()

@@ -68,7 +68,7 @@ def test_either_half_raises_in_the_caller_and_two_callers_each_cover_their_items
 
 
 def test_torch_threads_are_one_inside_a_cpu_call_and_restored_after(sample_image):
-    # issue 20: torch's idle OpenMP workers spun against the kernels' helper thread
+    # torch's idle OpenMP workers would spin against the kernels' helper thread
     import pytest
     import torch
 
@@ -154,7 +154,7 @@ def test_a_mixed_batch_split_between_the_cores_equals_each_image_alone(sample_im
 
 
 def test_one_image_split_by_rows_equals_the_same_image_in_one_piece(sample_image):
-    # issue 20, batch-1 latency: one image's kernels take half its rows (or strips, or
+    # batch-1 latency: one image's kernels take half its rows (or strips, or
     # regions) each; every part must give the numbers of the whole image in one call
     import numpy as np
     import torch
@@ -229,7 +229,7 @@ def test_started_runs_on_the_helper_and_its_wait_raises_what_it_raised():
 
 
 def test_one_image_builds_its_tables_beside_the_regions_and_waits_for_them(sample_image, monkeypatch):
-    # issue 20, batch-1 latency: one image's enclosed-sum tables are built on the helper
+    # batch-1 latency: one image's enclosed-sum tables are built on the helper
     # thread while the caller takes the regions; the same boxes as a batch's, and a stage
     # that raises meanwhile still waits for the helper (its tables are reused memory)
     import pytest

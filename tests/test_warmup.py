@@ -1,4 +1,4 @@
-"""The one-time compile (issue 20): the kernels' cache folder, the notice, warmup()."""
+"""The one-time compile: the kernels' cache folder, the notice, warmup()."""
 
 from __future__ import annotations
 

@@ -1,31 +1,38 @@
 """Evaluation of proposals on KITTI-format folders, shipped with the package.
 
-- :mod:`reeb_torch.eval.table3`: the paper's Table 3 (recall at 500/1000/2000 proposals
-  and IoU 0.3/0.5/0.7 for REEB and the classical baselines), with the KITTI-moderate and
-  per-class tables; what ``reeb eval`` and ``benchmarks/table3.py`` run.
-- :mod:`reeb_torch.eval.data`: the KITTI reader (images, ``label_2`` files, calibration).
-- :mod:`reeb_torch.eval.metrics`: recall, AR, the paired sign test, bootstrap intervals.
-- :mod:`reeb_torch.eval.baselines`: Edge Boxes, BING and Selective Search (OpenCV contrib).
-- :mod:`reeb_torch.eval.common`: ``--frames`` ranges, loading a KITTI folder, the rerun
-  line and the machine's description.
+- :mod:`reeb_torch.eval.methods`: its rows (REEB's presets, the baselines) and options;
+- :mod:`reeb_torch.eval.table3`: the paper's Table 3 computed (recall at 500/1000/2000
+  proposals and IoU 0.3/0.5/0.7 for REEB and the classical baselines, KITTI-moderate and
+  per-class tables, AR, intervals, pairings);
+- :mod:`reeb_torch.eval.report`: the table rendered (text, CSV, JSON) and written;
+- :mod:`reeb_torch.eval.plots`: its two recall plots (matplotlib);
+- :mod:`reeb_torch.eval.command`: ``reeb eval``, the click command over them;
+- :mod:`reeb_torch.eval.data`: the KITTI reader (images, ``label_2`` files, calibration);
+- :mod:`reeb_torch.eval.metrics`: recall, AR, the paired sign test, bootstrap intervals;
+- :mod:`reeb_torch.eval.baselines`: Edge Boxes, BING and Selective Search (OpenCV contrib);
+- :mod:`reeb_torch.eval.common`: frame ranges, loading KITTI folders, the rerun line and
+  the machine's description.
 
->>> from reeb_torch.eval import table3
->>> record = table3.main(["--data", "kitti/", "--limit", "10", "--methods", "reeb-default"])
+>>> from reeb_torch.eval import Table3Options, run_table3
+>>> record = run_table3(Table3Options(data=["kitti/"], limit=10, methods=["reeb-default"]), "runs/table3")
 >>> record["methods"]["reeb-default"]["recall"]["micro"]["2000"]["0.7"]
 
-From a shell: ``reeb eval kitti/ --limit 10`` or ``python -m reeb_torch.eval --data kitti/``.
+From a shell: ``reeb eval kitti/ --limit 10``.
+
+Importing this package imports neither torch nor OpenCV (``reeb --help`` stays quick);
+:mod:`.table3` and the rest import them.
 """
 
 from __future__ import annotations
 
-from . import common, table3
+from .command import main, run_table3
 from .common import FrameRange, load_kitti, parse_frame_range, select_frames
-from .table3 import METHODS, main
+from .methods import METHODS, Table3Options
 
 __all__ = [
-    "common",
-    "table3",
     "main",
+    "run_table3",
+    "Table3Options",
     "METHODS",
     "FrameRange",
     "parse_frame_range",

@@ -67,7 +67,6 @@ __all__ = [
     "edge_boxes_to_xyxy",
     "bing_to_xyxy",
     "xywh_to_xyxy",
-    "default_bing_model_dir",
 ]
 
 
@@ -305,11 +304,6 @@ class EdgeBoxesBaseline:
 # -- BING ----------------------------------------------------------------------------------
 
 
-def default_bing_model_dir() -> Path:
-    """``shared/data/bing_model`` beside the repository (``<repo>/../shared/data/bing_model``)."""
-    return Path(__file__).resolve().parents[3] / "shared" / "data" / "bing_model"
-
-
 _BING_FILES = ("ObjNessB2W8MAXBGR.idx.yml.gz", "ObjNessB2W8MAXBGR.wS1.yml.gz", "ObjNessB2W8MAXBGR.wS2.yml.gz")
 
 
@@ -340,13 +334,13 @@ class BingBaseline:
 
     Settings:
 
+    - ``model_dir`` (required): folder holding the nine trained model files
+      (``ObjNessB2W8{MAXBGR,HSV,I}.{idx,wS1,wS2}.yml.gz``, trained on PASCAL VOC 2007; from
+      opencv_contrib's ``modules/saliency/samples/ObjectnessTrainedModel``); a missing
+      folder or file raises :class:`FileNotFoundError`.
     - ``max_proposals`` (2000): the first ``max_proposals`` boxes of BING's ranking are
       returned. OpenCV proposes up to 250 boxes per window size and colour space
       (``numDetPerSize = 250``, fixed in ``computeSaliencyImpl``), typically ~10 000 in all.
-    - ``model_dir``: folder holding the nine trained model files
-      (``ObjNessB2W8{MAXBGR,HSV,I}.{idx,wS1,wS2}.yml.gz``, trained on PASCAL VOC 2007).
-      Default :func:`default_bing_model_dir`; a missing folder or file raises
-      :class:`FileNotFoundError`.
     - ``ranking`` (``"opencv"``): order of the boxes, see *Ranking* below.
     - ``quiet`` (True): silence the timing lines OpenCV ``printf``s on every call.
     - The window base 2, feature size W = 8 and NMS size NSS = 2 are OpenCV's defaults
@@ -360,9 +354,8 @@ class BingBaseline:
     Ranking (``ranking``): ``computeSaliency`` returns the three colour spaces' lists one
     after the other (MAXBGR, then HSV, then I), each sorted by descending SVM score. The
     values of ``getobjectnessValues()`` are not SVM scores but rank keys ``(i + 300) * s``,
-    ``s = 1, 3, 5`` for MAXBGR, HSV, I (``ValStructVec::append`` in ``objectnessBING.cpp``;
-    opencv_contrib issue #404), so sorting them *descending* would put the worst boxes
-    first. Two orders make sense:
+    ``s = 1, 3, 5`` for MAXBGR, HSV, I (``ValStructVec::append`` in ``objectnessBING.cpp``),
+    so sorting them *descending* would put the worst boxes first. Two orders make sense:
 
     - ``"opencv"`` (default): the order ``computeSaliency`` returns. ``scores = -rank``.
     - ``"interleaved"``: ascending rank key (stable), which interleaves the three lists as
@@ -378,8 +371,8 @@ class BingBaseline:
 
     def __init__(
         self,
+        model_dir: str | os.PathLike,
         max_proposals: int = 2000,
-        model_dir: str | os.PathLike | None = None,
         ranking: str = "opencv",
         quiet: bool = True,
     ):
@@ -388,7 +381,7 @@ class BingBaseline:
         if not hasattr(cv2, "saliency"):
             raise ImportError("cv2.saliency is missing: install opencv-contrib-python(-headless)")
         self.max_proposals = int(max_proposals)
-        self.model_dir = Path(model_dir) if model_dir is not None else default_bing_model_dir()
+        self.model_dir = Path(model_dir)
         self.quiet = quiet
         if ranking not in ("opencv", "interleaved"):
             raise ValueError(f"ranking must be 'opencv' or 'interleaved', got {ranking!r}")
@@ -507,5 +500,5 @@ BASELINES: dict[str, Callable[..., Callable[..., Any]]] = {
     "bing": BingBaseline,
     "selective-search": SelectiveSearchBaseline,
 }
-"""Registry: baseline name -> class; each class takes ``max_proposals=`` and is called on
-one ``uint8 (3, H, W)`` RGB tensor."""
+"""Registry: baseline name -> class; each class takes ``max_proposals=`` (BING also its
+``model_dir``) and is called on one ``uint8 (3, H, W)`` RGB tensor."""

@@ -1,10 +1,10 @@
-"""Helpers of the evaluation: frame ranges, loading a KITTI folder, the rerun line, the machine.
+"""Helpers of the evaluation: frame ranges, loading KITTI folders, the rerun line, the machine.
 
-Frame ranges (``--frames``) select frames by their numeric id, both ends included, so the
-halves of the project's 60 frames read as the issue names them::
+Frame ranges (``--frames``, :func:`parse_frame_range`) select frames by their numeric id,
+both ends included::
 
-    --frames 0:39 40:59     # 000000-000039 (choose) and 000040-000059 (confirm)
-    --frames 40:            # 000040 and later;  ":9" = up to 000009;  "7" = 000007 only
+    0:39      # 000000-000039
+    40:       # 000040 and later;  ":9" = up to 000009;  "7" = 000007 only
 """
 
 from __future__ import annotations
@@ -27,8 +27,6 @@ __all__ = [
     "folder_splits",
     "folder_blocks",
     "first_few",
-    "add_frames_option",
-    "add_data_option",
     "rerun_line",
     "environment",
 ]
@@ -187,20 +185,6 @@ def first_few(names: Sequence[str], n: int = 8) -> str:
     return shown + (f" and {len(names) - n} more" if len(names) > n else "")
 
 
-def add_data_option(parser: Any, default: Sequence[str | os.PathLike] | None = None) -> None:
-    """Add ``--data DIR [DIR ...]`` (KITTI-format folders, reported each and together) to
-    an ``argparse`` parser; without a ``default`` it is required."""
-    from pathlib import Path
-
-    shown = " ".join(str(d) for d in default) if default else ""
-    parser.add_argument(
-        "--data", type=Path, nargs="+", default=list(default) if default else None, required=not default,
-        metavar="DIR",
-        help="KITTI-format folders (images/ + labels/, or image_2/ + label_2/); with several, every table "
-             "is given for each folder and for all together" + (f"; default: {shown}" if shown else ""),
-    )
-
-
 def rerun_line(prog: str, argv: Sequence[str]) -> str:
     """The shell command that reruns ``prog`` with ``argv`` (``python prog`` for a script)."""
     head = ["python", prog] if prog.endswith(".py") else shlex.split(prog)
@@ -224,22 +208,3 @@ def environment() -> dict[str, Any]:
         "opencv_threads": cv2.getNumThreads(),
     }
 
-
-def _frames_arg(text: str) -> FrameRange:
-    """argparse ``type=`` for ``--frames``."""
-    import argparse
-
-    try:
-        return parse_frame_range(text)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
-
-
-def add_frames_option(parser: Any) -> None:
-    """Add ``--frames A:B [A:B ...]`` to an ``argparse`` parser."""
-    parser.add_argument(
-        "--frames", nargs="+", type=_frames_arg, default=[], metavar="A:B",
-        help="only frames whose numeric id is in these ranges (both ends included; "
-             "A:, :B and A also work), e.g. --frames 0:39 40:59; with two or more ranges "
-             "the recall is also reported for each range",
-    )

@@ -1,21 +1,20 @@
 """KITTI 2D object data: the label reader and a ``torch`` dataset (the calibration reader
-lives in :mod:`reeb_torch.camera`; ``read_kitti_calib`` and ``camera_intrinsics`` are
-re-exported here).
+lives in :mod:`reeb_torch.camera`).
 
 Box convention, kept everywhere in this package: ``Tensor[N, 4]`` of ``float32``,
 ``(x1, y1, x2, y2)`` in pixels of the full-resolution image, 0-based, ``x1 <= x2``,
 ``y1 <= y2``, exactly as written in KITTI's ``label_2`` files (fields 5-8).
 
-Two folder layouts are recognised (see ``../shared/data/README.md``)::
+Two folder layouts are recognised::
 
-    root/images/<id>.png   root/labels/<id>.txt    root/calib/<id>.txt    (this project)
+    root/images/<id>.png   root/labels/<id>.txt    root/calib/<id>.txt    (short names)
     root/image_2/<id>.png  root/label_2/<id>.txt   root/calib/<id>.txt    (KITTI's own)
 
 KITTI's own layout is also found one level down, in ``root/training/``. Only the image
 folder is required: without labels every target is empty, without calib ``calib`` is
 ``None``.
 
->>> ds = KittiDataset("../shared/data/kitti")
+>>> ds = KittiDataset("data/kitti")                   # a KITTI-format folder
 >>> item = ds[0]
 >>> item["image"].shape, item["boxes"].shape          # (3, H, W) uint8, (N, 4) float32
 >>> loader = torch.utils.data.DataLoader(ds, batch_size=4, collate_fn=collate_keep_sizes)
@@ -31,7 +30,7 @@ from typing import Any
 
 import torch
 
-from ..camera import camera_intrinsics, read_kitti_calib  # re-exported: moved to reeb_torch.camera
+from ..camera import read_kitti_calib
 from ..io import IMAGE_EXTENSIONS, read_image
 
 __all__ = [
@@ -39,8 +38,6 @@ __all__ = [
     "KittiObject",
     "KittiDataset",
     "read_kitti_labels",
-    "read_kitti_calib",
-    "camera_intrinsics",
     "collate_keep_sizes",
 ]
 
@@ -191,7 +188,7 @@ class KittiDataset(torch.utils.data.Dataset):
     - ``truncated``: ``float32`` ``Tensor[N]`` in [0, 1]; ``occluded``: ``int64``
       ``Tensor[N]`` in {0, 1, 2, 3} (KITTI's difficulty cues).
     - ``image_id``: ``str``, the file stem; ``path``: ``str``, the image file.
-    - ``calib``: ``dict[str, Tensor]`` from :func:`read_kitti_calib` (``P2`` is
+    - ``calib``: ``dict[str, Tensor]`` from :func:`~reeb_torch.camera.read_kitti_calib` (``P2`` is
       ``float64`` ``Tensor[3, 4]``), or ``None`` without a calib folder.
     """
 

@@ -10,7 +10,7 @@ Conventions, kept in every function:
   them is ``>= t`` (Hosang et al., "What makes for effective detection proposals?",
   TPAMI 2016). IoU is :func:`torchvision.ops.box_iou`; degenerate boxes give IoU 0.
 - Recall is counted over objects. *Micro* recall pools all objects of all images (the
-  paper's Table 3 number, NOTES #16). *Per-class* recall counts the objects of one class;
+  paper's Table 3 number). *Per-class* recall counts the objects of one class;
   the *class mean* averages the per-class recalls over the classes that have at least one
   object (a class with none has an undefined recall, ``nan``, and is left out).
 - Images with no ground truth contribute nothing.

@@ -7,7 +7,7 @@
     reeb propose images/ --out p.jsonl --resume   # after an interruption: only what is missing
     reeb show                            # the bundled sample, explained: reeb_show.png
     reeb show frame.png --label frame.txt --top 30 --out frame_reeb.png
-    reeb eval ../shared/data/kitti --limit 20     # the paper's Table 3 (reeb_torch.eval.table3)
+    reeb eval data/kitti --limit 20               # the paper's Table 3 (reeb_torch.eval.command)
     reeb calibrate my_frames/ -o camera.json      # horizon and camera height from labelled boxes
     reeb tune my_frames/ --config camera.json -o tuned.json --trials 50 --storage sqlite:///tune.db
 
@@ -17,15 +17,15 @@ images found, output not writable, or being written by another run — all check
 any work); 130 interrupted (what was done is saved; ``--resume`` continues).
 
 Each command checks its options and hands on: ``propose`` to :mod:`.propose_local` or
-:mod:`.propose_ray`, ``export`` to :mod:`.export`, ``eval`` to :mod:`reeb_torch.eval.table3`;
+:mod:`.propose_ray`, ``export`` to :mod:`.export`, ``eval`` is :mod:`reeb_torch.eval.command`;
 what they share (errors, settings, device, summary lines) is :mod:`.common`.
 """
 
 from __future__ import annotations
 
-from . import _ctrl_c
+from . import ctrl_c
 
-_BEFORE = _ctrl_c.exit_at_once()  # while this module's imports load (~0.5 s): see the end of the file
+_BEFORE = ctrl_c.exit_at_once()  # while this module's imports load (~0.5 s): see the end of the file
 
 import os  # noqa: E402
 import shlex  # noqa: E402
@@ -73,7 +73,7 @@ def config_options(f):
 # -- the command group -------------------------------------------------------------------
 
 class _Reeb(click.Group):
-    """The ``reeb`` group: a Ctrl-C at any time (:mod:`._ctrl_c`) exits 130 with one line and
+    """The ``reeb`` group: a Ctrl-C at any time (:mod:`.ctrl_c`) exits 130 with one line and
     no traceback, as an interrupted run does, instead of click's "Aborted!" and exit 1 or
     Python's traceback; once the command has finished, with its exit code (when the process
     is the command's: ``main()`` reads ``sys.argv``)."""
@@ -81,20 +81,20 @@ class _Reeb(click.Group):
     program = False  # this process runs the command line it was started with
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
-        before = _ctrl_c.exit_at_once()  # options parsed, nothing done yet
+        before = ctrl_c.exit_at_once()  # options parsed, nothing done yet
         type(self).program = args is None and standalone_mode
         try:
             return super().main(args, prog_name, complete_var, standalone_mode, **extra)
         except SystemExit as e:
             if self.program:  # --help, --version and usage errors too
-                _ctrl_c.exits_with(_ctrl_c.exit_code(e))
+                ctrl_c.exits_with(ctrl_c.exit_code(e))
             raise
         finally:
             if not self.program:  # called from Python (a test, a script): as it was
-                _ctrl_c.restore(before)
+                ctrl_c.restore(before)
 
     def invoke(self, ctx: click.Context):
-        _ctrl_c.interrupts()  # the runs catch KeyboardInterrupt to save what is done
+        ctrl_c.interrupts()  # the runs catch KeyboardInterrupt to save what is done
         ended: BaseException | None = None
         try:
             return super().invoke(ctx)
@@ -107,9 +107,9 @@ class _Reeb(click.Group):
             raise
         finally:
             if self.program:
-                _ctrl_c.exits_with(_ctrl_c.exit_code(ended))
+                ctrl_c.exits_with(ctrl_c.exit_code(ended))
             else:
-                _ctrl_c.exit_at_once()  # the rest of main(); it puts back the caller's handler
+                ctrl_c.exit_at_once()  # the rest of main(); it puts back the caller's handler
 
 
 @click.group(cls=_Reeb, context_settings=CONTEXT)
@@ -239,7 +239,7 @@ def show(image, label, no_label, top, out, preset, config_file, sets, top_k, dev
     their share of the proposal budget; the top proposals, coloured by rank, with the
     ground-truth boxes (and each one's best IoU over all proposals).
     """
-    from .batch import file_error, hint_names
+    from .rows import file_error, hint_names
     from ..io import read_image
 
     cfg = build_config(preset, config_file, sets, top_k)
@@ -306,41 +306,9 @@ def show(image, label, no_label, top, out, preset, config_file, sets, top_k, dev
 
 # -- reeb eval ---------------------------------------------------------------------------
 
-@main.command(context_settings=dict(CONTEXT, ignore_unknown_options=True))
-@click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
-@click.option("-o", "--out", type=click.Path(file_okay=False), default="runs/table3",
-              show_default=True, help="Folder for the table, CSV/JSON and plots.")
-@click.option("--methods", help="Comma-separated methods (see python -m reeb_torch.eval --help).")
-@click.argument("args", nargs=-1, type=click.UNPROCESSED, metavar="KITTI_DIR... [TABLE3 OPTIONS]")
-def eval(args, limit, out, methods):  # noqa: A001 - the command's name
-    """Recall table (the paper's Table 3) and plots on KITTI-format folders: every table for
-    each folder and for all of them together.
+from ..eval.command import main as _eval  # noqa: E402 - a click command: imports click only
 
-    Runs reeb_torch.eval.table3 (as benchmarks/table3.py does). The folders come first;
-    further options (e.g. --frames 0:39 40:59, --max-proposals 1000, --batch 8) are passed
-    on to it.
-    """
-    from ..eval import table3 as table3_module
-
-    n = next((i for i, a in enumerate(args) if a.startswith("-")), len(args))
-    kitti_dirs, extra = args[:n], args[n:]
-    if not kitti_dirs:
-        raise click.UsageError("give one or more KITTI-format folders (KITTI_DIR...) before other options")
-    for d in kitti_dirs:
-        if not Path(d).is_dir():
-            raise click.UsageError(f"KITTI_DIR {d!r} is not a folder")
-    argv = ["--data", *kitti_dirs, "--out", str(out)]
-    if limit:
-        argv += ["--limit", str(limit)]
-    if methods:
-        argv += ["--methods", *[m.strip() for m in methods.split(",") if m.strip()]]
-    argv += list(extra)
-    try:
-        table3_module.main(argv, prog="python -m reeb_torch.eval")
-    except SystemExit as e:  # argparse errors (2), --help (0), or a message: exit 1
-        if e.code is None or isinstance(e.code, int):
-            sys.exit(e.code or 0)
-        raise Failure(" ".join(str(e.code).split()))
+main.add_command(_eval, "eval")
 
 
 # -- reeb export -------------------------------------------------------------------------
@@ -563,7 +531,7 @@ from .detect import detect as _detect, detector as _detector  # noqa: E402
 main.add_command(_detector)
 main.add_command(_detect)
 
-_ctrl_c.restore(_BEFORE)  # the command's imports are done; main() takes over
+ctrl_c.restore(_BEFORE)  # the command's imports are done; main() takes over
 
 if __name__ == "__main__":
     main()

@@ -2,8 +2,8 @@
 the command line, the device, the bundled sample, and the closing summary's lines.
 
 The command (:mod:`.cli`), the local run (:mod:`.propose_local`) and the Ray run
-(:mod:`.propose_ray`) import this module; the libraries they call (:mod:`.batch`,
-:mod:`.distributed`, :mod:`.export`, :mod:`.viz`) import none of them.
+(:mod:`.propose_ray`) import this module; the libraries they call (:mod:`.rows`,
+:mod:`.output_files`, :mod:`.distributed`, :mod:`.export`, :mod:`.viz`, ...) import none of them.
 """
 
 from __future__ import annotations

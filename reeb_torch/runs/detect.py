@@ -7,9 +7,9 @@
     reeb detector show det.safetensors                         # what it was trained on, its scores
     reeb detect images/ --detector det.safetensors -o dets.jsonl --kitti-dir out/ --viz pics/
 
-``reeb detect`` runs as ``reeb propose`` does (:mod:`.batch`): images found in files, folders
-and globs, decoded in worker processes, one row per image in input order (a file that cannot
-be read becomes an ``error:`` row and the run goes on), the output written to a temporary
+``reeb detect`` runs as ``reeb propose`` does (:mod:`.inputs`, :mod:`.decoding`, :mod:`.rows`,
+:mod:`.output_files`, :mod:`.output_lock`): images found in files, folders and globs, decoded
+in worker processes, one row per image in input order (a file that cannot be read becomes an ``error:`` row and the run goes on), the output written to a temporary
 file and renamed into place, a lock against a second run on it, a progress bar; ``--resume``
 keeps the rows the same detector wrote and detects only on the images missing. Rows have
 ``reeb propose``'s schema: ``boxes`` (the detections, xyxy pixels, best first), ``scores``,
@@ -261,12 +261,12 @@ class _DetectRun:
         """Detect on every image, a row each in input order; False when interrupted."""
         from tqdm import tqdm
 
-        from . import batch as B
+        from .decoding import decoded_images
 
         self.names = _unique_names(images)
         bar = tqdm(total=len(images), desc="detect", unit="img", disable=self.quiet)
         try:
-            for chunk in _chunks(B.decoded_images(images, workers, quiet=self.quiet), batch_size):
+            for chunk in _chunks(decoded_images(images, workers, quiet=self.quiet), batch_size):
                 rows = self._chunk(chunk)
                 if writer is not None:
                     writer.write(rows)
@@ -280,7 +280,7 @@ class _DetectRun:
         return True
 
     def _chunk(self, chunk: list[Any]) -> list[dict]:
-        from . import batch as B
+        from .rows import error_row, file_error
 
         good = [it for it in chunk if it.ok]
         try:
@@ -296,11 +296,11 @@ class _DetectRun:
             if isinstance(r, dict):
                 rows.append(self._finish(it, r))
             else:
-                message = r if isinstance(r, str) else B.file_error(it.path, r)
+                message = r if isinstance(r, str) else file_error(it.path, r)
                 self.failures.append(message)
                 if not self.quiet:
                     click.echo(f"error: {message}", err=True)
-                rows.append(B.error_row(it.path, message, self.det_id, it.size))
+                rows.append(error_row(it.path, message, self.det_id, it.size))
         return rows
 
     def _one(self, it: Any) -> Any:
@@ -311,7 +311,7 @@ class _DetectRun:
 
     def _finish(self, it: Any, out: dict) -> dict:
         from ..detection import write_results
-        from . import batch as B
+        from .rows import result_row
         from .viz import save_png
 
         keep = out["scores"] >= self.min_score
@@ -332,7 +332,7 @@ class _DetectRun:
         except OSError as e:
             raise Failure(f"{e.filename or stem}: cannot write ({e.strerror or e})") from None
         h, w = it.image.shape[-2:]
-        return B.result_row(it.path, w, h, out["boxes"], out["scores"], self.det_id, labels=names)
+        return result_row(it.path, w, h, out["boxes"], out["scores"], self.det_id, labels=names)
 
     def summary(self, n_images: int, wall: float) -> list[str]:
         done = self.ok + len(self.failures)
@@ -385,11 +385,12 @@ class _InOrder:
 def _resume_rows(out: str, det_id: str, images: Sequence[Path]) -> tuple[list[dict], list[dict | None]]:
     """The ``ok`` rows of ``out`` made by this detector: those of files not among ``images``,
     and per input its row or ``None`` (to compute)."""
-    from . import batch as B
+    from .output_files import OutputError, read_results
+    from .rows import row_key
 
     try:
-        rows, problems = B.read_results(out)
-    except B.OutputError as e:
+        rows, problems = read_results(out)
+    except OutputError as e:
         raise UsageProblem(str(e))
     for p in problems:
         click.echo(f"warning: {p}", err=True)
@@ -400,8 +401,8 @@ def _resume_rows(out: str, det_id: str, images: Sequence[Path]) -> tuple[list[di
                            f"{det_id}); use another --out, or --overwrite")
     by_key: dict[str, dict] = {}
     for r in ok:
-        by_key.setdefault(str(r.get("resolved") or B.row_key(str(r["image"]))), r)
-    keys = [B.row_key(p) for p in images]
+        by_key.setdefault(str(r.get("resolved") or row_key(str(r["image"]))), r)
+    keys = [row_key(p) for p in images]
     inputs = set(keys)
     first = [r for k, r in by_key.items() if k not in inputs]
     return first, [by_key.get(k) for k in keys]
@@ -462,14 +463,17 @@ def detect(paths, detector_path, out, overwrite, resume, kitti_dir, viz_dir, min
     """Run a trained detector on images (PATHS: files, folders or globs) and write its
     detections: rows to OUT, KITTI result files to --kitti-dir, pictures to --viz.
     """
-    from . import batch as B
+    from .decoding import default_workers
+    from .inputs import NoImagesError, scan_images
+    from .output_files import OutputError, check_output, open_writer
+    from .output_lock import lock_output
 
     if not (out or kitti_dir or viz_dir):
         raise UsageProblem("nothing to write: give -o/--out, --kitti-dir or --viz")
     det, det_id, dev = _load_detector(detector_path, device)
     try:
-        found = B.scan_images(paths, recursive)
-    except B.NoImagesError as e:
+        found = scan_images(paths, recursive)
+    except NoImagesError as e:
         raise UsageProblem(str(e))
     for n in found.notes if not quiet else ():
         click.echo(f"note: {n}", err=True)
@@ -478,9 +482,9 @@ def detect(paths, detector_path, out, overwrite, resume, kitti_dir, viz_dir, min
         raise UsageProblem("--resume needs --out (the file to continue)")
     if out:
         try:
-            B.check_output(out)
-            lock = B.lock_output(out)
-        except B.OutputError as e:
+            check_output(out)
+            lock = lock_output(out)
+        except OutputError as e:
             raise UsageProblem(str(e))
         click.get_current_context().call_on_close(lock.release)
         if Path(out).exists() and resume and not overwrite:
@@ -492,10 +496,10 @@ def detect(paths, detector_path, out, overwrite, resume, kitti_dir, viz_dir, min
     kitti, viz = _out_folder(kitti_dir, "--kitti-dir"), _out_folder(viz_dir, "--viz")
     run = _DetectRun(det, det_id, dev, kitti, viz, min_score, viz_min_score, quiet)
     t0 = time.perf_counter()
-    writer = B.open_writer(out) if out else None
+    writer = open_writer(out) if out else None
     try:
         ordered = _InOrder(writer, first, kept) if writer is not None else None
-        finished = run.run(images, B.default_workers() if workers is None else workers, batch_size, ordered)
+        finished = run.run(images, default_workers() if workers is None else workers, batch_size, ordered)
         if ordered is not None:
             ordered.rest()
         saved = writer.commit() if writer is not None else None

@@ -1,23 +1,24 @@
 """Scale-out on Ray Data: the ``reeb propose`` pipeline over a local machine or a cluster.
 
-The pipeline reads top to bottom, like the single-machine one in :mod:`reeb_torch.runs.batch`:
+The pipeline reads top to bottom, like the single-machine one
+(:mod:`reeb_torch.runs.propose_local`):
 
 1. :func:`paths_dataset` turns image paths into a ``ray.data.Dataset`` with one row per
    path (column ``image``: the path as given, as text; column ``open``: the absolute path
    the workers open, as bytes, so that a file name that is not UTF-8 is read as it is).
    Paths go through ``ray.data.from_items`` rather than ``ray.data.read_images``, so that
-   decoding is the project's own reader (:class:`reeb_torch.runs.batch.ImageFileDataset`:
+   decoding is the project's own reader (:class:`reeb_torch.runs.decoding.ImageFileDataset`:
    grey, RGBA and 16-bit images converted; a corrupt or non-image file becomes an
    ``error:`` row and never fails the job);
 2. :func:`propose_dataset` maps :class:`ProposalActor` over it with ``map_batches`` on an
    actor pool. Each actor holds one :class:`~reeb_torch.ProposalGenerator` and sets
    torch's thread count to the CPUs it reserved. Its rows are built by
-   :func:`reeb_torch.runs.batch.result_row` / :func:`~reeb_torch.runs.batch.error_row` and typed by
-   :meth:`reeb_torch.runs.batch.ParquetWriter.schema`, so they are exactly what ``reeb propose``
+   :func:`reeb_torch.runs.rows.result_row` / :func:`~reeb_torch.runs.rows.error_row` and typed by
+   :meth:`reeb_torch.runs.output_files.ParquetWriter.schema`, so they are exactly what ``reeb propose``
    writes (image, width, height, boxes, scores, status, config);
 3. :func:`write_results` writes them with Ray's Parquet writer (``Dataset.write_parquet``)
-   into a folder; :func:`read_result_dir` (:mod:`reeb_torch.runs.batch`, re-exported here)
-   reads such a folder back (for ``--resume``, the summary and ``reeb export``).
+   into a folder; :func:`reeb_torch.runs.output_files.read_result_dir` reads such a folder
+   back (for ``--resume``, the summary and ``reeb export``).
 
 ``reeb propose --engine ray`` is :mod:`reeb_torch.runs.propose_ray`, which calls this module;
 this module does not import the command line.
@@ -38,7 +39,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterable, Sequence, cast
 
 from ..config import ReebConfig
-from .batch import read_result_dir, result_files
+from .output_files import result_files
 
 if TYPE_CHECKING:  # pragma: no cover
     import ray.data
@@ -54,8 +55,6 @@ __all__ = [
     "ProposalActor",
     "propose_dataset",
     "write_results",
-    "result_files",
-    "read_result_dir",
     "prune_rows",
     "set_aside_unfinished",
 ]
@@ -109,10 +108,10 @@ def torch_threads(cpus: float) -> int:
 
 def match_key(path: str | os.PathLike) -> str:
     """The absolute path that rows are matched on for ``--resume``: the single-machine
-    path's :func:`reeb_torch.runs.batch.resolved_path` (symlinks resolved) when it has one."""
-    from . import batch as B
+    path's :func:`reeb_torch.runs.rows.resolved_path` (symlinks resolved)."""
+    from .rows import resolved_path
 
-    return getattr(B, "resolved_path", os.path.abspath)(path)
+    return resolved_path(path)
 
 
 def row_key(row: dict) -> str:
@@ -122,7 +121,7 @@ def row_key(row: dict) -> str:
 
 def paths_dataset(paths: Iterable[str | os.PathLike]) -> "ray.data.Dataset":
     """A dataset of image paths: columns ``image`` (the path as given, as text:
-    :func:`reeb_torch.runs.batch.text_path`) and ``open`` (:func:`match_key`, as bytes:
+    :func:`reeb_torch.runs.rows.text_path`) and ``open`` (:func:`match_key`, as bytes:
     ``os.fsencode``).
 
     Relative paths are resolved against the caller's working folder here, in the driver,
@@ -130,10 +129,10 @@ def paths_dataset(paths: Iterable[str | os.PathLike]) -> "ray.data.Dataset":
     that is not UTF-8 is ``image`` in the rows' ``\\xNN`` form and read from the exact bytes
     of ``open`` (both columns plain Arrow types, never pickled Python objects).
     """
-    from . import batch as B
+    from .rows import text_path
 
     ray = require_ray()
-    items = [{"image": B.text_path(p), "open": os.fsencode(match_key(p))} for p in paths]
+    items = [{"image": text_path(p), "open": os.fsencode(match_key(p))} for p in paths]
     if not items:
         raise ValueError("no image paths given")
     # several blocks, so that several actors get work (one block goes to one actor)
@@ -148,7 +147,7 @@ class ProposalActor:
     A batch is a dict of numpy arrays with column ``image`` (the path written in the row)
     and, optionally, ``open`` (the path to read, ``str`` or ``bytes``; defaults to
     ``image``). Returns a ``pyarrow.Table`` with one row per input path, typed by
-    :meth:`reeb_torch.runs.batch.ParquetWriter.schema`. Images of equal size are computed
+    :meth:`reeb_torch.runs.output_files.ParquetWriter.schema`. Images of equal size are computed
     together, as in ``reeb propose``; a batch that fails is redone one image at a time so
     that only the culprit gets an ``error:`` row.
     """
@@ -174,18 +173,19 @@ class ProposalActor:
         self.gen = ProposalGenerator(self.config).to(self.device).eval()
 
     def _decode(self, shown: str, opened: str):
-        from . import batch as B
+        from .decoding import ImageFileDataset
+        from .rows import text_path
 
-        item = B.ImageFileDataset([opened], min_side=self.config.min_window)[0]
+        item = ImageFileDataset([opened], min_side=self.config.min_window)[0]
         item.path = shown
         if item.error is not None and opened != shown:
-            item.error = item.error.replace(B.text_path(opened), shown).replace(opened, shown)
+            item.error = item.error.replace(text_path(opened), shown).replace(opened, shown)
         return item
 
     def _run(self, items: list) -> list[dict]:
         import torch
 
-        from . import batch as B
+        from .rows import hint_names, result_row
 
         x = torch.stack([it.image for it in items]).to(self.device)
         with torch.no_grad():
@@ -193,8 +193,8 @@ class ProposalActor:
         rows = []
         for it, r in zip(items, results):
             h, w = it.image.shape[-2:]
-            rows.append(B.result_row(it.path, w, h, r["boxes"].cpu(), r["scores"].cpu(),
-                                     self.fingerprint, labels=B.hint_names(self.gen.classes, r.get("labels"))))
+            rows.append(result_row(it.path, w, h, r["boxes"].cpu(), r["scores"].cpu(),
+                                   self.fingerprint, labels=hint_names(self.gen.classes, r.get("labels"))))
         return rows
 
     @staticmethod
@@ -202,23 +202,24 @@ class ProposalActor:
         # a relative path resolved here would name a file in the worker's folder: the
         # driver resolved it (column ``open``)
         if "resolved" in row:
-            from . import batch as B
+            from .rows import text_path
 
-            row["resolved"] = B.text_path(opened)
+            row["resolved"] = text_path(opened)
         return row
 
     def rows(self, shown: Sequence[str], opened: Sequence[str]) -> list[dict]:
         """The result rows for ``shown`` paths read from ``opened``, in input order."""
-        from . import batch as B
+        from .decoding import size_batches
+        from .rows import error_row, file_error
 
         items = [self._decode(str(s), str(o)) for s, o in zip(shown, opened)]
         for i, it in enumerate(items):
             it.index = i
         out: list[dict | None] = [None] * len(items)
-        for group in B.size_batches(items, self.group_size):
+        for group in size_batches(items, self.group_size):
             if not group[0].ok:
-                out[group[0].index] = B.error_row(group[0].path, group[0].error or "", self.fingerprint,
-                                                  getattr(group[0], "size", None))
+                out[group[0].index] = error_row(group[0].path, group[0].error or "", self.fingerprint,
+                                                getattr(group[0], "size", None))
                 continue
             try:
                 rows = self._run(group)
@@ -230,8 +231,8 @@ class ProposalActor:
                     except (ValueError, TypeError, RuntimeError) as e:
                         assert it.image is not None  # an ok item holds its image
                         h, w = it.image.shape[-2:]
-                        rows.append(B.error_row(it.path, B.file_error(it.path, e),
-                                                self.fingerprint, (w, h)))
+                        rows.append(error_row(it.path, file_error(it.path, e),
+                                              self.fingerprint, (w, h)))
             for it, row in zip(group, rows):
                 out[it.index] = row
         return [self._resolved(cast(dict, r), str(o)) for r, o in zip(out, opened)]  # every row is set
@@ -239,7 +240,7 @@ class ProposalActor:
     def __call__(self, batch: dict) -> Any:
         import pyarrow as pa
 
-        from .batch import ParquetWriter
+        from .output_files import ParquetWriter
 
         shown = [_path_text(s) for s in batch["image"]]
         opened = [_path_text(o) for o in batch["open"]] if "open" in batch else shown

@@ -47,12 +47,12 @@ class ExportError(ValueError):
 
 def read_rows(results: str | os.PathLike) -> list[dict]:
     """The rows of a results file (``.jsonl``/``.parquet``) or a folder of Parquet files."""
-    from . import batch as B
+    from .output_files import OutputError, read_result_dir, read_results
 
     p = Path(results)
     if p.is_dir():
         try:
-            rows = B.read_result_dir(p)
+            rows = read_result_dir(p)
         except OSError as e:
             raise ExportError(str(e)) from e
         if not rows:
@@ -61,8 +61,8 @@ def read_rows(results: str | os.PathLike) -> list[dict]:
     if not p.exists():
         raise ExportError(f"{p}: no such file or folder")
     try:
-        rows, problems = B.read_results(p)
-    except B.OutputError as e:
+        rows, problems = read_results(p)
+    except OutputError as e:
         raise ExportError(str(e)) from e
     if problems:
         raise ExportError(f"{p}: not a clean results file: {problems[0]}")
@@ -143,7 +143,7 @@ def _numbers(value) -> bool:
 
 def check_row(row: object, n: int) -> None:
     """Raise :class:`ExportError` naming row ``n`` (1-based) and its image unless ``row``
-    follows the row schema (:mod:`reeb_torch.runs.batch`): a dict with ``image`` (str) and
+    follows the row schema (:mod:`reeb_torch.runs.rows`): a dict with ``image`` (str) and
     ``status`` (str); with status ``ok`` also ``boxes``, a list of ``[x1, y1, x2, y2]``
     (4 finite numbers each), and ``scores``, one finite number per box."""
     if not isinstance(row, dict) or not isinstance(row.get("image"), str):
@@ -203,7 +203,7 @@ def detectron2_proposals(rows: Iterable[dict], id_map: Mapping[str, object] | No
 
 def write_detectron2(proposals: dict, out: str | os.PathLike) -> Path:
     """Pickle ``proposals`` to ``out`` (through a temporary file renamed into place)."""
-    from .batch import hidden_stem
+    from .output_files import hidden_stem
 
     out = Path(out)
     tmp = out.with_name(f"{hidden_stem(out)}.tmp")

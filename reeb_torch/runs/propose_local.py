@@ -4,7 +4,8 @@
 or the bundled sample), the output checked and locked before any work (with ``--resume``,
 the rows kept from before, :class:`_ResumePlan`), the run (decoding in DataLoader workers
 beside the algorithm, batches of equal-sized images, a failed image becomes an ``error:``
-row), and the closing summary. The building blocks are :mod:`.batch`; the Ray engine is
+row), and the closing summary. The building blocks are :mod:`.inputs`, :mod:`.decoding`,
+:mod:`.rows`, :mod:`.output_files`, :mod:`.output_lock` and :mod:`.ctrl_c`; the Ray engine is
 :mod:`.propose_ray`.
 """
 
@@ -19,7 +20,6 @@ from typing import Any, Sequence
 
 import click
 
-from . import batch as B
 from .common import (
     Failure,
     UsageProblem,
@@ -33,6 +33,20 @@ from .common import (
     read_labels,
     resolve_device,
 )
+from .ctrl_c import CriticalSection, caused_by_interrupt
+from .decoding import decoded_images, default_workers, size_batches
+from .inputs import NoImagesError, same_file_note, scan_images
+from .output_files import (
+    OutputError,
+    check_output,
+    open_writer,
+    output_format,
+    read_partial_results,
+    read_results,
+    stale_temp_files,
+)
+from .output_lock import lock_output
+from .rows import error_row, file_error, hint_names, result_row, row_key, text_path
 
 __all__ = ["propose_local"]
 
@@ -65,7 +79,7 @@ class _LocalRun:
         self.cfg = build_config(preset, config_file, sets, top_k)
         self.dev = resolve_device(device)
         self.fingerprint = self.cfg.fingerprint()
-        self.workers = B.default_workers() if workers is None else workers
+        self.workers = default_workers() if workers is None else workers
         self.out, self.batch_size, self.viz_top = out, batch_size, viz_top
         self.summary_json, self.quiet = summary_json, quiet
         self.echo_err = (lambda m: None) if quiet else (lambda m: click.echo(m, err=True))
@@ -83,8 +97,8 @@ class _LocalRun:
         """The images (the bundled sample without ``paths``); a usage error when there are none."""
         self.sample_mode = not paths
         try:
-            found = B.scan_images([bundled_sample()] if self.sample_mode else paths, recursive)
-        except B.NoImagesError as e:
+            found = scan_images([bundled_sample()] if self.sample_mode else paths, recursive)
+        except NoImagesError as e:
             raise UsageProblem(str(e))
         for n in found.notes:
             self.echo_err(f"note: {n}")
@@ -107,10 +121,10 @@ class _LocalRun:
         if os.path.islink(out):  # write the file the link points to (and lock that one), keep the link
             out = self.out = os.path.realpath(out)
         try:
-            B.check_output(out)
+            check_output(out)
             # one writer per output: a second run fails here, before any work (exit 2)
-            lock = B.lock_output(out)
-        except B.OutputError as e:
+            lock = lock_output(out)
+        except OutputError as e:
             raise UsageProblem(str(e))
         click.get_current_context().call_on_close(lock.release)
         exists = Path(out).exists()
@@ -127,11 +141,11 @@ class _LocalRun:
         the lock: none is live); files with nothing to keep are removed."""
         out = self.out
         assert out is not None  # only with an output file
-        stale = B.stale_temp_files(out)
+        stale = stale_temp_files(out)
         stale_rows: list[dict] = []
         if stale and not overwrite:
             for t in stale:
-                got, problems = B.read_partial_results(t, B.output_format(out))
+                got, problems = read_partial_results(t, output_format(out))
                 stale_rows += got
                 for p in problems:
                     self.echo_err(f"warning: {p}")
@@ -154,8 +168,8 @@ class _LocalRun:
         rows: list[dict] = []
         if exists:
             try:
-                rows, problems = B.read_results(out)
-            except B.OutputError as e:
+                rows, problems = read_results(out)
+            except OutputError as e:
                 raise UsageProblem(str(e))
             for p in problems:
                 self.echo_err(f"warning: {p}")
@@ -185,8 +199,8 @@ class _LocalRun:
         if viz_path is not None:
             try:
                 viz_path.mkdir(parents=True, exist_ok=True)
-                B.check_output(viz_path / "probe.jsonl")
-            except (OSError, B.OutputError) as e:
+                check_output(viz_path / "probe.jsonl")
+            except (OSError, OutputError) as e:
                 raise UsageProblem(f"--viz {viz_path}: cannot write pictures there "
                                    f"({getattr(e, 'strerror', None) or e})")
         sample_png = Path("reeb_proposals.png") if self.sample_mode and viz_path is None else None
@@ -213,14 +227,14 @@ class _LocalRun:
             raise UsageProblem(f"the settings are not usable: {' '.join(str(e).split())}")
         self.compile_s, self.sized, self.size_warm_s = self._warm_up(), False, 0.0
         try:
-            self.writer = B.open_writer(self.out) if self.out else None
-        except B.OutputError as e:
+            self.writer = open_writer(self.out) if self.out else None
+        except OutputError as e:
             raise UsageProblem(str(e))
         if self.writer is not None:
             # an unexpected error or exit must not leave the temporary file behind
             click.get_current_context().call_on_close(self.writer.discard)
             self._write(self.plan.first_rows)
-        self.cs = B.CriticalSection()  # a row is written whole, and counted, or not at all
+        self.cs = CriticalSection()  # a row is written whole, and counted, or not at all
         images = self.images
         label = label_for(images[0]) if self.sample_mode else None
         self.gt = read_labels(label) if label else None
@@ -230,15 +244,15 @@ class _LocalRun:
         self.bar = tqdm(total=len(images), unit="img", disable=True if self.quiet else None, file=sys.stderr,
                         dynamic_ncols=True, desc="reeb propose")
         self.t_start = time.perf_counter()
-        stream = B.decoded_images(images, workers=self.workers, min_side=self.cfg.min_window,
+        stream = decoded_images(images, workers=self.workers, min_side=self.cfg.min_window,
                                   prefetch=self.batch_size, pin_memory=self.dev.type == "cuda", quiet=self.quiet)
         self.previous_handlers = self.cs.install()  # Ctrl-C, and a polite kill (SIGTERM) treated like it
         try:
             self._batches(stream)
         except KeyboardInterrupt:
             self.interrupted = True
-        except Exception as e:  # a Ctrl-C that a library wrapped on its way out (B.caused_by_interrupt)
-            if not B.caused_by_interrupt(e):
+        except Exception as e:  # a Ctrl-C that a library wrapped on its way out (caused_by_interrupt)
+            if not caused_by_interrupt(e):
                 raise
             self.interrupted = True
         finally:
@@ -260,7 +274,7 @@ class _LocalRun:
         stats = self.stats
         # max_lag: a group of a rare size waits at most this many inputs, which bounds the
         # rows held back to be written in input order
-        for group in B.size_batches(stream, self.batch_size, max_lag=max(64, 4 * self.batch_size)):
+        for group in size_batches(stream, self.batch_size, max_lag=max(64, 4 * self.batch_size)):
             if not group[0].ok:
                 self._fail(group[0], group[0].error or "")
             else:
@@ -269,7 +283,7 @@ class _LocalRun:
                 # image's fault (it stops the run, as it must)
                 for it, result in zip(group, self._compute_group(group)):
                     if isinstance(result, BaseException):
-                        self._fail(it, B.file_error(it.path, result))
+                        self._fail(it, file_error(it.path, result))
                     else:
                         self._finish(it, result)
             self.bar.update(len(group))
@@ -284,14 +298,14 @@ class _LocalRun:
         try:
             return self._run_batch(group)
         except (ValueError, TypeError, RuntimeError) as e0:
-            if B.caused_by_interrupt(e0):
+            if caused_by_interrupt(e0):
                 raise
         out: list = []
         for it in group:
             try:
                 out += self._run_batch([it])
             except (ValueError, TypeError, RuntimeError) as e1:
-                if B.caused_by_interrupt(e1):
+                if caused_by_interrupt(e1):
                     raise
                 out.append(e1)
         return out
@@ -332,21 +346,21 @@ class _LocalRun:
         with self.cs:
             self.stats["failed"] += 1
             self.failures.append(message)
-            self._emit(item.index, B.error_row(item.path, message, self.fingerprint, size or item.size))
+            self._emit(item.index, error_row(item.path, message, self.fingerprint, size or item.size))
         if not self.quiet:
             self.bar.write(f"error: {message}", file=sys.stderr)
 
     def _finish(self, item, result) -> None:
         h, w = item.image.shape[-2:]
         boxes, scores = result["boxes"].cpu(), result["scores"].cpu()
-        hints = B.hint_names(self.gen.classes, result.get("labels"))
+        hints = hint_names(self.gen.classes, result.get("labels"))
         with self.cs:
             self.stats["ok"] += 1
             self.stats["proposals"] += len(boxes)
-            self._emit(item.index, B.result_row(item.path, w, h, boxes, scores, self.fingerprint, labels=hints)
+            self._emit(item.index, result_row(item.path, w, h, boxes, scores, self.fingerprint, labels=hints)
                        if self.writer is not None else None)
         if self.print_top:
-            self.bar.write(box_table(B.text_path(item.path), (w, h), boxes, scores, self.print_top, len(boxes),
+            self.bar.write(box_table(text_path(item.path), (w, h), boxes, scores, self.print_top, len(boxes),
                                      hints) + "\n", file=sys.stdout)
         self._pictures(item, boxes, scores, hints)
 
@@ -416,7 +430,7 @@ class _LocalRun:
                        interrupted=self.interrupted, failures=self.failures)
         lines = [count_line(done, stats["ok"], stats["failed"], stats["proposals"])]
         if self.same_file:
-            lines.append(B.same_file_note(self.same_file))
+            lines.append(same_file_note(self.same_file))
         summary["same_file"] = len(self.same_file)
         if done:
             lines.append(f"time: {wall:.1f} s, {ms_per_img(wall, done)} end to end; "
@@ -454,7 +468,7 @@ class _LocalRun:
 class _ResumePlan:
     """Which inputs to compute, and the output rows in input order.
 
-    Rows are matched on the resolved file (:func:`reeb_torch.runs.batch.row_key`, stored
+    Rows are matched on the resolved file (:func:`reeb_torch.runs.rows.row_key`, stored
     in each row as ``resolved``; rows of older files without it are resolved against the
     current folder), so a run from another folder, through a symlink or with an absolute
     path finds them. Per file the first ``ok`` row is kept, and other rows of it dropped;
@@ -464,8 +478,6 @@ class _ResumePlan:
     """
 
     def __init__(self, images: Sequence[Path]) -> None:
-        from .batch import row_key
-
         self.images = list(images)
         self.keys = [row_key(p) for p in self.images]
         self.first_rows: list[dict] = []
@@ -476,8 +488,6 @@ class _ResumePlan:
 
     def keep(self, rows: Sequence[dict]) -> None:
         """Take the rows of an earlier run (the output, then a killed run's temp files)."""
-        from .batch import row_key
-
         def key(r: dict) -> str:
             return str(r.get("resolved") or row_key(str(r["image"])))
 

@@ -18,7 +18,6 @@ from typing import Callable, Sequence
 
 import click
 
-from . import batch as B
 from . import distributed as D
 from .common import (
     Failure,
@@ -29,6 +28,10 @@ from .common import (
     ms_per_img,
     resolve_device,
 )
+from .inputs import NoImagesError, same_file_note, scan_images
+from .output_files import OutputError, check_output, read_result_dir, result_files
+from .output_lock import lock_output
+from .rows import row_key
 
 __all__ = ["propose_ray"]
 
@@ -81,8 +84,8 @@ class _RayRun:
         if not paths:
             raise UsageProblem("--engine ray needs PATHS (images, folders or glob patterns)")
         try:
-            found = B.scan_images(paths, recursive)
-        except B.NoImagesError as e:
+            found = scan_images(paths, recursive)
+        except NoImagesError as e:
             raise UsageProblem(str(e))
         for n in found.notes:
             self.echo_err(f"note: {n}")
@@ -98,7 +101,7 @@ class _RayRun:
             for f in D.set_aside_unfinished(out_dir):
                 self.echo_err(f"warning: {f}: a Parquet file an interrupted run left unfinished; set "
                               "aside (its images are computed again)")
-        existing = D.result_files(out_dir) if out_dir.is_dir() else []
+        existing = result_files(out_dir) if out_dir.is_dir() else []
         if existing and not (resume or overwrite):
             raise UsageProblem(f"{out} holds results; add --resume to continue it or --overwrite to "
                                "replace it")
@@ -116,8 +119,8 @@ class _RayRun:
             return False
         try:
             out_dir.mkdir(parents=True, exist_ok=True)
-            B.check_output(out_dir / "probe.parquet")
-        except (OSError, B.OutputError) as e:
+            check_output(out_dir / "probe.parquet")
+        except (OSError, OutputError) as e:
             raise UsageProblem(f"{out}: cannot write there ({getattr(e, 'strerror', None) or e})")
         return True
 
@@ -125,7 +128,7 @@ class _RayRun:
         """``--resume``: skip the images with an ``ok`` row in the folder; False if none is left."""
         out = self.out
         try:
-            rows = D.read_result_dir(self.out_dir)
+            rows = read_result_dir(self.out_dir)
         except OSError as e:
             raise UsageProblem(f"cannot read {out} for --resume: {e}")
         other = {r.get("config") for r in rows if r.get("status") == "ok"} - {self.fingerprint}
@@ -136,7 +139,7 @@ class _RayRun:
         done = {D.row_key(r) for r in rows if r.get("status") == "ok"}
         self.kept = len(done)
         before = len(self.images)
-        self.images = [p for p in self.images if B.row_key(p) not in done]
+        self.images = [p for p in self.images if row_key(p) not in done]
         self.echo_err(f"resume: {self.kept} images already in {out}, {before - len(self.images)} of them among "
                       f"the inputs; {len(self.images)} to do")
         if not self.images:
@@ -162,9 +165,9 @@ class _RayRun:
                                "Parquet files")
         try:
             out_dir.absolute().parent.mkdir(parents=True, exist_ok=True)
-            lock = B.lock_output(out_dir)
-        except (OSError, B.OutputError) as e:
-            raise UsageProblem(str(e) if isinstance(e, B.OutputError) else
+            lock = lock_output(out_dir)
+        except (OSError, OutputError) as e:
+            raise UsageProblem(str(e) if isinstance(e, OutputError) else
                                f"{out}: cannot write there ({e.strerror or e})")
         return lock.release
 
@@ -205,7 +208,7 @@ class _RayRun:
     def compute(self) -> None:
         """Run the dataset into the folder, then read back the rows this run wrote."""
         out_dir = self.out_dir
-        before_files = set(D.result_files(out_dir))
+        before_files = set(result_files(out_dir))
         ds = D.propose_dataset(self.images, self.cfg, actors=self.actors, cpus_per_actor=self.cpus,
                                batch_size=self.batch_size, device=str(self.dev))
         t1 = time.perf_counter()
@@ -218,8 +221,8 @@ class _RayRun:
             raise Failure(f"the Ray job failed: {' '.join(str(e).split())[:2000]}")
         self.wall = time.perf_counter() - t1
         if self.interrupted:  # files cut short: set aside, their images are done by --resume
-            D.set_aside_unfinished(out_dir, only=set(D.result_files(out_dir)) - before_files)
-        self.new_files = set(D.result_files(out_dir)) - before_files
+            D.set_aside_unfinished(out_dir, only=set(result_files(out_dir)) - before_files)
+        self.new_files = set(result_files(out_dir)) - before_files
         rows = []
         for f in sorted(self.new_files):
             try:
@@ -253,7 +256,7 @@ class _RayRun:
         summary["same_file"] = len(self.same_file)
         lines = [count_line(done, len(ok), len(failures), proposals)]
         if self.same_file:
-            lines.append(B.same_file_note(self.same_file))
+            lines.append(same_file_note(self.same_file))
         if done:
             lines.append(f"time: {wall:.1f} s, {ms_per_img(wall, done)} end to end ({actors} Ray actor"
                          f"{'s' if actors != 1 else ''} × {cpus:g} CPU, batch {self.batch_size}, {dev}); "

@@ -15,6 +15,10 @@ the command has finished       ends the process at once with the finished comman
                                and the default action would kill it (exit -2)
 =============================  ===============================================================
 
+While a run writes a row, :class:`CriticalSection` defers a Ctrl-C (and SIGTERM) to the end
+of the write, so a row is either wholly in the output or not at all;
+:func:`caused_by_interrupt` tells a Ctrl-C that came out wrapped in another exception.
+
 Standard library only: it is imported before anything heavy."""
 
 from __future__ import annotations
@@ -25,7 +29,8 @@ import signal
 import sys
 import threading
 
-__all__ = ["exit_at_once", "interrupts", "exits_with", "restore", "exit_code"]
+__all__ = ["exit_at_once", "interrupts", "exits_with", "restore", "exit_code", "CriticalSection",
+           "caused_by_interrupt"]
 
 
 def _main_thread() -> bool:
@@ -100,3 +105,58 @@ def exits_with(code: int) -> None:
     if _main_thread():
         _set(handler)
         _FINISHED[:] = [code]
+
+
+def caused_by_interrupt(e: BaseException) -> bool:
+    """Whether ``e`` is, or was raised while handling, a :class:`KeyboardInterrupt`: a
+    Ctrl-C that lands inside a library's own Python code can come out wrapped (numba,
+    loading a cached kernel, turns it into a ``SystemError``)."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__  # type: ignore[assignment]
+    return False
+
+
+class CriticalSection:
+    """Defers Ctrl-C (and SIGTERM) while a row is being written, so that a row is either
+    wholly in the output or not at all, and the counts in the summary match the file.
+
+    Install :meth:`handler` for SIGINT/SIGTERM; outside a ``with`` block it raises
+    :class:`KeyboardInterrupt` at once, inside it the interrupt is raised when the block
+    ends.
+    """
+
+    def __init__(self) -> None:
+        self._depth = 0
+        self._pending = False
+
+    def interrupt(self) -> None:
+        """What the signal handler does: interrupt now, or at the end of the write."""
+        if self._depth:
+            self._pending = True
+        else:
+            raise KeyboardInterrupt
+
+    def handler(self, signum: int, frame: object) -> None:
+        self.interrupt()
+
+    def install(self) -> dict:
+        """Install :meth:`handler` for SIGINT and SIGTERM; return the previous handlers."""
+        previous = {}
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.getsignal(sig)
+            signal.signal(sig, self.handler)
+        return previous
+
+    def __enter__(self) -> "CriticalSection":
+        self._depth += 1
+        return self
+
+    def __exit__(self, exc_type, *exc: object) -> None:
+        self._depth -= 1
+        if not self._depth and self._pending and exc_type is None:
+            self._pending = False
+            raise KeyboardInterrupt

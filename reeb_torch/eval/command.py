@@ -1,0 +1,195 @@
+"""``reeb eval``: the click command that computes Table 3 (:mod:`.table3`) and writes its report
+(:mod:`.report`).
+
+::
+
+    reeb eval data/kitti --limit 20                 # the first 20 frames
+    reeb eval data/kitti data/kitti_tracking --cross-validate 10 --leave-folder-out
+    reeb eval data/kitti --frames 0:39 --frames 40:59 --methods reeb-default,reeb-training-free
+
+:mod:`.methods` holds the rows and checks the options (torch is imported only when the
+table is computed). :func:`table3_command` builds the command; ``reeb eval`` takes the folders as arguments, and a
+script may make one that takes them as ``--data DIR`` with defaults of its own
+(``benchmarks/table3.py``). Bad options or unusable data exit with code 2 and a one-line
+message, before any proposal is made.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import click
+
+from .common import FrameRange, parse_frame_range, rerun_line
+from .methods import DEFAULT_METHODS, KS, Table3Error, Table3Options
+
+__all__ = ["FrameRanges", "Methods", "BadData", "table3_command", "run_table3"]
+
+CONTEXT = dict(help_option_names=["-h", "--help"], max_content_width=100)
+
+
+class BadData(click.ClickException):
+    """Options or data with which the table cannot be made: one line, exit code 2."""
+
+    exit_code = 2
+
+
+class FrameRanges(click.ParamType):
+    """``A:B`` frame ranges (both ends included; ``A:``, ``:B`` and ``A`` too), several in one
+    value separated by commas: a tuple of :class:`~reeb_torch.eval.common.FrameRange`."""
+
+    name = "A:B"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> tuple[FrameRange, ...]:
+        if isinstance(value, tuple):
+            return value
+        try:
+            return tuple(parse_frame_range(t) for t in str(value).split(","))
+        except ValueError as e:
+            self.fail(str(e), param, ctx)
+
+
+class Methods(click.ParamType):
+    """Method keys (:data:`~reeb_torch.eval.table3.DEFAULT_METHODS`), several in one value
+    separated by commas."""
+
+    name = "METHOD"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> tuple[str, ...]:
+        if isinstance(value, tuple):
+            return value
+        keys = tuple(k.strip() for k in str(value).split(",") if k.strip())
+        bad = [k for k in keys if k not in DEFAULT_METHODS]
+        if bad or not keys:
+            self.fail(f"{(bad or [value])[0]!r} is not a method; choose from {', '.join(DEFAULT_METHODS)}",
+                      param, ctx)
+        return keys
+
+
+def _flatten(_ctx: click.Context, _param: click.Parameter, value: Sequence[tuple]) -> tuple:
+    return tuple(v for group in value for v in group)
+
+
+def _options(data_default: Sequence[str | os.PathLike] | None,
+             bing_default: str | os.PathLike | None) -> list[click.Parameter]:
+    """The command's parameters; the folders are an argument without ``data_default``, else a
+    ``--data`` option with it."""
+    folders_help = ("KITTI-format folders (images/ + labels/, or image_2/ + label_2/); with several, every "
+                    "table is given for each folder and for all together")
+    if data_default is None:
+        data: click.Parameter = click.Argument(["data"], nargs=-1, required=True, metavar="KITTI_DIR...",
+                                               type=click.Path(exists=True, file_okay=False, path_type=Path))
+    else:
+        data = click.Option(["--data"], multiple=True, default=[str(d) for d in data_default], show_default=True,
+                            metavar="DIR", type=click.Path(file_okay=False, path_type=Path),
+                            help=folders_help + " (repeatable).")
+    bing_help = "Folder of BING's nine ObjNessB2W8*.yml.gz model files (opencv_contrib's saliency samples)"
+    return [
+        data,
+        click.Option(["--limit"], type=click.IntRange(min=1), help="Use only the first N frames of each folder "
+                     "(after --frames)."),
+        click.Option(["--frames"], type=FrameRanges(), multiple=True, callback=_flatten,
+                     help="Only frames whose numeric id is in these ranges (both ends included; A:, :B and A "
+                          "also work; repeatable or comma-separated, e.g. --frames 0:39,40:59); with two or "
+                          "more ranges every table is also given for each range."),
+        click.Option(["-o", "--out"], type=click.Path(file_okay=False, path_type=Path), default="runs/table3",
+                     show_default=True, help="Folder for table3.txt, table3.csv, table3.json and the plots."),
+        click.Option(["--methods"], type=Methods(), multiple=True, callback=_flatten,
+                     help=f"Rows to run, in table order (repeatable or comma-separated): "
+                          f"{', '.join(DEFAULT_METHODS)}. Default: all."),
+        click.Option(["--max-proposals"], type=int, default=max(KS), show_default=True,
+                     help=f"Proposals kept per image (at least {max(KS)})."),
+        click.Option(["--batch"], type=click.IntRange(min=0), default=8, show_default=True,
+                     help="Also time REEB in batches of this many images (0 or 1: not)."),
+        click.Option(["--exclude-fitted"], is_flag=True,
+                     help="Leave out the frames a learned ranking among the methods was fitted on (the same "
+                          "pictures, whatever their names), so that every row is an estimate."),
+        click.Option(["--cross-validate"], type=click.IntRange(min=0), default=0,
+                     metavar="FOLDS",
+                     help="Also the default ranked, on each of FOLDS blocks of frames, by a model fitted on the "
+                          "other blocks (reeb fit's folds, options and seed); the rows are then paired with "
+                          "training-free. Fits FOLDS models (about a minute for 100 frames)."),
+        click.Option(["--leave-folder-out"], is_flag=True,
+                     help="Also the default ranked, on each folder, by a model fitted on the other folders."),
+        click.Option(["--bing-model"], type=click.Path(file_okay=False, path_type=Path),
+                     default=None if bing_default is None else str(bing_default), show_default=bing_default is not None,
+                     metavar="DIR", help=bing_help + (": without it the BING row is skipped." if bing_default is None
+                                                      else ".")),
+    ]
+
+
+def _command_line(ctx: click.Context) -> str:
+    """The command line that makes the same table: the command and the parameters given
+    (not those left at their defaults)."""
+    argv: list[str] = []
+    for p in ctx.command.params:
+        value = ctx.params.get(p.name or "")
+        if isinstance(p, click.Argument):
+            argv += [str(v) for v in value]
+            continue
+        if not isinstance(p, click.Option) or ctx.get_parameter_source(p.name or "") != click.core.ParameterSource.COMMANDLINE:
+            continue
+        flag = max(p.opts, key=len)
+        if p.is_flag:
+            argv += [flag] if value else []
+            continue
+        texts = [v.text if isinstance(v, FrameRange) else str(v) for v in (value if p.multiple else [value])]
+        if isinstance(p.type, (FrameRanges, Methods)):
+            texts = [",".join(texts)]
+        for t in texts:
+            argv += [flag, t]
+    return rerun_line(ctx.command_path, argv)
+
+
+def run_table3(options: Table3Options, out: str | os.PathLike, rerun: str = "") -> dict[str, Any]:
+    """Compute the table (:func:`~reeb_torch.eval.table3.compute`), print it and write its
+    files into ``out`` (:func:`~reeb_torch.eval.report.write_report`); return the JSON record.
+
+    Raises:
+        Table3Error: the data do not allow the table (nothing is written).
+    """
+    from .report import write_report
+    from .table3 import compute
+
+    if rerun:
+        print(f"Rerun: {rerun}   (from {os.getcwd()})", flush=True)
+    Path(out).mkdir(parents=True, exist_ok=True)
+    return write_report(compute(options), out, rerun)
+
+
+def _run(data: Sequence[Path], out: Path, methods: tuple[str, ...], **given: Any) -> dict[str, Any]:
+    ctx = click.get_current_context()
+    try:
+        options = Table3Options(data=data, methods=methods or DEFAULT_METHODS, **given)
+        return run_table3(options, out, _command_line(ctx))
+    except Table3Error as e:
+        raise BadData(str(e)) from None
+
+
+def table3_command(name: str = "eval", *, data_default: Sequence[str | os.PathLike] | None = None,
+                   bing_default: str | os.PathLike | None = None) -> click.Command:
+    """The click command that computes Table 3 and writes its report; it returns the JSON
+    record (``standalone_mode=False``).
+
+    Args:
+        name: the command's name.
+        data_default: ``None``: the folders are arguments (``reeb eval KITTI_DIR...``); else
+            they are ``--data DIR`` options, these by default.
+        bing_default: the default of ``--bing-model`` (none: BING is skipped unless given).
+    """
+    return click.Command(
+        name, callback=_run, params=_options(data_default, bing_default), context_settings=CONTEXT,
+        short_help="Recall table (the paper's Table 3) and plots on KITTI-format folders.",
+        help="Recall table (the paper's Table 3) and plots on KITTI-format folders: every table for each "
+             "folder and for all of them together.\n\n"
+             "Recall at IoU 0.3 / 0.5 / 0.7 of the top 500 / 1000 / 2000 proposals of REEB and of the "
+             "classical baselines (BING, Selective Search, Edge Boxes), over all and over KITTI-moderate "
+             "objects, per class, AR, the headline's 95 % interval and each row paired with the default; "
+             "ms per image. Writes table3.txt (also printed), table3.csv, table3.json and two plots into --out.")
+
+
+main = table3_command()
+"""``reeb eval`` (also :func:`reeb_torch.eval.main`)."""

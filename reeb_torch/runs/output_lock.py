@@ -1,0 +1,93 @@
+"""One writer per output: a run holds a lock beside the output it writes
+(:func:`lock_output`), and a second run on the same output fails at once with
+:class:`OutputBusyError`."""
+
+from __future__ import annotations
+
+import errno
+import os
+from pathlib import Path
+
+from .output_files import OutputError, hidden_stem
+
+__all__ = ["OutputBusyError", "OutputLock", "lock_output"]
+
+
+class OutputBusyError(OutputError):
+    """Another process is writing the same output file (it holds the lock beside it)."""
+
+
+def _lock_path(path: str | os.PathLike) -> Path:
+    p = Path(path)
+    return p.with_name(f"{hidden_stem(p)}.lock")
+
+
+class OutputLock:
+    """An exclusive lock on an output file, held by this process (see :func:`lock_output`).
+
+    The lock is ``fcntl.flock`` on a hidden ``.<name>.lock`` file beside the output, which
+    holds the owner's process id. The operating system drops the lock when its process
+    ends in any way (also ``kill -9``), so a lock file left behind by a dead run is simply
+    taken over: there is no stale lock to clear by hand. :meth:`release` removes the file.
+    """
+
+    def __init__(self, path: Path, fd: int) -> None:
+        self.path = path
+        self._fd: int | None = fd
+
+    def release(self) -> None:
+        """Remove the lock file and drop the lock (idempotent)."""
+        if self._fd is None:
+            return
+        try:
+            self.path.unlink(missing_ok=True)  # unlink while locked: no one can take a stale inode
+        finally:
+            os.close(self._fd)  # closing the descriptor drops the flock
+            self._fd = None
+
+    def __enter__(self) -> "OutputLock":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+def lock_output(path: str | os.PathLike) -> OutputLock:
+    """Take the lock of output ``path``, or raise :class:`OutputBusyError` at once.
+
+    The error names the process that holds it. A second ``reeb propose`` on the same output
+    therefore fails before any work (it does not wait), and never overwrites the first
+    one's rows. Raises :class:`OutputError` when the lock file cannot be created.
+    """
+    import fcntl
+
+    lock = _lock_path(path)
+    while True:
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as e:
+            raise OutputError(f"{path}: cannot create the lock file {lock} ({e.strerror or e})") from e
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            try:
+                owner = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "unknown"
+            finally:
+                os.close(fd)
+            if e.errno in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                raise OutputBusyError(
+                    f"{path}: another reeb run (pid {owner}) is writing this output; wait for it "
+                    f"to finish, or choose another --out (lock file: {lock})") from None
+            raise OutputError(f"{path}: cannot lock {lock} ({e.strerror or e})") from e
+        # the holder before us may have removed the file between our open and our flock:
+        # then we locked an orphan inode; start again on the current file
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(lock))
+        except FileNotFoundError:
+            same = False
+        if not same:
+            os.close(fd)
+            continue
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        return OutputLock(lock, fd)
