@@ -91,7 +91,7 @@ class Candidates:
     Attributes:
         boxes: ``float32 [K, 4]`` (x1, y1, x2, y2) in input pixels, in window order (not ranked).
         scores: ``float32 [K]`` their combined scores V (eq. 12).
-        features: ``float32 [K, F]`` their features (:func:`reeb_torch.stages.features.box_features`).
+        features: ``float32 [K, F]`` their features (:func:`reeb_torch.ranker.features.box_features`).
         feature_names: the ``F`` column names.
     """
 

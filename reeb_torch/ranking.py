@@ -47,7 +47,8 @@ from .stages import refinement as _refinement
 from .stages import rescoring as _rescoring
 from .stages import scoring as _scoring
 from .stages import windows as _windows
-from .stages import features as _features
+from .ranker import features as _features
+from .ranker.prefilter import prefilter_cpu
 from .stages.groups import EdgeGroups
 from .stages._radix import kth_largest
 from .ranker.model import softmax_rows
@@ -613,7 +614,7 @@ class Ranking:
         return _features.feature_names(len(self.config.class_heights_m))
 
     def box_maps(self, maps: ScoreMaps, geometry_only: bool = False) -> _features.BoxMaps:
-        """The tables the per-box features read (:class:`~reeb_torch.stages.features.BoxMaps`);
+        """The tables the per-box features read (:class:`~reeb_torch.ranker.features.BoxMaps`);
         with ``geometry_only``, only their sizes (for the window columns: no table is built)."""
         cfg = self.config
         grey = maps.grey
@@ -636,12 +637,12 @@ class Ranking:
                  share: Tensor, entropy: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """The features of every candidate: ``(bi int64 [K], ni int64 [K], float32 [K, F])``,
         the image and window index of each candidate (``nonzero(chosen)`` order) and its
-        features (:func:`~reeb_torch.stages.features.box_features`; compiled on the CPU)."""
+        features (:func:`~reeb_torch.ranker.features.box_features`; compiled on the CPU)."""
         bi, ni = _chosen(chosen)
         return bi, ni, self._features_of(maps, grid, scores, share, entropy, bi, ni)
 
     def _window_table(self, maps: ScoreMaps, grid: _windows.WindowGrid) -> Tensor:
-        """The window columns of every window of ``grid`` (:func:`~reeb_torch.stages.features.window_features`),
+        """The window columns of every window of ``grid`` (:func:`~reeb_torch.ranker.features.window_features`),
         ``float32 [N, 11 + C]`` (as the features hold them), computed once per grid."""
         dev = maps.edges.device
         def build() -> Tensor:
@@ -727,7 +728,7 @@ class Ranking:
                    entropy: Tensor, bi: Tensor, ni: Tensor) -> Tensor:
         """The prefilter's logit of each candidate ``(bi, ni)``, ``float32 [K]``: on the CPU,
         for a one-hidden-layer prefilter, the hidden layer's share of the window columns is
-        tabulated once per grid and the rest compiled (:func:`~reeb_torch.stages.features.prefilter_cpu`);
+        tabulated once per grid and the rest compiled (:func:`~reeb_torch.ranker.prefilter.prefilter_cpu`);
         elsewhere the model on the cheap columns (the same to float32 rounding)."""
         pre = model.prefilter
         if scores.device.type != "cpu" or len(pre) != 3:
@@ -740,7 +741,7 @@ class Ranking:
             return torch.addmm(first.bias, win, first.weight[:, :nw].T).contiguous()
 
         table = self._grid_cached(("prefilter", id(model)), grid, build)
-        return _features.prefilter_cpu(table, scores, share, entropy, grid.region_of, bi, ni, model.mean[nw: nw + 3],
+        return prefilter_cpu(table, scores, share, entropy, grid.region_of, bi, ni, model.mean[nw: nw + 3],
                                        model.scale[nw: nw + 3], first.weight[:, nw:], last.weight[0],
                                        float(last.bias[0]))
 

@@ -147,7 +147,7 @@ def test_ablation_variants_run_beside_the_default_only(tmp_path):
 
 def test_ablations_say_when_a_model_cannot_tell_which_frames_it_saw(tmp_path, sample_image):
     from reeb_torch.ranker import BoxRanker, save_ranker
-    from reeb_torch.stages.features import feature_names
+    from reeb_torch.ranker.features import feature_names
 
     ablations = _script("ablations")
     old = save_ranker(BoxRanker(feature_names(4)), tmp_path / "old.safetensors", {"frames": 3})

@@ -1,4 +1,4 @@
-"""Per-box features of the learned ranking (reeb_torch.stages.features): the columns against
+"""Per-box features of the learned ranking (reeb_torch.ranker.features): the columns against
 sums over the maps' pixels computed another way (numpy slices), the compiled path against the
 tensor path bit for bit, the window columns cached per grid, and the compiled prefilter
 against the model's tensor ops."""
@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from reeb_torch import ProposalGenerator, ReebConfig
-from reeb_torch.stages import features as F
+from reeb_torch.ranker import features as F
+from reeb_torch.ranker.prefilter import prefilter_cpu
 
 
 @pytest.fixture(scope="module")
@@ -136,7 +137,7 @@ def test_prefilter_cpu_by_hand():
     table = torch.tensor([[1.0, -2.0], [0.5, 0.25]])
     scores = torch.tensor([[math.e, 1.0]])
     share, entropy = torch.tensor([[0.5]]), torch.tensor([[4.0]])
-    out = F.prefilter_cpu(table, scores, share, entropy, torch.tensor([0, 0]), torch.tensor([0, 0]),
+    out = prefilter_cpu(table, scores, share, entropy, torch.tensor([0, 0]), torch.tensor([0, 0]),
                           torch.tensor([1, 0]), torch.tensor([0.0, 0.0, 0.0]), torch.tensor([1.0, 1.0, 2.0]),
                           torch.tensor([[1.0, 0.0, 0.0], [0.0, 2.0, 1.0]]), torch.tensor([3.0, -1.0]), 0.5)
     # window 1, V = 1: d = (0, 0.5, 2): hidden (0.5, 0.25 + 1 + 2) -> 3·0.5 − 3.25 + 0.5

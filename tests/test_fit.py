@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from reeb_torch.eval import fit as F
-from reeb_torch.stages.features import feature_names
+from reeb_torch.ranker.features import feature_names
 
 REPO_DATA = __import__("pathlib").Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -194,7 +194,7 @@ def test_reeb_fit_says_where_a_model_saw_some_of_the_frames(sample_image):
     list's digest, no estimate; one that saw none, nothing."""
     from reeb_torch.ranker import BoxRanker, frame_hash
     from reeb_torch.runs.fit import _seen_note
-    from reeb_torch.stages.features import feature_names
+    from reeb_torch.ranker.features import feature_names
 
     model = BoxRanker(feature_names(4))
     model.meta = {"provenance": {"frame_hashes": {"kitti/000001": frame_hash(sample_image)}}}

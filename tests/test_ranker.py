@@ -13,7 +13,7 @@ import torch
 
 from reeb_torch import ProposalGenerator, ReebConfig, get_preset
 from reeb_torch.ranker import SHIPPED, BoxRanker, RankerWeightsError, load_ranker, save_ranker, shipped_path
-from reeb_torch.stages.features import FEATURES_VERSION, feature_names
+from reeb_torch.ranker.features import FEATURES_VERSION, feature_names
 
 
 def _model(seed: int = 0, **kw) -> BoxRanker:

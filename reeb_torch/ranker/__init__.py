@@ -2,7 +2,7 @@
 
 REEB's windows cover the objects; its hand-weighted score V (eq. 12) cannot order them.
 :class:`BoxRanker` scores each candidate from cheap per-box features
-(:mod:`reeb_torch.stages.features`) and the generator ranks by it before the final NMS.
+(:mod:`reeb_torch.ranker.features`) and the generator ranks by it before the final NMS.
 Weights are safetensors files (:func:`load_ranker`, :func:`save_ranker`); ``kitti`` ships
 with the package, and ``reeb fit`` fits new ones on a user's labelled frames
 (:mod:`reeb_torch.eval.fit`).

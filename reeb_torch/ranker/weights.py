@@ -32,7 +32,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..stages.features import FEATURES_VERSION
+from .features import FEATURES_VERSION
 from .model import BoxRanker
 
 __all__ = ["SHIPPED", "RankerWeightsError", "load_ranker", "save_ranker", "resolve_ranker", "shipped_path",
