@@ -88,7 +88,7 @@ def lost_details(gen: ProposalGenerator, best: dict[str, torch.Tensor], iou: tor
     reported with ``refine`` or ``region_quota``)."""
     cfg = gen.config
     scores, grid, chosen = captured["scores"][0], captured["grid"], captured["chosen"][0]
-    budget = gen.ranking.region_budget(captured["share"][0])
+    budget = gen.selection.region_budget(captured["share"][0])
     lost = torch.nonzero(best["final top-k"] < 0.7).squeeze(1).tolist()
     nms_detail = not cfg.refine and not cfg.region_quota
     # what the NMS ranks: the learned ranking's candidates and logits, else the cut's and V

@@ -287,7 +287,7 @@ def test_reeb_fit_end_to_end(kitti_dir, tmp_path):
     assert cfg["ranker"] == str(out)
     assert load_ranker(str(out)).meta["provenance"]["frames"] == 8
     gen = ProposalGenerator(ReebConfig.from_dict(cfg))
-    assert gen.ranking.model is load_ranker(str(out))
+    assert gen.ranker.model is load_ranker(str(out))
     tuned = tmp_path / "tuned.safetensors"
     r = subprocess.run([sys.executable, "-m", "reeb_torch.runs.cli", "fit", str(kitti_dir), "--limit", "6",
                         "--folds", "2", "--epochs", "1", "--init", str(out), "-q", "-o", str(tuned),

@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 from ..config import ReebConfig
-from ..generator import FRONT_END_FIELDS, ProposalGenerator
+from ..generator import FRONT_END_FIELDS, Candidates, FrontEnd, ProposalGenerator
 from .metrics import RecallInterval, object_hits
 
 __all__ = ["Frames", "FrameCache", "Param", "default_space", "load_space", "Estimate", "CrossValidation",
@@ -98,7 +98,7 @@ class FrameCache:
     def __init__(self, frames: Frames) -> None:
         self.frames = frames
         self._key: tuple | None = None
-        self._front: dict[int, Any] = {}
+        self._front: dict[int, FrontEnd] = {}
         self.front_computed = 0
         """How many frames' front ends were computed (for tests and the summary)."""
         self._generators: dict[tuple, ProposalGenerator] = {}
@@ -114,18 +114,16 @@ class FrameCache:
             self._generators[key] = ProposalGenerator(cfg)
         return self._generators[key]
 
-    def _front_of(self, cfg: ReebConfig, i: int) -> tuple[ProposalGenerator, list[Tensor], Any]:
+    def _front_of(self, cfg: ReebConfig, i: int) -> tuple[ProposalGenerator, list[Tensor], FrontEnd]:
         """The generator of ``cfg``, frame ``i`` as its input, and that frame's front end (cached)."""
-        from .._checks import check_images
-
         key = tuple(getattr(cfg, f) for f in FRONT_END_FIELDS)
         if key != self._key:
             self._key, self._front = key, {}
         gen = self._generator(cfg)
-        img = check_images([self.frames.images[i]], gen.min_side, cfg, keep_uint8=True)
+        img = gen.prepare([self.frames.images[i]])
         if i not in self._front:
             with torch.no_grad():
-                self._front[i] = gen._front_end(img)
+                self._front[i] = gen.front_end(img)
             self.front_computed += 1
         return gen, img, self._front[i]
 
@@ -136,7 +134,7 @@ class FrameCache:
         with torch.no_grad():
             for i in indices:
                 gen, img, front = self._front_of(cfg, i)
-                results, _ = gen._back_end(img, front)
+                results = gen.back_end(img, front)
                 out.append({k: v.detach().cpu() for k, v in results[0].items()})
         return out
 
@@ -144,12 +142,12 @@ class FrameCache:
         """Ranked boxes ``Tensor[P_i, 4]`` (``P_i <= cfg.top_k``) for the frames ``indices``."""
         return [o["boxes"] for o in self.outputs(cfg, indices)]
 
-    def candidates(self, cfg: ReebConfig, i: int):
+    def candidates(self, cfg: ReebConfig, i: int) -> Candidates:
         """Frame ``i``'s candidates and their features under ``cfg``
         (:meth:`reeb_torch.ProposalGenerator.candidates`)."""
         with torch.no_grad():
             gen, img, front = self._front_of(cfg, i)
-            return gen._candidates(img, front)[0]
+            return gen.candidates_of(img, front)[0]
 
     def hits(self, cfg: ReebConfig, indices: Sequence[int], k: int, iou: float) -> list[Tensor]:
         """Per frame of ``indices``, ``bool Tensor[N_i]``: objects the top ``k`` boxes find at ``iou``."""
