@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from reeb_torch.eval import fit as F
+from reeb_torch.eval.tune import fold_blocks
 from reeb_torch.ranker.features import feature_names
 
 REPO_DATA = __import__("pathlib").Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -172,7 +173,7 @@ def test_hinted_classes_by_hand():
 def test_folds_keep_neighbouring_frames_of_a_drive_apart():
     ids = [f"{i:06d}" for i in range(6)] + [f"t0000_{i:06d}" for i in range(0, 30, 3)]
     folders = ["kitti"] * 6 + ["kitti_tracking"] * 10
-    blocks = F.frame_folds(len(ids), 4)
+    blocks = fold_blocks(len(ids), 4)
     assert sorted(i for b in blocks for i in b) == list(range(16))
     for held, block in enumerate(blocks):
         train = F.training_frames(blocks, held, ids, folders, gap=2)
@@ -261,7 +262,7 @@ def test_held_out_outputs_are_the_cross_validated_models(kitti_dir):
     cv = F.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 3)
     hits = object_hits([o["boxes"] for o in outputs], frames.gts, 2000, 0.7)
     assert all(torch.equal(a, b) for a, b in zip(hits, cv.ranked_hits))
-    given = F.held_out_outputs(cache, cfg, samples, opts, F.frame_folds(6, 3))  # the blocks themselves
+    given = F.held_out_outputs(cache, cfg, samples, opts, fold_blocks(6, 3))  # the blocks themselves
     assert all(torch.equal(a["boxes"], b["boxes"]) for a, b in zip(given, outputs))
     assert all(0 < len(o["boxes"]) <= 2000 and "labels" not in o for o in outputs)  # no class head here
     others = F.other_boxes(kitti_dir, frames.ids)
@@ -350,7 +351,7 @@ def test_whole_drives_keeps_every_frame_of_a_held_out_drive_out(tmp_path):
     drives (gap = all frames); by default only those within 2 frames are left out."""
     ids = [f"{i:06d}" for i in range(4)] + [f"t0000_{3 * i:06d}" for i in range(8)]
     folders = ["kitti"] * 4 + ["kitti_tracking"] * 8
-    blocks = F.frame_folds(len(ids), 4)  # [0-2], [3-5], [6-8], [9-11]
+    blocks = fold_blocks(len(ids), 4)  # [0-2], [3-5], [6-8], [9-11]
     near = F.training_frames(blocks, 2, ids, folders, gap=2)
     whole = F.training_frames(blocks, 2, ids, folders, gap=len(ids))
     assert near == [0, 1, 2, 3, 11] and whole == [0, 1, 2, 3]
