@@ -32,9 +32,7 @@ from .selection import ScoreMaps, WindowSelection
 from .stages import _scratch
 from .stages._threads import on_two_cores, serially, torch_single_threaded
 from .stages import edges as _edges
-from .stages import entropy as _entropy
 from .stages import groups as _groups
-from .stages import regions as _regions
 from .stages import road as _road
 from .stages import scoring as _scoring
 from .stages.windows import WindowGrid
@@ -337,8 +335,8 @@ class ProposalGenerator(nn.Module):
         """The candidates of one ``(3, H, W)`` image before the final ranking and NMS, and
         their features: what :class:`~reeb_torch.ranker.BoxRanker` scores (``reeb fit`` fits
         it on these)."""
-        (x,) = check_images([image], self.min_side, self.config, keep_uint8=True)
-        return self.candidates_of([x], self.front_end([x]))[0]
+        x = self.prepare([image])
+        return self.candidates_of(x, self.front_end(x))[0]
 
     def prepare(self, images: ImageBatch) -> list[Tensor]:
         """``images`` checked as :meth:`forward` checks them (raises as it does): a list of
@@ -366,7 +364,7 @@ class ProposalGenerator(nn.Module):
     def candidates_of(self, images: list[Tensor], front: FrontEnd) -> list[Candidates]:
         """:meth:`candidates` of a batch of equal-sized images whose :meth:`front_end` is ``front``."""
         maps = front.maps
-        bounds, entropy, share = self._regions(front.working.gray)
+        bounds, entropy, share = self.selection.regions(front.working.gray)
         grid = self.selection.window_grid(maps, bounds)
         scores = self.selection.score(maps, grid)
         chosen = self.selection.select(scores, grid, share)
@@ -426,7 +424,7 @@ class ProposalGenerator(nn.Module):
                 if beside:
                     maps.start_tables()
                 with serially() if beside else nullcontext():
-                    bounds, entropy, share = self._regions(work.gray)
+                    bounds, entropy, share = sel.regions(work.gray)
             # Sec. 3.6-3.7: dense sliding windows, scored by eqs. 1, 10-12, cut per region (eq. 9)
             with self._stage("scoring", dev):
                 grid = sel.window_grid(maps, bounds)
@@ -468,7 +466,7 @@ class ProposalGenerator(nn.Module):
                     r["labels"], r["class_probs"] = probs.argmax(1), probs
         if not self._warned_empty and any(len(r["boxes"]) == 0 for r in results):
             self._warn_empty(tuple(images[0].shape[-2:]), grid.count, share)
-        extra = self._kept_maps(maps, bounds, entropy, share, grid.count) if keep else {}
+        extra = _kept_maps(maps, bounds, entropy, share, grid.count) if keep else {}
         return results, extra
 
     def _rank(self, maps: ScoreMaps, grid: WindowGrid, scores: Tensor, chosen: Tensor, share: Tensor,
@@ -548,37 +546,15 @@ class ProposalGenerator(nn.Module):
             edges = _edges.edge_map(src, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges)
         return Working(gray, edges, colour, green, crossing)
 
-    def _regions(self, gray: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Sec. 3.6, eqs. 2 and 9: the region strips ``int64 (R, 2)`` (working columns), each
-        image's region entropy ``(B, R)`` and its share of the window budget ``(B, R)``."""
-        cfg = self.config
-        b = gray.shape[0]
-        bounds = self._region_bounds(gray.shape[-1])
-        if cfg.use_regions:
-            entropy = _entropy.region_entropy(gray, bounds, cfg.entropy_bins)
-            share = _entropy.proposal_share(entropy, cfg.entropy_sigma, cfg.entropy_form)
-        else:  # one region, the whole image: entropy is not applicable (Sec. 4.2)
-            entropy = torch.zeros(b, 1, device=gray.device)
-            share = torch.ones(b, 1, device=gray.device)
-        return bounds, entropy, share
 
-    def _region_bounds(self, width: int) -> Tensor:
-        cfg = self.config
-        if not cfg.use_regions:
-            return torch.tensor([[0, width]])
-        frac = _regions.region_width_fraction(cfg.camera_height_m, cfg.vertical_fov_deg, cfg.horizontal_fov_deg,
-                                              cfg.max_object_width_m, cfg.region_width_round)
-        return _regions.region_bounds(width, frac, cfg.region_overlap)
-
-    @staticmethod
-    def _kept_maps(maps: ScoreMaps, bounds: Tensor, entropy: Tensor, share: Tensor, num_windows: int) -> dict:
-        """What :meth:`inspect` shows besides the proposals: the maps, and the region strips
-        in input pixels."""
-        fx, h_in = maps.fx, maps.input_size[0]
-        regions = torch.stack([bounds[:, 0] / fx, torch.zeros(len(bounds)),
-                               bounds[:, 1] / fx, torch.full((len(bounds),), float(h_in))], 1).float()
-        return dict(edges=maps.edges, road=maps.road, entropy=entropy, share=share, regions=regions,
-                    num_groups=len(maps.groups), num_windows=num_windows)
+def _kept_maps(maps: ScoreMaps, bounds: Tensor, entropy: Tensor, share: Tensor, num_windows: int) -> dict:
+    """What :meth:`ProposalGenerator.inspect` shows besides the proposals: the maps, and the region strips
+    in input pixels."""
+    fx, h_in = maps.fx, maps.input_size[0]
+    regions = torch.stack([bounds[:, 0] / fx, torch.zeros(len(bounds)),
+                           bounds[:, 1] / fx, torch.full((len(bounds),), float(h_in))], 1).float()
+    return dict(edges=maps.edges, road=maps.road, entropy=entropy, share=share, regions=regions,
+                num_groups=len(maps.groups), num_windows=num_windows)
 
 
 def propose(images: ImageBatch, config: ReebConfig | None = None, **overrides: object) -> list[dict[str, Tensor]]:

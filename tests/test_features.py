@@ -26,7 +26,7 @@ def batch(sample_image):
     x = check_images([sample_image, sample_image.flip(-1)], gen.min_side, gen.config, keep_uint8=True)
     front = gen.front_end(x)
     maps = front.maps
-    bounds, entropy, share = gen._regions(front.working.gray)
+    bounds, entropy, share = gen.selection.regions(front.working.gray)
     sel, rk = gen.selection, CandidateFeatures(gen.config)
     grid = sel.window_grid(maps, bounds)
     scores = sel.score(maps, grid)

@@ -123,9 +123,9 @@ def test_one_non_finite_value_anywhere_is_rejected(value, where, dtype):
 
 
 def test_float_values_are_checked_as_the_front_end_reads_them(sample_image, monkeypatch):
-    # issue 20: a float image was read twice, once by the range check and once by the front
-    # end (0.3 ms per KITTI image); the front end now counts what it reads, and the error
-    # still names the image, in a batch split between the cores and in one image split by rows
+    # the compiled front end counts the values outside [0, 1] as it reads a float image (one
+    # read, not two), and the error still names the image, in a batch split between the
+    # cores and in one image split by rows
     import reeb_torch._checks as checks
 
     calls = []
@@ -149,7 +149,7 @@ def test_float_values_are_checked_as_the_front_end_reads_them(sample_image, monk
 
 
 def test_float_equal_to_uint8_over_255_gives_the_same_proposals(sample_image):
-    # issue 20: float RGB in [0, 1] that equals uint8 / 255 gives the uint8 input's boxes
+    # float RGB in [0, 1] that equals uint8 / 255 gives the uint8 input's boxes
     # and scores bit for bit, at full size, alone and in a batch, default and paper preset
     other = torch.flip(sample_image, dims=[2])
     for cfg in (ReebConfig(top_k=500), get_preset("paper").replace(top_k=300)):
@@ -205,8 +205,8 @@ def test_stage_times_are_recorded(crop):
 
 
 def test_batch_equals_single_on_odd_crops(sample_image):
-    # issue 10, item 4: two 400x150 crops used to differ from rank 42 on (float32 scatter
-    # order in the enclosed sums); float64 sums are exact, so the batch cannot matter
+    # two 400x150 crops alone and in a batch: the enclosed sums are float64 and exact (a
+    # float32 scatter's order would make them differ from rank 42 on), so the batch cannot matter
     from pathlib import Path
 
     from reeb_torch import read_image
@@ -235,7 +235,7 @@ def test_batch_equals_single_on_odd_crops(sample_image):
     {"vegetation_box": 0.33},
 ])
 def test_compiled_scoring_equals_the_tensor_path(sample_image, overrides):
-    # issue 9: the compiled CPU pass gives every window the very same float32 score as the
+    # the compiled CPU pass gives every window the very same float32 score as the
     # per-size tensor ops, -inf included (so the same candidates, boxes and ranking)
     from reeb_torch.selection import WindowSelection
 
@@ -267,7 +267,7 @@ def test_scoring_falls_back_to_tensor_ops_when_a_term_needs_maps(crop):
     g = connected_groups(e, 8)  # groups inside 8-px tiles: every window (>= 16 px) encloses them exactly
     default = ProposalGenerator(**SMALL)
     maps = ScoreMaps(e, g, (64, 96))
-    grid = default.selection.window_grid(maps, default._region_bounds(96))
+    grid = default.selection.window_grid(maps, default.selection.region_bounds(96))
     assert default.selection.compiled_scoring_applies(maps, grid)
     for overrides in ({"road_score": "reward"}, {"road_score": "stand"}, {"local_max": True}):
         gen = ProposalGenerator(**SMALL, **overrides)
@@ -304,7 +304,7 @@ def test_compiled_selection_equals_the_tensor_path(sample_image):
 
 @pytest.mark.parametrize("overrides", [{}, {"vegetation_score": "none"}, {"scale": 0.7}])
 def test_compiled_front_end_gives_the_tensor_front_ends_proposals(sample_image, overrides):
-    # issue 9: the uint8 → grey (and green mask) compiled pass changes nothing downstream
+    # the uint8 → grey (and green mask) compiled pass changes nothing downstream
     from reeb_torch.stages import edges as E
 
     crops = [sample_image[:, 100:290, 200:800], sample_image[:, 150:340, 500:1100]]

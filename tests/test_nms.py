@@ -174,7 +174,7 @@ def test_nms_top_k_many_equals_one_image_at_a_time():
 
 
 def test_nms_windows_cpu_equals_nms_top_k_on_the_chosen_windows():
-    # issue 9: gathering, radix sort and NMS compiled per image give nms_top_k's windows,
+    # gathering, radix sort and NMS compiled per image give nms_top_k's windows,
     # ties (and -0.0 against 0.0) included; NaN scores and bad boxes take the checked path
     from reeb_torch.stages.nms import nms_windows_cpu
 
@@ -255,7 +255,7 @@ def test_descending_radix_order_equals_torch_stable_sort():
 
 
 def test_nms_windows_cpu_sorts_a_prefix_first_and_all_when_it_keeps_too_few():
-    # issue 20: only the best 3k candidates are sorted first; when they hold fewer than k
+    # only the best 3k candidates are sorted first; when they hold fewer than k
     # distinct boxes (here the best 40 are one box) it falls back to all: same windows
     from reeb_torch.stages.nms import nms_windows_cpu
 

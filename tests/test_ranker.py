@@ -96,7 +96,7 @@ def test_weights_round_trip(tmp_path):
 
 
 def test_weights_files_get_the_umasks_permissions(tmp_path):
-    """A weights file is as readable as any file the user writes (a team's folder, Ray workers
+    """A weights file is as readable as any file the user writes (a shared folder, Ray workers
     running as another user), not its owner's alone."""
     import os
     import stat
@@ -239,7 +239,7 @@ def _ranked(gen: ProposalGenerator, images: list) -> tuple:
     sel, rk = gen.selection, gen.ranker
     front = gen.front_end(gen.prepare(images))
     maps = front.maps
-    bounds, entropy, share = gen._regions(front.working.gray)
+    bounds, entropy, share = gen.selection.regions(front.working.gray)
     grid = sel.window_grid(maps, bounds)
     scores = sel.score(maps, grid)
     chosen = sel.select(scores, grid, share)

@@ -1,4 +1,5 @@
-"""Eq. 9: each region passes on its best windows, by its share of the budget."""
+"""The regions (Sec. 3.6, eqs. 2 and 5–9) and eq. 9's cut: each region passes on its best
+windows, by its share of the budget."""
 
 from __future__ import annotations
 
@@ -6,6 +7,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..stages import entropy as _entropy
+from ..stages import regions as _regions
 from ..stages import scoring as _scoring
 from ..stages import windows as _windows
 from .cache import GridCache
@@ -14,7 +17,32 @@ __all__ = ["RegionCut"]
 
 
 class RegionCut(GridCache):
-    """Eq. 9's cut of the scored windows (compiled on the CPU, a stable sort elsewhere)."""
+    """The regions, their entropy and share of the budget, and eq. 9's cut of the scored
+    windows (compiled on the CPU, a stable sort elsewhere)."""
+
+    def regions(self, gray: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Sec. 3.6, eqs. 2 and 9: the region strips ``int64 (R, 2)`` (working columns), each
+        image's region entropy ``(B, R)`` and its share of the window budget ``(B, R)``."""
+        cfg = self.config
+        b = gray.shape[0]
+        bounds = self.region_bounds(gray.shape[-1])
+        if cfg.use_regions:
+            entropy = _entropy.region_entropy(gray, bounds, cfg.entropy_bins)
+            share = _entropy.proposal_share(entropy, cfg.entropy_sigma, cfg.entropy_form)
+        else:  # one region, the whole image: entropy is not applicable (Sec. 4.2)
+            entropy = torch.zeros(b, 1, device=gray.device)
+            share = torch.ones(b, 1, device=gray.device)
+        return bounds, entropy, share
+
+    def region_bounds(self, width: int) -> Tensor:
+        """Sec. 3.6, eqs. 5–8: the region strips of an image ``width`` working pixels wide,
+        ``int64 (R, 2)`` (first and end column), or one strip without ``use_regions``."""
+        cfg = self.config
+        if not cfg.use_regions:
+            return torch.tensor([[0, width]])
+        frac = _regions.region_width_fraction(cfg.camera_height_m, cfg.vertical_fov_deg, cfg.horizontal_fov_deg,
+                                              cfg.max_object_width_m, cfg.region_width_round)
+        return _regions.region_bounds(width, frac, cfg.region_overlap)
 
     def select(self, scores: Tensor, grid: _windows.WindowGrid, share: Tensor) -> Tensor:
         """The candidates, ``bool [B, N]``, of the windows scored ``scores`` (``float32 [B, N]``)

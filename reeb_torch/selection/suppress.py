@@ -27,12 +27,13 @@ class Suppression(GridCache):
         (with ``region_quota``, each region's share of the output first: :meth:`quota`; with
         ``class_of`` ``int8 [B, N]``, the class hinted for each candidate
         (:meth:`~reeb_torch.ranker.LearnedRanking.class_map`), and ``class_shares``, one
-        share of ``top_k`` a class, each class's share first):
-        one dict per image, ``boxes`` ``float32 [N, 4]`` in input pixels and ``scores``
-        ``float32 [N]``. ``refined``: :meth:`~reeb_torch.selection.refine.Refinement.refine`'s
-        boxes and scores of the candidates (else the windows themselves, gathered, sorted and suppressed in one compiled pass
-        on the CPU: :func:`reeb_torch.stages.nms.nms_windows_cpu`). ``windows_out``, if
-        given, gets each image's ``int64 [N]`` window index of each output row."""
+        share of ``top_k`` a class, each class's share first): one dict per image, ``boxes``
+        ``float32 [N, 4]`` in input pixels and ``scores`` ``float32 [N]``. ``chosen``: ``bool
+        [B, N]`` the candidates, ``scores``: ``float32 [B, N]`` theirs, ``share``: ``[B, R]``
+        the regions'. ``refined``: :meth:`~reeb_torch.selection.refine.Refinement.refine`'s
+        boxes and scores of the candidates (else the windows themselves, gathered, sorted and
+        suppressed in one compiled pass on the CPU: :func:`reeb_torch.stages.nms.nms_windows_cpu`).
+        ``windows_out``, if given, gets each image's ``int64 [N]`` window index of each output row."""
         cfg = self.config
         b, dev = scores.shape[0], scores.device
         fx, fy = maps.fx, maps.fy
