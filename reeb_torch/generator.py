@@ -18,7 +18,7 @@ import time
 import warnings
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Iterator
+from typing import TYPE_CHECKING, Iterator, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -123,10 +123,10 @@ class Working:
     crossing: tuple[Tensor, Tensor] | None
 
 
-@dataclass
-class FrontEnd:
+class FrontEnd(NamedTuple):
     """:meth:`ProposalGenerator.front_end` of a batch of equal-sized images: what only
-    :data:`FRONT_END_FIELDS` change, so that configs equal in those can share it.
+    :data:`FRONT_END_FIELDS` change, so that configs equal in those can share it
+    (``working, maps = front`` unpacks it).
 
     Attributes:
         working: the batch at the working resolution (:class:`Working`).

@@ -253,7 +253,7 @@ def test_one_image_builds_its_tables_beside_the_regions_and_waits_for_them(sampl
     real_settle = ScoreMaps.settle
     monkeypatch.setattr(ScoreMaps, "settle", lambda self: (settled.append(self._pending is not None),
                                                            real_settle(self))[1])
-    monkeypatch.setattr(gen, "_regions", lambda gray: (_ for _ in ()).throw(RuntimeError("regions")))
+    monkeypatch.setattr(gen.selection, "regions", lambda gray: (_ for _ in ()).throw(RuntimeError("regions")))
     with pytest.raises(RuntimeError, match="regions"):
         gen([x])
     assert settled == [True]  # still pending when the stage raised, then waited for
