@@ -85,25 +85,15 @@ def settings_config(text: str) -> Any:
 
 def run_captured(gen: Any, image: Any) -> tuple[dict, dict]:
     """Run ``gen`` (a :class:`~reeb_torch.ProposalGenerator`) on one image and return its
-    output and what its per-region cut saw: ``scores`` (``[1, N]``, every window), ``grid``
-    (the :class:`~reeb_torch.stages.windows.WindowGrid`), ``chosen`` (``bool [1, N]``, the
-    candidates) and ``share`` (eq. 9's region shares), through the ranking's ``on_select``
-    hook (:class:`reeb_torch.ranking.Ranking`); with a learned ranking also ``ranked`` (its
-    logits, ``[1, N]``) and ``kept`` (the candidates it ranked), through ``on_rank``."""
-    captured: dict = {}
-
-    def record(scores, grid, chosen, share):  # what the pipeline saw
-        # copies: forward reuses the memory of its scores and candidates in the next call
-        captured.update(scores=scores.clone(), grid=grid, chosen=chosen.clone(), share=share.clone())
-
-    def ranked(scores, kept):
-        captured.update(ranked=scores.clone(), kept=kept.clone())
-
-    gen.ranking.on_select, gen.ranking.on_rank = record, ranked
-    try:
-        out = gen([image])[0]
-    finally:
-        gen.ranking.on_select = gen.ranking.on_rank = None
+    output and what its per-region cut saw (:meth:`~reeb_torch.ProposalGenerator.trace`):
+    ``scores`` (``[1, N]``, every window), ``grid`` (the
+    :class:`~reeb_torch.stages.windows.WindowGrid`), ``chosen`` (``bool [1, N]``, the
+    candidates) and ``share`` (eq. 9's region shares); with a learned ranking also ``ranked``
+    (its logits, ``[1, N]``) and ``kept`` (the candidates it ranked)."""
+    out, trace = gen.trace(image)
+    captured = dict(scores=trace.scores, grid=trace.grid, chosen=trace.chosen, share=trace.share)
+    if trace.ranked is not None:
+        captured.update(ranked=trace.ranked, kept=trace.kept)
     return out, captured
 
 

@@ -44,7 +44,7 @@ from reeb_torch import ReebConfig, get_preset  # noqa: E402
 from reeb_torch.eval import fit as F  # noqa: E402
 from reeb_torch.eval.metrics import compare_recall, sign_test  # noqa: E402
 from reeb_torch.eval.tune import FrameCache, bootstrap_interval  # noqa: E402
-from reeb_torch.ranking import _NOT_SEEN_BY_RANKER  # noqa: E402
+from reeb_torch.ranker import NOT_SEEN_BY_RANKER  # noqa: E402
 from reeb_torch.runs.common import build_config  # noqa: E402
 
 
@@ -57,7 +57,7 @@ def parse_variant(text: str) -> ReebConfig:
         cfg = settings_config(text)
     base = ReebConfig().to_dict()
     seen = sorted(k for k, v in cfg.to_dict().items()
-                  if base[k] != v and (k not in _NOT_SEEN_BY_RANKER or k == "ranker"))
+                  if base[k] != v and (k not in NOT_SEEN_BY_RANKER or k == "ranker"))
     if seen:
         raise ValueError(f"{text!r} changes {', '.join(seen)}, which the ranking model reads or is: "
                          "estimate it with reeb fit --set instead")

@@ -89,7 +89,7 @@ def lost_details(gen: ProposalGenerator, best: dict[str, torch.Tensor], iou: tor
     reported with ``refine`` or ``region_quota``)."""
     cfg = gen.config
     scores, grid, chosen = captured["scores"][0], captured["grid"], captured["chosen"][0]
-    budget = gen.ranking.region_budget(captured["share"][0])
+    budget = gen.selection.region_budget(captured["share"][0])
     lost = torch.nonzero(best["final top-k"] < 0.7).squeeze(1).tolist()
     nms_detail = not cfg.refine and not cfg.region_quota
     # what the NMS ranks: the learned ranking's candidates and logits, else the cut's and V
@@ -221,14 +221,14 @@ def held_out_generators(data: list[Path], limit: int | None, config, folds: int,
     folds, training frames and fit; the weights saved in a temporary folder that lives as
     long as the functions), the one generator per block made once, when its first frame asks."""
     from reeb_torch.eval import fit as F
-    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.eval.tune import FrameCache, fold_blocks
     from reeb_torch.ranker import save_ranker
 
     frames = F.load_fit_frames(data, limit)
     cache = FrameCache(frames)
     opts = F.FitOptions(seed=seed)
     samples = F.frame_samples(cache, config, opts)
-    blocks = F.frame_folds(len(frames), folds)
+    blocks = fold_blocks(len(frames), folds)
     similar = F.similar_frames(frames.images)
     names = cache.candidates(config.unranked(), 0).feature_names
     made: dict[int, ProposalGenerator] = {}

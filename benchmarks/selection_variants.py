@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_kitti_dir, rerun_line, run_captured  # noqa: E402
 
 from reeb_torch import ProposalGenerator, ReebConfig  # noqa: E402
-from reeb_torch.ranking import Ranking  # noqa: E402
+from reeb_torch.selection import WindowSelection  # noqa: E402
 from _common import add_frames_option  # noqa: E402
 from reeb_torch.eval.common import load_kitti  # noqa: E402
 from reeb_torch.eval.metrics import compare_recall, object_hits  # noqa: E402
@@ -43,7 +43,7 @@ TOP_K, IOU = 2000, 0.7
 FAMILIES = ("region-nms", "narrow-shadow", "ensemble")
 
 
-class RegionNMS(Ranking):
+class RegionNMS(WindowSelection):
     """The default's ranking, with greedy NMS at ``thr`` inside each region before eq. 9's cut."""
 
     def __init__(self, config: ReebConfig, thr: float) -> None:
@@ -65,7 +65,7 @@ class RegionNMS(Ranking):
         return chosen
 
 
-class NarrowShadow(Ranking):
+class NarrowShadow(WindowSelection):
     """The default's ranking, with narrow boxes re-scored without the shadow term: ``plain`` (set per
     image: the scores of the same windows with ``shadow_score='none'``) times ``const``, or
     times the term floored at ``const`` (``floor=True``). The scores are changed in place,
@@ -86,10 +86,10 @@ class NarrowShadow(Ranking):
         return super().region_cut(scores, grid, share)
 
 
-def with_ranking(ranking: Ranking) -> ProposalGenerator:
-    """A generator of ``ranking``'s config that ranks its windows with ``ranking``."""
-    gen = ProposalGenerator(ranking.config)
-    gen.ranking = ranking
+def with_ranking(selection: WindowSelection) -> ProposalGenerator:
+    """A generator of ``selection``'s config that scores and selects its windows with ``selection``."""
+    gen = ProposalGenerator(selection.config)
+    gen.selection = selection
     return gen
 
 
@@ -119,7 +119,7 @@ def variants(family: str, default_boxes: list[torch.Tensor]) -> list[tuple[str, 
                     gen = with_ranking(NarrowShadow(cfg, aspect, const, floor))
 
                     def run(i, im, g=gen):
-                        g.ranking.plain = run_captured(plain_gen, im)[1]["scores"]
+                        g.selection.plain = run_captured(plain_gen, im)[1]["scores"]
                         return g([im])[0]["boxes"]
 
                     how = f"term floored at {const}" if floor else f"x {const} instead of the term"

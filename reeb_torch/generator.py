@@ -4,7 +4,8 @@
 call per stage: edge map, edge groups, road mask, regions with their entropy and budget,
 dense windows, scores, the per-region cut, (optionally) Edge Boxes' refinement, NMS. The
 stages are functions in :mod:`reeb_torch.stages`; how windows are scored, cut, refined and
-suppressed (compiled or tensor paths, the batch's tables) is :mod:`reeb_torch.ranking`.
+suppressed (compiled or tensor paths, the batch's tables) is :mod:`reeb_torch.selection`;
+the learned ranking of the candidates (not in the paper) is :mod:`reeb_torch.ranker`.
 A batch of equal-sized images is computed as one batch; a list of images of different
 sizes is split into equal-size batches.
 """
@@ -17,7 +18,7 @@ import time
 import warnings
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Iterator
+from typing import TYPE_CHECKING, Iterator, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -25,26 +26,20 @@ from torch import Tensor, nn
 
 from ._checks import ImageBatch, check_images, check_range
 from ._warm import Notice, gc_paused, start_helper, stop_helper, warm_picture
-from .config import ReebConfig
-from .ranking import Ranking, ScoreMaps
+from .config import FRONT_END_FIELDS, ReebConfig
+from .ranker import CandidateFeatures, LearnedRanking
+from .selection import ScoreMaps, WindowSelection
 from .stages import _scratch
 from .stages._threads import on_two_cores, serially, torch_single_threaded
 from .stages import edges as _edges
-from .stages import entropy as _entropy
 from .stages import groups as _groups
-from .stages import regions as _regions
 from .stages import road as _road
 from .stages import scoring as _scoring
+from .stages.windows import WindowGrid
 
-__all__ = ["ProposalGenerator", "propose", "Inspection", "Candidates", "warmup", "FRONT_END_FIELDS"]
+__all__ = ["ProposalGenerator", "propose", "Inspection", "Candidates", "Working", "FrontEnd", "Trace", "warmup",
+           "FRONT_END_FIELDS"]
 
-FRONT_END_FIELDS: tuple[str, ...] = (
-    "scale", "blur_sigma", "edge_threshold", "edge_channels", "thin_edges", "remove_isolated", "grouping",
-    "group_cell", "straddle_weight", "vegetation_score", "road_score", "road_samples", "road_band",
-    "road_tolerance", "road_combine", "seed", "shadow_score",
-)
-"""The fields that change :meth:`ProposalGenerator._front_end` (edges, groups, road mask, score maps); two
-configs equal in these share that work (``reeb tune`` computes it once per frame)."""
 
 
 _STAGE_LOCK = threading.Lock()  # stage_times is written by both halves of a CPU batch
@@ -91,7 +86,7 @@ class Candidates:
     Attributes:
         boxes: ``float32 [K, 4]`` (x1, y1, x2, y2) in input pixels, in window order (not ranked).
         scores: ``float32 [K]`` their combined scores V (eq. 12).
-        features: ``float32 [K, F]`` their features (:func:`reeb_torch.stages.features.box_features`).
+        features: ``float32 [K, F]`` their features (:func:`reeb_torch.ranker.features.box_features`).
         feature_names: the ``F`` column names.
     """
 
@@ -102,14 +97,62 @@ class Candidates:
 
 
 @dataclass
-class _Working:
-    """The batch at the working resolution, as the edge stage (Sec. 3.4) leaves it."""
+class Working:
+    """The batch at the working resolution ``h × w``, as the edge stage (Sec. 3.4) leaves it.
 
-    gray: Tensor  # (B, 1, h, w) float32
-    edges: Tensor  # (B, h, w) float32 edge magnitudes
-    colour: Tensor | None  # (B, 3, h, w) float32, only where a stage reads it (road mask, RGB edges)
-    green: Tensor | None  # int32 (B, h + 1, w + 1) green-pixel counts, for the vegetation term
-    crossing: tuple[Tensor, Tensor] | None  # edges crossing box sides, for the straddling term
+    Attributes:
+        gray: ``float32 (B, 1, h, w)`` grey images.
+        edges: ``float32 (B, h, w)`` edge magnitudes.
+        colour: ``float32 (B, 3, h, w)`` colour images, only where a stage reads them (the road
+            mask, RGB edges), else None.
+        green: ``int32 (B, h + 1, w + 1)`` green-pixel counts, for the vegetation term, or None.
+        crossing: the edges crossing box sides, for the straddling term, or None.
+    """
+
+    gray: Tensor
+    edges: Tensor
+    colour: Tensor | None
+    green: Tensor | None
+    crossing: tuple[Tensor, Tensor] | None
+
+
+class FrontEnd(NamedTuple):
+    """:meth:`ProposalGenerator.front_end` of a batch of equal-sized images: what only
+    :data:`FRONT_END_FIELDS` change, so that configs equal in those can share it
+    (``working, maps = front`` unpacks it).
+
+    Attributes:
+        working: the batch at the working resolution (:class:`Working`).
+        maps: the score maps (edges, groups, road mask), whose tables are built on first use
+            (:class:`~reeb_torch.selection.ScoreMaps`).
+    """
+
+    working: Working
+    maps: ScoreMaps
+
+
+@dataclass
+class Trace:
+    """What the back end saw of one batch of ``B`` images of ``N`` windows and ``R`` regions
+    (:meth:`ProposalGenerator.trace`); copies, not the memory the next call reuses.
+
+    Attributes:
+        scores: ``float32 [B, N]`` V (eq. 12) of every window (``-inf``: dropped by the score),
+            as the region cut saw them.
+        grid: the windows (:class:`~reeb_torch.stages.windows.WindowGrid`).
+        chosen: ``bool [B, N]`` the region cut's candidates (eq. 9).
+        share: ``float32 [B, R]`` each region's share of the budget (eq. 9).
+        ranked: ``float32 [B, N]`` the learned ranking's logit of each candidate it ranked
+            (``-inf`` elsewhere), or None without a ranker.
+        kept: ``bool [B, N]`` the candidates it ranked, or None without a ranker.
+    """
+
+    scores: Tensor
+    grid: WindowGrid
+    chosen: Tensor
+    share: Tensor
+    ranked: Tensor | None = None
+    kept: Tensor | None = None
 
 
 class ProposalGenerator(nn.Module):
@@ -146,9 +189,15 @@ class ProposalGenerator(nn.Module):
         if not isinstance(cfg, ReebConfig):
             raise TypeError(f"config must be a ReebConfig, got {type(cfg).__name__}")
         self.config = cfg.replace(**overrides) if overrides else cfg
-        self.ranking = Ranking(self.config)
-        """The :class:`~reeb_torch.ranking.Ranking` that scores, cuts, refines and suppresses
-        the windows; a subclass put here tries another ranking (``benchmarks/selection_variants.py``)."""
+        self.selection = WindowSelection(self.config)
+        """The :class:`~reeb_torch.selection.WindowSelection` that scores, cuts, refines and
+        suppresses the windows; a subclass put here tries another selection
+        (``benchmarks/selection_variants.py``)."""
+        self.ranker = LearnedRanking(self.config) if self.config.ranker != "none" else None
+        """The learned ranking of the candidates (:class:`~reeb_torch.ranker.LearnedRanking`,
+        ``config.ranker``), or None (``ranker='none'``)."""
+        self._features = self.ranker if self.ranker is not None else CandidateFeatures(self.config)
+        self._traces: list[Trace] | None = None  # what trace() collects while it runs
         self._warned_empty = False  # a config that gives no proposals is warned about once
         self._warm_key = _kernel_key(self.config)
         self.compile_s: float = 0.0
@@ -184,8 +233,7 @@ class ProposalGenerator(nn.Module):
     def classes(self) -> tuple[str, ...] | None:
         """The classes of the ``labels`` and ``class_probs`` of each output (the ranking
         model's class head), or None where there are none (no ranker, or no class head)."""
-        model = self.ranking.model
-        return None if model is None else model.classes
+        return None if self.ranker is None else self.ranker.model.classes
 
     @property
     def min_side(self) -> int:
@@ -263,25 +311,61 @@ class ProposalGenerator(nn.Module):
         )
 
     @torch.no_grad()
+    def trace(self, image: Tensor) -> tuple[dict[str, Tensor], Trace]:
+        """Run on one ``(3, H, W)`` image as :meth:`forward` does and return its output dict
+        with what the back end saw on the way (:class:`Trace`: the windows' scores, the region
+        cut's candidates and shares, the learned ranking's logits), for diagnostics."""
+        self._traces = []
+        try:
+            out = self([image])[0]
+            traced = self._traces[0]
+        finally:
+            self._traces = None
+        return out, traced
+
+    @torch.no_grad()
     def candidates(self, image: Tensor) -> Candidates:
         """The candidates of one ``(3, H, W)`` image before the final ranking and NMS, and
         their features: what :class:`~reeb_torch.ranker.BoxRanker` scores (``reeb fit`` fits
         it on these)."""
-        (x,) = check_images([image], self.min_side, self.config, keep_uint8=True)
-        return self._candidates([x], self._front_end([x]))[0]
+        x = self.prepare([image])
+        return self.candidates_of(x, self.front_end(x))[0]
 
-    def _candidates(self, images: list[Tensor], front: tuple[_Working, ScoreMaps]) -> list[Candidates]:
-        """:meth:`candidates` of a batch of equal-sized images whose :meth:`_front_end` is ``front``."""
-        work, maps = front
-        bounds, entropy, share = self._regions(work.gray)
-        grid = self.ranking.window_grid(maps, bounds)
-        scores = self.ranking.score(maps, grid)
-        chosen = self.ranking.select(scores, grid, share)
-        bi, ni, feats = self.ranking.features(maps, grid, scores, chosen, share, entropy)
+    def prepare(self, images: ImageBatch) -> list[Tensor]:
+        """``images`` checked as :meth:`forward` checks them (raises as it does): a list of
+        ``(3, H, W)`` tensors, float32 in [0, 1] or uint8, for :meth:`front_end`."""
+        return check_images(images, self.min_side, self.config, keep_uint8=True)
+
+    @torch.no_grad()
+    def front_end(self, images: list[Tensor]) -> FrontEnd:
+        """The work of a batch of equal-sized ``(3, H, W)`` images (as :meth:`prepare` gives
+        them) that only :data:`FRONT_END_FIELDS` change: the edge map at the working
+        resolution, its groups, (where a score reads it) the road mask, and the score maps
+        that keep their integral tables once built. Configs equal in those fields may share
+        it (``reeb tune`` computes it once per frame): :meth:`back_end`,
+        :meth:`candidates_of`."""
+        return self._front_end(images)
+
+    @torch.no_grad()
+    def back_end(self, images: list[Tensor], front: FrontEnd) -> list[dict[str, Tensor]]:
+        """The rest of the algorithm on :meth:`front_end`'s ``front`` of ``images``: regions,
+        windows, scores, the region cut, the learned ranking, refinement and NMS; one output
+        dict per image, as :meth:`forward` gives (the same boxes, bit for bit)."""
+        return self._back_end(images, front)[0]
+
+    @torch.no_grad()
+    def candidates_of(self, images: list[Tensor], front: FrontEnd) -> list[Candidates]:
+        """:meth:`candidates` of a batch of equal-sized images whose :meth:`front_end` is ``front``."""
+        maps = front.maps
+        bounds, entropy, share = self.selection.regions(front.working.gray)
+        grid = self.selection.window_grid(maps, bounds)
+        scores = self.selection.score(maps, grid)
+        chosen = self.selection.select(scores, grid, share)
+        bi, ni, feats = self._features.features(maps, grid, scores, chosen, share, entropy)
         scale = torch.tensor([maps.fx, maps.fy, maps.fx, maps.fy], device=scores.device)
         boxes = grid.boxes.to(scores.device)[ni] / scale
         counts = torch.bincount(bi, minlength=len(images)).tolist()
-        names = self.ranking.feature_names()
+        names = self._features.feature_names()
         return [Candidates(b, v.clone(), f, names)
                 for b, v, f in zip(boxes.split(counts), scores[bi, ni].split(counts), feats.split(counts))]
 
@@ -295,10 +379,9 @@ class ProposalGenerator(nn.Module):
         return self._back_end(images, front, keep)
 
     def _front_end(self, images: list[Tensor], keep: bool = False,
-                   check_at: list[int | None] | None = None) -> tuple[_Working, ScoreMaps]:
-        """The per-image work that only :data:`FRONT_END_FIELDS` change: the edge map at the
-        working resolution, its groups, (where a score reads it) the road mask, and the score
-        maps that keep their integral tables once built."""
+                   check_at: list[int | None] | None = None) -> FrontEnd:
+        """:meth:`front_end`; with ``keep``, the road mask too (for :meth:`inspect`);
+        ``check_at``: as in :meth:`_edge_map`."""
         cfg = self.config
         dev = images[0].device
         needs_road = keep or cfg.road_score not in ("none", "flat")
@@ -317,67 +400,89 @@ class ProposalGenerator(nn.Module):
                                        cfg.road_combine, cfg.seed)
         maps = ScoreMaps(work.edges, groups, (images[0].shape[-2], images[0].shape[-1]), road=road, green=work.green,
                          crossing=work.crossing, grey=work.gray[:, 0])
-        return work, maps
+        return FrontEnd(work, maps)
 
-    def _back_end(self, images: list[Tensor], front: tuple[_Working, ScoreMaps],
+    def _back_end(self, images: list[Tensor], front: FrontEnd,
                   keep: bool = False) -> tuple[list[dict[str, Tensor]], dict]:
-        """Regions, windows, scores, refinement and NMS on the output of :meth:`_front_end`."""
+        """:meth:`back_end`; with ``keep``, also the maps :meth:`inspect` shows."""
         cfg = self.config
         dev = images[0].device
-        work, maps = front
+        work, maps, sel = front.working, front.maps, self.selection
         # one image on the CPU: the groups' tables are built on the other core while this
         # one takes the regions and the integral images, in place of each stage's halves
-        beside = len(images) == 1 and self.ranking.compiled_scoring_may_apply(maps)
+        beside = len(images) == 1 and sel.compiled_scoring_may_apply(maps)
         try:
             # Sec. 3.6: Regions = Divide_Image_Into_Regions(I, Camera_Params); eqs. 2 and 9
             with self._stage("regions", dev):
                 if beside:
                     maps.start_tables()
                 with serially() if beside else nullcontext():
-                    bounds, entropy, share = self._regions(work.gray)
+                    bounds, entropy, share = sel.regions(work.gray)
             # Sec. 3.6-3.7: dense sliding windows, scored by eqs. 1, 10-12, cut per region (eq. 9)
             with self._stage("scoring", dev):
-                grid = self.ranking.window_grid(maps, bounds)
-                scores = self.ranking.score(maps, grid)
-                chosen = self.ranking.select(scores, grid, share)
+                grid = sel.window_grid(maps, bounds)
+                scores = sel.score(maps, grid)
+                chosen = sel.select(scores, grid, share)
         finally:
             maps.settle()
+        trace = None
+        if self._traces is not None:  # copies: the next call reuses this memory
+            trace = Trace(scores.clone(), grid, chosen.clone(), share.clone())
+            self._traces.append(trace)
         # a second scoring pass over the best candidates (not in the paper; ``ReebConfig.rescore``)
         if cfg.rescore != "none":
             with self._stage("rescore", dev):
-                scores, chosen = self.ranking.rescore(maps, grid, scores, chosen)
+                scores, chosen = sel.rescore(maps, grid, scores, chosen)
         # the learned ranking of the candidates (not in the paper; ``ReebConfig.ranker``)
-        v_scores, hints = scores, self.classes is not None
-        ranked: list = []  # the ranked candidates' features, for the class hints and quota
+        v_scores = scores
+        ranked: list[tuple[Tensor, Tensor, Tensor]] = []  # the ranked candidates' features, for the hints and quota
         class_of = ranked_logits = None
-        quota = self.ranking.class_share is not None
-        if cfg.ranker != "none":
-            with self._stage("ranker", dev):
-                scores, chosen = self.ranking.rank_learned(maps, grid, scores, chosen, share, entropy,
-                                                           ranked if hints or quota else None,
-                                                           self._stage if self.stage_times is not None else None)
-                if quota and ranked:
-                    with self._stage("ranker.class_head", dev):
-                        class_of, ranked_logits = self.ranking.class_map(ranked[0], (scores.shape[0], scores.shape[1]))
+        if self.ranker is not None:
+            scores, chosen, class_of, ranked_logits = self._rank(maps, grid, scores, chosen, share, entropy, ranked)
+            if trace is not None:
+                trace.ranked, trace.kept = scores.clone(), chosen.clone()
         # Edge Boxes' refinement of the candidates (not in the paper; ``ReebConfig.refine``)
         refined = None
         if cfg.refine:
             with self._stage("refine", dev):
-                refined = self.ranking.refine(maps, grid, chosen, scores)
+                refined = sel.refine(maps, grid, chosen, scores)
         # Sec. 3.8: Final_Proposals = NMS(Sorted_Proposals) (eq. 13)
-        windows: list[Tensor] | None = [] if hints else None
+        windows: list[Tensor] | None = [] if self.classes is not None else None
         with self._stage("nms", dev):
-            results = self.ranking.suppress(maps, grid, chosen, scores, share, refined, windows, class_of)
-        if hints:  # which class each proposal looks like (the ranking model's class head)
-            assert windows is not None  # the NMS kept each proposal's window for the hints
+            results = sel.suppress(maps, grid, chosen, scores, share, refined, windows, class_of,
+                                   None if self.ranker is None else self.ranker.class_share)
+        if windows is not None:  # which class each proposal looks like (the ranking model's class head)
+            assert self.ranker is not None  # classes come from its model
             with self._stage("ranker", dev), self._stage("ranker.class_head", dev):
-                for r, probs in zip(results, self.ranking.class_hints(maps, grid, v_scores, share, entropy, windows,
-                                                                      ranked[0] if ranked else None, ranked_logits)):
+                for r, probs in zip(results, self.ranker.class_hints(maps, grid, v_scores, share, entropy, windows,
+                                                                     ranked[0] if ranked else None, ranked_logits)):
                     r["labels"], r["class_probs"] = probs.argmax(1), probs
         if not self._warned_empty and any(len(r["boxes"]) == 0 for r in results):
             self._warn_empty(tuple(images[0].shape[-2:]), grid.count, share)
-        extra = self._kept_maps(maps, bounds, entropy, share, grid.count) if keep else {}
+        extra = _kept_maps(maps, bounds, entropy, share, grid.count) if keep else {}
         return results, extra
+
+    def _rank(self, maps: ScoreMaps, grid: WindowGrid, scores: Tensor, chosen: Tensor, share: Tensor,
+              entropy: Tensor, ranked: list[tuple[Tensor, Tensor, Tensor]]
+              ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
+        """The learned ranking's step: ``(scores, chosen)`` of :meth:`LearnedRanking.rank
+        <reeb_torch.ranker.LearnedRanking.rank>`, and with the class quota the hinted class of
+        each ranked candidate and the head's logits (:meth:`~reeb_torch.ranker.LearnedRanking.class_map`),
+        else None twice; ``ranked`` gets the ranked candidates' features where the hints or
+        the quota read them."""
+        ranker = self.ranker
+        assert ranker is not None
+        dev = scores.device
+        quota = ranker.class_share is not None
+        class_of = ranked_logits = None
+        with self._stage("ranker", dev):
+            scores, chosen = ranker.rank(maps, grid, scores, chosen, share, entropy,
+                                         ranked if self.classes is not None or quota else None,
+                                         self._stage if self.stage_times is not None else None)
+            if quota and ranked:
+                with self._stage("ranker.class_head", dev):
+                    class_of, ranked_logits = ranker.class_map(ranked[0], (scores.shape[0], scores.shape[1]))
+        return scores, chosen, class_of, ranked_logits
 
     def _warn_empty(self, size: tuple, windows: int, share: Tensor) -> None:
         """Warn once per generator (``RuntimeWarning``) that a valid config gave an image no
@@ -396,7 +501,7 @@ class ProposalGenerator(nn.Module):
 
     # -- the stages' settings ---------------------------------------------------------------
     def _edge_map(self, images: list[Tensor], needs_colour: bool,
-                  check_at: list[int | None] | None = None) -> _Working:
+                  check_at: list[int | None] | None = None) -> Working:
         """Sec. 3.4 on the batch: the working-resolution grey image (the compiled front end
         where it applies, else resize and grey as tensor ops), the green-pixel counts, the
         edge map and, for the straddling term, the edges' crossing maps.
@@ -432,39 +537,17 @@ class ProposalGenerator(nn.Module):
             crossing = _edges.crossing_maps(edges, gx, gy)
         else:
             edges = _edges.edge_map(src, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges)
-        return _Working(gray, edges, colour, green, crossing)
+        return Working(gray, edges, colour, green, crossing)
 
-    def _regions(self, gray: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Sec. 3.6, eqs. 2 and 9: the region strips ``int64 (R, 2)`` (working columns), each
-        image's region entropy ``(B, R)`` and its share of the window budget ``(B, R)``."""
-        cfg = self.config
-        b = gray.shape[0]
-        bounds = self._region_bounds(gray.shape[-1])
-        if cfg.use_regions:
-            entropy = _entropy.region_entropy(gray, bounds, cfg.entropy_bins)
-            share = _entropy.proposal_share(entropy, cfg.entropy_sigma, cfg.entropy_form)
-        else:  # one region, the whole image: entropy is not applicable (Sec. 4.2)
-            entropy = torch.zeros(b, 1, device=gray.device)
-            share = torch.ones(b, 1, device=gray.device)
-        return bounds, entropy, share
 
-    def _region_bounds(self, width: int) -> Tensor:
-        cfg = self.config
-        if not cfg.use_regions:
-            return torch.tensor([[0, width]])
-        frac = _regions.region_width_fraction(cfg.camera_height_m, cfg.vertical_fov_deg, cfg.horizontal_fov_deg,
-                                              cfg.max_object_width_m, cfg.region_width_round)
-        return _regions.region_bounds(width, frac, cfg.region_overlap)
-
-    @staticmethod
-    def _kept_maps(maps: ScoreMaps, bounds: Tensor, entropy: Tensor, share: Tensor, num_windows: int) -> dict:
-        """What :meth:`inspect` shows besides the proposals: the maps, and the region strips
-        in input pixels."""
-        fx, h_in = maps.fx, maps.input_size[0]
-        regions = torch.stack([bounds[:, 0] / fx, torch.zeros(len(bounds)),
-                               bounds[:, 1] / fx, torch.full((len(bounds),), float(h_in))], 1).float()
-        return dict(edges=maps.edges, road=maps.road, entropy=entropy, share=share, regions=regions,
-                    num_groups=len(maps.groups), num_windows=num_windows)
+def _kept_maps(maps: ScoreMaps, bounds: Tensor, entropy: Tensor, share: Tensor, num_windows: int) -> dict:
+    """What :meth:`ProposalGenerator.inspect` shows besides the proposals: the maps, and the region strips
+    in input pixels."""
+    fx, h_in = maps.fx, maps.input_size[0]
+    regions = torch.stack([bounds[:, 0] / fx, torch.zeros(len(bounds)),
+                           bounds[:, 1] / fx, torch.full((len(bounds),), float(h_in))], 1).float()
+    return dict(edges=maps.edges, road=maps.road, entropy=entropy, share=share, regions=regions,
+                num_groups=len(maps.groups), num_windows=num_windows)
 
 
 def propose(images: ImageBatch, config: ReebConfig | None = None, **overrides: object) -> list[dict[str, Tensor]]:

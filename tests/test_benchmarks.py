@@ -147,7 +147,7 @@ def test_ablation_variants_run_beside_the_default_only(tmp_path):
 
 def test_ablations_say_when_a_model_cannot_tell_which_frames_it_saw(tmp_path, sample_image):
     from reeb_torch.ranker import BoxRanker, save_ranker
-    from reeb_torch.stages.features import feature_names
+    from reeb_torch.ranker.features import feature_names
 
     ablations = _script("ablations")
     old = save_ranker(BoxRanker(feature_names(4)), tmp_path / "old.safetensors", {"frames": 3})
@@ -213,7 +213,7 @@ def test_selection_variants_at_their_neutral_settings_are_the_default(variants_m
     for im in bundled:
         ref = base([im])[0]["boxes"]
         assert torch.equal(region([im])[0]["boxes"], ref)
-        narrow.ranking.plain = variants_mod.run_captured(plain, im)[1]["scores"]
+        narrow.selection.plain = variants_mod.run_captured(plain, im)[1]["scores"]
         assert torch.equal(narrow([im])[0]["boxes"], ref)
         assert torch.equal(variants_mod.interleave(ref, ref[:0], 0.3), ref)
 
@@ -226,7 +226,7 @@ def test_selection_variants_change_the_ranking(variants_mod, bundled):
     plain = ProposalGenerator(cfg.replace(shadow_score="none"))
     narrow = variants_mod.with_ranking(variants_mod.NarrowShadow(cfg, 0.6, 0.0, False))
     im = bundled[0]
-    narrow.ranking.plain = variants_mod.run_captured(plain, im)[1]["scores"]
+    narrow.selection.plain = variants_mod.run_captured(plain, im)[1]["scores"]
     out = narrow([im])[0]
     w, h = out["boxes"][:, 2] - out["boxes"][:, 0], out["boxes"][:, 3] - out["boxes"][:, 1]
     thin = w < 0.6 * h

@@ -1,4 +1,4 @@
-"""Per-box features of the learned ranking (reeb_torch.stages.features): the columns against
+"""Per-box features of the learned ranking (reeb_torch.ranker.features): the columns against
 sums over the maps' pixels computed another way (numpy slices), the compiled path against the
 tensor path bit for bit, the window columns cached per grid, and the compiled prefilter
 against the model's tensor ops."""
@@ -12,22 +12,25 @@ import pytest
 import torch
 
 from reeb_torch import ProposalGenerator, ReebConfig
-from reeb_torch.stages import features as F
+from reeb_torch.ranker import features as F
+from reeb_torch.ranker.prefilter import prefilter_cpu
 
 
 @pytest.fixture(scope="module")
 def batch(sample_image):
     """A two-image batch taken to its candidates: the maps, the grid, V, the cut, the regions."""
     from reeb_torch._checks import check_images
+    from reeb_torch.ranker import CandidateFeatures
 
     gen = ProposalGenerator(ReebConfig().training_free().replace(candidates_per_region=30000))
     x = check_images([sample_image, sample_image.flip(-1)], gen.min_side, gen.config, keep_uint8=True)
-    work, maps = gen._front_end(x)
-    bounds, entropy, share = gen._regions(work.gray)
-    rk = gen.ranking
-    grid = rk.window_grid(maps, bounds)
-    scores = rk.score(maps, grid)
-    chosen = rk.select(scores, grid, share)
+    front = gen.front_end(x)
+    maps = front.maps
+    bounds, entropy, share = gen.selection.regions(front.working.gray)
+    sel, rk = gen.selection, CandidateFeatures(gen.config)
+    grid = sel.window_grid(maps, bounds)
+    scores = sel.score(maps, grid)
+    chosen = sel.select(scores, grid, share)
     return dict(gen=gen, rk=rk, maps=maps, grid=grid, scores=scores, chosen=chosen, share=share, entropy=entropy)
 
 
@@ -81,7 +84,7 @@ def test_columns_against_pixel_sums(batch):
 def test_compiled_path_is_the_tensor_path(batch):
     b = batch
     bi, ni = torch.nonzero(b["chosen"], as_tuple=True)
-    window = b["rk"]._window_table(b["maps"], b["grid"])
+    window = b["rk"].window_table(b["maps"], b["grid"])
     for cheap in (False, True):
         ref = _tensor_features(b, bi, ni, cheap)
         got = F.box_features_cpu(b["rk"].box_maps(b["maps"]), b["grid"].boxes, window, b["scores"], b["share"],
@@ -104,7 +107,7 @@ def test_box_features_need_the_tables_past_the_cheap_columns(batch):
     assert torch.equal(F.box_features(geometry, boxes, bi, *args, cheap=True), _tensor_features(b, bi, ni, True))
     with pytest.raises(ValueError, match="integral images and the groups' enclosed-sum tables"):
         F.box_features(geometry, boxes, bi, *args)
-    window = b["rk"]._window_table(b["maps"], b["grid"])
+    window = b["rk"].window_table(b["maps"], b["grid"])
     with pytest.raises(ValueError, match="geometry_only=True"):
         F.box_features_cpu(geometry, b["grid"].boxes, window, b["scores"], b["share"], b["entropy"],
                            b["grid"].region_of, bi, ni, False)
@@ -112,8 +115,8 @@ def test_box_features_need_the_tables_past_the_cheap_columns(batch):
 
 def test_window_table_is_cached_per_grid(batch):
     b = batch
-    t1 = b["rk"]._window_table(b["maps"], b["grid"])
-    assert t1 is b["rk"]._window_table(b["maps"], b["grid"])
+    t1 = b["rk"].window_table(b["maps"], b["grid"])
+    assert t1 is b["rk"].window_table(b["maps"], b["grid"])
     assert t1.shape == (b["grid"].count, len(F.window_names(4)))
 
 
@@ -126,7 +129,7 @@ def test_compiled_prefilter_matches_the_model(batch):
     bi, ni = torch.nonzero(b["chosen"], as_tuple=True)
     with torch.no_grad():
         ref = model.prefilter_scores(_tensor_features(b, bi, ni, cheap=True))
-        got = b["rk"]._prefilter(model, b["maps"], b["grid"], b["scores"], b["share"], b["entropy"], bi, ni)
+        got = b["rk"].prefilter(model, b["maps"], b["grid"], b["scores"], b["share"], b["entropy"], bi, ni)
     assert got.shape == ref.shape
     assert torch.allclose(got, ref, rtol=1e-4, atol=1e-5)
 
@@ -136,7 +139,7 @@ def test_prefilter_cpu_by_hand():
     table = torch.tensor([[1.0, -2.0], [0.5, 0.25]])
     scores = torch.tensor([[math.e, 1.0]])
     share, entropy = torch.tensor([[0.5]]), torch.tensor([[4.0]])
-    out = F.prefilter_cpu(table, scores, share, entropy, torch.tensor([0, 0]), torch.tensor([0, 0]),
+    out = prefilter_cpu(table, scores, share, entropy, torch.tensor([0, 0]), torch.tensor([0, 0]),
                           torch.tensor([1, 0]), torch.tensor([0.0, 0.0, 0.0]), torch.tensor([1.0, 1.0, 2.0]),
                           torch.tensor([[1.0, 0.0, 0.0], [0.0, 2.0, 1.0]]), torch.tensor([3.0, -1.0]), 0.5)
     # window 1, V = 1: d = (0, 0.5, 2): hidden (0.5, 0.25 + 1 + 2) -> 3·0.5 − 3.25 + 0.5

@@ -14,7 +14,8 @@ import pytest
 import torch
 
 from reeb_torch.eval import fit as F
-from reeb_torch.stages.features import feature_names
+from reeb_torch.eval.tune import fold_blocks
+from reeb_torch.ranker.features import feature_names
 
 REPO_DATA = __import__("pathlib").Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -172,7 +173,7 @@ def test_hinted_classes_by_hand():
 def test_folds_keep_neighbouring_frames_of_a_drive_apart():
     ids = [f"{i:06d}" for i in range(6)] + [f"t0000_{i:06d}" for i in range(0, 30, 3)]
     folders = ["kitti"] * 6 + ["kitti_tracking"] * 10
-    blocks = F.frame_folds(len(ids), 4)
+    blocks = fold_blocks(len(ids), 4)
     assert sorted(i for b in blocks for i in b) == list(range(16))
     for held, block in enumerate(blocks):
         train = F.training_frames(blocks, held, ids, folders, gap=2)
@@ -194,7 +195,7 @@ def test_reeb_fit_says_where_a_model_saw_some_of_the_frames(sample_image):
     list's digest, no estimate; one that saw none, nothing."""
     from reeb_torch.ranker import BoxRanker, frame_hash
     from reeb_torch.runs.fit import _seen_note
-    from reeb_torch.stages.features import feature_names
+    from reeb_torch.ranker.features import feature_names
 
     model = BoxRanker(feature_names(4))
     model.meta = {"provenance": {"frame_hashes": {"kitti/000001": frame_hash(sample_image)}}}
@@ -261,7 +262,7 @@ def test_held_out_outputs_are_the_cross_validated_models(kitti_dir):
     cv = F.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 3)
     hits = object_hits([o["boxes"] for o in outputs], frames.gts, 2000, 0.7)
     assert all(torch.equal(a, b) for a, b in zip(hits, cv.ranked_hits))
-    given = F.held_out_outputs(cache, cfg, samples, opts, F.frame_folds(6, 3))  # the blocks themselves
+    given = F.held_out_outputs(cache, cfg, samples, opts, fold_blocks(6, 3))  # the blocks themselves
     assert all(torch.equal(a["boxes"], b["boxes"]) for a, b in zip(given, outputs))
     assert all(0 < len(o["boxes"]) <= 2000 and "labels" not in o for o in outputs)  # no class head here
     others = F.other_boxes(kitti_dir, frames.ids)
@@ -287,7 +288,7 @@ def test_reeb_fit_end_to_end(kitti_dir, tmp_path):
     assert cfg["ranker"] == str(out)
     assert load_ranker(str(out)).meta["provenance"]["frames"] == 8
     gen = ProposalGenerator(ReebConfig.from_dict(cfg))
-    assert gen.ranking.model is load_ranker(str(out))
+    assert gen.ranker.model is load_ranker(str(out))
     tuned = tmp_path / "tuned.safetensors"
     r = subprocess.run([sys.executable, "-m", "reeb_torch.runs.cli", "fit", str(kitti_dir), "--limit", "6",
                         "--folds", "2", "--epochs", "1", "--init", str(out), "-q", "-o", str(tuned),
@@ -350,7 +351,7 @@ def test_whole_drives_keeps_every_frame_of_a_held_out_drive_out(tmp_path):
     drives (gap = all frames); by default only those within 2 frames are left out."""
     ids = [f"{i:06d}" for i in range(4)] + [f"t0000_{3 * i:06d}" for i in range(8)]
     folders = ["kitti"] * 4 + ["kitti_tracking"] * 8
-    blocks = F.frame_folds(len(ids), 4)  # [0-2], [3-5], [6-8], [9-11]
+    blocks = fold_blocks(len(ids), 4)  # [0-2], [3-5], [6-8], [9-11]
     near = F.training_frames(blocks, 2, ids, folders, gap=2)
     whole = F.training_frames(blocks, 2, ids, folders, gap=len(ids))
     assert near == [0, 1, 2, 3, 11] and whole == [0, 1, 2, 3]

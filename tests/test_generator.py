@@ -123,9 +123,9 @@ def test_one_non_finite_value_anywhere_is_rejected(value, where, dtype):
 
 
 def test_float_values_are_checked_as_the_front_end_reads_them(sample_image, monkeypatch):
-    # issue 20: a float image was read twice, once by the range check and once by the front
-    # end (0.3 ms per KITTI image); the front end now counts what it reads, and the error
-    # still names the image, in a batch split between the cores and in one image split by rows
+    # the compiled front end counts the values outside [0, 1] as it reads a float image (one
+    # read, not two), and the error still names the image, in a batch split between the
+    # cores and in one image split by rows
     import reeb_torch._checks as checks
 
     calls = []
@@ -149,7 +149,7 @@ def test_float_values_are_checked_as_the_front_end_reads_them(sample_image, monk
 
 
 def test_float_equal_to_uint8_over_255_gives_the_same_proposals(sample_image):
-    # issue 20: float RGB in [0, 1] that equals uint8 / 255 gives the uint8 input's boxes
+    # float RGB in [0, 1] that equals uint8 / 255 gives the uint8 input's boxes
     # and scores bit for bit, at full size, alone and in a batch, default and paper preset
     other = torch.flip(sample_image, dims=[2])
     for cfg in (ReebConfig(top_k=500), get_preset("paper").replace(top_k=300)):
@@ -182,10 +182,10 @@ def test_region_quota_splits_the_output_by_share():
     region = torch.tensor([0, 0, 0, 0, 0, 1, 1, 0, 1, 2])
     share = torch.tensor([0.5, 0.5, 0.0])
     # quota: 2 for region 0, 2 for region 1, none for region 2
-    assert gen.ranking.quota(keep, region, share).tolist() == [0, 1, 5, 6]
+    assert gen.selection.quota(keep, region, share).tolist() == [0, 1, 5, 6]
     # a region with too few proposals leaves its places to the best of the rest
     share = torch.tensor([0.25, 0.0, 0.75])
-    assert gen.ranking.quota(keep, region, share).tolist() == [0, 1, 2, 9]
+    assert gen.selection.quota(keep, region, share).tolist() == [0, 1, 2, 9]
 
 
 def test_stage_times_are_recorded(crop):
@@ -205,8 +205,8 @@ def test_stage_times_are_recorded(crop):
 
 
 def test_batch_equals_single_on_odd_crops(sample_image):
-    # issue 10, item 4: two 400x150 crops used to differ from rank 42 on (float32 scatter
-    # order in the enclosed sums); float64 sums are exact, so the batch cannot matter
+    # two 400x150 crops alone and in a batch: the enclosed sums are float64 and exact (a
+    # float32 scatter's order would make them differ from rank 42 on), so the batch cannot matter
     from pathlib import Path
 
     from reeb_torch import read_image
@@ -235,13 +235,13 @@ def test_batch_equals_single_on_odd_crops(sample_image):
     {"vegetation_box": 0.33},
 ])
 def test_compiled_scoring_equals_the_tensor_path(sample_image, overrides):
-    # issue 9: the compiled CPU pass gives every window the very same float32 score as the
+    # the compiled CPU pass gives every window the very same float32 score as the
     # per-size tensor ops, -inf included (so the same candidates, boxes and ranking)
-    from reeb_torch.ranking import Ranking
+    from reeb_torch.selection import WindowSelection
 
     gen = ProposalGenerator(**overrides)
     seen = {}
-    real = Ranking.score
+    real = WindowSelection.score
 
     def spy(self, maps, grid):
         out = real(self, maps, grid)
@@ -251,40 +251,40 @@ def test_compiled_scoring_equals_the_tensor_path(sample_image, overrides):
         return out
 
     crops = torch.stack([sample_image[:, 100:290, 200:800], sample_image[:, 150:340, 500:1100]])
-    Ranking.score = spy
+    WindowSelection.score = spy
     try:
         gen(crops)
     finally:
-        Ranking.score = real
+        WindowSelection.score = real
     assert seen["applies"] and seen["equal"] and seen["finite"] > 1000
 
 
 def test_scoring_falls_back_to_tensor_ops_when_a_term_needs_maps(crop):
-    from reeb_torch.ranking import ScoreMaps
+    from reeb_torch.selection import ScoreMaps
     from reeb_torch.stages.groups import connected_groups
 
     e = torch.rand(1, 64, 96)
     g = connected_groups(e, 8)  # groups inside 8-px tiles: every window (>= 16 px) encloses them exactly
     default = ProposalGenerator(**SMALL)
     maps = ScoreMaps(e, g, (64, 96))
-    grid = default.ranking.window_grid(maps, default._region_bounds(96))
-    assert default.ranking.compiled_scoring_applies(maps, grid)
+    grid = default.selection.window_grid(maps, default.selection.region_bounds(96))
+    assert default.selection.compiled_scoring_applies(maps, grid)
     for overrides in ({"road_score": "reward"}, {"road_score": "stand"}, {"local_max": True}):
         gen = ProposalGenerator(**SMALL, **overrides)
-        assert not gen.ranking.compiled_scoring_applies(maps, grid), overrides
+        assert not gen.selection.compiled_scoring_applies(maps, grid), overrides
         assert gen([crop])[0]["boxes"].shape[0] > 0
     unbounded = connected_groups(e, None)  # one big component: no exact prefix-table sums
-    assert not default.ranking.compiled_scoring_applies(ScoreMaps(e, unbounded, (64, 96)), grid)
+    assert not default.selection.compiled_scoring_applies(ScoreMaps(e, unbounded, (64, 96)), grid)
 
 
 def test_compiled_selection_equals_the_tensor_path(sample_image):
     # eq. 9's per-region top-k: the compiled CPU pass and the stable sort choose the same windows
-    from reeb_torch.ranking import Ranking
+    from reeb_torch.selection import WindowSelection
 
     for overrides in ({}, {"use_regions": False}, {"region_assign": "contained"}):
         gen = ProposalGenerator(**overrides)
         seen = {}
-        real = Ranking.region_cut
+        real = WindowSelection.region_cut
 
         def spy(self, scores, grid, share):
             out = real(self, scores, grid, share)
@@ -294,17 +294,17 @@ def test_compiled_selection_equals_the_tensor_path(sample_image):
             seen["n"] = int(out.sum())
             return out
 
-        Ranking.region_cut = spy
+        WindowSelection.region_cut = spy
         try:
             gen([sample_image[:, 100:300, 100:900]])
         finally:
-            Ranking.region_cut = real
+            WindowSelection.region_cut = real
         assert seen["equal"] and seen["n"] > 1000, overrides
 
 
 @pytest.mark.parametrize("overrides", [{}, {"vegetation_score": "none"}, {"scale": 0.7}])
 def test_compiled_front_end_gives_the_tensor_front_ends_proposals(sample_image, overrides):
-    # issue 9: the uint8 → grey (and green mask) compiled pass changes nothing downstream
+    # the uint8 → grey (and green mask) compiled pass changes nothing downstream
     from reeb_torch.stages import edges as E
 
     crops = [sample_image[:, 100:290, 200:800], sample_image[:, 150:340, 500:1100]]
@@ -324,16 +324,17 @@ def test_compiled_front_end_gives_the_tensor_front_ends_proposals(sample_image, 
 def test_per_size_tables_stay_cached_for_many_image_sizes(crop):
     """Each image size's tables are built once, however many sizes alternate (a cap on entries
     once cleared them all at every batch past 4 sizes x 8 keys) and the oldest size goes first."""
-    from reeb_torch import ranking as _ranking
+    from reeb_torch.selection import PLAN_GRIDS
 
     gen = ProposalGenerator(get_preset("default"), top_k=50)
     built: list[tuple] = []
-    cached = gen.ranking._grid_cached
+    caches = (gen.selection, gen.ranker.cache)  # the window selection's tables, the learned ranking's
 
-    def counting(key, grid, build):
-        return cached(key, grid, lambda: built.append((id(grid), key)) or build())
+    def counting(cached):
+        return lambda key, grid, build: cached(key, grid, lambda: built.append((id(grid), key)) or build())
 
-    gen.ranking._grid_cached = counting
+    for cache in caches:
+        cache.grid_cached = counting(cache.grid_cached)
     sizes = [crop[:, : 160 - 4 * i, : 240 - 4 * i] for i in range(6)]
     for im in sizes:
         gen([im])
@@ -342,4 +343,4 @@ def test_per_size_tables_stay_cached_for_many_image_sizes(crop):
     for im in sizes:  # every size again: nothing rebuilt
         gen([im])
     assert len(built) == first
-    assert len(gen.ranking._plan_cache) == 6 <= _ranking.PLAN_GRIDS
+    assert all(len(cache._plan_cache) == 6 <= PLAN_GRIDS for cache in caches)

@@ -111,7 +111,7 @@ def test_generator_candidates_equal_torchvision():
     """Real candidates: the boxes the generator hands to NMS on a bundled KITTI frame."""
     from pathlib import Path
 
-    import reeb_torch.ranking as R
+    import reeb_torch.selection.suppress as R
     from reeb_torch import ProposalGenerator, get_preset
     from reeb_torch.io import read_image
 
@@ -174,7 +174,7 @@ def test_nms_top_k_many_equals_one_image_at_a_time():
 
 
 def test_nms_windows_cpu_equals_nms_top_k_on_the_chosen_windows():
-    # issue 9: gathering, radix sort and NMS compiled per image give nms_top_k's windows,
+    # gathering, radix sort and NMS compiled per image give nms_top_k's windows,
     # ties (and -0.0 against 0.0) included; NaN scores and bad boxes take the checked path
     from reeb_torch.stages.nms import nms_windows_cpu
 
@@ -202,7 +202,7 @@ def test_nms_windows_cpu_with_class_needs_stops_where_the_quota_is_decided():
     among the kept boxes: the quota's output is that of the NMS run to the end (NaN and bad
     boxes, the checked path, included), and it stops early where the needs fill."""
     from reeb_torch import ReebConfig
-    from reeb_torch.ranking import Ranking
+    from reeb_torch.selection import WindowSelection
     from reeb_torch.stages.nms import nms_windows_cpu
 
     gen = torch.Generator().manual_seed(5)
@@ -212,7 +212,7 @@ def test_nms_windows_cpu_with_class_needs_stops_where_the_quota_is_decided():
     chosen = torch.rand(4, 3000, generator=gen) < 0.6
     classes = torch.multinomial(torch.tensor([0.8, 0.12, 0.06, 0.02]), 4 * 3000, True, generator=gen).view(4, 3000)
     for k, share in ((100, [0.0, 0.3, 0.1, 0.05]), (100, [0.0, 0.0, 0.0, 0.0]), (40, [0.0, 0.2, 0.05, 0.9 / 40])):
-        rk = Ranking(ReebConfig(top_k=k))
+        rk = WindowSelection(ReebConfig(top_k=k))
         share = torch.tensor(share)
         need = rk.quota_counts(share)
         for boxes in (b, b.clone().index_put_((chosen[1].nonzero()[0, 0],), torch.tensor([5.0, 5.0, 1.0, 9.0]))):
@@ -225,7 +225,7 @@ def test_nms_windows_cpu_with_class_needs_stops_where_the_quota_is_decided():
             if boxes is b and not bool(need.any()):  # no quota: k, as without classes (NaN: the checked path)
                 assert len(short[0]) == len(short[1]) == len(short[2]) == k
     # needs per image (region_quota: each image's regions by its own shares)
-    rk = Ranking(ReebConfig(top_k=100))
+    rk = WindowSelection(ReebConfig(top_k=100))
     shares = torch.tensor([[0.5, 0.3, 0.2, 0.0], [0.1, 0.1, 0.1, 0.7], [0.0, 0.0, 0.0, 1.0], [0.25, 0.25, 0.25, 0.25]])
     need = torch.stack([rk.quota_counts(sh, float(sh.sum())) for sh in shares])
     short = nms_windows_cpu(chosen, b, scores, 0.7, 100, None, classes, need)
@@ -255,7 +255,7 @@ def test_descending_radix_order_equals_torch_stable_sort():
 
 
 def test_nms_windows_cpu_sorts_a_prefix_first_and_all_when_it_keeps_too_few():
-    # issue 20: only the best 3k candidates are sorted first; when they hold fewer than k
+    # only the best 3k candidates are sorted first; when they hold fewer than k
     # distinct boxes (here the best 40 are one box) it falls back to all: same windows
     from reeb_torch.stages.nms import nms_windows_cpu
 

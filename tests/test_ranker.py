@@ -13,7 +13,7 @@ import torch
 
 from reeb_torch import ProposalGenerator, ReebConfig
 from reeb_torch.ranker import SHIPPED, BoxRanker, RankerWeightsError, load_ranker, save_ranker, shipped_path
-from reeb_torch.stages.features import FEATURES_VERSION, feature_names
+from reeb_torch.ranker.features import FEATURES_VERSION, feature_names
 
 
 def _model(seed: int = 0, **kw) -> BoxRanker:
@@ -96,7 +96,7 @@ def test_weights_round_trip(tmp_path):
 
 
 def test_weights_files_get_the_umasks_permissions(tmp_path):
-    """A weights file is as readable as any file the user writes (a team's folder, Ray workers
+    """A weights file is as readable as any file the user writes (a shared folder, Ray workers
     running as another user), not its owner's alone."""
     import os
     import stat
@@ -207,7 +207,7 @@ def test_fitted_frames_names_the_pictures_a_model_saw(sample_image):
 
 def test_generator_with_ranker_contract(sample_image):
     gen = ProposalGenerator()
-    assert gen.config.ranker == "kitti" and gen.ranking.model is not None
+    assert gen.config.ranker == "kitti" and gen.ranker is not None and gen.ranker.model is not None
     out = gen([sample_image])[0]
     b, s = out["boxes"], out["scores"]
     assert b.dtype == s.dtype == torch.float32 and 0 < len(b) <= gen.config.top_k
@@ -234,18 +234,17 @@ def test_generator_with_ranker_contract(sample_image):
 
 def _ranked(gen: ProposalGenerator, images: list) -> tuple:
     """The generator's stages up to the learned ranking on ``images``: ``(maps, grid, scores
-    (V), share, entropy, kept, ranked)``, ``ranked`` holding ``rank_learned``'s ``(bi, ni,
+    (V), share, entropy, kept, ranked)``, ``ranked`` holding ``LearnedRanking.rank``'s ``(bi, ni,
     features)``."""
-    from reeb_torch._checks import check_images
-
-    rk = gen.ranking
-    work, maps = gen._front_end(check_images(images, gen.min_side, gen.config, keep_uint8=True))
-    bounds, entropy, share = gen._regions(work.gray)
-    grid = rk.window_grid(maps, bounds)
-    scores = rk.score(maps, grid)
-    chosen = rk.select(scores, grid, share)
+    sel, rk = gen.selection, gen.ranker
+    front = gen.front_end(gen.prepare(images))
+    maps = front.maps
+    bounds, entropy, share = gen.selection.regions(front.working.gray)
+    grid = sel.window_grid(maps, bounds)
+    scores = sel.score(maps, grid)
+    chosen = sel.select(scores, grid, share)
     ranked: list = []
-    _, kept = rk.rank_learned(maps, grid, scores, chosen, share, entropy, ranked)
+    _, kept = rk.rank(maps, grid, scores, chosen, share, entropy, ranked)
     return maps, grid, scores, share, entropy, kept, ranked
 
 
@@ -254,7 +253,7 @@ def test_class_hints_reuse_the_ranked_features(sample_image):
     the same probabilities as features computed afresh, and a window the ranking did not
     rank (here: every other one dropped from what it hands over) is computed."""
     gen = ProposalGenerator()
-    rk = gen.ranking
+    rk = gen.ranker
     maps, grid, scores, share, entropy, kept, ranked = _ranked(gen, [sample_image, sample_image.flip(-1)])
     bi, ni, feats = ranked[0]
     assert feats.shape == (int(kept.sum()), 47)
@@ -273,7 +272,7 @@ def test_no_class_hints_without_a_class_head(sample_image, tmp_path):
     plain = ProposalGenerator(ranker=str(path))
     assert plain.classes is None and set(plain([sample_image])[0]) == {"boxes", "scores"}
     with pytest.raises(ValueError, match="no class head"):
-        plain.ranking.model.class_probs(torch.randn(3, 47))
+        plain.ranker.model.class_probs(torch.randn(3, 47))
 
 
 def test_ranker_none_is_the_training_free_ranking(sample_image):
@@ -289,15 +288,15 @@ def test_ranker_keep_bounds_the_ranked_candidates(sample_image):
 
 
 def _ranked_with(gen: ProposalGenerator, images: list) -> list[tuple]:
-    """Per call of rank_learned: (V [B, N], the region cut's chosen, the candidates it ranked)."""
-    calls, rank = [], gen.ranking.rank_learned
+    """Per call of LearnedRanking.rank: (V [B, N], the region cut's chosen, the candidates it ranked)."""
+    calls, rank = [], gen.ranker.rank
 
     def spy(maps, grid, scores, chosen, *a, **k):
         out, kept = rank(maps, grid, scores, chosen, *a, **k)
         calls.append((scores.clone(), chosen.clone(), kept.clone()))
         return out, kept
 
-    gen.ranking.rank_learned = spy
+    gen.ranker.rank = spy
     gen(images)
     return calls
 
@@ -396,18 +395,18 @@ def test_class_quota_by_name(tmp_path, sample_image):
     assert named.class_shares(("Car", "Pedestrian", "Cyclist", "Truck")) == (0.0, 0.2, 0.05, 0.0)
     assert named.class_shares(None) is None and ReebConfig().class_shares(("Car",)) is None
     by_name = ProposalGenerator(named, top_k=200)
-    assert by_name.ranking.class_share == (0.0, 0.2, 0.05, 0.0)
+    assert by_name.ranker.class_share == (0.0, 0.2, 0.05, 0.0)
     got = by_name([sample_image])[0]
     want = ProposalGenerator(class_quota=(0.0, 0.2, 0.05, 0.0), top_k=200)([sample_image])[0]
     assert all(torch.equal(got[k], want[k]) for k in want)
     # no class head: no quota
     none = ProposalGenerator(named.replace(ranker="none"), top_k=200)
-    assert none.ranking.class_share is None
+    assert none.ranker is None
     assert torch.equal(none([sample_image])[0]["boxes"], ProposalGenerator(ranker="none", top_k=200)([sample_image])[0]["boxes"])
     path = save_ranker(_model(), tmp_path / "plain.safetensors")
     with pytest.warns(UserWarning, match="class_quota is ignored: the ranker .* has no class head"):
         plain = ProposalGenerator(ranker=str(path), class_quota={"Pedestrian": 0.2})
-    assert plain.ranking.class_share is None
+    assert plain.ranker.class_share is None
 
 
 @pytest.mark.cuda
@@ -433,7 +432,7 @@ def test_a_config_the_model_was_not_fitted_with_is_warned_about():
 def test_chosen_pairs_are_torch_nonzero_and_gather_reads_them():
     """The CPU's candidate pairs (numpy, an image at a time) are torch.nonzero's, in its order;
     _gather reads the values at them as torch's indexing does."""
-    from reeb_torch.ranking import _chosen, _gather
+    from reeb_torch.ranker.step import _chosen, _gather
 
     torch.manual_seed(0)
     for mask in (torch.rand(3, 1000) < 0.3, torch.zeros(2, 50, dtype=torch.bool), torch.ones(1, 7, dtype=torch.bool),
@@ -449,7 +448,7 @@ def test_chosen_pairs_are_torch_nonzero_and_gather_reads_them():
 
 def test_best_per_image_keeps_the_best_ties_to_the_earlier():
     """Each image's best `keep` values, ties to the earlier, ascending: as a stable sort."""
-    from reeb_torch.ranking import _best_per_image
+    from reeb_torch.ranker.step import _best_per_image
 
     torch.manual_seed(0)
     values = torch.randint(0, 20, (300,)).float()  # many ties
@@ -467,7 +466,7 @@ def test_class_hints_take_the_quotas_logits_of_the_ranked_rows(sample_image):
     """On the class_quota path the head runs once over the ranked rows (class_map); the hints
     of the output read those rows' logits: the same probabilities as the head run on them anew."""
     gen = ProposalGenerator(class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05}, top_k=300)
-    rk = gen.ranking
+    rk = gen.ranker
     maps, grid, scores, share, entropy, kept, ranked = _ranked(gen, [sample_image])
     class_of, logits = rk.class_map(ranked[0], tuple(scores.shape))
     assert logits.shape == (int(kept.sum()), len(gen.classes))

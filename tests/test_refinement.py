@@ -60,10 +60,10 @@ def test_refine_climbs_to_the_best_box():
 def test_box_scorer_equals_grid_scores(sample_image):
     gen = ProposalGenerator(ReebConfig(**TRAINING_FREE, refine=True, straddle_weight=0.5, road_score="stand"))
     seen = {}
-    real = gen.ranking.refine
+    real = gen.selection.refine
 
     def spy(maps, grid, chosen, scores):
-        fn, side = gen.ranking.box_scorer(maps)
+        fn, side = gen.selection.box_scorer(maps)
         bi, ni = torch.nonzero(chosen, as_tuple=True)
         boxes = grid.boxes[ni].round().long()
         ok = ((boxes[:, 2:] - boxes[:, :2]) >= side).all(1)
@@ -71,7 +71,7 @@ def test_box_scorer_equals_grid_scores(sample_image):
         seen["ref"] = scores[bi, ni][ok].double()
         return real(maps, grid, chosen, scores)
 
-    gen.ranking.refine = spy  # type: ignore[method-assign]
+    gen.selection.refine = spy  # type: ignore[method-assign]
     out = gen([sample_image])[0]
     assert seen["got"].numel() > 1000
     torch.testing.assert_close(seen["got"], seen["ref"], rtol=1e-4, atol=1e-7)
@@ -86,7 +86,7 @@ def test_enclosed_grid_equals_the_per_size_scatter(sample_image):
 
     gen = ProposalGenerator(road_score="reward")
     seen = {}
-    real = gen.ranking.enclosed
+    real = gen.selection.enclosed
 
     def spy(maps, grid):
         out = real(maps, grid)
@@ -95,7 +95,7 @@ def test_enclosed_grid_equals_the_per_size_scatter(sample_image):
         seen["equal"] = all(torch.equal(x, y) for x, y in zip(out, ref))
         return out
 
-    gen.ranking.enclosed = spy  # type: ignore[method-assign]
+    gen.selection.enclosed = spy  # type: ignore[method-assign]
     gen([sample_image[:, :200, :600]])
     assert seen["n"] > 50 and seen["equal"]
 
@@ -130,7 +130,7 @@ def test_compiled_refinement_equals_the_tensor_refinement(sample_image, override
     # scorer's refine_boxes (same float64 operations; the location score and the
     # normaliser are tabulated by the tensor functions themselves)
     gen = ProposalGenerator(ReebConfig(**TRAINING_FREE, refine=True, **overrides))
-    ranking = gen.ranking
+    ranking = gen.selection
     seen = {}
     real = ranking.refine
 
@@ -155,21 +155,21 @@ def test_compiled_refinement_equals_the_tensor_refinement(sample_image, override
 @pytest.mark.parametrize("overrides", [dict(straddle_weight=0.5), dict(road_score="stand"),
                                        dict(location_score="paper"), dict(shadow_power=0.25)])
 def test_refinement_of_other_scores_takes_the_tensor_path(overrides):
-    from reeb_torch.ranking import ScoreMaps
+    from reeb_torch.selection import ScoreMaps
     from reeb_torch.stages.groups import connected_groups
 
     gen = ProposalGenerator(ReebConfig(**TRAINING_FREE, refine=True, **overrides))
     crossing = (torch.zeros(1), torch.zeros(1)) if overrides.get("straddle_weight") else None
     edges = torch.zeros(1, 4, 4)
     maps = ScoreMaps(edges, connected_groups(edges, 8), (4, 4), crossing=crossing)
-    assert not gen.ranking.compiled_refine_applies(maps)
+    assert not gen.selection.compiled_refine_applies(maps)
 
 
 def test_refine_min_aspect_keeps_narrow_boxes_where_they_are(sample_image):
     seen = {}
     for aspect in (0.0, 0.6):
         gen = ProposalGenerator(ReebConfig(**TRAINING_FREE, refine=True, refine_min_aspect=aspect))
-        real = gen.ranking.refine
+        real = gen.selection.refine
 
         def spy(maps, grid, chosen, scores):
             out = real(maps, grid, chosen, scores)
@@ -177,7 +177,7 @@ def test_refine_min_aspect_keeps_narrow_boxes_where_they_are(sample_image):
             seen[aspect] = (grid.boxes[ni].round(), out[0][0])
             return out
 
-        gen.ranking.refine = spy  # type: ignore[method-assign]
+        gen.selection.refine = spy  # type: ignore[method-assign]
         gen([sample_image])
     start, moved_all = seen[0.0]
     start6, moved6 = seen[0.6]

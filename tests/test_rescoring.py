@@ -12,7 +12,7 @@ import torch
 
 from reeb_torch import ProposalGenerator, ReebConfig
 from reeb_torch.config import TRAINING_FREE
-from reeb_torch.ranking import Ranking
+from reeb_torch.selection import WindowSelection
 from reeb_torch.stages.groups import connected_groups
 from reeb_torch.stages.rescoring import (affinity_cue, apply_cue, contrast_cue, density_cue, group_graph,
                                          orientation_cue, top_candidates)
@@ -203,7 +203,7 @@ def test_none_is_the_default_bit_for_bit(sample_image):
     other = ProposalGenerator(ReebConfig(**TRAINING_FREE, rescore="none", rescore_top=5, rescore_power=3.0,
                                          rescore_scope="persons"))([sample_image])[0]
     assert torch.equal(base["boxes"], other["boxes"]) and torch.equal(base["scores"], other["scores"])
-    r = Ranking(ReebConfig())
+    r = WindowSelection(ReebConfig())
     s, c = torch.rand(1, 4), torch.ones(1, 4, dtype=torch.bool)
     assert r.rescore(None, None, s, c) == (s, c)  # type: ignore[arg-type]
 
@@ -215,7 +215,7 @@ def test_cues_change_the_ranking_and_both_paths_agree(sample_image, cue, monkeyp
     base = ProposalGenerator(**TRAINING_FREE)([sample_image])[0]
     assert not torch.equal(got["boxes"], base["boxes"])
     assert bool((got["scores"][:-1] >= got["scores"][1:]).all())
-    monkeypatch.setattr(Ranking, "compiled_scoring_applies", lambda self, maps, grid: False)
+    monkeypatch.setattr(WindowSelection, "compiled_scoring_applies", lambda self, maps, grid: False)
     torch_path = ProposalGenerator(cfg)([sample_image])[0]
     assert torch.equal(got["boxes"], torch_path["boxes"]) and torch.equal(got["scores"], torch_path["scores"])
 
@@ -232,14 +232,14 @@ def test_persons_scope_leaves_wide_windows_alone(sample_image):
 def test_persons_scope_by_shape_and_real_height():
     hk = 100  # horizon row 47 with the default horizon 0.47
     boxes = torch.tensor([[0, 40, 10, 60], [0, 40, 30, 60], [0, 10, 10, 60], [0, 10, 10, 40]])
-    shape = Ranking(ReebConfig(**TRAINING_FREE, rescore="density", rescore_scope="persons"))._rescore_scope(boxes, hk)
+    shape = WindowSelection(ReebConfig(**TRAINING_FREE, rescore="density", rescore_scope="persons"))._rescore_scope(boxes, hk)
     assert shape.tolist() == [True, False, True, True]
-    tall = Ranking(ReebConfig(**TRAINING_FREE, rescore="density", rescore_scope="persons", rescore_max_height_m=2.3))
+    tall = WindowSelection(ReebConfig(**TRAINING_FREE, rescore="density", rescore_scope="persons", rescore_max_height_m=2.3))
     # 20 px over 13 rows below the horizon: 2.54 m; 50 over 13: 6.3 m; above the horizon: no
     assert tall._rescore_scope(boxes, hk).tolist() == [False, False, False, False]
     boxes = torch.tensor([[0, 70, 10, 90]])  # 20 px over 43 rows: 0.77 m
     assert tall._rescore_scope(boxes, hk).tolist() == [True]
-    assert Ranking(ReebConfig(**TRAINING_FREE, rescore="density"))._rescore_scope(boxes, hk).tolist() == [True]
+    assert WindowSelection(ReebConfig(**TRAINING_FREE, rescore="density"))._rescore_scope(boxes, hk).tolist() == [True]
 
 
 @pytest.mark.parametrize("changes, words", [

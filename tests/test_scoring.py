@@ -148,7 +148,7 @@ def test_select_per_region_cpu_matches_a_stable_sort_with_ties():
 
 
 def test_compiled_integral_image_equals_the_cumulative_sums():
-    # issue 9: the CPU pass sums in the tensor ops' order (rows, then columns): equal bit for bit,
+    # the CPU pass sums in the tensor ops' order (rows, then columns): equal bit for bit,
     # in its blocks of four rows and in the rows left over (heights 23 and 3)
     gen = torch.Generator().manual_seed(4)
     for x in (torch.rand(3, 20, 31, generator=gen) ** 8, torch.rand(2, 23, 17, generator=gen) ** 8,

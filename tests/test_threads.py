@@ -122,14 +122,14 @@ def test_results_and_kept_maps_do_not_share_the_reused_memory(sample_image):
     a, b = sample_image[:, :220, :500], sample_image[:, 120:340, 600:1100]
     first = gen([a, a.flip(-1)])
     kept = [{k: v.clone() for k, v in r.items()} for r in first]
-    front = gen._front_end([a])  # what reeb tune caches per frame
+    front = gen.front_end([a])  # what reeb tune caches per frame
     edges = front[1].edges.clone()
     tables = front[1].tables().anchor.clone()
     gen([b, b.flip(-1)])
     for r, k in zip(first, kept):
         assert torch.equal(r["boxes"], k["boxes"]) and torch.equal(r["scores"], k["scores"])
     assert torch.equal(front[1].edges, edges) and torch.equal(front[1].tables().anchor, tables)
-    again = gen._back_end([a], front)[0][0]
+    again = gen.back_end([a], front)[0]
     alone = ProposalGenerator(top_k=300)([a])[0]
     assert torch.equal(again["boxes"], alone["boxes"]) and torch.equal(again["scores"], alone["scores"])
 
@@ -236,7 +236,7 @@ def test_one_image_builds_its_tables_beside_the_regions_and_waits_for_them(sampl
     import torch
 
     from reeb_torch import ProposalGenerator, ReebConfig
-    from reeb_torch.ranking import ScoreMaps
+    from reeb_torch.selection import ScoreMaps
 
     gen = ProposalGenerator(ReebConfig(top_k=300))
     x = sample_image[:, :200, :600]
@@ -253,7 +253,7 @@ def test_one_image_builds_its_tables_beside_the_regions_and_waits_for_them(sampl
     real_settle = ScoreMaps.settle
     monkeypatch.setattr(ScoreMaps, "settle", lambda self: (settled.append(self._pending is not None),
                                                            real_settle(self))[1])
-    monkeypatch.setattr(gen, "_regions", lambda gray: (_ for _ in ()).throw(RuntimeError("regions")))
+    monkeypatch.setattr(gen.selection, "regions", lambda gray: (_ for _ in ()).throw(RuntimeError("regions")))
     with pytest.raises(RuntimeError, match="regions"):
         gen([x])
     assert settled == [True]  # still pending when the stage raised, then waited for

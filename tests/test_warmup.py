@@ -17,7 +17,8 @@ from reeb_torch.stages import _cache
 
 
 def _dispatchers() -> dict[str, object]:
-    mods = ["reeb_torch._checks"] + [f"reeb_torch.stages.{m.name}" for m in pkgutil.iter_modules(reeb_torch.stages.__path__)]
+    mods = ["reeb_torch._checks", "reeb_torch.ranker.features", "reeb_torch.ranker.prefilter"]
+    mods += [f"reeb_torch.stages.{m.name}" for m in pkgutil.iter_modules(reeb_torch.stages.__path__)]
     out = {}
     for name in mods:
         mod = importlib.import_module(name)

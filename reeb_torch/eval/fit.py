@@ -10,9 +10,11 @@ frames, and estimate by cross-validation how it does on frames it never saw.
   of those below ``negative_iou`` with every labelled box.
 * :func:`fit_ranker` fits a :class:`~reeb_torch.ranker.BoxRanker` (weighted logistic loss,
   AdamW, one CPU thread, seeded: the same frames and options give the same bits).
-* :func:`frame_folds` makes folds of blocks of frames that never put neighbouring frames
-  of one drive on both sides; :func:`cross_validate` fits on all folds but one, scores
-  the generator with that model on the held-out fold, and collects the held-out hits.
+* :func:`cross_validate` splits the frames into blocks
+  (:func:`~reeb_torch.eval.tune.fold_blocks`), fits on all blocks but one, keeping the
+  held-out block's drive neighbours out (:func:`training_frames`), scores the generator with
+  that model on the held-out block, and collects the held-out hits
+  (:func:`~reeb_torch.eval.tune.held_out`).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import re
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -34,10 +36,10 @@ from torchvision.ops import box_iou
 
 from ..config import ReebConfig
 from ..ranker import BoxRanker, save_ranker
-from .tune import FrameCache, Frames
+from .tune import FrameCache, Frames, fold_blocks, held_out
 
 __all__ = ["FitFrames", "FitOptions", "Sample", "FitCrossValidation", "load_fit_frames", "frame_sample",
-           "frame_samples", "fit_ranker", "initial_model", "frame_folds", "similar_frames", "training_frames",
+           "frame_samples", "fit_ranker", "initial_model", "similar_frames", "training_frames",
            "cross_validate", "held_out_outputs", "hinted_classes", "drive_of", "other_boxes"]
 
 
@@ -344,19 +346,6 @@ def drive_of(image_id: str, folder: str) -> str | None:
     return f"{folder}/{m.group(1)}" if m else None
 
 
-def frame_folds(n: int, folds: int) -> list[list[int]]:
-    """``folds`` blocks of consecutive frames (in the order given: folder, then id), sizes
-    differing by at most one; :func:`training_frames` keeps a held-out block's neighbours
-    out of its training frames.
-
-    Raises:
-        ValueError: fewer than 2 folds, or fewer frames than folds.
-    """
-    from .tune import fold_blocks
-
-    return fold_blocks(n, folds)
-
-
 def similar_frames(images: Sequence[Tensor], ratio: float = 0.3) -> list[set[int]]:
     """Per frame, the other frames that look nearly the same: the distance between their
     24 × 80 thumbnails is below ``ratio`` times the median distance between all pairs
@@ -432,21 +421,35 @@ def hinted_classes(outputs: Sequence[dict[str, Tensor]], gts: Sequence[Tensor], 
     return out
 
 
-def _held_out_models(cache: FrameCache, names: Sequence[str], samples: Sequence[Sample], opts: FitOptions,
-                     folds: int | Sequence[Sequence[int]], gap: int,
-                     progress: Callable | None) -> Iterator[tuple[list[int], int, Path]]:
-    """Per block (``folds`` blocks of :func:`frame_folds`, or the blocks ``folds``), in turn:
-    its frames, how many frames the model fitted without it was fitted on
-    (:func:`training_frames`: no drive neighbour or near-copy of the block), and that model's
-    weights file, in a temporary folder removed at the end."""
-    frames = cache.frames
-    blocks = frame_folds(len(frames), folds) if isinstance(folds, int) else [list(b) for b in folds]
-    similar = similar_frames(frames.images)
-    with tempfile.TemporaryDirectory(prefix="reeb-fit-") as tmp:
-        for f in progress(range(len(blocks))) if progress else range(len(blocks)):
-            train = training_frames(blocks, f, frames.ids, frames.folders, similar, gap)
-            model = fit_ranker([samples[i] for i in train], names, opts, frames.classes)
-            yield blocks[f], len(train), save_ranker(model, Path(tmp) / f"fold{f}.safetensors")
+class _HeldOutModels:
+    """The models fitted without each block of frames (``folds`` blocks of
+    :func:`~reeb_torch.eval.tune.fold_blocks`, or the blocks ``folds``), in a temporary folder
+    removed on leaving the ``with`` block: :meth:`fit` fits block ``f``'s, keeping every
+    drive neighbour and near-copy of the block out of its training frames
+    (:func:`training_frames`), and records how many frames it was fitted on."""
+
+    def __init__(self, cache: FrameCache, names: Sequence[str], samples: Sequence[Sample], opts: FitOptions,
+                 folds: int | Sequence[Sequence[int]], gap: int) -> None:
+        frames = cache.frames
+        self.frames, self.names, self.samples, self.opts, self.gap = frames, names, samples, opts, gap
+        self.blocks = fold_blocks(len(frames), folds) if isinstance(folds, int) else [list(b) for b in folds]
+        self.similar = similar_frames(frames.images)
+        self.trained: list[int] = []
+        self._tmp = tempfile.TemporaryDirectory(prefix="reeb-fit-")
+
+    def __enter__(self) -> _HeldOutModels:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._tmp.cleanup()
+
+    def fit(self, f: int) -> Path:
+        """Fit the model without block ``f``; its weights file."""
+        frames = self.frames
+        train = training_frames(self.blocks, f, frames.ids, frames.folders, self.similar, self.gap)
+        model = fit_ranker([self.samples[i] for i in train], self.names, self.opts, frames.classes)
+        self.trained.append(len(train))
+        return save_ranker(model, Path(self._tmp.name) / f"fold{f}.safetensors")
 
 
 def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[Sample], opts: FitOptions,
@@ -463,9 +466,11 @@ def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[Sampl
     """
     names = cache.candidates(cfg.unranked(), 0).feature_names
     out: list = [None] * len(cache.frames)
-    for block, _, path in _held_out_models(cache, names, samples, opts, folds, gap, progress):
-        for i, o in zip(block, cache.outputs(cfg.replace(ranker=str(path)), block)):
-            out[i] = o
+    with _HeldOutModels(cache, names, samples, opts, folds, gap) as models:
+        for f in progress(range(len(models.blocks))) if progress else range(len(models.blocks)):
+            block = models.blocks[f]
+            for i, o in zip(block, cache.outputs(cfg.replace(ranker=str(models.fit(f))), block)):
+                out[i] = o
     return out
 
 
@@ -475,33 +480,28 @@ def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples
     """For each of ``folds`` blocks of frames: fit on the others (:func:`training_frames`),
     run the generator of ``cfg`` with that model on the block, and pair its hits with
     ``base``'s on the same objects; each config of ``also`` (settings that act after the
-    model: ``class_quota``, ``top_k``, ...) runs with the same model too (``also_hits``)."""
+    model: ``class_quota``, ``top_k``, ...) runs with the same model too (``also_hits``); the
+    loop over the blocks is :func:`~reeb_torch.eval.tune.held_out`'s."""
     from .metrics import object_hits
-    from .tune import objective
 
     frames = cache.frames
     names = cache.candidates(cfg.unranked(), 0).feature_names
-    r_hits: list = [None] * len(frames)
-    b_hits: list = [None] * len(frames)
-    hinted: list = [None] * len(frames)
-    also_hits: list[list] = [[None] * len(frames) for _ in also]
-    blocks, per_fold, trained = [], [], []
-    for block, n_train, path in _held_out_models(cache, names, samples, opts, folds, gap, progress):
-        outputs = cache.outputs(cfg.replace(ranker=str(path)), block)
+    hinted: list[Tensor] = []
+    also_hits: list[list[Tensor]] = [[] for _ in also]
+    path: list[Path] = []  # the current block's model
+
+    def fitted(f: int) -> ReebConfig:
+        path[:] = [models.fit(f)]
+        return cfg.replace(ranker=str(path[0]))
+
+    def each(block: list[int], outputs: list[dict[str, Tensor]]) -> None:
         gts = [frames.gts[i] for i in block]
-        ranked = object_hits([o["boxes"] for o in outputs], gts, k, iou)
-        for i, rh, bh, hc in zip(block, ranked, cache.hits(base, block, k, iou),
-                                 hinted_classes(outputs, gts, k, iou)):
-            r_hits[i], b_hits[i], hinted[i] = rh, bh, hc
+        hinted.extend(hinted_classes(outputs, gts, k, iou))
         for other, hits in zip(also, also_hits):
-            found = object_hits([o["boxes"] for o in cache.outputs(other.replace(ranker=str(path)), block)],
+            hits += object_hits([o["boxes"] for o in cache.outputs(other.replace(ranker=str(path[0])), block)],
                                 gts, k, iou)
-            for i, h in zip(block, found):
-                hits[i] = h
-        labels = [frames.labels[i] for i in block]
-        per_fold.append((objective([r_hits[i] for i in block], labels),
-                         objective([b_hits[i] for i in block], labels)))
-        blocks.append(block)
-        trained.append(n_train)
-    return FitCrossValidation(blocks, r_hits, b_hits, per_fold=per_fold, trained=trained, hinted=hinted,
-                              also_hits=also_hits)
+
+    with _HeldOutModels(cache, names, samples, opts, folds, gap) as models:
+        scored = held_out(cache, models.blocks, fitted, base, k, iou, each=each, progress=progress)
+    return FitCrossValidation(models.blocks, scored.hits, scored.base_hits, per_fold=scored.per_fold,
+                              trained=models.trained, hinted=hinted, also_hits=also_hits)

@@ -6,10 +6,13 @@ estimate how the tuned settings do on new frames by nested cross-validation over
   :data:`reeb_torch.generator.FRONT_END_FIELDS` change) so a trial that searches ranking
   settings (geometry, score powers, budgets, NMS) costs only regions, scoring and NMS.
 * :func:`default_space` / :func:`load_space`: the search space, checked against ReebConfig.
-* :func:`cross_validate`: K contiguous blocks of frames; for each, a study on the other K−1
-  blocks picks settings that are then scored on the held-out block (nested: the block never
-  informs its own settings). The held-out hits of all blocks give the estimate, with a
-  frame-bootstrap interval, beside the base config's on the same frames.
+* :func:`fold_blocks` splits the frames into K contiguous blocks; :func:`held_out` scores,
+  on each block, a config chosen without it beside a base config (the loop that ``reeb
+  tune``'s and ``reeb fit``'s cross-validations share).
+* :func:`cross_validate`: for each block, a study on the other K−1 blocks picks settings
+  that are then scored on the held-out block (nested: the block never informs its own
+  settings). The held-out hits of all blocks give the estimate, with a frame-bootstrap
+  interval, beside the base config's on the same frames.
 * :func:`tune`: one study on all frames, for the settings to use.
 
 Optuna is the optional extra ``tune`` (``pip install reeb-torch[tune]``), imported when a
@@ -31,12 +34,12 @@ import torch
 from torch import Tensor
 
 from ..config import ReebConfig
-from ..generator import FRONT_END_FIELDS, ProposalGenerator
+from ..generator import FRONT_END_FIELDS, Candidates, FrontEnd, ProposalGenerator
 from .metrics import RecallInterval, object_hits
 
 __all__ = ["Frames", "FrameCache", "Param", "default_space", "load_space", "Estimate", "CrossValidation",
-           "load_frames", "score_config", "objective", "bootstrap_interval", "cross_validate", "tune",
-           "StudyOptions"]
+           "load_frames", "score_config", "objective", "bootstrap_interval", "fold_blocks", "held_out",
+           "cross_validate", "tune", "StudyOptions"]
 
 
 # -- frames ------------------------------------------------------------------------------------
@@ -98,7 +101,7 @@ class FrameCache:
     def __init__(self, frames: Frames) -> None:
         self.frames = frames
         self._key: tuple | None = None
-        self._front: dict[int, Any] = {}
+        self._front: dict[int, FrontEnd] = {}
         self.front_computed = 0
         """How many frames' front ends were computed (for tests and the summary)."""
         self._generators: dict[tuple, ProposalGenerator] = {}
@@ -114,18 +117,16 @@ class FrameCache:
             self._generators[key] = ProposalGenerator(cfg)
         return self._generators[key]
 
-    def _front_of(self, cfg: ReebConfig, i: int) -> tuple[ProposalGenerator, list[Tensor], Any]:
+    def _front_of(self, cfg: ReebConfig, i: int) -> tuple[ProposalGenerator, list[Tensor], FrontEnd]:
         """The generator of ``cfg``, frame ``i`` as its input, and that frame's front end (cached)."""
-        from .._checks import check_images
-
         key = tuple(getattr(cfg, f) for f in FRONT_END_FIELDS)
         if key != self._key:
             self._key, self._front = key, {}
         gen = self._generator(cfg)
-        img = check_images([self.frames.images[i]], gen.min_side, cfg, keep_uint8=True)
+        img = gen.prepare([self.frames.images[i]])
         if i not in self._front:
             with torch.no_grad():
-                self._front[i] = gen._front_end(img)
+                self._front[i] = gen.front_end(img)
             self.front_computed += 1
         return gen, img, self._front[i]
 
@@ -136,7 +137,7 @@ class FrameCache:
         with torch.no_grad():
             for i in indices:
                 gen, img, front = self._front_of(cfg, i)
-                results, _ = gen._back_end(img, front)
+                results = gen.back_end(img, front)
                 out.append({k: v.detach().cpu() for k, v in results[0].items()})
         return out
 
@@ -144,12 +145,12 @@ class FrameCache:
         """Ranked boxes ``Tensor[P_i, 4]`` (``P_i <= cfg.top_k``) for the frames ``indices``."""
         return [o["boxes"] for o in self.outputs(cfg, indices)]
 
-    def candidates(self, cfg: ReebConfig, i: int):
+    def candidates(self, cfg: ReebConfig, i: int) -> Candidates:
         """Frame ``i``'s candidates and their features under ``cfg``
         (:meth:`reeb_torch.ProposalGenerator.candidates`)."""
         with torch.no_grad():
             gen, img, front = self._front_of(cfg, i)
-            return gen._candidates(img, front)[0]
+            return gen.candidates_of(img, front)[0]
 
     def hits(self, cfg: ReebConfig, indices: Sequence[int], k: int, iou: float) -> list[Tensor]:
         """Per frame of ``indices``, ``bool Tensor[N_i]``: objects the top ``k`` boxes find at ``iou``."""
@@ -461,23 +462,65 @@ def fold_blocks(n: int, folds: int) -> list[list[int]]:
     return [b.tolist() for b in np.array_split(np.arange(n), folds)]
 
 
+@dataclass
+class HeldOut:
+    """:func:`held_out`'s hits, per frame in the order of the blocks' frames.
+
+    Attributes:
+        hits: ``bool [N_i]`` per frame: the objects the config chosen without its block finds.
+        base_hits: the same for the base config.
+        per_fold: per block, ``(chosen recall, base recall)`` on it (:func:`objective`).
+    """
+
+    hits: list[Tensor] = field(repr=False)
+    base_hits: list[Tensor] = field(repr=False)
+    per_fold: list[tuple[float, float]]
+
+
+def held_out(cache: FrameCache, blocks: Sequence[Sequence[int]], chosen: Callable[[int], ReebConfig],
+             base: ReebConfig, k: int = 2000, iou: float = 0.7, balanced: bool = False,
+             each: Callable[[list[int], list[dict[str, Tensor]]], None] | None = None,
+             progress: Callable | None = None) -> HeldOut:
+    """For each block ``f`` of frame indices, in turn: ``chosen(f)``, a config picked without
+    the block (settings tuned, or a model fitted, on the other blocks), run on the block; its
+    hits of the top ``k`` at ``iou`` paired with ``base``'s on the same objects.
+    ``each(block, outputs)``, if given, sees each block's output dicts of the chosen config;
+    ``progress`` wraps the iteration over the blocks (e.g. a progress bar)."""
+    frames = cache.frames
+    hits: list[Tensor] = []
+    base_hits: list[Tensor] = []
+    per_fold = []
+    for f in progress(range(len(blocks))) if progress else range(len(blocks)):
+        block = list(blocks[f])
+        outputs = cache.outputs(chosen(f), block)
+        found = object_hits([o["boxes"] for o in outputs], [frames.gts[i] for i in block], k, iou)
+        base_found = cache.hits(base, block, k, iou)
+        labels = [frames.labels[i] for i in block]
+        per_fold.append((objective(found, labels, balanced), objective(base_found, labels, balanced)))
+        if each is not None:
+            each(block, outputs)
+        hits += found
+        base_hits += base_found
+    return HeldOut(hits, base_hits, per_fold)
+
+
 def cross_validate(cache: FrameCache, base: ReebConfig, space: dict[str, Param], folds: int,
                    opts: StudyOptions, studies_after: int = 1) -> CrossValidation:
-    """For each of ``folds`` blocks: a study on the others, scored on the block (see the module).
-    ``studies_after``: studies still to run after these (they share the time budget)."""
+    """For each of ``folds`` blocks: a study on the others, scored on the block (see the module;
+    :func:`held_out`). ``studies_after``: studies still to run after these (they share the
+    time budget)."""
     blocks = fold_blocks(len(cache.frames), folds)
-    best, per_fold, t_hits, b_hits = [], [], [], []
-    for f, block in enumerate(blocks):
+    best: list[dict[str, Any]] = []
+
+    def tuned(f: int) -> ReebConfig:
         train = [i for b in blocks[:f] + blocks[f + 1:] for i in b]
         params, _ = run_study(cache, base, space, train, opts, f"{opts.name}-fold{f}", opts.seed + 1 + f,
                               studies_left=folds - f + studies_after)
         best.append(params)
-        th = cache.hits(base.replace(**params), block, opts.k, opts.iou)
-        bh = cache.hits(base, block, opts.k, opts.iou)
-        labels = [cache.frames.labels[i] for i in block]
-        per_fold.append((objective(th, labels, opts.balanced), objective(bh, labels, opts.balanced)))
-        t_hits += th
-        b_hits += bh
+        return base.replace(**params)
+
+    scored = held_out(cache, blocks, tuned, base, opts.k, opts.iou, opts.balanced)
+    t_hits, b_hits, per_fold = scored.hits, scored.base_hits, scored.per_fold
     order = [i for b in blocks for i in b]
     labels = [cache.frames.labels[i] for i in order]
     return CrossValidation(blocks, best, bootstrap_interval(t_hits, labels, opts.balanced),

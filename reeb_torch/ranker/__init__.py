@@ -1,8 +1,20 @@
 """The learned ranking over REEB's candidates (``ReebConfig.ranker``; not in the paper).
 
 REEB's windows cover the objects; its hand-weighted score V (eq. 12) cannot order them.
-:class:`BoxRanker` scores each candidate from cheap per-box features
-(:mod:`reeb_torch.stages.features`) and the generator ranks by it before the final NMS.
+:class:`BoxRanker` scores each candidate from cheap per-box features and the generator
+ranks by it before the final NMS. All of it lives here:
+
+==================  ===========================================================================
+module              what it holds
+==================  ===========================================================================
+:mod:`.features`    the per-box features (tensor ops, and one compiled pass on the CPU)
+:mod:`.prefilter`   the compiled prefilter: the first layer of the cheap-column MLP
+:mod:`.model`       :class:`BoxRanker`: the prefilter, the ranking MLPs, the class head
+:mod:`.weights`     safetensors weights files and their metadata (:func:`load_ranker`)
+:mod:`.step`        :class:`LearnedRanking`: the step the generator calls (prefilter, features,
+                    model, class hints)
+==================  ===========================================================================
+
 Weights are safetensors files (:func:`load_ranker`, :func:`save_ranker`); ``kitti`` ships
 with the package, and ``reeb fit`` fits new ones on a user's labelled frames
 (:mod:`reeb_torch.eval.fit`).
@@ -14,8 +26,10 @@ with the package, and ``reeb fit`` fits new ones on a user's labelled frames
 """
 
 from .model import BoxRanker
+from .step import NOT_SEEN_BY_RANKER, CandidateFeatures, LearnedRanking
 from .weights import (SAME_IMAGE_BITS, SHIPPED, RankerWeightsError, fitted_frames, frame_hash, hash_distance,
                       load_ranker, resolve_ranker, save_ranker, seen_hashes, shipped_path)
 
-__all__ = ["BoxRanker", "SHIPPED", "RankerWeightsError", "load_ranker", "resolve_ranker", "save_ranker",
-           "shipped_path", "frame_hash", "hash_distance", "seen_hashes", "fitted_frames", "SAME_IMAGE_BITS"]
+__all__ = ["BoxRanker", "CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANKER", "SHIPPED", "RankerWeightsError",
+           "load_ranker", "resolve_ranker", "save_ranker", "shipped_path", "frame_hash", "hash_distance", "seen_hashes",
+           "fitted_frames", "SAME_IMAGE_BITS"]

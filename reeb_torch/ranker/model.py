@@ -4,13 +4,13 @@
 fitted on, kept as buffers) and has two stages, a cascade as BING's and Viola-Jones':
 
 * :meth:`BoxRanker.prefilter_scores`: a tiny MLP over the first, cheap columns
-  (:func:`~reeb_torch.stages.features.cheap_count`: the window's geometry and location fits,
+  (:func:`~reeb_torch.ranker.features.cheap_count`: the window's geometry and location fits,
   V, the region), which need no box sum, for every candidate; the generator keeps the best
   ``ReebConfig.ranker_keep``;
 * :meth:`BoxRanker.forward`: one or more MLPs over all the columns of those, averaged.
 
 It is a plain ``nn.Module`` whose weights come from :func:`reeb_torch.ranker.load_ranker`;
-the features are :func:`reeb_torch.stages.features.box_features`.
+the features are :func:`reeb_torch.ranker.features.box_features`.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from typing import Sequence
 import torch
 from torch import Tensor, nn
 
-from ..stages.features import cheap_count
+from .features import cheap_count
 
 
 __all__ = ["BoxRanker", "RANK_ROWS", "softmax_rows"]
@@ -51,7 +51,7 @@ class BoxRanker(nn.Module):
 
     Args:
         feature_names: the ``F`` feature columns it reads, in order
-            (:func:`reeb_torch.stages.features.feature_names`).
+            (:func:`reeb_torch.ranker.features.feature_names`).
         hidden: the widths of the hidden layers of each MLP.
         members: how many MLPs (fitted from different seeds) are averaged.
         prefilter: the widths of the prefilter's hidden layers (``()``: a linear prefilter),
@@ -88,7 +88,7 @@ class BoxRanker(nn.Module):
         self.members = nn.ModuleList(_mlp(f, self.hidden) for _ in range(members))
         self.prefilter_hidden = None if prefilter is None else tuple(int(h) for h in prefilter)
         self.cheap = cheap_count(sum(1 for n in self.feature_names if n.startswith("class_fit_")))
-        """How many first columns the prefilter reads (:func:`~reeb_torch.stages.features.cheap_count`)."""
+        """How many first columns the prefilter reads (:func:`~reeb_torch.ranker.features.cheap_count`)."""
         self.prefilter = None if prefilter is None else _mlp(self.cheap, prefilter)
         self.classes = None if classes is None else tuple(str(c) for c in classes)
         """The classes of :meth:`class_probs`'s columns, or None without a class head."""

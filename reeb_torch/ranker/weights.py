@@ -5,7 +5,7 @@ A file holds the tensors of a :class:`~reeb_torch.ranker.model.BoxRanker` (``mea
 class head ``classifier.<layer>.weight|bias``) and one metadata entry, ``reeb-ranker``: a
 JSON object (keys sorted, so the same model gives the same bytes) with
 
-* ``features_version``: the :data:`~reeb_torch.stages.features.FEATURES_VERSION` it was
+* ``features_version``: the :data:`~reeb_torch.ranker.features.FEATURES_VERSION` it was
   fitted on; ``feature_names``, ``hidden``, ``members``, ``prefilter``: its shape;
   ``classes``, ``class_hidden``: its class head's, where it has one (older files have none);
 * ``provenance``: the frames it was fitted on (their folders, ids and, in files written
@@ -32,7 +32,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..stages.features import FEATURES_VERSION
+from .features import FEATURES_VERSION
 from .model import BoxRanker
 
 __all__ = ["SHIPPED", "RankerWeightsError", "load_ranker", "save_ranker", "resolve_ranker", "shipped_path",

@@ -17,7 +17,7 @@ from ..config import ReebConfig
 from ..eval import fit as F
 from ..eval.common import folder_blocks
 from ..eval.metrics import compare_recall
-from ..eval.tune import FrameCache, bootstrap_interval, objective
+from ..eval.tune import FrameCache, bootstrap_interval, fold_blocks, objective
 
 if TYPE_CHECKING:
     from ..ranker import BoxRanker
@@ -169,7 +169,7 @@ def _run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions
 
     t0 = time.monotonic()
     frames = F.load_fit_frames(roots, limit=limit)
-    F.frame_folds(len(frames), folds)  # refuse fewer frames than folds before any work
+    fold_blocks(len(frames), folds)  # refuse fewer frames than folds before any work
     cache = FrameCache(frames)
     base = cfg.training_free()
     names = cache.candidates(cfg.unranked(), 0).feature_names

@@ -59,6 +59,109 @@ def _size_bin(edge: np.ndarray, size: float) -> int:  # pragma: no cover - compi
     return q + 1 if edge[q + 1] <= size else q
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _box_columns(boxes: np.ndarray):  # pragma: no cover - compiled
+    """The columns of ``boxes`` ``[N, 4]`` (x1, y1, x2, y2) and their areas, in the boxes'
+    dtype (as torchvision), and the extent ``(x0, y0, xe, ye)`` of all of them and their
+    largest side ``wmax`` (at least 1e-6). Plain loops, no array expressions: each of those
+    is a function of its own to compile."""
+    n = boxes.shape[0]
+    x1 = np.empty(n, boxes.dtype)
+    y1 = np.empty(n, boxes.dtype)
+    x2 = np.empty(n, boxes.dtype)
+    y2 = np.empty(n, boxes.dtype)
+    areas = np.empty(n, boxes.dtype)
+    x0, y0, xe, ye, wmax = np.inf, np.inf, -np.inf, -np.inf, 1e-6
+    for i in range(n):
+        a, b, c, d = boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3]
+        x1[i], y1[i], x2[i], y2[i] = a, b, c, d
+        areas[i] = (c - a) * (d - b)  # as torchvision: in the boxes' dtype
+        x0, y0 = min(x0, float(a)), min(y0, float(b))
+        xe, ye = max(xe, float(c)), max(ye, float(d))
+        # size bins: IoU > t implies min/max width > t and min/max height > t, so with bins of
+        # log-size at least -log(t) wide (a margin against rounding), partners sit in adjacent bins
+        wmax = max(wmax, float(c - a), float(d - b))
+    return x1, y1, x2, y2, areas, x0, y0, xe, ye, wmax
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _size_edges(wmax: float, iou: float):  # pragma: no cover - compiled
+    """The size bins of boxes up to ``wmax`` at threshold ``iou``: ``(edge, nb)``, bin ``q``
+    holding sizes from ``floor · e^(q · bw)``, found by a binary search of these lower edges
+    (:func:`_size_bin`; no logarithm per box: 0.92x the time); consecutive edges are more
+    than 1/t apart."""
+    floor_ = wmax * 1e-4
+    span = np.log(wmax / floor_)
+    bw = max(-np.log(min(iou, 0.999)) * 1.01 + 1e-9, span / (_SIZE_BINS - 0.5))
+    nb = min(int(span / bw) + 1, _SIZE_BINS)
+    edge = np.full(2 * _SIZE_BINS, np.inf)
+    for q in range(1, nb):
+        edge[q] = floor_ * np.exp(q * bw)
+    return edge, nb
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _suppressed(head: np.ndarray, base: int, nb: int, bx: int, by: int, ent: np.ndarray, e_next: np.ndarray,
+                ix1, iy1, ix2, iy2, ia, iou: float, zero) -> bool:  # pragma: no cover - compiled
+    """Whether a kept box registered in the cell at ``base`` in the 3 × 3 size bins around
+    ``(by, bx)`` (its own first: ~10 % faster) overlaps the box ``ix1, iy1, ix2, iy2`` (area
+    ``ia``) at IoU over ``iou``, with torchvision's arithmetic in the boxes' dtype."""
+    for q in range(9):
+        bb, ba = by + (q // 3 + 1) % 3 - 1, bx + (q % 3 + 1) % 3 - 1
+        if bb < 0 or bb >= nb or ba < 0 or ba >= nb:
+            continue
+        e = head[base + bb * nb + ba]
+        while e >= 0:
+            o = np.uint64(8 * e)
+            w = max(min(ent[o + 2], ix2) - max(ent[o], ix1), zero)
+            h = max(min(ent[o + 3], iy2) - max(ent[o + 1], iy1), zero)
+            inter = w * h
+            ovr = inter / (ent[o + 4] + ia - inter)
+            if ovr > iou:
+                return True
+            e = e_next[e]
+    return False
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _register(head: np.ndarray, ent: np.ndarray, e_next: np.ndarray, used: int, cell0: int, nb: int, gw: int,
+              gh: int, x0: float, y0: float, cs: float, iou: float, ix1, iy1, ix2, iy2,
+              ia):  # pragma: no cover - compiled
+    """Register a kept box in the cells a box it suppresses can have its centre in (its size
+    bin's offset in each cell: ``cell0``), with a margin for rounding: IoU > t >= 0.5 needs
+    the widths to overlap by more than t·max(w), so the centres lie less than (1 − t)·w_i
+    apart (the heights likewise). Returns ``(ent, e_next, used)``, the entries grown where
+    they were full."""
+    wi, hi = float(ix2) - float(ix1), float(iy2) - float(iy1)
+    mx = 0.01 * wi + 1e-6 * (abs(float(ix1)) + abs(float(ix2)) + cs)
+    my = 0.01 * hi + 1e-6 * (abs(float(iy1)) + abs(float(iy2)) + cs)
+    ccx, ccy = 0.5 * (float(ix1) + float(ix2)), 0.5 * (float(iy1) + float(iy2))
+    reach = 1.0 - iou
+    ca = min(max(int((ccx - reach * wi - mx - x0) / cs), 0), gw - 1)
+    cb = min(max(int((ccx + reach * wi + mx - x0) / cs), 0), gw - 1)
+    ra = min(max(int((ccy - reach * hi - my - y0) / cs), 0), gh - 1)
+    rb = min(max(int((ccy + reach * hi + my - y0) / cs), 0), gh - 1)
+    need = used + (cb - ca + 1) * (rb - ra + 1)
+    cap = e_next.shape[0]
+    if need > cap:
+        cap = max(2 * cap, need)
+        n_ent, n_next = np.empty(cap * 8, ent.dtype), np.empty(cap, np.int32)
+        for e in range(8 * used):  # a loop, not a slice assignment: that one costs seconds to compile
+            n_ent[e] = ent[e]
+        for e in range(used):
+            n_next[e] = e_next[e]
+        ent, e_next = n_ent, n_next
+    for r in range(ra, rb + 1):
+        for c in range(ca, cb + 1):
+            cell = (r * gw + c) * nb * nb + cell0
+            o = np.uint64(8 * used)
+            ent[o], ent[o + 1], ent[o + 2], ent[o + 3], ent[o + 4] = ix1, iy1, ix2, iy2, ia
+            e_next[used] = head[cell]
+            head[cell] = used
+            used += 1
+    return ent, e_next, used
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")  # 0/0 -> NaN, as in C++
 def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int, labels: np.ndarray,
                      wanted: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
@@ -77,35 +180,12 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int, labels: np.ndarray,
     for j in range(nc):
         if wanted[j] > 0:
             short += 1
-    # plain loops, no array expressions: each of those is a function of its own to compile
-    x1 = np.empty(n, boxes.dtype)
-    y1 = np.empty(n, boxes.dtype)
-    x2 = np.empty(n, boxes.dtype)
-    y2 = np.empty(n, boxes.dtype)
-    areas = np.empty(n, boxes.dtype)
-    x0, y0, xe, ye, wmax = np.inf, np.inf, -np.inf, -np.inf, 1e-6
-    for i in range(n):
-        a, b, c, d = boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3]
-        x1[i], y1[i], x2[i], y2[i] = a, b, c, d
-        areas[i] = (c - a) * (d - b)  # as torchvision: in the boxes' dtype
-        x0, y0 = min(x0, float(a)), min(y0, float(b))
-        xe, ye = max(xe, float(c)), max(ye, float(d))
-        # size bins: IoU > t implies min/max width > t and min/max height > t, so with bins of
-        # log-size at least -log(t) wide (a margin against rounding), partners sit in adjacent bins
-        wmax = max(wmax, float(c - a), float(d - b))
+    x1, y1, x2, y2, areas, x0, y0, xe, ye, wmax = _box_columns(boxes)
     zero = areas[0] - areas[0]  # 0 in the boxes' dtype (max(float32, 0) would widen)
     cs = max(xe - x0, ye - y0, 1e-6) / _GRID_CELLS
     gw = min(int((xe - x0) / cs) + 1, _GRID_CELLS + 1)
     gh = min(int((ye - y0) / cs) + 1, _GRID_CELLS + 1)
-    floor_ = wmax * 1e-4
-    span = np.log(wmax / floor_)
-    bw = max(-np.log(min(iou, 0.999)) * 1.01 + 1e-9, span / (_SIZE_BINS - 0.5))
-    nb = min(int(span / bw) + 1, _SIZE_BINS)
-    # bin q holds sizes from floor·e^(q·bw): found by a binary search of these lower edges
-    # (no logarithm per box: 0.92x the time); consecutive edges are more than 1/t apart
-    edge = np.full(2 * _SIZE_BINS, np.inf)
-    for q in range(1, nb):
-        edge[q] = floor_ * np.exp(q * bw)
+    edge, nb = _size_edges(wmax, iou)
     head = np.full(gw * gh * nb * nb, -1, np.int32)  # per cell and size bin: a linked list
     # of the kept boxes registered there, each entry holding its box (no second lookup):
     # x1, y1, x2, y2 and area side by side in a row of 8 (one cache line per test, where
@@ -124,26 +204,7 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int, labels: np.ndarray,
         ix1, iy1, ix2, iy2, ia = x1[i], y1[i], x2[i], y2[i], areas[i]
         bx = _size_bin(edge, float(ix2) - float(ix1))
         by = _size_bin(edge, float(iy2) - float(iy1))
-        base = (cy * gw + cx) * nb * nb
-        dead = False
-        for q in range(9):  # the 3 × 3 size bins around its own, its own first (~10 % faster)
-            bb, ba = by + (q // 3 + 1) % 3 - 1, bx + (q % 3 + 1) % 3 - 1
-            if bb < 0 or bb >= nb or ba < 0 or ba >= nb:
-                continue
-            e = head[base + bb * nb + ba]
-            while e >= 0:
-                o = np.uint64(8 * e)
-                w = max(min(ent[o + 2], ix2) - max(ent[o], ix1), zero)
-                h = max(min(ent[o + 3], iy2) - max(ent[o + 1], iy1), zero)
-                inter = w * h
-                ovr = inter / (ent[o + 4] + ia - inter)
-                if ovr > iou:
-                    dead = True
-                    break
-                e = e_next[e]
-            if dead:
-                break
-        if dead:
+        if _suppressed(head, (cy * gw + cx) * nb * nb, nb, bx, by, ent, e_next, ix1, iy1, ix2, iy2, ia, iou, zero):
             continue
         keep[nk] = i
         nk += 1
@@ -154,35 +215,8 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int, labels: np.ndarray,
                 short -= 1
         if nk >= k and short == 0:
             break
-        # register box i in the cells a box it suppresses can have its centre in, with a
-        # margin for rounding: IoU > t >= 0.5 needs the widths to overlap by more than
-        # t·max(w), so the centres lie less than (1 − t)·w_i apart (the heights likewise)
-        wi, hi = float(ix2) - float(ix1), float(iy2) - float(iy1)  # (bw is the size bins' width)
-        mx = 0.01 * wi + 1e-6 * (abs(float(ix1)) + abs(float(ix2)) + cs)
-        my = 0.01 * hi + 1e-6 * (abs(float(iy1)) + abs(float(iy2)) + cs)
-        ccx, ccy = 0.5 * (float(ix1) + float(ix2)), 0.5 * (float(iy1) + float(iy2))
-        reach = 1.0 - iou
-        ca = min(max(int((ccx - reach * wi - mx - x0) / cs), 0), gw - 1)
-        cb = min(max(int((ccx + reach * wi + mx - x0) / cs), 0), gw - 1)
-        ra = min(max(int((ccy - reach * hi - my - y0) / cs), 0), gh - 1)
-        rb = min(max(int((ccy + reach * hi + my - y0) / cs), 0), gh - 1)
-        need = used + (cb - ca + 1) * (rb - ra + 1)
-        if need > cap:
-            cap = max(2 * cap, need)
-            n_ent, n_next = np.empty(cap * 8, boxes.dtype), np.empty(cap, np.int32)
-            for e in range(8 * used):  # a loop, not a slice assignment: that one costs seconds to compile
-                n_ent[e] = ent[e]
-            for e in range(used):
-                n_next[e] = e_next[e]
-            ent, e_next = n_ent, n_next
-        for r in range(ra, rb + 1):
-            for c in range(ca, cb + 1):
-                cell = (r * gw + c) * nb * nb + by * nb + bx
-                o = np.uint64(8 * used)
-                ent[o], ent[o + 1], ent[o + 2], ent[o + 3], ent[o + 4] = ix1, iy1, ix2, iy2, ia
-                e_next[used] = head[cell]
-                head[cell] = used
-                used += 1
+        ent, e_next, used = _register(head, ent, e_next, used, by * nb + bx, nb, gw, gh, x0, y0, cs, iou,
+                                      ix1, iy1, ix2, iy2, ia)
     return keep[:nk]
 
 
