@@ -23,6 +23,9 @@ reads: each fold's model is fitted again with them (same seed, same folds), so t
 is of two fits, not of one model under two settings:
 
     python benchmarks/cv_paired.py --refit "hidden=32,32" --seeds 0 1 2 3 4 --out docs/results/ranker/h32
+
+``--whole-drives`` holds out, with each block, every frame of its drives (as ``reeb fit
+--whole-drives``): the estimate for drives the model never saw.
 """
 
 from __future__ import annotations
@@ -105,20 +108,23 @@ def parse_refit(text: str) -> tuple[ReebConfig, dict]:
 
 def cross_validated_hits(cache: FrameCache, configs: list[ReebConfig], seed: int, folds: int,
                          k: int = 2000, iou: float = 0.7,
-                         refits: list[tuple[ReebConfig, dict]] = ()) -> list[list]:
+                         refits: list[tuple[ReebConfig, dict]] = (), whole_drives: bool = False) -> list[list]:
     """Per frame, the held-out hits of the default, then of each of ``configs``, all run with
     the same fold models (:func:`reeb_torch.eval.fit.cross_validate`, fitted as ``reeb fit``
     fits, on the default's candidates); then of each ``(config, fit options)`` of ``refits``,
-    with fold models fitted on the same folds with those options, for that config."""
+    with fold models fitted on the same folds with those options, for that config.
+    ``whole_drives``: a held-out block's training frames hold no frame of its drives
+    (``reeb fit --whole-drives``), not only none within 2 frames of it."""
     opts = F.FitOptions(seed=seed)
     base = ReebConfig()
     samples = F.frame_samples(cache, base, opts)
-    cv = F.cross_validate(cache, base, base.training_free(), samples, opts, folds, k, iou, also=configs)
+    gap = len(cache.frames) if whole_drives else 2
+    cv = F.cross_validate(cache, base, base.training_free(), samples, opts, folds, k, iou, gap=gap, also=configs)
     out = [cv.ranked_hits, *cv.also_hits]
     for cfg, changes in refits:
         o = dataclasses.replace(opts, **changes)
         s = F.frame_samples(cache, cfg, o)
-        out.append(F.cross_validate(cache, cfg, cfg.training_free(), s, o, folds, k, iou).ranked_hits)
+        out.append(F.cross_validate(cache, cfg, cfg.training_free(), s, o, folds, k, iou, gap=gap).ranked_hits)
     return out
 
 
@@ -164,6 +170,8 @@ def main(argv: list[str] | None = None) -> dict:
                     help="a setting whose fold models are fitted again (fit options, fields the model reads)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--folds", type=int, default=10)
+    ap.add_argument("--whole-drives", action="store_true",
+                    help="no frame of a held-out block's drives on the training side (reeb fit --whole-drives)")
     ap.add_argument("--out", type=Path, default=Path("runs/cv_paired"))
     args = ap.parse_args(argv)
     if not args.variant and not args.refit:
@@ -184,9 +192,11 @@ def main(argv: list[str] | None = None) -> dict:
     record: dict = {"seeds": {}, "environment": environment()}
     per_seed: list[list] = []
     for seed in args.seeds:
-        hits = cross_validated_hits(cache, list(variants.values()), seed, args.folds, refits=list(refits.values()))
+        hits = cross_validated_hits(cache, list(variants.values()), seed, args.folds, refits=list(refits.values()),
+                                    whole_drives=args.whole_drives)
         per_seed.append(hits)
-        text.append(f"fit seed {seed}: {len(frames)} frames, {args.folds} folds of blocks of frames; recall at "
+        apart = "; no frame of a held-out block's drives on the training side" if args.whole_drives else ""
+        text.append(f"fit seed {seed}: {len(frames)} frames, {args.folds} folds of blocks of frames{apart}; recall at "
                     "2000 proposals, IoU 0.7, 95 % frame-bootstrap intervals")
         record["seeds"][seed] = {}
         for title, idx in groups:
