@@ -505,11 +505,11 @@ class ReebConfig:
     place of V, before eq. 13's NMS (not in the paper; scores are then its logits): ``kitti``,
     the shipped model; the path of a weights file ``reeb fit`` wrote for another camera; or
     ``none``: rank by V (as printed; :meth:`training_free` also sets V's own budget)."""
-    ranker_keep: int = _knob(8000, ">= 1")
+    ranker_keep: int = _knob(12000, ">= 1")
     """With ``ranker``: the candidates of each image that get the full features and the model;
     the others are dropped before NMS. ``ranker_v_share`` of them are the image's best by V,
     the rest the best by the model's prefilter (a tiny model over geometry, V and region)."""
-    ranker_v_share: float = _knob(0.5, "[0, 1]")
+    ranker_v_share: float = _knob(0.0, "[0, 1]")
     """The share of the ``ranker_keep`` candidates that are each image's best by V whatever
     the prefilter says (not in the paper). ``0``: the prefilter alone; ``1``: V alone."""
     class_quota: ClassQuota = _knob((), _CLASS_QUOTA)

@@ -319,7 +319,7 @@ def test_ranker_v_share_keeps_each_images_best_by_v_beside_the_prefilters(sample
     gen = ProposalGenerator(ranker_keep=keep, ranker_v_share=share)
     assert all(torch.equal(a, b) for a, b in zip(gen([sample_image.flip(-1), sample_image])[1].values(),
                                                    gen([sample_image])[0].values()))  # alone as in a batch
-    assert ReebConfig().ranker_keep == 8000 and ReebConfig().ranker_v_share == 0.5  # the default: 4000 by V
+    assert ReebConfig().ranker_keep == 12000 and ReebConfig().ranker_v_share == 0.0  # the default: the prefilter alone
 
 
 def test_bad_ranker_settings():
