@@ -1,4 +1,4 @@
-"""Ablations that settle the paper's ambiguities (NOTES.md) by measured recall.
+"""Ablations that settle the paper's ambiguities (the readings in docs/results.md) by measured recall.
 
 The first rows are the package default (``ReebConfig()``: REEB's windows ranked by the
 shipped learned model), a few changes of its learned ranking, and the ``training-free``
