@@ -1,4 +1,4 @@
-"""Ablations that settle the paper's ambiguities (NOTES.md) by measured recall.
+"""Ablations that settle the paper's ambiguities (the readings in docs/results.md) by measured recall.
 
 The first rows are the package default (``ReebConfig()``: REEB's windows ranked by the
 shipped learned model), a few changes of its learned ranking, and the ``training-free``
@@ -61,7 +61,7 @@ TF = D.training_free()
 """The hand-set rows change one switch of the training-free ranking (no learned model)."""
 P = ReebConfig.paper()
 
-# name -> (config, NOTES item it settles)
+# name -> (config, the reading of docs/results.md it settles)
 V01 = TF.replace(window_geometry="grid", location_score="ground", ground_log_sigma=0.5, min_window=20,
                 kappa=1.5, candidates_per_region=4000, shadow_score="none", vegetation_score="none",
                 nms_iou=0.7)

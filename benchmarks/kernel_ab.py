@@ -2,7 +2,7 @@
 the same inputs, alternated calls, paired, and whether the outputs are the same bits.
 
 End-to-end runs (``speed_ab.py``) cannot see a change worth a few per cent of one stage:
-this VM drifts more than that between runs. Here the kernel's real inputs are captured
+a shared machine drifts more than that between runs. Here the kernel's real inputs are captured
 from the pipeline (``--frames`` KITTI frames at ``--batch``, on one core, so that each
 call covers its whole batch), then both versions run on copies of them in turns, in the
 same process: ``--reps`` rounds, the order alternating from round to round, each round

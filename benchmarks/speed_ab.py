@@ -1,7 +1,7 @@
 """Speed of this checkout against another git revision, in alternated runs, paired.
 
-On a shared machine whole runs drift by a fifth or more in minutes (the VM this project
-is measured on moved by a third between hours), more than most changes are worth. So this
+On a shared machine whole runs drift by a fifth or more in minutes (the 2-core machine of
+``docs/results.md`` moved by a third between hours), more than most changes are worth. So this
 runs the two versions in turns, each in its own process on the same frames (the other
 revision from a temporary ``git worktree``; the kernel cache is keyed by source, so the
 two share it), and reports each pair's ratio (this / base), their median, how many pairs

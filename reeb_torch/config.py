@@ -1,7 +1,7 @@
 """One dataclass that holds every constant of the REEB algorithm, and its presets.
 
 Each field names the paper section or equation it comes from. Where the printed paper is
-ambiguous or cannot run as printed (``NOTES #n``: the reading notes in ``docs/results.md``),
+ambiguous or cannot run as printed (the readings, numbered, in ``docs/results.md``),
 the field documents the choice and :meth:`ReebConfig.paper` keeps the printed reading.
 """
 
@@ -285,7 +285,7 @@ class ReebConfig:
     """Standard deviation of the Gaussian blur, in working pixels (kernel = 2*ceil(2σ)+1)."""
     edge_threshold: float = _knob(0.05, "[0, 1)", front=True)
     """Sobel magnitude (of a [0, 1] grey image, normalised to [0, 1]) below which a pixel
-    is no edge. The paper gives no value (NOTES #4)."""
+    is no edge. The paper gives no value (reading 4)."""
     edge_channels: Literal["gray", "rgb"] = _knob("gray", front=True)
     """Sobel on the grey image (as printed) or on each RGB channel, keeping the strongest."""
     thin_edges: bool = _knob(True, front=True)
@@ -300,7 +300,7 @@ class ReebConfig:
     edge pixels of one ``group_cell``×``group_cell`` tile form one group (fastest)."""
     group_cell: int | None = _knob(8, _GROUP_CELL, front=True)
     """Side, in working pixels, of the tiles that bound a group. With ``connected``,
-    components are cut at tile borders (NOTES #2: long chains are rarely enclosed);
+    components are cut at tile borders (reading 2: long chains are rarely enclosed);
     ``None`` = no bound, plain connected components as printed."""
 
     # -- Sec. 3.5, eqs. 3-4: road segmentation -------------------------------------------
@@ -344,7 +344,7 @@ class ReebConfig:
     entropy_sigma: float = _knob(4.0, "> 0")
     """σ of eq. 9 (the paper's KITTI value)."""
     entropy_form: EntropyForm = "abs-diff"
-    """``abs-diff``: %P = 1 − |σ − H|/σ (NOTES #9). ``printed``: |σ + H|, which gives
+    """``abs-diff``: %P = 1 − |σ − H|/σ (reading 9). ``printed``: |σ + H|, which gives
     no proposals for any H > 0 and is kept only to show that it cannot run."""
     region_quota: bool = False
     """Also split the ``top_k`` output among the regions by their shares (eq. 9 applied to
@@ -357,7 +357,7 @@ class ReebConfig:
     """Windows passed on to ranking when ``use_regions=False`` (the whole image is one
     region with share 1)."""
 
-    # -- Sec. 3.6: sliding windows (NOTES #13) -------------------------------------------
+    # -- Sec. 3.6: sliding windows (reading 13) ------------------------------------------
     min_window: int = _knob(16, ">= 4")
     """Smallest window side, in input pixels."""
     size_ratio: float = _knob(1.25, "(1, 16]")
@@ -396,7 +396,7 @@ class ReebConfig:
     # -- eq. 1: edge score ---------------------------------------------------------------
     score_norm: ScoreNorm = "perimeter"
     """``area``: divide by 2·area^γ (as printed); ``perimeter``: by (2(w+h))^κ, as Edge
-    Boxes, whose score REEB adopts (NOTES #1)."""
+    Boxes, whose score REEB adopts (reading 1)."""
     gamma: float = _knob(0.75, "(0, 4]")
     """Exponent of the area normalisation (no value printed; 0.75 ≈ Edge Boxes' κ/2)."""
     kappa: float = _knob(1.6, "(0, 8]")
@@ -438,7 +438,7 @@ class ReebConfig:
 
     # -- eqs. 10-12: road, location and combined score -----------------------------------
     road_score: RoadScore = _knob("none", front=True)
-    """``reward``: V adds β·R as printed (``paper``); ``penalize``: β·(1 − R) (NOTES #10);
+    """``reward``: V adds β·R as printed (``paper``); ``penalize``: β·(1 − R) (reading 10);
     ``none``: no road term; ``flat``: R = 1, a constant β; ``stand``: objects stand *on* the
     road: R = (road fraction of the strip just below the box) · (1 − road fraction inside)."""
     road_strip: float = _knob(0.15, "(0, 1]")

@@ -65,7 +65,7 @@ def test_gray_weights():
 
 
 def test_compiled_edge_map_equals_the_tensor_ops(sample_image):
-    # issue 9: the CPU default path (blur + Sobel, thinning, isolated pixels in numba) gives
+    # the CPU default path (blur + Sobel, thinning, isolated pixels in numba) gives
     # the tensor ops' edge map bit for bit, on the sample and on noise, at several settings
     from reeb_torch.stages import edges as E
 
@@ -105,7 +105,7 @@ def test_green_mask_marks_green_dominant_pixels():
 
 
 def test_compiled_working_gray_equals_interpolate_then_grey(sample_image):
-    # issue 9: the CPU front end (antialiased resize + grey in one compiled pass, from uint8)
+    # the CPU front end (antialiased resize + grey in one compiled pass, from uint8)
     # gives torch's interpolate + kornia's grey bit for bit, where it applies
     from reeb_torch.stages.edges import _regular_span, working_gray
 

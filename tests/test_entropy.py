@@ -39,7 +39,7 @@ def test_share_abs_diff_and_printed():
     share = proposal_share(h, 4.0, "abs-diff")
     assert share.tolist() == pytest.approx([0.0, 0.5, 1.0, 0.5, 0.0, 0.0])
     printed = proposal_share(h, 4.0, "printed")
-    assert printed.tolist() == [0.0] * 6  # no proposals for any H >= 0 (NOTES #9)
+    assert printed.tolist() == [0.0] * 6  # no proposals for any H >= 0 (reading 9 in docs/results.md)
     assert math.isclose(float(proposal_share(torch.tensor(3.0), 4.0)), 0.75)
 
 

@@ -1,18 +1,24 @@
 """The package's layout keeps its design (docs/architecture.md): no import circles, the
 stages import only stages, the algorithm imports none of the runs, the evaluation or the
 detectors, the libraries of runs/ do not import the command, and there is one import path
-per name (no compatibility modules).
+per name (no compatibility modules). Modules, classes and functions stay under their caps;
+the learned ranking has one home (``reeb_torch/ranker/``); click is the one command-line
+framework; the package reads no data beside the checkout; and the repository speaks of the
+product, not of the work that made it.
 
 Imports are read from the source (``ast``), module-level and inside functions alike."""
 
 from __future__ import annotations
 
 import ast
+import functools
+import re
 from pathlib import Path
 
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "reeb_torch"
+REPO = PACKAGE.parent
 
 SELECTION = {"reeb_torch.selection", "reeb_torch.selection.cache", "reeb_torch.selection.cut",
              "reeb_torch.selection.maps", "reeb_torch.selection.refine", "reeb_torch.selection.rescore",
@@ -26,6 +32,8 @@ RUNS_LIBRARIES = {"reeb_torch.runs.inputs", "reeb_torch.runs.decoding", "reeb_to
                   "reeb_torch.runs.distributed", "reeb_torch.runs.export", "reeb_torch.runs.viz"}
 COMMAND = {"reeb_torch.runs.cli", "reeb_torch.runs.common", "reeb_torch.runs.propose_local",
            "reeb_torch.runs.propose_ray"}
+MAX_MODULE_LINES = 700
+MAX_CLASS_LINES = 400
 MAX_FUNCTION_LINES = 100
 LONG_FUNCTIONS: set[str] = set()
 """Functions allowed past :data:`MAX_FUNCTION_LINES`, each with its reason (none)."""
@@ -151,3 +159,116 @@ def test_no_compatibility_shims():
     from reeb_torch.eval import main, table3  # noqa: F401
     from reeb_torch.runs.cli import main as cli_main  # noqa: F401
     from reeb_torch.runs.distributed import propose_dataset, write_results  # noqa: F401
+
+
+@functools.cache
+def _trees() -> tuple[tuple[str, ast.AST], ...]:
+    """Each module of the package (path under ``reeb_torch/``) with its parsed source, read once."""
+    return tuple((p.relative_to(PACKAGE).as_posix(), ast.parse(p.read_text(encoding="utf-8")))
+            for p in sorted(PACKAGE.rglob("*.py")))
+
+
+def _imported_roots(tree: ast.AST) -> set[str]:
+    """The top-level packages a module imports (``import a.b``, ``from a.b import c``: ``a``)."""
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and not node.level:
+            names.add((node.module or "").split(".")[0])
+    return names
+
+
+def test_modules_are_short():
+    """No module of the package over :data:`MAX_MODULE_LINES` lines."""
+    long = {p.relative_to(PACKAGE).as_posix(): n for p in PACKAGE.rglob("*.py")
+            if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES}
+    assert not long, f"over {MAX_MODULE_LINES} lines: {long}"
+
+
+def test_classes_are_short():
+    """No class over :data:`MAX_CLASS_LINES` lines (``class`` to its end, docstrings included)."""
+    long = {f"{path}:{node.name}": node.end_lineno - node.lineno + 1 for path, tree in _trees()
+            for node in ast.walk(tree)
+            if isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno + 1 > MAX_CLASS_LINES}
+    assert not long, f"over {MAX_CLASS_LINES} lines: {long}"
+
+
+RANKER_NAMES = {"BoxRanker", "BoxMaps", "CandidateFeatures", "LearnedRanking", "box_features", "box_features_cpu",
+                "window_features", "feature_names", "prefilter_cpu", "load_ranker", "save_ranker", "resolve_ranker"}
+"""What the learned ranking is made of: the model, the per-box features, the prefilter, the
+step the generator calls, and the reading and writing of its weights."""
+SAFETENSORS_READERS = {"ranker/weights.py", "detection/detector_file.py"}
+"""The modules that read or write ``.safetensors`` files: the ranking's weights, and a
+trained detector's (a file of its own, with its own metadata)."""
+
+
+def test_one_home_for_the_learned_ranking(graph):
+    """The learned ranking is defined in ``reeb_torch/ranker/`` only: no module elsewhere
+    defines its classes or functions, imports its inner modules (features, prefilter, model,
+    weights, step: the rest of the package goes through ``reeb_torch.ranker``), reads weights
+    files other than a detector's, or names the weights' metadata entry."""
+    defined = {f"{path}:{node.name}" for path, tree in _trees() if not path.startswith("ranker/")
+               for node in ast.walk(tree)
+               if isinstance(node, (ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.name in RANKER_NAMES}
+    assert not defined, f"the learned ranking defined outside reeb_torch/ranker/: {sorted(defined)}"
+    inner = {m for m in graph if m.startswith("reeb_torch.ranker.")}
+    assert {"reeb_torch.ranker.features", "reeb_torch.ranker.prefilter"} <= inner
+    reach_in = {m: graph[m] & inner for m in graph if not m.startswith("reeb_torch.ranker")}
+    assert not {m: d for m, d in reach_in.items() if d}, "import reeb_torch.ranker, not its inner modules"
+    readers = {path for path, tree in _trees() if "safetensors" in _imported_roots(tree)}
+    assert readers <= SAFETENSORS_READERS, f"safetensors outside the weights modules: {readers - SAFETENSORS_READERS}"
+    meta = [path for path in (p.relative_to(PACKAGE).as_posix() for p in PACKAGE.rglob("*.py"))
+            if not path.startswith("ranker/") and "reeb-ranker" in (PACKAGE / path).read_text(encoding="utf-8")]
+    assert not meta, f"the ranking's weights metadata read outside reeb_torch/ranker/: {meta}"
+
+
+def test_click_is_the_one_command_line_framework():
+    """No module of the package imports ``argparse`` (or ``optparse``): every command is click."""
+    offenders = {path for path, tree in _trees() if _imported_roots(tree) & {"argparse", "optparse"}}
+    assert not offenders, f"argparse in the package (use click): {sorted(offenders)}"
+
+
+def test_the_package_reads_nothing_beside_the_checkout():
+    """No module of the package names ``../shared`` (the dev frames beside a checkout): data
+    and models come in as arguments or from the package's own files."""
+    offenders = [p.relative_to(PACKAGE).as_posix() for p in PACKAGE.rglob("*.py")
+                 if re.search(r"\.\.[/\\]shared", p.read_text(encoding="utf-8"))]
+    assert not offenders, f"../shared in package code: {offenders}"
+
+
+WORK_WORDS = re.compile(
+    r"\bissues? ?#?\d+|\bsince issue\b|\b(this|last|next|previous|that) (session|round)\b"
+    r"|\bsessions? (of work|ago)\b|\bthe team\b|\bteam's\b|\bbreak-it\b|\bNOTES #\d+"
+    r"|\bthis (2-core )?VM\b|\b202\d-[01]\d-[0-3]\d\b", re.IGNORECASE)
+"""Phrases that speak of the work instead of the product: issue numbers, sessions and rounds
+of work, the team, internal note numbers, the machine a change was made on, dates of work."""
+WORDED = ("README.md", "pyproject.toml", "docs", "reeb_torch", "tests", "benchmarks", "examples")
+TEXT = {".py", ".md", ".toml", ".txt", ".json", ".csv", ".cfg", ".yaml", ".yml"}
+
+
+def test_the_repository_speaks_of_the_product():
+    """No line of the README, docs, package, tests, benchmarks or examples speaks of issues,
+    sessions, rounds of work, the team or dates of work (this file, which holds the phrases, aside)."""
+    files = []
+    for name in WORDED:
+        root = REPO / name
+        files += [root] if root.is_file() else [p for p in root.rglob("*") if p.is_file() and p.suffix in TEXT]
+    assert any(p.suffix == ".md" for p in files) and any(p.suffix == ".py" for p in files)
+    found = [f"{p.relative_to(REPO).as_posix()}:{i}: {line.strip()[:120]}"
+             for p in files if p.resolve() != Path(__file__).resolve()
+             for i, line in enumerate(p.read_text(encoding="utf-8", errors="replace").splitlines(), 1)
+             if WORK_WORDS.search(line)]
+    assert not found, "lines that speak of the work, not the product:\n" + "\n".join(found)
+
+
+@pytest.mark.parametrize("line", ["see issue 35", "since issue #9", "this session's table", "the last round's targets",
+                                  "the team's 140 frames", "NOTES #16", "measured on this VM", "on 2026-12-06"])
+def test_work_words_are_caught(line):
+    assert WORK_WORDS.search(line)
+
+
+@pytest.mark.parametrize("line", ['@pytest.fixture(scope="session")', "a round trip", "rounded to 0.01 px",
+                                  "in turn", "the ground plane", "turns the cache off", "NOTES column"])
+def test_product_words_pass(line):
+    assert not WORK_WORDS.search(line)

@@ -15,7 +15,7 @@ def test_kitti_defaults_give_seven_quarter_width_strips():
     d = 1.65 / math.tan(math.radians(17.5))
     assert d == pytest.approx(5.233, abs=1e-3)
     assert wr_raw == pytest.approx(2.55 / (2 * d), rel=1e-9)  # eq. 7 with M = d (θh = 90°)
-    assert wr_raw == pytest.approx(0.2436, abs=1e-4)  # NOTES #7: ≈ 24.4 %
+    assert wr_raw == pytest.approx(0.2436, abs=1e-4)  # eqs. 5–7: ≈ 24.4 %
     wr = region_width_fraction(1.65, 35.0, 90.0, 2.55, round_to=0.125)
     assert wr == 0.25
     assert region_count(wr, 0.5) == 7  # eq. 8 corrected

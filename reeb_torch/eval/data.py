@@ -42,7 +42,7 @@ __all__ = [
 ]
 
 DEFAULT_CLASSES: tuple[str, ...] = ("Car", "Pedestrian", "Cyclist", "Truck")
-"""The four classes of the paper's evaluation (Table 3, NOTES #16)."""
+"""The four classes of the paper's evaluation (Table 3)."""
 
 DONT_CARE = "DontCare"
 """KITTI's label for unlabelled regions: never a target."""

@@ -84,7 +84,7 @@ def _strip_histograms(gray: np.ndarray, bounds: np.ndarray, bins: int, hist: np.
 def proposal_share(entropy: Tensor, sigma: float = 4.0, form: str = "abs-diff") -> Tensor:
     """Eq. 9: the fraction in [0, 1] of a region's maximum number of proposals.
 
-    ``abs-diff`` (NOTES #9): 1 − |σ − H|/σ where |σ − H| ≤ σ, else 0 — highest at H = σ.
+    ``abs-diff`` (reading 9 in ``docs/results.md``): 1 − |σ − H|/σ where |σ − H| ≤ σ, else 0 — highest at H = σ.
     ``printed``: 1 − |σ + H|/σ where |σ + H| ≤ σ, else 0 — zero for every H > 0.
     """
     d = (sigma - entropy).abs() if form == "abs-diff" else (sigma + entropy).abs()

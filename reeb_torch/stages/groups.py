@@ -7,7 +7,7 @@ Two groupings (``ReebConfig.grouping``):
   in one raster pass, elsewhere min-label propagation with pointer jumping over the edge
   pixels only (batched tensor ops; the same groups). With ``cell`` set, the
   components are cut at the borders of ``cell × cell`` tiles, which bounds the size of a
-  group (NOTES #2); with ``cell=None`` they are plain connected components, as printed.
+  group (reading 2 in ``docs/results.md``); with ``cell=None`` they are plain connected components, as printed.
 * ``cell``: all edge pixels of one ``cell × cell`` tile are one group (no propagation).
 """
 

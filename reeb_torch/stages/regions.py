@@ -4,7 +4,7 @@ The largest object (``W`` metres wide) is nearest at the distance ``d`` where th
 enters the vertical field of view (eq. 5: tan(θv/2) = h/d); there the horizontal field
 of view spans ``2M`` metres (eq. 6: tan(θh/2) = M/d), so an object fills at most
 ``W / 2M`` of the image width (eq. 7). Regions are full-height strips that wide, spaced
-``overlap`` of their width apart (eq. 8, corrected: n = 1/(w_r·overlap) − 1, NOTES #8).
+``overlap`` of their width apart (eq. 8, corrected: n = 1/(w_r·overlap) − 1, reading 8 in ``docs/results.md``).
 """
 
 from __future__ import annotations
