@@ -42,7 +42,7 @@ from ..stages.features import FEATURES_VERSION, cheap_count
 from .model import BoxRanker
 
 __all__ = ["SHIPPED", "LIMITS", "RankerWeightsError", "load_ranker", "save_ranker", "resolve_ranker", "shipped_path",
-           "ranker_bytes", "frame_hash", "hash_distance", "seen_hashes", "fitted_frames", "SAME_IMAGE_BITS"]
+           "ranker_bytes", "replace_file", "frame_hash", "hash_distance", "seen_hashes", "fitted_frames", "SAME_IMAGE_BITS"]
 
 SHIPPED: dict[str, str] = {
     "kitti": "kitti.safetensors",
@@ -315,7 +315,17 @@ def save_ranker(model: BoxRanker, path: str | os.PathLike, provenance: dict | No
         RankerWeightsError: weights that are not finite (:func:`ranker_bytes`); nothing is written.
         OSError: the file cannot be written; ``path`` is left as it was.
     """
-    data = ranker_bytes(model, provenance, config)
+    return replace_file(path, ranker_bytes(model, provenance, config))
+
+
+def replace_file(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary file beside it (hidden, ``.<name>.*.tmp``),
+    flushed to disk and renamed into place: ``path`` holds its old bytes or the new ones, never
+    a part. The file gets the umask's permissions; missing folders are made.
+
+    Raises:
+        OSError: it cannot be written (the temporary file is removed; ``path`` is as it was).
+    """
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{out.name[:200]}.", suffix=".tmp", dir=out.parent)
