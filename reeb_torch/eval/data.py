@@ -180,7 +180,7 @@ def read_kitti_labels(
                 raise ValueError(f"{p}:{lineno}: malformed KITTI label line ({e})") from None
             problem = box_problem(obj.box, image_size)
             if problem:
-                raise ValueError(f"{p}:{lineno}: impossible box {list(obj.box)} ({problem}); "
+                raise ValueError(f"{p}:{lineno}: impossible box {list(obj.box)}: {problem}; "
                                  "correct or delete the line")
             if keep is None or obj.type in keep:
                 objects.append(obj)
