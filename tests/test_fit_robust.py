@@ -242,26 +242,24 @@ def test_every_command_refuses_impossible_label_boxes_in_one_line(tmp_path, monk
 # -- a whole fit, written where a second folder reads it (rows 4, 10, 11 together) ------------
 
 @pytest.mark.kitti
-def test_a_fit_writes_files_that_read_from_any_folder_and_leaves_nothing_else(kitti_dir, tmp_path, monkeypatch):
+def test_a_fit_writes_files_that_read_from_any_folder_and_leaves_nothing_else(kitti_dir, tmp_path):
     d = tmp_path / "d"
     for sub in ("images", "labels", "calib"):
         (d / sub).mkdir(parents=True)
         for stem in ("000000", "000001"):
             src = next((kitti_dir / sub).glob(f"{stem}.*"))
             shutil.copy(src, d / sub / src.name)
-    res = _fit(["d", "--folds", "2", "--epochs", "1", "-q", "-o", "conc dir/same.safetensors"], tmp_path, monkeypatch)
-    assert res.exit_code == 0, res.output
-    assert res.output.strip().splitlines()[-1].endswith("(reeb propose --config 'conc dir/same.json')")
-    assert sorted(os.listdir(tmp_path / "conc dir")) == ["same.json", "same.safetensors"]
+    r = subprocess.run([sys.executable, "-m", "reeb_torch.runs.cli", "fit", "d", "--folds", "2", "--epochs", "1",
+                        "-q", "-o", "conc dir/same.safetensors"], cwd=tmp_path, capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().splitlines()[-1].endswith("(reeb propose --config 'conc dir/same.json')")
+    assert sorted(os.listdir(tmp_path / "conc dir")) == ["same.json", "same.safetensors"]  # no lock, scratch
     other = tmp_path / "other"
     other.mkdir()
-    from click.testing import CliRunner
-
-    from reeb_torch.runs.cli import main
-
-    monkeypatch.chdir(other)
-    res = CliRunner().invoke(main, ["propose", str(EXAMPLES / "kitti_000001.png"), "--config",
-                                    "../conc dir/same.json", "-o", "o.jsonl", "--device", "cpu", "-q"])
-    assert res.exit_code == 0, res.output
+    r = subprocess.run([sys.executable, "-m", "reeb_torch.runs.cli", "propose", str(EXAMPLES / "kitti_000001.png"),
+                        "--config", "../conc dir/same.json", "-o", "o.jsonl", "--device", "cpu", "-q"], cwd=other,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
     row = json.loads((other / "o.jsonl").read_text().splitlines()[0])
     assert row["status"] == "ok" and len(row["scores"]) > 0
