@@ -188,6 +188,7 @@ def test_the_scratch_folder_is_beside_the_output_and_a_killed_fits_is_removed(tm
     stale = tmp_path / ".w.safetensors.fit"
     stale.mkdir()
     (stale / "left-by-a-kill").write_text("x")
+    (tmp_path / ".w.safetensors.abcd1234.tmp").write_bytes(b"half a file")
     with FitOutputs(tmp_path / "w.safetensors"):
         assert Path(tempfile.gettempdir()) == stale and not (stale / "left-by-a-kill").exists()
         with tempfile.TemporaryDirectory(prefix="reeb-fit-") as held_out:

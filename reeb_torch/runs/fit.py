@@ -153,9 +153,9 @@ class FitOutputs:
     when ``OUT`` is empty, a folder, a ``.json`` name (the config would be the weights), in a
     folder that cannot be made or written, or read-only. As a context manager it holds the
     lock of both files (:func:`~reeb_torch.runs.batch.lock_output`: a second fit on them
-    exits 2 at once) and a scratch folder beside them for the held-out models (the default
-    temporary folder while it is held), removed at the end or, after a kill, by the next fit
-    on the same output.
+    exits 2 at once) and a scratch folder beside them for the held-out models (the process's
+    default temporary folder while it is held), removed at the end or, after a kill, by the
+    next fit on the same output (with the temporary files a killed write left).
     """
 
     def __init__(self, out: str | os.PathLike) -> None:
@@ -183,7 +183,10 @@ class FitOutputs:
         try:
             for path in (self.weights, self.config):
                 self._locks.append(B.lock_output(path))
-            shutil.rmtree(self.scratch, ignore_errors=True)  # a killed fit's, on this output
+            # what a killed fit on this output left: its scratch folder, its temporary files
+            shutil.rmtree(self.scratch, ignore_errors=True)
+            for stale in B.stale_temp_files(self.weights) + B.stale_temp_files(self.config):
+                stale.unlink(missing_ok=True)
             self.scratch.mkdir()
         except (OSError, B.OutputError) as e:
             self._release()
@@ -205,7 +208,7 @@ class FitOutputs:
         """The weights, then the config, each renamed into place; a one-line
         :class:`~reeb_torch.runs.common.Failure` (exit code 1) when one cannot be written (the
         files keep what they held) or the weights are not finite (nothing is written)."""
-        from ..ranker import RankerWeightsError, SHIPPED
+        from ..ranker import SHIPPED, RankerWeightsError, save_ranker
         from ..ranker.weights import replace_file
         from .common import Failure
 
@@ -213,8 +216,6 @@ class FitOutputs:
         ranker = f"./{name}" if name in SHIPPED or name == "none" else name  # not a shipped name
         text = json.dumps({**_changed(cfg), "ranker": ranker}, indent=2) + "\n"
         try:
-            from ..ranker import save_ranker
-
             save_ranker(model, self.weights, provenance, cfg.to_dict())
             replace_file(self.config, text.encode("utf-8"))
         except RankerWeightsError as e:
