@@ -52,7 +52,7 @@ def _make_folder(root: Path, layout: str, labels: bool = True, calib: bool = Tru
     img, lab = ("images", "labels") if layout == "project" else ("image_2", "label_2")
     (root / img).mkdir(parents=True)
     _write_image(root / img / "000001.png", 20, 30)
-    _write_image(root / img / "000000.png", 24, 32)
+    _write_image(root / img / "000000.png", 240, 640)  # the labels (LABELS_A) lie inside it
     _write_image(root / img / "000002.png", 16, 16)
     (root / img / "notes.txt").write_text("not an image")
     if labels:
@@ -167,7 +167,7 @@ def test_dataset_both_layouts(tmp_path, layout):
     ds = KittiDataset(_make_folder(tmp_path / "d", layout))
     assert len(ds) == 3 and ds.ids == ["000000", "000001", "000002"]
     item = ds[0]
-    assert item["image"].dtype == torch.uint8 and item["image"].shape == (3, 24, 32)
+    assert item["image"].dtype == torch.uint8 and item["image"].shape == (3, 240, 640)
     assert item["image_id"] == "000000" and item["path"].endswith("000000.png")
     # DontCare and Van dropped; classes are the paper's four
     assert item["class_names"] == ["Car", "Pedestrian", "Cyclist"]
@@ -219,7 +219,7 @@ def test_dataset_transform(tmp_path):
     root = _make_folder(tmp_path / "d", "project")
     plain, flipped = KittiDataset(root)[0], KittiDataset(root, transform=flip)[0]
     assert torch.equal(flipped["image"], plain["image"].flip(-1))
-    assert flipped["boxes"][0, 0].item() == pytest.approx(32 - 614.12, abs=1e-3)
+    assert flipped["boxes"][0, 0].item() == pytest.approx(640 - 614.12, abs=1e-3)
 
 
 def test_dataset_errors(tmp_path):
@@ -241,7 +241,7 @@ def test_collate_keeps_sizes(tmp_path):
     ds = KittiDataset(_make_folder(tmp_path / "d", "project"))
     loader = torch.utils.data.DataLoader(ds, batch_size=3, collate_fn=collate_keep_sizes)
     batch = next(iter(loader))
-    assert [tuple(im.shape) for im in batch["image"]] == [(3, 24, 32), (3, 20, 30), (3, 16, 16)]
+    assert [tuple(im.shape) for im in batch["image"]] == [(3, 240, 640), (3, 20, 30), (3, 16, 16)]
     assert [len(b) for b in batch["boxes"]] == [3, 1, 0]
     assert batch["image_id"] == ["000000", "000001", "000002"]
     assert collate_keep_sizes([]) == {}

@@ -22,6 +22,7 @@ folder is required: without labels every target is empty, without calib ``calib`
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -38,6 +39,7 @@ __all__ = [
     "KittiObject",
     "KittiDataset",
     "read_kitti_labels",
+    "box_problem",
     "collate_keep_sizes",
 ]
 
@@ -104,26 +106,58 @@ def _parse_label_line(fields: list[str]) -> KittiObject:
     )
 
 
+BOX_SLACK = 1.0
+"""Pixels by which a label's box may leave the image (rounding in converted labels)."""
+
+
+def box_problem(box: Sequence[float], image_size: tuple[int, int] | None = None) -> str | None:
+    """Why a label's box ``(x1, y1, x2, y2)`` (pixels) cannot be an object, or None.
+
+    A box is refused when a coordinate is not a finite number, when it is inverted or has
+    no area (``x2 <= x1`` or ``y2 <= y1``), when it reaches below ``-BOX_SLACK`` (negative
+    coordinates), or, given ``image_size`` ``(W, H)``, past ``W + BOX_SLACK`` or
+    ``H + BOX_SLACK`` (outside the image)."""
+    x1, y1, x2, y2 = box
+    if not all(math.isfinite(v) for v in box):
+        return "a coordinate is not a finite number"
+    if x2 <= x1 or y2 <= y1:
+        return "the box is inverted or has no area (x2 <= x1 or y2 <= y1)"
+    if min(x1, y1) < -BOX_SLACK:
+        return "the box has negative coordinates"
+    if image_size is not None and (x2 > image_size[0] + BOX_SLACK or y2 > image_size[1] + BOX_SLACK):
+        return f"the box leaves the {image_size[0]}x{image_size[1]} image"
+    return None
+
+
 def read_kitti_labels(
-    path: str | os.PathLike, classes: Iterable[str] | None = None
+    path: str | os.PathLike, classes: Iterable[str] | None = None,
+    image_size: tuple[int, int] | None = None,
 ) -> list[KittiObject]:
     """Read a KITTI ``label_2`` file: one object per line, 15 whitespace-separated fields.
 
     ``type truncated occluded alpha x1 y1 x2 y2 h w l X Y Z ry``, plus an optional 16th
     field ``score`` in result files. Blank lines are skipped.
 
+    Every command reads labels through this function (``reeb fit``, ``reeb eval``,
+    ``reeb calibrate``, the recall tables, ``reeb show``), with one rule: a line whose box
+    cannot be an object (:func:`box_problem`: a coordinate that is NaN or infinite, an
+    inverted or zero-area box, negative coordinates, or, given ``image_size``, a box
+    outside the image) is an error naming the file and the line, as a malformed line is;
+    it is never scored, and never dropped without a word.
+
     Args:
         path: the label file.
         classes: keep only objects whose ``type`` is one of these (exact, case-sensitive
             names). ``None`` keeps every line as written, ``DontCare`` included.
+        image_size: ``(W, H)`` of the frame's image, in pixels; None checks no upper bound.
 
     Returns:
         The objects in file order.
 
     Raises:
         FileNotFoundError: the file does not exist.
-        ValueError: a line has the wrong number of fields or a non-numeric value; the
-            message names the file and the 1-based line number.
+        ValueError: a line has the wrong number of fields, a non-numeric value or an
+            impossible box; the message names the file and the 1-based line number.
     """
     p = Path(path)
     keep = None if classes is None else set(classes)
@@ -141,6 +175,10 @@ def read_kitti_labels(
                 obj = _parse_label_line(fields)
             except ValueError as e:
                 raise ValueError(f"{p}:{lineno}: malformed KITTI label line ({e})") from None
+            problem = box_problem(obj.box, image_size)
+            if problem:
+                raise ValueError(f"{p}:{lineno}: impossible box {list(obj.box)}: {problem}; "
+                                 "correct or delete the line")
             if keep is None or obj.type in keep:
                 objects.append(obj)
     return objects
@@ -260,15 +298,18 @@ class KittiDataset(torch.utils.data.Dataset):
             f"calib={self.calib_dir is not None})"
         )
 
-    def load_target(self, index: int) -> dict[str, Any]:
+    def load_target(self, index: int, image_size: tuple[int, int] | None = None) -> dict[str, Any]:
         """The sample of frame ``index`` without decoding its image (no ``image`` key,
-        no ``transform``): cheap access to the ground truth, e.g. for recall tables."""
+        no ``transform``): cheap access to the ground truth, e.g. for recall tables.
+        ``image_size`` ``(W, H)``: the image's, where known (else read from its header),
+        against which the labels' boxes are checked (:func:`read_kitti_labels`)."""
         image_id = self.ids[index]
         objects: list[KittiObject] = []
         if self.label_dir is not None:
+            size = image_size if image_size is not None else _image_size(self.image_paths[index])
             objects = [
                 o
-                for o in read_kitti_labels(self.label_dir / f"{image_id}.txt")
+                for o in read_kitti_labels(self.label_dir / f"{image_id}.txt", image_size=size)
                 if o.type in self._class_index
             ]
         calib = None
@@ -289,10 +330,22 @@ class KittiDataset(torch.utils.data.Dataset):
         if not -len(self) <= index < len(self):
             raise IndexError(f"index {index} out of range for {len(self)} frames")
         index = index % len(self)
-        sample = {"image": read_image(self.image_paths[index]), **self.load_target(index)}
+        image = read_image(self.image_paths[index])
+        sample = {"image": image, **self.load_target(index, (image.shape[-1], image.shape[-2]))}
         if self.transform is not None:
             sample = self.transform(sample)
         return sample
+
+
+def _image_size(path: Path) -> tuple[int, int] | None:
+    """``(W, H)`` of an image from its header, or None where it cannot be read that way."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except Exception:  # noqa: BLE001 - a format PIL does not read: the reader's error comes later
+        return None
 
 
 def collate_keep_sizes(batch: Sequence[Mapping[str, Any]]) -> dict[str, list[Any]]:

@@ -17,7 +17,12 @@ JSON object (keys sorted, so the same model gives the same bytes) with
 
 :func:`load_ranker` takes a shipped name (:data:`SHIPPED`, files inside the package) or a
 path, and raises :class:`RankerWeightsError` (a ``ValueError``) with one line naming the
-file and what is wrong: missing, unreadable, another format, or fitted on other features.
+file and what is wrong: missing, a folder, unreadable, another format, fitted on other
+features, metadata of the wrong type or out of bounds (:data:`LIMITS`), tensors missing,
+extra or of another shape than the metadata gives, or values that are not finite (NaN, inf)
+or a ``scale`` that is not positive. Everything is checked from the file's header and its
+metadata before a tensor is read or a model is made, so that no file, however written, makes
+the loader allocate more than the file holds.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import tempfile
 import threading
 from importlib import resources
 from pathlib import Path
@@ -32,11 +38,11 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from .features import FEATURES_VERSION
+from .features import FEATURES_VERSION, cheap_count
 from .model import BoxRanker
 
-__all__ = ["SHIPPED", "RankerWeightsError", "load_ranker", "save_ranker", "resolve_ranker", "shipped_path",
-           "frame_hash", "hash_distance", "seen_hashes", "fitted_frames", "SAME_IMAGE_BITS"]
+__all__ = ["SHIPPED", "LIMITS", "RankerWeightsError", "load_ranker", "save_ranker", "resolve_ranker", "shipped_path",
+           "ranker_bytes", "replace_file", "frame_hash", "hash_distance", "seen_hashes", "fitted_frames", "SAME_IMAGE_BITS"]
 
 SHIPPED: dict[str, str] = {
     "kitti": "kitti.safetensors",
@@ -44,6 +50,13 @@ SHIPPED: dict[str, str] = {
 """Shipped weights by name (``ReebConfig.ranker='kitti'``): files in ``reeb_torch/ranker/weights/``."""
 
 FORMAT = "reeb-ranker"
+
+LIMITS: dict[str, int] = {"members": 256, "layers": 16, "width": 65536, "features": 4096, "classes": 1024}
+"""Bounds a weights file's metadata must keep: MLPs averaged (``members``), hidden layers
+per MLP (``layers``), the width of each (``width``), feature columns (``features``), classes
+of the class head (``classes``; 2 at least)."""
+
+_FLOAT_DTYPES = ("F16", "BF16", "F32", "F64")
 
 _LOADED: dict[tuple, BoxRanker] = {}
 _LOCK = threading.Lock()
@@ -66,7 +79,8 @@ def resolve_ranker(spec: str) -> Path:
     """
     path = shipped_path(spec) if spec in SHIPPED else Path(os.path.expanduser(spec))
     if not path.is_file():
-        what = "the shipped weights are missing from the package" if spec in SHIPPED else "no such file"
+        what = ("the shipped weights are missing from the package" if spec in SHIPPED
+                else "a folder, not a weights file" if path.is_dir() else "no such file")
         raise RankerWeightsError(f"ranker weights {spec!r}: {what} ({path}); ReebConfig.ranker takes 'none', "
                                  f"a shipped name ({', '.join(sorted(SHIPPED))}) or a .safetensors file "
                                  "that `reeb fit` wrote")
@@ -109,45 +123,168 @@ def _differ(have: tuple[str, ...], want: tuple[str, ...]) -> str:
 
 
 def _read(path: Path, spec: str) -> BoxRanker:
+    """The model of the file ``path``: its header and metadata checked first (:func:`_shapes`),
+    then its tensors read and checked (:func:`_check_values`), then the model made."""
     from safetensors import SafetensorError, safe_open
 
+    where = f"ranker weights {spec!r} ({path})"
     try:
         with safe_open(str(path), framework="pt") as f:
             meta = f.metadata() or {}
-            tensors = {k: f.get_tensor(k) for k in f.keys()}
+            header = {k: (tuple(f.get_slice(k).get_shape()), f.get_slice(k).get_dtype()) for k in f.keys()}
+            try:
+                info = _meta(meta)
+                expected = _shapes(info, header)
+            except ValueError as e:
+                raise RankerWeightsError(f"{where}: {e}") from None
+            tensors = {k: f.get_tensor(k) for k in expected}
     except (SafetensorError, OSError, ValueError) as e:
+        if isinstance(e, RankerWeightsError):
+            raise
         reason = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise RankerWeightsError(f"ranker weights {spec!r} ({path}) are not a readable safetensors file: "
-                                 f"{reason}") from None
+        raise RankerWeightsError(f"{where} are not a readable safetensors file: {reason}") from None
     try:
-        info = json.loads(meta[FORMAT])
-    except (KeyError, ValueError):
-        raise RankerWeightsError(f"ranker weights {spec!r} ({path}) are not a reeb-torch ranker's "
-                                 f"(no {FORMAT!r} metadata)") from None
-    version = info.get("features_version")
-    if version != FEATURES_VERSION:
-        raise RankerWeightsError(f"ranker weights {spec!r} ({path}) were fitted on features version {version}, "
-                                 f"but this reeb-torch computes version {FEATURES_VERSION}: refit them with `reeb fit`")
-    try:
+        _check_values(tensors, info["feature_names"])
         model = BoxRanker(info["feature_names"], info["hidden"], info["members"], info["prefilter"],
-                          info.get("classes"), info.get("class_hidden", (32,)))
-        model.load_state_dict(tensors, strict=True)
-        model.meta = {k: info[k] for k in ("provenance", "config") if k in info}
-        bad = [k for k, v in model.meta.items() if not isinstance(v, dict)]
-        if bad:
-            raise ValueError(f"its {bad[0]!r} metadata is not a JSON object")
-    except (KeyError, ValueError, RuntimeError, TypeError) as e:
+                          info["classes"], info["class_hidden"])
+        model.load_state_dict({k: v.float() for k, v in tensors.items()}, strict=True)
+    except (ValueError, RuntimeError) as e:
         reason = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise RankerWeightsError(f"ranker weights {spec!r} ({path}) do not hold a ranker: {reason}") from None
+        raise RankerWeightsError(f"{where}: {reason}") from None
+    model.meta = {k: info[k] for k in ("provenance", "config") if k in info}
     return model.eval().requires_grad_(False)
 
 
-def save_ranker(model: BoxRanker, path: str | os.PathLike, provenance: dict | None = None,
-                config: dict | None = None) -> Path:
-    """Write ``model`` to ``path`` (safetensors; the same model gives the same bytes).
+def _meta(meta: dict[str, str]) -> dict:
+    """The ``reeb-ranker`` metadata entry, its fields checked and normalised (lists to
+    tuples, absent ``classes``/``class_hidden`` filled in); ValueError naming the field."""
+    if FORMAT not in meta:
+        raise ValueError(f"not a reeb-torch ranker's (no {FORMAT!r} metadata)")
+    try:
+        info = json.loads(meta[FORMAT])
+    except ValueError:
+        raise ValueError(f"its {FORMAT!r} metadata is not valid JSON") from None
+    if not isinstance(info, dict):
+        raise ValueError(f"its {FORMAT!r} metadata is a JSON {_json_type(info)}, expected a JSON object")
+    version = info.get("features_version")
+    if version != FEATURES_VERSION:
+        raise ValueError(f"fitted on features version {version!r}, but this reeb-torch computes version "
+                         f"{FEATURES_VERSION}: refit them with `reeb fit`")
+    for key in ("feature_names", "hidden", "members", "prefilter"):
+        if key not in info:
+            raise ValueError(f"metadata field {key!r} is missing")
+    lim = LIMITS
+    out = dict(info)
+    out["feature_names"] = _names(info["feature_names"], "feature_names", 1, lim["features"])
+    out["members"] = _int(info["members"], "members", 1, lim["members"])
+    out["hidden"] = _widths(info["hidden"], "hidden", 1)
+    out["prefilter"] = None if info["prefilter"] is None else _widths(info["prefilter"], "prefilter", 0)
+    classes = info.get("classes")
+    out["classes"] = None if classes is None else _names(classes, "classes", 2, lim["classes"])
+    out["class_hidden"] = _widths(info.get("class_hidden", [32]), "class_hidden", 0)
+    for key in ("provenance", "config"):
+        if key in info and not isinstance(info[key], dict):
+            raise ValueError(f"its {key!r} metadata is not a JSON object (a JSON {_json_type(info[key])})")
+    return out
 
-    ``provenance`` and ``config`` (JSON-able dicts) are kept as metadata (:data:`BoxRanker.meta`
-    once loaded)."""
+
+def _int(value: object, field: str, low: int, high: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+        raise ValueError(f"metadata field {field!r} is {_shown(value)}, expected an integer from {low} to {high}")
+    return value
+
+
+def _widths(value: object, field: str, fewest: int) -> tuple[int, ...]:
+    lim = LIMITS
+    if not isinstance(value, list) or not fewest <= len(value) <= lim["layers"]:
+        raise ValueError(f"metadata field {field!r} is {_shown(value)}, expected a list of {fewest} to "
+                         f"{lim['layers']} layer widths (integers from 1 to {lim['width']})")
+    return tuple(_int(v, field, 1, lim["width"]) for v in value)
+
+
+def _names(value: object, field: str, fewest: int, most: int) -> tuple[str, ...]:
+    if not isinstance(value, list) or not fewest <= len(value) <= most \
+            or not all(isinstance(v, str) and v for v in value):
+        raise ValueError(f"metadata field {field!r} is {_shown(value)}, expected a list of {fewest} to {most} "
+                         "names (non-empty strings)")
+    twice = sorted({v for v in value if value.count(v) > 1})
+    if twice:
+        raise ValueError(f"metadata field {field!r} names {', '.join(map(repr, twice[:3]))} more than once, "
+                         "expected distinct names")
+    return tuple(value)
+
+
+def _json_type(value: object) -> str:
+    return {dict: "object", list: "array", str: "string", bool: "boolean", int: "number",
+            float: "number"}.get(type(value), "null")
+
+
+def _shown(value: object) -> str:
+    text = json.dumps(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _shapes(info: dict, header: dict[str, tuple[tuple[int, ...], str]]) -> dict[str, tuple[int, ...]]:
+    """The tensors (name: shape) a model of the metadata ``info`` has, checked against the
+    file's ``header`` (name: (shape, dtype)): the same names, shapes, and floating dtypes;
+    ValueError naming the first tensor that differs."""
+    f = len(info["feature_names"])
+    expected: dict[str, tuple[int, ...]] = {"mean": (f,), "scale": (f,)}
+
+    def mlp(prefix: str, inputs: int, hidden: tuple[int, ...], outputs: int) -> None:
+        for i, width in enumerate((*hidden, outputs)):
+            expected[f"{prefix}.{2 * i}.weight"], expected[f"{prefix}.{2 * i}.bias"] = (width, inputs), (width,)
+            inputs = width
+
+    for m in range(info["members"]):
+        mlp(f"members.{m}", f, info["hidden"], 1)
+    if info["prefilter"] is not None:
+        mlp("prefilter", cheap_count(sum(1 for n in info["feature_names"] if n.startswith("class_fit_"))),
+            info["prefilter"], 1)
+    if info["classes"] is not None:
+        mlp("classifier", f, info["class_hidden"], len(info["classes"]))
+    missing = [k for k in expected if k not in header]
+    if missing:
+        raise ValueError(f"tensor {missing[0]!r} is missing ({len(missing)} missing; the metadata gives "
+                         f"{len(expected)} tensors, the file holds {len(header)})")
+    extra = sorted(k for k in header if k not in expected)
+    if extra:
+        raise ValueError(f"tensor {extra[0]!r} is not one of the model's ({len(extra)} unexpected)")
+    for k, shape in expected.items():
+        have, dtype = header[k]
+        if have != shape:
+            raise ValueError(f"tensor {k!r} has shape {list(have)}, expected {list(shape)} from the metadata")
+        if dtype not in _FLOAT_DTYPES:
+            raise ValueError(f"tensor {k!r} is {dtype}, expected floating point ({', '.join(_FLOAT_DTYPES)})")
+    return expected
+
+
+def _check_values(tensors: dict[str, Tensor], feature_names: tuple[str, ...]) -> None:
+    """ValueError naming the first tensor with a NaN or infinite value, or a ``scale`` that
+    is not positive (features are divided by it)."""
+    for k, v in tensors.items():
+        bad = ~torch.isfinite(v.float())
+        if bad.any():
+            at = int(bad.flatten().nonzero()[0])
+            n = int(bad.sum())
+            raise ValueError(f"tensor {k!r} holds {n} value{'s' if n > 1 else ''} that {'are' if n > 1 else 'is'} "
+                             f"not finite (element {at} is {float(v.flatten()[at])}), expected finite numbers")
+    low = tensors["scale"].float() <= 0
+    if low.any():
+        at = int(low.nonzero()[0])
+        raise ValueError(f"tensor 'scale' is {float(tensors['scale'][at])} for feature {feature_names[at]!r}, "
+                         "expected positive values (each feature is divided by its scale)")
+
+
+def ranker_bytes(model: BoxRanker, provenance: dict | None = None, config: dict | None = None) -> bytes:
+    """The safetensors bytes of ``model`` (the same model gives the same bytes), with
+    ``provenance`` and ``config`` (JSON-able dicts) as metadata (:data:`BoxRanker.meta` once
+    loaded).
+
+    Raises:
+        RankerWeightsError: a tensor holds NaN or infinite values (a fit that diverged), or
+            ``scale`` is not positive: such weights are never written.
+    """
     from safetensors.torch import save
 
     info = {"features_version": FEATURES_VERSION, "feature_names": list(model.feature_names),
@@ -161,11 +298,49 @@ def save_ranker(model: BoxRanker, path: str | os.PathLike, provenance: dict | No
         info["config"] = config
     meta = {FORMAT: json.dumps(info, sort_keys=True, default=list)}  # one entry: its place is fixed
     tensors = {k: v.detach().to("cpu", torch.float32).contiguous() for k, v in model.state_dict().items()}
+    try:
+        _check_values(tensors, model.feature_names)
+    except ValueError as e:
+        raise RankerWeightsError(f"these ranker weights are not written: {e}") from None
+    return save(tensors, metadata=meta)
+
+
+def save_ranker(model: BoxRanker, path: str | os.PathLike, provenance: dict | None = None,
+                config: dict | None = None) -> Path:
+    """Write ``model`` to ``path`` (:func:`ranker_bytes`): through a temporary file beside it,
+    flushed to disk and renamed into place, so that a failed write (a full disk) leaves the
+    file that was there; the file gets the umask's permissions.
+
+    Raises:
+        RankerWeightsError: weights that are not finite (:func:`ranker_bytes`); nothing is written.
+        OSError: the file cannot be written; ``path`` is left as it was.
+    """
+    return replace_file(path, ranker_bytes(model, provenance, config))
+
+
+def replace_file(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary file beside it (hidden, ``.<name>.*.tmp``),
+    flushed to disk and renamed into place: ``path`` holds its old bytes or the new ones, never
+    a part. The file gets the umask's permissions; missing folders are made.
+
+    Raises:
+        OSError: it cannot be written (the temporary file is removed; ``path`` is as it was).
+    """
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    # the bytes through Python's open: the file gets the umask's permissions (safetensors'
-    # save_file made it readable by its owner alone: 0600, whatever the umask)
-    out.write_bytes(save(tensors, metadata=meta))
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name[:200]}.", suffix=".tmp", dir=out.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)  # as Python's open would make it (mkstemp's is 0600)
+        os.replace(tmp, out)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
     return out
 
 

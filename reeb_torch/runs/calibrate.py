@@ -32,8 +32,9 @@ def read_boxes(roots: Sequence[str | os.PathLike]) -> dict[str, Any]:
                              "calibration needs labelled boxes")
         for i, image_id in enumerate(ds.ids):
             with Image.open(ds.image_paths[i]) as im:
-                height = im.size[1]
-            objects = read_kitti_labels(ds.label_dir / f"{image_id}.txt")
+                size = im.size
+            height = size[1]
+            objects = read_kitti_labels(ds.label_dir / f"{image_id}.txt", image_size=size)
             out["boxes"].append([o.box for o in objects])
             out["classes"].append([o.type for o in objects])
             out["heights"].append(height)

@@ -65,10 +65,11 @@ def bundled_sample() -> Path:
     return p
 
 
-def _parse_value(text: str, choices: tuple[str, ...] = ()) -> Any:
+def _parse_value(text: str, choices: tuple[str, ...] = (), field: str = "") -> Any:
     """A ``--set`` value: one of the field's ``choices`` (the words of a ``Literal`` field,
     kept as written even where they read as JSON, such as ``none``), else JSON, else
-    ``none``/``null`` as None, ``true``/``false``, or the bare string."""
+    ``none``/``null`` as None, ``true``/``false``, or the bare string. A value that opens as
+    JSON does (``[``, ``{``, ``"``) but does not parse is a usage error naming ``field``."""
     word = text.strip()
     if word in choices:
         return word
@@ -77,7 +78,10 @@ def _parse_value(text: str, choices: tuple[str, ...] = ()) -> Any:
     except RecursionError:
         raise click.BadParameter(f"{text[:40]!r}...: nested too deeply to be a setting",
                                  param_hint="--set") from None
-    except json.JSONDecodeError:
+    except json.JSONDecodeError as e:
+        if word[:1] in ('[', '{', '"'):
+            raise click.BadParameter(f"{field}={text[:60]!r}: not valid JSON ({e.msg} at character {e.pos + 1})",
+                                     param_hint="--set") from None
         low = word.lower()
         if low in ("none", "null"):
             return None
@@ -168,6 +172,8 @@ def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_
             raise click.BadParameter(f"{config_file}: expected a JSON object of ReebConfig fields",
                                      param_hint="--config")
         d.update(loaded)
+        if isinstance(loaded.get("ranker"), str):
+            d["ranker"] = _ranker_beside(loaded["ranker"], Path(config_file))
     bools, words = _field_kinds() if sets else (set(), {})
     for item in sets:
         key, sep, value = item.partition("=")
@@ -180,7 +186,7 @@ def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_
         elif name in words and words[name] is None:
             d[name] = _parse_text(value)
         else:
-            d[name] = _parse_value(value, words.get(name) or ())
+            d[name] = _parse_value(value, words.get(name) or (), name)
     if top_k is not None:
         d["top_k"] = top_k
     try:
@@ -191,6 +197,22 @@ def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_
     except (TypeError, ValueError, ArithmeticError) as e:
         raise click.BadParameter(" ".join(str(e).split()) or type(e).__name__,
                                  param_hint="--config/--set/--top-k")
+
+
+def _ranker_beside(ranker: str, config_file: Path) -> str:
+    """A config file's ``ranker``: a relative path is taken from the config file's folder (as
+    ``reeb fit`` writes it), so the config reads from any folder; a path that is found only
+    from the current folder (a config written before) is kept; names and absolute paths
+    are kept."""
+    import os
+
+    from ..ranker import SHIPPED
+
+    path = Path(os.path.expanduser(ranker))
+    if ranker in SHIPPED or ranker == "none" or path.is_absolute():
+        return ranker
+    beside = config_file.parent / path
+    return ranker if path.exists() and not beside.exists() else str(beside)
 
 
 def resolve_device(name: str):

@@ -65,7 +65,9 @@ def read_rows(results: str | os.PathLike) -> list[dict]:
     except OutputError as e:
         raise ExportError(str(e)) from e
     if problems:
-        raise ExportError(f"{p}: not a clean results file: {problems[0]}")
+        first = problems[0].removesuffix("; skipped")  # the reader skips them; the export takes none
+        raise ExportError(f"{p}: not a clean results file ({len(problems)} bad line{'s' if len(problems) > 1 else ''}; "
+                          f"first {first}): nothing exported")
     return rows
 
 

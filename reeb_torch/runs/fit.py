@@ -1,6 +1,11 @@
 """``reeb fit``: the command's work around :mod:`reeb_torch.eval.fit` (load the frames, take
 their candidates, cross-validate, fit on all of them, print, write the weights and a config
-that ``reeb propose --config`` reads)."""
+that ``reeb propose --config`` reads).
+
+It writes as ``reeb propose`` does (:class:`FitOutputs`): the output is checked before any
+work, a lock beside it keeps a second fit off it, and each file goes through a temporary file
+renamed into place, so a failed or killed fit leaves the files that were there.
+"""
 
 from __future__ import annotations
 
@@ -8,7 +13,10 @@ import dataclasses
 import hashlib
 import json
 import os
+import shlex
+import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
@@ -22,7 +30,7 @@ from ..eval.tune import FrameCache, bootstrap_interval, fold_blocks, objective
 if TYPE_CHECKING:
     from ..ranker import BoxRanker
 
-__all__ = ["run_fit", "frames_digest", "FEW_FRAMES"]
+__all__ = ["run_fit", "frames_digest", "FitOutputs", "FEW_FRAMES"]
 
 FEW_FRAMES = 20
 """Below this many frames, a fit from scratch prints a hint to fine-tune instead (``--init``)."""
@@ -136,6 +144,123 @@ def _other_folder_hits(cache: FrameCache, cfg: ReebConfig, samples: Sequence[F.S
     return object_hits([o["boxes"] for o in outputs], cache.frames.gts, k, iou)
 
 
+class FitOutputs:
+    """The two files ``reeb fit -o OUT`` writes: the weights (``OUT``) and, beside them, the
+    config that ``reeb propose --config`` reads (``OUT`` with the suffix ``.json``, naming the
+    weights by their file name, so it reads from any folder).
+
+    Made before any work: raises :class:`~reeb_torch.runs.common.UsageProblem` (exit code 2)
+    when ``OUT`` is empty, a folder, a ``.json`` name (the config would be the weights), in a
+    folder that cannot be made or written, or read-only. As a context manager it holds the
+    lock of both files (:func:`~reeb_torch.runs.output_lock.lock_output`: a second fit on them
+    exits 2 at once) and a scratch folder beside them for the held-out models (the process's
+    default temporary folder while it is held), removed at the end or, after a kill, by the
+    next fit on the same output (with the temporary files a killed write left).
+    """
+
+    def __init__(self, out: str | os.PathLike) -> None:
+        from .common import UsageProblem
+
+        text = os.fspath(out)
+        if not text.strip():
+            raise UsageProblem("-o/--out is empty: give the weights file to write, e.g. -o ranker.safetensors")
+        self.weights = Path(os.path.expanduser(text))
+        self.config = self.weights.with_suffix(".json")
+        if self.weights.suffix.lower() == ".json" or self.config == self.weights:
+            raise UsageProblem(f"{self.weights}: the config written beside the weights is {self.config}, the same "
+                               f"file; name the weights apart, e.g. -o {self.weights.with_suffix('.safetensors')}")
+        problem = _unwritable(self.weights) or _unwritable(self.config)
+        if problem:
+            raise UsageProblem(problem)
+        self.scratch = self.weights.parent / f"{_hidden(self.weights)}.fit"
+        self._locks: list = []
+        self._tempdir: str | None = None
+
+    def __enter__(self) -> "FitOutputs":
+        from .output_files import OutputError, stale_temp_files
+        from .output_lock import lock_output
+        from .common import UsageProblem
+
+        try:
+            for path in (self.weights, self.config):
+                self._locks.append(lock_output(path))
+            # what a killed fit on this output left: its scratch folder, its temporary files
+            shutil.rmtree(self.scratch, ignore_errors=True)
+            for stale in stale_temp_files(self.weights) + stale_temp_files(self.config):
+                stale.unlink(missing_ok=True)
+            self.scratch.mkdir()
+        except (OSError, OutputError) as e:
+            self._release()
+            raise UsageProblem(" ".join(str(e).split())) from None
+        self._tempdir, tempfile.tempdir = tempfile.tempdir, str(self.scratch)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        tempfile.tempdir = self._tempdir
+        shutil.rmtree(self.scratch, ignore_errors=True)
+        self._release()
+
+    def _release(self) -> None:
+        for lock in self._locks:
+            lock.release()
+        self._locks = []
+
+    def write(self, model: BoxRanker, provenance: dict[str, Any], cfg: ReebConfig) -> None:
+        """The weights, then the config, each renamed into place; a one-line
+        :class:`~reeb_torch.runs.common.Failure` (exit code 1) when one cannot be written (the
+        files keep what they held) or the weights are not finite (nothing is written)."""
+        from ..ranker import SHIPPED, RankerWeightsError, save_ranker
+        from ..ranker.weights import replace_file
+        from .common import Failure
+
+        name = self.weights.name
+        ranker = f"./{name}" if name in SHIPPED or name == "none" else name  # not a shipped name
+        text = json.dumps({**_changed(cfg), "ranker": ranker}, indent=2) + "\n"
+        try:
+            save_ranker(model, self.weights, provenance, cfg.to_dict())
+            replace_file(self.config, text.encode("utf-8"))
+        except RankerWeightsError as e:
+            raise Failure(f"{self.weights}: not written, the fit gave weights that cannot rank "
+                          f"({str(e).split(': ', 1)[-1]})") from None
+        except OSError as e:
+            raise Failure(f"{e.filename or self.weights}: cannot write ({e.strerror or e}); the file that was "
+                          "there is unchanged") from None
+
+    def hint(self) -> str:
+        """The closing line: what was written and the command that uses it."""
+        return (f"wrote {self.weights} and {self.config} "
+                f"(reeb propose --config {shlex.quote(str(self.config))})")
+
+
+def _hidden(path: Path) -> str:
+    from .output_files import hidden_stem
+
+    return hidden_stem(path)
+
+
+def _unwritable(path: Path) -> str | None:
+    """Why ``path`` cannot be written as an output file (its folder made where missing), or None."""
+    if path.is_dir():
+        return f"{path}: is a folder; give a file name such as {path / 'ranker.safetensors'}"
+    parent = path.parent
+    above = next((q for q in (parent, *parent.parents) if q.exists()), None)
+    if above is not None and not above.is_dir():
+        return f"{path}: cannot write, {above} is a file, not a folder"
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        return f"{path}: cannot write, cannot make the folder {parent} ({e.strerror or e})"
+    if path.exists() and not os.access(path, os.W_OK):
+        return f"{path}: cannot write, the file is read-only"
+    try:
+        fd, probe = tempfile.mkstemp(prefix=f"{_hidden(path)}.", suffix=".probe", dir=parent)
+    except OSError as e:
+        return f"{path}: cannot write to the folder {parent} ({e.strerror or e})"
+    os.close(fd)
+    os.unlink(probe)
+    return None
+
+
 def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions, folds: int, k: int = 2000,
             iou: float = 0.7, limit: int | None = None, quiet: bool = False,
             command: str = "", whole_drives: bool = False) -> dict[str, Any]:
@@ -149,25 +274,32 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions,
     replaced by the new weights); it is compared with ``cfg.training_free()`` and, where it
     can rank these features, the shipped ``kitti`` model, on the same frames.
 
+    The output is checked and locked before any work (:class:`FitOutputs`).
+
     Raises:
         ValueError: no labels, fewer frames than folds, nothing to fit on; a ``--init`` model that
             cannot be read or reads other features (:class:`~reeb_torch.ranker.RankerWeightsError`).
+        UsageProblem: ``out`` cannot be written, or another fit holds it (exit code 2).
+        Failure: the weights cannot be written, or are not finite (exit code 1).
     """
     import warnings
 
-    with warnings.catch_warnings():
+    outputs = FitOutputs(out)
+    with outputs, warnings.catch_warnings():
         # the shipped model's row and a --init model run on this config by design: the
         # generator's warning that they were fitted with other settings is no news here
         warnings.filterwarnings("ignore", message=r"reeb: the ranker .* was fitted with other settings",
                                 category=UserWarning)
-        return _run_fit(roots, out, cfg, opts, folds, k, iou, limit, quiet, command, whole_drives)
+        return _run_fit(roots, outputs, cfg, opts, folds, k, iou, limit, quiet, command, whole_drives)
 
 
-def _run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions, folds: int, k: int,
+def _run_fit(roots: Sequence[str], outputs: FitOutputs, cfg: ReebConfig, opts: F.FitOptions, folds: int, k: int,
              iou: float, limit: int | None, quiet: bool, command: str, whole_drives: bool) -> dict[str, Any]:
-    from ..ranker import frame_hash, load_ranker, save_ranker, seen_hashes
+    from ..ranker import frame_hash, load_ranker, seen_hashes
 
     t0 = time.monotonic()
+    if opts.init:
+        load_ranker(opts.init)  # a file that is no model is refused before the frames are read
     frames = F.load_fit_frames(roots, limit=limit)
     fold_blocks(len(frames), folds)  # refuse fewer frames than folds before any work
     cache = FrameCache(frames)
@@ -212,10 +344,8 @@ def _run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions
                               "frame_hashes": seen_hashes(was)}
     if hint_record:
         provenance["class_hints"] = hint_record
-    path = save_ranker(model, out, provenance, cfg.to_dict())
-    config_path = Path(out).with_suffix(".json")
-    config_path.write_text(json.dumps({**_changed(cfg), "ranker": str(out)}, indent=2) + "\n", encoding="utf-8")
-    load_ranker(str(path), names)  # what it wrote reads back
+    outputs.write(model, provenance, cfg)
+    load_ranker(str(outputs.weights), names)  # what it wrote reads back
     apart = ("no frame of a held-out block's drives on the training side" if whole_drives
              else "no neighbouring frames of one drive on both sides")
     head = (f"{len(frames)} frames, {provenance['objects']} objects; {folds} folds of blocks of frames ({apart}); "
@@ -236,8 +366,8 @@ def _run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions
         note += _seen_note(f"the model fine-tuned, {opts.init},", load_ranker(opts.init), frames,
                            provenance["frames_digest"], f"the {fitted} row")
     text = "\n".join([head] + table + note + hint_lines
-                     + [f"wrote {path} and {config_path} (reeb propose --config {config_path})"])
-    return {"provenance": provenance, "text": text, "weights": str(path), "config": str(config_path)}
+                     + [outputs.hint()])
+    return {"provenance": provenance, "text": text, "weights": str(outputs.weights), "config": str(outputs.config)}
 
 
 def _seen_note(who: str, model: BoxRanker, frames: F.FitFrames, digest: str, row: str) -> list[str]:

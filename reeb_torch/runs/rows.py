@@ -151,12 +151,16 @@ def result_row(path: str, width: int, height: int, boxes: torch.Tensor, scores: 
                config: str, decimals: int = 2, labels: Sequence[str] | None = None) -> dict:
     """The output row of one processed image (boxes rounded to ``decimals`` pixels, scores
     to 6 significant digits, as Python's ``round`` and ``.6g`` format give them; ``labels``:
-    the class hint of each box, or None for none). Raises ValueError when ``labels`` is not
-    one per box."""
+    the class hint of each box, or None for none); an :func:`error_row` where a box or a
+    score is not finite. Raises ValueError when ``labels`` is not one per box."""
     if labels is not None and len(labels) != len(boxes):
         raise ValueError(f"result_row: {len(labels)} labels for {len(boxes)} boxes (one per box)")
     b = boxes.detach().to("cpu", torch.float64).numpy()
     s = scores.detach().to("cpu", torch.float64).numpy()
+    bad = int((~np.isfinite(s)).sum() + (~np.isfinite(b)).reshape(-1, 4).any(axis=1).sum())
+    if bad:  # never a bare NaN in a row (JSON has none): the image is an error
+        return error_row(path, f"{text_path(path)}: {bad} boxes or scores are not finite numbers (NaN or "
+                         "infinity; the ranker's weights may be damaged)", config, (width, height))
     return {
         "format_version": FORMAT_VERSION,
         "image": text_path(path),
