@@ -1,14 +1,16 @@
-"""Image decoding: any common image file to an RGB ``uint8`` tensor, or a clear error."""
+"""Image decoding: any common image file to an RGB ``uint8`` tensor, or a clear error; and
+writing a file so that a failed write never destroys the previous one."""
 
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
-__all__ = ["ImageReadError", "read_image", "IMAGE_EXTENSIONS"]
+__all__ = ["ImageReadError", "read_image", "IMAGE_EXTENSIONS", "replace_file"]
 
 #: The file extensions a folder scan picks up: exactly the formats :func:`read_image` decodes
 #: (OpenCV's readers), so that a file named on the command line and one found in a folder
@@ -101,3 +103,29 @@ def read_image(path: str | os.PathLike) -> torch.Tensor:
         raise ImageReadError(f"{p}: corrupt or truncated {kind} file (cannot decode it)")
     rgb = to_rgb8(array, str(p))
     return torch.from_numpy(rgb).permute(2, 0, 1).contiguous()
+
+
+def replace_file(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary file beside it (hidden, ``.<name>.*.tmp``),
+    flushed to disk and renamed into place: ``path`` holds its old bytes or the new ones, never
+    a part. The file gets the umask's permissions; missing folders are made.
+
+    Raises:
+        OSError: it cannot be written (the temporary file is removed; ``path`` is as it was).
+    """
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name[:200]}.", suffix=".tmp", dir=out.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)  # as Python's open would make it (mkstemp's is 0600)
+        os.replace(tmp, out)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return out

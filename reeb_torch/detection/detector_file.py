@@ -31,6 +31,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..io import replace_file
+
 __all__ = ["FORMAT", "VERSION", "DetectorFileError", "write_detector_file", "read_detector_file", "trained_keys",
            "check_tensors"]
 
@@ -56,15 +58,7 @@ def write_detector_file(path: str | os.PathLike, tensors: Mapping[str, Tensor], 
     info = {"version": VERSION, **meta}
     data = save({k: v.detach().to("cpu", torch.float32).contiguous() for k, v in sorted(tensors.items())},
                 metadata={FORMAT: json.dumps(info, sort_keys=True, default=list)})
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_bytes(data)
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return out
+    return replace_file(path, data)
 
 
 def _first_line(e: BaseException) -> str:

@@ -22,6 +22,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..io import replace_file
+
 __all__ = ["KITTI_CLASSES", "NEIGHBOURS", "load_frames", "mirrored", "result_lines", "write_results", "write_text"]
 
 KITTI_CLASSES = ("Car", "Pedestrian", "Cyclist")
@@ -98,14 +100,7 @@ def result_lines(boxes: Tensor, labels: Tensor, scores: Tensor, categories: Sequ
 
 def write_text(path: str | os.PathLike, text: str) -> Path:
     """Write ``text`` to ``path`` atomically: a temporary file beside it, then renamed."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    return replace_file(path, text.encode("utf-8"))
 
 
 def write_results(path: str | os.PathLike, detection: dict[str, Tensor], categories: Sequence[str]) -> Path:

@@ -30,7 +30,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import tempfile
 import threading
 from importlib import resources
 from pathlib import Path
@@ -39,10 +38,11 @@ import torch
 from torch import Tensor
 
 from .features import FEATURES_VERSION, cheap_count
+from ..io import replace_file
 from .model import BoxRanker
 
 __all__ = ["SHIPPED", "LIMITS", "RankerWeightsError", "load_ranker", "save_ranker", "resolve_ranker", "shipped_path",
-           "ranker_bytes", "replace_file", "frame_hash", "hash_distance", "seen_hashes", "fitted_frames", "SAME_IMAGE_BITS"]
+           "ranker_bytes", "frame_hash", "hash_distance", "seen_hashes", "fitted_frames", "SAME_IMAGE_BITS"]
 
 SHIPPED: dict[str, str] = {
     "kitti": "kitti.safetensors",
@@ -316,32 +316,6 @@ def save_ranker(model: BoxRanker, path: str | os.PathLike, provenance: dict | No
         OSError: the file cannot be written; ``path`` is left as it was.
     """
     return replace_file(path, ranker_bytes(model, provenance, config))
-
-
-def replace_file(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file beside it (hidden, ``.<name>.*.tmp``),
-    flushed to disk and renamed into place: ``path`` holds its old bytes or the new ones, never
-    a part. The file gets the umask's permissions; missing folders are made.
-
-    Raises:
-        OSError: it cannot be written (the temporary file is removed; ``path`` is as it was).
-    """
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name[:200]}.", suffix=".tmp", dir=out.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)  # as Python's open would make it (mkstemp's is 0600)
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return out
 
 
 _HASH_SIDE = 16

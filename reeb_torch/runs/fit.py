@@ -210,7 +210,7 @@ class FitOutputs:
         :class:`~reeb_torch.runs.common.Failure` (exit code 1) when one cannot be written (the
         files keep what they held) or the weights are not finite (nothing is written)."""
         from ..ranker import SHIPPED, RankerWeightsError, save_ranker
-        from ..ranker.weights import replace_file
+        from ..io import replace_file
         from .common import Failure
 
         name = self.weights.name

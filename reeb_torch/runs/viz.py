@@ -28,6 +28,8 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
+from ..io import replace_file
+
 __all__ = ["rank_colors", "draw_proposals", "crop_sheet", "save_png", "inspection_figure", "save_figure",
            "gt_pairs"]
 
@@ -211,18 +213,8 @@ def save_png(path: str | os.PathLike, rgb: np.ndarray) -> Path:
     ok, data = cv2.imencode(".png", np.ascontiguousarray(rgb[:, :, ::-1]))
     if not ok:  # pragma: no cover - encoding a uint8 array does not fail
         raise OSError(f"{p}: PNG encoding failed")
-    _atomic_bytes(p, data.tobytes())
+    replace_file(p, data.tobytes())
     return p
-
-
-def _atomic_bytes(p: Path, data: bytes) -> None:
-    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_bytes(data)
-        os.replace(tmp, p)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 # -- the explanatory figure of `reeb show` -----------------------------------------------
@@ -495,5 +487,5 @@ def save_figure(fig, path: str | os.PathLike, dpi: int = 100) -> Path:
         fig.savefig(buf, format="png", dpi=dpi, facecolor=fig.get_facecolor())
     finally:
         plt.close(fig)
-    _atomic_bytes(p, buf.getvalue())
+    replace_file(p, buf.getvalue())
     return p
