@@ -142,17 +142,6 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "location_fit=height": (TF.replace(location_fit="height"), "#11"),
     "previous default (height fit, 6000)": (TF.replace(location_fit="height", candidates_per_region=6000), "prev"),
     "region_quota=on": (TF.replace(region_quota=True), "eq. 9"),
-    "rescore=affinity (EB w_n)": (TF.replace(rescore="affinity"), "#19"),
-    "rescore=affinity, persons": (TF.replace(rescore="affinity", rescore_scope="persons"), "#19"),
-    "rescore=density": (TF.replace(rescore="density"), "#19"),
-    "rescore=density, persons": (TF.replace(rescore="density", rescore_scope="persons"), "#19"),
-    "rescore=contrast": (TF.replace(rescore="contrast"), "#19"),
-    "rescore=contrast, persons": (TF.replace(rescore="contrast", rescore_scope="persons"), "#19"),
-    "rescore=orientation": (TF.replace(rescore="orientation"), "#19"),
-    "rescore=orientation, persons": (TF.replace(rescore="orientation", rescore_scope="persons"), "#19"),
-    "rescore=orientation, persons <= 2.3 m": (TF.replace(rescore="orientation", rescore_scope="persons",
-                                                         rescore_max_height_m=2.3), "#19"),
-    "rescore=density, power 0 (cut only)": (TF.replace(rescore="density", rescore_power=0.0), "#19"),
 }
 
 

@@ -25,8 +25,6 @@ EntropyForm = Literal["printed", "abs-diff"]
 WindowGeometry = Literal["camera", "grid"]
 ShadowScore = Literal["underneath", "none"]
 VegetationScore = Literal["green", "none"]
-Rescore = Literal["none", "affinity", "density", "contrast", "orientation"]
-RescoreScope = Literal["all", "persons"]
 if typing.TYPE_CHECKING:  # what a caller may give: shares in the head's order, or by class name
     ClassQuota = tuple[tuple[str, float], ...] | tuple[float, ...] | typing.Mapping[str, float]
 else:  # what the field holds, and what the checks see (a mapping is made pairs first)
@@ -198,12 +196,8 @@ _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
     (("class_heights_m", "object_templates", "location_fit"),
      lambda c: c.location_fit != "shape" or len(c.object_templates) == len(c.class_heights_m),
      "of the same length when location_fit='shape' (one template per class, in the same order), or location_fit='height'"),
-    (("rescore", "refine"), lambda c: c.rescore == "none" or not c.refine,
-     "rescore='none' when refine is on (the refinement re-scores the boxes with V alone), or refine=off"),
-    (("rescore", "grouping"), lambda c: c.rescore not in ("affinity", "orientation") or c.grouping == "connected",
-     "grouping='connected' with rescore='affinity' or 'orientation' (they read connected groups)"),
-    (("rescore", "refine", "ranker"), lambda c: c.ranker == "none" or (c.rescore == "none" and not c.refine),
-     "rescore='none' and refine=off when a ranker is set (the ranker orders the windows themselves), or ranker='none'"),
+    (("refine", "ranker"), lambda c: c.ranker == "none" or not c.refine,
+     "refine=off when a ranker is set (the ranker orders the windows themselves), or ranker='none'"),
     (("class_quota", "ranker"), lambda c: not c.class_quota or c.ranker != "none" or _by_name(c.class_quota),
      "a ranker (its class head hints each box's class) with class_quota given in the ranker's class order, "
      "class_quota by class name ({'Pedestrian': 0.2}: ignored without a class head), or class_quota=()"),
@@ -414,25 +408,6 @@ class ReebConfig:
     refine_min_aspect: float = _knob(0.0, "[0, 100]")
     """With ``refine``: only candidates at least this many times as wide as tall move (0:
     all); narrow, person-shaped boxes keep their grid box."""
-    rescore: Rescore = "none"
-    """A second scoring pass after the region cut (:mod:`reeb_torch.stages.rescoring`; not in
-    the paper): each image's best ``rescore_top`` candidates ranked on V·f^p, f a cue over its
-    mean on them: ``affinity`` (Edge Boxes' affinity-weighted w_n), ``density`` (mean edge
-    magnitude), ``contrast`` (that over the ring around the box) or ``orientation`` (the
-    spread of the edge orientations). ``none``: no second pass."""
-    rescore_top: int = _knob(20000, ">= 1")
-    """With ``rescore``: how many of each image's best candidates (by V) are re-scored and
-    ranked; the others are dropped before NMS."""
-    rescore_power: float = _knob(1.0, "[0, 16]")
-    """With ``rescore``: the exponent p of the cue (0: the pass only cuts to ``rescore_top``)."""
-    rescore_scope: RescoreScope = "all"
-    """With ``rescore``: ``all`` windows get the cue, or only ``persons``: windows narrower than
-    ``rescore_thin`` times their height (the pedestrian and cyclist shapes); the others keep V."""
-    rescore_thin: float = _knob(0.8, "(0, 100]")
-    """With ``rescore_scope='persons'``: the width/height ratio below which a window is person-shaped."""
-    rescore_max_height_m: float | None = _knob(None, "None or > 0")
-    """With ``rescore_scope='persons'``: also the window's real height on the flat ground, in
-    metres, must be at most this (the backs of trucks are not person-shaped). ``None``: shape alone."""
     center_fraction: float = _knob(0.5, "(0, 1)")
     """Side of the centre region c relative to the box (eq. 1: half)."""
 
@@ -669,8 +644,6 @@ PRESETS: dict[str, ReebConfig] = {
     "training-free-no-regions": ReebConfig().training_free().replace(use_regions=False),
     "paper": ReebConfig.paper(),
     "paper-no-regions": ReebConfig.paper(use_regions=False),
-    "persons": ReebConfig().training_free().replace(rescore="orientation", rescore_scope="persons",
-                                                    rescore_max_height_m=2.3),
 }
 
 
@@ -684,9 +657,6 @@ def get_preset(name: str) -> ReebConfig:
       the learned ranking reads the regions).
     * ``paper``, ``paper-no-regions``: the printed text wherever it can run
       (:meth:`ReebConfig.paper`), with and without the regions.
-    * ``persons``: opt-in, the training-free setting with a second scoring pass that ranks
-      person-shaped windows (no taller than 2.3 m on the road) by the spread of their edge
-      orientations (``rescore='orientation'``, ``rescore_scope='persons'``); it is slower.
 
     Raises:
         ValueError: naming the unknown preset and the known ones.

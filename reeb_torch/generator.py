@@ -205,7 +205,7 @@ class ProposalGenerator(nn.Module):
         their cache: :func:`warmup`) before its own work; not in :attr:`stage_times`."""
         self.stage_times: dict[str, float] | None = None
         """Set to ``{}`` to accumulate wall seconds per stage (edges, groups, road,
-        regions, scoring, rescore, ranker, refine, nms) over calls; ``None`` (default) records
+        regions, scoring, ranker, refine, nms) over calls; ``None`` (default) records
         nothing. The learned ranking's parts are also recorded on their own, within ``ranker``:
         ``ranker.prefilter``, ``ranker.features``, ``ranker.model`` and ``ranker.class_head``.
         Where the two halves of a CPU batch run side by side, each records half its time."""
@@ -429,10 +429,6 @@ class ProposalGenerator(nn.Module):
         if self._traces is not None:  # copies: the next call reuses this memory
             trace = Trace(scores.clone(), grid, chosen.clone(), share.clone())
             self._traces.append(trace)
-        # a second scoring pass over the best candidates (not in the paper; ``ReebConfig.rescore``)
-        if cfg.rescore != "none":
-            with self._stage("rescore", dev):
-                scores, chosen = sel.rescore(maps, grid, scores, chosen)
         # the learned ranking of the candidates (not in the paper; ``ReebConfig.ranker``)
         v_scores = scores
         ranked: list[tuple[Tensor, Tensor, Tensor]] = []  # the ranked candidates' features, for the hints and quota

@@ -34,8 +34,7 @@ def test_paper_preset_follows_the_printed_text():
 
 
 def test_presets_and_lookup():
-    assert set(PRESETS) == {"default", "training-free", "training-free-no-regions", "paper", "paper-no-regions",
-                            "persons"}
+    assert set(PRESETS) == {"default", "training-free", "training-free-no-regions", "paper", "paper-no-regions"}
     # the class quota is a field a user sets: the default but for the output's shares per hinted class
     assert ReebConfig(class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05}) == ReebConfig().replace(
         class_quota=(("Pedestrian", 0.3), ("Cyclist", 0.1), ("Truck", 0.05)))
@@ -45,11 +44,6 @@ def test_presets_and_lookup():
     assert get_preset("paper").ranker == "none" == get_preset("paper-no-regions").ranker  # the printed text
     assert get_preset("training-free-no-regions") == get_preset("training-free").replace(use_regions=False)
     assert get_preset("paper-no-regions") == get_preset("paper").replace(use_regions=False)
-    # the opt-in second scoring pass: training-free but for the rescore fields
-    persons = get_preset("persons")
-    assert (persons.rescore, persons.rescore_scope, persons.rescore_max_height_m) == ("orientation", "persons", 2.3)
-    assert persons.replace(rescore="none", rescore_scope="all", rescore_max_height_m=None) == \
-        get_preset("training-free")
     assert not get_preset("paper-no-regions").use_regions
     assert not ReebConfig().refine
     # an unknown name (a removed preset or a former alias too) is one line naming the valid ones

@@ -213,7 +213,7 @@ def warmup(preset):
         cfg = get_preset(preset)
     except (KeyError, ValueError) as e:
         raise UsageProblem(str(e))
-    seconds = _warmup(cfg, cfg.unranked().replace(rescore="none", refine=True))
+    seconds = _warmup(cfg, cfg.unranked().replace(refine=True))
     where = cache_dir()
     click.echo(f"kernels ready in {seconds:.1f} s"
                + (f" (cached in {where})" if where else f" (not cached: {cache_note()})"), err=True)

@@ -11,7 +11,7 @@ tensor (any device, the reference) path of each, and keeps what is worth keeping
   batch, so the grid scorer, the box scorer and the refinement read one set;
 * :class:`WindowSelection`: one config's window grid, scoring passes, selection, refinement
   and suppression, one part a module — :mod:`.score` (the grid, V), :mod:`.cut` (eq. 9),
-  :mod:`.rescore`, :mod:`.refine`, :mod:`.suppress` (eq. 13) — with what depends only on
+  :mod:`.refine`, :mod:`.suppress` (eq. 13) — with what depends only on
   the image size (the score plan, the location and normaliser tables, the windows' boxes
   in input pixels) cached per window grid (:mod:`.cache`).
 
@@ -38,18 +38,17 @@ from .cache import PLAN_GRIDS, GridCache
 from .cut import RegionCut
 from .maps import ScoreMaps
 from .refine import BoxScoreFn, Refinement
-from .rescore import Rescoring
 from .score import WindowScoring
 from .suppress import Suppression
 
 __all__ = ["ScoreMaps", "WindowSelection", "GridCache", "PLAN_GRIDS", "BoxScoreFn"]
 
 
-class WindowSelection(Refinement, RegionCut, Rescoring, Suppression):
+class WindowSelection(Refinement, RegionCut, Suppression):
     """One config's windows, scored, cut per region, refined and suppressed.
 
     :class:`~reeb_torch.ProposalGenerator` calls, in Table 1's order, :meth:`window_grid`,
-    :meth:`score`, :meth:`select`, :meth:`rescore`, :meth:`refine` (with ``refine``) and
+    :meth:`score`, :meth:`select`, :meth:`refine` (with ``refine``) and
     :meth:`suppress`. A subclass may change a step to try another selection (the generator's
     ``selection`` attribute takes it; ``benchmarks/selection_variants.py`` changes
     :meth:`region_cut`).

@@ -216,27 +216,8 @@ def _union_pass(edges: np.ndarray, cell: int) -> np.ndarray:  # pragma: no cover
 
 
 @numba.njit(cache=True, nogil=True)
-def pixel_labels(edges: np.ndarray, cell: int):  # pragma: no cover - compiled
-    """The components of :func:`_union_pass`, numbered in the order of their roots: the
-    label of every pixel, ``int64 [B·H·W]`` (−1: no edge), and the number of components.
-    Used by the rescoring cues (eq. 1's groups: :func:`_connected_groups_kernel`)."""
-    n = edges.size
-    parent = _union_pass(edges, cell)
-    label = np.full(n, -1, np.int64)
-    count = 0
-    for p in range(n):
-        if parent[p] >= 0 and _find(parent, p) == p:
-            label[p] = count
-            count += 1
-    for p in range(n):
-        if parent[p] >= 0:
-            label[p] = label[_find(parent, p)]  # the root (<= p) is numbered above
-    return label, count
-
-
-@numba.njit(cache=True, nogil=True)
 def _connected_groups_kernel(edges: np.ndarray, cell: int):  # pragma: no cover - compiled
-    """The groups of :func:`pixel_labels`, in the order of their roots, with their
+    """The components of :func:`_union_pass`, in the order of their roots, with their
     statistics as :func:`_stats` computes them (float64 mass, inclusive bounds)."""
     b, h, w = edges.shape
     n = b * h * w
