@@ -23,7 +23,7 @@ row gives its recall's 95 % frame-bootstrap interval instead
 ``--variant "FIELD=VALUE;FIELD=VALUE"`` (repeatable; fields and values as ``reeb propose
 --set``) adds a row for any setting of the default: with it, only the default and these
 rows run (plus the named rows ``--only`` picks). To check a choice on frames of your own,
-e.g. ``--data HELD_OUT --variant refine=on --variant blur_sigma=1.5``.
+e.g. ``--data HELD_OUT --variant thin_edges=off --variant blur_sigma=1.5``.
 
 Rerun: ``python benchmarks/ablations.py [--data DIR ...] [--limit N] [--frames A:B ...]
 [--only NAME ...] [--variant SETTINGS ...]``
@@ -99,10 +99,6 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "vegetation_power=4": (TF.replace(vegetation_power=4), "vegetation"),
     "vegetation_power=6": (TF.replace(vegetation_power=6), "vegetation"),
     "vegetation=none, nms_iou=0.7": (TF.replace(vegetation_score="none", nms_iou=0.7), "vegetation, #14"),
-    "refine=on": (TF.replace(refine=True), "#1"),
-    "refine=on, min aspect 0.6": (TF.replace(refine=True, refine_min_aspect=0.6), "#1"),
-    "straddle_weight=0.5": (TF.replace(straddle_weight=0.5), "#1"),
-    "straddle_weight=1": (TF.replace(straddle_weight=1.0), "#1"),
     "road_score=stand": (TF.replace(road_score="stand"), "#10"),
     "kappa=1.5 (Edge Boxes)": (TF.replace(kappa=1.5), "#1"),
     "nms_iou=0.7 (eq. 13 as printed)": (TF.replace(nms_iou=0.7), "#14"),

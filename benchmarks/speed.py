@@ -52,7 +52,6 @@ STAGES = [
     ("  of it: the features of the kept candidates", "ranker.features"),
     ("  of it: the MLP", "ranker.model"),
     ("  of it: the class head (hints; class_quota)", "ranker.class_head"),
-    ("Edge Boxes' refinement (refine=on only)", "refine"),
     ("NMS (eq. 13)", "nms"),
 ]
 

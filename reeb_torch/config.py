@@ -196,8 +196,6 @@ _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
     (("class_heights_m", "object_templates", "location_fit"),
      lambda c: c.location_fit != "shape" or len(c.object_templates) == len(c.class_heights_m),
      "of the same length when location_fit='shape' (one template per class, in the same order), or location_fit='height'"),
-    (("refine", "ranker"), lambda c: c.ranker == "none" or not c.refine,
-     "refine=off when a ranker is set (the ranker orders the windows themselves), or ranker='none'"),
     (("class_quota", "ranker"), lambda c: not c.class_quota or c.ranker != "none" or _by_name(c.class_quota),
      "a ranker (its class head hints each box's class) with class_quota given in the ranker's class order, "
      "class_quota by class name ({'Pedestrian': 0.2}: ignored without a class head), or class_quota=()"),
@@ -395,19 +393,6 @@ class ReebConfig:
     """Exponent of the area normalisation (no value printed; 0.75 ≈ Edge Boxes' κ/2)."""
     kappa: float = _knob(1.6, "(0, 8]")
     """Exponent of the perimeter normalisation (Edge Boxes' value)."""
-    straddle_weight: float = _knob(0.0, ">= 0", front=True)
-    """Weight λ of a straddling term in eq. 1: S = (Σ wₙmₙ − Σ_c m_c − λ·Σ_cut m) / norm,
-    Σ_cut m the edge mass crossing the box's sides (within ``straddle_band`` working pixels
-    of each side). 0 = off (as printed)."""
-    straddle_band: int = _knob(1, "[0, 64]")
-    """Half-width, in working pixels, of the band around each box side for ``straddle_weight``."""
-    refine: bool = False
-    """Edge Boxes' refinement: before NMS, move each side of every candidate by halving
-    steps while its score V improves (:mod:`reeb_torch.stages.refinement`; compiled on the CPU
-    unless the straddling or a road term is on). Not in the paper."""
-    refine_min_aspect: float = _knob(0.0, "[0, 100]")
-    """With ``refine``: only candidates at least this many times as wide as tall move (0:
-    all); narrow, person-shaped boxes keep their grid box."""
     center_fraction: float = _knob(0.5, "(0, 1)")
     """Side of the centre region c relative to the box (eq. 1: half)."""
 

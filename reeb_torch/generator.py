@@ -2,8 +2,8 @@
 
 ``ProposalGenerator._propose_batch`` reads top to bottom as the paper's pseudo-code, one
 call per stage: edge map, edge groups, road mask, regions with their entropy and budget,
-dense windows, scores, the per-region cut, (optionally) Edge Boxes' refinement, NMS. The
-stages are functions in :mod:`reeb_torch.stages`; how windows are scored, cut, refined and
+dense windows, scores, the per-region cut, NMS. The
+stages are functions in :mod:`reeb_torch.stages`; how windows are scored, cut and
 suppressed (compiled or tensor paths, the batch's tables) is :mod:`reeb_torch.selection`;
 the learned ranking of the candidates (not in the paper) is :mod:`reeb_torch.ranker`.
 A batch of equal-sized images is computed as one batch; a list of images of different
@@ -106,14 +106,12 @@ class Working:
         colour: ``float32 (B, 3, h, w)`` colour images, only where a stage reads them (the road
             mask, RGB edges), else None.
         green: ``int32 (B, h + 1, w + 1)`` green-pixel counts, for the vegetation term, or None.
-        crossing: the edges crossing box sides, for the straddling term, or None.
     """
 
     gray: Tensor
     edges: Tensor
     colour: Tensor | None
     green: Tensor | None
-    crossing: tuple[Tensor, Tensor] | None
 
 
 class FrontEnd(NamedTuple):
@@ -190,7 +188,7 @@ class ProposalGenerator(nn.Module):
             raise TypeError(f"config must be a ReebConfig, got {type(cfg).__name__}")
         self.config = cfg.replace(**overrides) if overrides else cfg
         self.selection = WindowSelection(self.config)
-        """The :class:`~reeb_torch.selection.WindowSelection` that scores, cuts, refines and
+        """The :class:`~reeb_torch.selection.WindowSelection` that scores, cuts and
         suppresses the windows; a subclass put here tries another selection
         (``benchmarks/selection_variants.py``)."""
         self.ranker = LearnedRanking(self.config) if self.config.ranker != "none" else None
@@ -205,7 +203,7 @@ class ProposalGenerator(nn.Module):
         their cache: :func:`warmup`) before its own work; not in :attr:`stage_times`."""
         self.stage_times: dict[str, float] | None = None
         """Set to ``{}`` to accumulate wall seconds per stage (edges, groups, road,
-        regions, scoring, ranker, refine, nms) over calls; ``None`` (default) records
+        regions, scoring, ranker, nms) over calls; ``None`` (default) records
         nothing. The learned ranking's parts are also recorded on their own, within ``ranker``:
         ``ranker.prefilter``, ``ranker.features``, ``ranker.model`` and ``ranker.class_head``.
         Where the two halves of a CPU batch run side by side, each records half its time."""
@@ -349,7 +347,7 @@ class ProposalGenerator(nn.Module):
     @torch.no_grad()
     def back_end(self, images: list[Tensor], front: FrontEnd) -> list[dict[str, Tensor]]:
         """The rest of the algorithm on :meth:`front_end`'s ``front`` of ``images``: regions,
-        windows, scores, the region cut, the learned ranking, refinement and NMS; one output
+        windows, scores, the region cut, the learned ranking and NMS; one output
         dict per image, as :meth:`forward` gives (the same boxes, bit for bit)."""
         return self._back_end(images, front)[0]
 
@@ -399,7 +397,7 @@ class ProposalGenerator(nn.Module):
                 road = _road.road_mask(work.colour, cfg.road_samples, cfg.road_band, cfg.road_tolerance,
                                        cfg.road_combine, cfg.seed)
         maps = ScoreMaps(work.edges, groups, (images[0].shape[-2], images[0].shape[-1]), road=road, green=work.green,
-                         crossing=work.crossing, grey=work.gray[:, 0])
+                         grey=work.gray[:, 0])
         return FrontEnd(work, maps)
 
     def _back_end(self, images: list[Tensor], front: FrontEnd,
@@ -437,15 +435,10 @@ class ProposalGenerator(nn.Module):
             scores, chosen, class_of, ranked_logits = self._rank(maps, grid, scores, chosen, share, entropy, ranked)
             if trace is not None:
                 trace.ranked, trace.kept = scores.clone(), chosen.clone()
-        # Edge Boxes' refinement of the candidates (not in the paper; ``ReebConfig.refine``)
-        refined = None
-        if cfg.refine:
-            with self._stage("refine", dev):
-                refined = sel.refine(maps, grid, chosen, scores)
         # Sec. 3.8: Final_Proposals = NMS(Sorted_Proposals) (eq. 13)
         windows: list[Tensor] | None = [] if self.classes is not None else None
         with self._stage("nms", dev):
-            results = sel.suppress(maps, grid, chosen, scores, share, refined, windows, class_of,
+            results = sel.suppress(maps, grid, chosen, scores, share, windows, class_of,
                                    None if self.ranker is None else self.ranker.class_share)
         if windows is not None:  # which class each proposal looks like (the ranking model's class head)
             assert self.ranker is not None  # classes come from its model
@@ -500,7 +493,7 @@ class ProposalGenerator(nn.Module):
                   check_at: list[int | None] | None = None) -> Working:
         """Sec. 3.4 on the batch: the working-resolution grey image (the compiled front end
         where it applies, else resize and grey as tensor ops), the green-pixel counts, the
-        edge map and, for the straddling term, the edges' crossing maps.
+        edge map.
 
         ``check_at[j]`` not ``None``: image ``j`` (image ``check_at[j]`` of the caller's
         batch, as the error names it) is float32 whose values are not yet checked; the
@@ -526,14 +519,8 @@ class ProposalGenerator(nn.Module):
             green = _scoring.count_integral(_edges.green_mask(colour)) if want_green else None
         src = gray if cfg.edge_channels == "gray" else colour
         assert src is not None  # RGB edges take the colour images made above (never the compiled grey front end)
-        crossing = None
-        if cfg.straddle_weight > 0:  # edge orientations for the straddling term
-            edges, gx, gy = _edges.edge_map(src, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated,
-                                            cfg.thin_edges, return_gradients=True)
-            crossing = _edges.crossing_maps(edges, gx, gy)
-        else:
-            edges = _edges.edge_map(src, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges)
-        return Working(gray, edges, colour, green, crossing)
+        edges = _edges.edge_map(src, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges)
+        return Working(gray, edges, colour, green)
 
 
 def _kept_maps(maps: ScoreMaps, bounds: Tensor, entropy: Tensor, share: Tensor, num_windows: int) -> dict:
@@ -569,7 +556,7 @@ def _kernel_key(config: ReebConfig) -> tuple:
     sweep over settings does not pay it per trial."""
     key = [(f.name, getattr(config, f.name)) for f in dataclasses.fields(config)
            if isinstance(getattr(config, f.name), (bool, str))]
-    key += [("straddle", config.straddle_weight > 0), ("sqrt_shadow", config.shadow_power == 0.5),
+    key += [("sqrt_shadow", config.shadow_power == 0.5),
             ("front_end", 0 < config.scale < 1), ("ground", config.ground_band is None)]
     return tuple(key)
 

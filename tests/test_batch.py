@@ -124,7 +124,7 @@ def test_set_parses_boolean_words(word, value):
     from reeb_torch.runs.common import build_config
 
     assert build_config("default", None, [f"use_regions={word}"], None).use_regions is value
-    assert build_config("training-free", None, [f"refine={word}"], None).refine is value
+    assert build_config("training-free", None, [f"thin_edges={word}"], None).thin_edges is value
 
 
 @pytest.mark.parametrize("word", ["maybe", "2", "", "none", "[]", "offf"])

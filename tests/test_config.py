@@ -45,7 +45,6 @@ def test_presets_and_lookup():
     assert get_preset("training-free-no-regions") == get_preset("training-free").replace(use_regions=False)
     assert get_preset("paper-no-regions") == get_preset("paper").replace(use_regions=False)
     assert not get_preset("paper-no-regions").use_regions
-    assert not ReebConfig().refine
     # an unknown name (a removed preset or a former alias too) is one line naming the valid ones
     for name in ("nope", "refined", "class-quota", "default-no-regions"):
         with pytest.raises(ValueError) as info:
@@ -60,7 +59,7 @@ def test_front_end_fields_come_from_the_field_declarations():
 
     assert set(_config.FRONT_END_FIELDS) == set(generator.FRONT_END_FIELDS) == {
         "scale", "blur_sigma", "edge_threshold", "edge_channels", "thin_edges", "remove_isolated", "grouping",
-        "group_cell", "straddle_weight", "vegetation_score", "road_score", "road_samples", "road_band",
+        "group_cell", "vegetation_score", "road_score", "road_samples", "road_band",
         "road_tolerance", "road_combine", "seed", "shadow_score"}
     marked = [f.name for f in dataclasses.fields(ReebConfig) if f.metadata.get("stage") == "front"]
     assert list(_config.FRONT_END_FIELDS) == marked

@@ -198,10 +198,10 @@ def test_stage_times_are_recorded(crop):
     assert all(v >= 0 for v in gen.stage_times.values())
     # the learned ranking's parts lie within its stage
     assert sum(gen.stage_times[k] for k in parts) <= gen.stage_times["ranker"]
-    gen = ProposalGenerator(**SMALL, ranker="none", road_score="reward", refine=True)
+    gen = ProposalGenerator(**SMALL, ranker="none", road_score="reward")
     gen.stage_times = {}
     gen([crop])
-    assert set(gen.stage_times) == {"edges", "groups", "road", "regions", "scoring", "refine", "nms"}
+    assert set(gen.stage_times) == {"edges", "groups", "road", "regions", "scoring", "nms"}
 
 
 def test_batch_equals_single_on_odd_crops(sample_image):

@@ -325,8 +325,6 @@ def test_ranker_v_share_keeps_each_images_best_by_v_beside_the_prefilters(sample
 def test_bad_ranker_settings():
     with pytest.raises(ValueError, match="ReebConfig.ranker must be"):
         ReebConfig(ranker="")
-    with pytest.raises(ValueError, match="refine=off when a ranker is set"):
-        ReebConfig(refine=True)
     with pytest.raises(ValueError, match="ranker_keep"):
         ReebConfig(ranker_keep=0)
     for bad in (-0.1, 1.5):

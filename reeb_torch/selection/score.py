@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..stages import _scratch
-from ..stages import refinement as _refinement
+from ..stages import enclosed as _enclosed
 from ..stages import scoring as _scoring
 from ..stages import windows as _windows
 from ..stages.groups import EdgeGroups
@@ -29,7 +29,7 @@ def _tables_exact(groups: EdgeGroups, grid: _windows.WindowGrid) -> bool:
 
 class WindowScoring(GridCache):
     """The window grid of a batch's image size and V of its windows; the location score L
-    (eq. 11 and its variants) that the refinement's box scorer reads too."""
+    (eq. 11 and its variants)."""
 
     # -- windows (Sec. 3.6) -----------------------------------------------------------------
     def window_grid(self, maps: ScoreMaps, bounds: Tensor) -> _windows.WindowGrid:
@@ -57,8 +57,7 @@ class WindowScoring(GridCache):
         """V (eq. 12) of every window, ``float32 [B, N]``; ``-inf`` where S < min_edge_score
         (or, with ``local_max``, where a neighbouring position of the same size scores higher).
 
-        On the CPU, when no term needs per-window maps (no road fraction, straddling or
-        local maxima) and every window is wider and taller than every edge group, one
+        On the CPU, when no term needs per-window maps (no road fraction or local maxima) and every window is wider and taller than every edge group, one
         compiled pass (:func:`reeb_torch.stages.scoring.score_grid_cpu`) scores all windows;
         otherwise one batch of tensor ops per window size (:meth:`score_torch`). Both give
         the same numbers."""
@@ -74,7 +73,7 @@ class WindowScoring(GridCache):
         """:meth:`compiled_scoring_applies` but for the window grid's part: whether the
         scores may read ``maps.tables()`` (the generator starts them early then)."""
         cfg = self.config
-        return (maps.edges.device.type == "cpu" and maps.crossing is None and not cfg.local_max
+        return (maps.edges.device.type == "cpu" and not cfg.local_max
                 and cfg.road_score in ("none", "flat"))
 
     def score_compiled(self, maps: ScoreMaps, grid: _windows.WindowGrid) -> Tensor:
@@ -111,9 +110,6 @@ class WindowScoring(GridCache):
         ii_road = maps.integral("road") if maps.road is not None else None  # None: no road term
         ii_road_below = maps.integral_below("road") if cfg.road_score == "stand" else None  # none past the bottom
         loc_cache: dict = {}  # L of a size's rows, shared between sizes with the same _loc_key
-        band = cfg.straddle_band
-        if maps.crossing is not None:  # padded by the band so sides at the image border read zeros
-            ii_cols, ii_rows = maps.crossing_integrals(band)
         unit = _scoring.unit_scale(fx, fy)
         out = torch.full((b, grid.count), -math.inf, dtype=torch.float32, device=edges.device)
         shadow = ii_grey_below = None
@@ -123,11 +119,6 @@ class WindowScoring(GridCache):
         for s, enc, off in zip(grid.sizes, enclosed, grid.offsets):
             dx, dy, cw, ch = _scoring.centre_box(s.w, s.h, cfg.center_fraction)
             centre = _scoring.box_sums(ii_edges, dx, dy, cw, ch, s)
-            if maps.crossing is not None:  # contours cut by the box's sides (straddling edges)
-                r2 = 2 * band
-                cut = (_scoring.box_sums(ii_cols, 0, band, r2, s.h, s) + _scoring.box_sums(ii_cols, s.w, band, r2, s.h, s)
-                       + _scoring.box_sums(ii_rows, band, 0, s.w, r2, s) + _scoring.box_sums(ii_rows, band, s.h, s.w, r2, s))
-                centre = centre + cfg.straddle_weight * cut
             bw, bh = s.w / fx, s.h / fy
             sc = _scoring.edge_score(enc * unit, centre * unit, bw, bh, cfg.score_norm, cfg.kappa, cfg.gamma).float()
             r = (_scoring.box_sums(ii_road, 0, 0, s.w, s.h, s) / (s.w * s.h)).float() if ii_road is not None \
@@ -178,14 +169,14 @@ class WindowScoring(GridCache):
     def enclosed(self, maps: ScoreMaps, grid: _windows.WindowGrid) -> list[Tensor]:
         """Eq. 1's enclosed sums of every window, per size. Groups bounded to tiles smaller
         than every window: the batch's four prefix tables (:meth:`ScoreMaps.tables`), then
-        strided slices per size (:func:`reeb_torch.stages.refinement.enclosed_grid`); otherwise
+        strided slices per size (:func:`reeb_torch.stages.enclosed.enclosed_grid`); otherwise
         one scatter per size (:func:`reeb_torch.stages.scoring.enclosed_sums`). Both are exact
         float64 sums: the same numbers."""
         if not grid.sizes:
             return []
         if _tables_exact(maps.groups, grid):
             tables = maps.tables()
-            return [_refinement.enclosed_grid(tables, s) for s in grid.sizes]
+            return [_enclosed.enclosed_grid(tables, s) for s in grid.sizes]
         return _scoring.enclosed_sums(maps.groups, maps.edges.shape[0], grid.sizes)
 
     def _ground_ratios(self) -> float | tuple[float, ...]:

@@ -19,7 +19,6 @@ class Suppression(GridCache):
     """The final proposals: NMS (eq. 13), the quotas, the boxes in input pixels."""
 
     def suppress(self, maps: ScoreMaps, grid: _windows.WindowGrid, chosen: Tensor, scores: Tensor, share: Tensor,
-                 refined: tuple[list[Tensor], list[Tensor]] | None = None,
                  windows_out: list[Tensor] | None = None,
                  class_of: Tensor | None = None,
                  class_shares: tuple[float, ...] | None = None) -> list[dict[str, Tensor]]:
@@ -30,9 +29,9 @@ class Suppression(GridCache):
         share of ``top_k`` a class, each class's share first): one dict per image, ``boxes``
         ``float32 [N, 4]`` in input pixels and ``scores`` ``float32 [N]``. ``chosen``: ``bool
         [B, N]`` the candidates, ``scores``: ``float32 [B, N]`` theirs, ``share``: ``[B, R]``
-        the regions'. ``refined``: :meth:`~reeb_torch.selection.refine.Refinement.refine`'s
-        boxes and scores of the candidates (else the windows themselves, gathered, sorted and
-        suppressed in one compiled pass on the CPU: :func:`reeb_torch.stages.nms.nms_windows_cpu`).
+        the regions'. On the CPU the windows are gathered, sorted and suppressed in one
+        compiled pass (:func:`reeb_torch.stages.nms.nms_windows_cpu`), elsewhere by
+        :func:`reeb_torch.stages.nms.nms_top_k_many`.
         ``windows_out``, if given, gets each image's ``int64 [N]`` window index of each output row."""
         cfg = self.config
         b, dev = scores.shape[0], scores.device
@@ -44,29 +43,24 @@ class Suppression(GridCache):
         class_share = (torch.tensor(class_shares, device=dev)
                        if class_of is not None and class_shares is not None else None)
         quota = (cfg.region_quota and share.shape[1] > 1) or class_share is not None
-        kept = None
-        if refined is None:  # the windows themselves: gathered, sorted and suppressed compiled
-            ok = (self.grid_cached(("boxes_ok", fx, fy), grid, lambda: boxes_valid(boxes_in))
-                  if dev.type == "cpu" and boxes_in.dtype == torch.float32 else None)
-            groups = need = None  # with a quota: past top_k only until each group has its share of the kept boxes
-            if class_share is not None:
-                assert class_of is not None  # class_share is made only with it
-                groups, need = class_of.long().clamp(min=0), self.quota_counts(class_share)
-            elif quota:  # each image's regions, by its own shares (none where they sum to 0: quota keeps the best)
-                groups = region_of.expand(b, -1)
-                need = torch.stack([self.quota_counts(s, float(s.sum())) if float(s.sum()) > 0
-                                    else torch.zeros(len(s), dtype=torch.long, device=dev) for s in share])
-            kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, cfg.top_k, ok, groups, need)
+        ok = (self.grid_cached(("boxes_ok", fx, fy), grid, lambda: boxes_valid(boxes_in))
+              if dev.type == "cpu" and boxes_in.dtype == torch.float32 else None)
+        groups = need = None  # with a quota: past top_k only until each group has its share of the kept boxes
+        if class_share is not None:
+            assert class_of is not None  # class_share is made only with it
+            groups, need = class_of.long().clamp(min=0), self.quota_counts(class_share)
+        elif quota:  # each image's regions, by its own shares (none where they sum to 0: quota keeps the best)
+            groups = region_of.expand(b, -1)
+            need = torch.stack([self.quota_counts(s, float(s.sum())) if float(s.sum()) > 0
+                                else torch.zeros(len(s), dtype=torch.long, device=dev) for s in share])
+        kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, cfg.top_k, ok, groups, need)
         cands = None
         if kept is not None:
             pairs = [(boxes_in, scores[i]) for i in range(b)]
             windows = kept
         else:
             cands = [torch.nonzero(chosen[i]).squeeze(1) for i in range(b)]
-            if refined is not None:
-                pairs = [(rb / to_input, rs) for rb, rs in zip(*refined)]
-            else:
-                pairs = [(boxes_in[c], scores[i, c]) for i, c in enumerate(cands)]
+            pairs = [(boxes_in[c], scores[i, c]) for i, c in enumerate(cands)]
             kept = nms_top_k_many(pairs, cfg.nms_iou, max(len(p[1]) for p in pairs) if quota else cfg.top_k)
             windows = [c[k] for c, k in zip(cands, kept)]
         results = []

@@ -461,7 +461,7 @@ def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc:
 
     Args:
         ii: ``float64 (B, H + 1, W + 1)`` integral image of the edge map.
-        tables: :class:`reeb_torch.stages.refinement.EnclosedTables` of the groups (every window
+        tables: :class:`reeb_torch.stages.enclosed.EnclosedTables` of the groups (every window
             wider and taller than their ``max_extent``).
         plan: ``int64 [S, 19]``, one row per window size (:data:`PLAN_COLUMNS`).
         denom: ``float64 [S]``, eq. 1's normaliser of each size (input-pixel units).
