@@ -62,11 +62,6 @@ TF = D.training_free()
 P = ReebConfig.paper()
 
 # name -> (config, NOTES item it settles)
-V01 = TF.replace(window_geometry="grid", location_score="ground", ground_log_sigma=0.5, min_window=20,
-                kappa=1.5, candidates_per_region=4000, shadow_score="none", vegetation_score="none",
-                nms_iou=0.7)
-"""The package default of release 0.1 (before the camera windows and the class mixture)."""
-
 VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "default": (D, "package default (learned ranking)"),
     "training-free": (TF, "no learned ranking"),
@@ -76,13 +71,9 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "ranker, nms_iou=0.7": (D.replace(nms_iou=0.7), "ranker"),
     "class-quota": (D.replace(class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05}), "ranker"),
     "paper": (P, "printed text"),
-    "0.1 default (grid windows)": (V01, "0.1"),
     "window_geometry=grid": (TF.replace(window_geometry="grid"), "#13"),
-    "border_windows=off": (TF.replace(border_windows=False), "#13"),
-    "horizon_slack=0.02": (TF.replace(horizon_slack=0.02), "#13"),
     "min_window=12": (TF.replace(min_window=12), "#13"),
     "min_window=20": (TF.replace(min_window=20), "#13"),
-    "location=ground (one ratio, σ .5)": (TF.replace(location_score="ground", ground_log_sigma=0.5), "#11"),
     "location=classes, σ .5": (TF.replace(ground_log_sigma=0.5), "#11"),
     "class_weights=1,1,1,1": (TF.replace(class_weights=(1.0, 1.0, 1.0, 1.0)), "#11"),
     "shadow_score=none (no shadow term)": (TF.replace(shadow_score="none"), "shadow"),
@@ -99,7 +90,6 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "vegetation_power=4": (TF.replace(vegetation_power=4), "vegetation"),
     "vegetation_power=6": (TF.replace(vegetation_power=6), "vegetation"),
     "vegetation=none, nms_iou=0.7": (TF.replace(vegetation_score="none", nms_iou=0.7), "vegetation, #14"),
-    "road_score=stand": (TF.replace(road_score="stand"), "#10"),
     "kappa=1.5 (Edge Boxes)": (TF.replace(kappa=1.5), "#1"),
     "nms_iou=0.7 (eq. 13 as printed)": (TF.replace(nms_iou=0.7), "#14"),
     "nms_iou=0.72": (TF.replace(nms_iou=0.72), "#14"),
@@ -121,13 +111,11 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "entropy_bins=16": (TF.replace(entropy_bins=16), "#9"),
     "road_score=reward": (TF.replace(road_score="reward"), "#10"),
     "road_score=reward, OR": (TF.replace(road_score="reward", road_combine="or"), "#5, #10"),
-    "road_score=penalize": (TF.replace(road_score="penalize"), "#10"),
     "location=paper": (TF.replace(location_score="paper"), "#11"),
     "location=none": (TF.replace(location_score="none"), "#11"),
     "min_edge_score=0.01": (TF.replace(min_edge_score=0.01), "#12"),
     "region_assign=contained": (TF.replace(region_assign="contained"), "#13"),
     "grid, ground_band=off": (TF.replace(window_geometry="grid", ground_band=None), "#13"),
-    "local_max=on": (TF.replace(local_max=True), "#13"),
     "window_step=0.1": (TF.replace(window_step=0.1), "#13"),
     "window_step=0.2": (TF.replace(window_step=0.2), "#13"),
     "size_ratio=1.15": (TF.replace(size_ratio=1.15), "#13"),
@@ -135,8 +123,6 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "nms_iou=0.8": (TF.replace(nms_iou=0.8), "#14"),
     "candidates_per_region=6000": (TF.replace(candidates_per_region=6000), "eq. 9"),
     "candidates_per_region=8000": (TF.replace(candidates_per_region=8000), "eq. 9"),
-    "location_fit=height": (TF.replace(location_fit="height"), "#11"),
-    "previous default (height fit, 6000)": (TF.replace(location_fit="height", candidates_per_region=6000), "prev"),
     "region_quota=on": (TF.replace(region_quota=True), "eq. 9"),
 }
 

@@ -19,8 +19,8 @@ __all__ = ["ReebConfig", "PRESETS", "get_preset", "TRAINING_FREE", "FRONT_END_FI
 
 Grouping = Literal["connected", "cell"]
 ScoreNorm = Literal["perimeter", "area"]
-RoadScore = Literal["reward", "penalize", "none", "flat", "stand"]
-LocationScore = Literal["paper", "ground", "classes", "none"]
+RoadScore = Literal["reward", "none"]
+LocationScore = Literal["paper", "classes", "none"]
 EntropyForm = Literal["printed", "abs-diff"]
 WindowGeometry = Literal["camera", "grid"]
 ShadowScore = Literal["underneath", "none"]
@@ -193,9 +193,8 @@ _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
      "an int >= 2 for group_cell when grouping='cell'"),
     (("class_heights_m", "class_weights"), lambda c: len(c.class_weights) == len(c.class_heights_m),
      "of the same length (one weight per class)"),
-    (("class_heights_m", "object_templates", "location_fit"),
-     lambda c: c.location_fit != "shape" or len(c.object_templates) == len(c.class_heights_m),
-     "of the same length when location_fit='shape' (one template per class, in the same order), or location_fit='height'"),
+    (("class_heights_m", "object_templates"), lambda c: len(c.object_templates) == len(c.class_heights_m),
+     "of the same length (one template per class, in the same order)"),
     (("class_quota", "ranker"), lambda c: not c.class_quota or c.ranker != "none" or _by_name(c.class_quota),
      "a ranker (its class head hints each box's class) with class_quota given in the ranker's class order, "
      "class_quota by class name ({'Pedestrian': 0.2}: ignored without a class head), or class_quota=()"),
@@ -375,15 +374,6 @@ class ReebConfig:
     """Real extents, in metres, of the 2D boxes of each object class standing on the road:
     ``(height_lo, height_hi, width_lo, width_hi)``. With ``window_geometry='camera'``, a window
     is kept at the rows where some template fits both its height and its width."""
-    horizon_slack: float = _knob(0.0, "[0, 1)")
-    """With ``window_geometry='camera'``: how far (fraction of the image height) the horizon
-    may stray from ``horizon`` (camera pitch, road slope); widens each template's rows."""
-    border_windows: bool = True
-    """With ``window_geometry='camera'``: also windows flush with the left/right image
-    border at any width (objects cut by the border keep only their height)."""
-    local_max: bool = False
-    """Keep only windows whose score is a local maximum among the 8 neighbouring
-    positions of the same size before NMS (a cheap pre-NMS)."""
 
     # -- eq. 1: edge score ---------------------------------------------------------------
     score_norm: ScoreNorm = "perimeter"
@@ -398,12 +388,8 @@ class ReebConfig:
 
     # -- eqs. 10-12: road, location and combined score -----------------------------------
     road_score: RoadScore = _knob("none", front=True)
-    """``reward``: V adds β·R as printed (``paper``); ``penalize``: β·(1 − R) (NOTES #10);
-    ``none``: no road term; ``flat``: R = 1, a constant β; ``stand``: objects stand *on* the
-    road: R = (road fraction of the strip just below the box) · (1 − road fraction inside)."""
-    road_strip: float = _knob(0.15, "(0, 1]")
-    """With ``road_score='stand'``: height of the strip just below a box, as a fraction of the
-    box height, whose road fraction says the box stands on the road."""
+    """``reward``: V adds β·R as printed (``paper``), R the road fraction of the box;
+    ``none``: no road term (NOTES #10)."""
     shadow_score: ShadowScore = _knob("underneath", front=True)
     """``underneath``: V is multiplied by (``shadow_floor`` + U)^``shadow_power``, U in [0, 1] how
     much darker the box's bottom strip is than the road just below it on the grey image (the
@@ -429,15 +415,11 @@ class ReebConfig:
     """With ``vegetation_score='green'``: the exponent, a whole number (the factor is a
     product, so every path computes the same numbers)."""
     location_score: LocationScore = "classes"
-    """``paper``: L = b_y/(b_w·b_h)·W (eq. 11); ``ground``: how well the box height fits
-    a ground-plane object standing at its bottom row, in [0, 1]; ``classes``: the best such
-    fit over the classes of ``class_heights_m``; ``none``: L = 1."""
+    """``paper``: L = b_y/(b_w·b_h)·W (eq. 11); ``classes``: how well the box fits a
+    ground-plane object of one of the classes of ``class_heights_m`` standing at its bottom
+    row, in [0, 1], at its best over the classes; ``none``: L = 1."""
     horizon: float = _knob(0.47, "(0, 1)")
-    """Horizon row as a fraction of the image height, for ``location_score='ground'`` /
-    ``'classes'`` and ``window_geometry='camera'`` (KITTI: the principal point, cy/H ≈ 0.46–0.47)."""
-    ground_ratio: float = _knob(1.0, "> 0")
-    """Expected box height / (bottom row − horizon) of an object on the ground; about
-    object height / camera height (cars ≈ 0.9, pedestrians ≈ 1.05 on KITTI)."""
+    """Horizon row as a fraction of the image height, for ``location_score='classes'`` and ``window_geometry='camera'`` (KITTI: the principal point, cy/H ≈ 0.46–0.47)."""
     class_heights_m: tuple[float, ...] = _knob((1.5, 3.2, 1.72, 1.72), _CLASS_HEIGHTS_M)
     """Typical real heights (metres) of car, truck, pedestrian and cyclist, for
     ``location_score='classes'``: L is the best fit over the classes of a Gaussian in
@@ -446,11 +428,9 @@ class ReebConfig:
     """Weight of each class's fit in ``location_score='classes'`` (same order as
     ``class_heights_m``): rarer classes weigh less, so their windows don't crowd the budget."""
     ground_log_sigma: float = _knob(0.3, "> 0")
-    """Tolerance (in log units) of that ratio for ``location_score='ground'`` or ``'classes'``."""
-    location_fit: Literal["height", "shape"] = "shape"
-    """What a class's fit in ``location_score='classes'`` reads (not in the paper): ``height``:
-    the box height alone; ``shape``: also its width, softly within the class's width range of
-    ``object_templates`` at the depth of its bottom row (``ground_log_sigma``)."""
+    """Tolerance (in log units) of the class fits of ``location_score='classes'``: of the box
+    height's ratio, and of its width outside the class's width range of ``object_templates``
+    at the depth of its bottom row."""
     alpha: float = _knob(0.6, ">= 0")
     """Weight of the location score in V = S·(α·L + β·R) (eq. 12)."""
     beta: float = _knob(0.4, ">= 0")
@@ -609,7 +589,7 @@ _PAPER: dict[str, object] = dict(
     **TRAINING_FREE,  # REEB ranks by V (eq. 12), with the training-free region budget
     scale=1.0, grouping="connected", group_cell=None, score_norm="area", road_score="reward",
     shadow_score="none", vegetation_score="none", nms_iou=0.7, location_score="paper", road_combine="and",
-    entropy_form="abs-diff", local_max=False, region_assign="contained", thin_edges=False, ground_band=None,
+    entropy_form="abs-diff", region_assign="contained", thin_edges=False, ground_band=None,
     window_geometry="grid", min_edge_score=0.01,
 )
 """The fields :meth:`ReebConfig.paper` sets: the printed reading of each."""

@@ -382,7 +382,7 @@ class ProposalGenerator(nn.Module):
         ``check_at``: as in :meth:`_edge_map`."""
         cfg = self.config
         dev = images[0].device
-        needs_road = keep or cfg.road_score not in ("none", "flat")
+        needs_road = keep or cfg.road_score != "none"
         # Sec. 3.4: Edge_Map = Sobel(Gaussian_Blur(I)), at the working resolution
         with self._stage("edges", dev):
             work = self._edge_map(images, needs_colour=needs_road, check_at=check_at)

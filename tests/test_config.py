@@ -29,7 +29,7 @@ def test_paper_preset_follows_the_printed_text():
     p = ReebConfig.paper()
     assert p.scale == 1.0 and p.grouping == "connected" and p.group_cell is None
     assert p.score_norm == "area" and p.road_score == "reward" and p.location_score == "paper"
-    assert p.road_combine == "and" and not p.thin_edges and not p.local_max
+    assert p.road_combine == "and" and not p.thin_edges
     assert p.min_edge_score == 0.01 and p.ground_band is None and p.region_assign == "contained"
 
 
@@ -204,7 +204,6 @@ def test_values_are_normalised_so_equal_settings_are_equal():
 def test_shape_fit_needs_one_template_per_class():
     with pytest.raises(ValueError, match="one template per class"):
         ReebConfig(object_templates=((1.0, 2.0, 0.5, 4.0),))
-    ReebConfig(object_templates=((1.0, 2.0, 0.5, 4.0),), location_fit="height")  # the height fit reads no template
 
 
 def test_json_round_trip_with_nested_tuples():

@@ -223,11 +223,10 @@ def test_batch_equals_single_on_odd_crops(sample_image):
 
 @pytest.mark.parametrize("overrides", [
     {},
-    {"road_score": "flat"},
     {"location_score": "paper", "score_norm": "area", "min_edge_score": 0.01},
-    {"window_geometry": "grid", "location_score": "ground", "use_regions": False},
+    {"window_geometry": "grid", "location_score": "none", "use_regions": False},
     {"shadow_score": "underneath", "shadow_strip": 0.2},
-    {"shadow_score": "underneath", "shadow_power": 0.7, "shadow_margin": 0.3, "road_score": "flat"},
+    {"shadow_score": "underneath", "shadow_power": 0.7, "shadow_margin": 0.3},
     {"vegetation_score": "none"},
     {"vegetation_score": "green", "vegetation_power": 1, "shadow_power": 0.7},
     {"vegetation_score": "green", "vegetation_power": 6, "shadow_score": "none"},
@@ -269,7 +268,7 @@ def test_scoring_falls_back_to_tensor_ops_when_a_term_needs_maps(crop):
     maps = ScoreMaps(e, g, (64, 96))
     grid = default.selection.window_grid(maps, default.selection.region_bounds(96))
     assert default.selection.compiled_scoring_applies(maps, grid)
-    for overrides in ({"road_score": "reward"}, {"road_score": "stand"}, {"local_max": True}):
+    for overrides in ({"road_score": "reward"},):
         gen = ProposalGenerator(**SMALL, **overrides)
         assert not gen.selection.compiled_scoring_applies(maps, grid), overrides
         assert gen([crop])[0]["boxes"].shape[0] > 0

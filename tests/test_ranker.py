@@ -153,7 +153,7 @@ def test_weights_for_other_features_are_refused(tmp_path):
     p = save_ranker(_model(), tmp_path / "four.safetensors")
     with pytest.raises(RankerWeightsError, match="47 features.*this config gives 46"):
         ProposalGenerator(ReebConfig(ranker=str(p), class_heights_m=(1.5, 3.2, 1.72), class_weights=(1, 1, 1),
-                                     location_fit="height"))
+                                     object_templates=ReebConfig().object_templates[:3]))
 
 
 def test_shipped_weights_load_and_say_where_they_come_from():
