@@ -17,11 +17,9 @@ from typing import Any, Callable, Literal
 
 __all__ = ["ReebConfig", "PRESETS", "get_preset", "TRAINING_FREE", "FRONT_END_FIELDS"]
 
-Grouping = Literal["connected", "cell"]
 ScoreNorm = Literal["perimeter", "area"]
 RoadScore = Literal["reward", "none"]
 LocationScore = Literal["paper", "classes", "none"]
-EntropyForm = Literal["printed", "abs-diff"]
 WindowGeometry = Literal["camera", "grid"]
 ShadowScore = Literal["underneath", "none"]
 VegetationScore = Literal["green", "none"]
@@ -189,8 +187,6 @@ _RANKER = (lambda v: v.strip() != ""), "'none', a shipped ranker name ('kitti') 
 
 _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
     # Conditions between fields: (the fields, the check, what is expected).
-    (("grouping", "group_cell"), lambda c: c.grouping != "cell" or c.group_cell is not None,
-     "an int >= 2 for group_cell when grouping='cell'"),
     (("class_heights_m", "class_weights"), lambda c: len(c.class_weights) == len(c.class_heights_m),
      "of the same length (one weight per class)"),
     (("class_heights_m", "object_templates"), lambda c: len(c.object_templates) == len(c.class_heights_m),
@@ -277,8 +273,6 @@ class ReebConfig:
     edge_threshold: float = _knob(0.05, "[0, 1)", front=True)
     """Sobel magnitude (of a [0, 1] grey image, normalised to [0, 1]) below which a pixel
     is no edge. The paper gives no value (NOTES #4)."""
-    edge_channels: Literal["gray", "rgb"] = _knob("gray", front=True)
-    """Sobel on the grey image (as printed) or on each RGB channel, keeping the strongest."""
     thin_edges: bool = _knob(True, front=True)
     """Keep only the one-pixel ridge of each edge (non-maximum suppression across the
     edge, as the edge maps Edge Boxes scores). Not in the paper."""
@@ -286,13 +280,10 @@ class ReebConfig:
     """Drop edge pixels with no edge pixel among their 8 neighbours (Sec. 3.4)."""
 
     # -- Sec. 3.7: edge groups -----------------------------------------------------------
-    grouping: Grouping = _knob("connected", front=True)
-    """``connected``: 8-connected components of edge pixels, as printed. ``cell``: all
-    edge pixels of one ``group_cell``×``group_cell`` tile form one group (fastest)."""
     group_cell: int | None = _knob(8, _GROUP_CELL, front=True)
-    """Side, in working pixels, of the tiles that bound a group. With ``connected``,
-    components are cut at tile borders (NOTES #2: long chains are rarely enclosed);
-    ``None`` = no bound, plain connected components as printed."""
+    """The edge groups are the 8-connected components of edge pixels (as printed), cut at
+    the borders of tiles of this side, in working pixels (NOTES #2: long chains are rarely
+    enclosed); ``None`` = no bound, plain connected components as printed."""
 
     # -- Sec. 3.5, eqs. 3-4: road segmentation -------------------------------------------
     road_samples: int = _knob(300, "[1, 1000000]", front=True)
@@ -302,8 +293,6 @@ class ReebConfig:
     road_tolerance: tuple[float, float, float] = _knob((0.5, 0.12, 0.12), _ROAD_TOLERANCE, front=True)
     """Half-width of the in-range test around the sampled median, per HSV channel
     (hue in radians, circular; saturation and value in [0, 1]). Not given in the paper."""
-    road_combine: Literal["and", "or"] = _knob("and", front=True)
-    """How the three channel masks are combined (eq. 4 prints AND, the text says OR)."""
     seed: int = _knob(0, _SEED, front=True)
     """Seed of the road pixel sampling; the same pixels are sampled for every image of a
     given size, so results do not depend on the batch."""
@@ -334,9 +323,6 @@ class ReebConfig:
     """Grey levels of the entropy histogram (eq. 2's M). 256 = 8-bit grey, H in [0, 8]."""
     entropy_sigma: float = _knob(4.0, "> 0")
     """σ of eq. 9 (the paper's KITTI value)."""
-    entropy_form: EntropyForm = "abs-diff"
-    """``abs-diff``: %P = 1 − |σ − H|/σ (NOTES #9). ``printed``: |σ + H|, which gives
-    no proposals for any H > 0 and is kept only to show that it cannot run."""
     region_quota: bool = False
     """Also split the ``top_k`` output among the regions by their shares (eq. 9 applied to
     the final proposals, not only to the candidates)."""
@@ -587,9 +573,9 @@ with which V alone ranks (``benchmarks/ablations.py``)."""
 
 _PAPER: dict[str, object] = dict(
     **TRAINING_FREE,  # REEB ranks by V (eq. 12), with the training-free region budget
-    scale=1.0, grouping="connected", group_cell=None, score_norm="area", road_score="reward",
-    shadow_score="none", vegetation_score="none", nms_iou=0.7, location_score="paper", road_combine="and",
-    entropy_form="abs-diff", region_assign="contained", thin_edges=False, ground_band=None,
+    scale=1.0, group_cell=None, score_norm="area", road_score="reward",
+    shadow_score="none", vegetation_score="none", nms_iou=0.7, location_score="paper",
+    region_assign="contained", thin_edges=False, ground_band=None,
     window_geometry="grid", min_edge_score=0.01,
 )
 """The fields :meth:`ReebConfig.paper` sets: the printed reading of each."""

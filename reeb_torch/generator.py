@@ -104,7 +104,7 @@ class Working:
         gray: ``float32 (B, 1, h, w)`` grey images.
         edges: ``float32 (B, h, w)`` edge magnitudes.
         colour: ``float32 (B, 3, h, w)`` colour images, only where a stage reads them (the road
-            mask, RGB edges), else None.
+            mask), else None.
         green: ``int32 (B, h + 1, w + 1)`` green-pixel counts, for the vegetation term, or None.
     """
 
@@ -225,7 +225,7 @@ class ProposalGenerator(nn.Module):
 
     def extra_repr(self) -> str:
         c = self.config
-        return f"top_k={c.top_k}, scale={c.scale}, use_regions={c.use_regions}, grouping={c.grouping!r}"
+        return f"top_k={c.top_k}, scale={c.scale}, use_regions={c.use_regions}, group_cell={c.group_cell}"
 
     @property
     def classes(self) -> tuple[str, ...] | None:
@@ -388,14 +388,14 @@ class ProposalGenerator(nn.Module):
             work = self._edge_map(images, needs_colour=needs_road, check_at=check_at)
         # Sec. 3.7: adjacent edge pixels form edge groups
         with self._stage("groups", dev):
-            groups = _groups.edge_groups(work.edges, cfg.grouping, cfg.group_cell)
+            groups = _groups.connected_groups(work.edges, cfg.group_cell)
         # Sec. 3.5: Road_Mask = Generate_Road_Segmentation(I, HSV); skipped when no score reads it
         road = None
         if needs_road:
             with self._stage("road", dev):
                 assert work.colour is not None  # needs_colour=needs_road made it
                 road = _road.road_mask(work.colour, cfg.road_samples, cfg.road_band, cfg.road_tolerance,
-                                       cfg.road_combine, cfg.seed)
+                                       cfg.seed)
         maps = ScoreMaps(work.edges, groups, (images[0].shape[-2], images[0].shape[-1]), road=road, green=work.green,
                          grey=work.gray[:, 0])
         return FrontEnd(work, maps)
@@ -505,7 +505,7 @@ class ProposalGenerator(nn.Module):
         green: Tensor | None = None
         want_green = cfg.vegetation_score != "none"
         pending = [(j, i) for j, i in enumerate(check_at or ()) if i is not None]
-        if cfg.edge_channels == "gray" and not needs_colour:
+        if not needs_colour:
             outside: list[int] | None = [] if pending else None
             front = _edges.working_gray(images, cfg.scale, with_green=want_green, outside=outside)
             if front is not None:
@@ -517,9 +517,7 @@ class ProposalGenerator(nn.Module):
             colour = _edges.working_images(images, cfg.scale)
             gray = _edges.to_gray(colour)
             green = _scoring.count_integral(_edges.green_mask(colour)) if want_green else None
-        src = gray if cfg.edge_channels == "gray" else colour
-        assert src is not None  # RGB edges take the colour images made above (never the compiled grey front end)
-        edges = _edges.edge_map(src, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges)
+        edges = _edges.edge_map(gray, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges)
         return Working(gray, edges, colour, green)
 
 

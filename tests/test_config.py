@@ -27,9 +27,9 @@ def test_paper_constants_are_the_defaults():
 
 def test_paper_preset_follows_the_printed_text():
     p = ReebConfig.paper()
-    assert p.scale == 1.0 and p.grouping == "connected" and p.group_cell is None
+    assert p.scale == 1.0 and p.group_cell is None
     assert p.score_norm == "area" and p.road_score == "reward" and p.location_score == "paper"
-    assert p.road_combine == "and" and not p.thin_edges
+    assert not p.thin_edges
     assert p.min_edge_score == 0.01 and p.ground_band is None and p.region_assign == "contained"
 
 
@@ -58,9 +58,9 @@ def test_front_end_fields_come_from_the_field_declarations():
     from reeb_torch import generator
 
     assert set(_config.FRONT_END_FIELDS) == set(generator.FRONT_END_FIELDS) == {
-        "scale", "blur_sigma", "edge_threshold", "edge_channels", "thin_edges", "remove_isolated", "grouping",
+        "scale", "blur_sigma", "edge_threshold", "thin_edges", "remove_isolated",
         "group_cell", "vegetation_score", "road_score", "road_samples", "road_band",
-        "road_tolerance", "road_combine", "seed", "shadow_score"}
+        "road_tolerance", "seed", "shadow_score"}
     marked = [f.name for f in dataclasses.fields(ReebConfig) if f.metadata.get("stage") == "front"]
     assert list(_config.FRONT_END_FIELDS) == marked
 
@@ -78,8 +78,8 @@ def test_no_figures_in_the_configs_words():
 
 @pytest.mark.parametrize(
     "field, value",
-    [("scale", 0), ("scale", float("nan")), ("edge_threshold", 1.5), ("grouping", "blob"), ("group_cell", 1),
-     ("road_band", (0.5, 0.5, 0.4, 1.0)), ("road_combine", "xor"), ("entropy_bins", 1), ("top_k", 0),
+    [("scale", 0), ("scale", float("nan")), ("edge_threshold", 1.5), ("window_geometry", "blob"), ("group_cell", 1),
+     ("road_band", (0.5, 0.5, 0.4, 1.0)), ("region_assign", "xor"), ("entropy_bins", 1), ("top_k", 0),
      ("nms_iou", 0), ("min_window", 2), ("size_ratio", 1.0), ("aspect_range", (2.0, 1.0)),
      ("location_score", "sky"), ("road_score", "maybe"), ("region_overlap", 0.0)],
 )
@@ -123,7 +123,7 @@ def test_bool_fields_take_only_bools(field, value):
         ("min_edge_score", float("nan"), ValueError, "a finite number"),
         ("scale", 10**400, ValueError, "a finite number"),
         ("group_cell", 8.0, TypeError, "None or an int (not a bool)"),
-        ("grouping", 3, TypeError, "one of 'connected', 'cell'"),
+        ("road_score", 3, TypeError, "one of 'reward', 'none'"),
         ("road_band", (0.3, 0.8, 0.7), ValueError, "a tuple of 4 finite numbers"),
         ("road_band", "0.3,0.8,0.7,1", TypeError, "a tuple of 4 finite numbers"),
         ("aspect_range", (0.5, None), TypeError, "a tuple of 2 finite numbers"),
@@ -165,8 +165,8 @@ def test_numeric_fields_have_a_range():
 def test_joint_conditions_name_all_their_fields():
     with pytest.raises(ValueError, match=r"^ReebConfig\.class_heights_m and ReebConfig\.class_weights must be of the same length"):
         ReebConfig(class_weights=(1.0,))
-    with pytest.raises(ValueError, match=r"^ReebConfig\.grouping and ReebConfig\.group_cell must be .*grouping='cell'"):
-        ReebConfig(grouping="cell", group_cell=None)
+    with pytest.raises(ValueError, match=r"^ReebConfig\.class_heights_m and ReebConfig\.object_templates must be of the same length"):
+        ReebConfig(object_templates=((1.0, 2.0, 0.5, 4.0),))
     # eq. 7 with a tiny object: region strips far narrower than a pixel would be thousands
     with pytest.raises(ValueError, match=r"ReebConfig\.max_object_width_m, .* at most 1024 regions"):
         ReebConfig(max_object_width_m=1e-3, region_width_round=None)

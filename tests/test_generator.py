@@ -75,11 +75,6 @@ def test_presets_run(crop, preset):
     _check(ProposalGenerator(cfg)([crop])[0], *crop.shape[-2:], SMALL["top_k"])
 
 
-def test_printed_eq9_gives_no_proposals(crop):
-    out = ProposalGenerator(entropy_form="printed", **SMALL)([crop])[0]
-    assert out["boxes"].shape == (0, 4) and out["scores"].shape == (0,)
-
-
 def test_blank_image_gives_empty_result():
     out = ProposalGenerator(**SMALL)([torch.zeros(3, 64, 64)])[0]
     assert out["boxes"].shape == (0, 4)

@@ -484,24 +484,18 @@ def remove_isolated(mask: Tensor) -> Tensor:
 
 
 def edge_map(gray: Tensor, sigma: float, threshold: float, isolated: bool, thinning: bool = False) -> Tensor:
-    """Blur, Sobel, threshold and clean: ``(B, C, H, W)`` (grey, C = 1, or colour) →
-    ``(B, H, W)`` edge magnitudes in [0, 1], zero where there is no edge. With several
-    channels each pixel takes the gradient of the channel where it is strongest.
+    """Blur, Sobel, threshold and clean: grey ``(B, 1, H, W)`` → ``(B, H, W)`` edge
+    magnitudes in [0, 1], zero where there is no edge.
     ``thinning`` keeps only the ridge of each edge (one pixel wide), as the thinned edge
     maps Edge Boxes scores.
 
     On the CPU the default path (grey, thinned, isolated pixels removed) runs as two
     compiled passes (numba) with the same float32 arithmetic, operation for operation, as
     the tensor ops (tested equal bit for bit)."""
-    b, c, h, w = gray.shape
-    if (c == 1 and thinning and isolated and gray.device.type == "cpu"
-            and gray.dtype == torch.float32):
+    b, _, h, w = gray.shape
+    if thinning and isolated and gray.device.type == "cpu" and gray.dtype == torch.float32:
         return _edge_map_cpu(gray, sigma, threshold)
-    gx, gy = sobel_gradients(gaussian_blur(gray.reshape(b * c, 1, h, w), sigma))
-    if c > 1:
-        gx, gy = gx.view(b, c, h, w), gy.view(b, c, h, w)
-        pick = (gx * gx + gy * gy).argmax(1, keepdim=True)
-        gx, gy = gx.gather(1, pick)[:, 0], gy.gather(1, pick)[:, 0]
+    gx, gy = sobel_gradients(gaussian_blur(gray.reshape(b, 1, h, w), sigma))
     mag = gradient_magnitude(gx, gy)
     mask = mag > threshold
     if thinning:

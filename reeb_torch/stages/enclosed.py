@@ -3,7 +3,7 @@
 Scoring a box needs eq. 1's enclosed sum (the mass of the edge groups wholly inside it)
 at arbitrary coordinates. :class:`EnclosedTables` gives it exactly in O(1) per box from four
 prefix-sum tables, when no edge group is wider or taller than the box minus one
-(``grouping='connected'`` with ``group_cell`` set bounds groups to one tile):
+(``group_cell`` set bounds groups to one tile):
 
     Σ_enclosed = A(box) − C_col(X1; Y0..Y1) − C_row(Y1; X0..X1) + K(X1, Y1)
 
