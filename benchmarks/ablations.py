@@ -120,7 +120,6 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "nms_iou=0.8": (TF.replace(nms_iou=0.8), "#14"),
     "candidates_per_region=6000": (TF.replace(candidates_per_region=6000), "eq. 9"),
     "candidates_per_region=8000": (TF.replace(candidates_per_region=8000), "eq. 9"),
-    "region_quota=on": (TF.replace(region_quota=True), "eq. 9"),
 }
 
 

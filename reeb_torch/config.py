@@ -194,8 +194,6 @@ _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
     (("class_quota", "ranker"), lambda c: not c.class_quota or c.ranker != "none" or _by_name(c.class_quota),
      "a ranker (its class head hints each box's class) with class_quota given in the ranker's class order, "
      "class_quota by class name ({'Pedestrian': 0.2}: ignored without a class head), or class_quota=()"),
-    (("class_quota", "region_quota"), lambda c: not (c.class_quota and c.region_quota),
-     "one output quota at a time: class_quota=() or region_quota=off"),
     (("camera_height_m", "vertical_fov_deg", "horizontal_fov_deg", "max_object_width_m",
       "region_width_round", "region_overlap"), lambda c: _region_count(c) <= _MAX_REGIONS,
      f"a camera and overlap giving at most {_MAX_REGIONS} regions (eqs. 5-8)"),
@@ -323,9 +321,6 @@ class ReebConfig:
     """Grey levels of the entropy histogram (eq. 2's M). 256 = 8-bit grey, H in [0, 8]."""
     entropy_sigma: float = _knob(4.0, "> 0")
     """σ of eq. 9 (the paper's KITTI value)."""
-    region_quota: bool = False
-    """Also split the ``top_k`` output among the regions by their shares (eq. 9 applied to
-    the final proposals, not only to the candidates)."""
     candidates_per_region: int = _knob(30000, ">= 1")
     """Most windows a region may pass on to ranking (eq. 9's "maximum number of proposals
     that the user wants to generate in a region"); the region passes share × this. The

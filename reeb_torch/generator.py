@@ -438,7 +438,7 @@ class ProposalGenerator(nn.Module):
         # Sec. 3.8: Final_Proposals = NMS(Sorted_Proposals) (eq. 13)
         windows: list[Tensor] | None = [] if self.classes is not None else None
         with self._stage("nms", dev):
-            results = sel.suppress(maps, grid, chosen, scores, share, windows, class_of,
+            results = sel.suppress(maps, grid, chosen, scores, windows, class_of,
                                    None if self.ranker is None else self.ranker.class_share)
         if windows is not None:  # which class each proposal looks like (the ranking model's class head)
             assert self.ranker is not None  # classes come from its model

@@ -171,7 +171,7 @@ def test_cuda_matches_cpu(crop):
     torch.testing.assert_close(gpu["scores"][:n].cpu(), cpu["scores"][:n], rtol=1e-3, atol=1e-4)
 
 
-def test_region_quota_splits_the_output_by_share():
+def test_quota_splits_the_output_by_share():
     gen = ProposalGenerator(top_k=4)
     keep = torch.arange(10)  # already in score order
     region = torch.tensor([0, 0, 0, 0, 0, 1, 1, 0, 1, 2])

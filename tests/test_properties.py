@@ -296,7 +296,7 @@ _RUNNABLE = dict(
     region_overlap=st.sampled_from([0.05, 0.5, 1.0]), region_assign=st.sampled_from(["contained", "nearest"]),
     region_width_round=st.sampled_from([None, 0.125, 1.0]), entropy_bins=st.sampled_from([2, 65536]),
     entropy_sigma=st.sampled_from([0.1, 4.0]),
-    region_quota=st.booleans(), candidates_per_region=st.sampled_from([1, 600]),
+    candidates_per_region=st.sampled_from([1, 600]),
     candidates_without_regions=st.sampled_from([1, 600]), min_window=st.sampled_from([4, 16, 40]),
     size_ratio=st.sampled_from([1.2, 2.0, 16.0]), window_step=st.sampled_from([0.1, 0.5, 1.0]),
     aspect_range=st.sampled_from([(0.25, 4.0), (1.0, 1.0), (0.01, 100.0)]),

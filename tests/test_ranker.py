@@ -364,8 +364,6 @@ def test_bad_class_quotas(tmp_path):
         ReebConfig(class_quota=(("Pedestrian", 0.2), 0.1))
     with pytest.raises(ValueError, match="a ranker .* with class_quota given in the ranker's class order"):
         ReebConfig(class_quota=(0.2,), ranker="none")
-    with pytest.raises(ValueError, match="one output quota at a time"):
-        ReebConfig(class_quota=(0.2,), region_quota=True)
     with pytest.raises(ValueError, match="class_quota has 2 shares, but the ranker 'kitti' has the classes Car, "
                                          "Pedestrian, Cyclist, Truck"):
         ProposalGenerator(class_quota=(0.5, 0.5))

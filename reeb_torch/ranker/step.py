@@ -29,7 +29,7 @@ from .prefilter import prefilter_cpu
 __all__ = ["CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANKER"]
 
 NOT_SEEN_BY_RANKER: tuple[str, ...] = ("top_k", "ranker", "ranker_keep", "ranker_v_share", "nms_iou",
-                                        "region_quota", "class_quota")
+                                        "class_quota")
 """Fields a ranking model does not depend on (they act after it)."""
 
 
