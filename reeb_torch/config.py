@@ -587,9 +587,7 @@ _RANGES: dict[str, _Check] = _plan(ReebConfig)[1]
 PRESETS: dict[str, ReebConfig] = {
     "default": ReebConfig(),
     "training-free": ReebConfig().training_free(),
-    "training-free-no-regions": ReebConfig().training_free().replace(use_regions=False),
     "paper": ReebConfig.paper(),
-    "paper-no-regions": ReebConfig.paper(use_regions=False),
 }
 
 
@@ -599,10 +597,10 @@ def get_preset(name: str) -> ReebConfig:
     * ``default``: REEB's windows ranked by the shipped learned model (``ranker='kitti'``).
     * ``training-free``: no learned part: the windows ranked by V (eq. 12), with V's own
       candidate budget (:meth:`ReebConfig.training_free`).
-    * ``training-free-no-regions``: that without the region enhancement (the paper's Ours*;
-      the learned ranking reads the regions).
-    * ``paper``, ``paper-no-regions``: the printed text wherever it can run
-      (:meth:`ReebConfig.paper`), with and without the regions.
+    * ``paper``: the printed text wherever it can run (:meth:`ReebConfig.paper`).
+
+    Any of them without the region enhancement (the paper's Ours*) is
+    ``get_preset(name).replace(use_regions=False)``.
 
     Raises:
         ValueError: naming the unknown preset and the known ones.

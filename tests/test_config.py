@@ -34,19 +34,17 @@ def test_paper_preset_follows_the_printed_text():
 
 
 def test_presets_and_lookup():
-    assert set(PRESETS) == {"default", "training-free", "training-free-no-regions", "paper", "paper-no-regions"}
+    assert set(PRESETS) == {"default", "training-free", "paper"}
     # the class quota is a field a user sets: the default but for the output's shares per hinted class
     assert ReebConfig(class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05}) == ReebConfig().replace(
         class_quota=(("Pedestrian", 0.3), ("Cyclist", 0.1), ("Truck", 0.05)))
     # the default ranks with the shipped model; training-free is it without the learned part
     assert ReebConfig().ranker == "kitti" and get_preset("training-free") == ReebConfig().training_free()
     assert get_preset("training-free").ranker == "none"
-    assert get_preset("paper").ranker == "none" == get_preset("paper-no-regions").ranker  # the printed text
-    assert get_preset("training-free-no-regions") == get_preset("training-free").replace(use_regions=False)
-    assert get_preset("paper-no-regions") == get_preset("paper").replace(use_regions=False)
-    assert not get_preset("paper-no-regions").use_regions
+    assert get_preset("paper").ranker == "none"  # the printed text
     # an unknown name (a removed preset or a former alias too) is one line naming the valid ones
-    for name in ("nope", "refined", "class-quota", "default-no-regions"):
+    for name in ("nope", "refined", "class-quota", "default-no-regions", "persons", "paper-no-regions",
+                 "training-free-no-regions"):
         with pytest.raises(ValueError) as info:
             get_preset(name)
         assert str(info.value) == f"unknown preset {name!r}; choose one of {', '.join(sorted(PRESETS))}"

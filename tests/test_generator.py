@@ -69,9 +69,9 @@ def test_inspect(crop):
     assert ins.num_groups > 0 and ins.num_windows > ins.boxes.shape[0]
 
 
-@pytest.mark.parametrize("preset", ["training-free-no-regions", "paper", "paper-no-regions"])
-def test_presets_run(crop, preset):
-    cfg = get_preset(preset).replace(**SMALL)
+@pytest.mark.parametrize("preset, regions", [("training-free", False), ("paper", True), ("paper", False)])
+def test_presets_run(crop, preset, regions):
+    cfg = get_preset(preset).replace(use_regions=regions, **SMALL)
     _check(ProposalGenerator(cfg)([crop])[0], *crop.shape[-2:], SMALL["top_k"])
 
 

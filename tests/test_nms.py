@@ -125,7 +125,7 @@ def test_generator_candidates_equal_torchvision():
             caught.append((boxes[cand], scores[i, cand], iou, k))
         return orig(chosen, boxes, scores, iou, k, boxes_ok)
 
-    gen = ProposalGenerator(get_preset("training-free-no-regions"))
+    gen = ProposalGenerator(get_preset("training-free").replace(use_regions=False))
     gen([read_image(path)])  # a first call warms the kernels up on a picture of its own, not to be caught
     orig, R.nms_windows_cpu = R.nms_windows_cpu, spy
     try:
