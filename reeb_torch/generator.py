@@ -403,7 +403,6 @@ class ProposalGenerator(nn.Module):
     def _back_end(self, images: list[Tensor], front: FrontEnd,
                   keep: bool = False) -> tuple[list[dict[str, Tensor]], dict]:
         """:meth:`back_end`; with ``keep``, also the maps :meth:`inspect` shows."""
-        cfg = self.config
         dev = images[0].device
         work, maps, sel = front.working, front.maps, self.selection
         # one image on the CPU: the groups' tables are built on the other core while this
