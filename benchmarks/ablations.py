@@ -23,7 +23,7 @@ row gives its recall's 95 % frame-bootstrap interval instead
 ``--variant "FIELD=VALUE;FIELD=VALUE"`` (repeatable; fields and values as ``reeb propose
 --set``) adds a row for any setting of the default: with it, only the default and these
 rows run (plus the named rows ``--only`` picks). To check a choice on frames of your own,
-e.g. ``--data HELD_OUT --variant refine=on --variant blur_sigma=1.5``.
+e.g. ``--data HELD_OUT --variant thin_edges=off --variant blur_sigma=1.5``.
 
 Rerun: ``python benchmarks/ablations.py [--data DIR ...] [--limit N] [--frames A:B ...]
 [--only NAME ...] [--variant SETTINGS ...]``
@@ -62,11 +62,6 @@ TF = D.training_free()
 P = ReebConfig.paper()
 
 # name -> (config, the reading of docs/results.md it settles)
-V01 = TF.replace(window_geometry="grid", location_score="ground", ground_log_sigma=0.5, min_window=20,
-                kappa=1.5, candidates_per_region=4000, shadow_score="none", vegetation_score="none",
-                nms_iou=0.7)
-"""The package default of release 0.1 (before the camera windows and the class mixture)."""
-
 VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "default": (D, "package default (learned ranking)"),
     "training-free": (TF, "no learned ranking"),
@@ -76,13 +71,9 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "ranker, nms_iou=0.7": (D.replace(nms_iou=0.7), "ranker"),
     "class-quota": (D.replace(class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05}), "ranker"),
     "paper": (P, "printed text"),
-    "0.1 default (grid windows)": (V01, "0.1"),
     "window_geometry=grid": (TF.replace(window_geometry="grid"), "#13"),
-    "border_windows=off": (TF.replace(border_windows=False), "#13"),
-    "horizon_slack=0.02": (TF.replace(horizon_slack=0.02), "#13"),
     "min_window=12": (TF.replace(min_window=12), "#13"),
     "min_window=20": (TF.replace(min_window=20), "#13"),
-    "location=ground (one ratio, σ .5)": (TF.replace(location_score="ground", ground_log_sigma=0.5), "#11"),
     "location=classes, σ .5": (TF.replace(ground_log_sigma=0.5), "#11"),
     "class_weights=1,1,1,1": (TF.replace(class_weights=(1.0, 1.0, 1.0, 1.0)), "#11"),
     "shadow_score=none (no shadow term)": (TF.replace(shadow_score="none"), "shadow"),
@@ -99,11 +90,6 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "vegetation_power=4": (TF.replace(vegetation_power=4), "vegetation"),
     "vegetation_power=6": (TF.replace(vegetation_power=6), "vegetation"),
     "vegetation=none, nms_iou=0.7": (TF.replace(vegetation_score="none", nms_iou=0.7), "vegetation, #14"),
-    "refine=on": (TF.replace(refine=True), "#1"),
-    "refine=on, min aspect 0.6": (TF.replace(refine=True, refine_min_aspect=0.6), "#1"),
-    "straddle_weight=0.5": (TF.replace(straddle_weight=0.5), "#1"),
-    "straddle_weight=1": (TF.replace(straddle_weight=1.0), "#1"),
-    "road_score=stand": (TF.replace(road_score="stand"), "#10"),
     "kappa=1.5 (Edge Boxes)": (TF.replace(kappa=1.5), "#1"),
     "nms_iou=0.7 (eq. 13 as printed)": (TF.replace(nms_iou=0.7), "#14"),
     "nms_iou=0.72": (TF.replace(nms_iou=0.72), "#14"),
@@ -112,26 +98,21 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "norm=area (γ=0.75)": (TF.replace(score_norm="area"), "#1"),
     "kappa=1.25": (TF.replace(kappa=1.25), "#1"),
     "kappa=1.75": (TF.replace(kappa=1.75), "#1"),
-    "grouping=connected, unbounded": (TF.replace(grouping="connected", group_cell=None), "#2"),
-    "grouping=connected, 4px tiles": (TF.replace(grouping="connected", group_cell=4), "#2"),
-    "grouping=connected, 16px tiles": (TF.replace(grouping="connected", group_cell=16), "#2"),
-    "grouping=cell 8": (TF.replace(grouping="cell", group_cell=8), "#2"),
+    "group_cell=None (unbounded)": (TF.replace(group_cell=None), "#2"),
+    "group_cell=4": (TF.replace(group_cell=4), "#2"),
+    "group_cell=16": (TF.replace(group_cell=16), "#2"),
     "edge_threshold=0.1": (TF.replace(edge_threshold=0.1), "#4"),
     "edge_threshold=0.02": (TF.replace(edge_threshold=0.02), "#4"),
     "blur_sigma=0.7": (TF.replace(blur_sigma=0.7), "#4"),
     "blur_sigma=1.5": (TF.replace(blur_sigma=1.5), "#4"),
     "thin_edges=off": (TF.replace(thin_edges=False), "#4"),
-    "edge_channels=rgb": (TF.replace(edge_channels="rgb"), "#4"),
     "entropy_bins=16": (TF.replace(entropy_bins=16), "#9"),
     "road_score=reward": (TF.replace(road_score="reward"), "#10"),
-    "road_score=reward, OR": (TF.replace(road_score="reward", road_combine="or"), "#5, #10"),
-    "road_score=penalize": (TF.replace(road_score="penalize"), "#10"),
     "location=paper": (TF.replace(location_score="paper"), "#11"),
     "location=none": (TF.replace(location_score="none"), "#11"),
     "min_edge_score=0.01": (TF.replace(min_edge_score=0.01), "#12"),
     "region_assign=contained": (TF.replace(region_assign="contained"), "#13"),
     "grid, ground_band=off": (TF.replace(window_geometry="grid", ground_band=None), "#13"),
-    "local_max=on": (TF.replace(local_max=True), "#13"),
     "window_step=0.1": (TF.replace(window_step=0.1), "#13"),
     "window_step=0.2": (TF.replace(window_step=0.2), "#13"),
     "size_ratio=1.15": (TF.replace(size_ratio=1.15), "#13"),
@@ -139,20 +120,6 @@ VARIANTS: dict[str, tuple[ReebConfig, str]] = {
     "nms_iou=0.8": (TF.replace(nms_iou=0.8), "#14"),
     "candidates_per_region=6000": (TF.replace(candidates_per_region=6000), "eq. 9"),
     "candidates_per_region=8000": (TF.replace(candidates_per_region=8000), "eq. 9"),
-    "location_fit=height": (TF.replace(location_fit="height"), "#11"),
-    "previous default (height fit, 6000)": (TF.replace(location_fit="height", candidates_per_region=6000), "prev"),
-    "region_quota=on": (TF.replace(region_quota=True), "eq. 9"),
-    "rescore=affinity (EB w_n)": (TF.replace(rescore="affinity"), "#19"),
-    "rescore=affinity, persons": (TF.replace(rescore="affinity", rescore_scope="persons"), "#19"),
-    "rescore=density": (TF.replace(rescore="density"), "#19"),
-    "rescore=density, persons": (TF.replace(rescore="density", rescore_scope="persons"), "#19"),
-    "rescore=contrast": (TF.replace(rescore="contrast"), "#19"),
-    "rescore=contrast, persons": (TF.replace(rescore="contrast", rescore_scope="persons"), "#19"),
-    "rescore=orientation": (TF.replace(rescore="orientation"), "#19"),
-    "rescore=orientation, persons": (TF.replace(rescore="orientation", rescore_scope="persons"), "#19"),
-    "rescore=orientation, persons <= 2.3 m": (TF.replace(rescore="orientation", rescore_scope="persons",
-                                                         rescore_max_height_m=2.3), "#19"),
-    "rescore=density, power 0 (cut only)": (TF.replace(rescore="density", rescore_power=0.0), "#19"),
 }
 
 

@@ -85,17 +85,15 @@ def lost_details(gen: ProposalGenerator, best: dict[str, torch.Tensor], iou: tor
     higher than its best-scored good window) against ``region_budget``; after the region cut,
     ``nms_rank`` (0-based, among the candidates that survive NMS) or ``suppressed_by_iou``
     (the suppressing box's IoU with the object). The NMS is recomputed with the pipeline's
-    own :func:`reeb_torch.stages.nms.nms_top_k` on the candidates, without the top-k cut (not
-    reported with ``refine`` or ``region_quota``)."""
+    own :func:`reeb_torch.stages.nms.nms_top_k` on the candidates, without the top-k cut."""
     cfg = gen.config
     scores, grid, chosen = captured["scores"][0], captured["grid"], captured["chosen"][0]
     budget = gen.selection.region_budget(captured["share"][0])
     lost = torch.nonzero(best["final top-k"] < 0.7).squeeze(1).tolist()
-    nms_detail = not cfg.refine and not cfg.region_quota
     # what the NMS ranks: the learned ranking's candidates and logits, else the cut's and V
     order, cand = (captured["ranked"][0], torch.nonzero(captured["kept"][0]).squeeze(1)) if "kept" in captured \
         else (scores, torch.nonzero(chosen).squeeze(1))
-    kept = cand[nms_top_k(boxes[cand], order[cand], cfg.nms_iou, len(cand))] if lost and nms_detail else None
+    kept = cand[nms_top_k(boxes[cand], order[cand], cfg.nms_iou, len(cand))] if lost else None
     out = []
     for g in lost:
         d: dict = {"index": g, "best_iou": {k: round(float(v[g]), 3) for k, v in best.items()}}

@@ -52,8 +52,6 @@ STAGES = [
     ("  of it: the features of the kept candidates", "ranker.features"),
     ("  of it: the MLP", "ranker.model"),
     ("  of it: the class head (hints; class_quota)", "ranker.class_head"),
-    ("Second scoring pass (rescore; preset persons only)", "rescore"),
-    ("Edge Boxes' refinement (refine=on only)", "refine"),
     ("NMS (eq. 13)", "nms"),
 ]
 
@@ -99,7 +97,8 @@ def measure_all(columns: dict[str, str | ReebConfig], images: list[torch.Tensor]
     image, the per-stage ms of the pass nearest the median, all passes' totals, each pass's
     total over the same pass's OpenCV time (``"to_opencv"``), the first call's ms and the
     other sizes' mean first-call ms; and ``"opencv_ms"`` (median) and ``"opencv_all"`` for
-    the OpenCV pass (the same for every column)."""
+    the OpenCV pass (the same for every column), and ``"regions"``, whether the column's config
+    uses the region enhancement."""
     inputs = {k: [im.to(device) for im in as_input(images, k)] for k in INPUTS}
     variants = [(k, b) for b in batches for k in INPUTS]
     gens, first, new_size = {}, {}, {}
@@ -123,7 +122,8 @@ def measure_all(columns: dict[str, str | ReebConfig], images: list[torch.Tensor]
             else:
                 name, k, b = v
                 runs[v].append(_timed_pass(gens[name], inputs[k], b, device))
-    out: dict[str, dict] = {name: {"opencv_ms": statistics.median(floors), "opencv_all": floors} for name in columns}
+    out: dict[str, dict] = {name: {"opencv_ms": statistics.median(floors), "opencv_all": floors,
+                                   "regions": gens[name].config.use_regions} for name in columns}
     for (name, k, b), passes in runs.items():
         totals = [t for t, _ in passes]
         med = statistics.median(totals)
@@ -175,7 +175,7 @@ def _table(res: dict, presets: list[str], batches: list[int]) -> str:
         f"{f'{min(res[p][main_v][key]):.1f}-{max(res[p][main_v][key]):.1f}':>22s}" for p in presets)
     lines.append(row("Total (end to end, median)", [res[p][main_v]["total"] for p in presets]))
     lines.append(spread("  lowest-highest pass", "all_totals"))
-    lines.append(row("Paper, Table 2 (C++, i7-8750H, Sobel)", [15.0 if "no-regions" not in p else 40.0 for p in presets]))
+    lines.append(row("Paper, Table 2 (C++, i7-8750H, Sobel)", [15.0 if res[p]["regions"] else 40.0 for p in presets]))
     lines.append(row("OpenCV grey+blur+Sobel pass, same images, same passes", [res[p]["opencv_ms"] for p in presets],
                      "22.2f"))
     lines.append(row("Total / OpenCV pass (medians; paper: about 5)", [res[p][main_v]["total"] / res[p]["opencv_ms"]

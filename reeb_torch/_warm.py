@@ -140,7 +140,7 @@ def compile_helper_part() -> None:
     signatures (``tests/test_warmup.py`` checks that they add none)."""
     import numpy as np
 
-    from .stages import nms, refinement, scoring
+    from .stages import enclosed, nms, scoring
     from .stages._threads import serially
 
     g = torch.Generator().manual_seed(0)
@@ -150,7 +150,7 @@ def compile_helper_part() -> None:
     scores = torch.rand(2, n, generator=g)
     table = torch.zeros(1, 9, 9, dtype=torch.float64)  # no window sizes: typed and compiled, nothing run
     with serially(), gc_paused():  # one core: the warm-up has the other
-        scoring.score_grid_cpu(table, refinement.EnclosedTables(table, table, table, table, 1),
+        scoring.score_grid_cpu(table, enclosed.EnclosedTables(table, table, table, table, 1),
                                np.zeros((0, len(scoring.PLAN_COLUMNS)), np.int64), np.zeros(0), np.zeros(0, np.float32),
                                1.0, 1.0, 0.0, 0.0, torch.empty(1, 0))
         scoring.select_per_region_cpu(scores, np.arange(n, dtype=np.int64), np.array([0, n // 2, n], np.int64),

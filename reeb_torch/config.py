@@ -17,16 +17,12 @@ from typing import Any, Callable, Literal
 
 __all__ = ["ReebConfig", "PRESETS", "get_preset", "TRAINING_FREE", "FRONT_END_FIELDS"]
 
-Grouping = Literal["connected", "cell"]
 ScoreNorm = Literal["perimeter", "area"]
-RoadScore = Literal["reward", "penalize", "none", "flat", "stand"]
-LocationScore = Literal["paper", "ground", "classes", "none"]
-EntropyForm = Literal["printed", "abs-diff"]
+RoadScore = Literal["reward", "none"]
+LocationScore = Literal["paper", "classes", "none"]
 WindowGeometry = Literal["camera", "grid"]
 ShadowScore = Literal["underneath", "none"]
 VegetationScore = Literal["green", "none"]
-Rescore = Literal["none", "affinity", "density", "contrast", "orientation"]
-RescoreScope = Literal["all", "persons"]
 if typing.TYPE_CHECKING:  # what a caller may give: shares in the head's order, or by class name
     ClassQuota = tuple[tuple[str, float], ...] | tuple[float, ...] | typing.Mapping[str, float]
 else:  # what the field holds, and what the checks see (a mapping is made pairs first)
@@ -191,24 +187,13 @@ _RANKER = (lambda v: v.strip() != ""), "'none', a shipped ranker name ('kitti') 
 
 _JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
     # Conditions between fields: (the fields, the check, what is expected).
-    (("grouping", "group_cell"), lambda c: c.grouping != "cell" or c.group_cell is not None,
-     "an int >= 2 for group_cell when grouping='cell'"),
     (("class_heights_m", "class_weights"), lambda c: len(c.class_weights) == len(c.class_heights_m),
      "of the same length (one weight per class)"),
-    (("class_heights_m", "object_templates", "location_fit"),
-     lambda c: c.location_fit != "shape" or len(c.object_templates) == len(c.class_heights_m),
-     "of the same length when location_fit='shape' (one template per class, in the same order), or location_fit='height'"),
-    (("rescore", "refine"), lambda c: c.rescore == "none" or not c.refine,
-     "rescore='none' when refine is on (the refinement re-scores the boxes with V alone), or refine=off"),
-    (("rescore", "grouping"), lambda c: c.rescore not in ("affinity", "orientation") or c.grouping == "connected",
-     "grouping='connected' with rescore='affinity' or 'orientation' (they read connected groups)"),
-    (("rescore", "refine", "ranker"), lambda c: c.ranker == "none" or (c.rescore == "none" and not c.refine),
-     "rescore='none' and refine=off when a ranker is set (the ranker orders the windows themselves), or ranker='none'"),
+    (("class_heights_m", "object_templates"), lambda c: len(c.object_templates) == len(c.class_heights_m),
+     "of the same length (one template per class, in the same order)"),
     (("class_quota", "ranker"), lambda c: not c.class_quota or c.ranker != "none" or _by_name(c.class_quota),
      "a ranker (its class head hints each box's class) with class_quota given in the ranker's class order, "
      "class_quota by class name ({'Pedestrian': 0.2}: ignored without a class head), or class_quota=()"),
-    (("class_quota", "region_quota"), lambda c: not (c.class_quota and c.region_quota),
-     "one output quota at a time: class_quota=() or region_quota=off"),
     (("camera_height_m", "vertical_fov_deg", "horizontal_fov_deg", "max_object_width_m",
       "region_width_round", "region_overlap"), lambda c: _region_count(c) <= _MAX_REGIONS,
      f"a camera and overlap giving at most {_MAX_REGIONS} regions (eqs. 5-8)"),
@@ -286,8 +271,6 @@ class ReebConfig:
     edge_threshold: float = _knob(0.05, "[0, 1)", front=True)
     """Sobel magnitude (of a [0, 1] grey image, normalised to [0, 1]) below which a pixel
     is no edge. The paper gives no value (reading 4)."""
-    edge_channels: Literal["gray", "rgb"] = _knob("gray", front=True)
-    """Sobel on the grey image (as printed) or on each RGB channel, keeping the strongest."""
     thin_edges: bool = _knob(True, front=True)
     """Keep only the one-pixel ridge of each edge (non-maximum suppression across the
     edge, as the edge maps Edge Boxes scores). Not in the paper."""
@@ -295,13 +278,10 @@ class ReebConfig:
     """Drop edge pixels with no edge pixel among their 8 neighbours (Sec. 3.4)."""
 
     # -- Sec. 3.7: edge groups -----------------------------------------------------------
-    grouping: Grouping = _knob("connected", front=True)
-    """``connected``: 8-connected components of edge pixels, as printed. ``cell``: all
-    edge pixels of one ``group_cell``×``group_cell`` tile form one group (fastest)."""
     group_cell: int | None = _knob(8, _GROUP_CELL, front=True)
-    """Side, in working pixels, of the tiles that bound a group. With ``connected``,
-    components are cut at tile borders (reading 2: long chains are rarely enclosed);
-    ``None`` = no bound, plain connected components as printed."""
+    """The edge groups are the 8-connected components of edge pixels (as printed), cut at
+    the borders of tiles of this side, in working pixels (reading 2: long chains are rarely
+    enclosed); ``None`` = no bound, plain connected components as printed."""
 
     # -- Sec. 3.5, eqs. 3-4: road segmentation -------------------------------------------
     road_samples: int = _knob(300, "[1, 1000000]", front=True)
@@ -311,8 +291,6 @@ class ReebConfig:
     road_tolerance: tuple[float, float, float] = _knob((0.5, 0.12, 0.12), _ROAD_TOLERANCE, front=True)
     """Half-width of the in-range test around the sampled median, per HSV channel
     (hue in radians, circular; saturation and value in [0, 1]). Not given in the paper."""
-    road_combine: Literal["and", "or"] = _knob("and", front=True)
-    """How the three channel masks are combined (eq. 4 prints AND, the text says OR)."""
     seed: int = _knob(0, _SEED, front=True)
     """Seed of the road pixel sampling; the same pixels are sampled for every image of a
     given size, so results do not depend on the batch."""
@@ -343,12 +321,6 @@ class ReebConfig:
     """Grey levels of the entropy histogram (eq. 2's M). 256 = 8-bit grey, H in [0, 8]."""
     entropy_sigma: float = _knob(4.0, "> 0")
     """σ of eq. 9 (the paper's KITTI value)."""
-    entropy_form: EntropyForm = "abs-diff"
-    """``abs-diff``: %P = 1 − |σ − H|/σ (reading 9). ``printed``: |σ + H|, which gives
-    no proposals for any H > 0 and is kept only to show that it cannot run."""
-    region_quota: bool = False
-    """Also split the ``top_k`` output among the regions by their shares (eq. 9 applied to
-    the final proposals, not only to the candidates)."""
     candidates_per_region: int = _knob(30000, ">= 1")
     """Most windows a region may pass on to ranking (eq. 9's "maximum number of proposals
     that the user wants to generate in a region"); the region passes share × this. The
@@ -383,15 +355,6 @@ class ReebConfig:
     """Real extents, in metres, of the 2D boxes of each object class standing on the road:
     ``(height_lo, height_hi, width_lo, width_hi)``. With ``window_geometry='camera'``, a window
     is kept at the rows where some template fits both its height and its width."""
-    horizon_slack: float = _knob(0.0, "[0, 1)")
-    """With ``window_geometry='camera'``: how far (fraction of the image height) the horizon
-    may stray from ``horizon`` (camera pitch, road slope); widens each template's rows."""
-    border_windows: bool = True
-    """With ``window_geometry='camera'``: also windows flush with the left/right image
-    border at any width (objects cut by the border keep only their height)."""
-    local_max: bool = False
-    """Keep only windows whose score is a local maximum among the 8 neighbouring
-    positions of the same size before NMS (a cheap pre-NMS)."""
 
     # -- eq. 1: edge score ---------------------------------------------------------------
     score_norm: ScoreNorm = "perimeter"
@@ -401,49 +364,13 @@ class ReebConfig:
     """Exponent of the area normalisation (no value printed; 0.75 ≈ Edge Boxes' κ/2)."""
     kappa: float = _knob(1.6, "(0, 8]")
     """Exponent of the perimeter normalisation (Edge Boxes' value)."""
-    straddle_weight: float = _knob(0.0, ">= 0", front=True)
-    """Weight λ of a straddling term in eq. 1: S = (Σ wₙmₙ − Σ_c m_c − λ·Σ_cut m) / norm,
-    Σ_cut m the edge mass crossing the box's sides (within ``straddle_band`` working pixels
-    of each side). 0 = off (as printed)."""
-    straddle_band: int = _knob(1, "[0, 64]")
-    """Half-width, in working pixels, of the band around each box side for ``straddle_weight``."""
-    refine: bool = False
-    """Edge Boxes' refinement: before NMS, move each side of every candidate by halving
-    steps while its score V improves (:mod:`reeb_torch.stages.refinement`; compiled on the CPU
-    unless the straddling or a road term is on). Not in the paper."""
-    refine_min_aspect: float = _knob(0.0, "[0, 100]")
-    """With ``refine``: only candidates at least this many times as wide as tall move (0:
-    all); narrow, person-shaped boxes keep their grid box."""
-    rescore: Rescore = "none"
-    """A second scoring pass after the region cut (:mod:`reeb_torch.stages.rescoring`; not in
-    the paper): each image's best ``rescore_top`` candidates ranked on V·f^p, f a cue over its
-    mean on them: ``affinity`` (Edge Boxes' affinity-weighted w_n), ``density`` (mean edge
-    magnitude), ``contrast`` (that over the ring around the box) or ``orientation`` (the
-    spread of the edge orientations). ``none``: no second pass."""
-    rescore_top: int = _knob(20000, ">= 1")
-    """With ``rescore``: how many of each image's best candidates (by V) are re-scored and
-    ranked; the others are dropped before NMS."""
-    rescore_power: float = _knob(1.0, "[0, 16]")
-    """With ``rescore``: the exponent p of the cue (0: the pass only cuts to ``rescore_top``)."""
-    rescore_scope: RescoreScope = "all"
-    """With ``rescore``: ``all`` windows get the cue, or only ``persons``: windows narrower than
-    ``rescore_thin`` times their height (the pedestrian and cyclist shapes); the others keep V."""
-    rescore_thin: float = _knob(0.8, "(0, 100]")
-    """With ``rescore_scope='persons'``: the width/height ratio below which a window is person-shaped."""
-    rescore_max_height_m: float | None = _knob(None, "None or > 0")
-    """With ``rescore_scope='persons'``: also the window's real height on the flat ground, in
-    metres, must be at most this (the backs of trucks are not person-shaped). ``None``: shape alone."""
     center_fraction: float = _knob(0.5, "(0, 1)")
     """Side of the centre region c relative to the box (eq. 1: half)."""
 
     # -- eqs. 10-12: road, location and combined score -----------------------------------
     road_score: RoadScore = _knob("none", front=True)
-    """``reward``: V adds β·R as printed (``paper``); ``penalize``: β·(1 − R) (reading 10);
-    ``none``: no road term; ``flat``: R = 1, a constant β; ``stand``: objects stand *on* the
-    road: R = (road fraction of the strip just below the box) · (1 − road fraction inside)."""
-    road_strip: float = _knob(0.15, "(0, 1]")
-    """With ``road_score='stand'``: height of the strip just below a box, as a fraction of the
-    box height, whose road fraction says the box stands on the road."""
+    """``reward``: V adds β·R as printed (``paper``), R the road fraction of the box;
+    ``none``: no road term (reading 10)."""
     shadow_score: ShadowScore = _knob("underneath", front=True)
     """``underneath``: V is multiplied by (``shadow_floor`` + U)^``shadow_power``, U in [0, 1] how
     much darker the box's bottom strip is than the road just below it on the grey image (the
@@ -469,15 +396,11 @@ class ReebConfig:
     """With ``vegetation_score='green'``: the exponent, a whole number (the factor is a
     product, so every path computes the same numbers)."""
     location_score: LocationScore = "classes"
-    """``paper``: L = b_y/(b_w·b_h)·W (eq. 11); ``ground``: how well the box height fits
-    a ground-plane object standing at its bottom row, in [0, 1]; ``classes``: the best such
-    fit over the classes of ``class_heights_m``; ``none``: L = 1."""
+    """``paper``: L = b_y/(b_w·b_h)·W (eq. 11); ``classes``: how well the box fits a
+    ground-plane object of one of the classes of ``class_heights_m`` standing at its bottom
+    row, in [0, 1], at its best over the classes; ``none``: L = 1."""
     horizon: float = _knob(0.47, "(0, 1)")
-    """Horizon row as a fraction of the image height, for ``location_score='ground'`` /
-    ``'classes'`` and ``window_geometry='camera'`` (KITTI: the principal point, cy/H ≈ 0.46–0.47)."""
-    ground_ratio: float = _knob(1.0, "> 0")
-    """Expected box height / (bottom row − horizon) of an object on the ground; about
-    object height / camera height (cars ≈ 0.9, pedestrians ≈ 1.05 on KITTI)."""
+    """Horizon row as a fraction of the image height, for ``location_score='classes'`` and ``window_geometry='camera'`` (KITTI: the principal point, cy/H ≈ 0.46–0.47)."""
     class_heights_m: tuple[float, ...] = _knob((1.5, 3.2, 1.72, 1.72), _CLASS_HEIGHTS_M)
     """Typical real heights (metres) of car, truck, pedestrian and cyclist, for
     ``location_score='classes'``: L is the best fit over the classes of a Gaussian in
@@ -486,11 +409,9 @@ class ReebConfig:
     """Weight of each class's fit in ``location_score='classes'`` (same order as
     ``class_heights_m``): rarer classes weigh less, so their windows don't crowd the budget."""
     ground_log_sigma: float = _knob(0.3, "> 0")
-    """Tolerance (in log units) of that ratio for ``location_score='ground'`` or ``'classes'``."""
-    location_fit: Literal["height", "shape"] = "shape"
-    """What a class's fit in ``location_score='classes'`` reads (not in the paper): ``height``:
-    the box height alone; ``shape``: also its width, softly within the class's width range of
-    ``object_templates`` at the depth of its bottom row (``ground_log_sigma``)."""
+    """Tolerance (in log units) of the class fits of ``location_score='classes'``: of the box
+    height's ratio, and of its width outside the class's width range of ``object_templates``
+    at the depth of its bottom row."""
     alpha: float = _knob(0.6, ">= 0")
     """Weight of the location score in V = S·(α·L + β·R) (eq. 12)."""
     beta: float = _knob(0.4, ">= 0")
@@ -647,9 +568,9 @@ with which V alone ranks (``benchmarks/ablations.py``)."""
 
 _PAPER: dict[str, object] = dict(
     **TRAINING_FREE,  # REEB ranks by V (eq. 12), with the training-free region budget
-    scale=1.0, grouping="connected", group_cell=None, score_norm="area", road_score="reward",
-    shadow_score="none", vegetation_score="none", nms_iou=0.7, location_score="paper", road_combine="and",
-    entropy_form="abs-diff", local_max=False, region_assign="contained", thin_edges=False, ground_band=None,
+    scale=1.0, group_cell=None, score_norm="area", road_score="reward",
+    shadow_score="none", vegetation_score="none", nms_iou=0.7, location_score="paper",
+    region_assign="contained", thin_edges=False, ground_band=None,
     window_geometry="grid", min_edge_score=0.01,
 )
 """The fields :meth:`ReebConfig.paper` sets: the printed reading of each."""
@@ -666,11 +587,7 @@ _RANGES: dict[str, _Check] = _plan(ReebConfig)[1]
 PRESETS: dict[str, ReebConfig] = {
     "default": ReebConfig(),
     "training-free": ReebConfig().training_free(),
-    "training-free-no-regions": ReebConfig().training_free().replace(use_regions=False),
     "paper": ReebConfig.paper(),
-    "paper-no-regions": ReebConfig.paper(use_regions=False),
-    "persons": ReebConfig().training_free().replace(rescore="orientation", rescore_scope="persons",
-                                                    rescore_max_height_m=2.3),
 }
 
 
@@ -680,13 +597,10 @@ def get_preset(name: str) -> ReebConfig:
     * ``default``: REEB's windows ranked by the shipped learned model (``ranker='kitti'``).
     * ``training-free``: no learned part: the windows ranked by V (eq. 12), with V's own
       candidate budget (:meth:`ReebConfig.training_free`).
-    * ``training-free-no-regions``: that without the region enhancement (the paper's Ours*;
-      the learned ranking reads the regions).
-    * ``paper``, ``paper-no-regions``: the printed text wherever it can run
-      (:meth:`ReebConfig.paper`), with and without the regions.
-    * ``persons``: opt-in, the training-free setting with a second scoring pass that ranks
-      person-shaped windows (no taller than 2.3 m on the road) by the spread of their edge
-      orientations (``rescore='orientation'``, ``rescore_scope='persons'``); it is slower.
+    * ``paper``: the printed text wherever it can run (:meth:`ReebConfig.paper`).
+
+    Any of them without the region enhancement (the paper's Ours*) is
+    ``get_preset(name).replace(use_regions=False)``.
 
     Raises:
         ValueError: naming the unknown preset and the known ones.

@@ -2,8 +2,8 @@
 
 ``ProposalGenerator._propose_batch`` reads top to bottom as the paper's pseudo-code, one
 call per stage: edge map, edge groups, road mask, regions with their entropy and budget,
-dense windows, scores, the per-region cut, (optionally) Edge Boxes' refinement, NMS. The
-stages are functions in :mod:`reeb_torch.stages`; how windows are scored, cut, refined and
+dense windows, scores, the per-region cut, NMS. The
+stages are functions in :mod:`reeb_torch.stages`; how windows are scored, cut and
 suppressed (compiled or tensor paths, the batch's tables) is :mod:`reeb_torch.selection`;
 the learned ranking of the candidates (not in the paper) is :mod:`reeb_torch.ranker`.
 A batch of equal-sized images is computed as one batch; a list of images of different
@@ -104,16 +104,14 @@ class Working:
         gray: ``float32 (B, 1, h, w)`` grey images.
         edges: ``float32 (B, h, w)`` edge magnitudes.
         colour: ``float32 (B, 3, h, w)`` colour images, only where a stage reads them (the road
-            mask, RGB edges), else None.
+            mask), else None.
         green: ``int32 (B, h + 1, w + 1)`` green-pixel counts, for the vegetation term, or None.
-        crossing: the edges crossing box sides, for the straddling term, or None.
     """
 
     gray: Tensor
     edges: Tensor
     colour: Tensor | None
     green: Tensor | None
-    crossing: tuple[Tensor, Tensor] | None
 
 
 class FrontEnd(NamedTuple):
@@ -190,7 +188,7 @@ class ProposalGenerator(nn.Module):
             raise TypeError(f"config must be a ReebConfig, got {type(cfg).__name__}")
         self.config = cfg.replace(**overrides) if overrides else cfg
         self.selection = WindowSelection(self.config)
-        """The :class:`~reeb_torch.selection.WindowSelection` that scores, cuts, refines and
+        """The :class:`~reeb_torch.selection.WindowSelection` that scores, cuts and
         suppresses the windows; a subclass put here tries another selection
         (``benchmarks/selection_variants.py``)."""
         self.ranker = LearnedRanking(self.config) if self.config.ranker != "none" else None
@@ -205,7 +203,7 @@ class ProposalGenerator(nn.Module):
         their cache: :func:`warmup`) before its own work; not in :attr:`stage_times`."""
         self.stage_times: dict[str, float] | None = None
         """Set to ``{}`` to accumulate wall seconds per stage (edges, groups, road,
-        regions, scoring, rescore, ranker, refine, nms) over calls; ``None`` (default) records
+        regions, scoring, ranker, nms) over calls; ``None`` (default) records
         nothing. The learned ranking's parts are also recorded on their own, within ``ranker``:
         ``ranker.prefilter``, ``ranker.features``, ``ranker.model`` and ``ranker.class_head``.
         Where the two halves of a CPU batch run side by side, each records half its time."""
@@ -227,7 +225,7 @@ class ProposalGenerator(nn.Module):
 
     def extra_repr(self) -> str:
         c = self.config
-        return f"top_k={c.top_k}, scale={c.scale}, use_regions={c.use_regions}, grouping={c.grouping!r}"
+        return f"top_k={c.top_k}, scale={c.scale}, use_regions={c.use_regions}, group_cell={c.group_cell}"
 
     @property
     def classes(self) -> tuple[str, ...] | None:
@@ -349,7 +347,7 @@ class ProposalGenerator(nn.Module):
     @torch.no_grad()
     def back_end(self, images: list[Tensor], front: FrontEnd) -> list[dict[str, Tensor]]:
         """The rest of the algorithm on :meth:`front_end`'s ``front`` of ``images``: regions,
-        windows, scores, the region cut, the learned ranking, refinement and NMS; one output
+        windows, scores, the region cut, the learned ranking and NMS; one output
         dict per image, as :meth:`forward` gives (the same boxes, bit for bit)."""
         return self._back_end(images, front)[0]
 
@@ -384,28 +382,27 @@ class ProposalGenerator(nn.Module):
         ``check_at``: as in :meth:`_edge_map`."""
         cfg = self.config
         dev = images[0].device
-        needs_road = keep or cfg.road_score not in ("none", "flat")
+        needs_road = keep or cfg.road_score != "none"
         # Sec. 3.4: Edge_Map = Sobel(Gaussian_Blur(I)), at the working resolution
         with self._stage("edges", dev):
             work = self._edge_map(images, needs_colour=needs_road, check_at=check_at)
         # Sec. 3.7: adjacent edge pixels form edge groups
         with self._stage("groups", dev):
-            groups = _groups.edge_groups(work.edges, cfg.grouping, cfg.group_cell)
+            groups = _groups.connected_groups(work.edges, cfg.group_cell)
         # Sec. 3.5: Road_Mask = Generate_Road_Segmentation(I, HSV); skipped when no score reads it
         road = None
         if needs_road:
             with self._stage("road", dev):
                 assert work.colour is not None  # needs_colour=needs_road made it
                 road = _road.road_mask(work.colour, cfg.road_samples, cfg.road_band, cfg.road_tolerance,
-                                       cfg.road_combine, cfg.seed)
+                                       cfg.seed)
         maps = ScoreMaps(work.edges, groups, (images[0].shape[-2], images[0].shape[-1]), road=road, green=work.green,
-                         crossing=work.crossing, grey=work.gray[:, 0])
+                         grey=work.gray[:, 0])
         return FrontEnd(work, maps)
 
     def _back_end(self, images: list[Tensor], front: FrontEnd,
                   keep: bool = False) -> tuple[list[dict[str, Tensor]], dict]:
         """:meth:`back_end`; with ``keep``, also the maps :meth:`inspect` shows."""
-        cfg = self.config
         dev = images[0].device
         work, maps, sel = front.working, front.maps, self.selection
         # one image on the CPU: the groups' tables are built on the other core while this
@@ -429,10 +426,6 @@ class ProposalGenerator(nn.Module):
         if self._traces is not None:  # copies: the next call reuses this memory
             trace = Trace(scores.clone(), grid, chosen.clone(), share.clone())
             self._traces.append(trace)
-        # a second scoring pass over the best candidates (not in the paper; ``ReebConfig.rescore``)
-        if cfg.rescore != "none":
-            with self._stage("rescore", dev):
-                scores, chosen = sel.rescore(maps, grid, scores, chosen)
         # the learned ranking of the candidates (not in the paper; ``ReebConfig.ranker``)
         v_scores = scores
         ranked: list[tuple[Tensor, Tensor, Tensor]] = []  # the ranked candidates' features, for the hints and quota
@@ -441,15 +434,10 @@ class ProposalGenerator(nn.Module):
             scores, chosen, class_of, ranked_logits = self._rank(maps, grid, scores, chosen, share, entropy, ranked)
             if trace is not None:
                 trace.ranked, trace.kept = scores.clone(), chosen.clone()
-        # Edge Boxes' refinement of the candidates (not in the paper; ``ReebConfig.refine``)
-        refined = None
-        if cfg.refine:
-            with self._stage("refine", dev):
-                refined = sel.refine(maps, grid, chosen, scores)
         # Sec. 3.8: Final_Proposals = NMS(Sorted_Proposals) (eq. 13)
         windows: list[Tensor] | None = [] if self.classes is not None else None
         with self._stage("nms", dev):
-            results = sel.suppress(maps, grid, chosen, scores, share, refined, windows, class_of,
+            results = sel.suppress(maps, grid, chosen, scores, windows, class_of,
                                    None if self.ranker is None else self.ranker.class_share)
         if windows is not None:  # which class each proposal looks like (the ranking model's class head)
             assert self.ranker is not None  # classes come from its model
@@ -504,7 +492,7 @@ class ProposalGenerator(nn.Module):
                   check_at: list[int | None] | None = None) -> Working:
         """Sec. 3.4 on the batch: the working-resolution grey image (the compiled front end
         where it applies, else resize and grey as tensor ops), the green-pixel counts, the
-        edge map and, for the straddling term, the edges' crossing maps.
+        edge map.
 
         ``check_at[j]`` not ``None``: image ``j`` (image ``check_at[j]`` of the caller's
         batch, as the error names it) is float32 whose values are not yet checked; the
@@ -516,7 +504,7 @@ class ProposalGenerator(nn.Module):
         green: Tensor | None = None
         want_green = cfg.vegetation_score != "none"
         pending = [(j, i) for j, i in enumerate(check_at or ()) if i is not None]
-        if cfg.edge_channels == "gray" and not needs_colour:
+        if not needs_colour:
             outside: list[int] | None = [] if pending else None
             front = _edges.working_gray(images, cfg.scale, with_green=want_green, outside=outside)
             if front is not None:
@@ -528,16 +516,8 @@ class ProposalGenerator(nn.Module):
             colour = _edges.working_images(images, cfg.scale)
             gray = _edges.to_gray(colour)
             green = _scoring.count_integral(_edges.green_mask(colour)) if want_green else None
-        src = gray if cfg.edge_channels == "gray" else colour
-        assert src is not None  # RGB edges take the colour images made above (never the compiled grey front end)
-        crossing = None
-        if cfg.straddle_weight > 0:  # edge orientations for the straddling term
-            edges, gx, gy = _edges.edge_map(src, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated,
-                                            cfg.thin_edges, return_gradients=True)
-            crossing = _edges.crossing_maps(edges, gx, gy)
-        else:
-            edges = _edges.edge_map(src, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges)
-        return Working(gray, edges, colour, green, crossing)
+        edges = _edges.edge_map(gray, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges)
+        return Working(gray, edges, colour, green)
 
 
 def _kept_maps(maps: ScoreMaps, bounds: Tensor, entropy: Tensor, share: Tensor, num_windows: int) -> dict:
@@ -573,7 +553,7 @@ def _kernel_key(config: ReebConfig) -> tuple:
     sweep over settings does not pay it per trial."""
     key = [(f.name, getattr(config, f.name)) for f in dataclasses.fields(config)
            if isinstance(getattr(config, f.name), (bool, str))]
-    key += [("straddle", config.straddle_weight > 0), ("sqrt_shadow", config.shadow_power == 0.5),
+    key += [("sqrt_shadow", config.shadow_power == 0.5),
             ("front_end", 0 < config.scale < 1), ("ground", config.ground_band is None)]
     return tuple(key)
 

@@ -27,33 +27,24 @@ def test_paper_constants_are_the_defaults():
 
 def test_paper_preset_follows_the_printed_text():
     p = ReebConfig.paper()
-    assert p.scale == 1.0 and p.grouping == "connected" and p.group_cell is None
+    assert p.scale == 1.0 and p.group_cell is None
     assert p.score_norm == "area" and p.road_score == "reward" and p.location_score == "paper"
-    assert p.road_combine == "and" and not p.thin_edges and not p.local_max
+    assert not p.thin_edges
     assert p.min_edge_score == 0.01 and p.ground_band is None and p.region_assign == "contained"
 
 
 def test_presets_and_lookup():
-    assert set(PRESETS) == {"default", "training-free", "training-free-no-regions", "paper", "paper-no-regions",
-                            "persons"}
+    assert set(PRESETS) == {"default", "training-free", "paper"}
     # the class quota is a field a user sets: the default but for the output's shares per hinted class
     assert ReebConfig(class_quota={"Pedestrian": 0.3, "Cyclist": 0.1, "Truck": 0.05}) == ReebConfig().replace(
         class_quota=(("Pedestrian", 0.3), ("Cyclist", 0.1), ("Truck", 0.05)))
     # the default ranks with the shipped model; training-free is it without the learned part
     assert ReebConfig().ranker == "kitti" and get_preset("training-free") == ReebConfig().training_free()
     assert get_preset("training-free").ranker == "none"
-    assert get_preset("paper").ranker == "none" == get_preset("paper-no-regions").ranker  # the printed text
-    assert get_preset("training-free-no-regions") == get_preset("training-free").replace(use_regions=False)
-    assert get_preset("paper-no-regions") == get_preset("paper").replace(use_regions=False)
-    # the opt-in second scoring pass: training-free but for the rescore fields
-    persons = get_preset("persons")
-    assert (persons.rescore, persons.rescore_scope, persons.rescore_max_height_m) == ("orientation", "persons", 2.3)
-    assert persons.replace(rescore="none", rescore_scope="all", rescore_max_height_m=None) == \
-        get_preset("training-free")
-    assert not get_preset("paper-no-regions").use_regions
-    assert not ReebConfig().refine
+    assert get_preset("paper").ranker == "none"  # the printed text
     # an unknown name (a removed preset or a former alias too) is one line naming the valid ones
-    for name in ("nope", "refined", "class-quota", "default-no-regions"):
+    for name in ("nope", "refined", "class-quota", "default-no-regions", "persons", "paper-no-regions",
+                 "training-free-no-regions"):
         with pytest.raises(ValueError) as info:
             get_preset(name)
         assert str(info.value) == f"unknown preset {name!r}; choose one of {', '.join(sorted(PRESETS))}"
@@ -65,9 +56,9 @@ def test_front_end_fields_come_from_the_field_declarations():
     from reeb_torch import generator
 
     assert set(_config.FRONT_END_FIELDS) == set(generator.FRONT_END_FIELDS) == {
-        "scale", "blur_sigma", "edge_threshold", "edge_channels", "thin_edges", "remove_isolated", "grouping",
-        "group_cell", "straddle_weight", "vegetation_score", "road_score", "road_samples", "road_band",
-        "road_tolerance", "road_combine", "seed", "shadow_score"}
+        "scale", "blur_sigma", "edge_threshold", "thin_edges", "remove_isolated",
+        "group_cell", "vegetation_score", "road_score", "road_samples", "road_band",
+        "road_tolerance", "seed", "shadow_score"}
     marked = [f.name for f in dataclasses.fields(ReebConfig) if f.metadata.get("stage") == "front"]
     assert list(_config.FRONT_END_FIELDS) == marked
 
@@ -85,8 +76,8 @@ def test_no_figures_in_the_configs_words():
 
 @pytest.mark.parametrize(
     "field, value",
-    [("scale", 0), ("scale", float("nan")), ("edge_threshold", 1.5), ("grouping", "blob"), ("group_cell", 1),
-     ("road_band", (0.5, 0.5, 0.4, 1.0)), ("road_combine", "xor"), ("entropy_bins", 1), ("top_k", 0),
+    [("scale", 0), ("scale", float("nan")), ("edge_threshold", 1.5), ("window_geometry", "blob"), ("group_cell", 1),
+     ("road_band", (0.5, 0.5, 0.4, 1.0)), ("region_assign", "xor"), ("entropy_bins", 1), ("top_k", 0),
      ("nms_iou", 0), ("min_window", 2), ("size_ratio", 1.0), ("aspect_range", (2.0, 1.0)),
      ("location_score", "sky"), ("road_score", "maybe"), ("region_overlap", 0.0)],
 )
@@ -130,7 +121,7 @@ def test_bool_fields_take_only_bools(field, value):
         ("min_edge_score", float("nan"), ValueError, "a finite number"),
         ("scale", 10**400, ValueError, "a finite number"),
         ("group_cell", 8.0, TypeError, "None or an int (not a bool)"),
-        ("grouping", 3, TypeError, "one of 'connected', 'cell'"),
+        ("road_score", 3, TypeError, "one of 'reward', 'none'"),
         ("road_band", (0.3, 0.8, 0.7), ValueError, "a tuple of 4 finite numbers"),
         ("road_band", "0.3,0.8,0.7,1", TypeError, "a tuple of 4 finite numbers"),
         ("aspect_range", (0.5, None), TypeError, "a tuple of 2 finite numbers"),
@@ -172,8 +163,8 @@ def test_numeric_fields_have_a_range():
 def test_joint_conditions_name_all_their_fields():
     with pytest.raises(ValueError, match=r"^ReebConfig\.class_heights_m and ReebConfig\.class_weights must be of the same length"):
         ReebConfig(class_weights=(1.0,))
-    with pytest.raises(ValueError, match=r"^ReebConfig\.grouping and ReebConfig\.group_cell must be .*grouping='cell'"):
-        ReebConfig(grouping="cell", group_cell=None)
+    with pytest.raises(ValueError, match=r"^ReebConfig\.class_heights_m and ReebConfig\.object_templates must be of the same length"):
+        ReebConfig(object_templates=((1.0, 2.0, 0.5, 4.0),))
     # eq. 7 with a tiny object: region strips far narrower than a pixel would be thousands
     with pytest.raises(ValueError, match=r"ReebConfig\.max_object_width_m, .* at most 1024 regions"):
         ReebConfig(max_object_width_m=1e-3, region_width_round=None)
@@ -211,7 +202,6 @@ def test_values_are_normalised_so_equal_settings_are_equal():
 def test_shape_fit_needs_one_template_per_class():
     with pytest.raises(ValueError, match="one template per class"):
         ReebConfig(object_templates=((1.0, 2.0, 0.5, 4.0),))
-    ReebConfig(object_templates=((1.0, 2.0, 0.5, 4.0),), location_fit="height")  # the height fit reads no template
 
 
 def test_json_round_trip_with_nested_tuples():

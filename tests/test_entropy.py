@@ -34,12 +34,10 @@ def test_entropy_extremes():
     assert float(region_entropy(ramp, torch.tensor([[0, 16]]), 256)) == pytest.approx(8.0, abs=1e-5)
 
 
-def test_share_abs_diff_and_printed():
+def test_share_abs_diff():
     h = torch.tensor([0.0, 2.0, 4.0, 6.0, 8.0, 9.0])
-    share = proposal_share(h, 4.0, "abs-diff")
+    share = proposal_share(h, 4.0)
     assert share.tolist() == pytest.approx([0.0, 0.5, 1.0, 0.5, 0.0, 0.0])
-    printed = proposal_share(h, 4.0, "printed")
-    assert printed.tolist() == [0.0] * 6  # no proposals for any H >= 0 (reading 9 in docs/results.md)
     assert math.isclose(float(proposal_share(torch.tensor(3.0), 4.0)), 0.75)
 
 

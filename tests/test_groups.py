@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from reeb_torch.stages.groups import cell_groups, connected_groups, label_components
+from reeb_torch.stages.groups import connected_groups, label_components
 
 
 def _flood_components(mask: torch.Tensor) -> list[set[tuple[int, int]]]:
@@ -64,18 +64,6 @@ def test_connected_groups_cut_at_tiles():
     assert len(g) == 2 and g.batch.tolist() == [1, 1]
     assert sorted(zip(g.x1.tolist(), g.x2.tolist())) == [(0, 7), (8, 15)]
     assert g.magnitude.dtype == torch.float64 and g.magnitude.tolist() == [8.0, 8.0]
-
-
-def test_cell_groups():
-    e = torch.zeros(1, 8, 8)
-    e[0, 1, 1] = 0.3
-    e[0, 2, 3] = 0.2
-    e[0, 6, 6] = 1.0
-    g = cell_groups(e, 4)
-    assert len(g) == 2
-    i = int(torch.argmin(g.magnitude))
-    assert abs(float(g.magnitude[i]) - 0.5) < 1e-6
-    assert (int(g.x1[i]), int(g.y1[i]), int(g.x2[i]), int(g.y2[i])) == (1, 1, 3, 2)
 
 
 def _tensor_path(edges: torch.Tensor, cell: int | None):

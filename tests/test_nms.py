@@ -125,7 +125,7 @@ def test_generator_candidates_equal_torchvision():
             caught.append((boxes[cand], scores[i, cand], iou, k))
         return orig(chosen, boxes, scores, iou, k, boxes_ok)
 
-    gen = ProposalGenerator(get_preset("training-free-no-regions"))
+    gen = ProposalGenerator(get_preset("training-free").replace(use_regions=False))
     gen([read_image(path)])  # a first call warms the kernels up on a picture of its own, not to be caught
     orig, R.nms_windows_cpu = R.nms_windows_cpu, spy
     try:
@@ -224,7 +224,7 @@ def test_nms_windows_cpu_with_class_needs_stops_where_the_quota_is_decided():
                                    rk.quota(full[i], classes[i, full[i]], share, whole=True)[:k]), (k, i)
             if boxes is b and not bool(need.any()):  # no quota: k, as without classes (NaN: the checked path)
                 assert len(short[0]) == len(short[1]) == len(short[2]) == k
-    # needs per image (region_quota: each image's regions by its own shares)
+    # needs per image (each image's groups by its own shares)
     rk = WindowSelection(ReebConfig(top_k=100))
     shares = torch.tensor([[0.5, 0.3, 0.2, 0.0], [0.1, 0.1, 0.1, 0.7], [0.0, 0.0, 0.0, 1.0], [0.25, 0.25, 0.25, 0.25]])
     need = torch.stack([rk.quota_counts(sh, float(sh.sum())) for sh in shares])

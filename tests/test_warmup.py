@@ -71,7 +71,7 @@ def test_first_call_reports_its_warm_up_apart(sample_image):
     other = ProposalGenerator(cfg.replace(top_k=77, alpha=0.3))  # other numbers: the same kernels
     other([sample_image])
     assert other.compile_s == 0.0
-    switched = ProposalGenerator(cfg.replace(**TRAINING_FREE, refine=True))  # another switch: warms up
+    switched = ProposalGenerator(cfg.replace(**TRAINING_FREE, thin_edges=False))  # another switch: warms up
     generator._WARM.discard(generator._kernel_key(switched.config))
     switched([sample_image])
     assert switched.compile_s > 0
@@ -146,7 +146,7 @@ def test_the_helper_process_starts_and_is_stopped(monkeypatch):
 
 def test_the_compiled_path_does_not_import_torchvision():
     # importing torchvision costs ~2.7 s (torch._dynamo) at every start; only the
-    # torchvision NMS path (CUDA, refined boxes) needs it
+    # torchvision NMS path (CUDA) needs it
     import os
     import subprocess
     import sys

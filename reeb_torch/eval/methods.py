@@ -18,7 +18,8 @@ Rows are methods, columns are recall at IoU 0.3 / 0.5 / 0.7 (:data:`IOUS`) for t
 - Ours** + learned ranking, fitted on the other folders [reeb-default-lofo, with
   ``leave_folder_out``]: the same with one block per data folder (another drive, another
   camera set-up): how a model holds on frames unlike those it was fitted on;
-- REEB as printed [reeb-paper-no-regions, reeb-paper]: the ``paper`` preset.
+- REEB as printed [reeb-paper-no-regions, reeb-paper]: the ``paper`` preset, without / with
+  region enhancement.
 
 This module imports neither torch nor OpenCV (a method's model is built when it runs), so
 the command line can list the methods and check its options at once.
@@ -73,17 +74,20 @@ class Method:
     batched: bool = False
     """Accepts a list of images (REEB), so batch timing applies."""
     preset: str | None = None
-    """The REEB preset of a REEB row (its ranking model, if any, is checked against the frames)."""
+    """The REEB preset of a REEB row, the region enhancement aside (its ranking model, if any,
+    is checked against the frames)."""
     cross_validated: bool = False
     """Ranked by models fitted on the measured frames' other blocks (``cross_validate``):
     its boxes come from :func:`cross_validated_boxes`, not from ``build``."""
 
 
-def _reeb(preset: str) -> Callable[..., Callable]:
+def _reeb(preset: str, **changes: Any) -> Callable[..., Callable]:
+    """The generator of a REEB row: the preset with ``changes`` (``use_regions=False``: the
+    rows without the region enhancement)."""
     def build(max_proposals: int, **_: Any) -> Callable:
         from .. import ProposalGenerator, get_preset
 
-        gen = ProposalGenerator(get_preset(preset), top_k=max_proposals)
+        gen = ProposalGenerator(get_preset(preset).replace(**changes), top_k=max_proposals)
         gen.eval()
         return gen
 
@@ -111,16 +115,16 @@ METHODS: dict[str, Method] = {
         Method("bing", "BING", _baseline("bing")),
         Method("selective-search", "Selective Search", _baseline("selective-search")),
         Method("edgeboxes", "Edge Boxes (Sobel)", _baseline("edgeboxes")),
-        Method("reeb-default-no-regions", "Ours* (training-free, no regions)", _reeb("training-free-no-regions"),
-               True, "training-free-no-regions"),
+        Method("reeb-default-no-regions", "Ours* (training-free, no regions)",
+               _reeb("training-free", use_regions=False), True, "training-free"),
         Method("reeb-training-free", "Ours** (training-free)", _reeb("training-free"), True, "training-free"),
         Method("reeb-default", "Ours** + learned ranking (default)", _reeb("default"), True, "default"),
         Method(CROSS_VALIDATED, "Ours** + learned ranking (cross-validated)", _reeb("default"), True,
                cross_validated=True),
         Method(LEAVE_FOLDER_OUT, "Ours** + learned ranking (fitted on the other folders)", _reeb("default"), True,
                cross_validated=True),
-        Method("reeb-paper-no-regions", "REEB paper preset, no regions", _reeb("paper-no-regions"), True,
-               "paper-no-regions"),
+        Method("reeb-paper-no-regions", "REEB paper preset, no regions", _reeb("paper", use_regions=False), True,
+               "paper"),
         Method("reeb-paper", "REEB paper preset", _reeb("paper"), True, "paper"),
     ]
 }

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from ..stages._threads import on_two_cores
-from ..stages.refinement import EnclosedTables, box_sum_at, enclosed_at
+from ..stages.enclosed import EnclosedTables, box_sum_at, enclosed_at
 from ..stages.scoring import class_height_fits, class_width_fits, edge_norm
 
 __all__ = ["FEATURES_VERSION", "BoxMaps", "feature_names", "window_names", "cheap_count", "window_features",
@@ -96,7 +96,7 @@ class BoxMaps:
         ii_grey2: ``float64 (B, h + 1, w + 1)`` integral image of its square.
         green: ``int32 (B, h + 1, w + 1)`` green-pixel counts, or None (those features are 0).
             (The tables may be None for :func:`window_features`, which reads none.)
-        tables: the groups' enclosed-sum tables (:class:`~reeb_torch.stages.refinement.EnclosedTables`).
+        tables: the groups' enclosed-sum tables (:class:`~reeb_torch.stages.enclosed.EnclosedTables`).
         horizon: the horizon row as a fraction of the height.
         camera_height_m: the camera's height above the road.
         class_ratios: per class, its typical height over the camera height.

@@ -29,7 +29,7 @@ from .prefilter import prefilter_cpu
 __all__ = ["CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANKER"]
 
 NOT_SEEN_BY_RANKER: tuple[str, ...] = ("top_k", "ranker", "ranker_keep", "ranker_v_share", "nms_iou",
-                                        "region_quota", "class_quota")
+                                        "class_quota")
 """Fields a ranking model does not depend on (they act after it)."""
 
 
@@ -123,8 +123,7 @@ class CandidateFeatures:
         with ``geometry_only``, only their sizes (for the window columns: no table is built)."""
         cfg = self.config
         grey = maps.grey
-        widths = (tuple((t[2], t[3]) for t in cfg.object_templates)
-                  if cfg.location_fit == "shape" and len(cfg.object_templates) == len(cfg.class_heights_m) else None)
+        widths = tuple((t[2], t[3]) for t in cfg.object_templates)
         ii_edges = ii_grey = ii_grey2 = green = None
         tables = None
         if not geometry_only:

@@ -197,7 +197,7 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
 
 @main.command(context_settings=CONTEXT)
 @click.option("-p", "--preset", default="default", show_default=True,
-              help="The preset whose kernels to compile (its refinement too).")
+              help="The preset whose kernels to compile (and those of its ranking by V).")
 def warmup(preset):
     """Compile the CPU kernels once for this install (or load them from the cache), so that
     the first `reeb propose` or ProposalGenerator call does not pay for it; e.g. right after
@@ -213,7 +213,7 @@ def warmup(preset):
         cfg = get_preset(preset)
     except (KeyError, ValueError) as e:
         raise UsageProblem(str(e))
-    seconds = _warmup(cfg, cfg.unranked().replace(rescore="none", refine=True))
+    seconds = _warmup(cfg, cfg.unranked())
     where = cache_dir()
     click.echo(f"kernels ready in {seconds:.1f} s"
                + (f" (cached in {where})" if where else f" (not cached: {cache_note()})"), err=True)

@@ -28,7 +28,7 @@ class RegionCut(GridCache):
         bounds = self.region_bounds(gray.shape[-1])
         if cfg.use_regions:
             entropy = _entropy.region_entropy(gray, bounds, cfg.entropy_bins)
-            share = _entropy.proposal_share(entropy, cfg.entropy_sigma, cfg.entropy_form)
+            share = _entropy.proposal_share(entropy, cfg.entropy_sigma)
         else:  # one region, the whole image: entropy is not applicable (Sec. 4.2)
             entropy = torch.zeros(b, 1, device=gray.device)
             share = torch.ones(b, 1, device=gray.device)

@@ -5,10 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Callable, Literal
 
-import torch.nn.functional as F
 from torch import Tensor
 
-from ..stages import refinement as _refinement
+from ..stages import enclosed as _enclosed
 from ..stages import scoring as _scoring
 from ..stages.groups import EdgeGroups
 
@@ -28,8 +27,6 @@ class ScoreMaps:
         grey: ``float32 (B, h, w)`` grey image (the shadow term, the learned ranking's features), or None.
         green: ``int32 (B, h + 1, w + 1)`` green-pixel counts (an integral image already)
             for the vegetation term, or None without it.
-        crossing: the straddling term's ``(columns, rows)`` maps of edges crossing a side,
-            or None without it.
     """
 
     edges: Tensor
@@ -38,9 +35,8 @@ class ScoreMaps:
     road: Tensor | None = None
     grey: Tensor | None = None
     green: Tensor | None = None
-    crossing: tuple[Tensor, Tensor] | None = None
     _kept: dict = field(default_factory=dict, repr=False)
-    _pending: Callable[[], _refinement.EnclosedTables] | None = field(default=None, repr=False)
+    _pending: Callable[[], _enclosed.EnclosedTables] | None = field(default=None, repr=False)
 
     @property
     def fx(self) -> float:
@@ -57,12 +53,12 @@ class ScoreMaps:
             self._kept[key] = build()
         return self._kept[key]
 
-    def tables(self) -> _refinement.EnclosedTables:
-        """The groups' enclosed-sum prefix tables (:func:`~reeb_torch.stages.refinement.enclosed_tables`);
+    def tables(self) -> _enclosed.EnclosedTables:
+        """The groups' enclosed-sum prefix tables (:func:`~reeb_torch.stages.enclosed.enclosed_tables`);
         where :meth:`start_tables` started them, waits for them."""
         self.settle()
         b, hk, wk = self.edges.shape
-        return self._keep("tables", lambda: _refinement.enclosed_tables(self.groups, b, hk, wk))
+        return self._keep("tables", lambda: _enclosed.enclosed_tables(self.groups, b, hk, wk))
 
     def start_tables(self) -> None:
         """Start :meth:`tables` on the helper thread (CPU only): this thread goes on meanwhile
@@ -70,7 +66,7 @@ class ScoreMaps:
         the batch ends, whatever happens (the tables are memory the next batch reuses)."""
         if "tables" not in self._kept and self._pending is None and self.edges.device.type == "cpu":
             b, hk, wk = self.edges.shape
-            self._pending = _refinement.enclosed_tables_started(self.groups, b, hk, wk)
+            self._pending = _enclosed.enclosed_tables_started(self.groups, b, hk, wk)
 
     def settle(self) -> None:
         """Wait for the tables :meth:`start_tables` started, if any, and keep them."""
@@ -87,17 +83,6 @@ class ScoreMaps:
         """:meth:`integral` extended past the bottom row (strips below a box read zeros
         there: :func:`~reeb_torch.stages.scoring.extend_below`)."""
         return self._keep((name, "below"), lambda: _scoring.extend_below(self.integral(name)))
-
-    def crossing_integrals(self, band: int) -> tuple[Tensor, Tensor]:
-        """Integral images of the straddling term's two maps, padded by ``band`` so that
-        sides at the image border read zeros."""
-        def build() -> tuple[Tensor, Tensor]:
-            assert self.crossing is not None, "the straddling term's maps were not made"
-            cols, rows = self.crossing
-            return (_scoring.integral_image(F.pad(cols, (band, band, band, band))),
-                    _scoring.integral_image(F.pad(rows, (band, band, band, band))))
-
-        return self._keep(("crossing", band), build)
 
     def integral_grey_squared(self) -> Tensor:
         """The integral image of the grey image's square (the learned ranking's grey spread)."""

@@ -7,11 +7,10 @@ import math
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from ..stages import _scratch
-from ..stages import refinement as _refinement
+from ..stages import enclosed as _enclosed
 from ..stages import scoring as _scoring
 from ..stages import windows as _windows
 from ..stages.groups import EdgeGroups
@@ -29,7 +28,7 @@ def _tables_exact(groups: EdgeGroups, grid: _windows.WindowGrid) -> bool:
 
 class WindowScoring(GridCache):
     """The window grid of a batch's image size and V of its windows; the location score L
-    (eq. 11 and its variants) that the refinement's box scorer reads too."""
+    (eq. 11 and its variants)."""
 
     # -- windows (Sec. 3.6) -----------------------------------------------------------------
     def window_grid(self, maps: ScoreMaps, bounds: Tensor) -> _windows.WindowGrid:
@@ -44,7 +43,7 @@ class WindowScoring(GridCache):
             ratios = tuple((hl / cfg.camera_height_m, hh / cfg.camera_height_m,
                             wl / cfg.camera_height_m * fx / fy, wh / cfg.camera_height_m * fx / fy)
                            for hl, hh, wl, wh in cfg.object_templates)
-            camera = (cfg.horizon, ratios, cfg.border_windows, cfg.horizon_slack)
+            camera = (cfg.horizon, ratios)
         return _windows.window_grid(hk, wk, bounds, self.min_window_working(fx, fy), cfg.size_ratio,
                                     cfg.window_step, cfg.aspect_range, cfg.region_assign, ground, camera)
 
@@ -54,13 +53,12 @@ class WindowScoring(GridCache):
 
     # -- scores (eqs. 1, 10-12) ---------------------------------------------------------------
     def score(self, maps: ScoreMaps, grid: _windows.WindowGrid) -> Tensor:
-        """V (eq. 12) of every window, ``float32 [B, N]``; ``-inf`` where S < min_edge_score
-        (or, with ``local_max``, where a neighbouring position of the same size scores higher).
+        """V (eq. 12) of every window, ``float32 [B, N]``; ``-inf`` where S < min_edge_score.
 
-        On the CPU, when no term needs per-window maps (no road fraction, straddling or
-        local maxima) and every window is wider and taller than every edge group, one
-        compiled pass (:func:`reeb_torch.stages.scoring.score_grid_cpu`) scores all windows;
-        otherwise one batch of tensor ops per window size (:meth:`score_torch`). Both give
+        On the CPU, when no term needs per-window maps (no road fraction) and every window is
+        wider and taller than every edge group, one compiled pass
+        (:func:`reeb_torch.stages.scoring.score_grid_cpu`) scores all windows; otherwise one
+        batch of tensor ops per window size (:meth:`score_torch`). Both give
         the same numbers."""
         if self.compiled_scoring_applies(maps, grid):
             return self.score_compiled(maps, grid)
@@ -74,8 +72,7 @@ class WindowScoring(GridCache):
         """:meth:`compiled_scoring_applies` but for the window grid's part: whether the
         scores may read ``maps.tables()`` (the generator starts them early then)."""
         cfg = self.config
-        return (maps.edges.device.type == "cpu" and maps.crossing is None and not cfg.local_max
-                and cfg.road_score in ("none", "flat"))
+        return maps.edges.device.type == "cpu" and cfg.road_score == "none"
 
     def score_compiled(self, maps: ScoreMaps, grid: _windows.WindowGrid) -> Tensor:
         """:meth:`score` in one compiled pass (:func:`reeb_torch.stages.scoring.score_grid_cpu`)."""
@@ -86,7 +83,6 @@ class WindowScoring(GridCache):
         out_np = _scratch.empty("score.out", (b, grid.count), np.float32)
         out_np.fill(-np.inf)  # (numpy's fill: one thread, where torch's would wake its pool)
         out = torch.from_numpy(out_np)
-        road = 1.0 if cfg.road_score == "flat" else 0.0
         ii_grey = shadow = sqrt_floor = None
         if cfg.shadow_score != "none":
             ii_grey = maps.integral("grey")
@@ -95,7 +91,7 @@ class WindowScoring(GridCache):
             else:
                 shadow = torch.zeros((b, grid.count), dtype=torch.float64)
         _scoring.score_grid_cpu(maps.integral("edges"), maps.tables(), plan, denom, loc, _scoring.unit_scale(fx, fy),
-                                cfg.alpha, cfg.beta * road, cfg.min_edge_score, out, ii_grey, shadow, sqrt_floor,
+                                cfg.alpha, 0.0, cfg.min_edge_score, out, ii_grey, shadow, sqrt_floor,
                                 maps.green, cfg.vegetation_power, order)
         if shadow is not None:
             out = _scoring.apply_shadow(out, shadow, cfg.shadow_floor, cfg.shadow_power)
@@ -109,11 +105,7 @@ class WindowScoring(GridCache):
         ii_edges = maps.integral("edges")
         enclosed = self.enclosed(maps, grid)
         ii_road = maps.integral("road") if maps.road is not None else None  # None: no road term
-        ii_road_below = maps.integral_below("road") if cfg.road_score == "stand" else None  # none past the bottom
         loc_cache: dict = {}  # L of a size's rows, shared between sizes with the same _loc_key
-        band = cfg.straddle_band
-        if maps.crossing is not None:  # padded by the band so sides at the image border read zeros
-            ii_cols, ii_rows = maps.crossing_integrals(band)
         unit = _scoring.unit_scale(fx, fy)
         out = torch.full((b, grid.count), -math.inf, dtype=torch.float32, device=edges.device)
         shadow = ii_grey_below = None
@@ -123,20 +115,10 @@ class WindowScoring(GridCache):
         for s, enc, off in zip(grid.sizes, enclosed, grid.offsets):
             dx, dy, cw, ch = _scoring.centre_box(s.w, s.h, cfg.center_fraction)
             centre = _scoring.box_sums(ii_edges, dx, dy, cw, ch, s)
-            if maps.crossing is not None:  # contours cut by the box's sides (straddling edges)
-                r2 = 2 * band
-                cut = (_scoring.box_sums(ii_cols, 0, band, r2, s.h, s) + _scoring.box_sums(ii_cols, s.w, band, r2, s.h, s)
-                       + _scoring.box_sums(ii_rows, band, 0, s.w, r2, s) + _scoring.box_sums(ii_rows, band, s.h, s.w, r2, s))
-                centre = centre + cfg.straddle_weight * cut
             bw, bh = s.w / fx, s.h / fy
             sc = _scoring.edge_score(enc * unit, centre * unit, bw, bh, cfg.score_norm, cfg.kappa, cfg.gamma).float()
             r = (_scoring.box_sums(ii_road, 0, 0, s.w, s.h, s) / (s.w * s.h)).float() if ii_road is not None \
                 else torch.zeros_like(sc)
-            if cfg.road_score == "stand":  # road just below the box, little road inside it
-                sh = max(1, int(round(cfg.road_strip * s.h)))
-                assert ii_road_below is not None  # made above for road_score='stand'
-                below = _scoring.box_sums(ii_road_below, 0, s.h, s.w, sh, s) / (s.w * sh)
-                r = (below.float() * (1.0 - r)).clamp_(0, 1)
             key = self._loc_key(s)
             loc = loc_cache.get(key) if key is not None else None
             if loc is None:
@@ -162,39 +144,26 @@ class WindowScoring(GridCache):
                 shadow[:, off: off + s.count] = u.reshape(b, -1)
         if shadow is not None:  # one call on the whole score tensor, as the compiled path
             out = _scoring.apply_shadow(out, shadow, cfg.shadow_floor, cfg.shadow_power)
-        if cfg.local_max:
-            self._keep_local_maxima(out, grid)
         return out
-
-    @staticmethod
-    def _keep_local_maxima(out: Tensor, grid: _windows.WindowGrid) -> None:
-        """``local_max``: ``-inf`` (in place) where a neighbouring position of the same size scores higher."""
-        b = out.shape[0]
-        for s, off in zip(grid.sizes, grid.offsets):
-            v = out[:, off: off + s.count].view(b, s.ny, s.nx)
-            peak = F.max_pool2d(v[:, None], 3, stride=1, padding=1)[:, 0]
-            out[:, off: off + s.count] = torch.where(v >= peak, v, -math.inf).reshape(b, -1)
 
     def enclosed(self, maps: ScoreMaps, grid: _windows.WindowGrid) -> list[Tensor]:
         """Eq. 1's enclosed sums of every window, per size. Groups bounded to tiles smaller
         than every window: the batch's four prefix tables (:meth:`ScoreMaps.tables`), then
-        strided slices per size (:func:`reeb_torch.stages.refinement.enclosed_grid`); otherwise
+        strided slices per size (:func:`reeb_torch.stages.enclosed.enclosed_grid`); otherwise
         one scatter per size (:func:`reeb_torch.stages.scoring.enclosed_sums`). Both are exact
         float64 sums: the same numbers."""
         if not grid.sizes:
             return []
         if _tables_exact(maps.groups, grid):
             tables = maps.tables()
-            return [_refinement.enclosed_grid(tables, s) for s in grid.sizes]
+            return [_enclosed.enclosed_grid(tables, s) for s in grid.sizes]
         return _scoring.enclosed_sums(maps.groups, maps.edges.shape[0], grid.sizes)
 
-    def _ground_ratios(self) -> float | tuple[float, ...]:
-        """Box height / (bottom row − horizon) of the objects the location score expects:
-        one ratio (``ground``) or one per class (``classes``: typical height / camera height)."""
+    def _ground_ratios(self) -> tuple[float, ...]:
+        """Box height / (bottom row − horizon) of the objects the location score expects, one
+        per class (``classes``: typical height / camera height)."""
         cfg = self.config
-        if cfg.location_score == "classes":
-            return tuple(h / cfg.camera_height_m for h in cfg.class_heights_m)
-        return cfg.ground_ratio
+        return tuple(h / cfg.camera_height_m for h in cfg.class_heights_m)
 
     def _class_weights(self) -> tuple[float, ...] | None:
         cfg = self.config
@@ -202,9 +171,9 @@ class WindowScoring(GridCache):
 
     def _template_widths(self) -> tuple[tuple[float, float], ...] | None:
         """Each class's width range in metres when the location score fits the box's shape
-        (``location_fit='shape'`` with ``location_score='classes'``), else None."""
+        (``location_score='classes'``), else None."""
         cfg = self.config
-        if cfg.location_score == "classes" and cfg.location_fit == "shape":
+        if cfg.location_score == "classes":
             return tuple((t[2], t[3]) for t in cfg.object_templates)
         return None
 

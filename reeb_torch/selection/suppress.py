@@ -1,5 +1,5 @@
-"""Eq. 13: greedy NMS of each image's candidates, best first, to ``top_k``; with a quota
-(``region_quota``, ``class_quota``), each group's share of the output first."""
+"""Eq. 13: greedy NMS of each image's candidates, best first, to ``top_k``; with the class
+quota (``class_quota``), each class's share of the output first."""
 
 from __future__ import annotations
 
@@ -18,55 +18,43 @@ __all__ = ["Suppression"]
 class Suppression(GridCache):
     """The final proposals: NMS (eq. 13), the quotas, the boxes in input pixels."""
 
-    def suppress(self, maps: ScoreMaps, grid: _windows.WindowGrid, chosen: Tensor, scores: Tensor, share: Tensor,
-                 refined: tuple[list[Tensor], list[Tensor]] | None = None,
+    def suppress(self, maps: ScoreMaps, grid: _windows.WindowGrid, chosen: Tensor, scores: Tensor,
                  windows_out: list[Tensor] | None = None,
                  class_of: Tensor | None = None,
                  class_shares: tuple[float, ...] | None = None) -> list[dict[str, Tensor]]:
         """Greedy NMS (eq. 13) of each image's candidates, best first, stopping at ``top_k``
-        (with ``region_quota``, each region's share of the output first: :meth:`quota`; with
-        ``class_of`` ``int8 [B, N]``, the class hinted for each candidate
+        (with ``class_of`` ``int8 [B, N]``, the class hinted for each candidate
         (:meth:`~reeb_torch.ranker.LearnedRanking.class_map`), and ``class_shares``, one
-        share of ``top_k`` a class, each class's share first): one dict per image, ``boxes``
-        ``float32 [N, 4]`` in input pixels and ``scores`` ``float32 [N]``. ``chosen``: ``bool
-        [B, N]`` the candidates, ``scores``: ``float32 [B, N]`` theirs, ``share``: ``[B, R]``
-        the regions'. ``refined``: :meth:`~reeb_torch.selection.refine.Refinement.refine`'s
-        boxes and scores of the candidates (else the windows themselves, gathered, sorted and
-        suppressed in one compiled pass on the CPU: :func:`reeb_torch.stages.nms.nms_windows_cpu`).
-        ``windows_out``, if given, gets each image's ``int64 [N]`` window index of each output row."""
+        share of ``top_k`` a class, each class's share first: :meth:`quota`): one dict per
+        image, ``boxes`` ``float32 [N, 4]`` in input pixels and ``scores`` ``float32 [N]``.
+        ``chosen``: ``bool [B, N]`` the candidates, ``scores``: ``float32 [B, N]`` theirs. On
+        the CPU the windows are gathered, sorted and suppressed in one compiled pass
+        (:func:`reeb_torch.stages.nms.nms_windows_cpu`), elsewhere by
+        :func:`reeb_torch.stages.nms.nms_top_k_many`. ``windows_out``, if given, gets each
+        image's ``int64 [N]`` window index of each output row."""
         cfg = self.config
         b, dev = scores.shape[0], scores.device
         fx, fy = maps.fx, maps.fy
         to_input = torch.tensor([fx, fy, fx, fy], device=dev)
         boxes_in = self.grid_cached(("boxes_in", fx, fy, str(dev)), grid,
                                     lambda: self.device_tensor(grid.boxes, dev) / to_input)
-        region_of = self.device_tensor(grid.region_of, dev)
         class_share = (torch.tensor(class_shares, device=dev)
                        if class_of is not None and class_shares is not None else None)
-        quota = (cfg.region_quota and share.shape[1] > 1) or class_share is not None
-        kept = None
-        if refined is None:  # the windows themselves: gathered, sorted and suppressed compiled
-            ok = (self.grid_cached(("boxes_ok", fx, fy), grid, lambda: boxes_valid(boxes_in))
-                  if dev.type == "cpu" and boxes_in.dtype == torch.float32 else None)
-            groups = need = None  # with a quota: past top_k only until each group has its share of the kept boxes
-            if class_share is not None:
-                assert class_of is not None  # class_share is made only with it
-                groups, need = class_of.long().clamp(min=0), self.quota_counts(class_share)
-            elif quota:  # each image's regions, by its own shares (none where they sum to 0: quota keeps the best)
-                groups = region_of.expand(b, -1)
-                need = torch.stack([self.quota_counts(s, float(s.sum())) if float(s.sum()) > 0
-                                    else torch.zeros(len(s), dtype=torch.long, device=dev) for s in share])
-            kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, cfg.top_k, ok, groups, need)
+        quota = class_share is not None
+        ok = (self.grid_cached(("boxes_ok", fx, fy), grid, lambda: boxes_valid(boxes_in))
+              if dev.type == "cpu" and boxes_in.dtype == torch.float32 else None)
+        groups = need = None  # with a quota: past top_k only until each class has its share of the kept boxes
+        if class_share is not None:
+            assert class_of is not None  # class_share is made only with it
+            groups, need = class_of.long().clamp(min=0), self.quota_counts(class_share)
+        kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, cfg.top_k, ok, groups, need)
         cands = None
         if kept is not None:
             pairs = [(boxes_in, scores[i]) for i in range(b)]
             windows = kept
         else:
             cands = [torch.nonzero(chosen[i]).squeeze(1) for i in range(b)]
-            if refined is not None:
-                pairs = [(rb / to_input, rs) for rb, rs in zip(*refined)]
-            else:
-                pairs = [(boxes_in[c], scores[i, c]) for i, c in enumerate(cands)]
+            pairs = [(boxes_in[c], scores[i, c]) for i, c in enumerate(cands)]
             kept = nms_top_k_many(pairs, cfg.nms_iou, max(len(p[1]) for p in pairs) if quota else cfg.top_k)
             windows = [c[k] for c, k in zip(cands, kept)]
         results = []
@@ -76,8 +64,6 @@ class Suppression(GridCache):
                 assert class_of is not None  # class_share is made only with it
                 keep_idx = self.quota(keep_idx, class_of[i, win].long().clamp(min=0), class_share,
                                       whole=True)[: cfg.top_k]
-            elif quota:
-                keep_idx = self.quota(keep_idx, region_of[win], share[i])[: cfg.top_k]
             if windows_out is not None:
                 windows_out.append(keep_idx if cands is None else cands[i][keep_idx])
             # the contract 0 <= x1 < x2 <= W, 0 <= y1 < y2 <= H in input pixels: a window on

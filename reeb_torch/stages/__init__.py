@@ -16,7 +16,7 @@ module                 what it computes
 :mod:`.windows`        Sec. 3.6: the window grid (sizes and rows from the ground plane)
 :mod:`.scoring`        eqs. 1, 10–12: integral images, enclosed sums, S, L, V, the shadow
                        and vegetation terms, eq. 9's per-region cut
-:mod:`.refinement`     Edge Boxes' box refinement (optional), exact enclosed sums at any box
+:mod:`.enclosed`       eq. 1's enclosed sums at any box, from prefix tables
 :mod:`.nms`            Sec. 3.8, eq. 13: greedy NMS that stops at ``top_k``
 ``_radix``             radix sort and selection kernels (scoring, NMS)
 ``_threads``           the one helper thread the compiled kernels split work onto

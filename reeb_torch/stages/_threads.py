@@ -44,8 +44,8 @@ def _in_caller() -> bool:
 
 
 def on_two_cores(run: Callable[[int, int], None], b: int) -> None:
-    """``run(lo, hi)`` over items ``[0, b)`` (the images of a batch, or the boxes of the
-    refinement): a compiled kernel that releases the GIL runs on the two halves at once
+    """``run(lo, hi)`` over items ``[0, b)`` (the images of a batch, or the parts of
+    one image): a compiled kernel that releases the GIL runs on the two halves at once
     (the items are independent, so the numbers are the same as in one call). Calls from
     several threads share the helper thread (their second halves queue); a call from the
     helper thread itself, or within :func:`serially`, runs both halves in the calling

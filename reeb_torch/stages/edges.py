@@ -483,47 +483,26 @@ def remove_isolated(mask: Tensor) -> Tensor:
     return mask & (neighbours[:, 0] > 0.5)
 
 
-def edge_map(gray: Tensor, sigma: float, threshold: float, isolated: bool, thinning: bool = False,
-             return_gradients: bool = False) -> Tensor | tuple[Tensor, Tensor, Tensor]:
-    """Blur, Sobel, threshold and clean: ``(B, C, H, W)`` (grey, C = 1, or colour) →
-    ``(B, H, W)`` edge magnitudes in [0, 1], zero where there is no edge. With several
-    channels each pixel takes the gradient of the channel where it is strongest.
+def edge_map(gray: Tensor, sigma: float, threshold: float, isolated: bool, thinning: bool = False) -> Tensor:
+    """Blur, Sobel, threshold and clean: grey ``(B, 1, H, W)`` → ``(B, H, W)`` edge
+    magnitudes in [0, 1], zero where there is no edge.
     ``thinning`` keeps only the ridge of each edge (one pixel wide), as the thinned edge
-    maps Edge Boxes scores. With ``return_gradients`` also returns the Sobel ``gx, gy``
-    ``(B, H, W)`` the magnitudes came from (for edge orientations).
+    maps Edge Boxes scores.
 
     On the CPU the default path (grey, thinned, isolated pixels removed) runs as two
     compiled passes (numba) with the same float32 arithmetic, operation for operation, as
     the tensor ops (tested equal bit for bit)."""
-    b, c, h, w = gray.shape
-    if (c == 1 and thinning and isolated and not return_gradients and gray.device.type == "cpu"
-            and gray.dtype == torch.float32):
+    b, _, h, w = gray.shape
+    if thinning and isolated and gray.device.type == "cpu" and gray.dtype == torch.float32:
         return _edge_map_cpu(gray, sigma, threshold)
-    gx, gy = sobel_gradients(gaussian_blur(gray.reshape(b * c, 1, h, w), sigma))
-    if c > 1:
-        gx, gy = gx.view(b, c, h, w), gy.view(b, c, h, w)
-        pick = (gx * gx + gy * gy).argmax(1, keepdim=True)
-        gx, gy = gx.gather(1, pick)[:, 0], gy.gather(1, pick)[:, 0]
+    gx, gy = sobel_gradients(gaussian_blur(gray.reshape(b, 1, h, w), sigma))
     mag = gradient_magnitude(gx, gy)
     mask = mag > threshold
     if thinning:
         mask &= thin(mag, gx, gy)
     if isolated:
         mask = remove_isolated(mask)
-    if return_gradients:
-        return mag * mask, gx, gy
     return mag * mask
-
-
-def crossing_maps(edges: Tensor, gx: Tensor, gy: Tensor) -> tuple[Tensor, Tensor]:
-    """Split edge magnitudes ``(B, H, W)`` by the direction of their contour:
-    ``(across_columns, across_rows)`` = ``edges·sin²θ`` and ``edges·cos²θ`` with θ the
-    gradient angle from the x axis. A contour with a vertical gradient runs horizontally
-    and so crosses a vertical box side: ``across_columns`` is the part of each edge that
-    cuts a box's left/right sides, ``across_rows`` the part that cuts its top/bottom."""
-    g2 = gx * gx + gy * gy
-    sin2 = torch.where(g2 > 0, gy * gy / g2.clamp_min(1e-12), torch.zeros_like(g2))
-    return edges * sin2, edges * (1.0 - sin2)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -81,11 +81,10 @@ def _strip_histograms(gray: np.ndarray, bounds: np.ndarray, bins: int, hist: np.
                 counts[lv] += np.float32((part[0, lv] + part[1, lv]) + (part[2, lv] + part[3, lv]))
 
 
-def proposal_share(entropy: Tensor, sigma: float = 4.0, form: str = "abs-diff") -> Tensor:
-    """Eq. 9: the fraction in [0, 1] of a region's maximum number of proposals.
-
-    ``abs-diff`` (reading 9 in ``docs/results.md``): 1 − |σ − H|/σ where |σ − H| ≤ σ, else 0 — highest at H = σ.
-    ``printed``: 1 − |σ + H|/σ where |σ + H| ≤ σ, else 0 — zero for every H > 0.
+def proposal_share(entropy: Tensor, sigma: float = 4.0) -> Tensor:
+    """Eq. 9: the fraction in [0, 1] of a region's maximum number of proposals,
+    1 − |σ − H|/σ where |σ − H| ≤ σ, else 0 — highest at H = σ (reading 9: the printed
+    |σ + H| gives no proposals for any H > 0).
     """
-    d = (sigma - entropy).abs() if form == "abs-diff" else (sigma + entropy).abs()
+    d = (sigma - entropy).abs()
     return torch.where(d <= sigma, 1.0 - d / sigma, torch.zeros_like(entropy))

@@ -1,14 +1,12 @@
 """Sec. 3.7 — edge groups: adjacent edge pixels form one group, with its magnitude sum
 (``m_n`` of eq. 1) and bounding box.
 
-Two groupings (``ReebConfig.grouping``):
-
-* ``connected``: 8-connected components of edge pixels: on the CPU a compiled union–find
-  in one raster pass, elsewhere min-label propagation with pointer jumping over the edge
-  pixels only (batched tensor ops; the same groups). With ``cell`` set, the
-  components are cut at the borders of ``cell × cell`` tiles, which bounds the size of a
-  group (reading 2 in ``docs/results.md``); with ``cell=None`` they are plain connected components, as printed.
-* ``cell``: all edge pixels of one ``cell × cell`` tile are one group (no propagation).
+The groups are the 8-connected components of edge pixels: on the CPU a compiled
+union–find in one raster pass, elsewhere min-label propagation with pointer jumping over
+the edge pixels only (batched tensor ops; the same groups). With ``cell`` set
+(``ReebConfig.group_cell``), the components are cut at the borders of ``cell × cell``
+tiles, which bounds the size of a group (reading 2); with ``cell=None`` they are plain
+connected components, as printed.
 """
 
 from __future__ import annotations
@@ -19,12 +17,11 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from ._threads import on_two_cores
 
-__all__ = ["EdgeGroups", "edge_groups", "connected_groups", "cell_groups", "label_components"]
+__all__ = ["EdgeGroups", "connected_groups", "label_components"]
 
 
 @dataclass
@@ -58,14 +55,6 @@ class EdgeGroups:
             x1, y1, x2, y2 = (t.numpy() for t in (self.x1, self.y1, self.x2, self.y2))
             return int(np.maximum(x2 - x1, y2 - y1).max())
         return int(torch.maximum(self.x2 - self.x1, self.y2 - self.y1).max())
-
-
-def _tile(x: Tensor, cell: int, pad_value: float) -> Tensor:
-    """``(B, H, W)`` → ``(B, nY, nX, cell, cell)``, padding bottom/right with ``pad_value``."""
-    b, h, w = x.shape
-    ny, nx = -(-h // cell), -(-w // cell)
-    x = F.pad(x, (0, nx * cell - w, 0, ny * cell - h), value=pad_value)
-    return x.view(b, ny, cell, nx, cell).permute(0, 1, 3, 2, 4).contiguous()
 
 
 def _coords(b: int, h: int, w: int, device: torch.device) -> tuple[Tensor, Tensor]:
@@ -216,27 +205,8 @@ def _union_pass(edges: np.ndarray, cell: int) -> np.ndarray:  # pragma: no cover
 
 
 @numba.njit(cache=True, nogil=True)
-def pixel_labels(edges: np.ndarray, cell: int):  # pragma: no cover - compiled
-    """The components of :func:`_union_pass`, numbered in the order of their roots: the
-    label of every pixel, ``int64 [B·H·W]`` (−1: no edge), and the number of components.
-    Used by the rescoring cues (eq. 1's groups: :func:`_connected_groups_kernel`)."""
-    n = edges.size
-    parent = _union_pass(edges, cell)
-    label = np.full(n, -1, np.int64)
-    count = 0
-    for p in range(n):
-        if parent[p] >= 0 and _find(parent, p) == p:
-            label[p] = count
-            count += 1
-    for p in range(n):
-        if parent[p] >= 0:
-            label[p] = label[_find(parent, p)]  # the root (<= p) is numbered above
-    return label, count
-
-
-@numba.njit(cache=True, nogil=True)
 def _connected_groups_kernel(edges: np.ndarray, cell: int):  # pragma: no cover - compiled
-    """The groups of :func:`pixel_labels`, in the order of their roots, with their
+    """The components of :func:`_union_pass`, in the order of their roots, with their
     statistics as :func:`_stats` computes them (float64 mass, inclusive bounds)."""
     b, h, w = edges.shape
     n = b * h * w
@@ -330,34 +300,3 @@ def _joined(parts: list, shifts: list[tuple[int, int]]) -> EdgeGroups:
         add = [s[0] if i == 0 else s[1] if i in (2, 4) else 0 for s in shifts]
         cols.append(torch.from_numpy(np.concatenate([p[i] + a if a else p[i] for p, a in zip(parts, add)])))
     return EdgeGroups(*cols)
-
-
-def cell_groups(edges: Tensor, cell: int) -> EdgeGroups:
-    """All edge pixels of each ``cell × cell`` tile of ``(B, H, W)`` form one group."""
-    b, h, w = edges.shape
-    xs, ys = _coords(b, h, w, edges.device)
-    te = _tile(edges, cell, 0.0)
-    ny, nx = te.shape[1:3]
-    m = te > 0
-    big = float(max(h, w) + 1)
-    tx = _tile(xs.to(edges.dtype), cell, 0.0)
-    ty = _tile(ys.to(edges.dtype), cell, 0.0)
-    mass = te.double().sum((3, 4)).view(-1)
-    x1 = torch.where(m, tx, big).amin((3, 4)).view(-1)
-    y1 = torch.where(m, ty, big).amin((3, 4)).view(-1)
-    x2 = torch.where(m, tx, -1.0).amax((3, 4)).view(-1)
-    y2 = torch.where(m, ty, -1.0).amax((3, 4)).view(-1)
-    ids = torch.nonzero(x2 >= 0).squeeze(1)
-    return EdgeGroups(
-        batch=torch.div(ids, ny * nx, rounding_mode="floor"),
-        x1=x1[ids].long(), y1=y1[ids].long(), x2=x2[ids].long(), y2=y2[ids].long(),
-        magnitude=mass[ids],
-    )
-
-
-def edge_groups(edges: Tensor, grouping: str, cell: int | None) -> EdgeGroups:
-    """Dispatch on ``ReebConfig.grouping``; ``edges`` is ``(B, H, W)`` magnitudes."""
-    if grouping == "cell":
-        assert cell is not None
-        return cell_groups(edges, cell)
-    return connected_groups(edges, cell)

@@ -308,8 +308,8 @@ def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k
         scores: ``float32 [B, N]``.
         boxes_ok: :func:`boxes_valid` of ``boxes`` where the caller knows it (a grid's
             windows are the same batch after batch); ``None``: checked here.
-        classes, need: an output quota per group (``ReebConfig.class_quota``'s classes,
-            ``region_quota``'s regions): ``classes`` ``int [B, N]`` each window's group
+        classes, need: an output quota per group (``ReebConfig.class_quota``'s classes):
+            ``classes`` ``int [B, N]`` each window's group
             (``0..C-1``), ``need`` ``int [C]`` (or ``[B, C]``, per image) how many kept boxes
             of each group the quota draws; the NMS goes on past ``k`` kept boxes until each
             group has its ``need`` among them (or the candidates run out), so that the quota's

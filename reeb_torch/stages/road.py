@@ -2,7 +2,7 @@
 
 The road colour is the per-channel median of ``n`` random pixels sampled where road is
 likely (a bottom-centre band); a pixel is road when each HSV channel lies within a
-tolerance of that median (eq. 3), the three channel masks combined (eq. 4).
+tolerance of that median (eq. 3) in all three channels (eq. 4's AND).
 """
 
 from __future__ import annotations
@@ -34,7 +34,6 @@ def road_mask(
     samples: int = 300,
     band: tuple[float, float, float, float] = (0.3, 0.8, 0.7, 1.0),
     tolerance: tuple[float, float, float] = (0.5, 0.12, 0.12),
-    combine: str = "and",
     seed: int = 0,
 ) -> Tensor:
     """Binary road mask of RGB ``(B, 3, H, W)`` images in [0, 1] → bool ``(B, H, W)``.
@@ -56,5 +55,5 @@ def road_mask(
     diff[:, 0] = torch.minimum(diff[:, 0], 2 * math.pi - diff[:, 0])
     tol = torch.tensor(tolerance, dtype=hsv.dtype, device=hsv.device).view(1, 3, 1)
     inside = diff <= tol
-    out = inside.all(1) if combine == "and" else inside.any(1)
+    out = inside.all(1)
     return out.view(b, h, w)

@@ -203,23 +203,21 @@ def edge_norm(w, h, norm: str, kappa: float, gamma: float):
 
 
 def location_score(bottom: Tensor, bw: float | Tensor, bh: float | Tensor, img_w: float, img_h: float, mode: str,
-                   horizon: float = 0.47, ratio: float | tuple[float, ...] = 1.0, log_sigma: float = 0.5,
+                   horizon: float = 0.47, ratios: tuple[float, ...] = (1.0,), log_sigma: float = 0.5,
                    weights: tuple[float, ...] | None = None,
                    widths: tuple[tuple[float, float], ...] | None = None, camera_height: float = 1.0) -> Tensor:
     """Eq. 11 and variants, for boxes of size ``bw × bh`` whose bottom rows are ``bottom``
     (input pixels, from the image top).
 
-    ``paper``: L = b_y / (b_w·b_h) · image width (unbounded). ``ground``: a Gaussian in
-    log(b_h / (b_y − horizon·H) / ratio), 0 above the horizon, in [0, 1]. ``classes``: the
-    same with one ``ratio`` per object class (a tuple), taking the best fitting class, each
-    class's Gaussian scaled by its ``weights`` (a max-mixture over the class templates): the
-    product of :func:`class_height_fits` and, with ``widths``, :func:`class_width_fits`.
-    ``none``: 1.
+    ``paper``: L = b_y / (b_w·b_h) · image width (unbounded). ``classes``: for each object
+    class a Gaussian in log(b_h / (b_y − horizon·H) / ratio), 0 above the horizon, in
+    [0, 1], with one ``ratios`` entry per class, taking the best fitting class, each class's
+    Gaussian scaled by its ``weights`` (a max-mixture over the class templates): the product
+    of :func:`class_height_fits` and, with ``widths``, :func:`class_width_fits`. ``none``: 1.
     """
     if mode == "paper":
         return bottom * (img_w / (bw * bh))
-    if mode in ("ground", "classes"):
-        ratios = ratio if isinstance(ratio, tuple) else (ratio,)
+    if mode == "classes":
         fits = class_height_fits(bottom, bh, img_h, horizon, ratios, log_sigma, weights)
         if widths is not None:
             fits = [f * g for f, g in zip(fits, class_width_fits(bottom, bw, img_h, horizon, widths, log_sigma,
@@ -248,7 +246,7 @@ def class_height_fits(bottom: Tensor, bh: float | Tensor, img_h: float, horizon:
 def class_width_fits(bottom: Tensor, bw: float | Tensor, img_h: float, horizon: float,
                      widths: tuple[tuple[float, float], ...], log_sigma: float, camera_height: float) -> list[Tensor]:
     """How well a box ``bw`` wide standing at row ``bottom`` (input pixels) fits each class's
-    width range ``(lo, hi)`` in metres (``ReebConfig.location_fit='shape'``): the box's
+    width range ``(lo, hi)`` in metres (``ReebConfig.object_templates``): the box's
     width on the road at that depth, ``b_w · camera_height / (b_y − horizon·H)`` (square
     pixels), is 1 inside the range and falls off as a Gaussian of its log distance from the
     range with the height fit's tolerance ``log_sigma``; one tensor per class."""
@@ -262,14 +260,9 @@ def class_width_fits(bottom: Tensor, bw: float | Tensor, img_h: float, horizon: 
 
 
 def combined_score(s: Tensor, loc: Tensor, road: Tensor, alpha: float, beta: float, road_mode: str) -> Tensor:
-    """Eq. 12: V = S·(α·L + β·R); ``penalize`` uses 1 − R, ``none`` drops the road term,
-    ``flat`` keeps β with R = 1 (so L only re-weights S partly: V = S·(α·L + β))."""
-    if road_mode == "penalize":
-        road = 1.0 - road
-    elif road_mode == "none":
+    """Eq. 12: V = S·(α·L + β·R) (``reward``); ``none`` drops the road term."""
+    if road_mode == "none":
         road = torch.zeros_like(road)
-    elif road_mode == "flat":
-        road = torch.ones_like(road)
     return s * (alpha * loc + beta * road)
 
 
@@ -461,7 +454,7 @@ def score_grid_cpu(ii: Tensor, tables, plan: np.ndarray, denom: np.ndarray, loc:
 
     Args:
         ii: ``float64 (B, H + 1, W + 1)`` integral image of the edge map.
-        tables: :class:`reeb_torch.stages.refinement.EnclosedTables` of the groups (every window
+        tables: :class:`reeb_torch.stages.enclosed.EnclosedTables` of the groups (every window
             wider and taller than their ``max_extent``).
         plan: ``int64 [S, 19]``, one row per window size (:data:`PLAN_COLUMNS`).
         denom: ``float64 [S]``, eq. 1's normaliser of each size (input-pixel units).

@@ -123,8 +123,7 @@ def _merge(intervals: list[tuple[float, float]]) -> list[tuple[float, float]]:
 
 
 def camera_window_sizes(height: int, width: int, min_window: int, ratio: float, step: float,
-                        horizon: float, templates: tuple[tuple[float, float, float, float], ...],
-                        border: bool = True, slack: float = 0.0) -> list[WindowSize]:
+                        horizon: float, templates: tuple[tuple[float, float, float, float], ...]) -> list[WindowSize]:
     """Window sizes and rows derived from the ground plane and class templates (working pixels).
 
     A camera at height ``h_c`` above a flat road, looking along it, sees an object of real
@@ -140,14 +139,10 @@ def camera_window_sizes(height: int, width: int, min_window: int, ratio: float, 
     template in both height and width: ``d ∈ [max(h/h_hi, w/w_hi), min(h/h_lo, w/w_lo)]``,
     one :class:`WindowSize` per band of rows (the union over templates).
 
-    With ``border``, windows flush with the left or right image border are added at every
+    Windows flush with the left or right image border are added at every
     width down to ``min_window`` (height still from the templates): objects cut by the image
     border keep their height but not their width. Such a size has ``sx = width − w``, so its
     two columns are ``x0 = 0`` and ``x0 = width − w``.
-
-    ``slack`` (a fraction of the image height) widens every band of rows by that much on
-    both sides: the horizon moves with the camera's pitch and the road's slope, which
-    matters most for far objects, whose depth ``d`` is a few pixels.
 
     Sizes run over geometric series from ``min_window`` (ratio ``ratio``) up to the image
     height and width; strides are ``max(1, round(step·side))``.
@@ -157,10 +152,7 @@ def camera_window_sizes(height: int, width: int, min_window: int, ratio: float, 
     widths = _series(min_window, width, ratio)
     heights = _series(min_window, height, ratio)
 
-    pad = slack * height
-
     def rows(h: int, sy: int, lo: float, hi: float) -> tuple[int, int] | None:
-        lo, hi = lo - pad, hi + pad
         j_lo = max(0, math.ceil((yh + lo - h) / sy - 1e-9))
         j_hi = min((height - h) // sy, math.floor((yh + hi - h) / sy + 1e-9))
         return (j_lo, j_hi) if j_hi >= j_lo else None
@@ -174,7 +166,7 @@ def camera_window_sizes(height: int, width: int, min_window: int, ratio: float, 
                 r = rows(h, sy, lo, hi)
                 if r is not None:
                     out.append(WindowSize(w, h, sx, sy, (width - w) // sx + 1, r[1] - r[0] + 1, r[0] * sy))
-            if not border or w >= width:
+            if w >= width:
                 continue
             # cut by the image border: the width may be anything up to the template's
             cut = _merge([(max(h / hh, w / wh), h / hl) for hl, hh, wl, wh in templates
@@ -211,8 +203,8 @@ def _grid(height: int, width: int, bounds: tuple[tuple[int, int], ...], min_wind
           ground: tuple[float, float, float] | None,
           camera: tuple | None = None) -> WindowGrid:
     if camera is not None:
-        horizon, templates, border, slack = camera
-        sizes = camera_window_sizes(height, width, min_window, ratio, step, horizon, templates, border, slack)
+        horizon, templates = camera
+        sizes = camera_window_sizes(height, width, min_window, ratio, step, horizon, templates)
     else:
         region_w = max(b - a for a, b in bounds)
         sizes = window_sizes(height, width, region_w, min_window, ratio, step, aspect, ground)
@@ -238,17 +230,16 @@ def _grid(height: int, width: int, bounds: tuple[tuple[int, int], ...], min_wind
 def window_grid(height: int, width: int, bounds: Tensor, min_window: int, ratio: float, step: float,
                 aspect: tuple[float, float], assign: str = "nearest",
                 ground: tuple[float, float, float] | None = None,
-                camera: tuple[float, tuple[tuple[float, float, float, float], ...], bool, float] | None = None,
+                camera: tuple[float, tuple[tuple[float, float, float, float], ...]] | None = None,
                 ) -> WindowGrid:
     """The (cached) :class:`WindowGrid` of a ``height × width`` working image whose
     regions have column ``bounds`` (``int64 [R, 2]``); ``min_window`` in working pixels;
-    ``ground`` as in :func:`window_sizes`. With ``camera = (horizon, templates, border, slack)``
+    ``ground`` as in :func:`window_sizes`. With ``camera = (horizon, templates)``
     the sizes come from :func:`camera_window_sizes` instead (``aspect`` and ``ground`` are
     then unused, and a window may be wider than its region: regions only set budgets)."""
     key = tuple((int(a), int(b)) for a, b in bounds.tolist())
     g = None if ground is None else tuple(float(v) for v in ground)
     cam = None
     if camera is not None:
-        cam = (float(camera[0]), tuple(tuple(float(v) for v in t) for t in camera[1]), bool(camera[2]),
-               float(camera[3]))
+        cam = (float(camera[0]), tuple(tuple(float(v) for v in t) for t in camera[1]))
     return _grid(height, width, key, int(min_window), float(ratio), float(step), tuple(aspect), assign, g, cam)
