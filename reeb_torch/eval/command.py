@@ -128,7 +128,7 @@ def _command_line(ctx: click.Context) -> str:
     for p in ctx.command.params:
         value = ctx.params.get(p.name or "")
         if isinstance(p, click.Argument):
-            argv += [str(v) for v in value]
+            argv += [str(v) for v in value or ()]
             continue
         if not isinstance(p, click.Option) or ctx.get_parameter_source(p.name or "") != click.core.ParameterSource.COMMANDLINE:
             continue
@@ -136,7 +136,7 @@ def _command_line(ctx: click.Context) -> str:
         if p.is_flag:
             argv += [flag] if value else []
             continue
-        texts = [v.text if isinstance(v, FrameRange) else str(v) for v in (value if p.multiple else [value])]
+        texts = [v.text if isinstance(v, FrameRange) else str(v) for v in ((value or ()) if p.multiple else [value])]
         if isinstance(p.type, (FrameRanges, Methods)):
             texts = [",".join(texts)]
         for t in texts:
