@@ -48,6 +48,20 @@ class Failure(click.ClickException):
 
 # -- settings, device, sample ---------------------------------------------------------
 
+def claim_output(out: str) -> None:
+    """Check that ``out`` can be written and hold its lock (one writer per output) until the
+    command ends; a :class:`UsageProblem` (exit 2, one line) when it cannot, before any work."""
+    from .output_files import OutputError, check_output
+    from .output_lock import lock_output
+
+    try:
+        check_output(out)
+        lock = lock_output(out)
+    except OutputError as e:
+        raise UsageProblem(str(e)) from None
+    click.get_current_context().call_on_close(lock.release)
+
+
 def repo_root() -> Path:
     """The source checkout the package is installed from (editable install)."""
     # this file's package folder, not reeb_torch.__file__: that is None when the package is

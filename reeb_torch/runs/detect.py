@@ -35,7 +35,7 @@ from typing import Any
 
 import click
 
-from .common import Failure, UsageProblem, resolve_device
+from .common import Failure, UsageProblem, claim_output, resolve_device
 
 __all__ = ["detector", "fit", "show", "detect", "draw_detections"]
 
@@ -465,8 +465,7 @@ def detect(paths, detector_path, out, overwrite, resume, kitti_dir, viz_dir, min
     """
     from .decoding import default_workers
     from .inputs import NoImagesError, scan_images
-    from .output_files import OutputError, check_output, open_writer
-    from .output_lock import lock_output
+    from .output_files import open_writer
 
     if not (out or kitti_dir or viz_dir):
         raise UsageProblem("nothing to write: give -o/--out, --kitti-dir or --viz")
@@ -481,12 +480,7 @@ def detect(paths, detector_path, out, overwrite, resume, kitti_dir, viz_dir, min
     if resume and not out:
         raise UsageProblem("--resume needs --out (the file to continue)")
     if out:
-        try:
-            check_output(out)
-            lock = lock_output(out)
-        except OutputError as e:
-            raise UsageProblem(str(e))
-        click.get_current_context().call_on_close(lock.release)
+        claim_output(out)
         if Path(out).exists() and resume and not overwrite:
             first, kept = _resume_rows(out, det_id, images)
             images = [p for p, r in zip(images, kept) if r is None]

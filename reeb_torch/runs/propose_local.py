@@ -26,6 +26,7 @@ from .common import (
     box_table,
     build_config,
     bundled_sample,
+    claim_output,
     count_line,
     failures_and_summary,
     label_for,
@@ -45,7 +46,6 @@ from .output_files import (
     read_results,
     stale_temp_files,
 )
-from .output_lock import lock_output
 from .rows import error_row, file_error, hint_names, result_row, row_key, text_path
 
 __all__ = ["propose_local"]
@@ -120,13 +120,7 @@ class _LocalRun:
             return True
         if os.path.islink(out):  # write the file the link points to (and lock that one), keep the link
             out = self.out = os.path.realpath(out)
-        try:
-            check_output(out)
-            # one writer per output: a second run fails here, before any work (exit 2)
-            lock = lock_output(out)
-        except OutputError as e:
-            raise UsageProblem(str(e))
-        click.get_current_context().call_on_close(lock.release)
+        claim_output(out)  # one writer per output: a second run fails here, before any work (exit 2)
         exists = Path(out).exists()
         if exists and not (resume or overwrite):
             raise UsageProblem(f"{out} exists; add --resume to continue it or --overwrite to "
