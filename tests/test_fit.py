@@ -378,3 +378,63 @@ def test_shipped_weights_refit_bit_for_bit(kitti_dir):
     assert list(model.state_dict()) == list(shipped.state_dict())
     for (name, a), b in zip(shipped.state_dict().items(), model.state_dict().values()):
         assert torch.equal(a, b), name
+
+
+def test_mirrored_boxes_by_hand():
+    """A box flipped with its image of width W: x1' = W − x2, x2' = W − x1; twice, itself."""
+    boxes = torch.tensor([[10.0, 5, 30, 20], [0, 0, 100, 50]])
+    assert torch.equal(F._mirror_boxes(boxes, 100), torch.tensor([[70.0, 5, 90, 20], [0, 0, 100, 50]]))
+    assert torch.equal(F._mirror_boxes(F._mirror_boxes(boxes, 100), 100), boxes)
+    assert F._mirror_boxes(torch.zeros(0, 4), 100).shape == (0, 4)
+    assert F.FitOptions().mirror is False
+
+
+@pytest.mark.kitti
+def test_mirror_adds_each_frames_mirror_image_rows_cached_apart(kitti_dir):
+    """With ``mirror`` a frame's sample is its own rows, unchanged, then those of its mirror
+    image (candidates of the flipped image, front ends cached apart from the frame's own);
+    seeded: the same rows twice."""
+    from reeb_torch import ReebConfig
+    from reeb_torch.eval.tune import FrameCache
+
+    frames = F.load_fit_frames([str(kitti_dir)], limit=3)
+    cfg = ReebConfig()
+    cache = FrameCache(frames)
+    plain = F.frame_samples(cache, cfg, F.FitOptions())
+    assert cache.front_computed == 3
+    opts = F.FitOptions(mirror=True)
+    both = F.frame_samples(cache, cfg, opts)
+    assert cache.front_computed == 6  # the mirror images' front ends, the frames' own kept
+    assert all(torch.equal(a.features, b.features) and torch.equal(a.weight, b.weight)
+               for a, b in zip(plain, F.frame_samples(cache, cfg, F.FitOptions())))
+    for i, (p, b) in enumerate(zip(plain, both)):
+        m = F.mirrored_sample(cache, cfg, opts, i)
+        n = len(p.target)
+        assert len(b.target) == n + len(m.target) and 0.5 * n < len(m.target) < 2 * n  # about twice the rows
+        for field in ("features", "target", "weight", "label"):
+            assert torch.equal(getattr(b, field), torch.cat([getattr(p, field), getattr(m, field)])), field
+        assert 0 < float(m.weight[m.target == 1].sum()) <= len(frames.gts[i]) + 1e-4  # each object weighs 1
+        flipped = cache.candidates(cfg.unranked(), i, mirrored=True)
+        own = cache.candidates(cfg.unranked(), i)
+        assert not torch.equal(flipped.boxes[: len(own.boxes)], own.boxes[: len(flipped.boxes)])
+    again = F.frame_samples(FrameCache(frames), cfg, opts)
+    assert all(torch.equal(a.features, b.features) and torch.equal(a.target, b.target) for a, b in zip(both, again))
+
+
+@pytest.mark.kitti
+def test_mirror_leaves_the_held_out_frames_as_they_are(kitti_dir):
+    """The cross-validation of a fit with ``mirror`` scores its held-out frames as they are:
+    no mirror image is run once the rows are drawn, and the hits are of the frames' objects."""
+    from reeb_torch import ReebConfig
+    from reeb_torch.eval.tune import FrameCache
+
+    frames = F.load_fit_frames([str(kitti_dir)], limit=4)
+    cache = FrameCache(frames)
+    cfg, opts = ReebConfig(), dataclasses.replace(F.FitOptions(mirror=True), epochs=2, class_hidden=None)
+    samples = F.frame_samples(cache, cfg, opts)
+    seen = []
+    front_of = cache._front_of
+    cache._front_of = lambda c, i, mirrored=False: seen.append(mirrored) or front_of(c, i, mirrored)
+    cv = F.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 2)
+    assert seen and not any(seen)
+    assert [len(h) for h in cv.ranked_hits] == [len(g) for g in frames.gts]

@@ -101,7 +101,7 @@ class FrameCache:
     def __init__(self, frames: Frames) -> None:
         self.frames = frames
         self._key: tuple | None = None
-        self._front: dict[int, FrontEnd] = {}
+        self._front: dict[int | tuple[int, str], FrontEnd] = {}
         self.front_computed = 0
         """How many frames' front ends were computed (for tests and the summary)."""
         self._generators: dict[tuple, ProposalGenerator] = {}
@@ -117,18 +117,22 @@ class FrameCache:
             self._generators[key] = ProposalGenerator(cfg)
         return self._generators[key]
 
-    def _front_of(self, cfg: ReebConfig, i: int) -> tuple[ProposalGenerator, list[Tensor], FrontEnd]:
-        """The generator of ``cfg``, frame ``i`` as its input, and that frame's front end (cached)."""
+    def _front_of(self, cfg: ReebConfig, i: int, mirrored: bool = False
+                  ) -> tuple[ProposalGenerator, list[Tensor], FrontEnd]:
+        """The generator of ``cfg``, frame ``i`` (flipped left to right with ``mirrored``) as its
+        input, and that image's front end (cached apart from the frame's own)."""
         key = tuple(getattr(cfg, f) for f in FRONT_END_FIELDS)
         if key != self._key:
             self._key, self._front = key, {}
         gen = self._generator(cfg)
-        img = gen.prepare([self.frames.images[i]])
-        if i not in self._front:
+        image = self.frames.images[i]
+        img = gen.prepare([image.flip(-1) if mirrored else image])
+        slot: int | tuple[int, str] = (i, "mirrored") if mirrored else i
+        if slot not in self._front:
             with torch.no_grad():
-                self._front[i] = gen.front_end(img)
+                self._front[slot] = gen.front_end(img)
             self.front_computed += 1
-        return gen, img, self._front[i]
+        return gen, img, self._front[slot]
 
     def outputs(self, cfg: ReebConfig, indices: Sequence[int]) -> list[dict[str, Tensor]]:
         """``ProposalGenerator(cfg)``'s output dict (``boxes``, ``scores``, and ``labels``,
@@ -145,11 +149,12 @@ class FrameCache:
         """Ranked boxes ``Tensor[P_i, 4]`` (``P_i <= cfg.top_k``) for the frames ``indices``."""
         return [o["boxes"] for o in self.outputs(cfg, indices)]
 
-    def candidates(self, cfg: ReebConfig, i: int) -> Candidates:
+    def candidates(self, cfg: ReebConfig, i: int, mirrored: bool = False) -> Candidates:
         """Frame ``i``'s candidates and their features under ``cfg``
-        (:meth:`reeb_torch.ProposalGenerator.candidates`)."""
+        (:meth:`reeb_torch.ProposalGenerator.candidates`); with ``mirrored``, those of the frame
+        flipped left to right (boxes in the flipped image's coordinates)."""
         with torch.no_grad():
-            gen, img, front = self._front_of(cfg, i)
+            gen, img, front = self._front_of(cfg, i, mirrored)
             return gen.candidates_of(img, front)[0]
 
     def hits(self, cfg: ReebConfig, indices: Sequence[int], k: int, iou: float) -> list[Tensor]:
