@@ -18,8 +18,8 @@ a preset name; a field the model reads (the candidates, the features), or the ra
 itself, is refused.
 
 ``--refit`` takes the same pairs, and also :class:`~reeb_torch.eval.fit.FitOptions` fields
-(``hidden=32,32``, ``members=2``, ``mirror=1``, ...: ``reeb fit``'s options) and the fields the model
-reads: each fold's model is fitted again with them (same seed, same folds), so the pairing
+(``hidden=32,32``, ``members=2``, ``mirror=1``, ``jitter=0.2``, ...: ``reeb fit``'s options)
+and the fields the model reads: each fold's model is fitted again with them (same seed, same folds), so the pairing
 is of two fits, not of one model under two settings:
 
     python benchmarks/cv_paired.py --refit "hidden=32,32" --seeds 0 1 2 3 4 --out docs/results/ranker/h32

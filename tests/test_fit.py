@@ -422,19 +422,57 @@ def test_mirror_adds_each_frames_mirror_image_rows_cached_apart(kitti_dir):
 
 
 @pytest.mark.kitti
-def test_mirror_leaves_the_held_out_frames_as_they_are(kitti_dir):
-    """The cross-validation of a fit with ``mirror`` scores its held-out frames as they are:
-    no mirror image is run once the rows are drawn, and the hits are of the frames' objects."""
+def test_mirror_and_jitter_leave_the_held_out_frames_as_they_are(kitti_dir):
+    """The cross-validation of a fit with ``mirror`` and ``jitter`` scores its held-out frames as they are:
+    no mirror image or copy is run once the rows are drawn, and the hits are of the frames' objects."""
     from reeb_torch import ReebConfig
     from reeb_torch.eval.tune import FrameCache
 
     frames = F.load_fit_frames([str(kitti_dir)], limit=4)
     cache = FrameCache(frames)
-    cfg, opts = ReebConfig(), dataclasses.replace(F.FitOptions(mirror=True), epochs=2, class_hidden=None)
+    cfg = ReebConfig()
+    opts = dataclasses.replace(F.FitOptions(mirror=True, jitter=0.2), epochs=2, class_hidden=None)
     samples = F.frame_samples(cache, cfg, opts)
     seen = []
     front_of = cache._front_of
-    cache._front_of = lambda c, i, mirrored=False: seen.append(mirrored) or front_of(c, i, mirrored)
+    cache._front_of = lambda c, i, mirrored=False, photometric=None: (
+        seen.append(mirrored or photometric is not None) or front_of(c, i, mirrored, photometric))
     cv = F.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 2)
     assert seen and not any(seen)
     assert [len(h) for h in cv.ranked_hits] == [len(g) for g in frames.gts]
+
+
+def test_photometric_jitter_by_hand():
+    """Contrast about the image's mean, then brightness; rounded and clipped to uint8."""
+    from reeb_torch.eval.tune import photometric_jitter
+
+    image = torch.tensor([[[100, 140], [120, 160]]] * 3, dtype=torch.uint8)  # mean 130
+    assert torch.equal(photometric_jitter(image, 1.0, 0.0), image)
+    assert photometric_jitter(image, 2.0, 10.0)[0].tolist() == [[80, 160], [120, 200]]
+    assert photometric_jitter(image, 1.0, 200.0).max() == 255 and photometric_jitter(image, 1.0, -200.0).max() == 0
+    c, b = F.jitter_of(F.FitOptions(jitter=0.2, seed=3), 5)
+    assert 0.8 <= c <= 1.2 and -51 <= b <= 51 and (c, b) == F.jitter_of(F.FitOptions(jitter=0.2, seed=3), 5)
+    assert (c, b) != F.jitter_of(F.FitOptions(jitter=0.2, seed=3), 6) != F.jitter_of(F.FitOptions(jitter=0.2), 5)
+
+
+@pytest.mark.kitti
+def test_jitter_adds_each_frames_jittered_copy_rows(kitti_dir):
+    """With ``jitter`` a frame's sample is its own rows, then those of its jittered copy (its
+    own boxes; front ends cached apart); with ``mirror`` too: own, mirrored, jittered."""
+    from reeb_torch import ReebConfig
+    from reeb_torch.eval.tune import FrameCache
+
+    frames = F.load_fit_frames([str(kitti_dir)], limit=2)
+    cfg = ReebConfig()
+    cache = FrameCache(frames)
+    plain = F.frame_samples(cache, cfg, F.FitOptions())
+    mirrored = F.frame_samples(cache, cfg, F.FitOptions(mirror=True))
+    opts = F.FitOptions(jitter=0.2)
+    jittered = F.frame_samples(cache, cfg, opts)
+    both = F.frame_samples(cache, cfg, F.FitOptions(mirror=True, jitter=0.2))
+    assert cache.front_computed == 6
+    for p, m, j, b in zip(plain, mirrored, jittered, both):
+        n, k = len(p.target), len(m.target)
+        assert 1.5 * n < len(j.target) < 3 * n and 0 < float(j.weight[n:][j.target[n:] == 1].sum())
+        assert torch.equal(j.features[:n], p.features) and torch.equal(b.features[:k], m.features)
+        assert torch.equal(b.features[k:], j.features[n:]) and torch.equal(b.target[k:], j.target[n:])

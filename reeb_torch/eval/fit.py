@@ -39,7 +39,7 @@ from ..ranker import BoxRanker, save_ranker
 from .tune import FrameCache, Frames, fold_blocks, held_out
 
 __all__ = ["FitFrames", "FitOptions", "Sample", "FitCrossValidation", "load_fit_frames", "frame_sample",
-           "frame_samples", "mirrored_sample", "fit_ranker", "initial_model", "similar_frames",
+           "frame_samples", "mirrored_sample", "jitter_of", "fit_ranker", "initial_model", "similar_frames",
            "training_frames", "cross_validate", "held_out_outputs", "hinted_classes", "drive_of", "other_boxes"]
 
 
@@ -121,6 +121,10 @@ class FitOptions:
             (its boxes flipped with it; the candidates and features the generator finds in the
             flipped image; negatives drawn with a seed of their own). Only the rows a model is
             fitted on: a cross-validation scores its held-out frames as they are.
+        jitter: above 0, each frame also gives the training rows of a copy with its contrast
+            scaled by 1 + ``jitter``·u and ``jitter``·v·255 grey levels added (u, v uniform
+            in [−1, 1], drawn per frame from ``(seed, i, 2)``; its negatives seeded with
+            ``(seed, i, 3)``); as ``mirror``, only the rows a model is fitted on.
     """
 
     hidden: tuple[int, ...] = (64, 64)
@@ -144,6 +148,7 @@ class FitOptions:
     tune_lr: float = 1e-3
     tune_batch: int = 1024
     mirror: bool = False
+    jitter: float = 0.0
 
 
 @dataclass
@@ -192,17 +197,26 @@ def frame_samples(cache: FrameCache, cfg: ReebConfig, opts: FitOptions, indices:
     """:func:`frame_sample` of each frame of ``cache`` (``indices``, default all) under ``cfg``;
     frame ``i``'s negatives are drawn by a generator seeded with ``(opts.seed, i)``. With
     ``opts.mirror``, frame ``i``'s sample also holds, after its own rows, those of its mirror
-    image (:func:`mirrored_sample`, negatives seeded with ``(opts.seed, i, 1)``)."""
+    image (:func:`mirrored_sample`, negatives seeded with ``(opts.seed, i, 1)``); with
+    ``opts.jitter``, then those of its jittered copy (:attr:`FitOptions.jitter`)."""
     idx = range(len(cache.frames)) if indices is None else indices
     cfg = cfg.unranked()  # the candidates do not depend on the ranker
     out = []
     for i in (progress(idx) if progress else idx):
-        s = _frame_rows(cache, cfg, opts, i, mirrored=False)
+        parts = [_frame_rows(cache, cfg, opts, i, mirrored=False)]
         if opts.mirror:
-            m = _frame_rows(cache, cfg, opts, i, mirrored=True)
-            s = Sample(*(torch.cat([a, b]) for a, b in zip(dataclasses.astuple(s), dataclasses.astuple(m))))
-        out.append(s)
+            parts.append(_frame_rows(cache, cfg, opts, i, mirrored=True))
+        if opts.jitter > 0:
+            parts.append(_frame_rows(cache, cfg, opts, i, mirrored=False, photometric=jitter_of(opts, i)))
+        out.append(parts[0] if len(parts) == 1 else
+                   Sample(*(torch.cat(rows) for rows in zip(*map(dataclasses.astuple, parts)))))
     return out
+
+
+def jitter_of(opts: FitOptions, i: int) -> tuple[float, float]:
+    """Frame ``i``'s ``(contrast, brightness)`` under ``opts.jitter`` (:attr:`FitOptions.jitter`)."""
+    u, v = np.random.default_rng([opts.seed, i, 2]).uniform(-1.0, 1.0, 2)
+    return 1.0 + opts.jitter * float(u), 255.0 * opts.jitter * float(v)
 
 
 def mirrored_sample(cache: FrameCache, cfg: ReebConfig, opts: FitOptions, i: int) -> Sample:
@@ -218,16 +232,20 @@ def _mirror_boxes(boxes: Tensor, width: int) -> Tensor:
     return torch.stack([width - boxes[:, 2], boxes[:, 1], width - boxes[:, 0], boxes[:, 3]], 1)
 
 
-def _frame_rows(cache: FrameCache, cfg: ReebConfig, opts: FitOptions, i: int, mirrored: bool) -> Sample:
-    """:func:`frame_sample` of frame ``i`` (or of its mirror image) under the unranked ``cfg``."""
+def _frame_rows(cache: FrameCache, cfg: ReebConfig, opts: FitOptions, i: int, mirrored: bool,
+                photometric: tuple[float, float] | None = None) -> Sample:
+    """:func:`frame_sample` of frame ``i`` (or of its mirror image, or of its copy changed by
+    ``photometric``) under the unranked ``cfg``."""
     frames = cache.frames
-    c = cache.candidates(cfg, i, mirrored=mirrored)
+    c = cache.candidates(cfg, i, mirrored=mirrored, photometric=photometric)
     gt = frames.gts[i]
     ignore = frames.ignore[i] if isinstance(frames, FitFrames) else torch.zeros(0, 4)
     seed = [opts.seed, i]
     if mirrored:
         width = frames.images[i].shape[-1]
         gt, ignore, seed = _mirror_boxes(gt, width), _mirror_boxes(ignore, width), [opts.seed, i, 1]
+    elif photometric is not None:
+        seed = [opts.seed, i, 3]
     return frame_sample(c.features, c.boxes, gt, frames.labels[i], ignore, opts, np.random.default_rng(seed))
 
 

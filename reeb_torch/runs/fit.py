@@ -385,11 +385,12 @@ def _seen_note(who: str, model: BoxRanker, frames: F.FitFrames, digest: str, row
 
 
 def _options_record(opts: F.FitOptions) -> dict[str, Any]:
-    """The fit options kept in the weights' provenance; ``mirror`` only where it is on (a fit
-    without it records what it always did)."""
+    """The fit options kept in the weights' provenance; ``mirror`` and ``jitter`` only where
+    they are on (a fit without them records what it always did)."""
     record = dataclasses.asdict(opts)
-    if not opts.mirror:
-        del record["mirror"]
+    for name in ("mirror", "jitter"):
+        if not record[name]:
+            del record[name]
     return record
 
 
