@@ -18,8 +18,8 @@ a preset name; a field the model reads (the candidates, the features), or the ra
 itself, is refused.
 
 ``--refit`` takes the same pairs, and also :class:`~reeb_torch.eval.fit.FitOptions` fields
-(``hidden=32,32``, ``members=2``, ...: ``reeb fit``'s options) and the fields the model
-reads: each fold's model is fitted again with them (same seed, same folds), so the pairing
+(``hidden=32,32``, ``members=2``, ``mirror=1``, ``jitter=0.2``, ...: ``reeb fit``'s options)
+and the fields the model reads: each fold's model is fitted again with them (same seed, same folds), so the pairing
 is of two fits, not of one model under two settings:
 
     python benchmarks/cv_paired.py --refit "hidden=32,32" --seeds 0 1 2 3 4 --out docs/results/ranker/h32
@@ -72,7 +72,8 @@ _FIT_FIELDS = {f.name for f in dataclasses.fields(F.FitOptions)} - {"seed"}
 
 def _fit_value(name: str, text: str) -> object:
     """A :class:`~reeb_torch.eval.fit.FitOptions` value from text: widths as ``32,32``
-    (``none`` for no layer where the field allows it), numbers as numbers."""
+    (``none`` for no layer where the field allows it), numbers as numbers, switches
+    (``mirror``) as ``1`` / ``0``."""
     default = getattr(F.FitOptions(), name)
     text = text.strip()
     if name == "init":  # a model to fine-tune: a shipped name or a weights file
@@ -81,6 +82,12 @@ def _fit_value(name: str, text: str) -> object:
         if text.lower() in ("none", "null") and name != "hidden":
             return None
         return tuple(int(x) for x in text.split(",") if x.strip())
+    if isinstance(default, bool):  # mirror: 1 / 0, true / false, yes / no, on / off
+        flags = {"1": True, "true": True, "yes": True, "on": True, "0": False, "false": False, "no": False,
+                 "off": False}
+        if text.lower() not in flags:
+            raise ValueError(f"{text!r}: expected 1 or 0")
+        return flags[text.lower()]
     if default is None or isinstance(default, float):  # prefilter_balance: a number, or none
         return None if text.lower() in ("none", "null") and default is None else float(text)
     return type(default)(text)

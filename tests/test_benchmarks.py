@@ -369,6 +369,11 @@ def test_cv_paired_refit_takes_fit_options_and_the_fields_the_model_reads():
         cv.parse_refit("ranker=mine.safetensors")
     with pytest.raises(ValueError, match="members=two"):
         cv.parse_refit("members=two")
+    assert cv.parse_refit("mirror=1") == (ReebConfig(), {"mirror": True})
+    assert cv.parse_refit("mirror=off") == (ReebConfig(), {"mirror": False})
+    assert cv.parse_refit("jitter=0.2") == (ReebConfig(), {"jitter": 0.2})
+    with pytest.raises(ValueError, match="mirror=2"):
+        cv.parse_refit("mirror=2")
 
 
 @pytest.mark.kitti

@@ -378,3 +378,101 @@ def test_shipped_weights_refit_bit_for_bit(kitti_dir):
     assert list(model.state_dict()) == list(shipped.state_dict())
     for (name, a), b in zip(shipped.state_dict().items(), model.state_dict().values()):
         assert torch.equal(a, b), name
+
+
+def test_mirrored_boxes_by_hand():
+    """A box flipped with its image of width W: x1' = W − x2, x2' = W − x1; twice, itself."""
+    boxes = torch.tensor([[10.0, 5, 30, 20], [0, 0, 100, 50]])
+    assert torch.equal(F._mirror_boxes(boxes, 100), torch.tensor([[70.0, 5, 90, 20], [0, 0, 100, 50]]))
+    assert torch.equal(F._mirror_boxes(F._mirror_boxes(boxes, 100), 100), boxes)
+    assert F._mirror_boxes(torch.zeros(0, 4), 100).shape == (0, 4)
+    assert F.FitOptions().mirror is False
+
+
+@pytest.mark.kitti
+def test_mirror_adds_each_frames_mirror_image_rows_cached_apart(kitti_dir):
+    """With ``mirror`` a frame's sample is its own rows, unchanged, then those of its mirror
+    image (candidates of the flipped image, front ends cached apart from the frame's own);
+    seeded: the same rows twice."""
+    from reeb_torch import ReebConfig
+    from reeb_torch.eval.tune import FrameCache
+
+    frames = F.load_fit_frames([str(kitti_dir)], limit=3)
+    cfg = ReebConfig()
+    cache = FrameCache(frames)
+    plain = F.frame_samples(cache, cfg, F.FitOptions())
+    assert cache.front_computed == 3
+    opts = F.FitOptions(mirror=True)
+    both = F.frame_samples(cache, cfg, opts)
+    assert cache.front_computed == 6  # the mirror images' front ends, the frames' own kept
+    assert all(torch.equal(a.features, b.features) and torch.equal(a.weight, b.weight)
+               for a, b in zip(plain, F.frame_samples(cache, cfg, F.FitOptions())))
+    for i, (p, b) in enumerate(zip(plain, both)):
+        m = F.mirrored_sample(cache, cfg, opts, i)
+        n = len(p.target)
+        assert len(b.target) == n + len(m.target) and 0.5 * n < len(m.target) < 2 * n  # about twice the rows
+        for field in ("features", "target", "weight", "label"):
+            assert torch.equal(getattr(b, field), torch.cat([getattr(p, field), getattr(m, field)])), field
+        assert 0 < float(m.weight[m.target == 1].sum()) <= len(frames.gts[i]) + 1e-4  # each object weighs 1
+        flipped = cache.candidates(cfg.unranked(), i, mirrored=True)
+        own = cache.candidates(cfg.unranked(), i)
+        assert not torch.equal(flipped.boxes[: len(own.boxes)], own.boxes[: len(flipped.boxes)])
+    again = F.frame_samples(FrameCache(frames), cfg, opts)
+    assert all(torch.equal(a.features, b.features) and torch.equal(a.target, b.target) for a, b in zip(both, again))
+
+
+@pytest.mark.kitti
+def test_mirror_and_jitter_leave_the_held_out_frames_as_they_are(kitti_dir):
+    """The cross-validation of a fit with ``mirror`` and ``jitter`` scores its held-out frames as they are:
+    no mirror image or copy is run once the rows are drawn, and the hits are of the frames' objects."""
+    from reeb_torch import ReebConfig
+    from reeb_torch.eval.tune import FrameCache
+
+    frames = F.load_fit_frames([str(kitti_dir)], limit=4)
+    cache = FrameCache(frames)
+    cfg = ReebConfig()
+    opts = dataclasses.replace(F.FitOptions(mirror=True, jitter=0.2), epochs=2, class_hidden=None)
+    samples = F.frame_samples(cache, cfg, opts)
+    seen = []
+    front_of = cache._front_of
+    cache._front_of = lambda c, i, mirrored=False, photometric=None: (
+        seen.append(mirrored or photometric is not None) or front_of(c, i, mirrored, photometric))
+    cv = F.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 2)
+    assert seen and not any(seen)
+    assert [len(h) for h in cv.ranked_hits] == [len(g) for g in frames.gts]
+
+
+def test_photometric_jitter_by_hand():
+    """Contrast about the image's mean, then brightness; rounded and clipped to uint8."""
+    from reeb_torch.eval.tune import photometric_jitter
+
+    image = torch.tensor([[[100, 140], [120, 160]]] * 3, dtype=torch.uint8)  # mean 130
+    assert torch.equal(photometric_jitter(image, 1.0, 0.0), image)
+    assert photometric_jitter(image, 2.0, 10.0)[0].tolist() == [[80, 160], [120, 200]]
+    assert photometric_jitter(image, 1.0, 200.0).max() == 255 and photometric_jitter(image, 1.0, -200.0).max() == 0
+    c, b = F.jitter_of(F.FitOptions(jitter=0.2, seed=3), 5)
+    assert 0.8 <= c <= 1.2 and -51 <= b <= 51 and (c, b) == F.jitter_of(F.FitOptions(jitter=0.2, seed=3), 5)
+    assert (c, b) != F.jitter_of(F.FitOptions(jitter=0.2, seed=3), 6) != F.jitter_of(F.FitOptions(jitter=0.2), 5)
+
+
+@pytest.mark.kitti
+def test_jitter_adds_each_frames_jittered_copy_rows(kitti_dir):
+    """With ``jitter`` a frame's sample is its own rows, then those of its jittered copy (its
+    own boxes; front ends cached apart); with ``mirror`` too: own, mirrored, jittered."""
+    from reeb_torch import ReebConfig
+    from reeb_torch.eval.tune import FrameCache
+
+    frames = F.load_fit_frames([str(kitti_dir)], limit=2)
+    cfg = ReebConfig()
+    cache = FrameCache(frames)
+    plain = F.frame_samples(cache, cfg, F.FitOptions())
+    mirrored = F.frame_samples(cache, cfg, F.FitOptions(mirror=True))
+    opts = F.FitOptions(jitter=0.2)
+    jittered = F.frame_samples(cache, cfg, opts)
+    both = F.frame_samples(cache, cfg, F.FitOptions(mirror=True, jitter=0.2))
+    assert cache.front_computed == 6
+    for p, m, j, b in zip(plain, mirrored, jittered, both):
+        n, k = len(p.target), len(m.target)
+        assert 1.5 * n < len(j.target) < 3 * n and 0 < float(j.weight[n:][j.target[n:] == 1].sum())
+        assert torch.equal(j.features[:n], p.features) and torch.equal(b.features[:k], m.features)
+        assert torch.equal(b.features[k:], j.features[n:]) and torch.equal(b.target[k:], j.target[n:])

@@ -39,8 +39,8 @@ from ..ranker import BoxRanker, save_ranker
 from .tune import FrameCache, Frames, fold_blocks, held_out
 
 __all__ = ["FitFrames", "FitOptions", "Sample", "FitCrossValidation", "load_fit_frames", "frame_sample",
-           "frame_samples", "fit_ranker", "initial_model", "similar_frames", "training_frames",
-           "cross_validate", "held_out_outputs", "hinted_classes", "drive_of", "other_boxes"]
+           "frame_samples", "mirrored_sample", "jitter_of", "fit_ranker", "initial_model", "similar_frames",
+           "training_frames", "cross_validate", "held_out_outputs", "hinted_classes", "drive_of", "other_boxes"]
 
 
 @dataclass
@@ -117,6 +117,14 @@ class FitOptions:
             learning rate (no weight decay: the start, not zero, is what it should stay near)
             and rows per step; the class head is tuned at ``tune_lr`` with its own
             ``class_epochs`` and ``class_batch`` (its rows, the positives, are fewer still).
+        mirror: each frame also gives the training rows of its image flipped left to right
+            (its boxes flipped with it; the candidates and features the generator finds in the
+            flipped image; negatives drawn with a seed of their own). Only the rows a model is
+            fitted on: a cross-validation scores its held-out frames as they are.
+        jitter: above 0, each frame also gives the training rows of a copy with its contrast
+            scaled by 1 + ``jitter``·u and ``jitter``·v·255 grey levels added (u, v uniform
+            in [−1, 1], drawn per frame from ``(seed, i, 2)``; its negatives seeded with
+            ``(seed, i, 3)``); as ``mirror``, only the rows a model is fitted on.
     """
 
     hidden: tuple[int, ...] = (64, 64)
@@ -139,6 +147,8 @@ class FitOptions:
     tune_epochs: int = 10
     tune_lr: float = 1e-3
     tune_batch: int = 1024
+    mirror: bool = False
+    jitter: float = 0.0
 
 
 @dataclass
@@ -185,17 +195,58 @@ def frame_sample(features: Tensor, boxes: Tensor, gt: Tensor, labels: Tensor, ig
 def frame_samples(cache: FrameCache, cfg: ReebConfig, opts: FitOptions, indices: Sequence[int] | None = None,
                   progress: Callable | None = None) -> list[Sample]:
     """:func:`frame_sample` of each frame of ``cache`` (``indices``, default all) under ``cfg``;
-    frame ``i``'s negatives are drawn by a generator seeded with ``(opts.seed, i)``."""
-    frames = cache.frames
-    idx = range(len(frames)) if indices is None else indices
+    frame ``i``'s negatives are drawn by a generator seeded with ``(opts.seed, i)``. With
+    ``opts.mirror``, frame ``i``'s sample also holds, after its own rows, those of its mirror
+    image (:func:`mirrored_sample`, negatives seeded with ``(opts.seed, i, 1)``); with
+    ``opts.jitter``, then those of its jittered copy (:attr:`FitOptions.jitter`)."""
+    idx = range(len(cache.frames)) if indices is None else indices
     cfg = cfg.unranked()  # the candidates do not depend on the ranker
     out = []
     for i in (progress(idx) if progress else idx):
-        c = cache.candidates(cfg, i)
-        ignore = frames.ignore[i] if isinstance(frames, FitFrames) else torch.zeros(0, 4)
-        out.append(frame_sample(c.features, c.boxes, frames.gts[i], frames.labels[i], ignore, opts,
-                                np.random.default_rng([opts.seed, i])))
+        parts = [_frame_rows(cache, cfg, opts, i, mirrored=False)]
+        if opts.mirror:
+            parts.append(_frame_rows(cache, cfg, opts, i, mirrored=True))
+        if opts.jitter > 0:
+            parts.append(_frame_rows(cache, cfg, opts, i, mirrored=False, photometric=jitter_of(opts, i)))
+        out.append(parts[0] if len(parts) == 1 else
+                   Sample(*(torch.cat(rows) for rows in zip(*map(dataclasses.astuple, parts)))))
     return out
+
+
+def jitter_of(opts: FitOptions, i: int) -> tuple[float, float]:
+    """Frame ``i``'s ``(contrast, brightness)`` under ``opts.jitter`` (:attr:`FitOptions.jitter`)."""
+    u, v = np.random.default_rng([opts.seed, i, 2]).uniform(-1.0, 1.0, 2)
+    return 1.0 + opts.jitter * float(u), 255.0 * opts.jitter * float(v)
+
+
+def mirrored_sample(cache: FrameCache, cfg: ReebConfig, opts: FitOptions, i: int) -> Sample:
+    """The training rows of frame ``i`` of ``cache`` flipped left to right (its image, its
+    target and ignored boxes), from the generator's candidates in the flipped image."""
+    return _frame_rows(cache, cfg.unranked(), opts, i, mirrored=True)
+
+
+def _mirror_boxes(boxes: Tensor, width: int) -> Tensor:
+    """``[N, 4]`` ``(x1, y1, x2, y2)`` boxes of an image ``width`` pixels wide, as they lie in
+    the image flipped left to right: ``(width − x2, y1, width − x1, y2)`` (as the detector's
+    training flips them)."""
+    return torch.stack([width - boxes[:, 2], boxes[:, 1], width - boxes[:, 0], boxes[:, 3]], 1)
+
+
+def _frame_rows(cache: FrameCache, cfg: ReebConfig, opts: FitOptions, i: int, mirrored: bool,
+                photometric: tuple[float, float] | None = None) -> Sample:
+    """:func:`frame_sample` of frame ``i`` (or of its mirror image, or of its copy changed by
+    ``photometric``) under the unranked ``cfg``."""
+    frames = cache.frames
+    c = cache.candidates(cfg, i, mirrored=mirrored, photometric=photometric)
+    gt = frames.gts[i]
+    ignore = frames.ignore[i] if isinstance(frames, FitFrames) else torch.zeros(0, 4)
+    seed = [opts.seed, i]
+    if mirrored:
+        width = frames.images[i].shape[-1]
+        gt, ignore, seed = _mirror_boxes(gt, width), _mirror_boxes(ignore, width), [opts.seed, i, 1]
+    elif photometric is not None:
+        seed = [opts.seed, i, 3]
+    return frame_sample(c.features, c.boxes, gt, frames.labels[i], ignore, opts, np.random.default_rng(seed))
 
 
 def _balanced(w: Tensor, y: Tensor, label: Tensor, balance: float) -> Tensor:

@@ -38,8 +38,8 @@ from ..generator import FRONT_END_FIELDS, Candidates, FrontEnd, ProposalGenerato
 from .metrics import RecallInterval, object_hits
 
 __all__ = ["Frames", "FrameCache", "Param", "default_space", "load_space", "Estimate", "CrossValidation",
-           "load_frames", "score_config", "objective", "bootstrap_interval", "fold_blocks", "held_out",
-           "cross_validate", "tune", "StudyOptions"]
+           "load_frames", "photometric_jitter", "score_config", "objective", "bootstrap_interval", "fold_blocks",
+           "held_out", "cross_validate", "tune", "StudyOptions"]
 
 
 # -- frames ------------------------------------------------------------------------------------
@@ -101,7 +101,7 @@ class FrameCache:
     def __init__(self, frames: Frames) -> None:
         self.frames = frames
         self._key: tuple | None = None
-        self._front: dict[int, FrontEnd] = {}
+        self._front: dict[int | tuple, FrontEnd] = {}
         self.front_computed = 0
         """How many frames' front ends were computed (for tests and the summary)."""
         self._generators: dict[tuple, ProposalGenerator] = {}
@@ -117,18 +117,28 @@ class FrameCache:
             self._generators[key] = ProposalGenerator(cfg)
         return self._generators[key]
 
-    def _front_of(self, cfg: ReebConfig, i: int) -> tuple[ProposalGenerator, list[Tensor], FrontEnd]:
-        """The generator of ``cfg``, frame ``i`` as its input, and that frame's front end (cached)."""
+    def _front_of(self, cfg: ReebConfig, i: int, mirrored: bool = False,
+                  photometric: tuple[float, float] | None = None
+                  ) -> tuple[ProposalGenerator, list[Tensor], FrontEnd]:
+        """The generator of ``cfg``, frame ``i`` (flipped left to right with ``mirrored``; its
+        contrast and brightness changed by ``photometric``, :func:`photometric_jitter`) as its
+        input, and that image's front end (each variant cached apart from the frame's own)."""
         key = tuple(getattr(cfg, f) for f in FRONT_END_FIELDS)
         if key != self._key:
             self._key, self._front = key, {}
         gen = self._generator(cfg)
-        img = gen.prepare([self.frames.images[i]])
-        if i not in self._front:
+        image = self.frames.images[i]
+        if mirrored:
+            image = image.flip(-1)
+        if photometric is not None:
+            image = photometric_jitter(image, *photometric)
+        img = gen.prepare([image])
+        slot: int | tuple = (i, mirrored, photometric) if mirrored or photometric is not None else i
+        if slot not in self._front:
             with torch.no_grad():
-                self._front[i] = gen.front_end(img)
+                self._front[slot] = gen.front_end(img)
             self.front_computed += 1
-        return gen, img, self._front[i]
+        return gen, img, self._front[slot]
 
     def outputs(self, cfg: ReebConfig, indices: Sequence[int]) -> list[dict[str, Tensor]]:
         """``ProposalGenerator(cfg)``'s output dict (``boxes``, ``scores``, and ``labels``,
@@ -145,16 +155,27 @@ class FrameCache:
         """Ranked boxes ``Tensor[P_i, 4]`` (``P_i <= cfg.top_k``) for the frames ``indices``."""
         return [o["boxes"] for o in self.outputs(cfg, indices)]
 
-    def candidates(self, cfg: ReebConfig, i: int) -> Candidates:
+    def candidates(self, cfg: ReebConfig, i: int, mirrored: bool = False,
+                   photometric: tuple[float, float] | None = None) -> Candidates:
         """Frame ``i``'s candidates and their features under ``cfg``
-        (:meth:`reeb_torch.ProposalGenerator.candidates`)."""
+        (:meth:`reeb_torch.ProposalGenerator.candidates`); with ``mirrored``, those of the frame
+        flipped left to right (boxes in the flipped image's coordinates); with ``photometric``
+        ``(contrast, brightness)``, those of the frame so changed (:func:`photometric_jitter`)."""
         with torch.no_grad():
-            gen, img, front = self._front_of(cfg, i)
+            gen, img, front = self._front_of(cfg, i, mirrored, photometric)
             return gen.candidates_of(img, front)[0]
 
     def hits(self, cfg: ReebConfig, indices: Sequence[int], k: int, iou: float) -> list[Tensor]:
         """Per frame of ``indices``, ``bool Tensor[N_i]``: objects the top ``k`` boxes find at ``iou``."""
         return object_hits(self.proposals(cfg, indices), [self.frames.gts[i] for i in indices], k, iou)
+
+
+def photometric_jitter(image: Tensor, contrast: float, brightness: float) -> Tensor:
+    """``uint8 [3, H, W]`` ``image`` with its contrast scaled by ``contrast`` about its mean
+    and ``brightness`` (in grey levels) added, rounded and clipped to 0–255."""
+    x = image.float()
+    x = (x - x.mean()) * contrast + x.mean() + brightness
+    return x.round().clamp(0, 255).to(torch.uint8)
 
 
 def objective(hits: Sequence[Tensor], labels: Sequence[Tensor], balanced: bool = False) -> float:

@@ -482,6 +482,12 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
                    "fitting from scratch: for a few labelled frames of another camera (its widths are its own).")
 @click.option("--balance", type=click.FloatRange(0, 2), default=0.5, show_default=True,
               help="Weigh each class's objects by (objects / the class's objects)^BALANCE (1: classes equal).")
+@click.option("--mirror", is_flag=True,
+              help="Fit also on each training frame's mirror image (flipped left to right, its boxes with it); "
+                   "the held-out frames of the estimate stay as they are.")
+@click.option("--jitter", type=click.FloatRange(0, 1), default=0.0, show_default=True,
+              help="Fit also on a copy of each training frame with its contrast scaled by 1 ± up to JITTER and "
+                   "up to JITTER × 255 grey levels added (drawn per frame, seeded); 0: none.")
 @click.option("-k", "--proposals", "k", type=click.IntRange(min=1), default=2000, show_default=True,
               help="Proposals counted per frame.")
 @click.option("--iou", type=click.FloatRange(0, 1, min_open=True), default=0.7, show_default=True,
@@ -492,8 +498,8 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
               help="JSON config over the preset (e.g. reeb calibrate's camera.json).")
 @click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE", help="Change a field (repeatable).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
-def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, k, iou, limit, preset, config_file,
-        sets, quiet):
+def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, mirror, jitter, k, iou, limit, preset,
+        config_file, sets, quiet):
     """Fit the learned ranking on labelled KITTI-format folders (DIRS) for another camera, and
     estimate by cross-validation over blocks of frames how it does on frames it never saw,
     beside the training-free settings and the shipped model on the same frames. Writes the
@@ -515,7 +521,7 @@ def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, k, 
         widths = tuple(int(w) for w in (hidden or "64,64").split(","))
     except ValueError:
         raise click.BadParameter(f"{hidden!r}: expected widths such as 64,64", param_hint="--hidden") from None
-    opts = FitOptions(hidden=widths, seed=seed, balance=balance, init=init)
+    opts = FitOptions(hidden=widths, seed=seed, balance=balance, init=init, mirror=mirror, jitter=jitter)
     if epochs is not None:
         opts = dataclasses.replace(opts, **{"tune_epochs" if init else "epochs": epochs})
     command = " ".join(["reeb fit", *map(shlex.quote, sys.argv[2:])])

@@ -333,7 +333,7 @@ def _run_fit(roots: Sequence[str], outputs: FitOutputs, cfg: ReebConfig, opts: F
         "objects": sum(len(g) for g in frames.gts), "frames_digest": frames_digest(frames),
         "frame_hashes": {f"{os.path.basename(os.path.normpath(f))}/{i}": frame_hash(im)
                          for f, i, im in zip(frames.folders, frames.ids, frames.images)},
-        "options": dataclasses.asdict(opts), "folds": folds, "k": k, "iou": iou, "command": command,
+        "options": _options_record(opts), "folds": folds, "k": k, "iou": iou, "command": command,
         "cross_validated": record,
     }
     if whole_drives:
@@ -382,6 +382,16 @@ def _seen_note(who: str, model: BoxRanker, frames: F.FitFrames, digest: str, row
     if seen:
         return [f"  ({who} was fitted on {seen} of these {len(frames)} frames: {row} is in-sample there)"]
     return []
+
+
+def _options_record(opts: F.FitOptions) -> dict[str, Any]:
+    """The fit options kept in the weights' provenance; ``mirror`` and ``jitter`` only where
+    they are on (a fit without them records what it always did)."""
+    record = dataclasses.asdict(opts)
+    for name in ("mirror", "jitter"):
+        if not record[name]:
+            del record[name]
+    return record
 
 
 def _changed(cfg: ReebConfig) -> dict[str, Any]:
