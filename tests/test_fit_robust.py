@@ -189,11 +189,10 @@ def test_the_scratch_folder_is_beside_the_output_and_a_killed_fits_is_removed(tm
     stale.mkdir()
     (stale / "left-by-a-kill").write_text("x")
     (tmp_path / ".w.safetensors.abcd1234.tmp").write_bytes(b"half a file")
-    with FitOutputs(tmp_path / "w.safetensors"):
-        assert Path(tempfile.gettempdir()) == stale and not (stale / "left-by-a-kill").exists()
-        with tempfile.TemporaryDirectory(prefix="reeb-fit-") as held_out:
-            assert Path(held_out).parent == stale
-    assert tempfile.gettempdir() == before and os.listdir(tmp_path) == []
+    with FitOutputs(tmp_path / "w.safetensors") as outputs:
+        assert outputs.scratch == stale and stale.is_dir() and not (stale / "left-by-a-kill").exists()
+        assert tempfile.gettempdir() == before  # the fit's folds go to outputs.scratch, named, not the process's
+    assert os.listdir(tmp_path) == []
 
 
 # -- labels (row 6) -------------------------------------------------------------------------

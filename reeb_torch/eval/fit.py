@@ -477,16 +477,17 @@ class _HeldOutModels:
     :func:`~reeb_torch.eval.tune.fold_blocks`, or the blocks ``folds``), in a temporary folder
     removed on leaving the ``with`` block: :meth:`fit` fits block ``f``'s, keeping every
     drive neighbour and near-copy of the block out of its training frames
-    (:func:`training_frames`), and records how many frames it was fitted on."""
+    (:func:`training_frames`), and records how many frames it was fitted on. ``scratch``: the
+    folder the temporary one is made in (default: the system's)."""
 
     def __init__(self, cache: FrameCache, names: Sequence[str], samples: Sequence[Sample], opts: FitOptions,
-                 folds: int | Sequence[Sequence[int]], gap: int) -> None:
+                 folds: int | Sequence[Sequence[int]], gap: int, scratch: str | os.PathLike | None = None) -> None:
         frames = cache.frames
         self.frames, self.names, self.samples, self.opts, self.gap = frames, names, samples, opts, gap
         self.blocks = fold_blocks(len(frames), folds) if isinstance(folds, int) else [list(b) for b in folds]
         self.similar = similar_frames(frames.images)
         self.trained: list[int] = []
-        self._tmp = tempfile.TemporaryDirectory(prefix="reeb-fit-")
+        self._tmp = tempfile.TemporaryDirectory(prefix="reeb-fit-", dir=scratch)
 
     def __enter__(self) -> _HeldOutModels:
         return self
@@ -505,7 +506,8 @@ class _HeldOutModels:
 
 def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[Sample], opts: FitOptions,
                      folds: int | Sequence[Sequence[int]], gap: int = 2,
-                     progress: Callable | None = None) -> list[dict[str, Tensor]]:
+                     progress: Callable | None = None,
+                     scratch: str | os.PathLike | None = None) -> list[dict[str, Tensor]]:
     """Per frame (in frame order), ``ProposalGenerator(cfg)``'s output dict with the ranking
     fitted without the frame's block (``folds`` blocks: the folds and models of
     :func:`cross_validate`; or the blocks given, the frame indices of each, covering every
@@ -517,7 +519,7 @@ def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[Sampl
     """
     names = cache.candidates(cfg.unranked(), 0).feature_names
     out: list = [None] * len(cache.frames)
-    with _HeldOutModels(cache, names, samples, opts, folds, gap) as models:
+    with _HeldOutModels(cache, names, samples, opts, folds, gap, scratch) as models:
         for f in progress(range(len(models.blocks))) if progress else range(len(models.blocks)):
             block = models.blocks[f]
             for i, o in zip(block, cache.outputs(cfg.replace(ranker=str(models.fit(f))), block)):
@@ -527,7 +529,8 @@ def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[Sampl
 
 def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples: Sequence[Sample],
                    opts: FitOptions, folds: int, k: int = 2000, iou: float = 0.7, gap: int = 2,
-                   progress: Callable | None = None, also: Sequence[ReebConfig] = ()) -> FitCrossValidation:
+                   progress: Callable | None = None, also: Sequence[ReebConfig] = (),
+                   scratch: str | os.PathLike | None = None) -> FitCrossValidation:
     """For each of ``folds`` blocks of frames: fit on the others (:func:`training_frames`),
     run the generator of ``cfg`` with that model on the block, and pair its hits with
     ``base``'s on the same objects; each config of ``also`` (settings that act after the
@@ -552,7 +555,7 @@ def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples
             hits += object_hits([o["boxes"] for o in cache.outputs(other.replace(ranker=str(path[0])), block)],
                                 gts, k, iou)
 
-    with _HeldOutModels(cache, names, samples, opts, folds, gap) as models:
+    with _HeldOutModels(cache, names, samples, opts, folds, gap, scratch) as models:
         scored = held_out(cache, models.blocks, fitted, base, k, iou, each=each, progress=progress)
     return FitCrossValidation(models.blocks, scored.hits, scored.base_hits, per_fold=scored.per_fold,
                               trained=models.trained, hinted=hinted, also_hits=also_hits)

@@ -131,7 +131,7 @@ def _shipped_hits(cache: FrameCache, cfg: ReebConfig, k: int, iou: float) -> lis
 
 
 def _other_folder_hits(cache: FrameCache, cfg: ReebConfig, samples: Sequence[F.Sample], opts: F.FitOptions,
-                       k: int, iou: float, quiet: bool) -> list | None:
+                       k: int, iou: float, quiet: bool, scratch: Path) -> list | None:
     """Per frame, the objects the generator finds with a model fitted (or fine-tuned) on the
     other folders only, a block per folder: how a model holds on frames unlike those it saw;
     None for frames of one folder."""
@@ -140,7 +140,8 @@ def _other_folder_hits(cache: FrameCache, cfg: ReebConfig, samples: Sequence[F.S
     blocks = [idx for _, idx in folder_blocks(cache.frames.folders)]
     if not blocks:
         return None
-    outputs = F.held_out_outputs(cache, cfg, samples, opts, blocks, progress=_iterate("other folders", quiet))
+    outputs = F.held_out_outputs(cache, cfg, samples, opts, blocks, progress=_iterate("other folders", quiet),
+                                 scratch=scratch)
     return object_hits([o["boxes"] for o in outputs], cache.frames.gts, k, iou)
 
 
@@ -174,7 +175,6 @@ class FitOutputs:
             raise UsageProblem(problem)
         self.scratch = self.weights.parent / f"{_hidden(self.weights)}.fit"
         self._locks: list = []
-        self._tempdir: str | None = None
 
     def __enter__(self) -> "FitOutputs":
         from .output_files import OutputError, stale_temp_files
@@ -192,11 +192,9 @@ class FitOutputs:
         except (OSError, OutputError) as e:
             self._release()
             raise UsageProblem(" ".join(str(e).split())) from None
-        self._tempdir, tempfile.tempdir = tempfile.tempdir, str(self.scratch)
         return self
 
     def __exit__(self, *exc: object) -> None:
-        tempfile.tempdir = self._tempdir
         shutil.rmtree(self.scratch, ignore_errors=True)
         self._release()
 
@@ -309,14 +307,15 @@ def _run_fit(roots: Sequence[str], outputs: FitOutputs, cfg: ReebConfig, opts: F
         F.initial_model(opts.init, names)  # a model that cannot be tuned here fails before any work
     samples = F.frame_samples(cache, cfg, opts, progress=_iterate("candidates", quiet))
     gap = len(frames) if whole_drives else 2  # drive frames within ``gap`` of a held-out block stay out
-    cv = F.cross_validate(cache, cfg, base, samples, opts, folds, k, iou, gap, progress=_iterate("folds", quiet))
+    cv = F.cross_validate(cache, cfg, base, samples, opts, folds, k, iou, gap, progress=_iterate("folds", quiet),
+                          scratch=outputs.scratch)
     model = F.fit_ranker(samples, names, opts, frames.classes)
     fitted = "fine-tuned (cross-validated)" if opts.init else "fitted (cross-validated)"
     rows = {"training-free": cv.base_hits, fitted: cv.ranked_hits}
     table, record = _report(frames, rows, cv.base_hits)  # kept in the weights: the same for the same frames
     hint_lines, hint_record = _hint_report(frames, cv.hinted)
     shown = dict(rows)
-    other = _other_folder_hits(cache, cfg, samples, opts, k, iou, quiet)
+    other = _other_folder_hits(cache, cfg, samples, opts, k, iou, quiet, outputs.scratch)
     other_row = f"{'fine-tuned' if opts.init else 'fitted'} on other folders"
     if other is not None:
         shown[other_row] = other
