@@ -10,8 +10,10 @@ together), and ``--bing-model`` is ``../shared/data/bing_model``. See
 ``table3.txt``, ``table3.csv``, ``table3.json`` and two plots.
 
 Rerun: ``python benchmarks/table3.py [--data DIR ...] [--limit N] [--frames A:B ...]
-[--methods M,...] [--cross-validate FOLDS] [--leave-folder-out]`` (the README's table:
-``--cross-validate 10 --leave-folder-out --out docs/results/table3``); ``--data``,
+[--methods M,...] [--cross-validate FOLDS [--whole-drives]] [--leave-folder-out]`` (the
+default's table: ``--methods reeb-training-free,reeb-default --cross-validate 10 --whole-drives
+--leave-folder-out --batch 0 --out docs/results/table3_default``; its whole-drives row is the
+estimate to read first); ``--data``,
 ``--frames`` and ``--methods`` repeat (``--frames 0:39 --frames 40:59``) or take
 comma-separated values (``--frames 0:39,40:59``). ``--frames`` selects numeric ids (KITTI
 object frames; select tracking frames by folder). ``--help`` lists every option.

@@ -157,11 +157,14 @@ def test_table3_on_bundled_frames(tmp_path, monkeypatch, layout):
     boxes = captured["reeb-default"]
     hits = {"all": [0, 0], "moderate": [0, 0]}
     per_class_hits: dict[str, list[int]] = {}
+    few = {(k, t): 0 for k in (100, 300) for t in (0.3, 0.5, 0.7)}  # objects found by the top 100 / 300
     for i, item in enumerate(ds[j] for j in range(len(ds))):
         props = boxes[i][:2000].tolist()
         for g, name, occ, trunc in zip(item["boxes"].tolist(), item["class_names"],
                                        item["occluded"].tolist(), item["truncated"].tolist()):
             best = max((_iou(g, p) for p in props), default=0.0)
+            for k, t in few:
+                few[k, t] += max((_iou(g, p) for p in props[:k]), default=0.0) >= t
             hit = best >= 0.7
             hits["all"][0] += hit
             hits["all"][1] += 1
@@ -177,12 +180,24 @@ def test_table3_on_bundled_frames(tmp_path, monkeypatch, layout):
     for name, (h, n) in per_class_hits.items():
         assert res["per_class_headline"]["all"][name] == pytest.approx(h / n)
     assert res["per_class_headline"]["all"]["Pedestrian"] is None  # no pedestrian: undefined
+    assert record["ks"] == [100, 300, 500, 1000, 2000]
+    for (k, t), n in few.items():
+        assert res["recall"]["micro"][str(k)][f"{t:g}"] == pytest.approx(n / hits["all"][1]), (k, t)
+    assert few[100, 0.7] < hits["all"][0]  # 100 proposals find fewer than 2000 here: the columns differ
+    assert set(res["ar_micro"]) == {"100", "300", "500", "1000", "2000"}
+    assert res["ar_micro"]["100"] <= res["ar_micro"]["300"] <= res["ar_micro"]["2000"]
     ci = res["splits"]["all"]["headline_interval"]  # the headline, with a frame-bootstrap interval
     assert ci["recall"] == pytest.approx(hits["all"][0] / hits["all"][1])
     assert ci["low"] <= ci["recall"] <= ci["high"] and ci["level"] == 0.95
 
     text = (out / "table3.txt").read_text()
     assert "over all objects (micro" in text and "headline" in text
+    head = next(line for line in text.splitlines() if "proposals" in line and "|" in line)
+    assert [c.strip() for c in head.split("|")[1:6]] == [f"{k} proposals" for k in (100, 300, 500, 1000, 2000)]
+    assert "micro @100 / @300 / @500 / @1000 / @2000" in text  # AR at each count
+    row_text = next(line for line in text.splitlines() if line.startswith("Ours** + learned ranking (default) "))
+    shown = [float(v) for v in row_text.split("|")[1].split()]  # 100 proposals: IoU 0.5 and 0.7
+    assert shown == [round(100 * few[100, t] / hits["all"][1], 1) for t in (0.5, 0.7)]
     # both bundled frames are KITTI frames the shipped ranking was fitted on: said, not hidden
     assert record["in_sample"] == {"reeb-default": {"000001": "kitti/000001", "000008": "kitti/000008"}}
     assert "In-sample: 2 of these 2 frames are pictures the learned ranking was fitted on" in text
@@ -203,6 +218,10 @@ def test_table3_on_bundled_frames(tmp_path, monkeypatch, layout):
     assert len(rows) == 3 * 2 * 6
     row = next(r for r in rows if r["frames"] == "all" and r["objects"] == "moderate" and r["average"] == "micro")
     assert float(row["R@2000_IoU0.7"]) == pytest.approx(100 * hits["moderate"][0] / hits["moderate"][1], abs=0.006)
+    whole = next(r for r in rows if r["frames"] == "all" and r["objects"] == "all" and r["average"] == "micro")
+    assert float(whole["R@100_IoU0.3"]) == pytest.approx(100 * few[100, 0.3] / hits["all"][1], abs=0.006)
+    assert float(whole["R@300_IoU0.7"]) == pytest.approx(100 * few[300, 0.7] / hits["all"][1], abs=0.006)
+    assert {"AR@100", "AR@300"} <= set(whole)
     assert row["num_objects"] == "5"
 
 
@@ -230,6 +249,7 @@ def test_table3_usage_errors_exit_2(tmp_path, capsys):
         ([data, "--cross-validate", "1"], "--cross-validate needs at least 2 folds, got 1"),
         ([data, "--cross-validate", "3"], "--cross-validate 3 needs at least as many frames, got 2"),
         ([data, "--leave-folder-out"], "--leave-folder-out needs two or more --data folders"),
+        ([data, "--whole-drives"], "--whole-drives needs --cross-validate FOLDS"),
     ]
     for argv, message in cases:
         code = _eval_exits(*argv, "--out", tmp_path / "o")
@@ -376,3 +396,71 @@ def test_table3_cross_validated_row_is_reeb_fits_estimate(kitti_dir, tmp_path, m
     assert "Cross-validated: the row Ours** + learned ranking (cross-validated) ranks each of 2 blocks" in text
     assert "In-sample: 6 of these 6 frames" in text  # the default's own row
     assert "(fit " in text
+
+
+TRACKING = REPO.parent / "shared" / "data" / "kitti_tracking"
+DRIVE_FRAMES = ("t0000_000000", "t0000_000030", "t0000_000060", "t0000_000090", "t0000_000120", "t0000_000153",
+                "t0016_000002", "t0016_000007", "t0016_000012")  # 6 frames of one drive, 3 of another
+
+
+def test_table3_whole_drives_row_never_fits_on_a_frame_of_a_held_out_drive(tmp_path, monkeypatch):
+    """--whole-drives: a row before the cross-validated one, ranked by models fitted without
+    any frame of the held-out block's drives (the training frames of each fit, checked by
+    drive), the same models as reeb fit --whole-drives; the cross-validated row's models do see
+    other frames of those drives here (so the check can fail); the row is in every table."""
+    if not (TRACKING / "images").is_dir():
+        pytest.skip(f"{TRACKING} is absent (the shared KITTI frames live beside the repository)")
+    from reeb_torch import ReebConfig
+    from reeb_torch.eval import fit as F
+    from reeb_torch.eval.tune import FrameCache
+
+    data = tmp_path / "kitti_tracking"
+    for sub, ext in (("images", "png"), ("labels", "txt"), ("calib", "txt")):
+        (data / sub).mkdir(parents=True)
+        for f in DRIVE_FRAMES:
+            shutil.copy(TRACKING / sub / f"{f}.{ext}", data / sub / f"{f}.{ext}")
+    fits: list[tuple[int, set[str], set[str]]] = []  # (gap, held-out drives, training drives) per fit
+    training_frames = F.training_frames
+
+    def spy(blocks, held, ids, folders, similar=(), gap=2):
+        train = training_frames(blocks, held, ids, folders, similar, gap)
+        fits.append((gap, {F.drive_of(ids[i], folders[i]) for i in blocks[held]},
+                     {F.drive_of(ids[i], folders[i]) for i in train}))
+        return train
+
+    monkeypatch.setattr(F, "training_frames", spy)
+    monkeypatch.chdir(tmp_path)
+    record = _eval(data, "--methods", "reeb-training-free,reeb-default", "--batch", "0", "--out", "t3",
+                   "--cross-validate", "3", "--whole-drives")
+    assert list(record["methods"]) == ["reeb-training-free", "reeb-default", "reeb-default-wd", "reeb-default-cv"]
+    whole = [(held, train) for gap, held, train in fits if gap == len(DRIVE_FRAMES)]
+    assert len(whole) == 3 and all(train and not held & train for held, train in whole)
+    assert any(held & train for gap, held, train in fits if gap == 2)  # 10-fold style: the drive's other frames
+    row = record["methods"]["reeb-default-wd"]
+    assert row["label"] == "Ours** + learned ranking (whole drives held out)"
+    assert row["timing"]["whole_drives"] and row["timing"]["folds"] == 3
+
+    monkeypatch.setattr(F, "training_frames", training_frames)
+    frames = F.load_fit_frames([str(data)])
+    cache = FrameCache(frames)
+    cfg, opts = ReebConfig(), F.FitOptions()
+    cv = F.cross_validate(cache, cfg, cfg.training_free(), F.frame_samples(cache, cfg, opts), opts, 3,
+                          gap=len(frames))  # reeb fit --whole-drives's estimate
+    found, objects = sum(int(h.sum()) for h in cv.ranked_hits), sum(h.numel() for h in cv.ranked_hits)
+    assert row["recall"]["micro"]["2000"]["0.7"] == pytest.approx(found / objects)
+    paired = row["splits"]["all"]["versus_reference"]
+    assert paired["reference"] == "reeb-training-free"
+    assert paired["gained"] == sum(int((r & ~b).sum()) for r, b in zip(cv.ranked_hits, cv.base_hits))
+
+    text = (tmp_path / "t3" / "table3.txt").read_text()
+    label, other = row["label"], record["methods"]["reeb-default-cv"]["label"]
+    assert "Whole drives held out - the estimate to read first: the row " + label in text
+    assert text.index("Whole drives held out") < text.index("Cross-validated: the row")
+    lines = text.splitlines()
+    # micro, moderate, class mean, the interval and its pairing, per class, AR: the row in each, before the 10-fold row
+    assert sum(line.startswith(label + " ") for line in lines) == 7
+    firsts = [i for i, line in enumerate(lines) if line.startswith(label + " ")]
+    seconds = [i for i, line in enumerate(lines) if line.startswith(other + " ")]
+    assert all(a < b for a, b in zip(firsts, seconds))
+    csv_rows = list(csv.DictReader(open(tmp_path / "t3" / "table3.csv")))
+    assert any(r["method"] == "reeb-default-wd" and r["average"] == "Pedestrian" for r in csv_rows)

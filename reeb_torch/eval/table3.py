@@ -51,7 +51,17 @@ from .metrics import (
     recall_vs_proposals,
     select_objects,
 )
-from .methods import CROSS_VALIDATED, HEADLINE, IOUS, KS, METHODS, Method, Table3Error, Table3Options
+from .methods import (
+    CROSS_VALIDATED,
+    HEADLINE,
+    IOUS,
+    KS,
+    METHODS,
+    WHOLE_DRIVES,
+    Method,
+    Table3Error,
+    Table3Options,
+)
 
 __all__ = [
     "CURVE_IOUS",
@@ -316,9 +326,10 @@ def _run_methods(options: Table3Options, frames: Frames, splits: list[tuple[str,
         method = METHODS[key]
         try:
             if method.cross_validated:
-                folds = (options.cross_validate if key == CROSS_VALIDATED
+                folds = (options.cross_validate if key in (CROSS_VALIDATED, WHOLE_DRIVES)
                          else [idx for _, idx in folder_splits(frames.items)])
-                boxes, timing = cross_validated_boxes(frames, options.data, folds, options.max_proposals, prepared)
+                boxes, timing = cross_validated_boxes(frames, options.data, folds, options.max_proposals, prepared,
+                                                      whole_drives=key == WHOLE_DRIVES)
             else:
                 boxes, timing = run_method(method, frames.images, options.max_proposals, options.batch,
                                            bing_model=options.bing_model)
@@ -343,12 +354,14 @@ def _run_methods(options: Table3Options, frames: Frames, splits: list[tuple[str,
 
 def cross_validated_boxes(frames: Frames, roots: Sequence[str | os.PathLike], folds: int | Sequence[Sequence[int]],
                           max_proposals: int,
-                          prepared: dict[str, Any] | None = None) -> tuple[list[torch.Tensor], dict[str, Any]]:
+                          prepared: dict[str, Any] | None = None,
+                          whole_drives: bool = False) -> tuple[list[torch.Tensor], dict[str, Any]]:
     """The default's ranked boxes (``Tensor[N_i, 4]``, at most ``max_proposals``) on each of
     ``frames`` (read from the folders ``roots``), each ranked by a model fitted without the
     frame's block of ``folds`` (a number of blocks, or the blocks: the frame indices of each;
     :func:`reeb_torch.eval.fit.held_out_outputs`, with ``reeb fit``'s default options and seed:
-    the same models as ``reeb fit ROOTS --folds FOLDS``), and the
+    the same models as ``reeb fit ROOTS --folds FOLDS``; ``whole_drives``: without any frame
+    of the block's drives either, as ``reeb fit --whole-drives``), and the
     seconds it took (``fit_s``: candidates, fits, proposals; no ms per image: the row runs the
     default's code, whose row times it). ``prepared``: a dict kept between calls on the same
     frames, which holds their candidates and training rows after the first (then not timed
@@ -375,10 +388,14 @@ def cross_validated_boxes(frames: Frames, roots: Sequence[str | os.PathLike], fo
         cache = FrameCache(FitFrames(frames.images, frames.gts, frames.labels, frames.classes, frames.ids, folders,
                                      ignore))
         prepared.update(cache=cache, samples=frame_samples(cache, cfg, opts, progress=bar("candidates")))
-    outputs = held_out_outputs(prepared["cache"], cfg, prepared["samples"], opts, folds, progress=bar("folds"))
+    # reeb fit's gaps: drive frames within 2 of a held-out block stay out, or (whole drives) all of them
+    gap = len(frames.ids) if whole_drives else 2
+    outputs = held_out_outputs(prepared["cache"], cfg, prepared["samples"], opts, folds, gap,
+                               progress=bar("whole drives" if whole_drives else "folds"))
     boxes = [o["boxes"][:max_proposals] for o in outputs]
     timing = {"ms_per_img": None, "fit_s": time.perf_counter() - t0,
-              "folds": folds if isinstance(folds, int) else len(folds), "batch_size": 1,
+              "folds": folds if isinstance(folds, int) else len(folds), "whole_drives": whole_drives,
+              "batch_size": 1,
               "num_proposals_mean": sum(b.shape[0] for b in boxes) / len(boxes)}
     return boxes, timing
 
