@@ -263,3 +263,18 @@ def test_the_refiner_is_fitted_only_on_the_training_side(monkeypatch, tmp_path):
             assert model.refiner is not None
             train = F.training_frames(models.blocks, f, frames.ids, frames.folders, models.similar, n)
             assert seen[-1] == set(train) and not seen[-1] & set(models.blocks[f])
+
+
+def test_the_compiled_features_are_the_tensor_ops():
+    from reeb_torch.ranker.refine import refine_features_tensor
+
+    g = torch.Generator().manual_seed(0)
+    ii_e = _integral(torch.rand(2, 60, 90, generator=g))
+    ii_g = _integral(torch.rand(2, 60, 90, generator=g))
+    corner = torch.rand(300, 2, generator=g) * torch.tensor([80.0, 50.0])
+    boxes = torch.cat([corner, corner + torch.rand(300, 2, generator=g) * 40 + 1], 1)
+    boxes[0] = torch.tensor([0.0, 0.0, 90.0, 60.0])
+    bi = torch.randint(0, 2, (300,), generator=g)
+    compiled = refine_features(ii_e, ii_g, boxes, bi, 0.47)
+    assert torch.allclose(compiled, refine_features_tensor(ii_e, ii_g, boxes, bi, 0.47), atol=1e-5, rtol=0)
+    assert compiled[0, -4:].tolist() == [1.0, 1.0, 1.0, 1.0]  # the whole image touches every border

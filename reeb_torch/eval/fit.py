@@ -158,8 +158,8 @@ class FitOptions:
     mirror: bool = False
     jitter: float = 0.0
     refine_hidden: tuple[int, ...] | None = (64, 64)
-    refine_iou: float = 0.3
-    refine_per_object: int = 32
+    refine_iou: float = 0.5
+    refine_per_object: int = 100
     refine_epochs: int = 20
     refine_batch: int = 512
     refine_lr: float = 3e-3
@@ -375,7 +375,10 @@ def fit_refiner(x: Tensor, y: Tensor, opts: FitOptions) -> BoxRefiner:
     refiner = BoxRefiner(refine_feature_names(), opts.refine_hidden)
     x = x.float()
     refiner.mean.copy_(x.mean(0))
-    refiner.scale.copy_(x.std(0).clamp(min=1e-6) if len(x) > 1 else torch.ones(x.shape[1]))
+    std = x.std(0) if len(x) > 1 else torch.ones(x.shape[1])
+    # a column (nearly) constant on the training rows (a border flag no candidate set) is left
+    # unscaled: divided by its tiny spread, a box that sets it would send the offsets anywhere
+    refiner.scale.copy_(torch.where(std > 0.01, std, torch.ones_like(std)))
     fit = dataclasses.replace(opts, epochs=opts.refine_epochs, batch=opts.refine_batch, lr=opts.refine_lr)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)

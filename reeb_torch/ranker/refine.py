@@ -20,10 +20,13 @@ from __future__ import annotations
 
 from typing import Sequence
 
+import numba
+import numpy as np
 import torch
 from torch import Tensor, nn
 
-__all__ = ["OFFSETS", "STRIP", "TARGET_SCALE", "refine_feature_names", "refine_features", "BoxRefiner",
+__all__ = ["OFFSETS", "STRIP", "TARGET_SCALE", "refine_feature_names", "refine_features", "refine_features_tensor",
+           "BoxRefiner",
            "apply_offsets", "merge_refined", "offset_targets"]
 
 OFFSETS: tuple[float, ...] = (-0.3, -0.2, -0.1, 0.0, 0.1, 0.2, 0.3)
@@ -70,6 +73,75 @@ def _box_means(ii: Tensor, bi: Tensor, rects: Tensor) -> Tensor:
 
 
 def refine_features(ii_edges: Tensor, ii_grey: Tensor, boxes: Tensor, bi: Tensor, horizon: float) -> Tensor:
+    """:func:`refine_features_tensor`: on the CPU one compiled pass over the boxes
+    (:func:`_features_kernel`, ~0.2 ms for 1000 boxes), elsewhere the tensor ops; the same
+    numbers (to float32 rounding of the logarithms). ``float32 [K, 49]``."""
+    if ii_edges.device.type != "cpu" or not len(boxes):
+        return refine_features_tensor(ii_edges, ii_grey, boxes, bi, horizon)
+    out = np.empty((len(boxes), len(refine_feature_names())), np.float32)
+    _features_kernel(ii_edges.double().numpy(), ii_grey.double().numpy(),
+                     boxes.detach().double().contiguous().numpy(), bi.long().contiguous().numpy(), float(horizon),
+                     np.asarray(OFFSETS, np.float64), _band_edges().numpy(), out)
+    return torch.from_numpy(out)
+
+
+def _band_edges(device: torch.device | None = None) -> Tensor:
+    """The brightness bands' edges as fractions of the box's side, ``float64 [BANDS + 1]``."""
+    return torch.linspace(-GROW, 1.0 + GROW, BANDS + 1, device=device, dtype=torch.float64)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _mean(ii: np.ndarray, b: int, x0f: float, y0f: float, x1f: float, y1f: float) -> np.float32:
+    """:func:`_box_means` of one rectangle."""
+    h, w = ii.shape[1] - 1, ii.shape[2] - 1
+    x0, x1 = min(max(int(np.rint(x0f)), 0), w), min(max(int(np.rint(x1f)), 0), w)
+    y0, y1 = min(max(int(np.rint(y0f)), 0), h), min(max(int(np.rint(y1f)), 0), h)
+    x1, y1 = max(x0, x1), max(y0, y1)
+    s = ii[b, y1, x1] - ii[b, y0, x1] - ii[b, y1, x0] + ii[b, y0, x0]
+    return np.float32(s / max((x1 - x0) * (y1 - y0), 1))
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _features_kernel(ii_e: np.ndarray, ii_g: np.ndarray, boxes: np.ndarray, bi: np.ndarray, horizon: float,
+                     offsets: np.ndarray, band: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """:func:`refine_features_tensor`, box by box, into ``out`` ``float32 [K, 49]``."""
+    h, w = ii_e.shape[1] - 1, ii_e.shape[2] - 1
+    n, nb = len(offsets), len(band) - 1
+    eps = np.float32(1e-3)
+    for k in range(len(boxes)):
+        b = bi[k]
+        x1, y1, x2, y2 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
+        bw, bh = max(x2 - x1, 1.0), max(y2 - y1, 1.0)
+        tw, th = max(0.05 * bw, 1.0) / 2, max(0.05 * bh, 1.0) / 2
+        box_e = np.log(_mean(ii_e, b, x1, y1, x2, y2) + eps)
+        for j in range(n):
+            o = offsets[j]
+            cl, cr, ct, cb = x1 + o * bw, x2 + o * bw, y1 + o * bh, y2 + o * bh
+            out[k, j] = np.log(_mean(ii_e, b, cl - tw, y1, cl + tw, y2) + eps) - box_e
+            out[k, n + j] = np.log(_mean(ii_e, b, x1, ct - th, x2, ct + th) + eps) - box_e
+            out[k, 2 * n + j] = np.log(_mean(ii_e, b, cr - tw, y1, cr + tw, y2) + eps) - box_e
+            out[k, 3 * n + j] = np.log(_mean(ii_e, b, x1, cb - th, x2, cb + th) + eps) - box_e
+        c = 4 * n
+        out[k, c] = box_e
+        box_g = _mean(ii_g, b, x1, y1, x2, y2)
+        gx0, gx1, gy0, gy1 = x1 - 0.3 * bw, x2 + 0.3 * bw, y1 - 0.3 * bh, y2 + 0.3 * bh
+        for j in range(nb):
+            out[k, c + 1 + j] = _mean(ii_g, b, gx0, y1 + band[j] * bh, gx1, y1 + band[j + 1] * bh) - box_g
+            out[k, c + 1 + nb + j] = _mean(ii_g, b, x1 + band[j] * bw, gy0, x1 + band[j + 1] * bw, gy1) - box_g
+        c += 1 + 2 * nb
+        out[k, c] = box_g
+        out[k, c + 1] = np.log(bw / w)
+        out[k, c + 2] = np.log(bh / h)
+        out[k, c + 3] = (x1 + x2) / (2 * w)
+        out[k, c + 4] = (y1 + y2) / (2 * h) - horizon
+        out[k, c + 5] = y2 / h - horizon
+        out[k, c + 6] = 1.0 if x1 <= 0.5 else 0.0
+        out[k, c + 7] = 1.0 if y1 <= 0.5 else 0.0
+        out[k, c + 8] = 1.0 if x2 >= w - 0.5 else 0.0
+        out[k, c + 9] = 1.0 if y2 >= h - 0.5 else 0.0
+
+
+def refine_features_tensor(ii_edges: Tensor, ii_grey: Tensor, boxes: Tensor, bi: Tensor, horizon: float) -> Tensor:
     """The refiner's features of ``boxes`` (``float [K, 4]`` ``(x1, y1, x2, y2)`` in working
     pixels, of images ``bi`` ``int64 [K]``) from the batch's integral images of the edge map
     and the grey image (``float [B, h + 1, w + 1]`` each): ``float32 [K, 49]``
@@ -85,7 +157,7 @@ def refine_features(ii_edges: Tensor, ii_grey: Tensor, boxes: Tensor, bi: Tensor
       (its row less ``horizon``), the bottom row less ``horizon``, and whether each side
       touches the image border."""
     h, w = ii_edges.shape[-2] - 1, ii_edges.shape[-1] - 1
-    b = boxes.float()
+    b = boxes.double()
     x1, y1, x2, y2 = b.unbind(1)
     bw, bh = (x2 - x1).clamp(min=1.0), (y2 - y1).clamp(min=1.0)
     off = torch.tensor(OFFSETS, device=b.device, dtype=b.dtype)
@@ -100,10 +172,10 @@ def refine_features(ii_edges: Tensor, ii_grey: Tensor, boxes: Tensor, bi: Tensor
     box = b[:, None, :]
     rects = torch.cat(strips + [box], 1)  # [K, 4n + 1, 4]
     edge = _box_means(ii_edges, bi, rects)
-    log_edge = torch.log(edge + _EPS)
+    log_edge = torch.log(edge + torch.tensor(_EPS, dtype=torch.float32))
     strip_cols = log_edge[:, :-1] - log_edge[:, -1:]
     # the brightness profile: BANDS rows and columns across the box grown by GROW on each side
-    edges_f = torch.linspace(-GROW, 1.0 + GROW, BANDS + 1, device=b.device, dtype=b.dtype)
+    edges_f = _band_edges(b.device)
     ry = y1[:, None] + edges_f * bh[:, None]
     rx = x1[:, None] + edges_f * bw[:, None]
     gx0, gx1 = (x1 - GROW * bw)[:, None].expand(k, BANDS), (x2 + GROW * bw)[:, None].expand(k, BANDS)
@@ -113,8 +185,8 @@ def refine_features(ii_edges: Tensor, ii_grey: Tensor, boxes: Tensor, bi: Tensor
     grey = _box_means(ii_grey, bi, torch.cat([rows, cols, box], 1))
     grey_cols = grey[:, :-1] - grey[:, -1:]
     geometry = torch.stack([torch.log(bw / w), torch.log(bh / h), (x1 + x2) / (2 * w), (y1 + y2) / (2 * h) - horizon,
-                            y2 / h - horizon, (x1 <= 0.5).float(), (y1 <= 0.5).float(), (x2 >= w - 0.5).float(),
-                            (y2 >= h - 0.5).float()], 1)
+                            y2 / h - horizon, (x1 <= 0.5).to(b.dtype), (y1 <= 0.5).to(b.dtype),
+                            (x2 >= w - 0.5).to(b.dtype), (y2 >= h - 0.5).to(b.dtype)], 1)
     return torch.cat([strip_cols, log_edge[:, -1:], grey_cols, grey[:, -1:], geometry.float()], 1).float()
 
 
