@@ -119,7 +119,7 @@ KS = (2000, 500)
 """The proposal counts whose best IoU per object is kept (:func:`cross_validated_best`)."""
 CUTS = {"@2000 IoU .7": (0, 0.7), "@500 IoU .7": (1, 0.7), "@2000 IoU .5": (0, 0.5)}
 """Recall cuts: name to (column of :data:`KS`, IoU)."""
-AR_IOUS = tuple(0.5 + 0.05 * i for i in range(10))
+AR_IOUS = tuple(round(0.5 + 0.05 * i, 2) for i in range(10))
 
 
 def cross_validated_best(cache: FrameCache, configs: list[ReebConfig], seed: int, folds: int,

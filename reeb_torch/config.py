@@ -446,6 +446,9 @@ class ReebConfig:
     :mod:`reeb_torch.ranker.refine`) and put beside their originals within ``top_k``
     (``refine_order``); a refined box takes its original's score and class hints. ``0``: off.
     Not in the paper (its future work)."""
+    refine_class: str = ""
+    """With ``refine_top``: only the boxes whose class hint (the ranker's class head) is this
+    class are refined, the best ``refine_top`` of them (e.g. ``"Car"``); ``""``: every box."""
     refine_order: RefineOrder = _knob("interleave")
     """Where the refined boxes go: ``interleave``, each right after its original (then the
     other originals); ``refined_first``, all of them before the originals."""

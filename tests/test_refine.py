@@ -278,3 +278,30 @@ def test_the_compiled_features_are_the_tensor_ops():
     compiled = refine_features(ii_e, ii_g, boxes, bi, 0.47)
     assert torch.allclose(compiled, refine_features_tensor(ii_e, ii_g, boxes, bi, 0.47), atol=1e-5, rtol=0)
     assert compiled[0, -4:].tolist() == [1.0, 1.0, 1.0, 1.0]  # the whole image touches every border
+
+
+def test_merge_refines_the_boxes_named_and_keeps_their_hints():
+    r = {"boxes": torch.arange(16.0).reshape(4, 4), "scores": torch.tensor([4.0, 3.0, 2.0, 1.0]),
+         "labels": torch.tensor([0, 1, 0, 1])}
+    refined = -torch.arange(8.0).reshape(2, 4) - 1
+    which = torch.tensor([1, 3])
+    inter = merge_refined(r, refined, "interleave", 10, which=which)
+    assert torch.equal(inter["boxes"], torch.stack([r["boxes"][0], r["boxes"][1], refined[0], r["boxes"][2],
+                                                   r["boxes"][3], refined[1]]))
+    assert inter["labels"].tolist() == [0, 1, 1, 0, 1, 1]
+    first = merge_refined(r, refined, "refined_first", 3, which=which)
+    assert torch.equal(first["boxes"], torch.stack([refined[0], refined[1], r["boxes"][0]]))
+    assert first["scores"].tolist() == [3.0, 1.0, 4.0]
+
+
+def test_refine_class_refines_only_the_boxes_hinted_as_it(sample_image, refiner_file):
+    image = sample_image[:, :160, :480]
+    today = ProposalGenerator(ReebConfig(top_k=300))([image])[0]
+    car = ProposalGenerator(ReebConfig(top_k=300, ranker=refiner_file, refine_top=20, refine_class="Car",
+                                       refine_order="refined_first"))
+    out = car([image])[0]
+    cars = torch.nonzero(today["labels"] == car.classes.index("Car")).squeeze(1)[:20]
+    assert len(cars) and torch.equal(out["labels"][: len(cars)], today["labels"][cars])
+    assert torch.equal(out["boxes"][len(cars):], today["boxes"][: 300 - len(cars)])
+    with pytest.raises(ValueError, match="refine_class 'Bus' is not a class"):
+        ProposalGenerator(ReebConfig(ranker=refiner_file, refine_top=20, refine_class="Bus"))

@@ -224,32 +224,33 @@ def _nms_in_order(boxes: Tensor, iou: float) -> Tensor:
 
 
 def merge_refined(result: dict[str, Tensor], refined: Tensor, order: str, top_k: int,
-                  nms_iou: float = 1.0) -> dict[str, Tensor]:
+                  nms_iou: float = 1.0, which: Tensor | None = None) -> dict[str, Tensor]:
     """One image's output dict (``boxes [N, 4]``, ``scores [N]``, optional ``labels``,
-    ``class_probs``) with ``refined`` (``float32 [M, 4]``, ``M <= N``: the first ``M`` boxes
-    refined) put beside the originals, at most ``top_k`` rows: ``order`` ``"interleave"``
-    (each refined box right after its original, then the rest of the originals) or
+    ``class_probs``) with ``refined`` (``float32 [M, 4]``: the boxes ``which``, ``int64 [M]``
+    ascending, refined; default the first ``M``) put beside the originals, at most ``top_k``
+    rows: ``order`` ``"interleave"`` (each refined box right after its original) or
     ``"refined_first"`` (the refined boxes, then the originals); with ``nms_iou`` < 1, a
     greedy NMS over that order at ``nms_iou`` first. A refined box takes its original's
     score and class hints."""
     m, n = len(refined), len(result["boxes"])
     dev = result["boxes"].device
-    orig, ref = torch.arange(n, device=dev), torch.arange(m, device=dev)
+    which = torch.arange(m, device=dev) if which is None else which.to(dev)
+    orig = torch.arange(n, device=dev)
     if order == "interleave":
-        of = torch.cat([torch.stack([orig[:m], ref], 1).reshape(-1), orig[m:]])  # each row's original
-        at = torch.cat([torch.stack([orig[:m], n + ref], 1).reshape(-1), orig[m:]])  # its row of the pool
+        key = torch.cat([2 * orig, 2 * which + 1])
     elif order == "refined_first":
-        of, at = torch.cat([ref, orig]), torch.cat([n + ref, orig])
+        key = torch.cat([orig, torch.arange(m, device=dev) - m])
     else:
         raise ValueError(f"refine order {order!r}: expected 'interleave' or 'refined_first'")
+    at = torch.sort(key).indices  # rows of the pool (originals, then refined) in output order
+    of = torch.cat([orig, which])[at]  # each row's original
     boxes_all = torch.cat([result["boxes"], refined.to(result["boxes"].dtype)])[at]
     keep = _nms_in_order(boxes_all, nms_iou) if nms_iou < 1.0 else torch.arange(len(at), device=dev)
     keep = keep[:top_k]
-    src = of
     out = {"boxes": boxes_all[keep].contiguous()}
-    for key, value in result.items():
-        if key != "boxes":
-            out[key] = value[src[keep]].contiguous()
+    for key_name, value in result.items():
+        if key_name != "boxes":
+            out[key_name] = value[of[keep]].contiguous()
     return out
 
 
