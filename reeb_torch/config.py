@@ -23,7 +23,7 @@ LocationScore = Literal["paper", "classes", "none"]
 WindowGeometry = Literal["camera", "grid"]
 ShadowScore = Literal["underneath", "none"]
 VegetationScore = Literal["green", "none"]
-RefineOrder = Literal["interleave", "refined_first"]
+RefineOrder = Literal["interleave", "refined_first", "replace"]
 if typing.TYPE_CHECKING:  # what a caller may give: shares in the head's order, or by class name
     ClassQuota = tuple[tuple[str, float], ...] | tuple[float, ...] | typing.Mapping[str, float]
 else:  # what the field holds, and what the checks see (a mapping is made pairs first)
@@ -451,7 +451,8 @@ class ReebConfig:
     class are refined, the best ``refine_top`` of them (e.g. ``"Car"``); ``""``: every box."""
     refine_order: RefineOrder = _knob("interleave")
     """Where the refined boxes go: ``interleave``, each right after its original (then the
-    other originals); ``refined_first``, all of them before the originals."""
+    other originals); ``refined_first``, all of them before the originals; ``replace``, each
+    in its original's place."""
     refine_steps: int = _knob(1, "[1, 4]")
     """How many times the refiner is applied (its features read again at each step)."""
     refine_nms: float = _knob(1.0, "(0, 1]")

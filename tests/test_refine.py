@@ -314,3 +314,11 @@ def test_cuda_refinement_matches_the_cpu(sample_image, refiner_file):
     gpu = ProposalGenerator(cfg).to("cuda")([sample_image.cuda()])[0]
     iou = box_iou(cpu["boxes"][:400], gpu["boxes"][:400].cpu()).amax(1)
     assert float((iou > 0.99).float().mean()) > 0.9  # the ranking rounds differently there
+
+
+def test_replace_puts_each_refined_box_in_its_originals_place():
+    r = {"boxes": torch.arange(16.0).reshape(4, 4), "scores": torch.tensor([4.0, 3.0, 2.0, 1.0])}
+    refined = -torch.arange(8.0).reshape(2, 4) - 1
+    out = merge_refined(r, refined, "replace", 3, which=torch.tensor([1, 3]))
+    assert torch.equal(out["boxes"], torch.stack([r["boxes"][0], refined[0], r["boxes"][2]]))
+    assert out["scores"].tolist() == [4.0, 3.0, 2.0] and torch.equal(r["boxes"], torch.arange(16.0).reshape(4, 4))

@@ -232,20 +232,27 @@ def merge_refined(result: dict[str, Tensor], refined: Tensor, order: str, top_k:
     """One image's output dict (``boxes [N, 4]``, ``scores [N]``, optional ``labels``,
     ``class_probs``) with ``refined`` (``float32 [M, 4]``: the boxes ``which``, ``int64 [M]``
     ascending, refined; default the first ``M``) put beside the originals, at most ``top_k``
-    rows: ``order`` ``"interleave"`` (each refined box right after its original) or
-    ``"refined_first"`` (the refined boxes, then the originals); with ``nms_iou`` < 1, a
+    rows: ``order`` ``"interleave"`` (each refined box right after its original),
+    ``"refined_first"`` (the refined boxes, then the originals) or ``"replace"`` (each
+    refined box in its original's place); with ``nms_iou`` < 1, a
     greedy NMS over that order at ``nms_iou`` first. A refined box takes its original's
     score and class hints."""
     m, n = len(refined), len(result["boxes"])
     dev = result["boxes"].device
     which = torch.arange(m, device=dev) if which is None else which.to(dev)
     orig = torch.arange(n, device=dev)
+    if order == "replace":
+        boxes_all = result["boxes"].clone()
+        boxes_all[which] = refined.to(boxes_all.dtype)
+        keep = _nms_in_order(boxes_all, nms_iou) if nms_iou < 1.0 else orig
+        keep = keep[:top_k]
+        return {k: (boxes_all if k == "boxes" else v)[keep].contiguous() for k, v in result.items()}
     if order == "interleave":
         key = torch.cat([2 * orig, 2 * which + 1])
     elif order == "refined_first":
         key = torch.cat([orig, torch.arange(m, device=dev) - m])
     else:
-        raise ValueError(f"refine order {order!r}: expected 'interleave' or 'refined_first'")
+        raise ValueError(f"refine order {order!r}: expected 'interleave', 'refined_first' or 'replace'")
     at = torch.sort(key).indices  # rows of the pool (originals, then refined) in output order
     of = torch.cat([orig, which])[at]  # each row's original
     boxes_all = torch.cat([result["boxes"], refined.to(result["boxes"].dtype)])[at]
