@@ -443,8 +443,8 @@ class ReebConfig:
     refine_top: int = _knob(0, "[0, 100000]")
     """With a ranker whose weights hold a box refiner (``reeb fit`` fits one): the best this
     many output boxes of each image are refined (each side moved by the refiner's offsets,
-    :mod:`reeb_torch.ranker.refine`) and put beside their originals within ``top_k``
-    (``refine_order``); a refined box takes its original's score and class hints. ``0``: off.
+    :mod:`reeb_torch.ranker.refine`) and put beside their originals, or in their place, within
+    ``top_k`` (``refine_order``); a refined box takes its original's score and class hints. ``0``: off.
     Not in the paper (its future work)."""
     refine_class: str = ""
     """With ``refine_top``: only the boxes whose class hint (the ranker's class head) is this
