@@ -5,7 +5,9 @@ only what comes after the model (``class_quota``, ``top_k``, ``nms_iou``, ...: t
 the model does not see) can be paired with the default exactly: each fold's model is
 fitted once (on the default's candidates, as ``reeb fit`` does) and every setting runs with
 it on the held-out block. Per fit seed: recall at 2000 proposals / IoU 0.7 with its
-frame-bootstrap interval, per class and per folder, and the sign test against the default.
+frame-bootstrap interval, per class and per folder, and the sign test against the default;
+beside it recall at 500 proposals / IoU 0.7 (its interval, per class, its sign test), at
+2000 / IoU 0.5, and AR@2000 (the mean recall over IoU 0.5:0.95).
 With several seeds, also over all of them: each object counts once, as gained when the
 setting finds it with more fit seeds than the default does, as lost with fewer (the sign
 test on those: the seeds' noise averaged within each object, the objects the unit).
@@ -78,7 +80,7 @@ def _fit_value(name: str, text: str) -> object:
     text = text.strip()
     if name == "init":  # a model to fine-tune: a shipped name or a weights file
         return None if text.lower() in ("none", "null") else text
-    if name in ("hidden", "prefilter", "class_hidden"):
+    if name in ("hidden", "prefilter", "class_hidden", "refine_hidden"):
         if text.lower() in ("none", "null") and name != "hidden":
             return None
         return tuple(int(x) for x in text.split(",") if x.strip())
@@ -113,26 +115,58 @@ def parse_refit(text: str) -> tuple[ReebConfig, dict]:
     return build_config("default", None, pairs, None), opts
 
 
-def cross_validated_hits(cache: FrameCache, configs: list[ReebConfig], seed: int, folds: int,
-                         k: int = 2000, iou: float = 0.7,
-                         refits: list[tuple[ReebConfig, dict]] = (), whole_drives: bool = False) -> list[list]:
-    """Per frame, the held-out hits of the default, then of each of ``configs``, all run with
-    the same fold models (:func:`reeb_torch.eval.fit.cross_validate`, fitted as ``reeb fit``
-    fits, on the default's candidates); then of each ``(config, fit options)`` of ``refits``,
-    with fold models fitted on the same folds with those options, for that config.
-    ``whole_drives``: a held-out block's training frames hold no frame of its drives
-    (``reeb fit --whole-drives``), not only none within 2 frames of it."""
+KS = (2000, 500)
+"""The proposal counts whose best IoU per object is kept (:func:`cross_validated_best`)."""
+CUTS = {"@2000 IoU .7": (0, 0.7), "@500 IoU .7": (1, 0.7), "@2000 IoU .5": (0, 0.5)}
+"""Recall cuts: name to (column of :data:`KS`, IoU)."""
+AR_IOUS = tuple(round(0.5 + 0.05 * i, 2) for i in range(10))
+
+
+def cross_validated_best(cache: FrameCache, configs: list[ReebConfig], seed: int, folds: int,
+                         ks: tuple[int, ...] = KS, refits: list[tuple[ReebConfig, dict]] = (),
+                         whole_drives: bool = False) -> list[list]:
+    """Per frame, ``float32 [N_i, len(ks)]``: each object's best IoU with the top ``k`` held-out
+    proposals of the default, then of each of ``configs``, all run with the same fold models
+    (:func:`reeb_torch.eval.fit.cross_validate`, fitted as ``reeb fit`` fits, on the default's
+    candidates); then of each ``(config, fit options)`` of ``refits``, with fold models fitted
+    on the same folds with those options, for that config. ``whole_drives``: a held-out
+    block's training frames hold no frame of its drives (``reeb fit --whole-drives``), not
+    only none within 2 frames of it."""
     opts = F.FitOptions(seed=seed)
     base = ReebConfig()
     samples = F.frame_samples(cache, base, opts)
     gap = len(cache.frames) if whole_drives else 2
-    cv = F.cross_validate(cache, base, base.training_free(), samples, opts, folds, k, iou, gap=gap, also=configs)
-    out = [cv.ranked_hits, *cv.also_hits]
+    cv = F.cross_validate(cache, base, base.training_free(), samples, opts, folds, ks[0], gap=gap, also=configs,
+                          best_ks=ks)
+    out = [cv.ranked_best, *cv.also_best]
     for cfg, changes in refits:
         o = dataclasses.replace(opts, **changes)
         s = F.frame_samples(cache, cfg, o)
-        out.append(F.cross_validate(cache, cfg, cfg.training_free(), s, o, folds, k, iou, gap=gap).ranked_hits)
+        out.append(F.cross_validate(cache, cfg, cfg.training_free(), s, o, folds, ks[0], gap=gap,
+                                    best_ks=ks).ranked_best)
     return out
+
+
+def cross_validated_hits(cache: FrameCache, configs: list[ReebConfig], seed: int, folds: int,
+                         k: int = 2000, iou: float = 0.7,
+                         refits: list[tuple[ReebConfig, dict]] = (), whole_drives: bool = False) -> list[list]:
+    """Per frame, the held-out hits (``bool [N_i]``) at ``k`` proposals / ``iou`` of the
+    default, then of each of ``configs``, then of each of ``refits``
+    (:func:`cross_validated_best`)."""
+    best = cross_validated_best(cache, configs, seed, folds, (k,), refits, whole_drives)
+    return [[b[:, 0] >= iou for b in frames] for frames in best]
+
+
+def hits_at(best: list, cut: str) -> list:
+    """Per frame, ``bool [N_i]``: the objects found at the recall cut ``cut`` (:data:`CUTS`)."""
+    col, iou = CUTS[cut]
+    return [b[:, col] >= iou for b in best]
+
+
+def average_recall(best: list, idx: list[int]) -> float:
+    """AR at the first of :data:`KS` on the frames ``idx``: recall averaged over IoU 0.5:0.95, in %."""
+    b = torch.cat([best[i][:, 0] for i in idx])
+    return 100 * float(torch.stack([(b >= t).float().mean() for t in AR_IOUS]).mean()) if len(b) else float("nan")
 
 
 def describe(frames, hits: list, ref: list | None, idx: list[int]) -> dict:
@@ -159,6 +193,27 @@ def over_seeds(per_seed: list[list], variant: int, idx: list[int]) -> dict:
     return {"gained": gained, "lost": lost, "p_value": sign_test(gained, lost)}
 
 
+def describe_all(frames, best: list, ref: list | None, idx: list[int]) -> dict:
+    """:func:`describe` at each of :data:`CUTS` (the first one's keys at the top level, the
+    others under ``cuts``) and AR@2000 (``ar``), on the frames ``idx``."""
+    row = describe(frames, hits_at(best, "@2000 IoU .7"), None if ref is None else hits_at(ref, "@2000 IoU .7"), idx)
+    row["cuts"] = {c: describe(frames, hits_at(best, c), None if ref is None else hits_at(ref, c), idx)
+                   for c in list(CUTS)[1:]}
+    row["ar"] = average_recall(best, idx)
+    return row
+
+
+def cut_line(row: dict) -> str:
+    """The second line of a row: the other cuts and AR."""
+    parts = []
+    for c, r in row["cuts"].items():
+        paired = f", +{r['paired']['gained']} / -{r['paired']['lost']} p {r['paired']['p_value']:.2g}" \
+            if "paired" in r else ""
+        classes = ", ".join(f"{n} {v['found']}" for n, v in r["per_class"].items())
+        parts.append(f"{c} {r['recall']:.1f} % ({r['low']:.1f}-{r['high']:.1f}; {classes}{paired})")
+    return f"  {'':<36} " + "; ".join(parts) + f"; AR@2000 {row['ar']:.1f} %"
+
+
 def line(name: str, row: dict) -> str:
     classes = ", ".join(f"{c} {v['found']}/{v['objects']}" for c, v in row["per_class"].items())
     paired = ""
@@ -179,6 +234,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--folds", type=int, default=10)
     ap.add_argument("--whole-drives", action="store_true",
                     help="no frame of a held-out block's drives on the training side (reeb fit --whole-drives)")
+    ap.add_argument("--limit", type=int, default=None, help="the first N frames of each folder (a smoke run)")
     ap.add_argument("--out", type=Path, default=Path("runs/cv_paired"))
     args = ap.parse_args(argv)
     if not args.variant and not args.refit:
@@ -189,7 +245,7 @@ def main(argv: list[str] | None = None) -> dict:
     except (ValueError, click.ClickException) as e:
         ap.error(str(getattr(e, "message", e)))
     t0 = time.monotonic()
-    frames = F.load_fit_frames([str(d) for d in args.data])
+    frames = F.load_fit_frames([str(d) for d in args.data], limit=args.limit)
     cache = FrameCache(frames)
     groups = [("all frames", list(range(len(frames))))]
     folders = list(dict.fromkeys(frames.folders))
@@ -199,30 +255,39 @@ def main(argv: list[str] | None = None) -> dict:
     record: dict = {"seeds": {}, "environment": environment()}
     per_seed: list[list] = []
     for seed in args.seeds:
-        hits = cross_validated_hits(cache, list(variants.values()), seed, args.folds, refits=list(refits.values()),
+        best = cross_validated_best(cache, list(variants.values()), seed, args.folds, refits=list(refits.values()),
                                     whole_drives=args.whole_drives)
-        per_seed.append(hits)
+        per_seed.append(best)
         apart = "; no frame of a held-out block's drives on the training side" if args.whole_drives else ""
         text.append(f"fit seed {seed}: {len(frames)} frames, {args.folds} folds of blocks of frames{apart}; recall at "
-                    "2000 proposals, IoU 0.7, 95 % frame-bootstrap intervals")
+                    "2000 proposals, IoU 0.7, 95 % frame-bootstrap intervals; below each, @500 / IoU 0.7 and "
+                    "@2000 / IoU 0.5 (objects found per class; paired), AR@2000 (IoU 0.5:0.95)")
         record["seeds"][seed] = {}
         for title, idx in groups:
             text.append(f" {title} ({len(idx)} frames):")
-            rows = {"default": describe(frames, hits[0], None, idx)}
-            rows.update({v: describe(frames, h, hits[0], idx) for v, h in zip([*variants, *refits], hits[1:])})
-            text += [line(name, row) for name, row in rows.items()]
+            rows = {"default": describe_all(frames, best[0], None, idx)}
+            rows.update({v: describe_all(frames, h, best[0], idx) for v, h in zip([*variants, *refits], best[1:])})
+            for name, row in rows.items():
+                text += [line(name, row), cut_line(row)]
             record["seeds"][seed][title] = rows
-        print("\n".join(text[-(1 + len(groups) * (2 + len(variants) + len(refits))):]), flush=True)
+        print("\n".join(text[-(1 + len(groups) * (1 + 2 * (1 + len(variants) + len(refits)))):]), flush=True)
     if len(args.seeds) > 1:
         text.append(f"over the {len(args.seeds)} fit seeds: objects found with more / fewer seeds than by the "
                     "default, sign test")
         record["over_seeds"] = {}
-        for title, idx in groups:
-            rows = {v: over_seeds(per_seed, j + 1, idx) for j, v in enumerate([*variants, *refits])}
-            text += [f" {title}: " + "; ".join(f"{v} +{r['gained']} / -{r['lost']}, p {r['p_value']:.2g}"
-                                               for v, r in rows.items())]
-            record["over_seeds"][title] = rows
-        print("\n".join(text[-(1 + len(groups)):]), flush=True)
+        for cut in CUTS:
+            hits = [[hits_at(b, cut) for b in seed_best] for seed_best in per_seed]
+            for title, idx in groups:
+                rows = {v: over_seeds(hits, j + 1, idx) for j, v in enumerate([*variants, *refits])}
+                text += [f" {cut}, {title}: " + "; ".join(f"{v} +{r['gained']} / -{r['lost']}, p {r['p_value']:.2g}"
+                                                          for v, r in rows.items())]
+                record["over_seeds"].setdefault(cut, {})[title] = rows
+        ar = {v: [sum(average_recall(b[j], idx) for b in per_seed) / len(per_seed) for _, idx in groups]
+              for j, v in enumerate(["default", *variants, *refits])}
+        text += [" AR@2000 averaged over the seeds (" + ", ".join(t for t, _ in groups) + "): "
+                 + "; ".join(f"{v} " + " / ".join(f"{a:.1f}" for a in vals) for v, vals in ar.items())]
+        record["over_seeds"]["ar"] = ar
+        print("\n".join(text[-(2 + len(groups) * len(CUTS)):]), flush=True)
     text.append(f"({time.monotonic() - t0:.0f} s)")
     write_outputs(args.out, "cv_paired", text, record)
     return record

@@ -23,6 +23,7 @@ LocationScore = Literal["paper", "classes", "none"]
 WindowGeometry = Literal["camera", "grid"]
 ShadowScore = Literal["underneath", "none"]
 VegetationScore = Literal["green", "none"]
+RefineOrder = Literal["interleave", "refined_first", "replace"]
 if typing.TYPE_CHECKING:  # what a caller may give: shares in the head's order, or by class name
     ClassQuota = tuple[tuple[str, float], ...] | tuple[float, ...] | typing.Mapping[str, float]
 else:  # what the field holds, and what the checks see (a mapping is made pairs first)
@@ -439,6 +440,24 @@ class ReebConfig:
     hints as that class), the rest going to the best of the others. By class name,
     ``{"Pedestrian": 0.2}`` (kept as pairs; ignored without a class head), or one share a
     class in the head's order, ``(0, 0.2, 0.05, 0)``. ``()``: one ranking. Not in the paper."""
+    refine_top: int = _knob(0, "[0, 100000]")
+    """With a ranker whose weights hold a box refiner (``reeb fit`` fits one): the best this
+    many output boxes of each image are refined (each side moved by the refiner's offsets,
+    :mod:`reeb_torch.ranker.refine`) and put beside their originals, or in their place, within
+    ``top_k`` (``refine_order``); a refined box takes its original's score and class hints. ``0``: off.
+    Not in the paper (its future work)."""
+    refine_class: str = ""
+    """With ``refine_top``: only the boxes whose class hint (the ranker's class head) is this
+    class are refined, the best ``refine_top`` of them (e.g. ``"Car"``); ``""``: every box."""
+    refine_order: RefineOrder = _knob("interleave")
+    """Where the refined boxes go: ``interleave``, each right after its original (then the
+    other originals); ``refined_first``, all of them before the originals; ``replace``, each
+    in its original's place."""
+    refine_steps: int = _knob(1, "[1, 4]")
+    """How many times the refiner is applied (its features read again at each step)."""
+    refine_nms: float = _knob(1.0, "(0, 1]")
+    """Below 1: a greedy NMS at this IoU over the originals and refined boxes in their order
+    (a refined box on top of its original makes room for the next); ``1``: none."""
 
     # -- eq. 13: NMS and output ----------------------------------------------------------
     nms_iou: float = _knob(0.75, "(0, 1]")

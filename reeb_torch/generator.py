@@ -205,7 +205,8 @@ class ProposalGenerator(nn.Module):
         """Set to ``{}`` to accumulate wall seconds per stage (edges, groups, road,
         regions, scoring, ranker, nms) over calls; ``None`` (default) records
         nothing. The learned ranking's parts are also recorded on their own, within ``ranker``:
-        ``ranker.prefilter``, ``ranker.features``, ``ranker.model`` and ``ranker.class_head``.
+        ``ranker.prefilter``, ``ranker.features``, ``ranker.model``, ``ranker.class_head`` and
+        ``ranker.refine``.
         Where the two halves of a CPU batch run side by side, each records half its time."""
 
     @contextmanager
@@ -445,6 +446,9 @@ class ProposalGenerator(nn.Module):
                 for r, probs in zip(results, self.ranker.class_hints(maps, grid, v_scores, share, entropy, windows,
                                                                      ranked[0] if ranked else None, ranked_logits)):
                     r["labels"], r["class_probs"] = probs.argmax(1), probs
+        if self.ranker is not None and self.ranker.refines():  # the box refiner (not in the paper)
+            with self._stage("ranker", dev), self._stage("ranker.refine", dev):
+                results = self.ranker.refine(maps, results)
         if not self._warned_empty and any(len(r["boxes"]) == 0 for r in results):
             self._warn_empty(tuple(images[0].shape[-2:]), grid.count, share)
         extra = _kept_maps(maps, bounds, entropy, share, grid.count) if keep else {}

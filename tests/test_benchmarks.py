@@ -399,6 +399,17 @@ def test_cv_paired_over_seeds_counts_each_object_once():
     assert cv.over_seeds(seeds, 1, [1]) == {"gained": 0, "lost": 1, "p_value": 1.0}
 
 
+def test_cv_paired_cuts_and_ar_come_from_each_objects_best_iou():
+    cv = _script("cv_paired")
+    # two frames; columns: best IoU within the top 2000, within the top 500
+    best = [torch.tensor([[0.9, 0.6], [0.55, 0.55]]), torch.tensor([[0.72, 0.72]])]
+    assert [h.tolist() for h in cv.hits_at(best, "@2000 IoU .7")] == [[True, False], [True]]
+    assert [h.tolist() for h in cv.hits_at(best, "@500 IoU .7")] == [[False, False], [True]]
+    assert [h.tolist() for h in cv.hits_at(best, "@2000 IoU .5")] == [[True, True], [True]]
+    # AR over IoU 0.5, 0.55, ..., 0.95: 0.9 clears 9 of the 10 thresholds, 0.55 two, 0.72 five
+    assert cv.average_recall(best, [0, 1]) == pytest.approx(100 * (9 + 2 + 5) / 30)
+
+
 def test_adapt_scores_four_ways_on_frames_away_from_the_adapt_block(tmp_path):
     """adapt.py: per ordered pair of folders, a base model fitted on the source, the first /
     last k target frames to adapt with, the other target frames to test on; the record

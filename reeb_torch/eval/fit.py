@@ -9,7 +9,9 @@ frames, and estimate by cross-validation how it does on frames it never saw.
   (an object's positives weigh 1 together, so each object counts once) and a seeded sample
   of those below ``negative_iou`` with every labelled box.
 * :func:`fit_ranker` fits a :class:`~reeb_torch.ranker.BoxRanker` (weighted logistic loss,
-  AdamW, one CPU thread, seeded: the same frames and options give the same bits).
+  AdamW, one CPU thread, seeded: the same frames and options give the same bits), and its box
+  refiner (:func:`fit_refiner`: smooth-L1 to the side offsets of the candidates that overlap
+  an object at IoU ≥ ``refine_iou``, from the same frames' rows).
 * :func:`cross_validate` splits the frames into blocks
   (:func:`~reeb_torch.eval.tune.fold_blocks`), fits on all blocks but one, keeping the
   held-out block's drive neighbours out (:func:`training_frames`), scores the generator with
@@ -35,12 +37,12 @@ from torch import Tensor
 from torchvision.ops import box_iou
 
 from ..config import ReebConfig
-from ..ranker import BoxRanker, save_ranker
+from ..ranker import TARGET_SCALE, BoxRanker, BoxRefiner, offset_targets, refine_feature_names, save_ranker
 from .tune import FrameCache, Frames, fold_blocks, held_out
 
 __all__ = ["FitFrames", "FitOptions", "Sample", "FitCrossValidation", "load_fit_frames", "frame_sample",
-           "frame_samples", "mirrored_sample", "jitter_of", "fit_ranker", "initial_model", "similar_frames",
-           "training_frames", "cross_validate", "held_out_outputs", "hinted_classes", "drive_of", "other_boxes"]
+           "frame_samples", "mirrored_sample", "jitter_of", "fit_ranker", "fit_refiner", "initial_model", "similar_frames",
+           "training_frames", "cross_validate", "best_ious", "held_out_outputs", "hinted_classes", "drive_of", "other_boxes"]
 
 
 @dataclass
@@ -125,6 +127,12 @@ class FitOptions:
             scaled by 1 + ``jitter``·u and ``jitter``·v·255 grey levels added (u, v uniform
             in [−1, 1], drawn per frame from ``(seed, i, 2)``; its negatives seeded with
             ``(seed, i, 3)``); as ``mirror``, only the rows a model is fitted on.
+        refine_hidden: widths of the box refiner's hidden layers
+            (:class:`~reeb_torch.ranker.BoxRefiner`), or None for no refiner.
+        refine_iou: the refiner is fitted on the candidates at this IoU or more with a target.
+        refine_per_object: at most this many of them per object (a seeded draw, after the negatives').
+        refine_epochs, refine_batch, refine_lr: the refiner's passes, rows per step and peak
+            learning rate (AdamW, one-cycle, ``weight_decay``).
     """
 
     hidden: tuple[int, ...] = (64, 64)
@@ -149,18 +157,32 @@ class FitOptions:
     tune_batch: int = 1024
     mirror: bool = False
     jitter: float = 0.0
+    refine_hidden: tuple[int, ...] | None = (64, 64)
+    refine_iou: float = 0.5
+    refine_per_object: int = 100
+    refine_epochs: int = 20
+    refine_batch: int = 512
+    refine_lr: float = 3e-3
+
+
+def _no_refine_rows() -> Tensor:
+    return torch.zeros(0, len(refine_feature_names()))
 
 
 @dataclass
 class Sample:
     """One frame's training rows: ``features float32 [n, F]``, ``target float32 [n]`` (1 a
     positive, 0 a negative), ``weight float32 [n]`` and ``label int64 [n]`` (the class of a
-    positive's object, -1 for a negative)."""
+    positive's object, -1 for a negative); and the box refiner's: ``refine_x float32 [m, R]``
+    (:func:`~reeb_torch.ranker.refine_features` of candidates near an object) and
+    ``refine_y float32 [m, 4]`` (their side offsets to it, :func:`~reeb_torch.ranker.offset_targets`)."""
 
     features: Tensor
     target: Tensor
     weight: Tensor
     label: Tensor
+    refine_x: Tensor = field(default_factory=_no_refine_rows)
+    refine_y: Tensor = field(default_factory=lambda: torch.zeros(0, 4))
 
 
 def _labels(boxes: Tensor, gt: Tensor, ignore: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -176,9 +198,12 @@ def _labels(boxes: Tensor, gt: Tensor, ignore: Tensor) -> tuple[Tensor, Tensor, 
 
 
 def frame_sample(features: Tensor, boxes: Tensor, gt: Tensor, labels: Tensor, ignore: Tensor, opts: FitOptions,
-                 rng: np.random.Generator) -> Sample:
+                 rng: np.random.Generator, refine: Callable[[Tensor], Tensor] | None = None) -> Sample:
     """The training rows of one frame's candidates (``features [K, F]``, ``boxes [K, 4]``) for
-    its target objects ``gt [N, 4]`` of classes ``labels [N]``."""
+    its target objects ``gt [N, 4]`` of classes ``labels [N]``; given ``refine`` (boxes
+    ``[m, 4]`` to their refiner features ``[m, R]``) and ``opts.refine_hidden``, the refiner's
+    rows too: up to ``opts.refine_per_object`` candidates of each object at IoU ≥
+    ``opts.refine_iou`` with it (drawn from ``rng`` after the negatives)."""
     best, which, any_iou = _labels(boxes, gt, ignore)
     pos = torch.nonzero(best >= opts.positive_iou).squeeze(1)
     neg = torch.nonzero(any_iou < opts.negative_iou).squeeze(1)
@@ -189,7 +214,19 @@ def frame_sample(features: Tensor, boxes: Tensor, gt: Tensor, labels: Tensor, ig
     target = torch.cat([torch.ones(len(pos)), torch.zeros(len(neg))])
     weight = torch.cat([w_pos, torch.ones(len(neg))])
     label = torch.cat([labels[which[pos]], torch.full((len(neg),), -1, dtype=torch.long)])
-    return Sample(features[idx].contiguous(), target, weight, label)
+    sample = Sample(features[idx].contiguous(), target, weight, label)
+    if refine is not None and opts.refine_hidden is not None and len(gt):
+        near = torch.nonzero(best >= opts.refine_iou).squeeze(1)
+        order = torch.from_numpy(rng.permutation(len(near)))
+        near = near[order]
+        rank = torch.zeros(len(near), dtype=torch.long)  # each candidate's place among its object's draws
+        for o in torch.unique(which[near]).tolist():
+            at = torch.nonzero(which[near] == o).squeeze(1)
+            rank[at] = torch.arange(len(at))
+        near = near[rank < opts.refine_per_object].sort().values
+        sample.refine_x = refine(boxes[near]).float()
+        sample.refine_y = offset_targets(boxes[near], gt[which[near]])
+    return sample
 
 
 def frame_samples(cache: FrameCache, cfg: ReebConfig, opts: FitOptions, indices: Sequence[int] | None = None,
@@ -246,7 +283,8 @@ def _frame_rows(cache: FrameCache, cfg: ReebConfig, opts: FitOptions, i: int, mi
         gt, ignore, seed = _mirror_boxes(gt, width), _mirror_boxes(ignore, width), [opts.seed, i, 1]
     elif photometric is not None:
         seed = [opts.seed, i, 3]
-    return frame_sample(c.features, c.boxes, gt, frames.labels[i], ignore, opts, np.random.default_rng(seed))
+    return frame_sample(c.features, c.boxes, gt, frames.labels[i], ignore, opts, np.random.default_rng(seed),
+                        lambda b: cache.refine_features(cfg, i, b, mirrored, photometric))
 
 
 def _balanced(w: Tensor, y: Tensor, label: Tensor, balance: float) -> Tensor:
@@ -316,7 +354,45 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
                         opts.seed * 1000 + 998, _class_loss, fresh=fresh)
     finally:
         torch.set_num_threads(threads)
+    rx = torch.cat([s.refine_x for s in samples])
+    if opts.refine_hidden is not None and len(rx):  # fitted last: the ranking's weights do not depend on it
+        model.refiner = fit_refiner(rx, torch.cat([s.refine_y for s in samples]), opts)
     return model.eval().requires_grad_(False)
+
+
+def fit_refiner(x: Tensor, y: Tensor, opts: FitOptions) -> BoxRefiner:
+    """A :class:`~reeb_torch.ranker.BoxRefiner` fitted on the rows ``x`` (``float [m, R]``,
+    :func:`~reeb_torch.ranker.refine_features`) to the side offsets ``y`` (``float [m, 4]``):
+    smooth-L1 on the offsets over :data:`~reeb_torch.ranker.TARGET_SCALE`, AdamW with a
+    one-cycle schedule (``opts.refine_epochs``, ``refine_batch``, ``refine_lr``), seeded by
+    ``opts.seed``, on one CPU thread: the same rows and options give the same weights.
+
+    Raises:
+        ValueError: no rows, or no ``opts.refine_hidden``.
+    """
+    if not len(x) or opts.refine_hidden is None:
+        raise ValueError("the box refiner needs rows (candidates near an object) and refine_hidden")
+    refiner = BoxRefiner(refine_feature_names(), opts.refine_hidden)
+    x = x.float()
+    refiner.mean.copy_(x.mean(0))
+    std = x.std(0) if len(x) > 1 else torch.ones(x.shape[1])
+    # a column (nearly) constant on the training rows (a border flag no candidate set) is left
+    # unscaled: divided by its tiny spread, a box that sets it would send the offsets anywhere
+    refiner.scale.copy_(torch.where(std > 0.01, std, torch.ones_like(std)))
+    fit = dataclasses.replace(opts, epochs=opts.refine_epochs, batch=opts.refine_batch, lr=opts.refine_lr)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        xs = (x - refiner.mean) / refiner.scale
+        _fit_member(refiner.mlp, xs, y.float() / TARGET_SCALE, torch.ones(len(x)), fit, opts.seed * 1000 + 997,
+                    _offset_loss)
+    finally:
+        torch.set_num_threads(threads)
+    return refiner.eval().requires_grad_(False)
+
+
+def _offset_loss(out: Tensor, y: Tensor, w: Tensor) -> Tensor:
+    return (torch.nn.functional.smooth_l1_loss(out, y, reduction="none").sum(1) * w).sum()
 
 
 def initial_model(spec: str, feature_names: Sequence[str]) -> BoxRanker:
@@ -444,6 +520,10 @@ class FitCrossValidation:
             one it misses or where the model has no class head.
         also_hits: per config of :func:`cross_validate`'s ``also``, per frame, its hits with
             the same held-out models (settings that act after the model, paired exactly).
+        ranked_best, also_best: with :func:`cross_validate`'s ``best_ks``, per frame
+            ``float32 [N_i, len(best_ks)]``: each object's best IoU with the top ``k`` proposals
+            of the ranked config (and of each ``also`` config) for each ``k`` (recall at any
+            IoU, AR); empty otherwise.
     """
 
     folds: list[list[int]]
@@ -453,6 +533,17 @@ class FitCrossValidation:
     hinted: list[Tensor] = field(default_factory=list, repr=False)
     trained: list[int] = field(default_factory=list)
     also_hits: list[list[Tensor]] = field(default_factory=list, repr=False)
+    ranked_best: list[Tensor] = field(default_factory=list, repr=False)
+    also_best: list[list[Tensor]] = field(default_factory=list, repr=False)
+
+
+def best_ious(outputs: Sequence[dict[str, Tensor]], gts: Sequence[Tensor], ks: Sequence[int]) -> list[Tensor]:
+    """Per frame, ``float32 [N_i, len(ks)]``: each object's (``gts[i]``) best IoU with the top
+    ``k`` boxes of ``outputs[i]``, for each ``k`` of ``ks``."""
+    from .metrics import best_iou
+
+    return [torch.stack([best_iou(o["boxes"], g, k).float() for k in ks], 1) if len(g)
+            else torch.zeros(0, len(ks)) for o, g in zip(outputs, gts)]
 
 
 def hinted_classes(outputs: Sequence[dict[str, Tensor]], gts: Sequence[Tensor], k: int = 2000,
@@ -530,18 +621,22 @@ def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[Sampl
 def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples: Sequence[Sample],
                    opts: FitOptions, folds: int, k: int = 2000, iou: float = 0.7, gap: int = 2,
                    progress: Callable | None = None, also: Sequence[ReebConfig] = (),
-                   scratch: str | os.PathLike | None = None) -> FitCrossValidation:
+                   scratch: str | os.PathLike | None = None, best_ks: Sequence[int] = ()) -> FitCrossValidation:
     """For each of ``folds`` blocks of frames: fit on the others (:func:`training_frames`),
     run the generator of ``cfg`` with that model on the block, and pair its hits with
     ``base``'s on the same objects; each config of ``also`` (settings that act after the
-    model: ``class_quota``, ``top_k``, ...) runs with the same model too (``also_hits``); the
-    loop over the blocks is :func:`~reeb_torch.eval.tune.held_out`'s."""
+    model: ``class_quota``, ``top_k``, ``refine_top``, ...) runs with the same model too
+    (``also_hits``); with ``best_ks``, each object's best IoU at those proposal counts is kept
+    too (``ranked_best``, ``also_best``: :func:`best_ious`); the loop over the blocks is
+    :func:`~reeb_torch.eval.tune.held_out`'s."""
     from .metrics import object_hits
 
     frames = cache.frames
     names = cache.candidates(cfg.unranked(), 0).feature_names
     hinted: list[Tensor] = []
     also_hits: list[list[Tensor]] = [[] for _ in also]
+    ranked_best: list[Tensor] = []
+    also_best: list[list[Tensor]] = [[] for _ in also] if best_ks else []
     path: list[Path] = []  # the current block's model
 
     def fitted(f: int) -> ReebConfig:
@@ -551,11 +646,16 @@ def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples
     def each(block: list[int], outputs: list[dict[str, Tensor]]) -> None:
         gts = [frames.gts[i] for i in block]
         hinted.extend(hinted_classes(outputs, gts, k, iou))
-        for other, hits in zip(also, also_hits):
-            hits += object_hits([o["boxes"] for o in cache.outputs(other.replace(ranker=str(path[0])), block)],
-                                gts, k, iou)
+        if best_ks:
+            ranked_best.extend(best_ious(outputs, gts, best_ks))
+        for j, (other, hits) in enumerate(zip(also, also_hits)):
+            outs = cache.outputs(other.replace(ranker=str(path[0])), block)
+            hits += object_hits([o["boxes"] for o in outs], gts, k, iou)
+            if best_ks:
+                also_best[j].extend(best_ious(outs, gts, best_ks))
 
     with _HeldOutModels(cache, names, samples, opts, folds, gap, scratch) as models:
         scored = held_out(cache, models.blocks, fitted, base, k, iou, each=each, progress=progress)
     return FitCrossValidation(models.blocks, scored.hits, scored.base_hits, per_fold=scored.per_fold,
-                              trained=models.trained, hinted=hinted, also_hits=also_hits)
+                              trained=models.trained, hinted=hinted, also_hits=also_hits, ranked_best=ranked_best,
+                              also_best=also_best)

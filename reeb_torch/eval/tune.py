@@ -165,6 +165,21 @@ class FrameCache:
             gen, img, front = self._front_of(cfg, i, mirrored, photometric)
             return gen.candidates_of(img, front)[0]
 
+    def refine_features(self, cfg: ReebConfig, i: int, boxes: Tensor, mirrored: bool = False,
+                        photometric: tuple[float, float] | None = None) -> Tensor:
+        """The box refiner's features (:func:`reeb_torch.ranker.refine_features`) of ``boxes``
+        (``float [K, 4]`` input pixels) in frame ``i`` (as :meth:`candidates` takes it):
+        ``float32 [K, R]``."""
+        from ..ranker import refine_features
+
+        with torch.no_grad():
+            _, _, front = self._front_of(cfg, i, mirrored, photometric)
+            maps = front.maps
+            to_work = torch.tensor([maps.fx, maps.fy, maps.fx, maps.fy], device=maps.edges.device)
+            bi = torch.zeros(len(boxes), dtype=torch.long, device=maps.edges.device)
+            return refine_features(maps.integral("edges"), maps.integral("grey"), boxes.to(to_work.device) * to_work,
+                                   bi, cfg.horizon).cpu()
+
     def hits(self, cfg: ReebConfig, indices: Sequence[int], k: int, iou: float) -> list[Tensor]:
         """Per frame of ``indices``, ``bool Tensor[N_i]``: objects the top ``k`` boxes find at ``iou``."""
         return object_hits(self.proposals(cfg, indices), [self.frames.gts[i] for i in indices], k, iou)

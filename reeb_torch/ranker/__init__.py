@@ -12,7 +12,9 @@ module              what it holds
 :mod:`.model`       :class:`BoxRanker`: the prefilter, the ranking MLPs, the class head
 :mod:`.weights`     safetensors weights files and their metadata (:func:`load_ranker`)
 :mod:`.step`        :class:`LearnedRanking`: the step the generator calls (prefilter, features,
-                    model, class hints)
+                    model, class hints, refinement)
+:mod:`.refine`      :class:`BoxRefiner`: the box refiner's features, model and the merge of its
+                    boxes with the originals
 ==================  ===========================================================================
 
 Weights are safetensors files (:func:`load_ranker`, :func:`save_ranker`); ``kitti`` ships
@@ -26,10 +28,12 @@ with the package, and ``reeb fit`` fits new ones on a user's labelled frames
 """
 
 from .model import BoxRanker
+from .refine import TARGET_SCALE, BoxRefiner, offset_targets, refine_feature_names, refine_features
 from .step import NOT_SEEN_BY_RANKER, CandidateFeatures, LearnedRanking
 from .weights import (SAME_IMAGE_BITS, SHIPPED, RankerWeightsError, fitted_frames, frame_hash, hash_distance,
                       load_ranker, resolve_ranker, save_ranker, seen_hashes, shipped_path)
 
 __all__ = ["BoxRanker", "CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANKER", "SHIPPED", "RankerWeightsError",
            "load_ranker", "resolve_ranker", "save_ranker", "shipped_path", "frame_hash", "hash_distance", "seen_hashes",
-           "fitted_frames", "SAME_IMAGE_BITS"]
+           "fitted_frames", "SAME_IMAGE_BITS", "BoxRefiner", "refine_features", "refine_feature_names",
+           "offset_targets", "TARGET_SCALE"]

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from .features import cheap_count
+from .refine import BoxRefiner, refine_feature_names
 
 
 __all__ = ["BoxRanker", "RANK_ROWS", "softmax_rows"]
@@ -59,6 +60,8 @@ class BoxRanker(nn.Module):
         classes: the object classes a box may be hinted as (e.g. ``("Car", "Pedestrian",
             "Cyclist", "Truck")``), or None for no class head.
         class_hidden: the widths of the class head's hidden layers.
+        refine_hidden: the widths of the box refiner's hidden layers
+            (:class:`~reeb_torch.ranker.refine.BoxRefiner`), or None for no refiner.
 
     Attributes:
         mean, scale: ``float32 [F]`` buffers; a feature enters the MLPs as ``(x − mean) / scale``.
@@ -71,10 +74,11 @@ class BoxRanker(nn.Module):
     members: nn.ModuleList
     prefilter: nn.Sequential | None
     classifier: nn.Sequential | None
+    refiner: BoxRefiner | None
 
     def __init__(self, feature_names: Sequence[str], hidden: Sequence[int] = (64, 64), members: int = 1,
                  prefilter: Sequence[int] | None = (16,), classes: Sequence[str] | None = None,
-                 class_hidden: Sequence[int] = (32,)) -> None:
+                 class_hidden: Sequence[int] = (32,), refine_hidden: Sequence[int] | None = None) -> None:
         super().__init__()
         if members < 1 or not hidden or min(hidden) < 1 or (prefilter and min(prefilter) < 1) \
                 or (classes is not None and (len(classes) < 2 or (class_hidden and min(class_hidden) < 1))):
@@ -95,11 +99,14 @@ class BoxRanker(nn.Module):
         self.class_hidden = tuple(int(h) for h in class_hidden)
         self.classifier = None if classes is None else _mlp(f, self.class_hidden, len(classes))
         """The class head: which class a box looks like, were it an object (softmax logits)."""
+        self.refiner = None if refine_hidden is None else BoxRefiner(refine_feature_names(), refine_hidden)
+        """The box refiner (side offsets of the output boxes, ``ReebConfig.refine_top``), or None."""
         self.meta: dict = {}
 
     def extra_repr(self) -> str:
         return (f"features={len(self.feature_names)}, hidden={self.hidden}, members={len(self.members)}, "
-                f"prefilter={self.prefilter_hidden}, classes={self.classes}")
+                f"prefilter={self.prefilter_hidden}, classes={self.classes}, "
+                f"refiner={None if self.refiner is None else self.refiner.hidden}")
 
     def prefilter_scores(self, cheap: Tensor) -> Tensor:
         """``float [K, cheap]`` (the first :attr:`cheap` columns of the features) -> ``float32 [K]``

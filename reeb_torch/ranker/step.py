@@ -4,7 +4,8 @@
 prefilter (and by V), computes their features (:mod:`reeb_torch.ranker.features`) and ranks
 them by the model's logit (:class:`~reeb_torch.ranker.BoxRanker`); with a class head it also
 hints each candidate's class (:meth:`LearnedRanking.class_map`, for ``class_quota``) and each
-output box's (:meth:`LearnedRanking.class_hints`).
+output box's (:meth:`LearnedRanking.class_hints`); where its weights hold a box refiner, it
+refines the best output boxes (:meth:`LearnedRanking.refine`, ``ReebConfig.refine_top``).
 """
 
 from __future__ import annotations
@@ -25,11 +26,13 @@ from ..stages._radix import kth_largest
 from . import features as _features
 from .model import BoxRanker, softmax_rows
 from .prefilter import prefilter_cpu
+from .refine import merge_refined
 
 __all__ = ["CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANKER"]
 
 NOT_SEEN_BY_RANKER: tuple[str, ...] = ("top_k", "ranker", "ranker_keep", "ranker_v_share", "nms_iou",
-                                        "class_quota")
+                                        "class_quota", "refine_top", "refine_class", "refine_order",
+                                        "refine_steps", "refine_nms")
 """Fields a ranking model does not depend on (they act after it)."""
 
 
@@ -221,6 +224,58 @@ class LearnedRanking(CandidateFeatures):
 
             warnings.warn(f"ReebConfig.class_quota is ignored: the ranker {config.ranker!r} has no class head "
                           "(fit one with reeb fit, whose models have one by default)", UserWarning, stacklevel=3)
+        if config.refine_top and self.model.refiner is None:
+            import warnings
+
+            warnings.warn(f"ReebConfig.refine_top is ignored: the ranker {config.ranker!r} has no box refiner "
+                          "(fit one with reeb fit, whose models have one by default)", UserWarning, stacklevel=3)
+        self.refine_class: int | None = None
+        """The class head's index of ``config.refine_class``, or None: every box is refined."""
+        if config.refine_class:
+            classes = self.model.classes or ()
+            if config.refine_class not in classes:
+                raise ValueError(f"ReebConfig.refine_class {config.refine_class!r} is not a class of the ranker "
+                                 f"{config.ranker!r}'s class head ({', '.join(classes) or 'it has none'})")
+            self.refine_class = classes.index(config.refine_class)
+
+    def refines(self) -> bool:
+        """Whether :meth:`refine` changes the output (``refine_top`` > 0 and a refiner)."""
+        return self.config.refine_top > 0 and self.model.refiner is not None
+
+    def refine(self, maps: ScoreMaps, results: list[dict[str, Tensor]]) -> list[dict[str, Tensor]]:
+        """The output dicts of a batch (``boxes float32 [N_i, 4]`` in input pixels, ranked;
+        ``scores``, and ``labels``, ``class_probs`` where hinted) with the best
+        ``refine_top`` boxes of each (of those hinted ``refine_class``, where set) refined by the model's refiner
+        (:meth:`~reeb_torch.ranker.refine.BoxRefiner.refine`, ``refine_steps`` times, on the
+        batch's integral images) and put beside them (:func:`~reeb_torch.ranker.refine.merge_refined`:
+        ``refine_order``, ``refine_nms``), at most ``top_k`` rows each; the dicts as they are
+        without a refiner or with ``refine_top`` 0."""
+        cfg = self.config
+        if not self.refines() or not results:
+            return results
+        dev = maps.edges.device
+        refiner = self._model_on(dev).refiner
+        assert refiner is not None  # refines() checked it
+        which = []
+        for r in results:
+            if self.refine_class is not None and "labels" in r:
+                which.append(torch.nonzero(r["labels"] == self.refine_class).squeeze(1)[: cfg.refine_top])
+            else:
+                which.append(torch.arange(min(cfg.refine_top, len(r["boxes"]))))
+        tops = [r["boxes"][w].to(dev) for r, w in zip(results, which)]
+        counts = [len(t) for t in tops]
+        if not sum(counts):
+            return results
+        to_work = torch.tensor([maps.fx, maps.fy, maps.fx, maps.fy], device=dev)
+        bi = torch.repeat_interleave(torch.arange(len(tops), device=dev), torch.tensor(counts, device=dev))
+        size = (int(maps.edges.shape[-2]), int(maps.edges.shape[-1]))
+        refined = refiner.refine(maps.integral("edges"), maps.integral("grey"), torch.cat(tops).float() * to_work, bi,
+                                 cfg.horizon, size, cfg.refine_steps) / to_work
+        h_in, w_in = maps.input_size
+        refined[:, 0::2] = refined[:, 0::2].clamp(0.0, float(w_in))
+        refined[:, 1::2] = refined[:, 1::2].clamp(0.0, float(h_in))
+        return [merge_refined(r, part.to(r["boxes"].device), cfg.refine_order, cfg.top_k, cfg.refine_nms, w)
+                for r, part, w in zip(results, refined.split(counts), which)]
 
     def rank(self, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor, chosen: Tensor, share: Tensor,
              entropy: Tensor, features_out: list[tuple[Tensor, Tensor, Tensor]] | None = None,

@@ -2,12 +2,15 @@
 
 A file holds the tensors of a :class:`~reeb_torch.ranker.model.BoxRanker` (``mean``,
 ``scale``, ``members.<i>.<layer>.weight|bias``, ``prefilter.<layer>.weight|bias``, and with a
-class head ``classifier.<layer>.weight|bias``) and one metadata entry, ``reeb-ranker``: a
+class head ``classifier.<layer>.weight|bias``, with a box refiner ``refiner.mean``,
+``refiner.scale``, ``refiner.mlp.<layer>.weight|bias``) and one metadata entry, ``reeb-ranker``: a
 JSON object (keys sorted, so the same model gives the same bytes) with
 
 * ``features_version``: the :data:`~reeb_torch.ranker.features.FEATURES_VERSION` it was
   fitted on; ``feature_names``, ``hidden``, ``members``, ``prefilter``: its shape;
   ``classes``, ``class_hidden``: its class head's, where it has one (older files have none);
+  ``refine_hidden``, ``refine_features``: its box refiner's widths and feature columns
+  (:mod:`reeb_torch.ranker.refine`), where it has one (older files have none);
 * ``provenance``: the frames it was fitted on (their folders, ids and, in files written
   since frame hashes were added, ``frame_hashes``: a :func:`frame_hash` of each image, so
   that :func:`fitted_frames` can say which of someone's frames the model saw whatever they
@@ -40,6 +43,7 @@ from torch import Tensor
 from .features import FEATURES_VERSION, cheap_count
 from ..io import replace_file
 from .model import BoxRanker
+from .refine import refine_feature_names
 
 __all__ = ["SHIPPED", "LIMITS", "RankerWeightsError", "load_ranker", "save_ranker", "resolve_ranker", "shipped_path",
            "ranker_bytes", "frame_hash", "hash_distance", "seen_hashes", "fitted_frames", "SAME_IMAGE_BITS"]
@@ -146,7 +150,7 @@ def _read(path: Path, spec: str) -> BoxRanker:
     try:
         _check_values(tensors, info["feature_names"])
         model = BoxRanker(info["feature_names"], info["hidden"], info["members"], info["prefilter"],
-                          info["classes"], info["class_hidden"])
+                          info["classes"], info["class_hidden"], info["refine_hidden"])
         model.load_state_dict({k: v.float() for k, v in tensors.items()}, strict=True)
     except (ValueError, RuntimeError) as e:
         reason = str(e).splitlines()[0] if str(e) else type(e).__name__
@@ -182,6 +186,15 @@ def _meta(meta: dict[str, str]) -> dict:
     classes = info.get("classes")
     out["classes"] = None if classes is None else _names(classes, "classes", 2, lim["classes"])
     out["class_hidden"] = _widths(info.get("class_hidden", [32]), "class_hidden", 0)
+    refine = info.get("refine_hidden")
+    out["refine_hidden"] = None if refine is None else _widths(refine, "refine_hidden", 1)
+    if out["refine_hidden"] is not None:
+        if "refine_features" not in info:
+            raise ValueError("metadata field 'refine_features' is missing (the file has a refiner)")
+        names = _names(info["refine_features"], "refine_features", 1, lim["features"])
+        if names != refine_feature_names():
+            raise ValueError(f"its box refiner reads {len(names)} features ({_differ(names, refine_feature_names())})"
+                             f" but this reeb-torch computes {len(refine_feature_names())}: refit them with `reeb fit`")
     for key in ("provenance", "config"):
         if key in info and not isinstance(info[key], dict):
             raise ValueError(f"its {key!r} metadata is not a JSON object (a JSON {_json_type(info[key])})")
@@ -243,6 +256,10 @@ def _shapes(info: dict, header: dict[str, tuple[tuple[int, ...], str]]) -> dict[
             info["prefilter"], 1)
     if info["classes"] is not None:
         mlp("classifier", f, info["class_hidden"], len(info["classes"]))
+    if info.get("refine_hidden") is not None:
+        r = len(refine_feature_names())
+        expected["refiner.mean"], expected["refiner.scale"] = (r,), (r,)
+        mlp("refiner.mlp", r, info["refine_hidden"], 4)
     missing = [k for k in expected if k not in header]
     if missing:
         raise ValueError(f"tensor {missing[0]!r} is missing ({len(missing)} missing; the metadata gives "
@@ -269,11 +286,14 @@ def _check_values(tensors: dict[str, Tensor], feature_names: tuple[str, ...]) ->
             n = int(bad.sum())
             raise ValueError(f"tensor {k!r} holds {n} value{'s' if n > 1 else ''} that {'are' if n > 1 else 'is'} "
                              f"not finite (element {at} is {float(v.flatten()[at])}), expected finite numbers")
-    low = tensors["scale"].float() <= 0
-    if low.any():
-        at = int(low.nonzero()[0])
-        raise ValueError(f"tensor 'scale' is {float(tensors['scale'][at])} for feature {feature_names[at]!r}, "
-                         "expected positive values (each feature is divided by its scale)")
+    for key, names in (("scale", feature_names), ("refiner.scale", refine_feature_names())):
+        if key not in tensors:
+            continue
+        low = tensors[key].float() <= 0
+        if low.any():
+            at = int(low.nonzero()[0])
+            raise ValueError(f"tensor {key!r} is {float(tensors[key][at])} for feature {names[at]!r}, "
+                             "expected positive values (each feature is divided by its scale)")
 
 
 def ranker_bytes(model: BoxRanker, provenance: dict | None = None, config: dict | None = None) -> bytes:
@@ -292,6 +312,9 @@ def ranker_bytes(model: BoxRanker, provenance: dict | None = None, config: dict 
             "prefilter": None if model.prefilter_hidden is None else list(model.prefilter_hidden)}
     if model.classes is not None:  # files without a class head keep the earlier bytes
         info["classes"], info["class_hidden"] = list(model.classes), list(model.class_hidden)
+    if model.refiner is not None:  # files without a refiner keep the earlier bytes
+        info["refine_hidden"] = list(model.refiner.hidden)
+        info["refine_features"] = list(model.refiner.feature_names)
     if provenance is not None:
         info["provenance"] = provenance
     if config is not None:
