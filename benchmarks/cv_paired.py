@@ -131,8 +131,10 @@ def cross_validated_best(cache: FrameCache, configs: list[ReebConfig], seed: int
     candidates); then of each ``(config, fit options)`` of ``refits``, with fold models fitted
     on the same folds with those options, for that config. ``whole_drives``: a held-out
     block's training frames hold no frame of its drives (``reeb fit --whole-drives``), not
-    only none within 2 frames of it."""
-    opts = F.FitOptions(seed=seed)
+    only none within 2 frames of it. Where one of ``configs`` refines boxes
+    (``refine_top``), the fold models also get a box refiner (``refine_hidden`` 64, 64: fitted
+    after the ranking, which it leaves as it is)."""
+    opts = F.FitOptions(seed=seed, refine_hidden=(64, 64) if any(c.refine_top for c in configs) else None)
     base = ReebConfig()
     samples = F.frame_samples(cache, base, opts)
     gap = len(cache.frames) if whole_drives else 2
@@ -140,7 +142,7 @@ def cross_validated_best(cache: FrameCache, configs: list[ReebConfig], seed: int
                           best_ks=ks)
     out = [cv.ranked_best, *cv.also_best]
     for cfg, changes in refits:
-        o = dataclasses.replace(opts, **changes)
+        o = dataclasses.replace(opts, **{"refine_hidden": (64, 64) if cfg.refine_top else None, **changes})
         s = F.frame_samples(cache, cfg, o)
         out.append(F.cross_validate(cache, cfg, cfg.training_free(), s, o, folds, ks[0], gap=gap,
                                     best_ks=ks).ranked_best)

@@ -441,7 +441,7 @@ class ReebConfig:
     ``{"Pedestrian": 0.2}`` (kept as pairs; ignored without a class head), or one share a
     class in the head's order, ``(0, 0.2, 0.05, 0)``. ``()``: one ranking. Not in the paper."""
     refine_top: int = _knob(0, "[0, 100000]")
-    """With a ranker whose weights hold a box refiner (``reeb fit`` fits one): the best this
+    """With a ranker whose weights hold a box refiner (``reeb fit --refiner`` fits one): the best this
     many output boxes of each image are refined (each side moved by the refiner's offsets,
     :mod:`reeb_torch.ranker.refine`) and put beside their originals, or in their place, within
     ``top_k`` (``refine_order``); a refined box takes its original's score and class hints. ``0``: off.

@@ -288,13 +288,17 @@ def test_reeb_fit_end_to_end(kitti_dir, tmp_path):
     assert cfg["ranker"] == out.name  # beside the config: it reads from any folder
     cfg["ranker"] = str(out)
     assert load_ranker(str(out)).meta["provenance"]["frames"] == 8
+    assert load_ranker(str(out)).refiner is None  # a box refiner only with --refiner
+    assert not any(k.startswith("refine_") for k in load_ranker(str(out)).meta["provenance"]["options"])
     gen = ProposalGenerator(ReebConfig.from_dict(cfg))
     assert gen.ranker.model is load_ranker(str(out))
     tuned = tmp_path / "tuned.safetensors"
     r = subprocess.run([sys.executable, "-m", "reeb_torch.runs.cli", "fit", str(kitti_dir), "--limit", "6",
                         "--folds", "2", "--epochs", "1", "--init", str(out), "-q", "-o", str(tuned),
-                        "--set", "horizon=0.48"], capture_output=True, text=True, timeout=600)
+                        "--set", "horizon=0.48", "--refiner"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
+    assert load_ranker(str(tuned)).refiner is not None
+    assert load_ranker(str(tuned)).meta["provenance"]["options"]["refine_hidden"] == [64, 64]
     assert "fitted with other settings" not in r.stderr  # the start and the shipped model, on purpose
     assert "fine-tuned (cross-validated)" in r.stdout and "mine.safetensors as it is" in r.stdout
     assert "fine-tuning a model fitted elsewhere" not in r.stdout
@@ -371,8 +375,6 @@ def test_shipped_weights_refit_bit_for_bit(kitti_dir):
     if not all(d.is_dir() for d in dirs):
         pytest.skip(f"the frames the shipped weights were fitted on are absent: {dirs}")
     opts = F.FitOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in prov["options"].items()})
-    if "refine_hidden" not in prov["options"]:  # a file fitted before the box refiner: none
-        opts = dataclasses.replace(opts, refine_hidden=None)
     frames = F.load_fit_frames(dirs)
     assert len(frames) == prov["frames"]
     samples = F.frame_samples(FrameCache(frames), ReebConfig(), opts)

@@ -128,7 +128,8 @@ class FitOptions:
             in [−1, 1], drawn per frame from ``(seed, i, 2)``; its negatives seeded with
             ``(seed, i, 3)``); as ``mirror``, only the rows a model is fitted on.
         refine_hidden: widths of the box refiner's hidden layers
-            (:class:`~reeb_torch.ranker.BoxRefiner`), or None for no refiner.
+            (:class:`~reeb_torch.ranker.BoxRefiner`, used by ``ReebConfig.refine_top``), or
+            None (default) for no refiner: it did not raise recall held out (docs/results.md).
         refine_iou: the refiner is fitted on the candidates at this IoU or more with a target.
         refine_per_object: at most this many of them per object (a seeded draw, after the negatives').
         refine_epochs, refine_batch, refine_lr: the refiner's passes, rows per step and peak
@@ -157,7 +158,7 @@ class FitOptions:
     tune_batch: int = 1024
     mirror: bool = False
     jitter: float = 0.0
-    refine_hidden: tuple[int, ...] | None = (64, 64)
+    refine_hidden: tuple[int, ...] | None = None
     refine_iou: float = 0.5
     refine_per_object: int = 100
     refine_epochs: int = 20

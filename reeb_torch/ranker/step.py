@@ -228,7 +228,7 @@ class LearnedRanking(CandidateFeatures):
             import warnings
 
             warnings.warn(f"ReebConfig.refine_top is ignored: the ranker {config.ranker!r} has no box refiner "
-                          "(fit one with reeb fit, whose models have one by default)", UserWarning, stacklevel=3)
+                          "(reeb fit --refiner fits one)", UserWarning, stacklevel=3)
         self.refine_class: int | None = None
         """The class head's index of ``config.refine_class``, or None: every box is refined."""
         if config.refine_class:

@@ -384,11 +384,14 @@ def _seen_note(who: str, model: BoxRanker, frames: F.FitFrames, digest: str, row
 
 
 def _options_record(opts: F.FitOptions) -> dict[str, Any]:
-    """The fit options kept in the weights' provenance; ``mirror`` and ``jitter`` only where
-    they are on (a fit without them records what it always did)."""
+    """The fit options kept in the weights' provenance; ``mirror``, ``jitter`` and the box
+    refiner's options only where they are on (a fit without them records what it always did)."""
     record = dataclasses.asdict(opts)
     for name in ("mirror", "jitter"):
         if not record[name]:
+            del record[name]
+    if opts.refine_hidden is None:
+        for name in [n for n in record if n.startswith("refine_")]:
             del record[name]
     return record
 
