@@ -158,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
                      "passes_ms": [round(1000 * r["detector"] / len(images), 1) for r in passes]})
     sizes = sorted({tuple(im.shape[-2:]) for im in images})
     command = rerun_line("benchmarks/detect_speed.py", sys.argv[1:] if argv is None else argv)
-    lines = [command,
+    lines = [f"# rerun: {command}",
              f"# {len(images)} images ({', '.join(f'{w}x{h}' for h, w in sizes)}), {args.repeats} passes, median pass; "
              f"ms per image",
              f"# machine: {env['cores']} cores ({env['device_name']}), torch {env['torch']} with "

@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
             paired_bootstrap(stats[first], stats[name], samples=args.samples, seed=args.seed))
     command = rerun_line("benchmarks/detector_paired.py", sys.argv[1:] if argv is None else argv)
     env = environment()
-    lines = [command, f"# machine: {json.dumps(env, sort_keys=True)}", ""]
+    lines = [f"# rerun: {command}", f"# machine: {json.dumps(env, sort_keys=True)}", ""]
     n_val = next(iter(arms.values()))["frames"]
     for name, a in arms.items():
         timing = (f"reused {a['reused']}" if "reused" in a else

