@@ -6,7 +6,8 @@ takes them: ``--min-size 384``, ``--test-proposals 2000``, ``--hflip``, ``--prop
 folders with KITTI's 2D AP|R40 (moderate; :mod:`reeb_torch.eval.kitti_ap`). The first arm is
 A; every other arm is B against it: each arm's AP per class and mAP with its frame-bootstrap
 interval, and :func:`~reeb_torch.eval.kitti_ap.paired_bootstrap`'s B - A (the same frames
-drawn for both arms), its 95 % interval and the share of draws where B wins.
+drawn for both arms), its 95 % interval and the share of draws where B wins. With ``--seeds`` every arm is fitted once per
+seed and an arm's AP is its mean over them, on every draw as on all frames.
 
 The arms share one cache (``--cache``): the backbone's maps are kept per input size (arms of
 one ``--min-size``/``--max-size`` share them) and REEB's proposals per proposal setting, so
@@ -20,7 +21,7 @@ was made by the same command.
         --out docs/results/detector/min_size --work /tmp/arms
 
 Writes ``OUT/paired.txt`` (the tables) and ``OUT/paired.json`` (each arm's scores, settings and
-timings; each comparison per class: ``a``, ``b``, ``diff``, their intervals,
+``runs``: each seed's scores and timings; each comparison per class: ``a``, ``b``, ``diff``, their intervals,
 ``share_b_better``, ``verdict``; the command; the machine).
 """
 
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import shlex
 import sys
@@ -64,6 +66,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--work", type=Path, help="keep each arm's detector here, and reuse one made by the same command")
     p.add_argument("--cache", type=Path, help="backbone-map and proposal cache [default: reeb's]")
     p.add_argument("--limit", type=int, help="only the first N frames of each folder (train and val)")
+    p.add_argument("--seeds", type=int, nargs="+", metavar="S",
+                   help="fit every arm with each of these seeds and compare the arms' mean AP over them "
+                        "(default: each arm's own --seed, once)")
     p.add_argument("--samples", type=int, default=1000, help="bootstrap draws")
     p.add_argument("--seed", type=int, default=0, help="the bootstrap's seed")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
@@ -87,19 +92,28 @@ def fit_options(train: list[Path], options: str) -> dict[str, Any]:
         raise SystemExit(f"arm options {options!r}: {e.format_message()}") from None
 
 
-def fit_arm(name: str, options: str, args: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
-    """The arm's detector (fitted, or loaded from ``--work``) and its fit record."""
+def seed_runs(name: str, options: str, seeds: list[int] | None, train: list[Path]) -> list[tuple[str, str, int]]:
+    """The fits of one arm: ``(file stem, options, seed)`` per seed; the arm's own seed keeps
+    the arm's name and options (so a detector kept from a run without ``--seeds`` is reused)."""
+    own = fit_options(train, options)["seed"]
+    return [(name, options, own) if s == own else (f"{name}-seed{s}", f"{options} --seed {s}".strip(), s)
+            for s in (seeds or [own])]
+
+
+def fit_arm(stem: str, options: str, args: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
+    """The detector of these options (fitted, or loaded from ``--work``) and its fit record."""
     from reeb_torch.detection import DetectorSettings, ReebDetector
 
     o = fit_options(args.train, options)
     command = " ".join(["reeb detector fit", *map(shlex.quote, map(str, args.train)), options]
                        + (["--limit", str(args.limit)] if args.limit else [])).strip()
-    kept = args.work / f"{name}.safetensors" if args.work else None
+    kept = args.work / f"{stem}.safetensors" if args.work else None
     if kept is not None and kept.is_file():
         det = ReebDetector.load(kept)
         if det.meta.get("provenance", {}).get("command") == command:
-            print(f"arm {name}: {kept} made by the same command; not fitted again", file=sys.stderr)
-            return det, {"reused": str(kept)}
+            print(f"{stem}: {kept} made by the same command; not fitted again", file=sys.stderr)
+            record = kept.with_suffix(".json")
+            return det, {**(json.loads(record.read_text()) if record.is_file() else {}), "reused": str(kept)}
     names = tuple(c.strip() for c in o["classes"].split(",") if c.strip())
     settings = DetectorSettings(min_size=o["min_size"], max_size=o["max_size"], proposals_train=o["train_proposals"],
                                 proposals_test=o["test_proposals"])
@@ -112,48 +126,83 @@ def fit_arm(name: str, options: str, args: argparse.Namespace) -> tuple[Any, dic
     if kept is not None:
         kept.parent.mkdir(parents=True, exist_ok=True)
         det.save(kept)
+        kept.with_suffix(".json").write_text(json.dumps(record) + "\n")
     return det, record
 
 
-def main(argv: list[str] | None = None) -> int:
-    import torch
+def _mean_scores(runs: list[dict[str, Any]], stats: list[Any], samples: int, seed: int) -> dict[str, Any]:
+    """An arm's AP (mean over its seeds) with the frame-bootstrap interval of that mean."""
+    from reeb_torch.eval.kitti_ap import bootstrap, kitti_ap
 
-    from reeb_torch.detection import detector_stats, format_paired, format_scores, paired_scores, scores_of
-    from reeb_torch.eval.kitti_ap import paired_bootstrap
+    def pct(v: float) -> float | None:
+        return None if math.isnan(v) else round(100 * v, 2)
+
+    aps = [kitti_ap(s) for s in stats]
+    mean = {k: sum(a[k] for a in aps) / len(aps) for k in aps[0]}
+    interval = bootstrap(stats, samples=samples, seed=seed)
+    return {"ap": {k: pct(v) for k, v in mean.items()},
+            "interval_95": {k: [pct(lo), pct(hi)] for k, (lo, hi) in interval.items()},
+            "objects": runs[0]["objects"], "frames": runs[0]["frames"],
+            "training_frames": runs[0]["training_frames"]}
+
+
+def _arm_lines(name: str, a: dict[str, Any], args: argparse.Namespace) -> list[str]:
+    from reeb_torch.detection import format_scores
+
+    n_val = a["frames"]
+    lines = [f"## arm {name}: reeb detector fit {' '.join(map(str, args.train))} {a['options']}"]
+    for r in a["runs"]:
+        timing = (f"fit {r['fit_s']:.0f} s ({r['train_heads_s']:.0f} s of head training, {r['steps']} steps)"
+                  if "fit_s" in r else "fitted before")
+        timing += f", kept as {r['reused']}" if "reused" in r else ""
+        aps = ", ".join(f"{k} {'-' if v is None else f'{v:.1f}'}" for k, v in r["ap"].items())
+        lines.append(f"seed {r['seed']}: {aps}; {timing}; scoring from the cache {r['val_s']:.0f} s")
+    seeds = f"mean of {len(a['runs'])} seeds, " if len(a["runs"]) > 1 else ""
+    lines += [f"KITTI 2D AP|R40 (moderate; {seeds}95 % frame-bootstrap interval) on {n_val} frames of "
+              f"{' '.join(map(str, args.val))}:", format_scores(a), ""]
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    from reeb_torch.detection import detector_stats, format_paired, paired_scores, scores_of
+    from reeb_torch.eval.kitti_ap import kitti_ap, paired_bootstrap
 
     args = parse_args(argv)
-    torch.set_num_threads(max(1, torch.get_num_threads()))
     arms: dict[str, dict[str, Any]] = {}
-    stats: dict[str, Any] = {}
+    stats: dict[str, list[Any]] = {}
     for name, options in args.arm:
-        det, record = fit_arm(name, options, args)
-        t0 = time.perf_counter()
-        items, stats[name] = detector_stats(det, args.val, limit=args.limit, cache_dir=args.cache,
-                                            progress=not args.quiet)
-        record["val_s"] = round(time.perf_counter() - t0, 1)
-        scores = scores_of(det, items, stats[name], samples=args.samples, seed=args.seed)
-        arms[name] = {"options": options, "settings": det.metadata()["settings"],
-                      "proposals": det.proposals["spec"], **record, **scores}
-        print(f"arm {name}: mAP {scores['ap']['mAP']}", file=sys.stderr)
+        runs = []
+        for stem, opts, seed in seed_runs(name, options, args.seeds, args.train):
+            det, record = fit_arm(stem, opts, args)
+            t0 = time.perf_counter()
+            items, st = detector_stats(det, args.val, limit=args.limit, cache_dir=args.cache, progress=not args.quiet)
+            record["val_s"] = round(time.perf_counter() - t0, 1)
+            stats.setdefault(name, []).append(st)
+            runs.append({"seed": seed, "options": opts, **record,
+                         **scores_of(det, items, st, samples=args.samples, seed=args.seed)})
+            print(f"{stem}: mAP {runs[-1]['ap']['mAP']}", file=sys.stderr)
+        arms[name] = {"options": options, "settings": det.metadata()["settings"], "proposals": det.proposals["spec"],
+                      **_mean_scores(runs, stats[name], args.samples, args.seed), "runs": runs}
     first = args.arm[0][0]
     comparisons = {}
     for name, _ in args.arm[1:]:
-        comparisons[f"{name} vs {first}"] = paired_scores(
-            paired_bootstrap(stats[first], stats[name], samples=args.samples, seed=args.seed))
+        c = paired_scores(paired_bootstrap(stats[first], stats[name], samples=args.samples, seed=args.seed))
+        per_seed = [100 * (kitti_ap(b)["mAP"] - kitti_ap(a)["mAP"]) for a, b in zip(stats[first], stats[name])]
+        comparisons[f"{name} vs {first}"] = {**c, "mAP_diff_per_seed": [round(d, 2) for d in per_seed]}
     command = rerun_line("benchmarks/detector_paired.py", sys.argv[1:] if argv is None else argv)
     env = environment()
     lines = [f"# rerun: {command}", f"# machine: {json.dumps(env, sort_keys=True)}", ""]
-    n_val = next(iter(arms.values()))["frames"]
     for name, a in arms.items():
-        timing = (f"reused {a['reused']}" if "reused" in a else
-                  f"fit {a['fit_s']:.0f} s ({a['train_heads_s']:.0f} s of head training, {a['steps']} steps)")
-        lines += [f"## arm {name}: reeb detector fit {' '.join(map(str, args.train))} {a['options']}",
-                  f"{timing}; scoring from the cache {a['val_s']:.0f} s",
-                  f"KITTI 2D AP|R40 (moderate) on {n_val} frames of {' '.join(map(str, args.val))}:",
-                  format_scores(a), ""]
+        lines += _arm_lines(name, a, args)
+    n_val = next(iter(arms.values()))["frames"]
     for key, c in comparisons.items():
         b, a = key.split(" vs ")
-        lines += [f"## paired: {key} ({args.samples} draws of the {n_val} frames)", format_paired(c, a, b), ""]
+        table = {k: v for k, v in c.items() if k != "mAP_diff_per_seed"}
+        seeds = f", the {len(c['mAP_diff_per_seed'])} seeds' mean AP on each draw" if len(stats[first]) > 1 else ""
+        lines += [f"## paired: {key} ({args.samples} draws of the {n_val} frames{seeds})", format_paired(table, a, b)]
+        if len(c["mAP_diff_per_seed"]) > 1:
+            lines.append("mAP B - A per seed: " + ", ".join(f"{d:+.1f}" for d in c["mAP_diff_per_seed"]))
+        lines.append("")
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "paired.txt").write_text("\n".join(lines))
     (args.out / "paired.json").write_text(json.dumps(

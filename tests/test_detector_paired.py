@@ -24,7 +24,7 @@ import torch
 
 from reeb_torch.detection import format_paired, paired_scores
 from reeb_torch.eval.data import KittiObject
-from reeb_torch.eval.kitti_ap import evaluate, paired_bootstrap
+from reeb_torch.eval.kitti_ap import bootstrap, evaluate, paired_bootstrap
 
 CLASSES = ("Car", "Pedestrian")
 
@@ -86,6 +86,16 @@ def test_a_clearly_better_arm_is_detected_either_way_round():
     down = paired_bootstrap(good, bad, samples=200)
     assert down["Car"].interval[1] < 0 and down["Car"].share_b_better < 0.05 and down["Car"].verdict == "A better"
     assert down["Car"].diff == pytest.approx(-up["Car"].diff)
+
+
+def test_fits_with_other_seeds_are_averaged_on_each_draw():
+    objects = frames()
+    bad, good = evaluate(objects, bad_arm(len(objects)), CLASSES), evaluate(objects, good_arm(len(objects)), CLASSES)
+    single = paired_bootstrap(bad, good, samples=100)
+    assert paired_bootstrap([bad, bad], [good], samples=100)["Car"] == single["Car"]
+    mixed = paired_bootstrap([bad, good], [good, good], samples=100)["Car"]
+    assert mixed.a == pytest.approx((single["Car"].a + 1.0) / 2) and mixed.diff == pytest.approx(single["Car"].diff / 2)
+    assert bootstrap([good, good], samples=50) == bootstrap(good, samples=50)
 
 
 def test_a_draw_without_objects_is_left_out_and_the_report_says_so():
@@ -155,14 +165,19 @@ def test_paired_benchmark_fits_each_arm_once_and_compares_them(kitti, tmp_path, 
     assert mod.main(argv) == 0
     report = json.loads((tmp_path / "o" / "paired.json").read_text())
     assert list(report["arms"]) == ["big", "small"] and list(report["comparisons"]) == ["small vs big"]
-    assert report["arms"]["small"]["settings"]["min_size"] == 96 and "fit_s" in report["arms"]["small"]
+    assert report["arms"]["small"]["settings"]["min_size"] == 96 and "fit_s" in report["arms"]["small"]["runs"][0]
     car = report["comparisons"]["small vs big"]["Car"]
     assert car["diff"] == pytest.approx(car["b"] - car["a"], abs=0.02)
     text = (tmp_path / "o" / "paired.txt").read_text()
     assert text.startswith("# rerun: python benchmarks/detector_paired.py") and "## paired: small vs big" in text
     capsys.readouterr()
-    assert mod.main(argv) == 0  # the kept detectors, not fitted again
+    assert mod.main(argv + ["--seeds", "0", "1"]) == 0  # seed 0 kept, not fitted again; seed 1 fitted
     assert capsys.readouterr().err.count("not fitted again") == 2
+    report = json.loads((tmp_path / "o" / "paired.json").read_text())
+    assert [r["seed"] for r in report["arms"]["big"]["runs"]] == [0, 1]
+    assert report["arms"]["big"]["runs"][0]["fit_s"] > 0  # the kept fit's record
+    assert len(report["comparisons"]["small vs big"]["mAP_diff_per_seed"]) == 2
+    assert (tmp_path / "w" / "small-seed1.safetensors").is_file()
 
 
 def test_detect_speed_splits_each_batch_into_stages(tmp_path):

@@ -263,18 +263,21 @@ def kitti_ap(stats: Mapping[str, Sequence[FrameStats]], frames: Sequence[int] | 
     return out
 
 
-def bootstrap(stats: Mapping[str, Sequence[FrameStats]], samples: int = 1000, level: float = 0.95,
-              seed: int = 0) -> dict[str, tuple[float, float]]:
+def bootstrap(stats: Mapping[str, Sequence[FrameStats]] | Sequence[Mapping[str, Sequence[FrameStats]]],
+              samples: int = 1000, level: float = 0.95, seed: int = 0) -> dict[str, tuple[float, float]]:
     """Percentile intervals of :func:`kitti_ap` (each class and ``"mAP"``) over ``samples``
     draws of the frames with replacement: the objects of a frame share its scene, so frames,
-    not objects, are the unit. ``nan`` draws (no object of a class drawn) are left out."""
-    n = len(next(iter(stats.values()), []))
+    not objects, are the unit. ``nan`` draws (no object of a class drawn) are left out.
+    ``stats`` may be a list of :func:`evaluate` results on the same frames (fits with other
+    seeds): each draw then takes their mean AP."""
+    runs = _runs(stats)
+    n = len(next(iter(runs[0].values()), [])) if runs else 0
     if n == 0:
         raise ValueError("no frame to draw from")
     rng = np.random.default_rng(seed)
-    draws = [kitti_ap(stats, rng.integers(0, n, n).tolist()) for _ in range(samples)]
+    draws = [_mean_ap(runs, rng.integers(0, n, n).tolist()) for _ in range(samples)]
     out: dict[str, tuple[float, float]] = {}
-    for key in [*stats, "mAP"]:
+    for key in [*runs[0], "mAP"]:
         values = np.asarray([d[key] for d in draws if not math.isnan(d[key])])
         if len(values) == 0:
             out[key] = (math.nan, math.nan)
@@ -282,6 +285,20 @@ def bootstrap(stats: Mapping[str, Sequence[FrameStats]], samples: int = 1000, le
         low, high = np.quantile(values, [(1 - level) / 2, (1 + level) / 2])
         out[key] = (float(low), float(high))
     return out
+
+
+Arm = Mapping[str, Sequence[FrameStats]] | Sequence[Mapping[str, Sequence[FrameStats]]]
+"""One arm for :func:`paired_bootstrap`: :func:`evaluate`'s result, or one per fit seed."""
+
+
+def _runs(arm: Arm) -> list[Mapping[str, Sequence[FrameStats]]]:
+    return [arm] if isinstance(arm, Mapping) else list(arm)
+
+
+def _mean_ap(runs: Sequence[Mapping[str, Sequence[FrameStats]]], frames: Sequence[int] | None = None) -> dict[str, float]:
+    """:func:`kitti_ap` averaged over ``runs`` (the same frames, other fits)."""
+    aps = [kitti_ap(r, frames) for r in runs]
+    return {k: float(np.mean([a[k] for a in aps])) for k in aps[0]}
 
 
 @dataclass(frozen=True)
@@ -319,15 +336,18 @@ class PairedDifference:
         return "no difference shown"
 
 
-def paired_bootstrap(stats_a: Mapping[str, Sequence[FrameStats]], stats_b: Mapping[str, Sequence[FrameStats]],
-                     samples: int = 1000, level: float = 0.95, seed: int = 0) -> dict[str, PairedDifference]:
+def paired_bootstrap(stats_a: Arm, stats_b: Arm, samples: int = 1000, level: float = 0.95,
+                     seed: int = 0) -> dict[str, PairedDifference]:
     """The paired frame bootstrap of ``kitti_ap(stats_b) - kitti_ap(stats_a)``: each draw takes
     the frames with replacement and scores both arms on that same draw, so what the frames have
     in common (their objects, their difficulty) cancels out of the difference.
 
     Args:
         stats_a, stats_b: :func:`evaluate` of the two arms on the same frames, in the same
-            order, with the same classes.
+            order, with the same classes; or, for either, a list of them (fits with other
+            seeds), whose APs are averaged on each draw: the arm's AP is then its mean over
+            seeds, and the interval holds both the frames' and the seeds' spread as far as
+            the seeds given show it.
 
     Returns:
         per class and ``"mAP"``, a :class:`PairedDifference` (``nan`` fields for a class
@@ -337,21 +357,26 @@ def paired_bootstrap(stats_a: Mapping[str, Sequence[FrameStats]], stats_b: Mappi
         ValueError: other classes, another number of frames, or objects that differ per frame
             (not the same frames), or no frame.
     """
-    if list(stats_a) != list(stats_b):
-        raise ValueError(f"the arms score other classes: {list(stats_a)} and {list(stats_b)}")
-    for c in stats_a:
-        if [s.num_gt for s in stats_a[c]] != [s.num_gt for s in stats_b[c]]:
-            raise ValueError(f"{c}: the arms were not scored on the same frames (other frame counts or objects)")
-    n = len(next(iter(stats_a.values()), []))
+    runs_a, runs_b = _runs(stats_a), _runs(stats_b)
+    if not runs_a or not runs_b:
+        raise ValueError("an arm without a run")
+    first = runs_a[0]
+    for other in runs_a[1:] + runs_b:
+        if list(first) != list(other):
+            raise ValueError(f"the arms score other classes: {list(first)} and {list(other)}")
+        for c in first:
+            if [s.num_gt for s in first[c]] != [s.num_gt for s in other[c]]:
+                raise ValueError(f"{c}: the arms were not scored on the same frames (other frame counts or objects)")
+    n = len(next(iter(first.values()), []))
     if n == 0:
         raise ValueError("no frame to draw from")
     rng = np.random.default_rng(seed)
-    full_a, full_b = kitti_ap(stats_a), kitti_ap(stats_b)
+    full_a, full_b = _mean_ap(runs_a), _mean_ap(runs_b)
     draws_a, draws_b = [], []
     for _ in range(samples):
         frames = rng.integers(0, n, n).tolist()
-        draws_a.append(kitti_ap(stats_a, frames))
-        draws_b.append(kitti_ap(stats_b, frames))
+        draws_a.append(_mean_ap(runs_a, frames))
+        draws_b.append(_mean_ap(runs_b, frames))
     q = [(1 - level) / 2, (1 + level) / 2]
     nan2 = (math.nan, math.nan)
 
@@ -362,7 +387,7 @@ def paired_bootstrap(stats_a: Mapping[str, Sequence[FrameStats]], stats_b: Mappi
         return float(lo), float(hi)
 
     out: dict[str, PairedDifference] = {}
-    for key in [*stats_a, "mAP"]:
+    for key in [*first, "mAP"]:
         pairs = np.asarray([(da[key], db[key]) for da, db in zip(draws_a, draws_b)
                             if not (math.isnan(da[key]) or math.isnan(db[key]))]).reshape(-1, 2)
         d = pairs[:, 1] - pairs[:, 0]
