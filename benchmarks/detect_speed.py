@@ -10,7 +10,8 @@ is ``other``. Decoding (``reeb_torch.io.read_image``, which ``reeb detect``'s wo
 processes run beside the detector) is timed apart, in this process. The first batch of
 each (detector, batch size) is a warm-up and not counted; then ``--repeats`` passes over
 all images, every (detector, batch) once per pass in turn (a slow spell of a shared machine
-hits all alike), and the median pass is reported.
+hits all alike), and the median pass is reported (of an even number, the faster of the
+middle two).
 
 Without ``--detector``, ``--min-size N`` builds detectors with untrained heads at those
 input sizes: the same computation as trained ones, except the heads' NMS, which sees other
@@ -150,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     decode_ms = 1000 * statistics.median(decode)
     rows = []
     for (k, batch), passes in runs.items():
-        med = sorted(passes, key=lambda r: r["detector"])[len(passes) // 2]  # the median pass, whole
+        med = sorted(passes, key=lambda r: r["detector"])[(len(passes) - 1) // 2]  # the median pass (lower of two)
         ms = {s: round(1000 * med[s] / len(images), 1) for s in STAGES if s != "decode"}
         rows.append({"name": dets[k][0], "min_size": dets[k][1].settings.min_size, "batch": batch,
                      "decode": round(decode_ms, 1), **ms,
