@@ -37,7 +37,15 @@ from .cache import (
     image_digest,
 )
 from .feature_cache import FeatureCache, FrameFeatures, compute_features, frozen_features
-from .fitting import default_cache_dir, evaluate_detector, format_scores
+from .fitting import (
+    default_cache_dir,
+    detector_stats,
+    evaluate_detector,
+    format_paired,
+    format_scores,
+    paired_scores,
+    scores_of,
+)
 from .head_training import CachedFrame, TrainSettings, detect, drop_ignored, frame_forward, mirror_boxes, train_heads
 from .kitti import KITTI_CLASSES, load_frames, mirrored, result_lines, write_results
 from .lite0 import EfficientNetLite0, load_lite0, weights_digest
@@ -51,7 +59,11 @@ __all__ = [
     "PROPOSALS",
     "proposal_settings",
     "evaluate_detector",
+    "detector_stats",
+    "scores_of",
+    "paired_scores",
     "format_scores",
+    "format_paired",
     "default_cache_dir",
     "KITTI_CLASSES",
     "load_frames",

@@ -30,7 +30,8 @@ from .feature_cache import FeatureCache, frozen_features
 from .head_training import CachedFrame, TrainSettings, detect, train_heads
 from .kitti import load_frames, mirrored
 
-__all__ = ["default_cache_dir", "cached_frames", "fit_detector", "evaluate_detector", "format_scores"]
+__all__ = ["default_cache_dir", "cached_frames", "fit_detector", "detector_stats", "evaluate_detector", "scores_of",
+           "paired_scores", "format_scores", "format_paired"]
 
 
 def default_cache_dir() -> Path:
@@ -125,6 +126,35 @@ def fit_detector(cls: type, folders: Sequence[str | os.PathLike], *, classes: Se
     return det.eval()
 
 
+def detector_stats(det: Any, folders: Sequence[str | os.PathLike], *, limit: int | None = None,
+                   cache_dir: str | os.PathLike | None = None, progress: bool = True) -> tuple[list[dict], dict]:
+    """``det``'s detections on labelled ``folders``, as KITTI's evaluation counts them.
+
+    Returns:
+        ``(items, stats)``: the frames (:func:`~reeb_torch.detection.kitti.load_frames`, in
+        order) and :func:`reeb_torch.eval.kitti_ap.evaluate`'s per-class, per-frame counts
+        (moderate), which :func:`~reeb_torch.eval.kitti_ap.kitti_ap`,
+        :func:`~reeb_torch.eval.kitti_ap.bootstrap` and
+        :func:`~reeb_torch.eval.kitti_ap.paired_bootstrap` take.
+
+    Raises:
+        ValueError: a class KITTI's evaluation has no overlap threshold for.
+    """
+    from ..eval import kitti_ap
+
+    items = load_frames(folders, det.classes, limit)
+    try:
+        detections = detect(det.model, cached_frames(det, items, cache_dir, progress), progress=progress)
+    finally:
+        det.model.rpn.cache = None
+    dets = [{**d, "labels": d["labels"] - 1} for d in detections]
+    return items, kitti_ap.evaluate([it["objects"] for it in items], dets, det.classes)
+
+
+def _pct(v: float) -> float | None:
+    return None if math.isnan(v) else round(100 * v, 2)
+
+
 def evaluate_detector(det: Any, folders: Sequence[str | os.PathLike], *, limit: int | None = None,
                       cache_dir: str | os.PathLike | None = None, samples: int = 1000, seed: int = 0,
                       progress: bool = True) -> dict[str, Any]:
@@ -138,26 +168,51 @@ def evaluate_detector(det: Any, folders: Sequence[str | os.PathLike], *, limit: 
     Raises:
         ValueError: a class KITTI's evaluation has no overlap threshold for.
     """
+    items, stats = detector_stats(det, folders, limit=limit, cache_dir=cache_dir, progress=progress)
+    return scores_of(det, items, stats, samples=samples, seed=seed)
+
+
+def scores_of(det: Any, items: Sequence[dict], stats: dict, samples: int = 1000, seed: int = 0) -> dict[str, Any]:
+    """:func:`evaluate_detector`'s result from :func:`detector_stats`' ``(items, stats)``."""
     from ..eval import kitti_ap
 
-    items = load_frames(folders, det.classes, limit)
-    try:
-        detections = detect(det.model, cached_frames(det, items, cache_dir, progress), progress=progress)
-    finally:
-        det.model.rpn.cache = None
-    dets = [{**d, "labels": d["labels"] - 1} for d in detections]
-    stats = kitti_ap.evaluate([it["objects"] for it in items], dets, det.classes)
     ap = kitti_ap.kitti_ap(stats)
     interval = kitti_ap.bootstrap(stats, samples=samples, seed=seed)
-
-    def pct(v: float) -> float | None:
-        return None if math.isnan(v) else round(100 * v, 2)
-
     seen = sum(name is not None for name in det.trained_on([it["image"] for it in items]))
-    return {"ap": {k: pct(v) for k, v in ap.items()},
-            "interval_95": {k: [pct(lo), pct(hi)] for k, (lo, hi) in interval.items()},
+    return {"ap": {k: _pct(v) for k, v in ap.items()},
+            "interval_95": {k: [_pct(lo), _pct(hi)] for k, (lo, hi) in interval.items()},
             "objects": {c: sum(s.num_gt for s in stats[c]) for c in det.classes}, "frames": len(items),
             "training_frames": seen}
+
+
+def paired_scores(result: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """:func:`~reeb_torch.eval.kitti_ap.paired_bootstrap`'s result in percent, as JSON takes it:
+    per key ``{"a", "b", "diff", "a_interval_95", "b_interval_95", "diff_interval_95",
+    "share_b_better", "draws", "verdict"}``."""
+    def span(t: tuple[float, float]) -> list[float | None]:
+        return [_pct(t[0]), _pct(t[1])]
+
+    return {k: {"a": _pct(d.a), "b": _pct(d.b), "diff": _pct(d.diff), "a_interval_95": span(d.a_interval),
+                "b_interval_95": span(d.b_interval), "diff_interval_95": span(d.interval),
+                "share_b_better": None if math.isnan(d.share_b_better) else round(d.share_b_better, 4),
+                "draws": d.draws, "verdict": d.verdict}
+            for k, d in result.items()}
+
+
+def format_paired(result: dict[str, Any], a: str = "A", b: str = "B") -> str:
+    """:func:`paired_scores`' result as a table: each arm's AP|R40 % with its 95 % interval,
+    B - A with its interval, and the share of draws where B wins."""
+    def cell(v: float | None, span: list[float | None]) -> str:
+        text = "-" if v is None else f"{v:.1f} [{span[0]:.1f}, {span[1]:.1f}]"
+        return f"{text:<21}"
+
+    lines = [f"A = {a}, B = {b}; AP|R40 % [95 % interval]; B - A from the same frames drawn for both",
+             f"{'class':<12}{'A':<21}{'B':<21}{'B - A':<21}{'B wins':>7}  verdict"]
+    for key, d in result.items():
+        share = "-" if d["share_b_better"] is None else f"{d['share_b_better']:.3f}"
+        lines.append(f"{key:<12}{cell(d['a'], d['a_interval_95'])}{cell(d['b'], d['b_interval_95'])}"
+                     f"{cell(d['diff'], d['diff_interval_95'])}{share:>7}  {d['verdict']}")
+    return "\n".join(lines)
 
 
 def format_scores(result: dict[str, Any]) -> str:

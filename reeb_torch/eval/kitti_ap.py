@@ -33,6 +33,7 @@ Boxes: ``(x1, y1, x2, y2)`` pixels, float, the frame of the label files; the ove
 >>> stats = evaluate(gts, detections, ("Car", "Pedestrian", "Cyclist"))
 >>> ap = {c: average_precision(s) for c, s in stats.items()}
 >>> bootstrap(stats, samples=1000)["Car"]          # (low, high)
+>>> paired_bootstrap(stats_a, stats_b)["mAP"].diff    # B - A, the same frames drawn for both
 """
 
 from __future__ import annotations
@@ -59,6 +60,8 @@ __all__ = [
     "average_precision",
     "kitti_ap",
     "bootstrap",
+    "PairedDifference",
+    "paired_bootstrap",
 ]
 
 MIN_OVERLAP: dict[str, float] = {"Car": 0.7, "Pedestrian": 0.5, "Cyclist": 0.5}
@@ -260,22 +263,135 @@ def kitti_ap(stats: Mapping[str, Sequence[FrameStats]], frames: Sequence[int] | 
     return out
 
 
-def bootstrap(stats: Mapping[str, Sequence[FrameStats]], samples: int = 1000, level: float = 0.95,
-              seed: int = 0) -> dict[str, tuple[float, float]]:
+def bootstrap(stats: Mapping[str, Sequence[FrameStats]] | Sequence[Mapping[str, Sequence[FrameStats]]],
+              samples: int = 1000, level: float = 0.95, seed: int = 0) -> dict[str, tuple[float, float]]:
     """Percentile intervals of :func:`kitti_ap` (each class and ``"mAP"``) over ``samples``
     draws of the frames with replacement: the objects of a frame share its scene, so frames,
-    not objects, are the unit. ``nan`` draws (no object of a class drawn) are left out."""
-    n = len(next(iter(stats.values()), []))
+    not objects, are the unit. ``nan`` draws (no object of a class drawn) are left out.
+    ``stats`` may be a list of :func:`evaluate` results on the same frames (fits with other
+    seeds): each draw then takes their mean AP."""
+    runs = _runs(stats)
+    n = len(next(iter(runs[0].values()), [])) if runs else 0
     if n == 0:
         raise ValueError("no frame to draw from")
     rng = np.random.default_rng(seed)
-    draws = [kitti_ap(stats, rng.integers(0, n, n).tolist()) for _ in range(samples)]
+    draws = [_mean_ap(runs, rng.integers(0, n, n).tolist()) for _ in range(samples)]
     out: dict[str, tuple[float, float]] = {}
-    for key in [*stats, "mAP"]:
+    for key in [*runs[0], "mAP"]:
         values = np.asarray([d[key] for d in draws if not math.isnan(d[key])])
         if len(values) == 0:
             out[key] = (math.nan, math.nan)
             continue
         low, high = np.quantile(values, [(1 - level) / 2, (1 + level) / 2])
         out[key] = (float(low), float(high))
+    return out
+
+
+Arm = Mapping[str, Sequence[FrameStats]] | Sequence[Mapping[str, Sequence[FrameStats]]]
+"""One arm for :func:`paired_bootstrap`: :func:`evaluate`'s result, or one per fit seed."""
+
+
+def _runs(arm: Arm) -> list[Mapping[str, Sequence[FrameStats]]]:
+    return [arm] if isinstance(arm, Mapping) else list(arm)
+
+
+def _mean_ap(runs: Sequence[Mapping[str, Sequence[FrameStats]]], frames: Sequence[int] | None = None) -> dict[str, float]:
+    """:func:`kitti_ap` averaged over ``runs`` (the same frames, other fits)."""
+    aps = [kitti_ap(r, frames) for r in runs]
+    return {k: float(np.mean([a[k] for a in aps])) for k in aps[0]}
+
+
+@dataclass(frozen=True)
+class PairedDifference:
+    """Two detectors (arms A and B) on the same frames, one class (or ``"mAP"``); AP in [0, 1].
+
+    Attributes:
+        a, b: each arm's AP on all the frames.
+        diff: ``b - a``.
+        a_interval, b_interval: each arm's percentile interval over the draws.
+        interval: the percentile interval of ``b - a`` over the same draws (frames drawn
+            together for both arms).
+        share_b_better: the share of draws where B beats A, ties counted half (0.5 for two
+            identical arms); near 0 or 1 where one arm is better on nearly every draw.
+        draws: draws where both arms had a defined AP (an object of the class drawn).
+    """
+
+    a: float
+    b: float
+    diff: float
+    a_interval: tuple[float, float]
+    b_interval: tuple[float, float]
+    interval: tuple[float, float]
+    share_b_better: float
+    draws: int
+
+    @property
+    def verdict(self) -> str:
+        """``"B better"`` / ``"A better"`` where the interval of ``b - a`` excludes 0, else
+        ``"no difference shown"``."""
+        if self.interval[0] > 0:
+            return "B better"
+        if self.interval[1] < 0:
+            return "A better"
+        return "no difference shown"
+
+
+def paired_bootstrap(stats_a: Arm, stats_b: Arm, samples: int = 1000, level: float = 0.95,
+                     seed: int = 0) -> dict[str, PairedDifference]:
+    """The paired frame bootstrap of ``kitti_ap(stats_b) - kitti_ap(stats_a)``: each draw takes
+    the frames with replacement and scores both arms on that same draw, so what the frames have
+    in common (their objects, their difficulty) cancels out of the difference.
+
+    Args:
+        stats_a, stats_b: :func:`evaluate` of the two arms on the same frames, in the same
+            order, with the same classes; or, for either, a list of them (fits with other
+            seeds), whose APs are averaged on each draw: the arm's AP is then its mean over
+            seeds, and the interval holds both the frames' and the seeds' spread as far as
+            the seeds given show it.
+
+    Returns:
+        per class and ``"mAP"``, a :class:`PairedDifference` (``nan`` fields for a class
+        without objects).
+
+    Raises:
+        ValueError: other classes, another number of frames, or objects that differ per frame
+            (not the same frames), or no frame.
+    """
+    runs_a, runs_b = _runs(stats_a), _runs(stats_b)
+    if not runs_a or not runs_b:
+        raise ValueError("an arm without a run")
+    first = runs_a[0]
+    for other in runs_a[1:] + runs_b:
+        if list(first) != list(other):
+            raise ValueError(f"the arms score other classes: {list(first)} and {list(other)}")
+        for c in first:
+            if [s.num_gt for s in first[c]] != [s.num_gt for s in other[c]]:
+                raise ValueError(f"{c}: the arms were not scored on the same frames (other frame counts or objects)")
+    n = len(next(iter(first.values()), []))
+    if n == 0:
+        raise ValueError("no frame to draw from")
+    rng = np.random.default_rng(seed)
+    full_a, full_b = _mean_ap(runs_a), _mean_ap(runs_b)
+    draws_a, draws_b = [], []
+    for _ in range(samples):
+        frames = rng.integers(0, n, n).tolist()
+        draws_a.append(_mean_ap(runs_a, frames))
+        draws_b.append(_mean_ap(runs_b, frames))
+    q = [(1 - level) / 2, (1 + level) / 2]
+    nan2 = (math.nan, math.nan)
+
+    def span(values: np.ndarray) -> tuple[float, float]:
+        if len(values) == 0:
+            return nan2
+        lo, hi = np.quantile(values, q)
+        return float(lo), float(hi)
+
+    out: dict[str, PairedDifference] = {}
+    for key in [*first, "mAP"]:
+        pairs = np.asarray([(da[key], db[key]) for da, db in zip(draws_a, draws_b)
+                            if not (math.isnan(da[key]) or math.isnan(db[key]))]).reshape(-1, 2)
+        d = pairs[:, 1] - pairs[:, 0]
+        share = float(((d > 0).sum() + 0.5 * (d == 0).sum()) / len(d)) if len(d) else math.nan
+        out[key] = PairedDifference(full_a[key], full_b[key], full_b[key] - full_a[key], span(pairs[:, 0]),
+                                    span(pairs[:, 1]), span(d), share, int(len(d)))
     return out
