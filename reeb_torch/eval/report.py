@@ -45,7 +45,7 @@ def _pct(v: float | None) -> float:
     return float("nan") if v is None else 100.0 * v
 
 
-def format_table(title: str, rows: list[tuple[str, list[float], str]], note: str = "") -> str:
+def format_table(title: str, rows: Sequence[tuple[str, Sequence[float | None], str]], note: str = "") -> str:
     """Plain-text table in Table 3's layout: ``rows`` are (name, recalls in % at the columns of
     :data:`~reeb_torch.eval.methods.TEXT_GRID` in order, time)."""
     name_w = max([30, *(len(r[0]) for r in rows)])
