@@ -13,7 +13,6 @@ parsed as reeb detector fit parses them, fitted once and kept) and benchmarks/de
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import math
 from pathlib import Path
@@ -25,6 +24,7 @@ import torch
 from reeb_torch.detection import format_paired, paired_scores
 from reeb_torch.eval.data import KittiObject
 from reeb_torch.eval.kitti_ap import bootstrap, evaluate, paired_bootstrap
+from test_benchmarks import _script
 
 CLASSES = ("Car", "Pedestrian")
 
@@ -126,15 +126,7 @@ def test_arms_scored_on_other_frames_are_refused():
 
 
 # -- the benchmarks ---------------------------------------------------------------------------
-REPO = Path(__file__).resolve().parents[1]
 TINY = "--epochs 1 --max-size 448 --train-proposals 100 --test-proposals 50"
-
-
-def _script(name: str):
-    spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 @pytest.fixture(scope="module")
