@@ -271,20 +271,9 @@ def bootstrap(stats: Mapping[str, Sequence[FrameStats]] | Sequence[Mapping[str, 
     ``stats`` may be a list of :func:`evaluate` results on the same frames (fits with other
     seeds): each draw then takes their mean AP."""
     runs = _runs(stats)
-    n = len(next(iter(runs[0].values()), [])) if runs else 0
-    if n == 0:
-        raise ValueError("no frame to draw from")
-    rng = np.random.default_rng(seed)
-    draws = [_mean_ap(runs, rng.integers(0, n, n).tolist()) for _ in range(samples)]
-    out: dict[str, tuple[float, float]] = {}
-    for key in [*runs[0], "mAP"]:
-        values = np.asarray([d[key] for d in draws if not math.isnan(d[key])])
-        if len(values) == 0:
-            out[key] = (math.nan, math.nan)
-            continue
-        low, high = np.quantile(values, [(1 - level) / 2, (1 + level) / 2])
-        out[key] = (float(low), float(high))
-    return out
+    (draws,) = _draws([runs], samples, seed)
+    return {key: _span(np.asarray([d[key] for d in draws if not math.isnan(d[key])]), level)
+            for key in [*runs[0], "mAP"]}
 
 
 Arm = Mapping[str, Sequence[FrameStats]] | Sequence[Mapping[str, Sequence[FrameStats]]]
@@ -293,6 +282,30 @@ Arm = Mapping[str, Sequence[FrameStats]] | Sequence[Mapping[str, Sequence[FrameS
 
 def _runs(arm: Arm) -> list[Mapping[str, Sequence[FrameStats]]]:
     return [arm] if isinstance(arm, Mapping) else list(arm)
+
+
+def _draws(arms: Sequence[Sequence[Mapping[str, Sequence[FrameStats]]]], samples: int,
+           seed: int) -> list[list[dict[str, float]]]:
+    """Per arm (its runs), :func:`_mean_ap` on each of ``samples`` draws of the frames with
+    replacement, the same draws for every arm (seeded by ``seed``)."""
+    n = len(next(iter(arms[0][0].values()), [])) if arms and arms[0] else 0
+    if n == 0:
+        raise ValueError("no frame to draw from")
+    rng = np.random.default_rng(seed)
+    out: list[list[dict[str, float]]] = [[] for _ in arms]
+    for _ in range(samples):
+        frames = rng.integers(0, n, n).tolist()
+        for runs, got in zip(arms, out):
+            got.append(_mean_ap(runs, frames))
+    return out
+
+
+def _span(values: np.ndarray, level: float) -> tuple[float, float]:
+    """The percentile interval of ``values`` at ``level``; ``nan`` for none."""
+    if len(values) == 0:
+        return (math.nan, math.nan)
+    low, high = np.quantile(values, [(1 - level) / 2, (1 + level) / 2])
+    return float(low), float(high)
 
 
 def _mean_ap(runs: Sequence[Mapping[str, Sequence[FrameStats]]], frames: Sequence[int] | None = None) -> dict[str, float]:
@@ -367,31 +380,14 @@ def paired_bootstrap(stats_a: Arm, stats_b: Arm, samples: int = 1000, level: flo
         for c in first:
             if [s.num_gt for s in first[c]] != [s.num_gt for s in other[c]]:
                 raise ValueError(f"{c}: the arms were not scored on the same frames (other frame counts or objects)")
-    n = len(next(iter(first.values()), []))
-    if n == 0:
-        raise ValueError("no frame to draw from")
-    rng = np.random.default_rng(seed)
+    draws_a, draws_b = _draws([runs_a, runs_b], samples, seed)
     full_a, full_b = _mean_ap(runs_a), _mean_ap(runs_b)
-    draws_a, draws_b = [], []
-    for _ in range(samples):
-        frames = rng.integers(0, n, n).tolist()
-        draws_a.append(_mean_ap(runs_a, frames))
-        draws_b.append(_mean_ap(runs_b, frames))
-    q = [(1 - level) / 2, (1 + level) / 2]
-    nan2 = (math.nan, math.nan)
-
-    def span(values: np.ndarray) -> tuple[float, float]:
-        if len(values) == 0:
-            return nan2
-        lo, hi = np.quantile(values, q)
-        return float(lo), float(hi)
-
     out: dict[str, PairedDifference] = {}
     for key in [*first, "mAP"]:
         pairs = np.asarray([(da[key], db[key]) for da, db in zip(draws_a, draws_b)
                             if not (math.isnan(da[key]) or math.isnan(db[key]))]).reshape(-1, 2)
         d = pairs[:, 1] - pairs[:, 0]
         share = float(((d > 0).sum() + 0.5 * (d == 0).sum()) / len(d)) if len(d) else math.nan
-        out[key] = PairedDifference(full_a[key], full_b[key], full_b[key] - full_a[key], span(pairs[:, 0]),
-                                    span(pairs[:, 1]), span(d), share, int(len(d)))
+        out[key] = PairedDifference(full_a[key], full_b[key], full_b[key] - full_a[key], _span(pairs[:, 0], level),
+                                    _span(pairs[:, 1], level), _span(d, level), share, int(len(d)))
     return out
