@@ -28,6 +28,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from ..stages.enclosed import box_sum_at
+
 __all__ = ["OFFSETS", "STRIP", "TARGET_SCALE", "refine_feature_names", "refine_features", "refine_features_tensor",
            "BoxRefiner",
            "apply_offsets", "merge_refined", "offset_targets"]
@@ -66,12 +68,7 @@ def _box_means(ii: Tensor, bi: Tensor, rects: Tensor) -> Tensor:
     x0, x1 = r[..., 0].clamp(0, w), r[..., 2].clamp(0, w)
     y0, y1 = r[..., 1].clamp(0, h), r[..., 3].clamp(0, h)
     x1, y1 = torch.maximum(x0, x1), torch.maximum(y0, y1)
-    flat = ii.reshape(ii.shape[0], -1)
-    row = w + 1
-    base = bi[:, None] * flat.shape[1]
-    flat = flat.reshape(-1)
-    s = (flat[base + y1 * row + x1] - flat[base + y0 * row + x1] - flat[base + y1 * row + x0]
-         + flat[base + y0 * row + x0])
+    s = box_sum_at(ii, bi[:, None].expand_as(x0), x0, y0, x1, y1)
     area = ((x1 - x0) * (y1 - y0)).clamp(min=1)
     return (s / area).float()
 
