@@ -80,6 +80,8 @@ def _fit_value(name: str, text: str) -> object:
     text = text.strip()
     if name == "init":  # a model to fine-tune: a shipped name or a weights file
         return None if text.lower() in ("none", "null") else text
+    if name == "drop_features":  # names or groups: place,log_v
+        return tuple(x.strip() for x in text.split(",") if x.strip())
     if name in ("hidden", "prefilter", "class_hidden", "refine_hidden"):
         if text.lower() in ("none", "null") and name != "hidden":
             return None

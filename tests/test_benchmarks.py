@@ -372,6 +372,7 @@ def test_cv_paired_refit_takes_fit_options_and_the_fields_the_model_reads():
     assert cv.parse_refit("mirror=1") == (ReebConfig(), {"mirror": True})
     assert cv.parse_refit("mirror=off") == (ReebConfig(), {"mirror": False})
     assert cv.parse_refit("jitter=0.2") == (ReebConfig(), {"jitter": 0.2})
+    assert cv.parse_refit("drop_features=place,log_v") == (ReebConfig(), {"drop_features": ("place", "log_v")})
     with pytest.raises(ValueError, match="mirror=2"):
         cv.parse_refit("mirror=2")
 

@@ -93,6 +93,36 @@ def test_class_head_is_seeded_learns_and_leaves_the_ranking_alone():
                         ("Car", "Pedestrian")).classifier is None
 
 
+def test_dropped_features_change_no_score():
+    """drop_features: the ranking, the prefilter (eager and folded for inference) and the class
+    head give the same scores whatever the dropped columns hold, though the labels follow one
+    of them; a model fitted with them reads them; an unknown name is refused, naming it."""
+    names = feature_names(4)
+    top = names.index("top")
+    g = torch.Generator().manual_seed(5)
+    n = 6000
+    x = torch.randn(n, 47, generator=g)
+    y = (x[:, 0] + x[:, top] > 1).float()  # the place column tells half of it
+    samples = [F.Sample(x, y, torch.ones(n), torch.where(y > 0, (x[:, top] > 0).long(), -1))]
+    opts = F.FitOptions(epochs=4, hidden=(8,), batch=512, class_hidden=(8,))
+    free = F.fit_ranker(samples, names, dataclasses.replace(opts, drop_features=("place", "log_v")),
+                        ("Car", "Pedestrian"))
+    kept = F.fit_ranker(samples, names, opts, ("Car", "Pedestrian"))
+    moved = x[:50].clone()
+    cols = [names.index(c) for c in (*F.FEATURE_GROUPS["place"], "log_v")]
+    moved[:, cols] = torch.randn(50, len(cols), generator=g) * 5
+    cheap = free.cheap
+    with torch.no_grad():
+        for a, b in [(free(x[:50]), free(moved)), (free.rank(x[:50]), free.rank(moved)),
+                     (free.class_probs(x[:50]), free.class_probs(moved)),
+                     (free.prefilter_scores(x[:50, :cheap]), free.prefilter_scores(moved[:, :cheap]))]:
+            torch.testing.assert_close(a, b)
+        assert not torch.allclose(kept(x[:50]), kept(moved))
+    assert F.dropped_columns(names, ["place"]) == sorted(names.index(c) for c in F.FEATURE_GROUPS["place"])
+    with pytest.raises(ValueError, match="'lattitude' is no feature column or group"):
+        F.fit_ranker(samples, names, dataclasses.replace(opts, drop_features=("lattitude",)))
+
+
 def test_prefilter_balance_weighs_only_the_prefilter():
     """prefilter_balance: the prefilter's class weights apart from the MLP's; the MLP's weights
     are those of the fit without it, bit for bit, and None is the balance's own."""

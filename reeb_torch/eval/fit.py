@@ -42,7 +42,8 @@ from .tune import FrameCache, Frames, fold_blocks, held_out
 
 __all__ = ["FitFrames", "FitOptions", "Sample", "FitCrossValidation", "load_fit_frames", "frame_sample",
            "frame_samples", "mirrored_sample", "jitter_of", "fit_ranker", "fit_refiner", "initial_model", "similar_frames",
-           "training_frames", "cross_validate", "best_ious", "held_out_outputs", "hinted_classes", "drive_of", "other_boxes"]
+           "training_frames", "cross_validate", "best_ious", "held_out_outputs", "hinted_classes", "drive_of", "other_boxes",
+           "FEATURE_GROUPS", "dropped_columns"]
 
 
 @dataclass
@@ -134,6 +135,11 @@ class FitOptions:
         refine_per_object: at most this many of them per object (a seeded draw, after the negatives').
         refine_epochs, refine_batch, refine_lr: the refiner's passes, rows per step and peak
             learning rate (AdamW, one-cycle, ``weight_decay``).
+        drop_features: feature columns the model does not read (names of
+            :func:`~reeb_torch.ranker.features.feature_names`, or a group of
+            :data:`FEATURE_GROUPS` such as ``"place"``): held at their mean in the fit and their
+            input weights set to zero, so the ranking, the prefilter and the class head give
+            the same scores whatever those columns hold. The weights file's format is the same.
     """
 
     hidden: tuple[int, ...] = (64, 64)
@@ -164,6 +170,41 @@ class FitOptions:
     refine_epochs: int = 20
     refine_batch: int = 512
     refine_lr: float = 3e-3
+    drop_features: tuple[str, ...] = ()
+
+
+FEATURE_GROUPS: dict[str, tuple[str, ...]] = {
+    "place": ("top", "bottom", "centre_x", "off_centre", "at_border"),
+}
+"""Named groups of feature columns for :attr:`FitOptions.drop_features`. ``place``: where the
+box lies in the frame (its top and bottom rows, its centre's column, how far off the image's
+centre, whether it touches the border), which a model of a few drives can learn as where those
+drives had their objects."""
+
+
+def dropped_columns(names: Sequence[str], drop: Sequence[str]) -> list[int]:
+    """The indices in ``names`` of the columns ``drop`` names (feature names or
+    :data:`FEATURE_GROUPS`), sorted. ValueError for a name that is neither."""
+    cols: set[int] = set()
+    for item in drop:
+        members = FEATURE_GROUPS.get(item, (item,))
+        unknown = [m for m in members if m not in names]
+        if unknown:
+            raise ValueError(f"drop_features: {', '.join(map(repr, unknown))} is no feature column or group "
+                             f"(groups: {', '.join(FEATURE_GROUPS)}; columns: {', '.join(names)})")
+        cols.update(names.index(m) for m in members)
+    return sorted(cols)
+
+
+def _zero_inputs(net: torch.nn.Module | None, cols: Sequence[int]) -> None:
+    """Set the first layer's weights from the input columns ``cols`` to zero (the columns
+    beyond its inputs, for the prefilter's few, are skipped)."""
+    if net is None or not cols:
+        return
+    first = next(m for m in net.modules() if isinstance(m, torch.nn.Linear))
+    own = [c for c in cols if c < first.in_features]
+    with torch.no_grad():
+        first.weight[:, own] = 0.0
 
 
 def _no_refine_rows() -> Tensor:
@@ -340,10 +381,12 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
         model.mean.copy_(x.mean(0))
         model.scale.copy_(x.std(0).clamp(min=1e-6))
         fit, fresh = opts, True
+    dropped = dropped_columns(list(feature_names), opts.drop_features)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         xs = model.standardise(x)
+        xs[:, dropped] = 0.0  # at their mean: the fit learns nothing from them
         for m, member in enumerate(model.members):
             _fit_member(member, xs, y, w, fit, opts.seed * 1000 + m, fresh=fresh)
         if model.prefilter is not None:
@@ -355,6 +398,8 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
                         opts.seed * 1000 + 998, _class_loss, fresh=fresh)
     finally:
         torch.set_num_threads(threads)
+    for net in [*model.members, model.prefilter, model.classifier]:
+        _zero_inputs(net, dropped)  # and read nothing from them when run
     rx = torch.cat([s.refine_x for s in samples])
     if opts.refine_hidden is not None and len(rx):  # fitted last: the ranking's weights do not depend on it
         model.refiner = fit_refiner(rx, torch.cat([s.refine_y for s in samples]), opts)

@@ -305,6 +305,7 @@ def _run_fit(roots: Sequence[str], outputs: FitOutputs, cfg: ReebConfig, opts: F
     names = cache.candidates(cfg.unranked(), 0).feature_names
     if opts.init:
         F.initial_model(opts.init, names)  # a model that cannot be tuned here fails before any work
+    F.dropped_columns(names, opts.drop_features)  # and so does an unknown column
     samples = F.frame_samples(cache, cfg, opts, progress=_iterate("candidates", quiet))
     gap = len(frames) if whole_drives else 2  # drive frames within ``gap`` of a held-out block stay out
     cv = F.cross_validate(cache, cfg, base, samples, opts, folds, k, iou, gap, progress=_iterate("folds", quiet),
@@ -384,10 +385,11 @@ def _seen_note(who: str, model: BoxRanker, frames: F.FitFrames, digest: str, row
 
 
 def _options_record(opts: F.FitOptions) -> dict[str, Any]:
-    """The fit options kept in the weights' provenance; ``mirror``, ``jitter`` and the box
-    refiner's options only where they are on (a fit without them records what it always did)."""
+    """The fit options kept in the weights' provenance; ``mirror``, ``jitter``,
+    ``drop_features`` and the box refiner's options only where they are on (a fit without them
+    records what it always did)."""
     record = dataclasses.asdict(opts)
-    for name in ("mirror", "jitter"):
+    for name in ("mirror", "jitter", "drop_features"):
         if not record[name]:
             del record[name]
     if opts.refine_hidden is None:
