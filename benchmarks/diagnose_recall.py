@@ -10,10 +10,12 @@ IoU 0.7 of each class, on the frames of a KITTI-format folder. ``--frames 0:39 4
 (numeric ids, both ends included) also reports each range on its own. ``--folds N``: the
 learned ranking's stages on frames it never saw — each frame is run with a model fitted
 without its block of frames, as ``reeb fit --folds N`` estimates (``--seed``: the fit's);
-without it the settings' own model runs on every frame (the shipped one saw the dev frames).
+``--whole-drives`` keeps every frame of a held-out block's drives off its training side, as
+``reeb fit --whole-drives``; without ``--folds`` the settings' own model runs on every frame
+(the shipped one saw the dev frames).
 
 Rerun: ``python benchmarks/diagnose_recall.py [--data DIR ...] [--limit N] [--preset NAME]
-[--set FIELD=VALUE ...] [--frames A:B ...] [--folds N [--seed S]] [--lost [--show IMAGE]] [--json PATH]`` (``--set``
+[--set FIELD=VALUE ...] [--frames A:B ...] [--folds N [--seed S] [--whole-drives]] [--lost [--show IMAGE]] [--json PATH]`` (``--set``
 as in ``reeb propose``, e.g. ``--set min_window=12``; ``--lost`` lists each missed object with
 the stage that lost it, ``--show`` draws them all in one picture)
 """
@@ -208,16 +210,20 @@ def _parser() -> argparse.ArgumentParser:
                     help="run each frame with a ranking model fitted without its block of N blocks of frames "
                          "(reeb fit's cross-validation), not with the settings' own model")
     ap.add_argument("--seed", type=int, default=0, help="with --folds: the fit's seed (reeb fit --seed)")
+    ap.add_argument("--whole-drives", action="store_true",
+                    help="with --folds: every frame of a held-out block's drives off its training side "
+                         "(reeb fit --whole-drives), not only those within 2 frames")
     ap.add_argument("--json", type=Path, default=None, help="also write the numbers to this JSON file")
     return ap
 
 
-def held_out_generators(data: list[Path], limit: int | None, config, folds: int,
-                        seed: int) -> dict[tuple[str, str], Callable[[], ProposalGenerator]]:
+def held_out_generators(data: list[Path], limit: int | None, config, folds: int, seed: int,
+                        whole_drives: bool = False) -> dict[tuple[str, str], Callable[[], ProposalGenerator]]:
     """Per frame ``(folder, image id)``, a function that makes the generator of ``config``
     with a ranking model fitted without the frame's block (:func:`reeb_torch.eval.fit.cross_validate`'s
     folds, training frames and fit; the weights saved in a temporary folder that lives as
-    long as the functions), the one generator per block made once, when its first frame asks."""
+    long as the functions), the one generator per block made once, when its first frame asks;
+    ``whole_drives``: every frame of a held-out block's drives stays off its training side."""
     from reeb_torch.eval import fit as F
     from reeb_torch.eval.tune import FrameCache, fold_blocks
     from reeb_torch.ranker import save_ranker
@@ -236,7 +242,8 @@ def held_out_generators(data: list[Path], limit: int | None, config, folds: int,
         def make() -> ProposalGenerator:
             if f not in made:
                 made.clear()  # one block's generator at a time: the frames come block by block
-                train = F.training_frames(blocks, f, frames.ids, frames.folders, similar)
+                train = F.training_frames(blocks, f, frames.ids, frames.folders, similar,
+                                          len(frames) if whole_drives else 2)
                 model = F.fit_ranker([samples[i] for i in train], names, opts, frames.classes)
                 path = save_ranker(model, Path(tmp.name) / f"fold{f}.safetensors")
                 made[f] = ProposalGenerator(config.replace(ranker=str(path)))
@@ -255,7 +262,7 @@ def _generators(ap: argparse.ArgumentParser, args: argparse.Namespace, config) -
     if config.ranker == "none":
         ap.error("--folds fits the learned ranking: these settings have none (ranker='none')")
     try:
-        held_out = held_out_generators(args.data, args.limit, config, args.folds, args.seed)
+        held_out = held_out_generators(args.data, args.limit, config, args.folds, args.seed, args.whole_drives)
     except ValueError as e:  # fewer frames than folds, no labelled object
         ap.error(str(e))
     return lambda item: held_out[(item["folder"], str(item["image_id"]))]()
@@ -281,6 +288,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     if args.show is not None and not args.lost:
         ap.error("--show draws the objects --lost lists: give --lost too")
+    if args.whole_drives and args.folds is None:
+        ap.error("--whole-drives holds out the drives of --folds' blocks: give --folds too")
     print("# rerun:", rerun_line("benchmarks/diagnose_recall.py", argv if argv is not None else sys.argv[1:]))
     try:
         items, classes = load_folders(args.data, limit=args.limit, frames=args.frames)
@@ -319,7 +328,8 @@ def main(argv: list[str] | None = None) -> dict:
     n = len(lab)
     preset = args.preset + "".join(f", {kv}" for kv in args.sets)
     if args.folds is not None:
-        preset += f"; each frame ranked by a model fitted without its block ({args.folds} folds, seed {args.seed})"
+        apart = ", whole drives" if args.whole_drives else ""
+        preset += f"; each frame ranked by a model fitted without its block ({args.folds} folds{apart}, seed {args.seed})"
     print(f"# {len(items)} frames, {n} objects ({int(mod.sum())} moderate), preset {preset}; "
           "recall (%) at IoU 0.7 unless named")
     splits = [("all", torch.ones(n, dtype=torch.bool))]
@@ -330,6 +340,7 @@ def main(argv: list[str] | None = None) -> dict:
             splits.append((r.text, torch.tensor([int(f) in r for f in frame_of], dtype=torch.bool)))
     record: dict = {"rerun": rerun_line("benchmarks/diagnose_recall.py", argv if argv is not None else sys.argv[1:]),
                     "preset": args.preset, "sets": args.sets, "folds": args.folds, "seed": args.seed,
+                    "whole_drives": args.whole_drives,
                     "classes": list(classes), "splits": {}}
     for name, m in splits:
         table = stage_table({k: b[m] for k, b in best.items()}, lab[m], mod[m], classes)

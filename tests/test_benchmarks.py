@@ -117,6 +117,26 @@ def test_folds_rank_each_frame_by_a_model_fitted_without_its_block(diagnose, tmp
     with pytest.raises(SystemExit) as info:  # training-free settings have no ranking to fit
         diagnose.main(["--data", str(root), "--folds", "2", "--preset", "training-free"])
     assert info.value.code == 2
+    with pytest.raises(SystemExit) as info:  # whole drives of which blocks?
+        diagnose.main(["--data", str(root), "--whole-drives"])
+    assert info.value.code == 2
+
+
+def test_whole_drives_holds_out_the_drives_of_each_block(diagnose, tmp_path, monkeypatch):
+    """--whole-drives: the training frames are reeb fit --whole-drives' (every frame of a
+    held-out block's drives out), recorded as such."""
+    from reeb_torch.eval import fit as F
+
+    gaps = []
+    real = F.training_frames
+    monkeypatch.setattr(F, "training_frames", lambda *a, **k: gaps.append(a[5]) or real(*a, **k))
+    root = _example_kitti(tmp_path / "kitti")
+    record = diagnose.main(["--data", str(root), "--folds", "2", "--whole-drives", "--set", "top_k=150"])
+    frames = F.load_fit_frames([root])
+    assert record["whole_drives"] and gaps and set(gaps) == {len(frames)}
+    gaps.clear()
+    assert not diagnose.main(["--data", str(root), "--folds", "2", "--set", "top_k=150"])["whole_drives"]
+    assert gaps and set(gaps) == {2}
 
 
 def test_lost_table_prints_every_object(run, diagnose):
