@@ -241,3 +241,195 @@ def test_detector_fit_command_writes_a_detector_that_loads(data, cache, tmp_path
     bad = CliRunner().invoke(main, ["detector", "fit", str(data), "-o", str(tmp_path / "x.safetensors"),
                                     "--proposals", "no-such-thing"])
     assert bad.exit_code == 2 and "proposals 'no-such-thing'" in bad.output and "Traceback" not in bad.output
+
+
+# -- a ranker weights file travels inside the detector's file -----------------------------------
+
+def _reversed_ranker(path: Path) -> Path:
+    """A ranker weights file other than the shipped one (its members' last layer negated, so
+    it ranks the candidates the other way round), written by the ranker's own writer."""
+    import copy
+
+    from reeb_torch.ranker import load_ranker, save_ranker
+
+    model = copy.deepcopy(load_ranker("kitti"))
+    for member in model.members:
+        last = [m for m in member if isinstance(m, torch.nn.Linear)][-1]
+        last.weight.mul_(-1)
+        last.bias.mul_(-1)
+    return save_ranker(model, path, model.meta.get("provenance"), model.meta.get("config"))
+
+
+def _own(fitted: ReebDetector, ranker: Path) -> ReebDetector:
+    """``fitted``'s trained heads on proposals ranked by the weights file ``ranker`` (no fit)."""
+    from reeb_torch.detection.detector_file import trained_keys
+
+    det = ReebDetector(fitted.classes, str(ranker), TINY)
+    det.model.load_state_dict(trained_keys(fitted.model.state_dict()), strict=False)
+    det.meta = dict(fitted.meta)
+    return det
+
+
+def _entries(path: Path) -> tuple[set[str], dict[str, str]]:
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt") as f:
+        return set(f.keys()), dict(f.metadata())
+
+
+def _without_ranker(src: Path, dst: Path) -> Path:
+    """``src`` as a detector file written before rankers were embedded: the path and SHA-256 only."""
+    def meta(m):
+        info = json.loads(m["reeb-detector"])
+        info["proposals"].pop("ranker_embedded")
+        info.pop("proposals_ranker")
+        return {"reeb-detector": json.dumps(info)}
+    return _rewrite(src, dst, tensors=lambda t: {k: v for k, v in t.items() if not k.startswith("proposals_ranker.")},
+                    meta=meta)
+
+
+def test_a_detector_runs_on_its_embedded_ranker_once_the_file_is_gone(fitted, images, tmp_path):
+    import hashlib
+
+    ranker = _reversed_ranker(tmp_path / "mine.safetensors")
+    sha = hashlib.sha256(ranker.read_bytes()).hexdigest()
+    own = _own(fitted, ranker)
+    before, proposals = own(images), own.model.rpn.propose(images)
+    assert not torch.equal(proposals[0], fitted.model.rpn.propose(images[:1])[0])  # the ranker matters
+    assert any(not torch.equal(a["boxes"], b["boxes"]) for a, b in zip(before, fitted(images)))
+    path = own.save(tmp_path / "det.safetensors")
+    keys, entries = _entries(path)
+    assert {"proposals_ranker.scale", "proposals_ranker.members.0.0.weight"} <= keys
+    assert set(entries) == {"reeb-detector"}
+    stored = json.loads(entries["reeb-detector"])
+    assert set(stored["proposals_ranker"]) == {"reeb-ranker"}
+    info = stored["proposals"]
+    assert info["ranker_embedded"] is True and info["ranker_sha256"] == sha
+    assert info["config"]["ranker"] == str(ranker.resolve())
+    old = _without_ranker(path, tmp_path / "old.safetensors")
+    again = ReebDetector.load(old)  # a file without the ranker: found by its path, as before
+    assert not json.loads(_entries(old)[1]["reeb-detector"])["proposals"].get("ranker_embedded")
+    assert all(torch.equal(a[k], b[k]) for a, b in zip(before, again(images)) for k in a)
+    shown = CliRunner().invoke(main, ["detector", "show", str(old)])
+    assert shown.exit_code == 0 and f"ranker: the file {ranker.resolve()} (not embedded" in shown.output, shown.output
+
+    ranker.rename(tmp_path / "moved.safetensors")
+    with pytest.raises(DetectorFileError, match="put that weights file back"):
+        ReebDetector.load(old)
+    loaded = ReebDetector.load(path)
+    after = loaded(images)
+    assert all(torch.equal(a, b) for a, b in zip(proposals, loaded.model.rpn.propose(images)))
+    for a, b in zip(before, after):
+        assert len(a["boxes"]) > 0
+        for k in a:
+            assert torch.equal(a[k], b[k]), k
+    assert loaded.proposals == json.loads(json.dumps(own.proposals, default=list)) and loaded.ranker_embedded
+    assert loaded.config.ranker != str(ranker.resolve()) and Path(loaded.config.ranker).is_file()
+    assert loaded.save(tmp_path / "again.safetensors").read_bytes() == path.read_bytes()
+    shown = CliRunner().invoke(main, ["detector", "show", str(path)])
+    assert shown.exit_code == 0 and f"ranker: embedded (55 kB, SHA-256 {sha[:16]}..., as recorded" in shown.output, \
+        shown.output
+
+
+@pytest.fixture(scope="module")
+def embedded(fitted, tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("embedded")
+    return _own(fitted, _reversed_ranker(folder / "mine.safetensors")).save(folder / "det.safetensors")
+
+
+def _ranker_edit(change, sha: bool = False, flag: bool = True):
+    """Rewrite a detector file's embedded ranker tensors with ``change`` (a dict -> dict), the
+    recorded SHA-256 made that of the changed copy where ``sha``, the metadata's flag dropped
+    where not ``flag``."""
+    from reeb_torch.detection.detector_file import ranker_file_bytes
+
+    def edit(src: Path, dst: Path) -> Path:
+        import hashlib
+
+        keys, entries = _entries(src)
+        from safetensors import safe_open
+
+        with safe_open(str(src), framework="pt") as f:
+            t = {k: f.get_tensor(k) for k in keys}
+        n = len("proposals_ranker.")
+        mine = change({k[n:]: v for k, v in t.items() if k.startswith("proposals_ranker.")})
+        info = json.loads(entries["reeb-detector"])
+        if sha:
+            info["proposals"]["ranker_sha256"] = hashlib.sha256(
+                ranker_file_bytes(mine, info["proposals_ranker"])).hexdigest()
+        if not flag:
+            info["proposals"].pop("ranker_embedded")
+        if not mine:
+            info.pop("proposals_ranker")
+        out = {k: v for k, v in t.items() if not k.startswith("proposals_ranker.")}
+        out.update({"proposals_ranker." + k: v for k, v in mine.items()})
+        from safetensors.torch import save_file
+
+        save_file(out, str(dst), metadata={"reeb-detector": json.dumps(info)})
+        return dst
+    return edit
+
+
+def _scaled(t, factor):
+    return {**t, "scale": t["scale"] * factor}
+
+
+def _nan_scale(t):
+    s = t["scale"].clone()
+    s[3] = float("nan")
+    return {**t, "scale": s}
+
+
+EMBEDDED_DAMAGE = {
+    "a tensor changed": (_ranker_edit(lambda t: _scaled(t, 1.01)), "embedded proposals ranker is damaged"),
+    "a tensor missing": (_ranker_edit(lambda t: {k: v for k, v in t.items() if k != "mean"}),
+                         "embedded proposals ranker is damaged"),
+    "non-finite": (_ranker_edit(_nan_scale), "'proposals_ranker.scale' holds non-finite values"),
+    "refused by the ranker's checks": (_ranker_edit(lambda t: _scaled(t, -1), sha=True),
+                                       "embedded proposals ranker weights: tensor 'scale'"),
+    "gone, though the metadata says embedded": (_ranker_edit(lambda t: {}), "but it holds none"),
+    "not named by the metadata": (_ranker_edit(lambda t: t, flag=False), "its metadata does not name"),
+}
+
+
+@pytest.mark.parametrize("case", list(EMBEDDED_DAMAGE))
+def test_a_damaged_embedded_ranker_is_refused_in_one_line(embedded, tmp_path, case):
+    make, reason = EMBEDDED_DAMAGE[case]
+    bad = make(embedded, tmp_path / "bad.safetensors")
+    with pytest.raises(DetectorFileError) as e:
+        ReebDetector.load(bad)
+    msg = str(e.value)
+    assert "\n" not in msg and str(bad) in msg and reason in msg, msg
+    res = CliRunner().invoke(main, ["detect", str(tmp_path), "--detector", str(bad), "-o", str(tmp_path / "d.jsonl")])
+    assert res.exit_code == 2 and "Traceback" not in res.output and reason in res.output, res.output
+
+
+def test_a_shipped_or_no_ranker_is_not_embedded(saved, tmp_path):
+    import hashlib
+
+    from reeb_torch.ranker import shipped_path
+
+    keys, entries = _entries(saved)
+    assert set(entries) == {"reeb-detector"} and not any(k.startswith("proposals_ranker.") for k in keys)
+    info = json.loads(entries["reeb-detector"])["proposals"]
+    assert "ranker_embedded" not in info and info["config"]["ranker"] == "kitti"
+    assert info["ranker_sha256"] == hashlib.sha256(shipped_path("kitti").read_bytes()).hexdigest()
+    shown = CliRunner().invoke(main, ["detector", "show", str(saved)])
+    assert shown.exit_code == 0 and "ranker: shipped ('kitti'" in shown.output, shown.output
+    free = ReebDetector(proposals="training-free", settings=TINY)
+    assert not free.ranker_embedded
+    keys, entries = _entries(free.save(tmp_path / "free.safetensors"))
+    assert set(entries) == {"reeb-detector"} and not any(k.startswith("proposals_ranker.") for k in keys)
+    assert "ranker: none" in CliRunner().invoke(main, ["detector", "show", str(tmp_path / "free.safetensors")]).output
+
+
+def test_a_ranker_file_laid_out_otherwise_is_named_by_path(tmp_path):
+    data = _reversed_ranker(tmp_path / "mine.safetensors").read_bytes()
+    size = int.from_bytes(data[:8], "little")
+    other = tmp_path / "other.safetensors"  # the same tensors and metadata, 8 more spaces in the header
+    other.write_bytes((size + 8).to_bytes(8, "little") + data[8: 8 + size] + b" " * 8 + data[8 + size:])
+    with pytest.warns(UserWarning, match="names the file by its path"):
+        det = ReebDetector(proposals=str(other), settings=TINY)
+    assert not det.ranker_embedded
+    keys, entries = _entries(det.save(tmp_path / "det.safetensors"))
+    assert set(entries) == {"reeb-detector"} and not any(k.startswith("proposals_ranker.") for k in keys)

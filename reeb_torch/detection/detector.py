@@ -13,14 +13,18 @@ R-CNN on the frozen ImageNet EfficientNet-Lite0 (the ``detect`` extra), with a
 :class:`~reeb_torch.detection.ReebRPN` running REEB (its default settings with the learned
 ranking, the ``training-free`` preset, or the default ranking with other weights). Only the
 neck and the box head train (:meth:`ReebDetector.fit`, :mod:`reeb_torch.detection.fitting`);
-the file (:mod:`reeb_torch.detection.detector_file`) holds them and what made them.
+the file (:mod:`reeb_torch.detection.detector_file`) holds them and what made them, and, where
+the proposals rank with a user's weights file, that file too: it runs where that file is gone.
 """
 
 from __future__ import annotations
 
+import atexit
 import dataclasses
 import hashlib
 import os
+import shutil
+import tempfile
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -31,7 +35,9 @@ import torch
 from torch import Tensor, nn
 
 from ..config import ReebConfig
-from .detector_file import DetectorFileError, check_tensors, read_detector_file, trained_keys, write_detector_file
+from ..io import replace_file
+from .detector_file import (DetectorFileError, check_tensors, ranker_file_bytes, ranker_parts, read_detector_file,
+                            trained_keys, write_detector_file)
 from .head_training import TrainSettings
 from .kitti import KITTI_CLASSES
 
@@ -68,10 +74,6 @@ class DetectorSettings:
     detections_per_img: int = 100
 
 
-def _sha256(path: str | os.PathLike) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
 def proposal_settings(spec: str, top_k: int) -> tuple[ReebConfig, dict[str, Any]]:
     """REEB's settings for ``spec`` and what names them in a detector file.
 
@@ -86,6 +88,11 @@ def proposal_settings(spec: str, top_k: int) -> tuple[ReebConfig, dict[str, Any]
     Raises:
         ValueError: an unknown name and no such file (one line).
     """
+    config = _proposal_config(spec, top_k)
+    return config, _proposal_info(spec, config, _ranker_file(config)[0])
+
+
+def _proposal_config(spec: str, top_k: int) -> ReebConfig:
     from ..config import get_preset
 
     if spec in PROPOSALS:
@@ -95,18 +102,36 @@ def proposal_settings(spec: str, top_k: int) -> tuple[ReebConfig, dict[str, Any]
     else:
         raise ValueError(f"proposals {spec!r}: expected {' or '.join(PROPOSALS)} or a ranker weights file "
                          "(reeb fit's .safetensors); no such file")
-    config = config.replace(top_k=int(top_k))
-    return config, _proposal_info(spec, config)
+    return config.replace(top_k=int(top_k))
 
 
-def _proposal_info(spec: str | None, config: ReebConfig) -> dict[str, Any]:
-    ranker_sha = None
-    if config.ranker != "none":
-        from ..ranker import resolve_ranker
-
-        ranker_sha = _sha256(resolve_ranker(config.ranker))
+def _proposal_info(spec: str | None, config: ReebConfig, ranker_sha: str | None) -> dict[str, Any]:
     return {"spec": spec, "config": config.to_dict(), "fingerprint": config.fingerprint(),
             "ranker_sha256": ranker_sha}
+
+
+def _ranker_file(config: ReebConfig) -> tuple[str | None, bytes | None]:
+    """The SHA-256 of ``config.ranker``'s weights file (None without a ranker) and, for a
+    user's file (not a shipped name), its bytes: what a saved detector embeds. A file laid
+    out otherwise than safetensors writes it (another tool's) is not embedded, with a warning:
+    the embedded copy would not have its SHA-256."""
+    if config.ranker == "none":
+        return None, None
+    from ..ranker import SHIPPED, resolve_ranker
+
+    data = resolve_ranker(config.ranker).read_bytes()
+    sha = hashlib.sha256(data).hexdigest()
+    if config.ranker in SHIPPED:
+        return sha, None
+    try:
+        same = ranker_file_bytes(*ranker_parts(data)) == data
+    except ValueError:  # not safetensors: the ranker's loader refuses it, in one line
+        return sha, None
+    if not same:
+        warnings.warn(f"ranker weights {config.ranker!r} are not laid out as reeb fit writes them: a saved detector "
+                      "names the file by its path instead of holding a copy (rewrite it with reeb fit)", stacklevel=3)
+        return sha, None
+    return sha, data
 
 
 def _as_float(image: Tensor) -> Tensor:
@@ -151,9 +176,9 @@ class ReebDetector(nn.Module):
         self.settings = settings
         top_k = max(settings.proposals_train, settings.proposals_test)
         if config is None:
-            config, self.proposals = proposal_settings(proposals, top_k)
-        else:
-            self.proposals = _proposal_info(proposals, config)
+            config = _proposal_config(proposals, top_k)
+        sha, self._ranker_bytes = _ranker_file(config)
+        self.proposals = _proposal_info(proposals, config, sha)
         self.backbone_sha256 = weights_digest(weights)
         s = settings
         self.model = reeb_fasterrcnn_lite0(
@@ -168,8 +193,16 @@ class ReebDetector(nn.Module):
 
     @property
     def config(self) -> ReebConfig:
-        """REEB's settings of the proposals."""
+        """REEB's settings of the proposals. Loaded from a file that embeds its ranker,
+        ``config.ranker`` is the private copy it was unpacked to (``proposals["config"]``
+        records the file it was fitted with)."""
         return self.model.rpn.config
+
+    @property
+    def ranker_embedded(self) -> bool:
+        """Whether :meth:`save` puts the proposals' ranker weights in the file: a user's
+        weights file, not a shipped name nor ``ranker='none'``."""
+        return self._ranker_bytes is not None
 
     def forward(self, images: Sequence[Tensor]) -> list[dict[str, Tensor]]:
         xs = [_as_float(im) for im in images]
@@ -180,27 +213,34 @@ class ReebDetector(nn.Module):
     # -- file -------------------------------------------------------------------------------
     def metadata(self) -> dict[str, Any]:
         """What the file records beside the tensors (:mod:`~reeb_torch.detection.detector_file`)."""
+        proposals = {**self.proposals, "ranker_embedded": True} if self.ranker_embedded else self.proposals
         return {"classes": list(self.classes), "settings": dataclasses.asdict(self.settings),
                 "backbone": {"name": BACKBONE, "sha256": self.backbone_sha256},
-                "proposals": self.proposals, "provenance": self.meta.get("provenance", {})}
+                "proposals": proposals, "provenance": self.meta.get("provenance", {})}
 
     def save(self, path: str | os.PathLike) -> Path:
-        """Write the trained tensors and :meth:`metadata` to ``path`` (safetensors, atomically)."""
-        return write_detector_file(path, trained_keys(self.model.state_dict()), self.metadata())
+        """Write the trained tensors and :meth:`metadata` to ``path`` (safetensors, atomically),
+        with the proposals' ranker weights file where it is a user's (:attr:`ranker_embedded`)."""
+        return write_detector_file(path, trained_keys(self.model.state_dict()), self.metadata(), self._ranker_bytes)
 
     @classmethod
     def load(cls, path: str | os.PathLike, device: str | torch.device = "cpu") -> ReebDetector:
         """The detector a :meth:`save` wrote, in evaluation mode on ``device``.
 
+        A file that embeds its ranker runs on that copy (the file it was fitted with may be
+        gone), checked against the SHA-256 recorded for it and by the ranker's own loader; a
+        file without one finds the ranker where it was fitted (a warning where that file's
+        SHA-256 is not the one recorded).
+
         Raises:
             DetectorFileError: a missing, damaged or foreign file, or one made on other
-                backbone weights or with proposal settings this installation cannot run;
-                one line naming the file and what is wrong.
+                backbone weights or with proposal settings this installation cannot run,
+                or whose embedded ranker is damaged; one line naming the file and what is wrong.
             ImportError: the ``detect`` extra is missing (one line naming it).
         """
         from .lite0 import weights_digest
 
-        tensors, meta = read_detector_file(path)
+        tensors, meta, ranker = read_detector_file(path)
         p = Path(os.path.expanduser(str(path)))
         try:
             settings = DetectorSettings(**meta["settings"])
@@ -210,9 +250,11 @@ class ReebDetector(nn.Module):
         if meta["backbone"].get("sha256") != here or meta["backbone"].get("name") != BACKBONE:
             raise DetectorFileError(f"detector {p}: trained on other backbone weights ({meta['backbone']}); this "
                                     f"installation has {BACKBONE} {here[:16]}... (the 'detect' extra)")
-        config = _stored_config(p, meta["proposals"])
+        config = _stored_config(p, meta["proposals"], ranker)
         det = cls(meta["classes"], meta["proposals"].get("spec"), settings, config=config)
-        if meta["proposals"].get("ranker_sha256") != det.proposals["ranker_sha256"]:
+        if ranker is not None:  # its copy, checked: what the file records, not where it was unpacked
+            det.proposals = {k: v for k, v in meta["proposals"].items() if k != "ranker_embedded"}
+        elif meta["proposals"].get("ranker_sha256") != det.proposals["ranker_sha256"]:
             warnings.warn(f"detector {p}: its proposals were ranked with other weights than {config.ranker!r} "
                           "has here; detections may differ from those it was trained for", stacklevel=2)
         check_tensors(p, tensors, trained_keys(det.model.state_dict()))
@@ -260,8 +302,10 @@ class ReebDetector(nn.Module):
         return f"classes={self.classes}, proposals={self.proposals['spec']!r}, settings={self.settings}"
 
 
-def _stored_config(path: Path, info: dict[str, Any]) -> ReebConfig:
-    """REEB's settings a detector file records; one line when this installation cannot run them."""
+def _stored_config(path: Path, info: dict[str, Any], ranker: bytes | None) -> ReebConfig:
+    """REEB's settings a detector file records, with ``config.ranker`` the unpacked copy of
+    the ``ranker`` it embeds (:func:`_embedded_ranker`); one line when this installation
+    cannot run them."""
     from ..ranker import RankerWeightsError, resolve_ranker
 
     try:
@@ -269,6 +313,13 @@ def _stored_config(path: Path, info: dict[str, Any]) -> ReebConfig:
     except (KeyError, TypeError, ValueError) as e:
         reason = " ".join(str(e).split()) or type(e).__name__
         raise DetectorFileError(f"detector {path}: proposal settings this version cannot use ({reason})") from None
+    embedded = info.get("ranker_embedded") is True and config.ranker != "none"
+    if embedded != (ranker is not None):
+        raise DetectorFileError(f"detector {path}: " + (
+            "its metadata says it holds its proposals' ranker, but it holds none" if embedded else
+            "it holds ranker weights its metadata does not name (proposals_ranker.*)"))
+    if ranker is not None:
+        return config.replace(ranker=_embedded_ranker(path, info, ranker))
     if config.ranker != "none":
         try:
             resolve_ranker(config.ranker)
@@ -276,3 +327,37 @@ def _stored_config(path: Path, info: dict[str, Any]) -> ReebConfig:
             raise DetectorFileError(f"detector {path}: its proposals rank with {config.ranker!r}, which is not "
                                     "here; put that weights file back where it was") from None
     return config
+
+
+_UNPACKED: list[Path] = []
+"""The private folder (made once per process, removed at its exit) embedded rankers are
+unpacked to."""
+
+
+def _unpack_folder() -> Path:
+    if not (_UNPACKED and _UNPACKED[0].is_dir()):
+        folder, pid = Path(tempfile.mkdtemp(prefix="reeb-detector-rankers-")), os.getpid()
+        atexit.register(lambda: os.getpid() == pid and shutil.rmtree(folder, ignore_errors=True))
+        _UNPACKED[:] = [folder]
+    return _UNPACKED[0]
+
+
+def _embedded_ranker(path: Path, info: dict[str, Any], data: bytes) -> str:
+    """The weights file of the ranker the detector file ``path`` embeds (``data``): its SHA-256
+    checked against the recorded ``ranker_sha256``, unpacked to a private folder, and read by
+    the ranker's checked loader (:func:`~reeb_torch.ranker.load_ranker`), each refusal one line."""
+    from ..ranker import RankerWeightsError, load_ranker
+
+    sha, recorded = hashlib.sha256(data).hexdigest(), str(info.get("ranker_sha256"))
+    if sha != recorded:
+        raise DetectorFileError(f"detector {path}: its embedded proposals ranker is damaged (SHA-256 {sha[:16]}..., "
+                                f"recorded {recorded[:16]}...)")
+    file = _unpack_folder() / f"{sha}.safetensors"
+    if not (file.is_file() and file.read_bytes() == data):
+        replace_file(file, data)
+    try:
+        load_ranker(str(file))
+    except RankerWeightsError as e:
+        reason = str(e).splitlines()[0].removeprefix(f"ranker weights {str(file)!r} ({file})")
+        raise DetectorFileError(f"detector {path}: its embedded proposals ranker weights{reason}") from None
+    return str(file)

@@ -10,9 +10,17 @@ extra's file, named by its SHA-256) and one metadata entry, ``reeb-detector``, a
      "settings": {"min_size": 576, "max_size": 2048, "neck_channels": 128, ...},
      "backbone": {"name": "efficientnet-lite0", "sha256": "..."},
      "proposals": {"spec": "default", "config": {ReebConfig fields}, "fingerprint": "...",
-                   "ranker_sha256": "..." or null},
+                   "ranker_sha256": "..." or null, "ranker_embedded": true (only where it is)},
      "provenance": {"frames": ["kitti/000001", ...], "frame_hashes": {"kitti/000001": ...},
                     "command": "reeb detector fit ...", "seed": 0, "epochs": 12, ...}}
+
+Proposals ranked with a user's weights file (``reeb fit``'s, not a shipped name) carry that
+file inside (``"ranker_embedded": true``): its tensors under ``proposals_ranker.`` (their
+dtypes kept) and its metadata entries in the JSON object's ``"proposals_ranker"`` (the
+file keeps one metadata entry: safetensors writes several in no fixed order), so that
+:func:`ranker_file_bytes` gives back the very bytes of the file, whose SHA-256 is
+``ranker_sha256`` (safetensors lays a file out the same way whatever the order of its
+tensors). A detector of the shipped ranking, or of none, holds no such entries.
 
 :func:`read_detector_file` refuses a file it cannot use with :class:`DetectorFileError` (a
 ``ValueError``) and one line naming the file and what is wrong: missing, not safetensors,
@@ -33,11 +41,14 @@ from torch import Tensor
 
 from ..io import replace_file
 
-__all__ = ["FORMAT", "VERSION", "DetectorFileError", "write_detector_file", "read_detector_file", "trained_keys",
-           "check_tensors"]
+__all__ = ["FORMAT", "VERSION", "RANKER_PREFIX", "DetectorFileError", "write_detector_file", "read_detector_file",
+           "trained_keys", "check_tensors", "ranker_parts", "ranker_file_bytes"]
 
 FORMAT = "reeb-detector"
 VERSION = 1
+RANKER_PREFIX = "proposals_ranker."
+"""The prefix of an embedded ranker's tensors in a detector file."""
+_RANKER_META = "proposals_ranker"
 _TRAINED = ("backbone.neck.", "roi_heads.")
 
 
@@ -50,23 +61,57 @@ def trained_keys(state: Mapping[str, Tensor]) -> dict[str, Tensor]:
     return {k: v for k, v in state.items() if k.startswith(_TRAINED)}
 
 
-def write_detector_file(path: str | os.PathLike, tensors: Mapping[str, Tensor], meta: dict[str, Any]) -> Path:
+def ranker_parts(data: bytes) -> tuple[dict[str, Tensor], dict[str, str]]:
+    """The tensors and metadata entries of the safetensors bytes ``data`` (a ranker weights
+    file); :func:`ranker_file_bytes` of them gives ``data`` back for a file laid out as
+    safetensors writes it.
+
+    Raises:
+        ValueError: ``data`` is not safetensors.
+    """
+    from safetensors import SafetensorError
+    from safetensors.torch import load
+
+    try:
+        tensors = load(data)
+        size = int.from_bytes(data[:8], "little")
+        metadata = json.loads(data[8: 8 + size]).get("__metadata__") or {}
+    except (SafetensorError, ValueError, AttributeError) as e:
+        raise ValueError(f"not a safetensors file ({_first_line(e)})") from None
+    return tensors, dict(metadata)
+
+
+def ranker_file_bytes(tensors: Mapping[str, Tensor], metadata: Mapping[str, str]) -> bytes:
+    """The safetensors file of ``tensors`` (dtypes kept) and ``metadata``: a ranker weights
+    file's bytes from its :func:`ranker_parts`."""
+    from safetensors.torch import save
+
+    return save({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, metadata=dict(metadata))
+
+
+def write_detector_file(path: str | os.PathLike, tensors: Mapping[str, Tensor], meta: dict[str, Any],
+                        ranker: bytes | None = None) -> Path:
     """Write ``tensors`` (float32, CPU) and ``meta`` (JSON-able) to ``path`` atomically (a
-    temporary file beside it, then renamed); the same inputs give the same bytes."""
+    temporary file beside it, then renamed); the same inputs give the same bytes. ``ranker``:
+    the bytes of a ranker weights file to embed (:data:`RANKER_PREFIX`), or None."""
     from safetensors.torch import save
 
     info = {"version": VERSION, **meta}
-    data = save({k: v.detach().to("cpu", torch.float32).contiguous() for k, v in sorted(tensors.items())},
-                metadata={FORMAT: json.dumps(info, sort_keys=True, default=list)})
-    return replace_file(path, data)
+    out = {k: v.detach().to("cpu", torch.float32).contiguous() for k, v in sorted(tensors.items())}
+    if ranker is not None:
+        r_tensors, info[_RANKER_META] = ranker_parts(ranker)
+        out.update({RANKER_PREFIX + k: v.contiguous() for k, v in r_tensors.items()})
+    return replace_file(path, save(out, metadata={FORMAT: json.dumps(info, sort_keys=True, default=list)}))
 
 
 def _first_line(e: BaseException) -> str:
     return str(e).splitlines()[0] if str(e) else type(e).__name__
 
 
-def read_detector_file(path: str | os.PathLike) -> tuple[dict[str, Tensor], dict[str, Any]]:
-    """``(tensors, meta)`` of a detector file, checked for what the file alone can tell.
+def read_detector_file(path: str | os.PathLike) -> tuple[dict[str, Tensor], dict[str, Any], bytes | None]:
+    """``(tensors, meta, ranker)`` of a detector file, checked for what the file alone can tell:
+    the network's tensors, the ``reeb-detector`` metadata, and the bytes of the ranker weights
+    file it embeds (:func:`ranker_file_bytes`; None where it embeds none).
 
     Raises:
         DetectorFileError: missing, not a readable safetensors file, no ``reeb-detector``
@@ -104,7 +149,12 @@ def read_detector_file(path: str | os.PathLike) -> tuple[dict[str, Tensor], dict
     if bad:
         raise DetectorFileError(f"detector {p}: tensor {bad[0]!r} holds non-finite values (NaN or inf)"
                                 + (f", and {len(bad) - 1} more" if len(bad) > 1 else ""))
-    return tensors, meta
+    n = len(RANKER_PREFIX)
+    r_tensors = {k[n:]: tensors.pop(k) for k in [k for k in tensors if k.startswith(RANKER_PREFIX)]}
+    r_meta = meta.pop(_RANKER_META, None)
+    if r_meta is not None and not (isinstance(r_meta, dict) and all(isinstance(v, str) for v in r_meta.values())):
+        raise DetectorFileError(f"detector {p}: its {_RANKER_META!r} metadata is not a JSON object of strings")
+    return tensors, meta, (ranker_file_bytes(r_tensors, r_meta or {}) if r_tensors or r_meta else None)
 
 
 def check_tensors(path: str | os.PathLike, tensors: Mapping[str, Tensor], expected: Mapping[str, Tensor]) -> None:

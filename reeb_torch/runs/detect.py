@@ -157,7 +157,7 @@ def show(path):
     from ..detection.fitting import format_scores
 
     try:
-        tensors, meta = read_detector_file(path)
+        tensors, meta, ranker = read_detector_file(path)
     except DetectorFileError as e:
         raise UsageProblem(str(e))
     prov = meta.get("provenance") or {}
@@ -165,7 +165,8 @@ def show(path):
     lines = [f"{path}: a detector of {', '.join(meta['classes'])} ({params / 1e6:.1f} M trained parameters)",
              f"backbone: {meta['backbone'].get('name')} (weights {str(meta['backbone'].get('sha256'))[:16]}...)",
              "settings: " + ", ".join(f"{k}={v}" for k, v in meta["settings"].items()),
-             f"proposals: {meta['proposals'].get('spec')} (REEB config {meta['proposals'].get('fingerprint')})"]
+             f"proposals: {meta['proposals'].get('spec')} (REEB config {meta['proposals'].get('fingerprint')}); "
+             f"ranker: {_ranker_note(meta['proposals'], ranker)}"]
     if prov.get("frames"):
         lines.append(f"trained on {len(prov['frames'])} frames of {', '.join(prov.get('folders', []))}: "
                      + ", ".join(f"{n} {c}" for c, n in (prov.get("objects") or {}).items()))
@@ -177,6 +178,24 @@ def show(path):
     if prov.get("command"):
         lines.append(f"command: {prov['command']}")
     click.echo("\n".join(lines))
+
+
+def _ranker_note(info: dict, ranker: bytes | None) -> str:
+    """Where a detector file's proposals find their ranker: embedded in it (and whether that
+    copy is the one recorded), shipped with reeb-torch, a file named by its path, or none."""
+    from ..ranker import SHIPPED
+
+    name = str((info.get("config") or {}).get("ranker", "none"))
+    sha = str(info.get("ranker_sha256"))
+    if ranker is not None:
+        same = hashlib.sha256(ranker).hexdigest() == sha
+        return (f"embedded ({len(ranker) / 1e3:.0f} kB, SHA-256 {sha[:16]}..., "
+                + ("as recorded" if same else "NOT the one recorded: damaged") + f"; fitted as {name})")
+    if name == "none":
+        return "none (ranked by V alone)"
+    if name in SHIPPED:
+        return f"shipped ({name!r}, with reeb-torch)"
+    return f"the file {name} (not embedded: it must stay there; saving the loaded detector again embeds it)"
 
 
 # -- reeb detect ------------------------------------------------------------------------------
