@@ -15,7 +15,7 @@ import torch
 
 from reeb_torch.eval import fit as F
 from reeb_torch.eval.tune import fold_blocks
-from reeb_torch.ranker.features import feature_names
+from reeb_torch.ranker.features import FEATURE_GROUPS, dropped_columns, feature_names
 
 REPO_DATA = __import__("pathlib").Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -109,7 +109,7 @@ def test_dropped_features_change_no_score():
                         ("Car", "Pedestrian"))
     kept = F.fit_ranker(samples, names, opts, ("Car", "Pedestrian"))
     moved = x[:50].clone()
-    cols = [names.index(c) for c in (*F.FEATURE_GROUPS["place"], "log_v")]
+    cols = [names.index(c) for c in (*FEATURE_GROUPS["place"], "log_v")]
     moved[:, cols] = torch.randn(50, len(cols), generator=g) * 5
     cheap = free.cheap
     with torch.no_grad():
@@ -118,7 +118,7 @@ def test_dropped_features_change_no_score():
                      (free.prefilter_scores(x[:50, :cheap]), free.prefilter_scores(moved[:, :cheap]))]:
             torch.testing.assert_close(a, b)
         assert not torch.allclose(kept(x[:50]), kept(moved))
-    assert F.dropped_columns(names, ["place"]) == sorted(names.index(c) for c in F.FEATURE_GROUPS["place"])
+    assert dropped_columns(names, ["place"]) == sorted(names.index(c) for c in FEATURE_GROUPS["place"])
     with pytest.raises(ValueError, match="'lattitude' is no feature column or group"):
         F.fit_ranker(samples, names, dataclasses.replace(opts, drop_features=("lattitude",)))
 

@@ -37,13 +37,13 @@ from torch import Tensor
 from torchvision.ops import box_iou
 
 from ..config import ReebConfig
-from ..ranker import TARGET_SCALE, BoxRanker, BoxRefiner, offset_targets, refine_feature_names, save_ranker
+from ..ranker import (TARGET_SCALE, BoxRanker, BoxRefiner, dropped_columns, offset_targets, refine_feature_names,
+                      save_ranker)
 from .tune import FrameCache, Frames, fold_blocks, held_out
 
 __all__ = ["FitFrames", "FitOptions", "Sample", "FitCrossValidation", "load_fit_frames", "frame_sample",
            "frame_samples", "mirrored_sample", "jitter_of", "fit_ranker", "fit_refiner", "initial_model", "similar_frames",
-           "training_frames", "cross_validate", "best_ious", "held_out_outputs", "hinted_classes", "drive_of", "other_boxes",
-           "FEATURE_GROUPS", "dropped_columns"]
+           "training_frames", "cross_validate", "best_ious", "held_out_outputs", "hinted_classes", "drive_of", "other_boxes"]
 
 
 @dataclass
@@ -137,7 +137,7 @@ class FitOptions:
             learning rate (AdamW, one-cycle, ``weight_decay``).
         drop_features: feature columns the model does not read (names of
             :func:`~reeb_torch.ranker.features.feature_names`, or a group of
-            :data:`FEATURE_GROUPS` such as ``"place"``): held at their mean in the fit and their
+            :data:`~reeb_torch.ranker.features.FEATURE_GROUPS` such as ``"place"``): held at their mean in the fit and their
             input weights set to zero, so the ranking, the prefilter and the class head give
             the same scores whatever those columns hold. The weights file's format is the same.
     """
@@ -171,29 +171,6 @@ class FitOptions:
     refine_batch: int = 512
     refine_lr: float = 3e-3
     drop_features: tuple[str, ...] = ()
-
-
-FEATURE_GROUPS: dict[str, tuple[str, ...]] = {
-    "place": ("top", "bottom", "centre_x", "off_centre", "at_border"),
-}
-"""Named groups of feature columns for :attr:`FitOptions.drop_features`. ``place``: where the
-box lies in the frame (its top and bottom rows, its centre's column, how far off the image's
-centre, whether it touches the border), which a model of a few drives can learn as where those
-drives had their objects."""
-
-
-def dropped_columns(names: Sequence[str], drop: Sequence[str]) -> list[int]:
-    """The indices in ``names`` of the columns ``drop`` names (feature names or
-    :data:`FEATURE_GROUPS`), sorted. ValueError for a name that is neither."""
-    cols: set[int] = set()
-    for item in drop:
-        members = FEATURE_GROUPS.get(item, (item,))
-        unknown = [m for m in members if m not in names]
-        if unknown:
-            raise ValueError(f"drop_features: {', '.join(map(repr, unknown))} is no feature column or group "
-                             f"(groups: {', '.join(FEATURE_GROUPS)}; columns: {', '.join(names)})")
-        cols.update(names.index(m) for m in members)
-    return sorted(cols)
 
 
 def _zero_inputs(net: torch.nn.Module | None, cols: Sequence[int]) -> None:

@@ -27,6 +27,7 @@ with the package, and ``reeb fit`` fits new ones on a user's labelled frames
 >>> logits = model.rank(features)             # the same for inference, faster on large K
 """
 
+from .features import FEATURE_GROUPS, dropped_columns
 from .model import BoxRanker
 from .refine import TARGET_SCALE, BoxRefiner, offset_targets, refine_feature_names, refine_features
 from .step import NOT_SEEN_BY_RANKER, CandidateFeatures, LearnedRanking
@@ -36,4 +37,4 @@ from .weights import (SAME_IMAGE_BITS, SHIPPED, RankerWeightsError, fitted_frame
 __all__ = ["BoxRanker", "CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANKER", "SHIPPED", "RankerWeightsError",
            "load_ranker", "resolve_ranker", "save_ranker", "shipped_path", "frame_hash", "hash_distance", "seen_hashes",
            "fitted_frames", "SAME_IMAGE_BITS", "BoxRefiner", "refine_features", "refine_feature_names",
-           "offset_targets", "TARGET_SCALE"]
+           "offset_targets", "TARGET_SCALE", "FEATURE_GROUPS", "dropped_columns"]

@@ -24,7 +24,7 @@ loads of cached memory in the compiled loop.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import numba
 import numpy as np
@@ -35,8 +35,8 @@ from ..stages._threads import on_two_cores
 from ..stages.enclosed import EnclosedTables, box_sum_at, enclosed_at
 from ..stages.scoring import class_height_fits, class_width_fits, edge_norm
 
-__all__ = ["FEATURES_VERSION", "BoxMaps", "feature_names", "window_names", "cheap_count", "window_features",
-           "box_features", "box_features_cpu"]
+__all__ = ["FEATURES_VERSION", "FEATURE_GROUPS", "dropped_columns", "BoxMaps", "feature_names", "window_names",
+           "cheap_count", "window_features", "box_features", "box_features_cpu"]
 
 FEATURES_VERSION = 1
 """Version of the feature definitions; a weights file fitted on another is refused."""
@@ -83,6 +83,30 @@ def cheap_count(classes: int) -> int:
 def feature_names(classes: int) -> tuple[str, ...]:
     """The names of the feature columns for a location score of ``classes`` classes."""
     return window_names(classes) + _DYNAMIC + _TERMS + _EDGES + _GREY + _LAYOUT
+
+
+FEATURE_GROUPS: dict[str, tuple[str, ...]] = {
+    "place": ("top", "bottom", "centre_x", "off_centre", "at_border"),
+}
+"""Named groups of feature columns for ``reeb fit --drop-features``
+(:attr:`~reeb_torch.eval.fit.FitOptions.drop_features`). ``place``: where the box lies in the
+frame (its top and bottom rows, its centre's column, how far off the image's centre, whether
+it touches the border), which a model of a few drives can learn as where those drives had
+their objects."""
+
+
+def dropped_columns(names: Sequence[str], drop: Sequence[str]) -> list[int]:
+    """The indices in ``names`` of the columns ``drop`` names (feature names or
+    :data:`FEATURE_GROUPS`), sorted. ValueError for a name that is neither."""
+    cols: set[int] = set()
+    for item in drop:
+        members = FEATURE_GROUPS.get(item, (item,))
+        unknown = [m for m in members if m not in names]
+        if unknown:
+            raise ValueError(f"drop_features: {', '.join(map(repr, unknown))} is no feature column or group "
+                             f"(groups: {', '.join(FEATURE_GROUPS)}; columns: {', '.join(names)})")
+        cols.update(names.index(m) for m in members)
+    return sorted(cols)
 
 
 @dataclass

@@ -26,6 +26,7 @@ from ..eval import fit as F
 from ..eval.common import folder_blocks
 from ..eval.metrics import compare_recall
 from ..eval.tune import FrameCache, bootstrap_interval, fold_blocks, objective
+from ..ranker import dropped_columns
 
 if TYPE_CHECKING:
     from ..ranker import BoxRanker
@@ -305,7 +306,7 @@ def _run_fit(roots: Sequence[str], outputs: FitOutputs, cfg: ReebConfig, opts: F
     names = cache.candidates(cfg.unranked(), 0).feature_names
     if opts.init:
         F.initial_model(opts.init, names)  # a model that cannot be tuned here fails before any work
-    F.dropped_columns(names, opts.drop_features)  # and so does an unknown column
+    dropped_columns(names, opts.drop_features)  # and so does an unknown column
     samples = F.frame_samples(cache, cfg, opts, progress=_iterate("candidates", quiet))
     gap = len(frames) if whole_drives else 2  # drive frames within ``gap`` of a held-out block stay out
     cv = F.cross_validate(cache, cfg, base, samples, opts, folds, k, iou, gap, progress=_iterate("folds", quiet),
