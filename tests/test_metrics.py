@@ -14,6 +14,7 @@ from reeb_torch.eval.metrics import (
     KittiDifficulty,
     average_recall,
     best_iou,
+    bootstrap_recalls,
     compare_recall,
     kitti_difficulty_mask,
     object_hits,
@@ -349,6 +350,26 @@ def test_recall_interval_brackets_the_recall_and_narrows_with_more_frames():
     assert (a.num_objects, a.num_images) == (80, 20)
     assert recall_interval(small, seed=3) == recall_interval(small, seed=3)  # seeded
     assert "95 % interval" in str(a)
+
+
+def test_bootstrap_recalls_by_hand():
+    """The frame bootstrap's draws: torch.randint of a generator seeded with ``seed``, rows of
+    frame indices; micro recall pools a draw's objects whatever the class columns, balanced
+    averages the recalls of the classes the draw holds; recall_interval takes its percentiles."""
+    found = torch.tensor([[1.0, 0.0], [2.0, 1.0], [0.0, 0.0]], dtype=torch.float64)
+    counts = torch.tensor([[1.0, 2.0], [3.0, 1.0], [1.0, 0.0]], dtype=torch.float64)
+    draw = torch.randint(3, (50, 3), generator=torch.Generator().manual_seed(7))
+    micro = bootstrap_recalls(found, counts, 50, 7)
+    assert torch.equal(micro, bootstrap_recalls(found.sum(1, keepdim=True), counts.sum(1, keepdim=True), 50, 7))
+    balanced = bootstrap_recalls(found, counts, 50, 7, balanced=True)
+    for row, m, b in zip(draw.tolist(), micro.tolist(), balanced.tolist()):
+        f, n = found[row].sum(0), counts[row].sum(0)
+        assert m == pytest.approx(float(f.sum() / n.sum()))
+        assert b == pytest.approx(float((f / n)[n > 0].mean()))
+    hits = [T([True, False, False]), T([True, True, False, True]), T([False])]
+    r = recall_interval(hits, samples=50, seed=7)
+    q = torch.tensor([(1 - 0.95) / 2, (1 + 0.95) / 2], dtype=torch.float64)
+    assert (r.low, r.high) == tuple(torch.quantile(micro, q).tolist())
 
 
 def test_recall_interval_edge_cases():

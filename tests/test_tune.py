@@ -81,6 +81,51 @@ def test_bootstrap_interval():
         T.bootstrap_interval(hits[2:], labels[2:])
 
 
+def _random_frames(n: int, seed: int) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """``n`` frames of 0-5 objects of 3 classes, about 70 % found (some frames empty)."""
+    gen = torch.Generator().manual_seed(seed)
+    sizes = torch.randint(0, 6, (n,), generator=gen).tolist()
+    hits = [torch.rand(k, generator=gen) < 0.7 for k in sizes]
+    return hits, [torch.randint(0, 3, (k,), generator=gen) for k in sizes]
+
+
+def test_bootstrap_interval_is_recall_interval():
+    """reeb fit's and reeb tune's interval of micro recall is Table 3's, to the last bit, for
+    any seed and number of draws (the same frames left out, the same draws)."""
+    from reeb_torch.eval.metrics import recall_interval
+
+    hits, labels = _random_frames(60, 0)
+    assert T.bootstrap_interval(hits, labels) == recall_interval(hits)
+    assert T.bootstrap_interval(hits, labels, level=0.9, samples=300, seed=5) == \
+        recall_interval(hits, level=0.9, samples=300, seed=5)
+    assert T.bootstrap_interval(hits, labels) != recall_interval(hits, seed=1)  # the seed matters
+    with pytest.raises(ValueError, match="samples"):
+        T.bootstrap_interval(hits, labels, balanced=True, samples=0)
+
+
+def test_balanced_interval_uses_recall_intervals_draws():
+    """The class-balanced interval is taken on recall_interval's draws: with one class it is the
+    micro interval exactly, and with several it is the mean class recall on those very draws."""
+    from reeb_torch.eval.metrics import recall_interval
+
+    hits, labels = _random_frames(60, 1)
+    one = [torch.zeros_like(lab) for lab in labels]
+    bal, micro = T.bootstrap_interval(hits, one, balanced=True), recall_interval(hits)
+    assert (bal.low, bal.high) == (micro.low, micro.high)
+    keep = [i for i, h in enumerate(hits) if h.numel()]
+    draw = torch.randint(len(keep), (500, len(keep)), generator=torch.Generator().manual_seed(2))
+    vals = []
+    for row in draw.tolist():
+        h = torch.cat([hits[keep[i]] for i in row])
+        lab = torch.cat([labels[keep[i]] for i in row])
+        vals.append(sum(float(h[lab == c].double().mean()) for c in lab.unique()) / len(lab.unique()))
+    low, high = torch.quantile(torch.tensor(vals, dtype=torch.float64),
+                               torch.tensor([(1 - 0.95) / 2, (1 + 0.95) / 2], dtype=torch.float64)).tolist()
+    est = T.bootstrap_interval(hits, labels, balanced=True, samples=500, seed=2)
+    assert est.low == pytest.approx(low, abs=1e-12) and est.high == pytest.approx(high, abs=1e-12)
+    assert est.recall == pytest.approx(T.objective(hits, labels, balanced=True))
+
+
 def test_folds_need_frames():
     assert T.fold_blocks(5, 2) == [[0, 1, 2], [3, 4]]
     with pytest.raises(ValueError, match="3 labelled frames cannot make 4 folds"):

@@ -40,23 +40,10 @@ import torch
 from torch import Tensor
 
 __all__ = [
-    "AR_IOUS",
-    "RecallResult",
-    "best_iou",
-    "recall_table",
-    "average_recall",
-    "recall_vs_proposals",
-    "recall_vs_iou",
-    "KittiDifficulty",
-    "KITTI_DIFFICULTIES",
-    "kitti_difficulty_mask",
-    "select_objects",
-    "object_hits",
-    "RecallInterval",
-    "recall_interval",
-    "RecallComparison",
-    "sign_test",
-    "compare_recall",
+    "AR_IOUS", "RecallResult", "best_iou", "recall_table", "average_recall", "recall_vs_proposals",
+    "recall_vs_iou", "KittiDifficulty", "KITTI_DIFFICULTIES", "kitti_difficulty_mask",
+    "select_objects", "object_hits", "RecallInterval", "recall_interval", "bootstrap_recalls",
+    "RecallComparison", "sign_test", "compare_recall"
 ]
 
 AR_IOUS: tuple[float, ...] = tuple(round(0.5 + 0.05 * i, 2) for i in range(10))
@@ -629,12 +616,23 @@ def recall_interval(hits: Sequence[Tensor], level: float = 0.95, samples: int = 
     counts = torch.tensor([h.numel() for h in hits if h.numel()], dtype=torch.float64)
     if counts.numel() == 0:
         raise ValueError("no ground-truth object: recall is undefined")
-    gen = torch.Generator().manual_seed(seed)
-    draw = torch.randint(counts.numel(), (samples, counts.numel()), generator=gen)
-    boot = found[draw].sum(1) / counts[draw].sum(1)
+    boot = bootstrap_recalls(found[:, None], counts[:, None], samples, seed)
     q = torch.tensor([(1.0 - level) / 2, (1.0 + level) / 2], dtype=torch.float64)
     low, high = torch.quantile(boot, q).tolist()
     return RecallInterval(float(found.sum() / counts.sum()), low, high, level, int(counts.sum()), counts.numel())
+
+
+def bootstrap_recalls(found: Tensor, counts: Tensor, samples: int = 4000, seed: int = 0,
+                      balanced: bool = False) -> Tensor:
+    """The frame bootstrap's recall on each of ``samples`` draws of the F frames with
+    replacement: ``float64 Tensor[samples]``. ``found`` and ``counts`` (``Tensor[F, C]``)
+    hold per frame and class the objects found and present (C = 1 for micro recall);
+    ``balanced`` takes on each draw the mean recall of the classes it holds. The draws are
+    ``torch.randint`` of a generator seeded with ``seed``, the same in every caller
+    (:func:`recall_interval`, :func:`reeb_torch.eval.tune.bootstrap_interval`)."""
+    draw = torch.randint(found.shape[0], (samples, found.shape[0]), generator=torch.Generator().manual_seed(seed))
+    f, n = found[draw].sum(1), counts[draw].sum(1)  # (samples, C)
+    return torch.where(n > 0, f / n.clamp(min=1), torch.nan).nanmean(1) if balanced else f.sum(1) / n.sum(1)
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,7 @@ from torch import Tensor
 
 from ..config import ReebConfig
 from ..generator import FRONT_END_FIELDS, Candidates, FrontEnd, ProposalGenerator
-from .metrics import RecallInterval, object_hits
+from .metrics import RecallInterval, bootstrap_recalls, object_hits, recall_interval
 
 __all__ = ["Frames", "FrameCache", "Param", "default_space", "load_space", "Estimate", "CrossValidation",
            "load_frames", "photometric_jitter", "score_config", "objective", "bootstrap_interval", "fold_blocks",
@@ -211,26 +211,27 @@ Estimate = RecallInterval
 
 
 def bootstrap_interval(hits: Sequence[Tensor], labels: Sequence[Tensor], balanced: bool = False,
-                       level: float = 0.95, samples: int = 2000, seed: int = 0) -> Estimate:
-    """:func:`objective` with a percentile interval over frames drawn with replacement
-    (frames with no object are left out: they add nothing)."""
+                       level: float = 0.95, samples: int = 4000, seed: int = 0) -> Estimate:
+    """:func:`objective` with the frame-bootstrap percentile interval of
+    :func:`~reeb_torch.eval.metrics.recall_interval` (frames with no object are left out).
+    Micro recall is that function's estimate, interval and all, so one set of hits gives one
+    interval in ``reeb fit``, ``reeb tune`` and Table 3; ``balanced`` takes the mean of the
+    class recalls on the same draws (:func:`~reeb_torch.eval.metrics.bootstrap_recalls`).
+
+    Raises:
+        ValueError: ``level`` outside (0, 1), ``samples < 1``, or no object at all.
+    """
+    micro = recall_interval(hits, level, samples, seed)
+    if not balanced:
+        return micro
     keep = [i for i, h in enumerate(hits) if h.numel()]
-    if not keep:
-        raise ValueError("no ground-truth object: recall is undefined")
     hs, ls = [hits[i] for i in keep], [labels[i] for i in keep]
     classes = sorted({int(c) for lab in ls for c in lab.reshape(-1).tolist()})
-    found = np.array([[int(h[lab == c].sum()) for c in classes] for h, lab in zip(hs, ls)], dtype=np.float64)
-    count = np.array([[int((lab == c).sum()) for c in classes] for lab in ls], dtype=np.float64)
-    draw = np.random.default_rng(seed).integers(len(keep), size=(samples, len(keep)))
-    f, n = found[draw].sum(1), count[draw].sum(1)  # (samples, classes)
-    if balanced:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            vals = np.nanmean(np.where(n > 0, f / np.maximum(n, 1), np.nan), axis=1)
-    else:
-        vals = f.sum(1) / n.sum(1)
-    low, high = np.nanquantile(vals, [(1 - level) / 2, (1 + level) / 2])
-    return Estimate(objective(hs, ls, balanced), float(low), float(high), level,
-                    sum(h.numel() for h in hs), len(keep))
+    found = torch.tensor([[int(h[lab == c].sum()) for c in classes] for h, lab in zip(hs, ls)], dtype=torch.float64)
+    count = torch.tensor([[int((lab == c).sum()) for c in classes] for lab in ls], dtype=torch.float64)
+    vals = bootstrap_recalls(found, count, samples, seed, balanced=True)
+    low, high = torch.quantile(vals, torch.tensor([(1 - level) / 2, (1 + level) / 2], dtype=torch.float64)).tolist()
+    return Estimate(objective(hs, ls, True), low, high, level, micro.num_objects, micro.num_images)
 
 
 def score_config(cache: FrameCache, cfg: ReebConfig, indices: Sequence[int] | None = None, k: int = 2000,
