@@ -185,7 +185,7 @@ def test_fine_tuning_refuses_a_model_it_cannot_tune(tmp_path):
     path = save_ranker(F.fit_ranker(_samples(0), feature_names(4), F.FitOptions(epochs=1, hidden=(4,))),
                        tmp_path / "four.safetensors")
     x = _samples(0)[0]
-    three = [F.Sample(x.features[:, :42], x.target, x.weight, x.label)]
+    three = [F.Sample(x.features[:, :len(feature_names(3))], x.target, x.weight, x.label)]
     with pytest.raises(RankerWeightsError, match="read 47 features"):
         F.fit_ranker(three, feature_names(3), F.FitOptions(init=str(path)))
 
@@ -407,8 +407,10 @@ def test_shipped_weights_refit_bit_for_bit(kitti_dir):
     opts = F.FitOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in prov["options"].items()})
     frames = F.load_fit_frames(dirs)
     assert len(frames) == prov["frames"]
-    samples = F.frame_samples(FrameCache(frames), ReebConfig(), opts)
-    model = F.fit_ranker(samples, shipped.feature_names, opts, shipped.classes)
+    cache = FrameCache(frames)
+    samples = F.frame_samples(cache, ReebConfig(), opts)
+    model = F.fit_ranker(samples, cache.candidates(ReebConfig().unranked(), 0).feature_names, opts, shipped.classes)
+    assert model.feature_names == shipped.feature_names
     assert list(model.state_dict()) == list(shipped.state_dict())
     for (name, a), b in zip(shipped.state_dict().items(), model.state_dict().values()):
         assert torch.equal(a, b), name

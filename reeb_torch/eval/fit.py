@@ -37,8 +37,8 @@ from torch import Tensor
 from torchvision.ops import box_iou
 
 from ..config import ReebConfig
-from ..ranker import (TARGET_SCALE, BoxRanker, BoxRefiner, dropped_columns, offset_targets, refine_feature_names,
-                      save_ranker)
+from ..ranker import (ORIENTATION_NAMES, TARGET_SCALE, BoxRanker, BoxRefiner, dropped_columns, offset_targets,
+                      refine_feature_names, save_ranker)
 from .tune import FrameCache, Frames, fold_blocks, held_out
 
 __all__ = ["FitFrames", "FitOptions", "Sample", "FitCrossValidation", "load_fit_frames", "frame_sample",
@@ -135,6 +135,9 @@ class FitOptions:
         refine_per_object: at most this many of them per object (a seeded draw, after the negatives').
         refine_epochs, refine_batch, refine_lr: the refiner's passes, rows per step and peak
             learning rate (AdamW, one-cycle, ``weight_decay``).
+        orientation: the model reads the edge-orientation columns
+            (:data:`~reeb_torch.ranker.orientation.ORIENTATION_NAMES`) beside the others; without,
+            the generator does not compute them for it (a fine-tuned model reads its own columns).
         drop_features: feature columns the model does not read (names of
             :func:`~reeb_torch.ranker.features.feature_names`, or a group of
             :data:`~reeb_torch.ranker.features.FEATURE_GROUPS` such as ``"place"``): held at their mean in the fit and their
@@ -170,18 +173,8 @@ class FitOptions:
     refine_epochs: int = 20
     refine_batch: int = 512
     refine_lr: float = 3e-3
+    orientation: bool = True
     drop_features: tuple[str, ...] = ()
-
-
-def _zero_inputs(net: torch.nn.Module | None, cols: Sequence[int]) -> None:
-    """Set the first layer's weights from the input columns ``cols`` to zero (the columns
-    beyond its inputs, for the prefilter's few, are skipped)."""
-    if net is None or not cols:
-        return
-    first = next(m for m in net.modules() if isinstance(m, torch.nn.Linear))
-    own = [c for c in cols if c < first.in_features]
-    with torch.no_grad():
-        first.weight[:, own] = 0.0
 
 
 def _no_refine_rows() -> Tensor:
@@ -333,9 +326,22 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
 
     Raises:
         ValueError: no positive or no negative row (no labelled object found by a candidate).
-        RankerWeightsError: ``opts.init`` cannot be read, or reads other features.
+        RankerWeightsError: ``opts.init`` cannot be read, or reads columns the samples lack.
+
+    ``feature_names`` names the samples' columns; the model reads them all, or all but the
+    orientation ones without ``opts.orientation``, or, fine-tuned, its own.
     """
     x = torch.cat([s.features for s in samples]).float()
+    names = list(feature_names)
+    if x.shape[1] != len(names):
+        raise ValueError(f"the samples hold {x.shape[1]} feature columns, feature_names names {len(names)}")
+    if opts.init is not None:
+        model = initial_model(opts.init, names)
+        wanted = list(model.feature_names)
+    else:
+        wanted = [n for n in names if opts.orientation or n not in ORIENTATION_NAMES]
+    if wanted != names:  # the columns the model reads, of those the samples hold
+        x = x[:, [names.index(n) for n in wanted]]
     y = torch.cat([s.target for s in samples])
     w = torch.cat([s.weight for s in samples])
     if not bool((y == 1).any()) or not bool((y == 0).any()):
@@ -346,19 +352,18 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
     w = _balanced(w_object, y, label, opts.balance)
     w_pre = w if opts.prefilter_balance is None else _balanced(w_object, y, label, opts.prefilter_balance)
     if opts.init is not None:
-        model = initial_model(opts.init, feature_names)
         label = _relabelled(label, classes, model.classes)
         fit = dataclasses.replace(opts, epochs=opts.tune_epochs, lr=opts.tune_lr, batch=opts.tune_batch,
                                   weight_decay=0.0)
         fresh = False
     else:
         heads = classes is not None and opts.class_hidden is not None
-        model = BoxRanker(feature_names, opts.hidden, opts.members, opts.prefilter,
+        model = BoxRanker(wanted, opts.hidden, opts.members, opts.prefilter,
                           classes if heads else None, opts.class_hidden or ())
         model.mean.copy_(x.mean(0))
         model.scale.copy_(x.std(0).clamp(min=1e-6))
         fit, fresh = opts, True
-    dropped = dropped_columns(list(feature_names), opts.drop_features)
+    dropped = dropped_columns(wanted, opts.drop_features)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -375,8 +380,7 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
                         opts.seed * 1000 + 998, _class_loss, fresh=fresh)
     finally:
         torch.set_num_threads(threads)
-    for net in [*model.members, model.prefilter, model.classifier]:
-        _zero_inputs(net, dropped)  # and read nothing from them when run
+    model.ignore_columns(dropped)  # and read nothing from them when run
     rx = torch.cat([s.refine_x for s in samples])
     if opts.refine_hidden is not None and len(rx):  # fitted last: the ranking's weights do not depend on it
         model.refiner = fit_refiner(rx, torch.cat([s.refine_y for s in samples]), opts)
@@ -420,15 +424,20 @@ def _offset_loss(out: Tensor, y: Tensor, w: Tensor) -> Tensor:
 
 def initial_model(spec: str, feature_names: Sequence[str]) -> BoxRanker:
     """A trainable copy of the model ``spec`` (a shipped name or a weights file) to fine-tune
-    (:attr:`FitOptions.init`), its ``meta`` kept.
+    (:attr:`FitOptions.init`), its ``meta`` kept; it reads its own columns, which must be
+    among ``feature_names`` (the candidates' columns: with or without the orientation ones).
 
     Raises:
-        RankerWeightsError: as :func:`~reeb_torch.ranker.load_ranker` (missing, damaged, or
-            fitted on other features than ``feature_names``).
+        RankerWeightsError: as :func:`~reeb_torch.ranker.load_ranker` (missing, damaged), or
+            it reads a column ``feature_names`` lacks.
     """
-    from ..ranker import load_ranker
+    from ..ranker import RankerWeightsError, load_ranker
 
-    shared = load_ranker(spec, tuple(feature_names))  # shared, read-only: tune a copy
+    shared = load_ranker(spec)  # shared, read-only: tune a copy
+    missing = [n for n in shared.feature_names if n not in feature_names]
+    if missing:
+        raise RankerWeightsError(f"ranker weights {spec!r} read {len(shared.feature_names)} features (not computed "
+                                 f"here: {', '.join(missing[:4])}): fine-tune weights fitted for this config")
     model = copy.deepcopy(shared)
     model.meta = copy.deepcopy(shared.meta)
     return model.requires_grad_(True)

@@ -8,6 +8,7 @@ ranks by it before the final NMS. All of it lives here:
 module              what it holds
 ==================  ===========================================================================
 :mod:`.features`    the per-box features (tensor ops, and one compiled pass on the CPU)
+:mod:`.orientation` the edge-orientation columns (each bin's share of the gradient energy)
 :mod:`.prefilter`   the compiled prefilter: the first layer of the cheap-column MLP
 :mod:`.model`       :class:`BoxRanker`: the prefilter, the ranking MLPs, the class head
 :mod:`.weights`     safetensors weights files and their metadata (:func:`load_ranker`)
@@ -29,6 +30,7 @@ with the package, and ``reeb fit`` fits new ones on a user's labelled frames
 
 from .features import FEATURE_GROUPS, dropped_columns
 from .model import BoxRanker
+from .orientation import ORIENTATION_NAMES
 from .refine import TARGET_SCALE, BoxRefiner, offset_targets, refine_feature_names, refine_features
 from .step import NOT_SEEN_BY_RANKER, CandidateFeatures, LearnedRanking
 from .weights import (SAME_IMAGE_BITS, SHIPPED, RankerWeightsError, fitted_frames, frame_hash, hash_distance,
@@ -37,4 +39,5 @@ from .weights import (SAME_IMAGE_BITS, SHIPPED, RankerWeightsError, fitted_frame
 __all__ = ["BoxRanker", "CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANKER", "SHIPPED", "RankerWeightsError",
            "load_ranker", "resolve_ranker", "save_ranker", "shipped_path", "frame_hash", "hash_distance", "seen_hashes",
            "fitted_frames", "SAME_IMAGE_BITS", "BoxRefiner", "refine_features", "refine_feature_names",
-           "offset_targets", "TARGET_SCALE", "FEATURE_GROUPS", "dropped_columns"]
+           "offset_targets", "TARGET_SCALE", "FEATURE_GROUPS", "dropped_columns",
+           "ORIENTATION_NAMES"]

@@ -142,6 +142,16 @@ class BoxRanker(nn.Module):
             raise ValueError(f"BoxRanker expects features of shape [K, {len(self.feature_names)}], "
                              f"got {tuple(features.shape)}")
 
+    @torch.no_grad()
+    def ignore_columns(self, cols: Sequence[int]) -> None:
+        """Set every MLP's first-layer weights from the feature columns ``cols`` to zero, so
+        its output does not depend on them (the prefilter skips those past its cheap columns)."""
+        for net in [*self.members, self.prefilter, self.classifier]:
+            if net is not None and len(cols):
+                first = net[0]
+                assert isinstance(first, nn.Linear)
+                first.weight[:, [c for c in cols if c < first.in_features]] = 0.0
+
     def standardise(self, features: Tensor) -> Tensor:
         """``(features − mean) / scale``, float32."""
         return (features.float() - self.mean) / self.scale

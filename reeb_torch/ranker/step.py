@@ -25,6 +25,7 @@ from ..stages import windows as _windows
 from ..stages._radix import kth_largest
 from . import features as _features
 from .model import BoxRanker, softmax_rows
+from .orientation import ORIENTATION_NAMES, orientation_features
 from .prefilter import prefilter_cpu
 from .refine import merge_refined
 
@@ -110,16 +111,20 @@ class CandidateFeatures:
 
     Args:
         config: the generator's config.
+        orientation: also the edge-orientation columns
+            (:data:`~reeb_torch.ranker.orientation.ORIENTATION_NAMES`, after the others).
     """
 
-    def __init__(self, config: ReebConfig) -> None:
+    def __init__(self, config: ReebConfig, orientation: bool = True) -> None:
         self.config = config
+        self.orientation = orientation
         self.cache = GridCache(config)
         """The window columns and the prefilter's table per window grid; per-device copies."""
 
     def feature_names(self) -> tuple[str, ...]:
         """The columns of :meth:`features` for this config (one location fit per class)."""
-        return _features.feature_names(len(self.config.class_heights_m))
+        names = _features.feature_names(len(self.config.class_heights_m))
+        return names + ORIENTATION_NAMES if self.orientation else names
 
     def box_maps(self, maps: ScoreMaps, geometry_only: bool = False) -> _features.BoxMaps:
         """The tables the per-box features read (:class:`~reeb_torch.ranker.features.BoxMaps`);
@@ -168,14 +173,19 @@ class CandidateFeatures:
         dev = scores.device
         region_of = self.cache.device_tensor(grid.region_of, dev)
         if dev.type == "cpu":
-            return _features.box_features_cpu(self.box_maps(maps, geometry_only=cheap), grid.boxes,
-                                              self.window_table(maps, grid), scores, share, entropy, region_of,
-                                              bi, ni, cheap)
+            out = _features.box_features_cpu(self.box_maps(maps, geometry_only=cheap), grid.boxes,
+                                             self.window_table(maps, grid), scores, share, entropy, region_of,
+                                             bi, ni, cheap)
+        else:
+            region = region_of[ni]
+            out = _features.box_features(self.box_maps(maps, geometry_only=cheap),
+                                         self.cache.device_tensor(grid.boxes, dev)[ni].round().long(), bi,
+                                         scores[bi, ni], share[bi, region], entropy[bi, region],
+                                         self.window_table(maps, grid)[ni], cheap)
+        if cheap or not self.orientation:
+            return out
         boxes = self.cache.device_tensor(grid.boxes, dev)[ni].round().long()
-        region = region_of[ni]
-        return _features.box_features(self.box_maps(maps, geometry_only=cheap), boxes, bi, scores[bi, ni],
-                                      share[bi, region], entropy[bi, region], self.window_table(maps, grid)[ni],
-                                      cheap)
+        return torch.cat([out, orientation_features(maps.integral_orientation(), boxes, bi)], 1)
 
     def prefilter(self, model: BoxRanker, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor,
                   share: Tensor, entropy: Tensor, bi: Tensor, ni: Tensor) -> Tensor:
@@ -211,7 +221,8 @@ class LearnedRanking(CandidateFeatures):
     def __init__(self, config: ReebConfig) -> None:
         from .weights import load_ranker
 
-        super().__init__(config)
+        # the columns the model reads: with or without the orientation columns
+        super().__init__(config, orientation=set(ORIENTATION_NAMES) <= set(load_ranker(config.ranker).feature_names))
         self._models: dict[str, BoxRanker] = {}  # the model's copy per device other than the CPU
         self.model: BoxRanker = load_ranker(config.ranker, self.feature_names())
         """The :class:`~reeb_torch.ranker.BoxRanker` of ``config.ranker``."""
