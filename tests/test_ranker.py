@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from reeb_torch import ProposalGenerator, ReebConfig
-from reeb_torch.ranker import SHIPPED, BoxRanker, RankerWeightsError, load_ranker, save_ranker, shipped_path
+from reeb_torch.ranker import (ORIENTATION_NAMES, SHIPPED, BoxRanker, RankerWeightsError, load_ranker, save_ranker,
+                               shipped_path)
 from reeb_torch.ranker.features import FEATURES_VERSION, feature_names
 
 
@@ -159,7 +160,7 @@ def test_weights_for_other_features_are_refused(tmp_path):
 def test_shipped_weights_load_and_say_where_they_come_from():
     assert set(SHIPPED) == {"kitti"}
     assert shipped_path("kitti").stat().st_size < 100_000
-    m = load_ranker("kitti", feature_names(4))
+    m = load_ranker("kitti", feature_names(4) + ORIENTATION_NAMES)
     prov = m.meta["provenance"]
     assert prov["frames"] == 106 and prov["command"].startswith("reeb fit ")
     assert load_ranker("kitti") is m  # loaded once

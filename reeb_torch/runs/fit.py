@@ -346,7 +346,7 @@ def _run_fit(roots: Sequence[str], outputs: FitOutputs, cfg: ReebConfig, opts: F
     if hint_record:
         provenance["class_hints"] = hint_record
     outputs.write(model, provenance, cfg)
-    load_ranker(str(outputs.weights), names)  # what it wrote reads back
+    load_ranker(str(outputs.weights), model.feature_names)  # what it wrote reads back
     apart = ("no frame of a held-out block's drives on the training side" if whole_drives
              else "no neighbouring frames of one drive on both sides")
     head = (f"{len(frames)} frames, {provenance['objects']} objects; {folds} folds of blocks of frames ({apart}); "
