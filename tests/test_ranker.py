@@ -257,7 +257,7 @@ def test_class_hints_reuse_the_ranked_features(sample_image):
     rk = gen.ranker
     maps, grid, scores, share, entropy, kept, ranked = _ranked(gen, [sample_image, sample_image.flip(-1)])
     bi, ni, feats = ranked[0]
-    assert feats.shape == (int(kept.sum()), 47)
+    assert feats.shape == (int(kept.sum()), 55)  # with the orientation columns the shipped model reads
     assert torch.equal(torch.stack([bi, ni]), torch.stack(kept.nonzero(as_tuple=True)))
     windows = [torch.nonzero(kept[i]).squeeze(1)[::7] for i in range(2)]
     fresh = rk.class_hints(maps, grid, scores, share, entropy, windows)

@@ -53,8 +53,11 @@ def _meta(key: str, value):
     return edit
 
 
+_COLUMNS = len(load_ranker("kitti").feature_names)  # the shipped model's feature columns
+
+
 def _shape(t, m):
-    t["members.0.0.weight"] = t["members.0.0.weight"][:, :46].contiguous()
+    t["members.0.0.weight"] = t["members.0.0.weight"][:, :-1].contiguous()
 
 
 def _extra(t, m):
@@ -66,13 +69,14 @@ def _missing(t, m):
 
 
 def _ints(t, m):
-    t["mean"] = torch.zeros(47, dtype=torch.int32)
+    t["mean"] = torch.zeros(len(t["mean"]), dtype=torch.int32)
 
 
 CASES = [
     # 1: NaN or inf weights, everywhere or in one element, mean included
-    (_set("members.0.0.weight", slice(None), float("nan")), r"tensor 'members\.0\.0\.weight' holds 3008 values "
-     r"that are not finite \(element 0 is nan\), expected finite numbers"),
+    (_set("members.0.0.weight", slice(None), float("nan")),
+     rf"tensor 'members\.0\.0\.weight' holds {64 * _COLUMNS} values that are not finite \(element 0 is nan\), "
+     r"expected finite numbers"),
     (_set("members.0.2.bias", 3, float("inf")), r"tensor 'members\.0\.2\.bias' holds 1 value that is not finite "
      r"\(element 3 is inf\)"),
     (_set("mean", 0, float("nan")), r"tensor 'mean' holds 1 value that is not finite"),
@@ -91,7 +95,8 @@ CASES = [
      r"1 to 4096 names \(non-empty strings\)"),
     (_meta("config", "camera.json"), r"its 'config' metadata is not a JSON object \(a JSON string\)"),
     # 12: messages that name the field or tensor and what was expected
-    (_shape, r"tensor 'members\.0\.0\.weight' has shape \[64, 46\], expected \[64, 47\] from the metadata"),
+    (_shape, rf"tensor 'members\.0\.0\.weight' has shape \[64, {_COLUMNS - 1}\], expected \[64, {_COLUMNS}\] from the "
+     r"metadata"),
     (_meta("hidden", "abc"), r"metadata field 'hidden' is \"abc\", expected a list of 1 to 16 layer widths "
      r"\(integers from 1 to 65536\)"),
     (_meta("classes", 5), r"metadata field 'classes' is 5, expected a list of 2 to 1024 names"),
