@@ -470,17 +470,20 @@ def _rest(o: np.ndarray, lg: np.ndarray, j: int, b: int, x0: int, y0: int, x1: i
 
 
 def box_features_cpu(maps: BoxMaps, grid_boxes: Tensor, window: Tensor, scores: Tensor, share: Tensor,
-                     entropy: Tensor, region_of: Tensor, bi: Tensor, ni: Tensor, cheap: bool = False) -> Tensor:
+                     entropy: Tensor, region_of: Tensor, bi: Tensor, ni: Tensor, cheap: bool = False,
+                     extra: int = 0) -> Tensor:
     """:func:`box_features` of the candidates ``(bi, ni)`` (image, window) in one compiled pass, the
     boxes split between the two cores; the same numbers. It reads the windows where they lie:
     ``grid_boxes float32 [N, 4]`` (rounded to whole working pixels), their ``window`` columns
     ``float32 [N, 11 + C]``, V ``float32 [B, N]``, the regions' ``share`` and ``entropy``
-    ``[B, R]`` and each window's region ``int64 [N]``."""
+    ``[B, R]`` and each window's region ``int64 [N]``. ``extra``: that many more columns after
+    these, for the caller to fill (0 until then; no copy to append them)."""
     h, w = maps.size
     consts = np.array([h, w, maps.fx, maps.fy, maps.centre_fraction, 1.0 if maps.score_norm == "area" else 0.0,
                        maps.kappa, maps.gamma, 1.0 if maps.green is not None else 0.0])
     n_cls = len(maps.class_ratios)
-    out = np.empty((len(bi), cheap_count(n_cls) if cheap else len(feature_names(n_cls))), np.float32)
+    f = cheap_count(n_cls) if cheap else len(feature_names(n_cls))
+    out = np.empty((len(bi), f + extra), np.float32)
     none = np.zeros((1, 1, 1))
     if cheap:
         tables = (none, none, none, np.zeros((1, 1, 1), np.int32), none, none, none, none)
@@ -501,5 +504,5 @@ def box_features_cpu(maps: BoxMaps, grid_boxes: Tensor, window: Tensor, scores: 
     out[:, nw] = logs[:, 0]  # log_v
     if not cheap:  # log_edge_score, then the layout columns, the last ones
         out[:, nw + 3] = logs[:, 1]
-        out[:, out.shape[1] - len(_LAYOUT):] = logs[:, 2:]
+        out[:, f - len(_LAYOUT): f] = logs[:, 2:]
     return torch.nan_to_num_(torch.from_numpy(out), nan=0.0, posinf=0.0, neginf=0.0)

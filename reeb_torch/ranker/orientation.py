@@ -120,16 +120,18 @@ def _sums(ii: Tensor, bi: Tensor, x0: Tensor, y0: Tensor, x1: Tensor, y1: Tensor
     return ii[bi, y1, x1] - ii[bi, y0, x1] - ii[bi, y1, x0] + ii[bi, y0, x0]
 
 
-def orientation_features(ii: Tensor, boxes: Tensor, bi: Tensor) -> Tensor:
+def orientation_features(ii: Tensor, boxes: Tensor, bi: Tensor, out: Tensor | None = None) -> Tensor:
     """The columns :data:`ORIENTATION_NAMES` of ``int64 [K, 4]`` working-pixel boxes
     ``(x0, y0, x1, y1)`` (ends exclusive) of images ``bi`` ``int64 [K]``, from
     :func:`orientation_integrals`' ``ii``: ``float32 [K, 8]``, each bin's share of the
-    gradient energy inside the box (4), then in its inner border band (4)."""
+    gradient energy inside the box (4), then in its inner border band (4); on the CPU
+    written into ``out`` (``float32 [K, 8]``, a view such as the last columns of the
+    features) where given."""
     if ii.device.type == "cpu":
-        out = np.empty((len(boxes), 8), np.float32)
-        t, bx, b = ii.numpy(), boxes.contiguous().numpy(), bi.contiguous().numpy()
-        on_two_cores(lambda lo, hi: _features_kernel(t, bx, b, out, lo, hi), len(boxes))
-        return torch.from_numpy(out)
+        res = torch.empty(len(boxes), 8) if out is None else out
+        t, bx, b, o = ii.numpy(), boxes.contiguous().numpy(), bi.contiguous().numpy(), res.numpy()
+        on_two_cores(lambda lo, hi: _features_kernel(t, bx, b, o, lo, hi), len(boxes))
+        return res
     return _features_tensor(ii, boxes, bi)
 
 

@@ -172,19 +172,22 @@ class CandidateFeatures:
         elsewhere tensor ops (:func:`~reeb_torch.ranker.features.box_features`): the same numbers."""
         dev = scores.device
         region_of = self.cache.device_tensor(grid.region_of, dev)
-        if dev.type == "cpu":
+        orient = self.orientation and not cheap
+        if dev.type == "cpu":  # the orientation columns written into the last columns: no copy
             out = _features.box_features_cpu(self.box_maps(maps, geometry_only=cheap), grid.boxes,
                                              self.window_table(maps, grid), scores, share, entropy, region_of,
-                                             bi, ni, cheap)
-        else:
-            region = region_of[ni]
-            out = _features.box_features(self.box_maps(maps, geometry_only=cheap),
-                                         self.cache.device_tensor(grid.boxes, dev)[ni].round().long(), bi,
-                                         scores[bi, ni], share[bi, region], entropy[bi, region],
-                                         self.window_table(maps, grid)[ni], cheap)
-        if cheap or not self.orientation:
+                                             bi, ni, cheap, extra=len(ORIENTATION_NAMES) if orient else 0)
+            if orient:
+                orientation_features(maps.integral_orientation(), grid.boxes[ni].round().long(), bi,
+                                     out[:, -len(ORIENTATION_NAMES):])
             return out
         boxes = self.cache.device_tensor(grid.boxes, dev)[ni].round().long()
+        region = region_of[ni]
+        out = _features.box_features(self.box_maps(maps, geometry_only=cheap), boxes, bi, scores[bi, ni],
+                                     share[bi, region], entropy[bi, region], self.window_table(maps, grid)[ni],
+                                     cheap)
+        if not orient:
+            return out
         return torch.cat([out, orientation_features(maps.integral_orientation(), boxes, bi)], 1)
 
     def prefilter(self, model: BoxRanker, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor,
