@@ -157,17 +157,20 @@ DAMAGED = {
 }
 
 
-@pytest.mark.parametrize("case", list(DAMAGED))
-def test_a_wrong_or_damaged_file_is_refused_in_one_line(saved, tmp_path, case):
-    make, reason = DAMAGED[case]
-    bad = make(saved, tmp_path / "bad.safetensors")
+def _refused_in_one_line(bad: Path, images: Path, out: Path, reason: str) -> None:
+    """``ReebDetector.load`` and ``reeb detect`` refuse ``bad`` in one line naming it and ``reason``."""
     with pytest.raises(DetectorFileError) as e:
         ReebDetector.load(bad)
     msg = str(e.value)
     assert "\n" not in msg and str(bad) in msg and reason in msg, msg
-    res = CliRunner().invoke(main, ["detect", str(saved.parent), "--detector", str(bad), "-o",
-                                    str(tmp_path / "d.jsonl")])
+    res = CliRunner().invoke(main, ["detect", str(images), "--detector", str(bad), "-o", str(out)])
     assert res.exit_code == 2 and "Traceback" not in res.output and reason in res.output, res.output
+
+
+@pytest.mark.parametrize("case", list(DAMAGED))
+def test_a_wrong_or_damaged_file_is_refused_in_one_line(saved, tmp_path, case):
+    make, reason = DAMAGED[case]
+    _refused_in_one_line(make(saved, tmp_path / "bad.safetensors"), saved.parent, tmp_path / "d.jsonl", reason)
 
 
 def test_kitti_result_lines_read_back(tmp_path):
@@ -396,13 +399,7 @@ EMBEDDED_DAMAGE = {
 @pytest.mark.parametrize("case", list(EMBEDDED_DAMAGE))
 def test_a_damaged_embedded_ranker_is_refused_in_one_line(embedded, tmp_path, case):
     make, reason = EMBEDDED_DAMAGE[case]
-    bad = make(embedded, tmp_path / "bad.safetensors")
-    with pytest.raises(DetectorFileError) as e:
-        ReebDetector.load(bad)
-    msg = str(e.value)
-    assert "\n" not in msg and str(bad) in msg and reason in msg, msg
-    res = CliRunner().invoke(main, ["detect", str(tmp_path), "--detector", str(bad), "-o", str(tmp_path / "d.jsonl")])
-    assert res.exit_code == 2 and "Traceback" not in res.output and reason in res.output, res.output
+    _refused_in_one_line(make(embedded, tmp_path / "bad.safetensors"), tmp_path, tmp_path / "d.jsonl", reason)
 
 
 def test_a_shipped_or_no_ranker_is_not_embedded(saved, tmp_path):
