@@ -25,7 +25,7 @@ from ..stages import windows as _windows
 from ..stages._radix import kth_largest
 from . import features as _features
 from .model import BoxRanker, softmax_rows
-from .orientation import ORIENTATION_NAMES, orientation_features
+from .orientation import ORIENTATION_NAMES, orientation_features, orientation_integrals
 from .prefilter import prefilter_cpu
 from .refine import merge_refined
 
@@ -178,7 +178,7 @@ class CandidateFeatures:
                                              self.window_table(maps, grid), scores, share, entropy, region_of,
                                              bi, ni, cheap, extra=len(ORIENTATION_NAMES) if orient else 0)
             if orient:
-                orientation_features(maps.integral_orientation(), grid.boxes[ni].round().long(), bi,
+                orientation_features(self._orientation_tables(maps), grid.boxes[ni].round().long(), bi,
                                      out[:, -len(ORIENTATION_NAMES):])
             return out
         boxes = self.cache.device_tensor(grid.boxes, dev)[ni].round().long()
@@ -188,7 +188,15 @@ class CandidateFeatures:
                                      cheap)
         if not orient:
             return out
-        return torch.cat([out, orientation_features(maps.integral_orientation(), boxes, bi)], 1)
+        return torch.cat([out, orientation_features(self._orientation_tables(maps), boxes, bi)], 1)
+
+    @staticmethod
+    def _orientation_tables(maps: ScoreMaps) -> Tensor:
+        """The batch's orientation tables (:func:`~reeb_torch.ranker.orientation.orientation_integrals`
+        of its grey images), built once per batch."""
+        grey = maps.grey
+        assert grey is not None, "the orientation columns read the grey image (ScoreMaps.grey)"
+        return maps.kept("orientation", lambda: orientation_integrals(grey))
 
     def prefilter(self, model: BoxRanker, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor,
                   share: Tensor, entropy: Tensor, bi: Tensor, ni: Tensor) -> Tensor:

@@ -84,14 +84,10 @@ class ScoreMaps:
         there: :func:`~reeb_torch.stages.scoring.extend_below`)."""
         return self._keep((name, "below"), lambda: _scoring.extend_below(self.integral(name)))
 
-    def integral_orientation(self) -> Tensor:
-        """The integral images of the grey image's gradient energy in four orientation bins,
-        ``float64 (B, 4, h + 1, w + 1)`` (:func:`~reeb_torch.ranker.orientation.orientation_integrals`)."""
-        from ..ranker.orientation import orientation_integrals
-
-        grey = self.grey
-        assert grey is not None, "the grey image (ScoreMaps.grey) was not kept"
-        return self._keep("orientation", lambda: orientation_integrals(grey))
+    def kept(self, key: str, build: Callable[[], Tensor]) -> Tensor:
+        """A table of this batch that a later step builds from these maps (as the learned
+        ranking's orientation tables): ``build()`` on first use, then kept for the batch."""
+        return self._keep(("kept", key), build)
 
     def integral_grey_squared(self) -> Tensor:
         """The integral image of the grey image's square (the learned ranking's grey spread)."""
