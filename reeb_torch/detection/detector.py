@@ -337,7 +337,12 @@ unpacked to."""
 def _unpack_folder() -> Path:
     if not (_UNPACKED and _UNPACKED[0].is_dir()):
         folder, pid = Path(tempfile.mkdtemp(prefix="reeb-detector-rankers-")), os.getpid()
-        atexit.register(lambda: os.getpid() == pid and shutil.rmtree(folder, ignore_errors=True))
+
+        def remove() -> None:  # in this process only, not in a forked child
+            if os.getpid() == pid:
+                shutil.rmtree(folder, ignore_errors=True)
+
+        atexit.register(remove)
         _UNPACKED[:] = [folder]
     return _UNPACKED[0]
 
