@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..stages import _scratch
 from ..stages._threads import on_two_cores
 from .features import BORDER
 
@@ -45,11 +46,12 @@ _BORDER = BORDER
 def orientation_integrals(grey: Tensor) -> Tensor:
     """``float64 (B, h + 1, w + 1, 4)``: the integral image of each orientation bin's gradient
     magnitude of the grey images ``(B, h, w)`` (the bins last, so a corner's four sums share
-    a cache line)."""
+    a cache line). On the CPU inside a generator's call, a scratch buffer the next batch
+    reuses (:mod:`reeb_torch.stages._scratch`): valid for this batch only."""
     b, h, w = grey.shape
     if grey.device.type == "cpu":
         src = grey.float().contiguous().numpy()
-        out = np.empty((b, h + 1, w + 1, 4))
+        out = _scratch.empty("orientation.tables", (b, h + 1, w + 1, 4))  # reused batch after batch
         on_two_cores(lambda lo, hi: _integrals_kernel(src[lo:hi], out[lo:hi]), b)
         return torch.from_numpy(out)
     return _integrals_tensor(grey)
