@@ -15,8 +15,8 @@ without its block of frames, as ``reeb fit --folds N`` estimates (``--seed``: th
 (the shipped one saw the dev frames).
 
 Rerun: ``python benchmarks/diagnose_recall.py [--data DIR ...] [--limit N] [--preset NAME]
-[--set FIELD=VALUE ...] [--frames A:B ...] [--folds N [--seed S] [--whole-drives]] [--lost [--show IMAGE]] [--json PATH]`` (``--set``
-as in ``reeb propose``, e.g. ``--set min_window=12``; ``--lost`` lists each missed object with
+[--set FIELD=VALUE ...] [--frames A:B ...] [--folds N [--seed S] [--whole-drives]] [--lost [--show IMAGE]]
+[--json PATH]`` (``--set`` as in ``reeb propose``, e.g. ``--set min_window=12``; ``--lost`` lists each missed object with
 the stage that lost it, ``--show`` draws them all in one picture)
 """
 
@@ -329,7 +329,8 @@ def main(argv: list[str] | None = None) -> dict:
     preset = args.preset + "".join(f", {kv}" for kv in args.sets)
     if args.folds is not None:
         apart = ", whole drives" if args.whole_drives else ""
-        preset += f"; each frame ranked by a model fitted without its block ({args.folds} folds{apart}, seed {args.seed})"
+        preset += (f"; each frame ranked by a model fitted without its block ({args.folds} folds{apart}, "
+                   f"seed {args.seed})")
     print(f"# {len(items)} frames, {n} objects ({int(mod.sum())} moderate), preset {preset}; "
           "recall (%) at IoU 0.7 unless named")
     splits = [("all", torch.ones(n, dtype=torch.bool))]

@@ -140,9 +140,10 @@ class FitOptions:
             the generator does not compute them for it (a fine-tuned model reads its own columns).
         drop_features: feature columns the model does not read (names of
             :func:`~reeb_torch.ranker.features.feature_names`, or a group of
-            :data:`~reeb_torch.ranker.features.FEATURE_GROUPS` such as ``"place"``): held at their mean in the fit and their
-            input weights set to zero, so the ranking, the prefilter and the class head give
-            the same scores whatever those columns hold. The weights file's format is the same.
+            :data:`~reeb_torch.ranker.features.FEATURE_GROUPS` such as ``"place"``): held at
+            their mean in the fit and their input weights set to zero, so the ranking, the
+            prefilter and the class head give the same scores whatever those columns hold. The
+            weights file's format is the same.
     """
 
     hidden: tuple[int, ...] = (64, 64)
