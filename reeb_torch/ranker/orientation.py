@@ -15,7 +15,8 @@ Bins, by the gradient's direction ``θ = atan2(gy, gx)`` modulo π, each π/4 wi
 A model reads these columns where its feature names hold them (``reeb fit`` fits them by
 default; ``reeb fit --no-orientation`` leaves them out); the generator computes them only for
 such a model. On the CPU two compiled passes (the tables, then the boxes), elsewhere tensor
-ops in the same order of operations: the same numbers.
+ops in the same order of operations: every pixel in the same bin, the sums equal to float64
+rounding (torch's running sums may add in another order).
 """
 
 from __future__ import annotations
