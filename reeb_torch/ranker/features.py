@@ -477,7 +477,7 @@ def box_features_cpu(maps: BoxMaps, grid_boxes: Tensor, window: Tensor, scores: 
     ``grid_boxes float32 [N, 4]`` (rounded to whole working pixels), their ``window`` columns
     ``float32 [N, 11 + C]``, V ``float32 [B, N]``, the regions' ``share`` and ``entropy``
     ``[B, R]`` and each window's region ``int64 [N]``. ``extra``: that many more columns after
-    these, for the caller to fill (0 until then; no copy to append them)."""
+    these, left for the caller to fill (uninitialised; no copy to append them)."""
     h, w = maps.size
     consts = np.array([h, w, maps.fx, maps.fy, maps.centre_fraction, 1.0 if maps.score_norm == "area" else 0.0,
                        maps.kappa, maps.gamma, 1.0 if maps.green is not None else 0.0])
