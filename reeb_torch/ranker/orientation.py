@@ -31,7 +31,7 @@ from torch import Tensor
 
 from ..stages import _scratch
 from ..stages._threads import on_two_cores
-from .features import BORDER
+from .features import BORDER, _grow, _grown
 
 __all__ = ["ORIENTATION_NAMES", "orientation_integrals", "orientation_features"]
 
@@ -41,7 +41,6 @@ ORIENTATION_NAMES: tuple[str, ...] = (tuple(f"orient_in_{k}" for k in range(4))
 
 _TAN = math.tan(math.pi / 8)
 _EPS = 1e-6
-_BORDER = BORDER
 
 
 def orientation_integrals(grey: Tensor) -> Tensor:
@@ -142,23 +141,12 @@ def _features_tensor(ii: Tensor, boxes: Tensor, bi: Tensor) -> Tensor:
     """:func:`orientation_features` as tensor ops (any device)."""
     h, w = ii.shape[1] - 1, ii.shape[2] - 1
     x0, y0, x1, y1 = boxes.unbind(1)
-    dx = ((x1 - x0).double() * -_BORDER).round().long()
-    dy = ((y1 - y0).double() * -_BORDER).round().long()
-    ix0, iy0 = (x0 - dx).clamp(0, w), (y0 - dy).clamp(0, h)
-    ix1, iy1 = torch.maximum((x1 + dx).clamp(0, w), ix0 + 1), torch.maximum((y1 + dy).clamp(0, h), iy0 + 1)
+    ix0, iy0, ix1, iy1 = _grown(x0, y0, x1, y1, -BORDER, h, w)
     inside = _sums(ii, bi, x0, y0, x1, y1)
     band = (inside - _sums(ii, bi, ix0, iy0, ix1, iy1)).clamp(min=0)  # rounding, not energy, below 0
     inside = inside.clamp(min=0)
     return torch.cat([inside / (inside.sum(1, keepdim=True) + _EPS),
                       band / (band.sum(1, keepdim=True) + _EPS)], 1).float()
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _shrunk(a: int, c: int, lo: int, hi: int) -> tuple[int, int]:  # pragma: no cover - compiled
-    """One axis of the tensor path's inner box: ``[a, c)`` less ``round(0.15 · (c − a))`` each side."""
-    d = int(np.rint((c - a) * -_BORDER))
-    ga = min(max(a - d, lo), hi)
-    return ga, max(min(max(c + d, lo), hi), ga + 1)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -171,8 +159,8 @@ def _features_kernel(ii: np.ndarray, boxes: np.ndarray, bi: np.ndarray, out: np.
     for k in range(lo, hi):
         b = bi[k]
         x0, y0, x1, y1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
-        ix0, ix1 = _shrunk(x0, x1, 0, w)
-        iy0, iy1 = _shrunk(y0, y1, 0, h)
+        ix0, ix1 = _grow(x0, x1, -BORDER, 0, w)  # the inner box, as the features' border band
+        iy0, iy1 = _grow(y0, y1, -BORDER, 0, h)
         t_in, t_band = 0.0, 0.0
         for j in range(4):
             a = ii[b, y1, x1, j] - ii[b, y0, x1, j] - ii[b, y1, x0, j] + ii[b, y0, x0, j]
