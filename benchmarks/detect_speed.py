@@ -1,27 +1,28 @@
-"""Milliseconds per image of ``reeb detect``'s work, per stage, at batch 1 and batch 8.
+"""Milliseconds per image of ``reeb detect``'s work, stage by stage, beside torchvision's mobile detectors.
 
-For each ``--detector`` file (``reeb detector fit``'s) this runs what ``reeb detect`` runs on
-the images: ``ReebDetector([images])`` on batches of ``--batch`` images, the images moved to
-``--device`` inside the timed call as the command does; the stages are timed with the
-command's own hooks (:class:`reeb_torch.runs.detect.StageTimes`: REEB's proposals, the
-backbone, the heads; on CUDA each stage waits for the GPU) and the rest of the call
-(resize and normalisation before the backbone, boxes back to input pixels after the heads)
-is ``other``. Decoding (``reeb_torch.io.read_image``, which ``reeb detect``'s worker
-processes run beside the detector) is timed apart, in this process. The first batch of
-each (detector, batch size) is a warm-up and not counted; then ``--repeats`` passes over
-all images, every (detector, batch) once per pass in turn (a slow spell of a shared machine
-hits all alike), and the median pass is reported (of an even number, the faster of the
-middle two).
+For each detector (``--detector FILE`` or a shipped name, or ``--arm NAME="reeb detector fit
+options"`` for a detector of those settings with untrained heads: the same computation as a
+trained one but for the heads' NMS, which sees other scores) this runs what ``reeb detect``
+runs on the decoded images: ``ReebDetector(images)`` on batches of ``--batch`` images, its
+stages timed by its own clock (:class:`reeb_torch.detection.inference.StageClock`:
+``proposals``, ``resize``, ``backbone``, ``neck``, ``roi_align``, ``box_head``,
+``postprocess``). Decoding (:func:`reeb_torch.io.read_image`, which ``reeb detect``'s worker
+processes run beside the detector) is timed apart. In the same run, interleaved, torchvision's
+``fasterrcnn_mobilenet_v3_large_fpn`` and ``fasterrcnn_mobilenet_v3_large_320_fpn`` (built
+with ``weights=None``: random weights cost the same time) run on the same images and batches
+as the reference, and every detector is reported as a ratio of their time.
 
-Without ``--detector``, ``--min-size N`` builds detectors with untrained heads at those
-input sizes: the same computation as trained ones, except the heads' NMS, which sees other
-scores.
+``--threads 1 2``: each pass runs once per count, the process bound to that many cores
+(``os.sched_setaffinity``) with as many torch threads, so one-thread figures are one core's.
+The first batch of each (model, batch, threads) is a warm-up; then ``--repeats`` passes, every
+model in turn within a pass (a slow spell of a shared machine hits all alike); the median
+pass is reported (of an even number, the faster of the middle two).
 
-    python benchmarks/detect_speed.py ../shared/data/kitti/images --limit 8 \\
-        --detector det.safetensors --batch 1 8 --out docs/results/detector/speed
+    python benchmarks/detect_speed.py ../shared/data/kitti/images --limit 12 --detector kitti \\
+        --batch 1 8 --threads 1 2 --out docs/results/detector/speed
 
-Writes ``OUT/speed.txt`` and ``OUT/speed.json`` (per detector ``name`` and batch: ms/img per
-stage, ``detector`` their sum, ``serial_end_to_end`` with decoding, ``passes_ms`` every pass; the machine, its load average before and after).
+Writes ``OUT/speed.txt`` and ``OUT/speed.json`` (per model, batch and threads: ms/img per
+stage, the total, the ratio to each reference, every pass; the machine and its load).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import argparse
 import json
 import os
 import platform
+import shlex
 import statistics
 import sys
 import time
@@ -39,26 +41,28 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import REPO_ROOT, rerun_line  # noqa: E402
 
-STAGES = ("decode", "proposals", "backbone", "heads", "other", "detector")
+REFERENCES = ("fasterrcnn_mobilenet_v3_large_fpn", "fasterrcnn_mobilenet_v3_large_320_fpn")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("images", nargs="*", type=Path, default=[REPO_ROOT / "examples" / "data"],
                    help="image files or folders (default: the bundled examples/data)")
-    p.add_argument("--detector", type=Path, action="append", default=[], metavar="FILE",
-                   help="a detector file (repeat for several)")
-    p.add_argument("--min-size", type=int, nargs="+", default=[], metavar="N",
-                   help="without --detector: untrained detectors at these input sizes")
+    p.add_argument("--detector", action="append", default=[], metavar="FILE",
+                   help="a detector file, or a shipped name such as kitti (repeat for several)")
+    p.add_argument("--arm", action="append", default=[], metavar='NAME="OPTIONS"',
+                   help="a detector of these reeb detector fit options with untrained heads (repeatable)")
     p.add_argument("--batch", type=int, nargs="+", default=[1, 8], help="batch sizes (default: 1 8)")
+    p.add_argument("--threads", type=int, nargs="+", default=[2], help="cores and torch threads (default: 2)")
     p.add_argument("--limit", type=int, help="only the first N images")
-    p.add_argument("--repeats", type=int, default=2, help="timed passes over the images")
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--repeats", type=int, default=3, help="timed passes over the images")
+    p.add_argument("--reference", nargs="*", default=list(REFERENCES), choices=REFERENCES,
+                   help="torchvision detectors timed beside (default: both; none with an empty list)")
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     p.add_argument("--out", type=Path, help="folder for speed.txt and speed.json")
     args = p.parse_args(argv)
-    if not args.detector and not args.min_size:
-        p.error("give --detector FILE or --min-size N")
+    if not args.detector and not args.arm:
+        p.error("give --detector FILE|NAME or --arm NAME=OPTIONS")
     return args
 
 
@@ -83,103 +87,158 @@ def cpu_name() -> str:
 def machine(device: Any) -> dict[str, Any]:
     import torch
 
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    from reeb_torch.detection.lite0 import native_bfloat16
+
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_name()
-    return {"cores": cores, "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-            "device": str(device), "device_name": name, "torch": torch.__version__,
+    return {"cores": len(os.sched_getaffinity(0)), "cpu_count": os.cpu_count(), "device": str(device),
+            "device_name": name, "torch": torch.__version__, "native_bfloat16": native_bfloat16(device),
             "load_average": [round(v, 2) for v in os.getloadavg()]}
 
 
-def detectors(args: argparse.Namespace, device: Any) -> list[tuple[str, Any]]:
-    from reeb_torch.detection import DetectorSettings, ReebDetector
+def ours(args: argparse.Namespace, device: Any) -> list[tuple[str, Any]]:
+    """``(name, detector)`` of every ``--detector`` and ``--arm``."""
+    import click
 
-    if args.detector:
-        return [(f"{p.name} ({ReebDetector.load(p).settings.min_size} px)", ReebDetector.load(p, device))
-                for p in args.detector]
-    return [(f"untrained heads ({n} px)", ReebDetector(settings=DetectorSettings(min_size=n)).to(device).eval())
-            for n in args.min_size]
+    from reeb_torch.detection import ReebDetector
+    from reeb_torch.detection.inference import StageClock
+    from reeb_torch.runs.detect import fit, fit_settings
+
+    out = []
+    for spec in args.detector:
+        out.append((Path(spec).name, ReebDetector.load(spec, device)))
+    for text in args.arm:
+        name, _, options = text.partition("=")
+        try:
+            with fit.make_context("fit", ["."] + shlex.split(options)) as ctx:
+                settings = fit_settings(ctx.params)
+        except click.ClickException as e:
+            raise SystemExit(f"--arm {text!r}: {e.format_message()}") from None
+        out.append((name, ReebDetector(settings=settings, device=device).to(device).eval()))
+    for _, det in out:
+        det.clock = StageClock(device)
+    return out
 
 
-def timed_pass(det: Any, stages: Any, images: list[Any], batch: int, device: Any) -> dict[str, float]:
-    """Seconds per stage over all ``images`` in batches of ``batch``."""
+def references(names: list[str], device: Any) -> list[tuple[str, Any]]:
+    import torchvision
+
+    return [(n, getattr(torchvision.models.detection, n)(weights=None, weights_backbone=None).to(device).eval())
+            for n in names]
+
+
+def timed_pass(model: Any, images: list[Any], batch: int, device: Any, reference: bool) -> dict[str, float]:
+    """Seconds over all ``images`` in batches of ``batch``: ``total`` and, for ours, per stage."""
     import torch
 
-    before = dict(stages.seconds)
+    clock = getattr(model, "clock", None)
+    before = dict(clock.seconds) if clock is not None else {}
     total = 0.0
-    for i in range(0, len(images), batch):
-        t0 = time.perf_counter()
-        det([im.to(device) for im in images[i:i + batch]])
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        total += time.perf_counter() - t0
-    out = {k: stages.seconds[k] - before[k] for k in before}
-    out["detector"] = total
-    out["other"] = total - sum(out[k] for k in before)
+    with torch.no_grad():
+        for i in range(0, len(images), batch):
+            chunk = [im.to(device) for im in images[i:i + batch]]
+            t0 = time.perf_counter()
+            model([im.float() / 255 for im in chunk] if reference else chunk)
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            total += time.perf_counter() - t0
+    out = {k: clock.seconds[k] - before[k] for k in before} if clock is not None else {}
+    out["total"] = total
     return out
+
+
+def set_threads(n: int) -> None:
+    import torch
+
+    cores = sorted(os.sched_getaffinity(0) | _ALL)
+    os.sched_setaffinity(0, set(cores[:n]))
+    torch.set_num_threads(n)
+
+
+_ALL: set[int] = set(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else set()
+
+
+def median_pass(passes: list[dict[str, float]]) -> dict[str, float]:
+    return sorted(passes, key=lambda r: r["total"])[(len(passes) - 1) // 2]
 
 
 def main(argv: list[str] | None = None) -> int:
     import torch
 
     from reeb_torch.io import read_image
-    from reeb_torch.runs.detect import StageTimes
 
     args = parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     paths = image_paths(args.images, args.limit)
     if not paths:
         raise SystemExit("no images")
     env = machine(device)
-    dets = detectors(args, device)
+    models = [(n, m, False) for n, m in ours(args, device)] + [(n, m, True) for n, m in references(args.reference,
+                                                                                                  device)]
     images = [read_image(p) for p in paths]
-    runs: dict[tuple[int, int], list[dict[str, float]]] = {}
-    timers = [StageTimes(det.model, device) for _, det in dets]
-    for (_, det), batch in [(d, b) for d in dets for b in args.batch]:
-        det(images[:batch])  # warm-up, not counted
+    runs: dict[tuple[str, int, int], list[dict[str, float]]] = {}
+    for threads in args.threads:
+        set_threads(threads)
+        for (name, model, ref), batch in [(m, b) for m in models for b in args.batch]:
+            timed_pass(model, images[:batch], batch, device, ref)  # warm-up, not counted
     decode: list[float] = []
     for _ in range(args.repeats):
         for p in paths:
             t0 = time.perf_counter()
             read_image(p)
             decode.append(time.perf_counter() - t0)
-        for k, ((_, det), timer) in enumerate(zip(dets, timers)):
-            for batch in args.batch:
-                runs.setdefault((k, batch), []).append(timed_pass(det, timer, images, batch, device))
+        for threads in args.threads:
+            set_threads(threads)
+            for name, model, ref in models:
+                for batch in args.batch:
+                    runs.setdefault((name, batch, threads), []).append(timed_pass(model, images, batch, device, ref))
+    set_threads(max(args.threads))
     env["load_average_after"] = [round(v, 2) for v in os.getloadavg()]
-    decode_ms = 1000 * statistics.median(decode)
+    n = len(images)
+    decode_ms = round(1000 * statistics.median(decode), 1)
     rows = []
-    for (k, batch), passes in runs.items():
-        med = sorted(passes, key=lambda r: r["detector"])[(len(passes) - 1) // 2]  # the median pass (lower of two)
-        ms = {s: round(1000 * med[s] / len(images), 1) for s in STAGES if s != "decode"}
-        rows.append({"name": dets[k][0], "min_size": dets[k][1].settings.min_size, "batch": batch,
-                     "decode": round(decode_ms, 1), **ms,
-                     "serial_end_to_end": round(decode_ms + ms["detector"], 1),
-                     "passes_ms": [round(1000 * r["detector"] / len(images), 1) for r in passes]})
-    sizes = sorted({tuple(im.shape[-2:]) for im in images})
-    command = rerun_line("benchmarks/detect_speed.py", sys.argv[1:] if argv is None else argv)
-    lines = [f"# rerun: {command}",
-             f"# {len(images)} images ({', '.join(f'{w}x{h}' for h, w in sizes)}), {args.repeats} passes, median pass; "
-             f"ms per image",
-             f"# machine: {env['cores']} cores ({env['device_name']}), torch {env['torch']} with "
-             f"{env['torch_threads']} threads, device {env['device']}; load average {env['load_average']} before, "
-             f"{env['load_average_after']} after",
-             f"{'detector':<34}{'batch':>6}{'decode':>8}{'proposals':>10}{'backbone':>10}{'heads':>8}{'other':>8}"
-             f"{'total':>10}{'+decode':>9}"]
+    for (name, batch, threads), passes in runs.items():
+        med = median_pass(passes)
+        rows.append({"name": name, "batch": batch, "threads": threads, "reference": name in REFERENCES,
+                     **{k: round(1000 * v / n, 1) for k, v in med.items()},
+                     "passes_ms": [round(1000 * r["total"] / n, 1) for r in passes]})
     for r in rows:
-        lines.append(f"{r['name'][:33]:<34}{r['batch']:>6}{r['decode']:>8.0f}{r['proposals']:>10.0f}"
-                     f"{r['backbone']:>10.0f}{r['heads']:>8.0f}{r['other']:>8.0f}{r['detector']:>10.0f}"
-                     f"{r['serial_end_to_end']:>9.0f}")
-    text = "\n".join(lines)
+        for ref in args.reference:
+            other = next(x for x in rows if x["name"] == ref and x["batch"] == r["batch"]
+                         and x["threads"] == r["threads"])
+            r[f"ratio_{ref}"] = round(r["total"] / other["total"], 3)
+    text = report(rows, args, env, decode_ms, n, sys.argv[1:] if argv is None else argv)
     print(text)
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "speed.txt").write_text(text + "\n")
         (args.out / "speed.json").write_text(json.dumps(
-            {"command": command, "images": [str(p) for p in paths], "repeats": args.repeats, "machine": env,
+            {"command": rerun_line("benchmarks/detect_speed.py", sys.argv[1:] if argv is None else argv),
+             "images": [str(p) for p in paths], "repeats": args.repeats, "decode_ms": decode_ms, "machine": env,
              "rows": rows}, indent=2) + "\n")
     return 0
+
+
+def report(rows: list[dict[str, Any]], args: argparse.Namespace, env: dict[str, Any], decode_ms: float, n: int,
+           argv: list[str]) -> str:
+    from reeb_torch.detection.inference import STAGES
+
+    short = {"proposals": "REEB", "resize": "resize", "backbone": "backbone", "neck": "neck", "roi_align": "RoI",
+             "box_head": "head", "postprocess": "post"}
+    refs = {r: ("FPN" if r.endswith("large_fpn") else "320") for r in args.reference}
+    head = (f"{'model':<34}{'batch':>6}{'thr':>4}" + "".join(f"{short[s]:>9}" for s in STAGES) + f"{'total':>9}"
+            + "".join(f"{'x ' + refs[r]:>8}" for r in args.reference))
+    lines = [f"# rerun: {rerun_line('benchmarks/detect_speed.py', argv)}",
+             f"# {n} images, {args.repeats} passes, median pass; ms per image (decoding apart: {decode_ms} ms, in "
+             f"reeb detect's worker processes); x FPN / x 320: our time over torchvision's "
+             "fasterrcnn_mobilenet_v3_large_fpn / _320_fpn, same images, batch and cores",
+             f"# machine: {env['cores']} cores ({env['device_name']}), native bfloat16 {env['native_bfloat16']}, "
+             f"torch {env['torch']}, device {env['device']}; load average {env['load_average']} before, "
+             f"{env['load_average_after']} after", head]
+    for r in rows:
+        cells = "".join(f"{r[s]:>9.1f}" if s in r else f"{'':>9}" for s in STAGES)
+        ratios = "".join(f"{r[f'ratio_{ref}']:>8.2f}" for ref in args.reference)
+        lines.append(f"{r['name'][:33]:<34}{r['batch']:>6}{r['threads']:>4}{cells}{r['total']:>9.1f}{ratios}")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

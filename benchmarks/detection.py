@@ -124,7 +124,7 @@ def test_proposals(model: torch.nn.Module, frames: list) -> tuple[list, list]:
     """Detections of every test frame and the proposals the box head saw (input pixels)."""
     from torchvision.models.detection.transform import resize_boxes
 
-    from reeb_torch.detection import detect
+    from reeb_torch.detection import ReebRPN, detect
 
     seen: list[torch.Tensor] = []
     hook = model.rpn.register_forward_hook(lambda m, inp, out: seen.append(out[0][0].detach()))
@@ -132,6 +132,10 @@ def test_proposals(model: torch.nn.Module, frames: list) -> tuple[list, list]:
         detections = detect(model, frames)
     finally:
         hook.remove()
+    if isinstance(model.rpn, ReebRPN):  # REEB's boxes go to the heads without the RPN's forward
+        model.rpn.eval()
+        seen = [model.rpn.place(model.rpn.propose([f.image])[0], f.features.original_size, f.features.image_size)
+                for f in frames]
     proposals = [resize_boxes(p, list(f.features.image_size), list(f.features.original_size))
                  for p, f in zip(seen, frames)]
     return detections, proposals

@@ -102,7 +102,8 @@ def seed_runs(name: str, options: str, seeds: list[int] | None, train: list[Path
 
 def fit_arm(stem: str, options: str, args: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
     """The detector of these options (fitted, or loaded from ``--work``) and its fit record."""
-    from reeb_torch.detection import DetectorSettings, ReebDetector
+    from reeb_torch.detection import ReebDetector
+    from reeb_torch.runs.detect import fit_settings
 
     o = fit_options(args.train, options)
     command = " ".join(["reeb detector fit", *map(shlex.quote, map(str, args.train)), options]
@@ -115,8 +116,7 @@ def fit_arm(stem: str, options: str, args: argparse.Namespace) -> tuple[Any, dic
             record = kept.with_suffix(".json")
             return det, {**(json.loads(record.read_text()) if record.is_file() else {}), "reused": str(kept)}
     names = tuple(c.strip() for c in o["classes"].split(",") if c.strip())
-    settings = DetectorSettings(min_size=o["min_size"], max_size=o["max_size"], proposals_train=o["train_proposals"],
-                                proposals_test=o["test_proposals"])
+    settings = fit_settings(o)
     t0 = time.perf_counter()
     det = ReebDetector.fit(args.train, classes=names, proposals=o["proposals"], epochs=o["epochs"], seed=o["seed"],
                            settings=settings, cache_dir=args.cache, limit=args.limit, hflip=o["hflip"],

@@ -41,10 +41,27 @@ from .detector_file import (DetectorFileError, check_tensors, ranker_file_bytes,
 from .head_training import TrainSettings
 from .kitti import KITTI_CLASSES
 
-__all__ = ["DetectorSettings", "ReebDetector", "proposal_settings", "PROPOSALS"]
+__all__ = ["DetectorSettings", "ReebDetector", "proposal_settings", "PROPOSALS", "SHIPPED_DETECTORS",
+           "resolve_detector"]
 
 PROPOSALS = ("default", "training-free")
 """The named proposal settings; a ranker weights file (``reeb fit``) is the third choice."""
+
+SHIPPED_DETECTORS: dict[str, str] = {"kitti": "kitti.safetensors"}
+"""Shipped detectors by name (``ReebDetector.load("kitti")``, ``reeb detect --detector kitti``):
+files in ``reeb_torch/detection/weights/``; each file's provenance names the frames and the
+command that made it (``reeb detector show kitti``)."""
+
+
+def resolve_detector(spec: str | os.PathLike) -> Path:
+    """The detector file ``spec`` names: a shipped name (:data:`SHIPPED_DETECTORS`) or a path
+    (``~`` expanded). Whether the file exists is :func:`~reeb_torch.detection.detector_file.
+    read_detector_file`'s to say."""
+    from importlib import resources
+
+    if isinstance(spec, str) and spec in SHIPPED_DETECTORS:
+        return Path(str(resources.files("reeb_torch.detection").joinpath("weights", SHIPPED_DETECTORS[spec])))
+    return Path(os.path.expanduser(str(spec)))
 
 BACKBONE = "efficientnet-lite0"
 
@@ -56,6 +73,13 @@ class DetectorSettings:
     Attributes:
         min_size, max_size: the input resize (shorter side; bound on the longer side).
         neck_channels: channels of the neck and the pooled RoI features.
+        representation_size: units of each of the box head's two fully connected layers.
+        precision: the frozen backbone's, ``"float32"`` or ``"bfloat16"``: the heads are
+            trained on the maps it gives, and detection computes them the same way where
+            the device computes bfloat16 natively (otherwise in float32, with a warning).
+        crop_top: the share of the resized image's height, from the top, that the backbone
+            skips (rounded down to a multiple of 32 rows; 0: none): rows where no object of
+            the classes lies (``reeb detector fit`` sets it from the training labels).
         proposals_train, proposals_test: REEB proposals per image handed to the box head.
         rois: RoIs sampled per image for the box head's loss.
         score_thresh: detections below this score are dropped.
@@ -66,6 +90,9 @@ class DetectorSettings:
     min_size: int = 576
     max_size: int = 2048
     neck_channels: int = 128
+    representation_size: int = 1024
+    precision: str = "float32"
+    crop_top: float = 0.0
     proposals_train: int = 2000
     proposals_test: int = 1000
     rois: int = 256
@@ -134,15 +161,25 @@ def _ranker_file(config: ReebConfig) -> tuple[str | None, bytes | None]:
     return sha, data
 
 
-def _as_float(image: Tensor) -> Tensor:
+def _check_image(image: Tensor) -> None:
     if not isinstance(image, Tensor) or image.dim() != 3 or image.shape[0] != 3:
         raise ValueError("ReebDetector expects RGB images [3, H, W], got "
                          f"{tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__}")
-    if image.dtype == torch.uint8:
-        return image.float() / 255.0
-    if not image.is_floating_point():
+    if image.dtype != torch.uint8 and not image.is_floating_point():
         raise ValueError(f"ReebDetector expects uint8 or float images in [0, 1], got {image.dtype}")
-    return image.float()
+
+
+def _runnable_precision(precision: str, device: str | torch.device) -> str:
+    """``precision`` where ``device`` computes it natively; ``float32`` (with a warning
+    saying so) where a ``bfloat16`` detector meets a device that would only emulate it."""
+    from .lite0 import native_bfloat16
+
+    if precision == "bfloat16" and not native_bfloat16(device):
+        warnings.warn(f"this {torch.device(device).type.upper()} has no native bfloat16: the detector's backbone "
+                      "runs in float32 instead (its heads were trained on bfloat16 maps; detections may differ "
+                      "slightly)", stacklevel=3)
+        return "float32"
+    return precision
 
 
 class ReebDetector(nn.Module):
@@ -155,6 +192,9 @@ class ReebDetector(nn.Module):
         settings: the network's shape and inference settings.
         config: REEB's settings, instead of ``proposals`` (as a file restores them).
         weights: the EfficientNet-Lite0 state dict (default: the ``detect`` extra's).
+        device: where it will run: a ``bfloat16`` detector runs its backbone in ``float32``
+            on a device without native bfloat16 (:func:`~reeb_torch.detection.lite0.
+            native_bfloat16`), with a warning; :attr:`precision` is what runs.
 
     ``forward(images)``: a list of ``[3, H, W]`` RGB images (uint8, or float in [0, 1]; sizes
     may differ) -> one dict per image: ``boxes`` ``float32 [D, 4]`` xyxy input pixels,
@@ -164,7 +204,7 @@ class ReebDetector(nn.Module):
 
     def __init__(self, classes: Sequence[str] = KITTI_CLASSES, proposals: str = "default",
                  settings: DetectorSettings = DetectorSettings(), *, config: ReebConfig | None = None,
-                 weights: str | os.PathLike | None = None) -> None:
+                 weights: str | os.PathLike | None = None, device: str | torch.device = "cpu") -> None:
         super().__init__()
         from .lite0 import weights_digest
         from .lite0_detector import reeb_fasterrcnn_lite0
@@ -181,14 +221,19 @@ class ReebDetector(nn.Module):
         self.proposals = _proposal_info(proposals, config, sha)
         self.backbone_sha256 = weights_digest(weights)
         s = settings
+        self.precision = _runnable_precision(s.precision, device)
         self.model = reeb_fasterrcnn_lite0(
             len(self.categories), proposals="reeb", config=config, weights=weights,
             min_size=s.min_size, max_size=s.max_size, neck_channels=s.neck_channels,
+            representation_size=s.representation_size, precision=self.precision,
             rpn_post_nms_top_n_train=s.proposals_train, rpn_post_nms_top_n_test=s.proposals_test,
             box_batch_size_per_image=s.rois, box_score_thresh=s.score_thresh, box_nms_thresh=s.nms_thresh,
             box_detections_per_img=s.detections_per_img)
         self.meta: dict[str, Any] = {}
         """``{"provenance": {...}}``: the frames and command that trained it (from its file)."""
+        self.clock: Any = None
+        """A :class:`~reeb_torch.detection.inference.StageClock` that :meth:`forward` times
+        its stages on, or ``None`` (the default: no timing)."""
         self.eval()
 
     @property
@@ -205,10 +250,11 @@ class ReebDetector(nn.Module):
         return self._ranker_bytes is not None
 
     def forward(self, images: Sequence[Tensor]) -> list[dict[str, Tensor]]:
-        xs = [_as_float(im) for im in images]
-        self.model.eval()
-        with torch.no_grad():
-            return self.model(xs)
+        from .inference import detect_images
+
+        for im in images:
+            _check_image(im)
+        return detect_images(self.model, list(images), self.settings.crop_top, self.clock)
 
     # -- file -------------------------------------------------------------------------------
     def metadata(self) -> dict[str, Any]:
@@ -225,7 +271,8 @@ class ReebDetector(nn.Module):
 
     @classmethod
     def load(cls, path: str | os.PathLike, device: str | torch.device = "cpu") -> ReebDetector:
-        """The detector a :meth:`save` wrote, in evaluation mode on ``device``.
+        """The detector a :meth:`save` wrote (a path, or a shipped name such as ``"kitti"``:
+        :data:`SHIPPED_DETECTORS`), in evaluation mode on ``device``.
 
         A file that embeds its ranker runs on that copy (the file it was fitted with may be
         gone), checked against the SHA-256 recorded for it and by the ranker's own loader; a
@@ -240,8 +287,8 @@ class ReebDetector(nn.Module):
         """
         from .lite0 import weights_digest
 
-        tensors, meta, ranker = read_detector_file(path)
-        p = Path(os.path.expanduser(str(path)))
+        p = resolve_detector(path)
+        tensors, meta, ranker = read_detector_file(p)
         try:
             settings = DetectorSettings(**meta["settings"])
         except TypeError as e:
@@ -251,7 +298,7 @@ class ReebDetector(nn.Module):
             raise DetectorFileError(f"detector {p}: trained on other backbone weights ({meta['backbone']}); this "
                                     f"installation has {BACKBONE} {here[:16]}... (the 'detect' extra)")
         config = _stored_config(p, meta["proposals"], ranker)
-        det = cls(meta["classes"], meta["proposals"].get("spec"), settings, config=config)
+        det = cls(meta["classes"], meta["proposals"].get("spec"), settings, config=config, device=device)
         if ranker is not None:  # its copy, checked: what the file records, not where it was unpacked
             det.proposals = {k: v for k, v in meta["proposals"].items() if k != "ranker_embedded"}
         elif meta["proposals"].get("ranker_sha256") != det.proposals["ranker_sha256"]:

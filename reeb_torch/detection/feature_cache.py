@@ -1,20 +1,23 @@
 """The frozen backbone's feature maps, computed once per frame and kept on disk.
 
 The backbone of :func:`~reeb_torch.detection.reeb_fasterrcnn_lite0` is frozen, so its maps
-of a frame never change during training: :func:`frozen_features` computes them once (the
-model's transform, then :meth:`Lite0Pyramid.frozen`) and :class:`FeatureCache` files them
-as one ``torch.save`` per frame (read with ``weights_only=True``)::
+of a frame never change during training: :func:`frozen_features` computes them once
+(:func:`compute_features`: the model's transform, the rows above ``crop_top`` cut, then
+:meth:`Lite0Pyramid.frozen` in its precision) and :class:`FeatureCache` files them as one
+``torch.save`` per frame (read with ``weights_only=True``)::
 
-    root/features/lite0-<weights digest[:16]>-<min_size>x<max_size>/<image digest>.pt
-    {"format": "reeb-lite0-features", "version": 1,
+    root/features/lite0-<weights digest[:16]>-<min_size>x<max_size>-<precision>[-top<crop>]/<image digest>.pt
+    {"format": "reeb-lite0-features", "version": 2,
      "weights": sha256 of the weights file, "min_size": int, "max_size": int,
+     "precision": "float32" | "bfloat16", "crop_top": float,
      "digest": image_digest of the frame, "original_size": [H, W],
-     "image_size": [h, w] (resized), "padded_size": [h', w'] (padded to 32),
+     "image_size": [h, w] (resized), "padded_size": [h', w'] (the maps' frame, padded to 32),
+     "top": rows of the resized image above the maps (a multiple of 32),
      "levels": {"0": float16 [40, h'/8, w'/8], "1": float16 [112, h'/16, w'/16],
                 "2": float16 [320, h'/32, w'/32]}}
 
-An entry is *stale* when its weights digest, input size settings, image digest or format
-differ from what is asked for; :meth:`FeatureCache.load` refuses it
+An entry is *stale* when its weights digest, input size settings, precision, crop, image
+digest or format differ from what is asked for; :meth:`FeatureCache.load` refuses it
 (:class:`~reeb_torch.detection.StaleCacheError`) and :func:`frozen_features` recomputes and
 overwrites it. The maps are stored as float16 (about 3 MB per KITTI frame at the default
 size) and used as float32.
@@ -22,21 +25,23 @@ size) and used as float32.
 
 from __future__ import annotations
 
+import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ContextManager
 
 import torch
 from torch import Tensor
 
 from .cache import StaleCacheError, image_digest
 
-__all__ = ["FrameFeatures", "FeatureCache", "compute_features", "frozen_features"]
+__all__ = ["FrameFeatures", "FeatureCache", "compute_features", "batch_features", "frozen_features", "top_rows"]
 
 _FORMAT = "reeb-lite0-features"
-_VERSION = 1
+_VERSION = 2
 
 
 @dataclass
@@ -47,13 +52,24 @@ class FrameFeatures:
         levels: ``{"0", "1", "2"}`` -> ``[C, h'/s, w'/s]`` (float16 on disk).
         original_size: ``(H, W)`` of the input image.
         image_size: ``(h, w)`` after the transform's resize (the frame of the proposals).
-        padded_size: ``(h', w')`` of the padded batch the maps were computed on.
+        padded_size: ``(h', w')`` of the padded batch the maps were computed on (below
+            ``top``).
+        top: rows of the resized image above the maps (cut before the backbone:
+            :func:`top_rows`); the maps' row 0 is the resized image's row ``top``.
     """
 
     levels: dict[str, Tensor]
     original_size: tuple[int, int]
     image_size: tuple[int, int]
     padded_size: tuple[int, int]
+    top: int = 0
+
+
+def top_rows(crop_top: float, height: int) -> int:
+    """Rows of a resized image of ``height`` rows that the backbone skips for ``crop_top``
+    (a fraction of the height): ``crop_top · height`` rounded down to a multiple of 32, so
+    every level's cells keep their place."""
+    return 32 * math.floor(crop_top * height / 32)
 
 
 class FeatureCache:
@@ -63,12 +79,16 @@ class FeatureCache:
         root: the cache folder (created on first save).
         weights: :func:`~reeb_torch.detection.lite0.weights_digest` of the backbone's weights.
         min_size, max_size: the model transform's resize settings.
+        precision: the frozen body's (``"float32"`` or ``"bfloat16"``).
+        crop_top: the share of the resized height above the maps (:func:`top_rows`).
     """
 
-    def __init__(self, root: str | os.PathLike, weights: str, min_size: int, max_size: int) -> None:
-        self.key = {"format": _FORMAT, "version": _VERSION, "weights": weights,
-                    "min_size": int(min_size), "max_size": int(max_size)}
-        self.folder = Path(root) / "features" / f"lite0-{weights[:16]}-{min_size}x{max_size}"
+    def __init__(self, root: str | os.PathLike, weights: str, min_size: int, max_size: int,
+                 precision: str = "float32", crop_top: float = 0.0) -> None:
+        self.key = {"format": _FORMAT, "version": _VERSION, "weights": weights, "min_size": int(min_size),
+                    "max_size": int(max_size), "precision": str(precision), "crop_top": float(crop_top)}
+        crop = f"-top{crop_top:g}" if crop_top else ""
+        self.folder = Path(root) / "features" / f"lite0-{weights[:16]}-{min_size}x{max_size}-{precision}{crop}"
 
     def path(self, digest: str) -> Path:
         return self.folder / f"{digest}.pt"
@@ -86,34 +106,57 @@ class FeatureCache:
             raise StaleCacheError(f"{self.path(digest)}: stale feature cache entry ({wrong} differ "
                                   f"from {({k: self.key.get(k, digest) for k in wrong})})")
         return FrameFeatures({k: v for k, v in d["levels"].items()}, tuple(d["original_size"]),
-                             tuple(d["image_size"]), tuple(d["padded_size"]))
+                             tuple(d["image_size"]), tuple(d["padded_size"]), int(d["top"]))
 
     def save(self, digest: str, f: FrameFeatures) -> None:
         """Write one entry (atomically: a temporary file, then renamed)."""
         self.folder.mkdir(parents=True, exist_ok=True)
         tmp = self.path(digest).with_suffix(f".{os.getpid()}.tmp")  # two processes never share one
         torch.save({**self.key, "digest": digest, "original_size": list(f.original_size),
-                    "image_size": list(f.image_size), "padded_size": list(f.padded_size),
+                    "image_size": list(f.image_size), "padded_size": list(f.padded_size), "top": f.top,
                     "levels": {k: v.half().contiguous() for k, v in f.levels.items()}}, tmp)
         os.replace(tmp, self.path(digest))
 
 
+def _as_float(image: Tensor) -> Tensor:
+    return image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
+
+
 @torch.no_grad()
-def compute_features(model: torch.nn.Module, image: Tensor) -> FrameFeatures:
-    """The frozen maps of one ``uint8 [3, H, W]`` (or float in [0, 1]) image: the model's
-    transform (resize, normalise, pad to 32) on the image alone, then the frozen backbone,
-    exactly as ``model([image])`` computes them."""
-    x = image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
+def batch_features(model: torch.nn.Module, images: Sequence[Tensor], crop_top: float = 0.0,
+                   clock: Callable[[str], ContextManager[Any]] | None = None) -> list[FrameFeatures]:
+    """The frozen maps of images of ONE size (``uint8 [3, H, W]``, or float in [0, 1]) in one
+    pass of the backbone: the model's transform (resize, normalise, pad to 32), the rows
+    above ``crop_top`` cut (:func:`top_rows`), then the frozen body in its precision. The
+    maps keep the body's dtype and channels-last layout (views of the batch's). ``clock``
+    times the ``resize`` and ``backbone`` stages
+    (:class:`~reeb_torch.detection.inference.StageClock`)."""
+    if len({tuple(im.shape) for im in images}) > 1:
+        raise ValueError("batch_features: the images of one call must have one size")
+    stage = clock or (lambda name: nullcontext())
     det: Any = model  # a detector: nn.Module leaves its parts (transform, backbone, ...) untyped
     was_training = det.transform.training
     det.transform.eval()
     try:
-        batch, _ = det.transform([x])
+        with stage("resize"):
+            batch, _ = det.transform([_as_float(im) for im in images])
     finally:
         det.transform.train(was_training)
-    levels = det.backbone.frozen(batch.tensors)
-    return FrameFeatures({k: v[0].half() for k, v in levels.items()}, (image.shape[-2], image.shape[-1]),
-                         tuple(batch.image_sizes[0]), tuple(batch.tensors.shape[-2:]))
+    top = top_rows(crop_top, batch.image_sizes[0][0])
+    x = batch.tensors[:, :, top:]
+    with stage("backbone"):
+        levels = det.backbone.frozen(x)
+    original = (int(images[0].shape[-2]), int(images[0].shape[-1]))
+    return [FrameFeatures({k: v[i] for k, v in levels.items()}, original, tuple(batch.image_sizes[i]),
+                          tuple(x.shape[-2:]), top) for i in range(len(images))]
+
+
+def compute_features(model: torch.nn.Module, image: Tensor, crop_top: float = 0.0) -> FrameFeatures:
+    """The frozen maps of one ``uint8 [3, H, W]`` (or float in [0, 1]) image
+    (:func:`batch_features` of the image alone), float16, as the cache keeps them."""
+    f = batch_features(model, [image], crop_top)[0]
+    f.levels = {k: v.half().contiguous() for k, v in f.levels.items()}
+    return f
 
 
 def frozen_features(model: torch.nn.Module, items: Sequence[Mapping[str, Any]], cache: FeatureCache,
@@ -122,13 +165,16 @@ def frozen_features(model: torch.nn.Module, items: Sequence[Mapping[str, Any]], 
     (:func:`compute_features`) and saved when missing or stale; a progress bar."""
     from tqdm import tqdm
 
+    precision = getattr(getattr(model, "backbone", None), "precision", "float32")
+    if precision != cache.key["precision"]:
+        raise ValueError(f"the model's backbone computes in {precision}, the cache holds {cache.key['precision']} maps")
     out = []
     for it in tqdm(items, desc="backbone features", unit="img", disable=not progress):
         digest = image_digest(it["image"])
         try:
             out.append(cache.load(digest))
         except (FileNotFoundError, StaleCacheError):
-            f = compute_features(model, it["image"])
+            f = compute_features(model, it["image"], cache.key["crop_top"])
             cache.save(digest, f)
             out.append(cache.load(digest))
     return out

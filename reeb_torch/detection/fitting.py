@@ -17,6 +17,7 @@ frame-bootstrap intervals.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Sequence
@@ -30,7 +31,7 @@ from .feature_cache import FeatureCache, frozen_features
 from .head_training import CachedFrame, TrainSettings, detect, train_heads
 from .kitti import load_frames, mirrored
 
-__all__ = ["default_cache_dir", "cached_frames", "fit_detector", "detector_stats", "evaluate_detector", "scores_of",
+__all__ = ["default_cache_dir", "cached_frames", "fit_detector", "train_detector", "crop_from_labels", "detector_stats", "evaluate_detector", "scores_of",
            "paired_scores", "format_scores", "format_paired"]
 
 
@@ -73,8 +74,8 @@ def cached_frames(det: Any, items: Sequence[dict], cache_dir: str | os.PathLike 
     rpn = det.model.rpn
     rpn.cache, rpn.on_miss = _proposal_cache(det, items, root, progress), "compute"
     s = det.settings
-    feats = frozen_features(det.model, items, FeatureCache(root, det.backbone_sha256, s.min_size, s.max_size),
-                            progress=progress)
+    cache = FeatureCache(root, det.backbone_sha256, s.min_size, s.max_size, det.precision, s.crop_top)
+    feats = frozen_features(det.model, items, cache, progress=progress)
     return [CachedFrame(it["image"], f, it["boxes"], it["labels"], it["ignore"], it["dontcare"])
             for it, f in zip(items, feats)]
 
@@ -110,8 +111,30 @@ def fit_detector(cls: type, folders: Sequence[str | os.PathLike], *, classes: Se
         raise ValueError(f"no frames in {', '.join(map(str, folders))}")
     if not sum(len(it["boxes"]) for it in items):
         raise ValueError(f"no object of {', '.join(classes)} in {', '.join(map(str, folders))}")
+    return train_detector(cls, items, folders, classes=classes, proposals=proposals, settings=settings,
+                          training=training, cache_dir=cache_dir, progress=progress, command=command)
+
+
+def crop_from_labels(items: Sequence[dict], margin: float = 0.1, step: float = 0.05) -> float:
+    """A ``crop_top`` for frames like ``items`` (:func:`~reeb_torch.detection.kitti.load_frames`'
+    items): the highest top edge of any of their objects, as a share of its image's height,
+    less ``margin``, rounded down to a multiple of ``step`` (0 when an object reaches the
+    top ``margin`` of its image, or there is none)."""
+    tops = [float(it["boxes"][:, 1].min()) / it["image"].shape[-2] for it in items if len(it["boxes"])]
+    if not tops:
+        return 0.0
+    return round(max(0.0, math.floor((min(tops) - margin) / step + 1e-9) * step), 6)
+
+
+def train_detector(cls: type, items: Sequence[dict], folders: Sequence[str | os.PathLike], *, classes: Sequence[str],
+                   proposals: str, settings: Any, training: TrainSettings, cache_dir: str | os.PathLike | None = None,
+                   progress: bool = True, command: str | None = None) -> Any:
+    """:func:`fit_detector` on frames already read (:func:`~reeb_torch.detection.kitti.
+    load_frames`' items, from ``folders``)."""
     torch.manual_seed(training.seed)  # the heads' initial weights
     det = cls(classes, proposals, settings)
+    if det.precision != settings.precision:  # bfloat16 asked for where it is not native: trained in float32
+        det.settings = dataclasses.replace(settings, precision=det.precision)
     mirrors = [mirrored(it) for it in items] if training.hflip else []
     frames = cached_frames(det, items + mirrors, cache_dir, progress)
     train = frames[:len(items)]

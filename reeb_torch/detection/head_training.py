@@ -27,9 +27,10 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import Any, ContextManager, cast
 
 import torch
 from torch import Tensor, nn
@@ -124,29 +125,52 @@ def drop_ignored(proposals: Tensor, targets: Tensor, ignore: Tensor, dontcare: T
 
 
 def _resized(boxes: Tensor, f: FrameFeatures) -> Tensor:
-    return resize_boxes(boxes.float(), list(f.original_size), list(f.image_size))
+    """Boxes in input pixels, in the frame of ``f``'s maps (resized, ``f.top`` rows up)."""
+    out = resize_boxes(boxes.float(), list(f.original_size), list(f.image_size))
+    return out - out.new_tensor([0.0, f.top, 0.0, f.top]) if f.top else out
 
 
-def frame_forward(model: nn.Module, frame: CachedFrame) -> dict[str, Tensor]:
+def frame_forward(model: nn.Module, frame: CachedFrame, proposals: Tensor | None = None,
+                  clock: Callable[[str], ContextManager[Any]] | None = None) -> dict[str, Tensor]:
     """One frame through neck, proposals and box head: the losses in training mode, the
-    detections (``boxes`` in input pixels, ``labels``, ``scores``) in evaluation mode."""
+    detections (``boxes`` in input pixels, ``labels``, ``scores``) in evaluation mode.
+
+    ``proposals``: the frame's REEB boxes (input pixels, best first) where they are known
+    already; otherwise a :class:`ReebRPN` proposes from ``frame.image`` (or reads its
+    cache). The heads work in the frame of the maps: the resized image less its top
+    ``frame.features.top`` rows. ``clock(stage)``: a context that times each stage of the
+    evaluation (``neck``, ``roi_align``, ``box_head``, ``postprocess``;
+    :class:`~reeb_torch.detection.inference.StageClock`)."""
+    stage = clock or (lambda name: nullcontext())
     f = frame.features
     det: Any = model  # a detector: nn.Module leaves its parts (transform, backbone, ...) untyped
-    features = det.backbone.neck({k: v[None] for k, v in f.levels.items()})
-    images = ImageList(torch.zeros(()).expand(1, 3, *f.padded_size), [tuple(f.image_size)])
+    with stage("neck"):
+        features = det.backbone.neck({k: v[None] for k, v in f.levels.items()})
+    (h, w), top = f.image_size, f.top
+    images = ImageList(torch.zeros(()).expand(1, 3, *f.padded_size), [(h - top, w)])
     targets = None
     if det.training:
         targets = [{"boxes": _resized(frame.boxes, f), "labels": frame.labels}]
+    rpn_losses: dict[str, Tensor] = {}
     if isinstance(det.rpn, ReebRPN):
-        det.rpn._inputs = [frame.image]
-    proposals, rpn_losses = det.rpn(images, features, targets)
+        boxes = proposals if proposals is not None else det.rpn.propose([frame.image])[0]
+        placed = [det.rpn.place(boxes.to(features["0"].device), f.original_size, f.image_size, top)]
+    else:
+        placed, rpn_losses = det.rpn(images, features, targets)
     if targets is not None:
-        proposals = [drop_ignored(proposals[0], targets[0]["boxes"], _resized(frame.ignore, f),
-                                  _resized(frame.dontcare, f))]
-    detections, roi_losses = det.roi_heads(features, proposals, images.image_sizes, targets)
-    if det.training:
+        placed = [drop_ignored(placed[0], targets[0]["boxes"], _resized(frame.ignore, f), _resized(frame.dontcare, f))]
+        _, roi_losses = det.roi_heads(features, placed, images.image_sizes, targets)
         return {**rpn_losses, **roi_losses}
-    return det.transform.postprocess(detections, images.image_sizes, [tuple(f.original_size)])[0]
+    heads = det.roi_heads  # RoIHeads.forward's evaluation path for boxes, stage by stage
+    with stage("roi_align"):
+        pooled = heads.box_roi_pool(features, placed, images.image_sizes)
+    with stage("box_head"):
+        logits, deltas = heads.box_predictor(heads.box_head(pooled))
+    with stage("postprocess"):
+        boxes, scores, labels = heads.postprocess_detections(logits, deltas, placed, images.image_sizes)
+        found = boxes[0] + boxes[0].new_tensor([0.0, top, 0.0, top]) if top else boxes[0]
+        detections = [{"boxes": found, "labels": labels[0], "scores": scores[0]}]
+        return det.transform.postprocess(detections, [(h, w)], [tuple(f.original_size)])[0]
 
 
 def _lr(step: int, total: int, s: TrainSettings) -> float:

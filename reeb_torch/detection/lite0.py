@@ -22,6 +22,14 @@ Stages (block indices into ``_blocks``; stride relative to the input; channels o
 ``0`` s2 16 | ``1-2`` s4 24 | ``3-4`` s8 40 | ``5-7`` s16 80 | ``8-10`` s16 112 |
 ``11-14`` s32 192 | ``15`` s32 320; then the 1×1 head conv to 1280 and the 1000-way
 classifier. :meth:`EfficientNetLite0.pyramid` returns the maps after blocks 4, 10 and 15.
+
+:class:`FrozenLite0` is the same pyramid for inference with a frozen network: each
+BatchNorm folded into the convolution before it, TensorFlow's padding taken by the
+convolution itself where it is symmetric (every stride-1 layer) and added only before the
+five stride-2 layers, ReLU6 applied in place, channels-last memory and a choice of
+precision (``float32``, or ``bfloat16`` on a CPU or GPU that computes it natively:
+:func:`native_bfloat16`). In ``float32`` it gives :meth:`EfficientNetLite0.pyramid`'s maps
+to float rounding.
 """
 
 from __future__ import annotations
@@ -38,7 +46,10 @@ from torch import Tensor, nn
 
 __all__ = [
     "EfficientNetLite0",
+    "FrozenLite0",
     "SameConv2d",
+    "PRECISIONS",
+    "native_bfloat16",
     "LITE0_MEAN",
     "LITE0_STD",
     "PYRAMID_LEVELS",
@@ -58,6 +69,9 @@ _STAGES = ((1, 3, 1, 1, 32, 16), (2, 3, 2, 6, 16, 24), (2, 5, 2, 6, 24, 40), (3,
 
 PYRAMID_LEVELS: dict[str, tuple[int, int, int]] = {"0": (4, 8, 40), "1": (10, 16, 112), "2": (15, 32, 320)}
 """Feature maps of :meth:`EfficientNetLite0.pyramid`: name -> (last block, stride, channels)."""
+
+PRECISIONS = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+"""The precisions :class:`FrozenLite0` computes in, by name (as detector files record them)."""
 
 _BN_EPS = 1e-3
 _EXTRA = "detect"
@@ -144,6 +158,95 @@ class EfficientNetLite0(nn.Module):
         x = self.pyramid(x)["2"]
         x = F.relu6(self._bn1(self._conv_head(x)))
         return self._fc(x.mean((-2, -1)))
+
+
+class _FoldedConv(nn.Module):
+    """A :class:`SameConv2d` and the BatchNorm after it as one convolution with a bias (the
+    frozen statistics folded into the weights), ReLU6 in place after it where ``relu6``."""
+
+    def __init__(self, conv: SameConv2d, bn: nn.BatchNorm2d, relu6: bool) -> None:
+        super().__init__()
+        with torch.no_grad():
+            scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
+            self.register_buffer("weight", conv.weight * scale[:, None, None, None])
+            self.register_buffer("bias", bn.bias - bn.running_mean * scale)
+        self.kernel, self.stride, self.groups = conv.kernel_size[0], conv.stride[0], conv.groups
+        self.relu6 = relu6
+
+    def forward(self, x: Tensor) -> Tensor:
+        k, s = self.kernel, self.stride
+        if s == 1:  # "SAME" with an odd kernel: k // 2 on every side, the convolution's own padding
+            y = F.conv2d(x, self.weight, self.bias, 1, k // 2, 1, self.groups)
+        else:
+            pads = [max((math.ceil(i / s) - 1) * s + k - i, 0) for i in x.shape[-2:]]
+            (th, tw) = pads
+            x = F.pad(x, (tw // 2, tw - tw // 2, th // 2, th - th // 2)) if th or tw else x
+            y = F.conv2d(x, self.weight, self.bias, s, 0, 1, self.groups)
+        return F.hardtanh_(y, 0.0, 6.0) if self.relu6 else y
+
+
+class _FoldedBlock(nn.Module):
+    def __init__(self, block: MBConv) -> None:
+        super().__init__()
+        self.expand = _FoldedConv(block._expand_conv, block._bn0, True) if block.expand != 1 else None
+        self.depthwise = _FoldedConv(block._depthwise_conv, block._bn1, True)
+        self.project = _FoldedConv(block._project_conv, block._bn2, False)
+        self.residual = block.residual
+
+    def forward(self, x: Tensor) -> Tensor:
+        y = self.project(self.depthwise(self.expand(x) if self.expand is not None else x))
+        return y.add_(x) if self.residual else y
+
+
+def native_bfloat16(device: str | torch.device = "cpu") -> bool:
+    """Whether ``device`` computes bfloat16 convolutions natively: a CPU with AVX512-BF16 or
+    AMX-BF16 (x86) or BF16 (Arm) (:func:`torch.cpu.get_capabilities`), a CUDA GPU that
+    supports bfloat16. Elsewhere bfloat16 is emulated and slower than float32."""
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    if dev.type != "cpu":
+        return False
+    caps = torch.cpu.get_capabilities()
+    return bool(caps.get("avx512_bf16") or caps.get("amx_bf16") or caps.get("bf16") or caps.get("sve_bf16"))
+
+
+class FrozenLite0(nn.Module):
+    """EfficientNet-Lite0's pyramid (:meth:`EfficientNetLite0.pyramid`) for a frozen network:
+    BatchNorm folded, padding inside the convolutions where it is symmetric, ReLU6 in place,
+    channels-last, in ``precision`` (:data:`PRECISIONS`; see the module doc).
+
+    ``forward(x)``: ``x`` ``Tensor[B, 3, H, W]`` normalised (:data:`LITE0_MEAN`,
+    :data:`LITE0_STD`), any float dtype -> ``{"0": [B, 40, ⌈H/8⌉, ⌈W/8⌉], "1": [B, 112,
+    ⌈H/16⌉, ⌈W/16⌉], "2": [B, 320, ⌈H/32⌉, ⌈W/32⌉]}`` in ``precision``, channels-last.
+    The weights are buffers (nothing to train); the classifier head is not kept.
+    """
+
+    def __init__(self, net: EfficientNetLite0, precision: str = "float32") -> None:
+        super().__init__()
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+        self.precision = precision
+        self.stem = _FoldedConv(net._conv_stem, net._bn0, True)
+        last = max(block for block, _, _ in PYRAMID_LEVELS.values())
+        self.blocks = nn.ModuleList(_FoldedBlock(b) for b in list(net._blocks)[:last + 1])
+        self._outputs = {block: name for name, (block, _, _) in PYRAMID_LEVELS.items()}
+        self.to(PRECISIONS[precision]).to(memory_format=torch.channels_last)
+        self.eval().requires_grad_(False)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return PRECISIONS[self.precision]
+
+    @torch.no_grad()
+    def forward(self, x: Tensor) -> dict[str, Tensor]:
+        x = self.stem(x.to(self.dtype).contiguous(memory_format=torch.channels_last))
+        out: dict[str, Tensor] = {}
+        for i, block in enumerate(self.blocks):
+            x = block(x)
+            if i in self._outputs:
+                out[self._outputs[i]] = x
+        return out
 
 
 def lite0_weights_path() -> Path:

@@ -13,8 +13,12 @@
   source given as ``generator``), or torchvision's learned RPN (``proposals="learned"``,
   the control: 2 anchor sizes × 3 aspect ratios per level, sizes 32-1024 px);
 - **RoI pooling** :class:`~torchvision.ops.MultiScaleRoIAlign` (7×7, sampling ratio 2) over
-  the three levels, torchvision's two-layer box head (:class:`TwoMLPHead`, 1024 units) and
-  box predictor.
+  the three levels (:class:`~reeb_torch.detection.roi_align.PyramidRoIAlign`: compiled for
+  inference on the CPU), torchvision's two-layer box head (:class:`TwoMLPHead`,
+  ``representation_size`` units) and box predictor.
+
+The frozen body is :class:`~reeb_torch.detection.lite0.FrozenLite0` (BatchNorm folded,
+channels-last) in ``float32`` or ``bfloat16``.
 
 Both arms build the same modules in the same order, so with the same ``torch`` seed the neck
 and the box head start from the same weights. Images enter as float RGB in [0, 1]; the
@@ -36,10 +40,10 @@ from torchvision.models.detection import FasterRCNN
 from torchvision.models.detection.anchor_utils import AnchorGenerator
 from torchvision.models.detection.faster_rcnn import FastRCNNPredictor, TwoMLPHead
 from torchvision.models.detection.rpn import RPNHead
-from torchvision.ops import MultiScaleRoIAlign
 
 from ..config import ReebConfig
-from .lite0 import LITE0_MEAN, LITE0_STD, PYRAMID_LEVELS, EfficientNetLite0, load_lite0
+from .lite0 import LITE0_MEAN, LITE0_STD, PYRAMID_LEVELS, EfficientNetLite0, FrozenLite0, load_lite0
+from .roi_align import PyramidRoIAlign
 from .rpn import ReebRPN
 
 __all__ = ["LiteNeck", "Lite0Pyramid", "reeb_fasterrcnn_lite0", "LEARNED_ANCHOR_SIZES"]
@@ -80,13 +84,13 @@ class Lite0Pyramid(nn.Module):
 
     ``forward(x)``: ``x`` ``[B, 3, H, W]`` normalised (:data:`LITE0_MEAN`, :data:`LITE0_STD`)
     -> ``OrderedDict`` of three ``[B, out_channels, ceil(H/s), ceil(W/s)]`` maps, s = 8, 16, 32.
-    :meth:`frozen` is the part computed once per frame and cached; the body stays in
-    ``eval`` mode whatever ``train()`` is called with.
+    :meth:`frozen` is the part computed once per frame and cached (:class:`FrozenLite0` in
+    ``precision``); the body stays in ``eval`` mode whatever ``train()`` is called with.
     """
 
-    def __init__(self, body: EfficientNetLite0, channels: int = 128) -> None:
+    def __init__(self, body: EfficientNetLite0, channels: int = 128, precision: str = "float32") -> None:
         super().__init__()
-        self.body = body.eval().requires_grad_(False)
+        self.body = FrozenLite0(body, precision)
         self.neck = LiteNeck(channels)
         self.out_channels = channels
 
@@ -95,10 +99,16 @@ class Lite0Pyramid(nn.Module):
         self.body.eval()
         return self
 
+    @property
+    def precision(self) -> str:
+        """The precision the frozen body computes in (``float32`` or ``bfloat16``)."""
+        return self.body.precision
+
     @torch.no_grad()
     def frozen(self, x: Tensor) -> dict[str, Tensor]:
-        """The body's maps (:meth:`EfficientNetLite0.pyramid`), without gradients."""
-        return self.body.pyramid(x)
+        """The body's maps (:meth:`EfficientNetLite0.pyramid`, in :attr:`precision`,
+        channels-last), without gradients."""
+        return self.body(x)
 
     def forward(self, x: Tensor) -> "OrderedDict[str, Tensor]":
         return self.neck(self.frozen(x))
@@ -120,6 +130,8 @@ def reeb_fasterrcnn_lite0(
     min_size: int = 576,
     max_size: int = 2048,
     neck_channels: int = 128,
+    representation_size: int = 1024,
+    precision: str = "float32",
     rpn_post_nms_top_n_train: int = 2000,
     rpn_post_nms_top_n_test: int = 1000,
     **kwargs: Any,
@@ -138,6 +150,8 @@ def reeb_fasterrcnn_lite0(
             naming the extra when it is missing.
         min_size, max_size: the transform's resize (shorter side, bound on the longer).
         neck_channels: channels of the neck and of the pooled RoI features.
+        representation_size: units of each of the box head's two layers.
+        precision: the frozen body's (``"float32"`` or ``"bfloat16"``; :class:`FrozenLite0`).
         rpn_post_nms_top_n_train, rpn_post_nms_top_n_test: proposals per image handed to
             the box head in training and evaluation, for either arm.
         **kwargs: passed to :class:`FasterRCNN` (``box_batch_size_per_image``,
@@ -149,7 +163,7 @@ def reeb_fasterrcnn_lite0(
     """
     if proposals not in ("reeb", "learned"):
         raise ValueError(f"proposals must be 'reeb' or 'learned', got {proposals!r}")
-    backbone = Lite0Pyramid(load_lite0(weights), neck_channels)
+    backbone = Lite0Pyramid(load_lite0(weights), neck_channels, precision)
     anchors, rpn_head = _learned_rpn_parts(neck_channels)
     model = FasterRCNN(
         backbone, None, min_size=min_size, max_size=max_size,
@@ -157,9 +171,9 @@ def reeb_fasterrcnn_lite0(
         rpn_anchor_generator=anchors, rpn_head=rpn_head,
         rpn_pre_nms_top_n_train=rpn_post_nms_top_n_train, rpn_pre_nms_top_n_test=rpn_post_nms_top_n_test,
         rpn_post_nms_top_n_train=rpn_post_nms_top_n_train, rpn_post_nms_top_n_test=rpn_post_nms_top_n_test,
-        box_roi_pool=MultiScaleRoIAlign(list(PYRAMID_LEVELS), output_size=7, sampling_ratio=2),
-        box_head=TwoMLPHead(neck_channels * 7 * 7, 1024),
-        box_predictor=FastRCNNPredictor(1024, num_classes),
+        box_roi_pool=PyramidRoIAlign(list(PYRAMID_LEVELS), output_size=7, sampling_ratio=2),
+        box_head=TwoMLPHead(neck_channels * 7 * 7, representation_size),
+        box_predictor=FastRCNNPredictor(representation_size, num_classes),
         **kwargs,
     )
     if proposals == "reeb":

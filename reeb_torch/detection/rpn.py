@@ -57,7 +57,7 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 def map_boxes(
-    boxes: Tensor, original_size: Sequence[int], new_size: Sequence[int], min_size: float = 1e-3
+    boxes: Tensor, original_size: Sequence[int], new_size: Sequence[int], min_size: float = 1e-3, top: int = 0
 ) -> Tensor:
     """Map boxes from an input image to its resized frame, clip them, drop degenerate ones.
 
@@ -66,6 +66,9 @@ def map_boxes(
             ``original_size = (H, W)``.
         new_size: ``(h, w)`` of the resized image.
         min_size: boxes narrower or lower than this (resized pixels) are dropped.
+        top: rows of the resized image cut off above the frame the boxes go to (the
+            detector's ``crop_top``): boxes are moved up by ``top`` and clipped to
+            ``(h - top, w)``.
 
     Returns:
         ``Tensor[M, 4]`` float32, ``M <= N``, order kept: ``resize_boxes`` (the function
@@ -74,7 +77,9 @@ def map_boxes(
         :func:`~torchvision.ops.remove_small_boxes`, as torchvision's RPN does.
     """
     boxes = resize_boxes(boxes.float(), list(original_size), list(new_size))
-    boxes = box_ops.clip_boxes_to_image(boxes, (int(new_size[0]), int(new_size[1])))
+    if top:
+        boxes = boxes - boxes.new_tensor([0.0, top, 0.0, top])
+    boxes = box_ops.clip_boxes_to_image(boxes, (int(new_size[0]) - top, int(new_size[1])))
     keep = box_ops.remove_small_boxes(boxes, min_size)
     return boxes[keep]
 
@@ -168,6 +173,11 @@ class ReebRPN(nn.Module):
     def post_nms_top_n(self) -> int:
         return self._post_nms_top_n["training" if self.training else "testing"]
 
+    def place(self, boxes: Tensor, original_size: Sequence[int], new_size: Sequence[int], top: int = 0) -> Tensor:
+        """The first :meth:`post_nms_top_n` of an image's ``boxes`` (input pixels, best first)
+        in its resized frame (:func:`map_boxes`; ``top``: rows cut above it)."""
+        return map_boxes(boxes[:self.post_nms_top_n()], original_size, new_size, self.min_size, top)
+
     # -- proposals ----------------------------------------------------------------------
     @torch.no_grad()
     def propose(self, images: list[Tensor]) -> list[Tensor]:
@@ -220,12 +230,9 @@ class ReebRPN(nn.Module):
                     "input images", stacklevel=2)
                 self._warned = True
             inputs = self._resized_images(images)
-        n = self.post_nms_top_n()
         boxes = self.propose(inputs)
-        proposals = [
-            map_boxes(b[:n], image.shape[-2:], size, self.min_size).to(images.tensors.dtype)
-            for b, image, size in zip(boxes, inputs, images.image_sizes)
-        ]
+        proposals = [self.place(b, image.shape[-2:], size).to(images.tensors.dtype)
+                     for b, image, size in zip(boxes, inputs, images.image_sizes)]
         return proposals, {}
 
     def extra_repr(self) -> str:

@@ -68,6 +68,30 @@ def _check_weights_out(out: str, overwrite: bool) -> Path:
     return p
 
 
+SETTINGS_OPTIONS = {"min_size": "min_size", "max_size": "max_size", "train_proposals": "proposals_train",
+                    "test_proposals": "proposals_test", "precision": "precision", "crop_top": "crop_top",
+                    "neck_channels": "neck_channels", "head_width": "representation_size"}
+"""``reeb detector fit``'s options that set :class:`~reeb_torch.detection.DetectorSettings`
+fields: option parameter -> field."""
+
+
+def fit_settings(params: dict[str, Any]) -> Any:
+    """The :class:`~reeb_torch.detection.DetectorSettings` of ``reeb detector fit``'s parsed
+    parameters (``params``: the command's, as click parses them)."""
+    from ..detection import DetectorSettings
+
+    return DetectorSettings(**{field: params[name] for name, field in SETTINGS_OPTIONS.items() if name in params})
+
+
+def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
+    """``--option value`` for each of ``names`` (parameter names) whose value is not its default."""
+    out = []
+    for param in ctx.command.params:
+        if param.name in names and ctx.params.get(param.name) != param.default:
+            out += [param.opts[0], str(ctx.params[param.name])]
+    return out
+
+
 @detector.command("fit", context_settings=CONTEXT)
 @click.argument("dirs", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False))
 @click.option("-o", "--out", type=click.Path(dir_okay=False), default="detector.safetensors", show_default=True,
@@ -92,12 +116,21 @@ def _check_weights_out(out: str, overwrite: bool) -> Path:
               help="REEB proposals per image in training.")
 @click.option("--test-proposals", type=click.IntRange(min=1), default=1000, show_default=True,
               help="REEB proposals per image in detection (the heads' time grows with it).")
+@click.option("--precision", type=click.Choice(["float32", "bfloat16"]), default="float32", show_default=True,
+              help="The frozen backbone's precision; the heads train on its maps and detection uses the same "
+                   "(bfloat16 where the CPU or GPU computes it natively, float32 elsewhere).")
+@click.option("--crop-top", type=click.FloatRange(0, 0.9), default=0.0, show_default=True,
+              help="Share of the image's height, from the top, the backbone skips (rows where no object lies).")
+@click.option("--neck-channels", type=click.IntRange(min=8, max=1024), default=128, show_default=True,
+              help="Channels of the neck and of the pooled RoI features.")
+@click.option("--head-width", type=click.IntRange(min=8, max=4096), default=1024, show_default=True,
+              help="Units of each of the box head's two layers.")
 @click.option("--cache", "cache_dir", type=click.Path(file_okay=False),
               help="Where each frame's backbone maps and proposals are kept [default: ~/.cache/reeb-torch/detection].")
 @click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
 def fit(dirs, out, overwrite, proposals, classes, epochs, seed, val, hflip, min_size, max_size, train_proposals,
-        test_proposals, cache_dir, limit, quiet):
+        test_proposals, precision, crop_top, neck_channels, head_width, cache_dir, limit, quiet):
     """Train a detector on labelled KITTI-format folders (DIRS: images/ and labels/, or image_2/ and
     label_2/) and write it to OUT. The backbone's maps and REEB's proposals of each frame are
     cached, so a second fit on the same frames trains at once. Deterministic for a seed.
@@ -108,15 +141,11 @@ def fit(dirs, out, overwrite, proposals, classes, epochs, seed, val, hflip, min_
     names = tuple(c.strip() for c in classes.split(",") if c.strip())
     if not names or len(set(names)) != len(names):
         raise click.BadParameter(f"{classes!r}: expected distinct names such as Car,Pedestrian", param_hint="--classes")
-    settings = DetectorSettings(min_size=min_size, max_size=max_size, proposals_train=train_proposals,
-                                proposals_test=test_proposals)
+    settings = fit_settings(click.get_current_context().params)
     command = " ".join(["reeb detector fit", *map(shlex.quote, dirs), "-o", shlex.quote(out), "--proposals",
                         shlex.quote(proposals), "--classes", shlex.quote(",".join(names)), "--epochs", str(epochs),
                         "--seed", str(seed)] + (["--hflip"] if hflip else [])
-                       + (["--min-size", str(min_size)] if min_size != 576 else [])
-                       + (["--max-size", str(max_size)] if max_size != 2048 else [])
-                       + (["--train-proposals", str(train_proposals)] if train_proposals != 2000 else [])
-                       + (["--test-proposals", str(test_proposals)] if test_proposals != 1000 else [])
+                       + _changed_options(click.get_current_context(), SETTINGS_OPTIONS)
                        + (["--limit", str(limit)] if limit else []))
     t0 = time.perf_counter()
     try:

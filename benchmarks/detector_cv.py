@@ -1,0 +1,236 @@
+"""Detector settings compared on every dev frame: whole-drives cross-validation, paired.
+
+The frames of the given KITTI-format folders are split into ``--folds`` contiguous blocks.
+For each block, the detector of each ``--arm`` (``reeb detector fit``'s options) is trained
+on the other blocks less every frame of the block's drives and every near-copy of one of its
+frames (:func:`reeb_torch.eval.fit.training_frames`, as ``reeb fit --whole-drives`` holds
+frames out), then run on the block. The arms' proposals rank with a model fitted on the same
+training frames (``reeb fit``'s defaults; kept per fold under ``--work``), unless an arm asks
+for ``--proposals training-free``: no frame is scored by a ranking or a detector that saw it.
+
+Every frame is thus scored once per arm and seed, by detectors that never saw its drive, and
+KITTI's 2D AP|R40 (moderate; :mod:`reeb_torch.eval.kitti_ap`) is computed over all of them
+together. The first arm is A; every other arm is B against it: each arm's AP (mean over
+``--seeds``) with its frame-bootstrap interval, and the paired bootstrap's B − A
+(:func:`~reeb_torch.eval.kitti_ap.paired_bootstrap`: the same frames drawn for both arms),
+over all frames and per folder.
+
+    python benchmarks/detector_cv.py ../shared/data/kitti ../shared/data/kitti_tracking --folds 5 \\
+        --arm base="" --arm narrow="--neck-channels 64 --head-width 256" --seeds 0 1 2 \\
+        --out docs/results/detector/cv_narrow --work /tmp/detector_cv
+
+Writes ``OUT/cv.txt`` (the tables) and ``OUT/cv.json`` (per arm its scores and per seed its
+fits' times; per comparison per class ``a``, ``b``, ``diff``, intervals, ``share_b_better``,
+``verdict``, and the same per folder; the command; the machine). With ``--work``, each
+fold's ranking and each (arm, seed)'s detections are kept there and reused by a later run of
+the same options.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import environment, rerun_line  # noqa: E402
+from detector_paired import _mean_scores, fit_options, parse_arm  # noqa: E402
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("roots", type=Path, nargs="+", help="labelled KITTI-format folders")
+    p.add_argument("--arm", type=parse_arm, action="append", required=True, metavar='NAME="OPTIONS"',
+                   help="a setting: reeb detector fit's options; the first is A, the baseline (two or more)")
+    p.add_argument("--folds", type=int, default=5, help="blocks of frames held out in turn (default 5)")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0], metavar="S", help="fit seeds (default 0)")
+    p.add_argument("--out", type=Path, required=True, help="folder for cv.txt and cv.json")
+    p.add_argument("--work", type=Path, help="keep each fold's ranking and each arm's detections here")
+    p.add_argument("--cache", type=Path, help="backbone-map and proposal cache [default: reeb's]")
+    p.add_argument("--limit", type=int, help="only the first N frames of each folder")
+    p.add_argument("--samples", type=int, default=1000, help="bootstrap draws")
+    p.add_argument("--seed", type=int, default=0, help="the bootstrap's seed")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    args = p.parse_args(argv)
+    names = [n for n, _ in args.arm]
+    if len(args.arm) < 2 or len(set(names)) != len(names):
+        p.error(f"give two or more --arm with distinct names (got {names})")
+    return args
+
+
+def training_sides(items: list[dict], folds: int) -> tuple[list[list[int]], list[list[int]]]:
+    """The held-out blocks and, for each, the frames its models are fitted on (whole drives
+    and near-copies of a held-out frame left out)."""
+    from reeb_torch.eval.fit import similar_frames, training_frames
+    from reeb_torch.eval.tune import fold_blocks
+
+    ids, folders = [it["image_id"] for it in items], [it["folder"] for it in items]
+    blocks = fold_blocks(len(items), folds)
+    similar = similar_frames([it["image"] for it in items])
+    return blocks, [training_frames(blocks, f, ids, folders, similar, gap=len(ids)) for f in range(len(blocks))]
+
+
+def fold_rankers(roots: list[Path], items: list[dict], train_sides: list[list[int]], work: Path | None,
+                 limit: int | None, quiet: bool) -> list[str]:
+    """Per fold, ranker weights fitted with ``reeb fit``'s defaults on its training frames
+    (kept under ``work/rankers``, named by the frames, and reused)."""
+    import tempfile
+
+    from reeb_torch.config import ReebConfig
+    from reeb_torch.eval import fit as F
+    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.ranker import save_ranker
+
+    folder = (work or Path(tempfile.mkdtemp(prefix="detector-cv-"))) / "rankers"
+    folder.mkdir(parents=True, exist_ok=True)
+    keys = [f"{items[i]['folder']}/{items[i]['image_id']}" for i in range(len(items))]
+    paths = [folder / f"fold{f}-{hashlib.sha256(' '.join(keys[i] for i in side).encode()).hexdigest()[:12]}"
+             ".safetensors" for f, side in enumerate(train_sides)]
+    if all(p.is_file() for p in paths):
+        return [str(p) for p in paths]
+    frames = F.load_fit_frames([str(r) for r in roots], limit=limit)
+    if [f"{fo}/{i}" for fo, i in zip(frames.folders, frames.ids)] != keys:
+        raise SystemExit("the ranking's frames are not the detector's (labels without images?)")
+    cfg = ReebConfig()
+    cache = FrameCache(frames)
+    names = cache.candidates(cfg.unranked(), 0).feature_names
+    opts = F.FitOptions()
+    samples = F.frame_samples(cache, cfg, opts)
+    for f, (side, path) in enumerate(zip(train_sides, paths)):
+        if not path.is_file():
+            t0 = time.perf_counter()
+            model = F.fit_ranker([samples[i] for i in side], names, opts, frames.classes)
+            save_ranker(model, path, {"frames": [keys[i] for i in side]}, cfg.to_dict())
+            if not quiet:
+                print(f"fold {f}: ranking fitted on {len(side)} frames in {time.perf_counter() - t0:.0f} s",
+                      file=sys.stderr)
+    return [str(p) for p in paths]
+
+
+def run_arm(options: str, seed: int, items: list[dict], blocks: list[list[int]], sides: list[list[int]],
+            rankers: list[str], args: argparse.Namespace) -> tuple[list[dict], dict[str, Any]]:
+    """The detections of every frame by the arm's detectors (each trained without the frame's
+    block), and the fits' record; kept under ``--work`` by options and seed."""
+    import torch
+
+    from reeb_torch.detection import ReebDetector, TrainSettings, detect
+    from reeb_torch.detection.fitting import cached_frames, train_detector
+    from reeb_torch.runs.detect import fit_settings
+
+    o = fit_options(args.roots, options)
+    key = hashlib.sha256(json.dumps([options, seed, args.folds, args.limit, rankers]).encode()).hexdigest()[:16]
+    kept = args.work / "detections" / f"{key}.pt" if args.work else None
+    if kept is not None and kept.is_file():
+        saved = torch.load(kept, weights_only=True)
+        return saved["detections"], saved["record"]
+    classes = tuple(c.strip() for c in o["classes"].split(",") if c.strip())
+    settings = fit_settings(o)
+    training = TrainSettings(epochs=o["epochs"], seed=seed, hflip=o["hflip"])
+    detections: list[dict] = [{} for _ in items]
+    record: dict[str, Any] = {"fit_s": [], "train_heads_s": [], "steps": []}
+    for f, (block, side) in enumerate(zip(blocks, sides)):
+        proposals = rankers[f] if o["proposals"] == "default" else o["proposals"]
+        t0 = time.perf_counter()
+        det = train_detector(ReebDetector, [items[i] for i in side], args.roots, classes=classes,
+                             proposals=proposals, settings=settings, training=training, cache_dir=args.cache,
+                             progress=not args.quiet)
+        record["fit_s"].append(round(time.perf_counter() - t0, 1))
+        record["train_heads_s"].append(round(det.history["train_s"], 1))
+        record["steps"].append(det.history["steps"])
+        try:
+            found = detect(det.model, cached_frames(det, [items[i] for i in block], args.cache, not args.quiet),
+                           progress=False)
+        finally:
+            det.model.rpn.cache = None
+        for i, d in zip(block, found):
+            detections[i] = {k: v.detach().cpu() for k, v in d.items()}
+    if kept is not None:
+        kept.parent.mkdir(parents=True, exist_ok=True)
+        torch.save({"detections": detections, "record": record}, kept)
+    return detections, record
+
+
+def _subset(stats: dict[str, list], frames: list[int]) -> dict[str, list]:
+    return {k: [v[i] for i in frames] for k, v in stats.items()}
+
+
+def main(argv: list[str] | None = None) -> int:
+    from reeb_torch.detection import format_paired, load_frames, paired_scores
+    from reeb_torch.eval import kitti_ap
+
+    args = parse_args(argv)
+    classes = {tuple(c.strip() for c in fit_options(args.roots, o)["classes"].split(",")) for _, o in args.arm}
+    if len(classes) > 1:
+        raise SystemExit("every arm must train the same classes")
+    cls = next(iter(classes))
+    items = load_frames(args.roots, cls, args.limit)
+    blocks, sides = training_sides(items, args.folds)
+    need_rankers = any(fit_options(args.roots, o)["proposals"] == "default" for _, o in args.arm)
+    rankers = fold_rankers(args.roots, items, sides, args.work, args.limit, args.quiet) if need_rankers else []
+    objects = [it["objects"] for it in items]
+    folders = sorted({it["folder"] for it in items}, key=[it["folder"] for it in items].index)
+    by_folder = {fo: [i for i, it in enumerate(items) if it["folder"] == fo] for fo in folders}
+    arms: dict[str, dict[str, Any]] = {}
+    stats: dict[str, list[Any]] = {}
+    for name, options in args.arm:
+        runs = []
+        for seed in args.seeds:
+            dets, record = run_arm(options, seed, items, blocks, sides, rankers, args)
+            st = kitti_ap.evaluate(objects, [{**d, "labels": d["labels"] - 1} for d in dets], cls)
+            stats.setdefault(name, []).append(st)
+            ap = {k: None if v != v else round(100 * v, 2) for k, v in kitti_ap.kitti_ap(st).items()}
+            runs.append({"seed": seed, "ap": ap, **record})
+            print(f"{name} seed {seed}: mAP {ap['mAP']} (fits {sum(record['fit_s']):.0f} s)", file=sys.stderr)
+        base = {"objects": {c: sum(s.num_gt for s in stats[name][0][c]) for c in cls}, "frames": len(items),
+                "training_frames": 0}
+        arms[name] = {"options": options, **_mean_scores([base], stats[name], args.samples, args.seed),
+                      "runs": runs}
+    first = args.arm[0][0]
+    comparisons: dict[str, Any] = {}
+    for name, _ in args.arm[1:]:
+        key = f"{name} vs {first}"
+        comparisons[key] = {"all": paired_scores(kitti_ap.paired_bootstrap(stats[first], stats[name],
+                                                                           samples=args.samples, seed=args.seed))}
+        for fo, idx in by_folder.items():
+            comparisons[key][fo] = paired_scores(kitti_ap.paired_bootstrap(
+                [_subset(s, idx) for s in stats[first]], [_subset(s, idx) for s in stats[name]],
+                samples=args.samples, seed=args.seed))
+    command = rerun_line("benchmarks/detector_cv.py", sys.argv[1:] if argv is None else argv)
+    lines = [f"# rerun: {command}", f"# machine: {json.dumps(environment(), sort_keys=True)}",
+             f"# {len(items)} frames in {args.folds} blocks; each scored by detectors (and rankings) fitted "
+             f"without its block's drives; seeds {' '.join(map(str, args.seeds))}", ""]
+    for name, a in arms.items():
+        lines.append(f"## arm {name}: reeb detector fit {a['options'] or '(defaults)'}")
+        for r in a["runs"]:
+            aps = ", ".join(f"{k} {'-' if v is None else f'{v:.1f}'}" for k, v in r["ap"].items())
+            lines.append(f"seed {r['seed']}: {aps}; fits {sum(r['fit_s']):.0f} s "
+                         f"({sum(r['train_heads_s']):.0f} s of head training)")
+        lines += [_score_table(a), ""]
+    for key, c in comparisons.items():
+        b, a = key.split(" vs ")
+        for part, table in c.items():
+            lines += [f"## paired: {key}, {'all frames' if part == 'all' else part} ({args.samples} draws)",
+                      format_paired(table, a, b), ""]
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "cv.txt").write_text("\n".join(lines))
+    (args.out / "cv.json").write_text(json.dumps(
+        {"command": command, "roots": list(map(str, args.roots)), "folds": args.folds, "seeds": args.seeds,
+         "arms": arms, "comparisons": comparisons, "samples": args.samples, "environment": environment(),
+         "options": {n: shlex.split(o) for n, o in args.arm}}, indent=2) + "\n")
+    print("\n".join(lines))
+    return 0
+
+
+def _score_table(a: dict[str, Any]) -> str:
+    from reeb_torch.detection import format_scores
+
+    return format_scores(a)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
