@@ -87,12 +87,19 @@ def test_compiled_roi_align_is_torchvisions_bit_for_bit(sampling):
     assert roi_align_levels([feats[n] for n in names], boxes[:0], (h, w)).shape == (0, 24, 7, 7)
 
 
-def test_roi_align_keeps_torchvision_where_gradients_flow():
-    h, w = 64, 128
-    feats = {k: v.requires_grad_(True) for k, v in _pyramid(8, h, w).items()}
-    out = PyramidRoIAlign(["0", "1", "2"], 7, 2)(feats, [_boxes(20, h, w)], [(h, w)])
-    out.sum().backward()
-    assert feats["0"].grad is not None
+@pytest.mark.parametrize("layout", [torch.contiguous_format, torch.channels_last])
+def test_compiled_roi_align_gradients_are_torchvisions_bit_for_bit(layout):
+    h, w = 128, 384
+    names = ["0", "1", "2"]
+    boxes = _boxes(200, h, w, seed=4)
+    upstream = torch.randn(200, 16, 7, 7, generator=torch.Generator().manual_seed(5))
+    grads = []
+    for pool in (MultiScaleRoIAlign(names, 7, 2), PyramidRoIAlign(names, 7, 2)):
+        feats = {k: v.contiguous(memory_format=layout).requires_grad_(True) for k, v in _pyramid(16, h, w, 6).items()}
+        (pool(feats, [boxes], [(h, w)]) * upstream).sum().backward()
+        grads.append([feats[n].grad for n in names])
+    for ref, ours in zip(*grads):
+        assert torch.equal(ref, ours)
 
 
 def test_top_rows_and_map_boxes_with_a_crop():
