@@ -23,6 +23,7 @@ import atexit
 import dataclasses
 import hashlib
 import os
+import re
 import shutil
 import tempfile
 import warnings
@@ -36,8 +37,8 @@ from torch import Tensor, nn
 
 from ..config import ReebConfig
 from ..io import replace_file
-from .detector_file import (DetectorFileError, check_tensors, ranker_file_bytes, ranker_parts, read_detector_file,
-                            trained_keys, write_detector_file)
+from .detector_file import (DetectorFileError, check_tensors, not_a_file, ranker_file_bytes, ranker_parts,
+                            read_detector_file, trained_keys, write_detector_file)
 from .head_training import TrainSettings
 from .kitti import KITTI_CLASSES
 
@@ -147,7 +148,7 @@ def _proposal_config(spec: str, top_k: int) -> ReebConfig:
         config = get_preset("default").replace(ranker=str(Path(os.path.expanduser(spec)).resolve()))
     else:
         raise ValueError(f"proposals {spec!r}: expected {' or '.join(PROPOSALS)} or a ranker weights file "
-                         "(reeb fit's .safetensors); no such file")
+                         f"(reeb fit's .safetensors); {not_a_file(Path(os.path.expanduser(spec))) or 'no such file'}")
     return config.replace(top_k=int(top_k))
 
 
@@ -279,9 +280,11 @@ class ReebDetector(nn.Module):
         SHA-256 is not the one recorded).
 
         Raises:
-            DetectorFileError: a missing, damaged or foreign file, or one made on other
-                backbone weights or with proposal settings this installation cannot run,
-                or whose embedded ranker is damaged; one line naming the file and what is wrong.
+            DetectorFileError: a missing, damaged or foreign file, settings of the wrong type
+                or out of range (:data:`SETTINGS_RANGES`, checked before anything is built),
+                one made on other backbone weights or with proposal settings this
+                installation cannot run, whose embedded ranker is damaged or whose ranker file
+                is gone or unreadable; one line naming the file and what is wrong.
             ImportError: the ``detect`` extra is missing (one line naming it).
         """
         from ..ranker import RankerWeightsError
@@ -301,7 +304,7 @@ class ReebDetector(nn.Module):
         try:
             det = cls(meta["classes"], meta["proposals"].get("spec"), settings, config=config)
         except RankerWeightsError as e:  # the file it names by its path, replaced since
-            reason = str(e).splitlines()[0].split("): ", 1)[-1]
+            reason = re.sub(r"^ranker weights '.*?' \(.*?\):? (are |is )?", "", str(e).splitlines()[0])
             raise DetectorFileError(f"detector {p}: its proposals rank with {config.ranker!r}, which cannot be used "
                                     f"({reason})") from None
         if ranker is not None:  # its copy, checked: what the file records, not where it was unpacked

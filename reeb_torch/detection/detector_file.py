@@ -23,9 +23,11 @@ file keeps one metadata entry: safetensors writes several in no fixed order), so
 tensors). A detector of the shipped ranking, or of none, holds no such entries.
 
 :func:`read_detector_file` refuses a file it cannot use with :class:`DetectorFileError` (a
-``ValueError``) and one line naming the file and what is wrong: missing, not safetensors,
-not a detector's, another version, tensors missing, extra, of the wrong shape or not
-finite, or made on other backbone weights.
+``ValueError``) and one line naming the file and what is wrong: missing, a folder or a
+special file, not safetensors, not a detector's, another version, a class named twice,
+tensors missing, extra, of the wrong shape or not finite, settings of the wrong type or out
+of range (:meth:`~reeb_torch.detection.DetectorSettings.from_dict`), or made on other
+backbone weights.
 """
 
 from __future__ import annotations

@@ -118,7 +118,8 @@ def distinct_folders(folders: Sequence[str | os.PathLike]) -> tuple[list[str | o
     """``(kept, repeated)``: ``folders`` with each folder once (the first naming of each
     resolved path, in order), and the namings left out."""
     seen: set[Path] = set()
-    kept, repeated = [], []
+    kept: list[str | os.PathLike] = []
+    repeated: list[str | os.PathLike] = []
     for f in folders:
         key = Path(os.path.expanduser(str(f))).resolve()
         (repeated if key in seen else kept).append(f)

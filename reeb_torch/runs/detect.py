@@ -177,7 +177,8 @@ def _val_lines(val: dict) -> list[str]:
     ap = _part(val, "ap")
     if not ap:
         return []
-    folders = ", ".join(map(str, val.get("folders"))) if isinstance(val.get("folders"), list) else "?"
+    given = val.get("folders")
+    folders = ", ".join(map(str, given)) if isinstance(given, list) else "?"
     seen = val.get("training_frames") or 0
     head = (f"KITTI 2D AP|R40 (moderate) on {folders}" + (f" ({seen} of its frames are training frames)" if seen else "")
             + ":")

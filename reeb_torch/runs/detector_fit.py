@@ -163,8 +163,9 @@ def train(dirs: Sequence[str], val: Sequence[str], names: tuple[str, ...], propo
 
     t0 = time.perf_counter()
     try:
-        det = ReebDetector.fit(dirs, classes=names, proposals=proposals, epochs=epochs, seed=seed, settings=settings,
-                               cache_dir=cache_dir, limit=limit, hflip=hflip, progress=not quiet, command=command)
+        det: Any = ReebDetector.fit(dirs, classes=names, proposals=proposals, epochs=epochs, seed=seed,
+                                    settings=settings, cache_dir=cache_dir, limit=limit, hflip=hflip,
+                                    progress=not quiet, command=command)  # its history: set by fit
     except (ValueError, FileNotFoundError, ImportError) as e:
         raise UsageProblem(" ".join(str(e).split()))
     prov = det.meta["provenance"]
