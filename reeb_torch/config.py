@@ -241,11 +241,11 @@ def _validate(cfg: "ReebConfig") -> None:
 
 
 def check_fields(owner: str, values: typing.Mapping[str, Any], hints: typing.Mapping[str, Any],
-                 ranges: typing.Mapping[str, str]) -> dict[str, Any]:
+                 ranges: typing.Mapping[str, str | None]) -> dict[str, Any]:
     """``values`` of the fields of another settings class checked as ReebConfig's are: each by
-    its annotation in ``hints`` (a bool is no number, floats finite) then by its interval in
-    ``ranges`` (``"[32, 4096]"``, ``"(0, 1]"``, ``">= 1"``), normalised (ints for integral
-    numbers, tuples for lists).
+    its annotation in ``hints`` (a bool is no number, floats finite, a ``Literal``'s words)
+    then by its interval in ``ranges`` (``"[32, 4096]"``, ``"(0, 1]"``, ``">= 1"``; None or
+    absent: none), normalised (ints for integral numbers, tuples for lists).
 
     Raises:
         TypeError: a value of the wrong type; ValueError: one out of its range. Both as
@@ -258,8 +258,9 @@ def check_fields(owner: str, values: typing.Mapping[str, Any], hints: typing.Map
             fixed = _conform(value, hint)
         except (TypeError, ValueError) as e:
             raise type(e)(f"{owner}.{name} must be {_describe(hint)}, got {_show(value)}") from None
-        if name in ranges:
-            ok, expected = _range(ranges[name])
+        interval = ranges.get(name)
+        if interval is not None:
+            ok, expected = _range(interval)
             if not ok(fixed):
                 raise ValueError(f"{owner}.{name} must be {expected}, got {_show(value)}")
         out[name] = fixed

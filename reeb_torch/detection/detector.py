@@ -96,7 +96,7 @@ class DetectorSettings:
         return cls(**_checked_settings(owner, d))
 
 
-SETTINGS_RANGES: dict[str, str] = {
+SETTINGS_RANGES: dict[str, str | None] = {
     "min_size": "[32, 4096]",
     "max_size": "[32, 8192]",
     "neck_channels": "[1, 1024]",
@@ -108,9 +108,10 @@ SETTINGS_RANGES: dict[str, str] = {
     "detections_per_img": "[1, 10000]",
 }
 """The range of each :class:`DetectorSettings` field (its type is its annotation's): what a
-detector file's settings are checked against before a network is built (a new field needs
-its entry here). Sizes in pixels; the bounds keep a tampered file from asking for memory no
-machine has."""
+detector file's settings are checked against before a network is built. A new field needs
+its entry here: an interval (``"[1, 1024]"``, ``"(0, 1]"``, ``">= 1"``), or None where its
+type says all (a bool, a ``Literal`` of words). Sizes in pixels; the bounds keep a tampered
+file from asking for memory no machine has."""
 
 
 def _checked_settings(owner: str, values: dict[str, Any]) -> dict[str, Any]:

@@ -14,9 +14,9 @@ as one ``torch.save`` per frame (read with ``weights_only=True``)::
                 "2": float16 [320, h'/32, w'/32]}}
 
 An entry is *stale* when its weights digest, input size settings, image digest or format
-differ from what is asked for; :meth:`FeatureCache.load` refuses it
-(:class:`~reeb_torch.detection.StaleCacheError`) and :func:`frozen_features` recomputes and
-overwrites it. The maps are stored as float16 (about 3 MB per KITTI frame at the default
+differ from what is asked for, or when it cannot be read (a damaged file);
+:meth:`FeatureCache.load` refuses it (:class:`~reeb_torch.detection.StaleCacheError`) and
+:func:`frozen_features` recomputes and overwrites it. The maps are stored as float16 (about 3 MB per KITTI frame at the default
 size) and used as float32.
 """
 
@@ -79,7 +79,7 @@ class FeatureCache:
 
         Raises:
             FileNotFoundError: none; StaleCacheError: one made with other weights, sizes,
-            format, or for another image.
+            format, or for another image, or one that cannot be read (damaged).
         """
         path = self.path(digest)
         try:
@@ -143,7 +143,9 @@ def compute_features(model: torch.nn.Module, image: Tensor) -> FrameFeatures:
 def frozen_features(model: torch.nn.Module, items: Sequence[Mapping[str, Any]], cache: FeatureCache,
                     progress: bool = True) -> list[FrameFeatures]:
     """The frozen maps of every item's ``image``: read from ``cache``, or computed
-    (:func:`compute_features`) and saved when missing or stale; a progress bar."""
+    (:func:`compute_features`) and saved when missing, stale or damaged; a progress bar. A
+    cache that cannot be written (a full disk) is one ``RuntimeWarning``, and the maps are
+    kept in memory."""
     from tqdm import tqdm
 
     out = []

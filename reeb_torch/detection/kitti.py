@@ -26,8 +26,8 @@ from torch import Tensor
 
 from ..io import replace_file
 
-__all__ = ["KITTI_CLASSES", "NEIGHBOURS", "load_frames", "FolderSurvey", "survey_folder", "distinct_folders", "mirrored",
-           "result_lines", "write_results", "write_text"]
+__all__ = ["KITTI_CLASSES", "NEIGHBOURS", "load_frames", "FolderSurvey", "survey_folder", "distinct_folders",
+           "mirrored", "result_lines", "write_results", "write_text"]
 
 KITTI_CLASSES = ("Car", "Pedestrian", "Cyclist")
 """The classes KITTI's 2D benchmark scores, as its label files name them."""

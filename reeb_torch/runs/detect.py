@@ -180,8 +180,8 @@ def _val_lines(val: dict) -> list[str]:
     given = val.get("folders")
     folders = ", ".join(map(str, given)) if isinstance(given, list) else "?"
     seen = val.get("training_frames") or 0
-    head = (f"KITTI 2D AP|R40 (moderate) on {folders}" + (f" ({seen} of its frames are training frames)" if seen else "")
-            + ":")
+    head = (f"KITTI 2D AP|R40 (moderate) on {folders}"
+            + (f" ({seen} of its frames are training frames)" if seen else "") + ":")
     spans = _part(val, "interval_95")
     scores = {"ap": ap, "objects": _part(val, "objects"),
               "interval_95": {k: spans[k] if _is_span(spans.get(k)) else [None, None] for k in ap}}

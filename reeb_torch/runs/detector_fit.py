@@ -71,7 +71,7 @@ class SettingRange(click.ParamType):
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
         from ..detection.detector import SETTINGS_RANGES
 
-        low, high = (int(float(x)) for x in SETTINGS_RANGES[self.field].strip("[]").split(","))
+        low, high = (int(float(x)) for x in str(SETTINGS_RANGES[self.field]).strip("[]").split(","))
         return click.IntRange(low, high).convert(value, param, ctx)
 
 
