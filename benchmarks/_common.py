@@ -10,7 +10,7 @@ from typing import Any, Callable, Sequence
 
 from reeb_torch.eval.common import parse_frame_range, rerun_line
 
-__all__ = ["REPO_ROOT", "default_kitti_dir", "default_dev_dirs", "add_data_option", "add_frames_option", "rerun_line",
+__all__ = ["REPO_ROOT", "DATA_ENV", "data_root", "default_kitti_dir", "default_dev_dirs", "add_data_option", "add_frames_option", "rerun_line",
            "environment", "timed", "run_captured", "paired_ratios", "setting_pairs", "settings_config",
            "write_outputs"]
 
@@ -18,16 +18,29 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 """The repository root (the folder holding ``benchmarks/``)."""
 
 
+DATA_ENV = "REEB_DATA"
+"""The variable naming the dev data folder (:func:`data_root`)."""
+
+
+def data_root() -> Path:
+    """The dev data folder: ``$REEB_DATA`` where it is set, else ``shared/data`` beside the
+    repository; it holds ``kitti/`` and ``kitti_tracking/`` (KITTI-format folders) and
+    ``bing_model/``."""
+    import os
+
+    return Path(os.path.expanduser(os.environ.get(DATA_ENV) or REPO_ROOT.parent / "shared" / "data"))
+
+
 def default_kitti_dir() -> Path:
-    """``shared/data/kitti`` beside the repository: the 60 KITTI frames of the project."""
-    return REPO_ROOT.parent / "shared" / "data" / "kitti"
+    """``kitti/`` of the dev data (:func:`data_root`): the 60 KITTI frames of the project."""
+    return data_root() / "kitti"
 
 
 def default_dev_dirs() -> list[Path]:
-    """The project's dev folders beside the repository that exist: ``shared/data/kitti`` (60
-    KITTI object frames) and ``shared/data/kitti_tracking`` (46 frames of two tracking
-    sequences); both when neither exists (so the error names them)."""
-    root = REPO_ROOT.parent / "shared" / "data"
+    """The dev folders of :func:`data_root` that exist: ``kitti`` (60 KITTI object frames)
+    and ``kitti_tracking`` (46 frames of two tracking sequences); both when neither exists
+    (so the error names them)."""
+    root = data_root()
     dirs = [root / "kitti", root / "kitti_tracking"]
     return [d for d in dirs if d.is_dir()] or dirs
 

@@ -2,10 +2,10 @@
 few frames, for uint8 and float input, at batch 1 and batch 8: run it before and after a
 speed change and compare (``--check FILE`` exits 1 on any difference).
 
-The frames: the two bundled examples and, where the dev folder is beside the repository,
-the first of its frames of each other image size (KITTI's are 1242, 1241, 1238 and 1224
-px wide, and 1241 resizes through longer filters), then its first frames up to eight
-images in all. Float input is ``uint8 / 255`` (float32).
+The frames: the two bundled examples and, where the dev data is there (``$REEB_DATA``, else
+``../shared/data``), the first of its KITTI frames of each other image size (KITTI's are
+1242, 1241, 1238 and 1224 px wide, and 1241 resizes through longer filters), then its first
+frames up to eight images in all. Float input is ``uint8 / 255`` (float32).
 
 Rerun: ``python benchmarks/fingerprints.py [--out FILE] [--check FILE] [--presets default paper]``
 """
@@ -23,9 +23,12 @@ import torch
 from reeb_torch import ProposalGenerator, get_preset
 from reeb_torch.io import read_image
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import default_kitti_dir  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLES = sorted((REPO / "examples" / "data").glob("*.png"))
-DEV = REPO.parent / "shared" / "data" / "kitti" / "images"
+DEV = default_kitti_dir() / "images"
 
 
 def frames(limit: int = 8) -> list[tuple[str, torch.Tensor]]:

@@ -27,10 +27,10 @@ from pathlib import Path
 from typing import Any, Sequence
 
 try:  # imported as benchmarks.table3
-    from ._common import REPO_ROOT, default_dev_dirs
+    from ._common import REPO_ROOT, data_root, default_dev_dirs
 except ImportError:  # run as a script, or loaded from its file
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from _common import REPO_ROOT, default_dev_dirs  # type: ignore[no-redef]
+    from _common import REPO_ROOT, data_root, default_dev_dirs  # type: ignore[no-redef]
 
     # The checkout's package first: run from benchmarks/, an editable install made before
     # reeb_torch/__init__.py existed resolves `reeb_torch` as an empty namespace package.
@@ -40,8 +40,8 @@ except ImportError:  # run as a script, or loaded from its file
 from reeb_torch.eval.command import table3_command  # noqa: E402
 
 PROG = "benchmarks/table3.py"
-BING_MODEL = REPO_ROOT.parent / "shared" / "data" / "bing_model"
-"""BING's model files in the shared data beside the repository (``--bing-model``'s default)."""
+BING_MODEL = data_root() / "bing_model"
+"""BING's model files in the dev data (``$REEB_DATA``; ``--bing-model``'s default)."""
 
 command = table3_command(PROG, data_default=default_dev_dirs(), bing_default=BING_MODEL)
 

@@ -15,7 +15,7 @@ import typing
 from dataclasses import dataclass
 from typing import Any, Callable, Literal
 
-__all__ = ["ReebConfig", "PRESETS", "get_preset", "TRAINING_FREE", "FRONT_END_FIELDS"]
+__all__ = ["ReebConfig", "PRESETS", "get_preset", "TRAINING_FREE", "FRONT_END_FIELDS", "check_fields"]
 
 ScoreNorm = Literal["perimeter", "area"]
 RoadScore = Literal["reward", "none"]
@@ -238,6 +238,33 @@ def _validate(cfg: "ReebConfig") -> None:
             got = ", ".join(f"{n}={_show(getattr(cfg, n))}" for n in names)
             fields = ", ".join(f"ReebConfig.{n}" for n in names[:-1]) + f" and ReebConfig.{names[-1]}"
             raise ValueError(f"{fields} must be {expected}, got {got}")
+
+
+def check_fields(owner: str, values: typing.Mapping[str, Any], hints: typing.Mapping[str, Any],
+                 ranges: typing.Mapping[str, str | None]) -> dict[str, Any]:
+    """``values`` of the fields of another settings class checked as ReebConfig's are: each by
+    its annotation in ``hints`` (a bool is no number, floats finite, a ``Literal``'s words)
+    then by its interval in ``ranges`` (``"[32, 4096]"``, ``"(0, 1]"``, ``">= 1"``; None or
+    absent: none), normalised (ints for integral numbers, tuples for lists).
+
+    Raises:
+        TypeError: a value of the wrong type; ValueError: one out of its range. Both as
+        ``<owner>.<name> must be <expected>, got <value>``.
+    """
+    out = {}
+    for name, value in values.items():
+        hint = hints.get(name, Any)
+        try:
+            fixed = _conform(value, hint)
+        except (TypeError, ValueError) as e:
+            raise type(e)(f"{owner}.{name} must be {_describe(hint)}, got {_show(value)}") from None
+        interval = ranges.get(name)
+        if interval is not None:
+            ok, expected = _range(interval)
+            if not ok(fixed):
+                raise ValueError(f"{owner}.{name} must be {expected}, got {_show(value)}")
+        out[name] = fixed
+    return out
 
 
 def _knob(default: Any, check: str | _Check | None = None, *, front: bool = False) -> Any:

@@ -197,6 +197,7 @@ class ProposalGenerator(nn.Module):
         self._features = self.ranker if self.ranker is not None else CandidateFeatures(self.config)
         self._traces: list[Trace] | None = None  # what trace() collects while it runs
         self._warned_empty = False  # a config that gives no proposals is warned about once
+        self._warned_blank = False  # and so is an image without edges
         self._warm_key = _kernel_key(self.config)
         self.compile_s: float = 0.0
         """Seconds the first CPU call spent compiling the kernels (or loading them from
@@ -449,8 +450,9 @@ class ProposalGenerator(nn.Module):
         if self.ranker is not None and self.ranker.refines():  # the box refiner (not in the paper)
             with self._stage("ranker", dev), self._stage("ranker.refine", dev):
                 results = self.ranker.refine(maps, results)
-        if not self._warned_empty and any(len(r["boxes"]) == 0 for r in results):
-            self._warn_empty(tuple(images[0].shape[-2:]), grid.count, share)
+        empty = [i for i, r in enumerate(results) if len(r["boxes"]) == 0] if not self._warned_empty else []
+        if empty:
+            self._warn_empty(tuple(images[0].shape[-2:]), grid.count, share, work.edges, empty)
         extra = _kept_maps(maps, bounds, entropy, share, grid.count) if keep else {}
         return results, extra
 
@@ -476,9 +478,18 @@ class ProposalGenerator(nn.Module):
                     class_of, ranked_logits = ranker.class_map(ranked[0], (scores.shape[0], scores.shape[1]))
         return scores, chosen, class_of, ranked_logits
 
-    def _warn_empty(self, size: tuple, windows: int, share: Tensor) -> None:
+    def _warn_empty(self, size: tuple, windows: int, share: Tensor, edges: Tensor, empty: list[int]) -> None:
         """Warn once per generator (``RuntimeWarning``) that a valid config gave an image no
-        proposal, with the likely cause: no window fits, or a zero budget in every region."""
+        proposal, with the likely cause: no window fits, or a zero budget in every region.
+        Images of the batch without an edge (``edges[i]`` all 0: a black or constant picture)
+        get their own warning, once, and leave the settings' warning for a later image."""
+        blank = [i for i in empty if not bool(edges[i].amax() > 0)]
+        if len(blank) == len(empty):
+            if not self._warned_blank:
+                self._warned_blank = True
+                warnings.warn(f"reeb: a {size[1]}×{size[0]} image has no edges (a black or constant picture): "
+                              "it gets no proposals; this is warned once", RuntimeWarning, stacklevel=4)
+            return
         self._warned_empty = True
         if windows == 0:
             why = ("no window fits this image (object_templates, min_window, size_ratio, aspect_range, "

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import DATA
 from reeb_torch.eval.baselines import (
     BASELINES,
     BingBaseline,
@@ -22,8 +23,8 @@ from reeb_torch.eval.baselines import (
 from reeb_torch.io import read_image
 
 SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "data" / "kitti_000001.png"
-BING_MODEL = Path(__file__).resolve().parents[2] / "shared" / "data" / "bing_model"
-"""BING's nine model files, in the shared data beside the repository."""
+BING_MODEL = DATA / "bing_model"
+"""BING's nine model files, in the dev data (``$REEB_DATA``, conftest)."""
 HAVE_BING = BING_MODEL.is_dir()
 needs_bing = pytest.mark.skipif(not HAVE_BING, reason=f"BING model folder absent: {BING_MODEL}")
 

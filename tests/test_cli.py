@@ -18,6 +18,8 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import DATA
+
 REPO = Path(__file__).resolve().parent.parent
 SAMPLE = REPO / "examples" / "data" / "kitti_000001.png"
 SAMPLE_LABEL = REPO / "examples" / "data" / "kitti_000001.txt"
@@ -334,11 +336,11 @@ def test_size_batches_groups_equal_sizes():
     assert batches == [[2], [0, 3], [1, 5], [4]]
 
 
-KITTI = REPO.parent / "shared" / "data" / "kitti"
+KITTI = DATA / "kitti"
 
 
 @pytest.mark.kitti
-@pytest.mark.skipif(not (KITTI / "images").is_dir(), reason="needs ../shared/data/kitti")
+@pytest.mark.skipif(not (KITTI / "images").is_dir(), reason=f"needs {KITTI} (set $REEB_DATA)")
 def test_eval_runs_table3(tmp_path):
     r = reeb("eval", KITTI, "--limit", "1", "--methods", "reeb-default", "--out", "t3",
              "--batch", "0", cwd=tmp_path, check_rc=0)  # --batch: passed on to table3.py

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import DATA
 from reeb_torch.camera import camera_intrinsics, read_kitti_calib
 from reeb_torch.eval.data import (
     DEFAULT_CLASSES,
@@ -19,7 +20,7 @@ from reeb_torch.eval.data import (
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLES = REPO / "examples" / "data"
-KITTI = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti"
+KITTI = DATA / "kitti"
 
 LABELS_A = """\
 Car 0.00 0 -1.58 587.01 173.33 614.12 200.12 1.65 1.67 3.64 -0.65 1.71 46.70 -1.59

@@ -31,8 +31,6 @@ from reeb_torch.eval.data import read_kitti_labels  # noqa: E402
 from reeb_torch.io import read_image  # noqa: E402
 from reeb_torch.runs.cli import main  # noqa: E402
 
-from test_eval import _example_kitti  # noqa: E402
-
 TINY = DetectorSettings(min_size=128, max_size=448, neck_channels=32, proposals_train=100, proposals_test=50,
                         rois=32, score_thresh=0.0)
 TINY_CLI = ["--epochs", "1", "--min-size", "128", "--max-size", "448", "--train-proposals", "100",
@@ -40,13 +38,13 @@ TINY_CLI = ["--epochs", "1", "--min-size", "128", "--max-size", "448", "--train-
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory) -> Path:
-    return _example_kitti(tmp_path_factory.mktemp("det") / "kitti")
+def data(tiny_kitti) -> Path:
+    return tiny_kitti
 
 
 @pytest.fixture(scope="module")
-def cache(tmp_path_factory) -> Path:
-    return tmp_path_factory.mktemp("cache")
+def cache(detector_cache) -> Path:
+    return detector_cache
 
 
 def tiny_fit(data: Path, cache: Path, seed: int = 0) -> ReebDetector:

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from conftest import DATA
 from reeb_torch.eval import command, table3
 from reeb_torch.eval.common import FrameRange, parse_frame_range, select_frames
 
@@ -398,7 +399,7 @@ def test_table3_cross_validated_row_is_reeb_fits_estimate(kitti_dir, tmp_path, m
     assert "(fit " in text
 
 
-TRACKING = REPO.parent / "shared" / "data" / "kitti_tracking"
+TRACKING = DATA / "kitti_tracking"
 DRIVE_FRAMES = ("t0000_000000", "t0000_000030", "t0000_000060", "t0000_000090", "t0000_000120", "t0000_000153",
                 "t0016_000002", "t0016_000007", "t0016_000012")  # 6 frames of one drive, 3 of another
 
@@ -409,7 +410,7 @@ def test_table3_whole_drives_row_never_fits_on_a_frame_of_a_held_out_drive(tmp_p
     drive), the same models as reeb fit --whole-drives; the cross-validated row's models do see
     other frames of those drives here (so the check can fail); the row is in every table."""
     if not (TRACKING / "images").is_dir():
-        pytest.skip(f"{TRACKING} is absent (the shared KITTI frames live beside the repository)")
+        pytest.skip(f"{TRACKING} is absent (set $REEB_DATA to the folder holding kitti_tracking/)")
     from reeb_torch import ReebConfig
     from reeb_torch.eval import fit as F
     from reeb_torch.eval.tune import FrameCache

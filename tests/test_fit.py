@@ -13,11 +13,12 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import DATA
 from reeb_torch.eval import fit as F
 from reeb_torch.eval.tune import fold_blocks
 from reeb_torch.ranker.features import FEATURE_GROUPS, dropped_columns, feature_names
 
-REPO_DATA = __import__("pathlib").Path(__file__).resolve().parents[2] / "shared" / "data"
+REPO_DATA = DATA
 
 
 def test_frame_sample_by_hand():

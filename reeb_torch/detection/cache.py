@@ -203,18 +203,32 @@ class ProposalCache:
         }
 
     def save(self, path: str | os.PathLike) -> None:
-        """Write the cache (atomically: to a temporary file of this process beside it, then renamed)."""
+        """Write the cache (atomically: to a temporary file of this process beside it, then renamed).
+
+        Raises:
+            OSError: it cannot be written (a full disk, a folder that cannot be made or
+            written); no temporary file is left and the file already there is kept.
+        """
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # two processes never share one
-        torch.save(self.to_dict(), tmp)
-        os.replace(tmp, path)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            torch.save(self.to_dict(), tmp)
+            os.replace(tmp, path)
+        except (OSError, RuntimeError) as e:  # torch.save reports a failed write as a RuntimeError
+            tmp.unlink(missing_ok=True)
+            raise OSError(f"{path}: cannot write ({_write_error(e)})") from None
 
     @classmethod
     def load(cls, path: str | os.PathLike, config: ReebConfig | None = None) -> "ProposalCache":
         """Read a cache file; with ``config``, raise :class:`StaleCacheError` unless it
         was built with that config by this version (:meth:`check_config`)."""
-        d = torch.load(Path(path), map_location="cpu", weights_only=True)
+        try:
+            d = torch.load(Path(path), map_location="cpu", weights_only=True)
+        except FileNotFoundError:
+            raise
+        except Exception as e:  # noqa: BLE001 - a damaged file: each layer of torch.load raises its own kind
+            raise ValueError(f"{path}: not a REEB proposal cache (damaged: {type(e).__name__})") from None
         if not isinstance(d, dict) or d.get("format") != CACHE_FORMAT:
             raise ValueError(f"{path}: not a REEB proposal cache")
         if d.get("version") != CACHE_VERSION:
@@ -231,6 +245,15 @@ class ProposalCache:
             except StaleCacheError as e:
                 raise StaleCacheError(f"{path}: {e}") from None
         return cache
+
+
+def _write_error(e: OSError | RuntimeError) -> str:
+    """What a failed cache write says, in a few words: the system's words, or for
+    ``torch.save``'s ``RuntimeError`` (its writer's words on a full disk: ``PytorchStreamWriter
+    failed writing file ...``, ``unexpected pos ...``) that the write failed."""
+    if isinstance(e, OSError):
+        return e.strerror or str(e) or type(e).__name__
+    return "write failed (the disk may be full)"
 
 
 def build_cache(

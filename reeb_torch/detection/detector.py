@@ -23,26 +23,27 @@ import atexit
 import dataclasses
 import hashlib
 import os
+import re
 import shutil
 import tempfile
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from torch import Tensor, nn
 
 from ..config import ReebConfig
 from ..io import replace_file
-from .detector_file import (DetectorFileError, check_tensors, ranker_file_bytes, ranker_parts, read_detector_file,
-                            trained_keys, write_detector_file)
+from .detector_file import (DetectorFileError, check_tensors, not_a_file, ranker_file_bytes, ranker_parts,
+                            read_detector_file, trained_keys, write_detector_file)
 from .head_training import TrainSettings
 from .kitti import KITTI_CLASSES
 
-__all__ = ["DetectorSettings", "ReebDetector", "proposal_settings", "PROPOSALS", "SHIPPED_DETECTORS",
-           "resolve_detector"]
+__all__ = ["DetectorSettings", "SETTINGS_RANGES", "ReebDetector", "proposal_settings", "PROPOSALS",
+           "SHIPPED_DETECTORS", "resolve_detector"]
 
 PROPOSALS = ("default", "training-free")
 """The named proposal settings; a ranker weights file (``reeb fit``) is the third choice."""
@@ -62,6 +63,7 @@ def resolve_detector(spec: str | os.PathLike) -> Path:
     if isinstance(spec, str) and spec in SHIPPED_DETECTORS:
         return Path(str(resources.files("reeb_torch.detection").joinpath("weights", SHIPPED_DETECTORS[spec])))
     return Path(os.path.expanduser(str(spec)))
+
 
 BACKBONE = "efficientnet-lite0"
 
@@ -91,7 +93,7 @@ class DetectorSettings:
     max_size: int = 2048
     neck_channels: int = 128
     representation_size: int = 1024
-    precision: str = "float32"
+    precision: Literal["float32", "bfloat16"] = "float32"
     crop_top: float = 0.0
     proposals_train: int = 2000
     proposals_test: int = 1000
@@ -99,6 +101,56 @@ class DetectorSettings:
     score_thresh: float = 0.01
     nms_thresh: float = 0.5
     detections_per_img: int = 100
+
+    def __post_init__(self) -> None:
+        for name, value in _checked_settings("DetectorSettings", dataclasses.asdict(self)).items():
+            object.__setattr__(self, name, value)
+
+    @classmethod
+    def from_dict(cls, d: Any, owner: str = "DetectorSettings") -> DetectorSettings:
+        """The settings of a dict of fields (as a detector file stores them; a field missing
+        takes its default), every value checked for its type and range before anything is
+        built (:data:`SETTINGS_RANGES`).
+
+        Raises:
+            TypeError: not a dict, or a value of the wrong type; ValueError: an unknown field,
+            or a value out of its range. Each names ``<owner>.<field>``.
+        """
+        if not isinstance(d, dict):
+            raise TypeError(f"{owner} must be an object of DetectorSettings fields, got {type(d).__name__}")
+        unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            raise ValueError(f"{owner} has fields this version does not know: {', '.join(map(str, unknown))}")
+        return cls(**_checked_settings(owner, d))
+
+
+SETTINGS_RANGES: dict[str, str | None] = {
+    "min_size": "[32, 4096]",
+    "max_size": "[32, 8192]",
+    "neck_channels": "[1, 1024]",
+    "representation_size": "[1, 8192]",
+    "precision": None,
+    "crop_top": "[0, 0.9]",
+    "proposals_train": "[1, 20000]",
+    "proposals_test": "[1, 20000]",
+    "rois": "[1, 4096]",
+    "score_thresh": "[0, 1]",
+    "nms_thresh": "[0, 1]",
+    "detections_per_img": "[1, 10000]",
+}
+"""The range of each :class:`DetectorSettings` field (its type is its annotation's): what a
+detector file's settings are checked against before a network is built. A new field needs
+its entry here: an interval (``"[1, 1024]"``, ``"(0, 1]"``, ``">= 1"``), or None where its
+type says all (a bool, a ``Literal`` of words). Sizes in pixels; the bounds keep a tampered
+file from asking for memory no machine has."""
+
+
+def _checked_settings(owner: str, values: dict[str, Any]) -> dict[str, Any]:
+    import typing
+
+    from ..config import check_fields
+
+    return check_fields(owner, values, typing.get_type_hints(DetectorSettings), SETTINGS_RANGES)
 
 
 def proposal_settings(spec: str, top_k: int) -> tuple[ReebConfig, dict[str, Any]]:
@@ -128,7 +180,7 @@ def _proposal_config(spec: str, top_k: int) -> ReebConfig:
         config = get_preset("default").replace(ranker=str(Path(os.path.expanduser(spec)).resolve()))
     else:
         raise ValueError(f"proposals {spec!r}: expected {' or '.join(PROPOSALS)} or a ranker weights file "
-                         "(reeb fit's .safetensors); no such file")
+                         f"(reeb fit's .safetensors); {not_a_file(Path(os.path.expanduser(spec))) or 'no such file'}")
     return config.replace(top_k=int(top_k))
 
 
@@ -280,25 +332,33 @@ class ReebDetector(nn.Module):
         SHA-256 is not the one recorded).
 
         Raises:
-            DetectorFileError: a missing, damaged or foreign file, or one made on other
-                backbone weights or with proposal settings this installation cannot run,
-                or whose embedded ranker is damaged; one line naming the file and what is wrong.
+            DetectorFileError: a missing, damaged or foreign file, settings of the wrong type
+                or out of range (:data:`SETTINGS_RANGES`, checked before anything is built),
+                one made on other backbone weights or with proposal settings this
+                installation cannot run, whose embedded ranker is damaged or whose ranker file
+                is gone or unreadable; one line naming the file and what is wrong.
             ImportError: the ``detect`` extra is missing (one line naming it).
         """
+        from ..ranker import RankerWeightsError
         from .lite0 import weights_digest
 
         p = resolve_detector(path)
         tensors, meta, ranker = read_detector_file(p)
         try:
-            settings = DetectorSettings(**meta["settings"])
-        except TypeError as e:
-            raise DetectorFileError(f"detector {p}: settings this version does not know ({e})") from None
+            settings = DetectorSettings.from_dict(meta["settings"], owner="settings")
+        except (TypeError, ValueError) as e:
+            raise DetectorFileError(f"detector {p}: its {e}") from None
         here = weights_digest()
         if meta["backbone"].get("sha256") != here or meta["backbone"].get("name") != BACKBONE:
             raise DetectorFileError(f"detector {p}: trained on other backbone weights ({meta['backbone']}); this "
                                     f"installation has {BACKBONE} {here[:16]}... (the 'detect' extra)")
         config = _stored_config(p, meta["proposals"], ranker)
-        det = cls(meta["classes"], meta["proposals"].get("spec"), settings, config=config, device=device)
+        try:
+            det = cls(meta["classes"], meta["proposals"].get("spec"), settings, config=config, device=device)
+        except RankerWeightsError as e:  # the file it names by its path, replaced since
+            reason = re.sub(r"^ranker weights '.*?' \(.*?\):? (are |is )?", "", str(e).splitlines()[0])
+            raise DetectorFileError(f"detector {p}: its proposals rank with {config.ranker!r}, which cannot be used "
+                                    f"({reason})") from None
         if ranker is not None:  # its copy, checked: what the file records, not where it was unpacked
             det.proposals = {k: v for k, v in meta["proposals"].items() if k != "ranker_embedded"}
         elif meta["proposals"].get("ranker_sha256") != det.proposals["ranker_sha256"]:
@@ -357,7 +417,7 @@ def _stored_config(path: Path, info: dict[str, Any], ranker: bytes | None) -> Re
 
     try:
         config = ReebConfig.from_dict(info["config"])
-    except (KeyError, TypeError, ValueError) as e:
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
         reason = " ".join(str(e).split()) or type(e).__name__
         raise DetectorFileError(f"detector {path}: proposal settings this version cannot use ({reason})") from None
     embedded = info.get("ranker_embedded") is True and config.ranker != "none"

@@ -23,9 +23,11 @@ file keeps one metadata entry: safetensors writes several in no fixed order), so
 tensors). A detector of the shipped ranking, or of none, holds no such entries.
 
 :func:`read_detector_file` refuses a file it cannot use with :class:`DetectorFileError` (a
-``ValueError``) and one line naming the file and what is wrong: missing, not safetensors,
-not a detector's, another version, tensors missing, extra, of the wrong shape or not
-finite, or made on other backbone weights.
+``ValueError``) and one line naming the file and what is wrong: missing, a folder or a
+special file, not safetensors, not a detector's, another version, a class named twice,
+tensors missing, extra, of the wrong shape or not finite, settings of the wrong type or out
+of range (:meth:`~reeb_torch.detection.DetectorSettings.from_dict`), or made on other
+backbone weights.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ from torch import Tensor
 from ..io import replace_file
 
 __all__ = ["FORMAT", "VERSION", "RANKER_PREFIX", "DetectorFileError", "write_detector_file", "read_detector_file",
-           "trained_keys", "check_tensors", "ranker_parts", "ranker_file_bytes"]
+           "trained_keys", "check_tensors", "ranker_parts", "ranker_file_bytes", "not_a_file"]
 
 FORMAT = "reeb-detector"
 VERSION = 1
@@ -104,6 +106,26 @@ def write_detector_file(path: str | os.PathLike, tensors: Mapping[str, Tensor], 
     return replace_file(path, save(out, metadata={FORMAT: json.dumps(info, sort_keys=True, default=list)}))
 
 
+def not_a_file(path: Path) -> str | None:
+    """Why ``path`` is no file to read a detector (or any weights) from, or None: missing, a
+    folder, or a special file (a named pipe, a device, a socket), named without opening it
+    (opening a named pipe waits for a writer)."""
+    import stat
+
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        return "no such file"
+    except OSError as e:
+        return f"cannot read it ({e.strerror or e})"
+    if stat.S_ISREG(mode):
+        return None
+    kinds = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a named pipe (FIFO)"),
+             (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+    kind = next((word for test, word in kinds if test(mode)), "a special file")
+    return f"is {kind}, not a file"
+
+
 def _first_line(e: BaseException) -> str:
     return str(e).splitlines()[0] if str(e) else type(e).__name__
 
@@ -114,14 +136,16 @@ def read_detector_file(path: str | os.PathLike) -> tuple[dict[str, Tensor], dict
     file it embeds (:func:`ranker_file_bytes`; None where it embeds none).
 
     Raises:
-        DetectorFileError: missing, not a readable safetensors file, no ``reeb-detector``
-            metadata or not a JSON object, another version, no classes, non-finite tensors.
+        DetectorFileError: missing, a folder or a special file (a FIFO, a device), not a
+            readable safetensors file, no ``reeb-detector`` metadata or not a JSON object,
+            another version, no classes or a class named twice, non-finite tensors.
     """
     from safetensors import SafetensorError, safe_open
 
     p = Path(os.path.expanduser(str(path)))
-    if not p.is_file():
-        raise DetectorFileError(f"detector {p}: no such file")
+    what = not_a_file(p)
+    if what:
+        raise DetectorFileError(f"detector {p}: {what}")
     try:
         with safe_open(str(p), framework="pt") as f:
             raw = (f.metadata() or {}).get(FORMAT)
@@ -140,8 +164,12 @@ def read_detector_file(path: str | os.PathLike) -> tuple[dict[str, Tensor], dict
         raise DetectorFileError(f"detector {p}: file version {meta.get('version')!r}, this reeb-torch reads "
                                 f"version {VERSION}")
     classes = meta.get("classes")
-    if not (isinstance(classes, list) and classes and all(isinstance(c, str) and c for c in classes)):
+    if not (isinstance(classes, list) and classes and all(isinstance(c, str) and c.strip() for c in classes)):
         raise DetectorFileError(f"detector {p}: its metadata names no classes (a list of names)")
+    twice = sorted({c for c in classes if classes.count(c) > 1})
+    if twice:
+        raise DetectorFileError(f"detector {p}: its metadata names the class {twice[0]!r} twice (classes "
+                                f"{', '.join(classes)})")
     for key in ("settings", "backbone", "proposals"):
         if not isinstance(meta.get(key), dict):
             raise DetectorFileError(f"detector {p}: its metadata has no {key!r} object")

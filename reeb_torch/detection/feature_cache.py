@@ -17,9 +17,9 @@ of a frame never change during training: :func:`frozen_features` computes them o
                 "2": float16 [320, h'/32, w'/32]}}
 
 An entry is *stale* when its weights digest, input size settings, precision, crop, image
-digest or format differ from what is asked for; :meth:`FeatureCache.load` refuses it
-(:class:`~reeb_torch.detection.StaleCacheError`) and :func:`frozen_features` recomputes and
-overwrites it. The maps are stored as float16 (about 3 MB per KITTI frame at the default
+digest or format differ from what is asked for, or when it cannot be read (a damaged file);
+:meth:`FeatureCache.load` refuses it (:class:`~reeb_torch.detection.StaleCacheError`) and
+:func:`frozen_features` recomputes and overwrites it. The maps are stored as float16 (about 3 MB per KITTI frame at the default
 size) and used as float32.
 """
 
@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import nullcontext
 from dataclasses import dataclass
@@ -36,7 +37,7 @@ from typing import Any, ContextManager
 import torch
 from torch import Tensor
 
-from .cache import StaleCacheError, image_digest
+from .cache import StaleCacheError, _write_error, image_digest
 
 __all__ = ["FrameFeatures", "FeatureCache", "compute_features", "batch_features", "frozen_features", "top_rows"]
 
@@ -98,24 +99,48 @@ class FeatureCache:
 
         Raises:
             FileNotFoundError: none; StaleCacheError: one made with other weights, sizes,
-            format, or for another image.
+            format, or for another image, or one that cannot be read (damaged).
         """
-        d = torch.load(self.path(digest), map_location="cpu", weights_only=True)
+        path = self.path(digest)
+        try:
+            d = torch.load(path, map_location="cpu", weights_only=True)
+        except FileNotFoundError:
+            raise
+        except Exception as e:  # noqa: BLE001 - a damaged file: each layer of torch.load raises its own kind
+            raise StaleCacheError(f"{path}: damaged feature cache entry ({type(e).__name__})") from None
+        if not isinstance(d, dict):
+            raise StaleCacheError(f"{path}: damaged feature cache entry (not a dict)")
         wrong = {k: d.get(k) for k, v in {**self.key, "digest": digest}.items() if d.get(k) != v}
         if wrong:
-            raise StaleCacheError(f"{self.path(digest)}: stale feature cache entry ({wrong} differ "
+            raise StaleCacheError(f"{path}: stale feature cache entry ({wrong} differ "
                                   f"from {({k: self.key.get(k, digest) for k in wrong})})")
-        return FrameFeatures({k: v for k, v in d["levels"].items()}, tuple(d["original_size"]),
-                             tuple(d["image_size"]), tuple(d["padded_size"]), int(d["top"]))
+        try:
+            levels = {str(k): v for k, v in d["levels"].items()}
+            if not all(isinstance(v, Tensor) and v.dim() == 3 for v in levels.values()):
+                raise TypeError("levels")
+            return FrameFeatures(levels, _pair(d["original_size"]), _pair(d["image_size"]), _pair(d["padded_size"]),
+                                 int(d["top"]))
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            raise StaleCacheError(f"{path}: damaged feature cache entry ({type(e).__name__}: {e})") from None
 
     def save(self, digest: str, f: FrameFeatures) -> None:
-        """Write one entry (atomically: a temporary file, then renamed)."""
-        self.folder.mkdir(parents=True, exist_ok=True)
+        """Write one entry (atomically: a temporary file, then renamed).
+
+        Raises:
+            OSError: it cannot be written (a full disk, a folder that cannot be made or
+            written); no temporary file is left and an entry already there is kept.
+        """
         tmp = self.path(digest).with_suffix(f".{os.getpid()}.tmp")  # two processes never share one
-        torch.save({**self.key, "digest": digest, "original_size": list(f.original_size),
-                    "image_size": list(f.image_size), "padded_size": list(f.padded_size), "top": f.top,
-                    "levels": {k: v.half().contiguous() for k, v in f.levels.items()}}, tmp)
-        os.replace(tmp, self.path(digest))
+        entry = {**self.key, "digest": digest, "original_size": list(f.original_size),
+                 "image_size": list(f.image_size), "padded_size": list(f.padded_size), "top": f.top,
+                 "levels": {k: v.half().contiguous() for k, v in f.levels.items()}}
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            torch.save(entry, tmp)
+            os.replace(tmp, self.path(digest))
+        except (OSError, RuntimeError) as e:  # torch.save reports a failed write as a RuntimeError
+            tmp.unlink(missing_ok=True)
+            raise OSError(f"{self.folder}: cannot write ({_write_error(e)})") from None
 
 
 def _as_float(image: Tensor) -> Tensor:
@@ -162,19 +187,36 @@ def compute_features(model: torch.nn.Module, image: Tensor, crop_top: float = 0.
 def frozen_features(model: torch.nn.Module, items: Sequence[Mapping[str, Any]], cache: FeatureCache,
                     progress: bool = True) -> list[FrameFeatures]:
     """The frozen maps of every item's ``image``: read from ``cache``, or computed
-    (:func:`compute_features`) and saved when missing or stale; a progress bar."""
+    (:func:`compute_features`) and saved when missing, stale or damaged; a progress bar. A
+    cache that cannot be written (a full disk) is one ``RuntimeWarning``, and the maps are
+    kept in memory."""
     from tqdm import tqdm
 
     precision = getattr(getattr(model, "backbone", None), "precision", "float32")
     if precision != cache.key["precision"]:
         raise ValueError(f"the model's backbone computes in {precision}, the cache holds {cache.key['precision']} maps")
     out = []
+    writable = True
     for it in tqdm(items, desc="backbone features", unit="img", disable=not progress):
         digest = image_digest(it["image"])
         try:
             out.append(cache.load(digest))
+            continue
         except (FileNotFoundError, StaleCacheError):
             f = compute_features(model, it["image"], cache.key["crop_top"])
-            cache.save(digest, f)
-            out.append(cache.load(digest))
+        if writable:
+            try:
+                cache.save(digest, f)
+                out.append(cache.load(digest))
+                continue
+            except OSError as e:
+                writable = False
+                warnings.warn(f"not caching the backbone maps: {e}; training goes on without", RuntimeWarning,
+                              stacklevel=2)
+        out.append(f)  # float16 maps, as the cache gives them back
     return out
+
+
+def _pair(v: Any) -> tuple[int, int]:
+    h, w = v
+    return int(h), int(w)

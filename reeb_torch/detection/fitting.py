@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -29,7 +30,7 @@ import torch
 from .cache import CacheEntry, ProposalCache, StaleCacheError, image_digest
 from .feature_cache import FeatureCache, frozen_features
 from .head_training import CachedFrame, TrainSettings, detect, train_heads
-from .kitti import load_frames, mirrored
+from .kitti import distinct_folders, load_frames, mirrored
 
 __all__ = ["default_cache_dir", "cached_frames", "fit_detector", "train_detector", "crop_from_labels", "detector_stats", "evaluate_detector", "scores_of",
            "paired_scores", "format_scores", "format_paired"]
@@ -61,7 +62,10 @@ def _proposal_cache(det: Any, items: Sequence[dict], root: Path, progress: bool)
                 image_digest(it["image"]), (int(it["image"].shape[-2]), int(it["image"].shape[-1])),
                 r["boxes"].float().cpu(), r["scores"].float().cpu(), str(it.get("path", ""))))
     if todo:
-        cache.save(path)
+        try:
+            cache.save(path)
+        except OSError as e:
+            warnings.warn(f"not caching the proposals: {e}; training goes on without", RuntimeWarning, stacklevel=3)
     return cache
 
 
@@ -101,11 +105,12 @@ def fit_detector(cls: type, folders: Sequence[str | os.PathLike], *, classes: Se
                  settings: Any, training: TrainSettings, cache_dir: str | os.PathLike | None = None,
                  limit: int | None = None, progress: bool = True, command: str | None = None) -> Any:
     """A ``cls`` (:class:`~reeb_torch.detection.ReebDetector`) trained on ``folders`` (module
-    doc); ``det.history``: ``{"losses", "steps", "train_s"}``.
+    doc; a folder named twice is read once); ``det.history``: ``{"losses", "steps", "train_s"}``.
 
     Raises:
         ValueError: a folder without labels, no frame, or no object of ``classes``.
     """
+    folders = distinct_folders(folders)[0]  # a folder named twice trains once
     items = load_frames(folders, classes, limit)
     if not items:
         raise ValueError(f"no frames in {', '.join(map(str, folders))}")

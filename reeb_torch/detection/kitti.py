@@ -15,7 +15,9 @@ reads them back.
 from __future__ import annotations
 
 import os
+from collections import Counter
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +26,8 @@ from torch import Tensor
 
 from ..io import replace_file
 
-__all__ = ["KITTI_CLASSES", "NEIGHBOURS", "load_frames", "mirrored", "result_lines", "write_results", "write_text"]
+__all__ = ["KITTI_CLASSES", "NEIGHBOURS", "load_frames", "FolderSurvey", "survey_folder", "distinct_folders",
+           "mirrored", "result_lines", "write_results", "write_text"]
 
 KITTI_CLASSES = ("Car", "Pedestrian", "Cyclist")
 """The classes KITTI's 2D benchmark scores, as its label files name them."""
@@ -69,6 +72,59 @@ def load_frames(folders: Sequence[str | os.PathLike], classes: Sequence[str] = K
                           "ignore": _boxes_of(objects, neighbours), "dontcare": _boxes_of(objects, ("DontCare",)),
                           "image_id": str(it["image_id"]), "folder": root.name, "path": str(it["path"])})
     return items
+
+
+@dataclass
+class FolderSurvey:
+    """What a labelled KITTI-format folder holds, read from its file names and label files
+    alone (no image decoded): what a command checks before any work.
+
+    Attributes:
+        folder: the folder.
+        frames: the frames taken (the first ``limit`` images, in id order).
+        labelled: whether it has a label folder (``labels/`` or ``label_2/``).
+        objects: label lines of the frames taken, by type (``DontCare`` too).
+        orphans: ids of the label files that have no image (never used).
+    """
+
+    folder: Path
+    frames: int
+    labelled: bool
+    objects: Counter[str]
+    orphans: list[str]
+
+
+def survey_folder(folder: str | os.PathLike, limit: int | None = None) -> FolderSurvey:
+    """The :class:`FolderSurvey` of ``folder`` (its first ``limit`` frames).
+
+    Raises:
+        ValueError: not a KITTI-format folder, no images, a frame without its label file,
+            or a label line that cannot be read (one line naming the file).
+    """
+    from ..eval.data import KittiDataset, read_kitti_labels
+
+    ds = KittiDataset(folder, classes=(), limit=limit)
+    objects: Counter[str] = Counter()
+    orphans: list[str] = []
+    if ds.label_dir is not None:
+        for i in ds.ids:
+            objects.update(o.type for o in read_kitti_labels(ds.label_dir / f"{i}.txt"))
+        images = {p.stem for p in ds.image_dir.iterdir()}
+        orphans = sorted(p.stem for p in ds.label_dir.glob("*.txt") if p.stem not in images)
+    return FolderSurvey(Path(folder), len(ds), ds.label_dir is not None, objects, orphans)
+
+
+def distinct_folders(folders: Sequence[str | os.PathLike]) -> tuple[list[str | os.PathLike], list[str | os.PathLike]]:
+    """``(kept, repeated)``: ``folders`` with each folder once (the first naming of each
+    resolved path, in order), and the namings left out."""
+    seen: set[Path] = set()
+    kept: list[str | os.PathLike] = []
+    repeated: list[str | os.PathLike] = []
+    for f in folders:
+        key = Path(os.path.expanduser(str(f))).resolve()
+        (repeated if key in seen else kept).append(f)
+        seen.add(key)
+    return kept, repeated
 
 
 def mirrored(item: dict[str, Any]) -> dict[str, Any]:

@@ -19,6 +19,8 @@ module                 what it holds
 :mod:`.distributed`    the Ray engine, a library: ``propose_dataset``, ``write_results``
 :mod:`.export`         result rows to detectron2's precomputed proposals
 :mod:`.viz`            the pictures (``reeb show``, ``--viz``, crop sheets)
+:mod:`.detector_fit`   ``reeb detector fit``: its inputs checked before any work, the
+                       training and its held-out scores
 =====================  ==============================================================
 
 ``reeb propose`` reads top to bottom: :func:`.inputs.scan_images` lists the images,

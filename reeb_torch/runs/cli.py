@@ -37,6 +37,7 @@ import click  # noqa: E402
 
 from .common import (  # noqa: E402
     Failure,
+    FiniteFloat,
     UsageProblem,
     box_table,
     build_config,
@@ -420,13 +421,13 @@ def calibrate(dirs, out, class_height, samples, seed, box_factor):
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the samplers and bootstraps.")
 @click.option("--storage", help="Optuna storage URL, e.g. sqlite:///tune.db (default: in memory).")
 @click.option("--resume", is_flag=True, help="Continue the studies in --storage (after Ctrl-C or a crash).")
-@click.option("--timeout", type=click.FloatRange(min=0, min_open=True), help="Seconds for all the searching.")
+@click.option("--timeout", type=FiniteFloat(min=0, min_open=True), help="Seconds for all the searching.")
 @click.option("--balanced", is_flag=True, help="Objective: mean of the per-class recalls (default: micro).")
 @click.option("--space", "space_file", type=click.Path(exists=True, dir_okay=False),
               help="JSON search space {field: {type: float|int|categorical, low, high | choices}}.")
 @click.option("-k", "--proposals", "k", type=click.IntRange(min=1), default=2000, show_default=True,
               help="Proposals counted per frame.")
-@click.option("--iou", type=click.FloatRange(0, 1, min_open=True), default=0.7, show_default=True,
+@click.option("--iou", type=FiniteFloat(0, 1, min_open=True), default=0.7, show_default=True,
               help="IoU an object needs.")
 @click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
 @click.option("--score", "score_file", type=click.Path(exists=True, dir_okay=False),
@@ -480,12 +481,12 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
 @click.option("--init", "init", metavar="MODEL",
               help="Fine-tune MODEL (a shipped name such as kitti, or a weights file) on DIRS instead of "
                    "fitting from scratch: for a few labelled frames of another camera (its widths are its own).")
-@click.option("--balance", type=click.FloatRange(0, 2), default=0.5, show_default=True,
+@click.option("--balance", type=FiniteFloat(0, 2), default=0.5, show_default=True,
               help="Weigh each class's objects by (objects / the class's objects)^BALANCE (1: classes equal).")
 @click.option("--mirror", is_flag=True,
               help="Fit also on each training frame's mirror image (flipped left to right, its boxes with it); "
                    "the held-out frames of the estimate stay as they are.")
-@click.option("--jitter", type=click.FloatRange(0, 1), default=0.0, show_default=True,
+@click.option("--jitter", type=FiniteFloat(0, 1), default=0.0, show_default=True,
               help="Fit also on a copy of each training frame with its contrast scaled by 1 ± up to JITTER and "
                    "up to JITTER × 255 grey levels added (drawn per frame, seeded); 0: none.")
 @click.option("--no-orientation", "no_orientation", is_flag=True,
@@ -498,7 +499,7 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
                    "--set refine_top=N; it did not raise recall held out on KITTI, so off by default).")
 @click.option("-k", "--proposals", "k", type=click.IntRange(min=1), default=2000, show_default=True,
               help="Proposals counted per frame.")
-@click.option("--iou", type=click.FloatRange(0, 1, min_open=True), default=0.7, show_default=True,
+@click.option("--iou", type=FiniteFloat(0, 1, min_open=True), default=0.7, show_default=True,
               help="IoU an object needs.")
 @click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
 @click.option("--preset", default="default", show_default=True, help="Settings the ranking is fitted for.")

@@ -9,6 +9,7 @@ The command (:mod:`.cli`), the local run (:mod:`.propose_local`) and the Ray run
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -17,6 +18,7 @@ import click
 __all__ = [
     "UsageProblem",
     "Failure",
+    "FiniteFloat",
     "SAMPLE_NAME",
     "repo_root",
     "bundled_sample",
@@ -44,6 +46,20 @@ class Failure(click.ClickException):
     """A one-line error with exit code 1 (the command could not do its work)."""
 
     exit_code = 1
+
+
+class FiniteFloat(click.FloatRange):
+    """A float option within an optional range, refusing NaN and infinities (click's
+    ``FloatRange`` lets NaN through: every comparison with it is false): a usage error naming
+    the option, as for any value out of range."""
+
+    name = "finite float"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        rv = super().convert(value, param, ctx)
+        if not math.isfinite(rv):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        return rv
 
 
 # -- settings, device, sample ---------------------------------------------------------

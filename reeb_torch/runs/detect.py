@@ -29,13 +29,15 @@ import os
 import shlex
 import sys
 import time
+import warnings
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import click
 
-from .common import Failure, UsageProblem, claim_output, resolve_device
+from .common import Failure, FiniteFloat, UsageProblem, claim_output, resolve_device
+from .detector_fit import SettingRange, check_cache, check_frames, claim_weights_out, distinct, train, warnings_as_lines
 
 __all__ = ["detector", "fit", "show", "detect", "draw_detections", "StageTimes"]
 
@@ -52,20 +54,6 @@ def detector() -> None:
     REEB's proposals, a frozen ImageNet EfficientNet-Lite0 and RoI heads trained on the CPU in
     minutes. Run it on images with reeb detect.
     """
-
-
-def _check_weights_out(out: str, overwrite: bool) -> Path:
-    p = Path(out)
-    if p.suffix.lower() != ".safetensors":
-        raise UsageProblem(f"{out}: a detector is written as safetensors; name it {p.with_suffix('.safetensors')}")
-    if p.is_dir():
-        raise UsageProblem(f"{out}: is a folder; give a file name such as {p / 'det.safetensors'}")
-    parent = p.parent if str(p.parent) else Path(".")
-    if not parent.is_dir() or not os.access(parent, os.W_OK):
-        raise UsageProblem(f"{out}: cannot write there (folder {parent} missing or not writable)")
-    if p.exists() and not overwrite:
-        raise UsageProblem(f"{out} exists; add --overwrite to replace it")
-    return p
 
 
 SETTINGS_OPTIONS = {"min_size": "min_size", "max_size": "max_size", "train_proposals": "proposals_train",
@@ -107,23 +95,23 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
 @click.option("--val", multiple=True, type=click.Path(exists=True, file_okay=False), metavar="DIR",
               help="Labelled folder kept out of training: its KITTI AP|R40 is printed and stored (repeatable).")
 @click.option("--hflip", is_flag=True, help="Train on each frame's mirror image half of the time.")
-@click.option("--min-size", type=click.IntRange(min=32), default=576, show_default=True,
+@click.option("--min-size", type=SettingRange("min_size"), default=576, show_default=True,
               help="Shorter side of the resized input, pixels; the backbone's time grows about with its square "
                    "(KITTI frames: 375 runs about 2x faster on a CPU and finds fewer small pedestrians).")
-@click.option("--max-size", type=click.IntRange(min=32), default=2048, show_default=True,
+@click.option("--max-size", type=SettingRange("max_size"), default=2048, show_default=True,
               help="Bound on the longer side of the resized input.")
-@click.option("--train-proposals", type=click.IntRange(min=1), default=2000, show_default=True,
+@click.option("--train-proposals", type=SettingRange("proposals_train"), default=2000, show_default=True,
               help="REEB proposals per image in training.")
-@click.option("--test-proposals", type=click.IntRange(min=1), default=1000, show_default=True,
+@click.option("--test-proposals", type=SettingRange("proposals_test"), default=1000, show_default=True,
               help="REEB proposals per image in detection (the heads' time grows with it).")
 @click.option("--precision", type=click.Choice(["float32", "bfloat16"]), default="float32", show_default=True,
               help="The frozen backbone's precision; the heads train on its maps and detection uses the same "
                    "(bfloat16 where the CPU or GPU computes it natively, float32 elsewhere).")
-@click.option("--crop-top", type=click.FloatRange(0, 0.9), default=0.0, show_default=True,
+@click.option("--crop-top", type=FiniteFloat(0, 0.9), default=0.0, show_default=True,
               help="Share of the image's height, from the top, the backbone skips (rows where no object lies).")
-@click.option("--neck-channels", type=click.IntRange(min=8, max=1024), default=128, show_default=True,
+@click.option("--neck-channels", type=SettingRange("neck_channels"), default=128, show_default=True,
               help="Channels of the neck and of the pooled RoI features.")
-@click.option("--head-width", type=click.IntRange(min=8, max=4096), default=1024, show_default=True,
+@click.option("--head-width", type=SettingRange("representation_size"), default=1024, show_default=True,
               help="Units of each of the box head's two layers.")
 @click.option("--cache", "cache_dir", type=click.Path(file_okay=False),
               help="Where each frame's backbone maps and proposals are kept [default: ~/.cache/reeb-torch/detection].")
@@ -135,78 +123,103 @@ def fit(dirs, out, overwrite, proposals, classes, epochs, seed, val, hflip, min_
     label_2/) and write it to OUT. The backbone's maps and REEB's proposals of each frame are
     cached, so a second fit on the same frames trains at once. Deterministic for a seed.
     """
-    from ..detection import DetectorSettings, ReebDetector, evaluate_detector, format_scores
+    from click.core import ParameterSource
 
-    path = _check_weights_out(out, overwrite)
+    path = claim_weights_out(out, overwrite)
     names = tuple(c.strip() for c in classes.split(",") if c.strip())
     if not names or len(set(names)) != len(names):
         raise click.BadParameter(f"{classes!r}: expected distinct names such as Car,Pedestrian", param_hint="--classes")
     settings = fit_settings(click.get_current_context().params)
+    dirs, val = distinct(dirs, ""), distinct(val, "--val ")
+    named = click.get_current_context().get_parameter_source("classes") is not ParameterSource.DEFAULT
+    check_frames(dirs, val, names, limit, named)
+    cache_dir = check_cache(cache_dir)
     command = " ".join(["reeb detector fit", *map(shlex.quote, dirs), "-o", shlex.quote(out), "--proposals",
                         shlex.quote(proposals), "--classes", shlex.quote(",".join(names)), "--epochs", str(epochs),
                         "--seed", str(seed)] + (["--hflip"] if hflip else [])
                        + _changed_options(click.get_current_context(), SETTINGS_OPTIONS)
                        + (["--limit", str(limit)] if limit else []))
-    t0 = time.perf_counter()
-    try:
-        det = ReebDetector.fit(dirs, classes=names, proposals=proposals, epochs=epochs, seed=seed, settings=settings,
-                               cache_dir=cache_dir, limit=limit, hflip=hflip, progress=not quiet, command=command)
-    except (ValueError, FileNotFoundError, ImportError) as e:
-        raise UsageProblem(" ".join(str(e).split()))
-    prov = det.meta["provenance"]
-    lines = [f"trained on {len(prov['frames'])} frames ("
-             + ", ".join(f"{n} {c}" for c, n in prov["objects"].items()) + f"): {det.history['steps']} steps, "
-             f"{det.history['train_s']:.0f} s of head training, {time.perf_counter() - t0:.0f} s in all"]
-    if val:
-        try:
-            scores = evaluate_detector(det, val, cache_dir=cache_dir, progress=not quiet, seed=seed)
-        except ValueError as e:
-            raise UsageProblem(" ".join(str(e).split()))
-        prov["val"] = {"folders": list(val), **scores}
-        lines.append(f"KITTI 2D AP|R40 (moderate) on {scores['frames']} frames of {', '.join(val)}:\n"
-                     + format_scores(scores))
-        if scores["training_frames"]:
-            lines.append(f"note: {scores['training_frames']} of these frames are training frames (the same "
-                         "pictures): that part of the estimate is in-sample")
+    with warnings_as_lines():
+        det, lines = train(dirs, val, names, proposals, epochs, seed, settings, cache_dir, limit, hflip, quiet,
+                           command)
     try:
         det.save(path)
     except OSError as e:
         raise Failure(f"{out}: cannot write the detector ({e.strerror or e})")
     lines.append(f"wrote {path}; run it with: reeb detect IMAGES --detector {shlex.quote(str(path))} -o dets.jsonl")
-    click.echo("\n".join(lines))
+    errors = [line for line in lines if line.startswith("error: ")]
+    click.echo("\n".join(line for line in lines if line not in errors))
+    if errors:
+        click.echo("\n".join(errors), err=True)
+        sys.exit(1)
 
 
 @detector.command("show", context_settings=CONTEXT)
 @click.argument("path", type=click.Path(dir_okay=False))
 def show(path):
     """What a detector file (PATH) holds: its classes, settings, proposals, the frames it was
-    trained on, its held-out scores and the command that trains it again."""
-    from ..detection import DetectorFileError
+    trained on, its held-out scores and the command that trains it again; a warning where
+    reeb detect would refuse it."""
+    from ..detection import DetectorFileError, ReebDetector
     from ..detection.detector_file import read_detector_file
-    from ..detection.fitting import format_scores
 
     try:
         tensors, meta, ranker = read_detector_file(path)
     except DetectorFileError as e:
         raise UsageProblem(str(e))
-    prov = meta.get("provenance") or {}
+    prov, backbone, proposals = (_part(meta, k) for k in ("provenance", "backbone", "proposals"))
     params = sum(t.numel() for t in tensors.values())
     lines = [f"{path}: a detector of {', '.join(meta['classes'])} ({params / 1e6:.1f} M trained parameters)",
-             f"backbone: {meta['backbone'].get('name')} (weights {str(meta['backbone'].get('sha256'))[:16]}...)",
-             "settings: " + ", ".join(f"{k}={v}" for k, v in meta["settings"].items()),
-             f"proposals: {meta['proposals'].get('spec')} (REEB config {meta['proposals'].get('fingerprint')}); "
-             f"ranker: {_ranker_note(meta['proposals'], ranker)}"]
-    if prov.get("frames"):
-        lines.append(f"trained on {len(prov['frames'])} frames of {', '.join(prov.get('folders', []))}: "
-                     + ", ".join(f"{n} {c}" for c, n in (prov.get("objects") or {}).items()))
-    if isinstance(prov.get("val"), dict) and "ap" in prov["val"]:
-        seen = prov["val"].get("training_frames") or 0
-        lines.append(f"KITTI 2D AP|R40 (moderate) on {', '.join(prov['val'].get('folders', []))}"
-                     + (f" ({seen} of its frames are training frames)" if seen else "") + ":\n"
-                     + format_scores(prov["val"]))
+             f"backbone: {backbone.get('name')} (weights {str(backbone.get('sha256'))[:16]}...)",
+             "settings: " + ", ".join(f"{k}={v}" for k, v in _part(meta, "settings").items()),
+             f"proposals: {proposals.get('spec')} (REEB config {proposals.get('fingerprint')}); "
+             f"ranker: {_ranker_note(proposals, ranker)}"]
+    frames, objects = prov.get("frames"), _part(prov, "objects")
+    if isinstance(frames, list) and frames:
+        folders = prov.get("folders") if isinstance(prov.get("folders"), list) else []
+        lines.append(f"trained on {len(frames)} frames of {', '.join(map(str, folders))}: "
+                     + ", ".join(f"{n} {c}" for c, n in objects.items()))
+    lines += _val_lines(_part(prov, "val"))
     if prov.get("command"):
         lines.append(f"command: {prov['command']}")
     click.echo("\n".join(lines))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ReebDetector.load(path)
+    except (DetectorFileError, ImportError) as e:
+        click.echo(f"warning: reeb detect refuses this file: {' '.join(str(e).split())}", err=True)
+
+
+def _part(meta: Any, key: str) -> dict:
+    """``meta[key]`` where it is a JSON object, else an empty one (a file's metadata as found)."""
+    value = meta.get(key) if isinstance(meta, dict) else None
+    return value if isinstance(value, dict) else {}
+
+
+def _val_lines(val: dict) -> list[str]:
+    """The held-out scores a detector file records (``provenance.val``), as far as they go."""
+    from ..detection.fitting import format_scores
+
+    ap = _part(val, "ap")
+    if not ap:
+        return []
+    given = val.get("folders")
+    folders = ", ".join(map(str, given)) if isinstance(given, list) else "?"
+    seen = val.get("training_frames") or 0
+    head = (f"KITTI 2D AP|R40 (moderate) on {folders}"
+            + (f" ({seen} of its frames are training frames)" if seen else "") + ":")
+    spans = _part(val, "interval_95")
+    scores = {"ap": ap, "objects": _part(val, "objects"),
+              "interval_95": {k: spans[k] if _is_span(spans.get(k)) else [None, None] for k in ap}}
+    try:
+        return [head + "\n" + format_scores(scores)]
+    except (TypeError, ValueError):  # values of other types than a fit writes
+        return [head + " " + ", ".join(f"{k} {v}" for k, v in ap.items())]
+
+
+def _is_span(v: Any) -> bool:
+    return isinstance(v, list) and len(v) == 2 and all(x is None or isinstance(x, (int, float)) for x in v)
 
 
 def _ranker_note(info: dict, ranker: bytes | None) -> str:
@@ -214,7 +227,7 @@ def _ranker_note(info: dict, ranker: bytes | None) -> str:
     copy is the one recorded), shipped with reeb-torch, a file named by its path, or none."""
     from ..ranker import SHIPPED
 
-    name = str((info.get("config") or {}).get("ranker", "none"))
+    name = str(_part(info, "config").get("ranker", "none"))
     sha = str(info.get("ranker_sha256"))
     if ranker is not None:
         same = hashlib.sha256(ranker).hexdigest() == sha
