@@ -80,7 +80,9 @@ def detect_images(model: nn.Module, images: Sequence[Tensor], crop_top: float = 
         groups.setdefault(tuple(image.shape), []).append(i)
     out: list[dict[str, Tensor]] = [{} for _ in images]
     empty = torch.zeros(0, 4)
-    for members in groups.values():
+    together = next(model.parameters()).device.type == "cuda"
+    chunks = [m for g in groups.values() for m in ([g] if together else [[i] for i in g])]
+    for members in chunks:
         feats = batch_features(model, [images[i] for i in members], crop_top, clock=clock)
         for i, f in zip(members, feats):
             frame = CachedFrame(images[i], f, empty, torch.zeros(0, dtype=torch.int64))
