@@ -37,6 +37,7 @@ import click  # noqa: E402
 
 from .common import (  # noqa: E402
     Failure,
+    FiniteFloat,
     UsageProblem,
     box_table,
     build_config,
@@ -156,7 +157,7 @@ def main() -> None:
                    "instance sized to this machine].")
 @click.option("--actors", type=click.IntRange(min=1), default=1, show_default=True,
               help="--engine ray: actors, each holding one proposal generator.")
-@click.option("--cpus-per-actor", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--cpus-per-actor", type=FiniteFloat(min=0, min_open=True), default=None,
               help="--engine ray: CPUs each actor reserves (and its torch threads) "
                    "[default: leaves one CPU to Ray's read/write tasks].")
 def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, device,
@@ -384,7 +385,7 @@ def _class_heights(items: tuple[str, ...]) -> dict[str, float] | None:
 @click.option("--samples", type=click.IntRange(min=1), default=500, show_default=True,
               help="Frame-bootstrap samples for the intervals.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the bootstrap.")
-@click.option("--box-factor", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--box-factor", type=FiniteFloat(min=0, min_open=True), default=None,
               help="2D box height / 3D object height at the bottom's depth [default: 1.055, measured on KITTI "
                    "with its known 1.65 m; 1 = the plain model].")
 def calibrate(dirs, out, class_height, samples, seed, box_factor):
@@ -420,13 +421,13 @@ def calibrate(dirs, out, class_height, samples, seed, box_factor):
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the samplers and bootstraps.")
 @click.option("--storage", help="Optuna storage URL, e.g. sqlite:///tune.db (default: in memory).")
 @click.option("--resume", is_flag=True, help="Continue the studies in --storage (after Ctrl-C or a crash).")
-@click.option("--timeout", type=click.FloatRange(min=0, min_open=True), help="Seconds for all the searching.")
+@click.option("--timeout", type=FiniteFloat(min=0, min_open=True), help="Seconds for all the searching.")
 @click.option("--balanced", is_flag=True, help="Objective: mean of the per-class recalls (default: micro).")
 @click.option("--space", "space_file", type=click.Path(exists=True, dir_okay=False),
               help="JSON search space {field: {type: float|int|categorical, low, high | choices}}.")
 @click.option("-k", "--proposals", "k", type=click.IntRange(min=1), default=2000, show_default=True,
               help="Proposals counted per frame.")
-@click.option("--iou", type=click.FloatRange(0, 1, min_open=True), default=0.7, show_default=True,
+@click.option("--iou", type=FiniteFloat(0, 1, min_open=True), default=0.7, show_default=True,
               help="IoU an object needs.")
 @click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
 @click.option("--score", "score_file", type=click.Path(exists=True, dir_okay=False),

@@ -17,6 +17,7 @@ import click
 __all__ = [
     "UsageProblem",
     "Failure",
+    "FiniteFloat",
     "SAMPLE_NAME",
     "repo_root",
     "bundled_sample",
@@ -44,6 +45,24 @@ class Failure(click.ClickException):
     """A one-line error with exit code 1 (the command could not do its work)."""
 
     exit_code = 1
+
+
+class FiniteFloat(click.FloatRange):
+    """A float option that must be a finite number within its range: ``nan``, ``inf`` and
+    ``-inf`` are usage errors naming the option (click's ``FloatRange`` lets ``nan`` through,
+    since every comparison with it is false, and ``inf`` where the range has no bound on
+    that side). Takes ``FloatRange``'s arguments: ``FiniteFloat(0, 1)``,
+    ``FiniteFloat(min=0, min_open=True)``."""
+
+    name = "float"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        import math
+
+        rv = super().convert(value, param, ctx)
+        if not math.isfinite(rv):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        return rv
 
 
 # -- settings, device, sample ---------------------------------------------------------

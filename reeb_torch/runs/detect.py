@@ -35,7 +35,7 @@ from typing import Any
 
 import click
 
-from .common import Failure, UsageProblem, claim_output, resolve_device
+from .common import Failure, FiniteFloat, UsageProblem, claim_output, resolve_device
 
 __all__ = ["detector", "fit", "show", "detect", "draw_detections", "StageTimes"]
 
@@ -479,9 +479,9 @@ def _out_folder(path: str | None, option: str) -> Path | None:
               help="Write one KITTI result file per image here (<image stem>.txt), as KITTI's devkit scores them.")
 @click.option("--viz", "viz_dir", type=click.Path(file_okay=False),
               help="Save a picture per image here, with each detection's class and score.")
-@click.option("--min-score", type=click.FloatRange(0, 1), default=0.0, show_default=True,
+@click.option("--min-score", type=FiniteFloat(0, 1), default=0.0, show_default=True,
               help="Keep detections scoring at least this (in every output).")
-@click.option("--viz-min-score", type=click.FloatRange(0, 1), default=0.3, show_default=True,
+@click.option("--viz-min-score", type=FiniteFloat(0, 1), default=0.3, show_default=True,
               help="Draw detections scoring at least this in the --viz pictures.")
 @click.option("-b", "--batch-size", type=click.IntRange(min=1), default=1, show_default=True,
               help="Images run through the detector together.")
