@@ -178,20 +178,18 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
     --resume matches rows on the resolved file, and also takes the finished rows a killed
     run left in a hidden .NAME.*.tmp file.
     """
+    cfg, dev = build_config(preset, config_file, sets, top_k), resolve_device(device)
     if engine == "ray":
         from .propose_ray import propose_ray
 
-        return propose_ray(paths, out=out, resume=resume, overwrite=overwrite, preset=preset,
-                           config_file=config_file, sets=sets, top_k=top_k, device=device,
-                           batch_size=batch_size, recursive=recursive, summary_json=summary_json,
-                           quiet=quiet, address=address, actors=actors,
-                           cpus_per_actor=cpus_per_actor, viz_dir=viz_dir)
+        return propose_ray(paths, cfg, dev, out=out, resume=resume, overwrite=overwrite, batch_size=batch_size,
+                           recursive=recursive, summary_json=summary_json, quiet=quiet, address=address,
+                           actors=actors, cpus_per_actor=cpus_per_actor, viz_dir=viz_dir)
     from .propose_local import propose_local
 
-    return propose_local(paths, out=out, resume=resume, overwrite=overwrite, preset=preset,
-                         config_file=config_file, sets=sets, top_k=top_k, device=device,
-                         batch_size=batch_size, workers=workers, viz_dir=viz_dir, viz_top=viz_top,
-                         recursive=recursive, print_top=print_top, summary_json=summary_json, quiet=quiet)
+    return propose_local(paths, cfg, dev, out=out, resume=resume, overwrite=overwrite, batch_size=batch_size,
+                         workers=workers, viz_dir=viz_dir, viz_top=viz_top, recursive=recursive, print_top=print_top,
+                         summary_json=summary_json, quiet=quiet)
 
 
 # -- reeb warmup -------------------------------------------------------------------------

@@ -1,9 +1,11 @@
-"""What the ``reeb`` command's runs share: errors with their exit codes, the settings from
-the command line, the device, the bundled sample, and the closing summary's lines.
+"""What the ``reeb`` command's runs share: errors with their exit codes, the finite-float
+option type, the settings from the command line, the device, the bundled sample, the output's
+claim (checked and locked) and the printed table of boxes.
 
-The command (:mod:`.cli`), the local run (:mod:`.propose_local`) and the Ray run
-(:mod:`.propose_ray`) import this module; the libraries they call (:mod:`.rows`,
-:mod:`.output_files`, :mod:`.distributed`, :mod:`.export`, :mod:`.viz`, ...) import none of them.
+The command (:mod:`.cli`) and its runs (:mod:`.engine` and the commands on it) import this
+module; the libraries they call (:mod:`.rows`, :mod:`.output_files`, :mod:`.distributed`,
+:mod:`.export`, :mod:`.viz`, ...) import none of them. The closing summary's lines are the
+engine's (:mod:`.engine`).
 """
 
 from __future__ import annotations
@@ -27,9 +29,6 @@ __all__ = [
     "label_for",
     "read_labels",
     "box_table",
-    "ms_per_img",
-    "count_line",
-    "failures_and_summary",
 ]
 
 SAMPLE_NAME = "kitti_000001.png"
@@ -315,31 +314,3 @@ def box_table(name: str, size: tuple[int, int], boxes, scores, n: int, total: in
             lines.append(f"{i:>5} {b[0]:8.1f} {b[1]:8.1f} {b[2]:8.1f} {b[3]:8.1f} {s:10.4f}"
                          + (f"  {hints[i - 1]}" if hints is not None else ""))
     return "\n".join(lines)
-
-
-def ms_per_img(seconds: float, n: int) -> str:
-    """``seconds`` over ``n`` images as ``"12.3 ms/img"`` (``"n/a"`` for none)."""
-    return f"{1000 * seconds / n:.1f} ms/img" if n else "n/a"
-
-
-# -- the closing summary ----------------------------------------------------------------
-
-def count_line(done: int, ok: int, failed: int, proposals: int) -> str:
-    """The first line of a run's closing summary (local and Ray engines)."""
-    return (f"{done} image{'s' if done != 1 else ''}: {ok} ok, {failed} failed; {proposals} proposals"
-            + (f" ({proposals / ok:.0f} per image)" if ok else ""))
-
-
-def failures_and_summary(failures: Sequence[str], summary_json: str | None, summary: dict) -> list[str]:
-    """Closing-summary lines naming the failed images; writes ``summary`` to ``summary_json``
-    (a warning line instead if it cannot be written). Shared by the local and Ray engines."""
-    lines = []
-    if failures:
-        lines.append(f"failed ({len(failures)}):")
-        lines += [f"  {m}" for m in failures]
-    if summary_json:
-        try:
-            Path(summary_json).write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-        except OSError as e:
-            lines.append(f"warning: {summary_json}: cannot write the summary ({e.strerror or e})")
-    return lines
