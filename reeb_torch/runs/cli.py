@@ -36,6 +36,7 @@ from pathlib import Path  # noqa: E402
 import click  # noqa: E402
 
 from .common import (  # noqa: E402
+    CONTEXT,
     Failure,
     FiniteFloat,
     UsageProblem,
@@ -46,9 +47,6 @@ from .common import (  # noqa: E402
     read_labels,
     resolve_device,
 )
-
-CONTEXT = dict(help_option_names=["-h", "--help"], max_content_width=100)
-
 
 def config_options(f):
     """``--preset``, ``--config``, ``--set``, ``--top-k``, ``--device`` (shared)."""
@@ -125,7 +123,7 @@ def main() -> None:
 # -- reeb propose ------------------------------------------------------------------------
 
 @main.command(context_settings=CONTEXT)
-@click.argument("paths", nargs=-1, type=click.Path())
+@click.argument("paths", nargs=-1, type=click.Path(readable=False))
 @click.option("-o", "--out", type=click.Path(),
               help="Write one row per image here: .jsonl (JSON Lines) or .parquet.")
 @click.option("--resume", is_flag=True,
@@ -541,7 +539,8 @@ def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, mir
     click.echo(record["text"])
 
 
-from .detect import detect as _detect, detector as _detector  # noqa: E402
+from .detect import detector as _detector  # noqa: E402
+from .detect_run import detect as _detect  # noqa: E402
 
 main.add_command(_detector)
 main.add_command(_detect)

@@ -17,6 +17,7 @@ from typing import Any, Sequence
 import click
 
 __all__ = [
+    "CONTEXT",
     "UsageProblem",
     "Failure",
     "FiniteFloat",
@@ -32,6 +33,9 @@ __all__ = [
 ]
 
 SAMPLE_NAME = "kitti_000001.png"
+
+CONTEXT = dict(help_option_names=["-h", "--help"], max_content_width=100)
+"""click's context settings of every ``reeb`` command: ``-h`` for help, 100 columns."""
 
 
 class UsageProblem(click.ClickException):

@@ -17,8 +17,6 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-import click
-
 from .common import UsageProblem, box_table, bundled_sample, label_for, read_labels
 from .decoding import decoded_images, size_batches
 from .engine import ImageRun, ms_per_img
