@@ -3,7 +3,7 @@
 For each ``--detector`` file (``reeb detector fit``'s) this runs what ``reeb detect`` runs on
 the images: ``ReebDetector([images])`` on batches of ``--batch`` images, the images moved to
 ``--device`` inside the timed call as the command does; the stages are timed with the
-command's own hooks (:class:`reeb_torch.runs.detect.StageTimes`: REEB's proposals, the
+command's own hooks (:class:`reeb_torch.runs.detect_run.StageTimes`: REEB's proposals, the
 backbone, the heads; on CUDA each stage waits for the GPU) and the rest of the call
 (resize and normalisation before the backbone, boxes back to input pixels after the heads)
 is ``other``. Decoding (``reeb_torch.io.read_image``, which ``reeb detect``'s worker
@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from reeb_torch.io import read_image
-    from reeb_torch.runs.detect import StageTimes
+    from reeb_torch.runs.detect_run import StageTimes
 
     args = parse_args(argv)
     if args.threads:

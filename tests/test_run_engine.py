@@ -10,6 +10,9 @@ detector keep it quick.
 
 from __future__ import annotations
 
+import errno
+import json
+import os
 import shutil
 from pathlib import Path
 
@@ -18,6 +21,7 @@ from click.testing import CliRunner
 
 from reeb_torch.runs.cli import main
 
+from test_cli import no_temp_files
 from test_eval import EXAMPLES, FRAMES, _example_kitti
 
 
@@ -117,3 +121,169 @@ def test_kitti_names_are_the_same_with_and_without_resume(detector, tmp_path):
     assert res.exit_code == 0, res.output
     assert _files(tmp_path / "part") == _files(whole)
     assert (tmp_path / "part.jsonl").read_text().splitlines() == rows
+
+
+# -- a killed run's rows -----------------------------------------------------------------------------
+
+def test_detect_resume_takes_the_rows_a_killed_run_left(detector, tmp_path):
+    """What ``kill -9`` leaves: the hidden ``.NAME.XXXXXXXX.tmp`` beside the output, its last
+    line cut. Without --resume: exit 2 naming it; with --resume its rows are kept."""
+    images = _frames(tmp_path / "d", ["a.png", "b.png", "c.png"])
+    out = tmp_path / "o.jsonl"
+    assert _detect(detector, tmp_path / "d", "-o", out).exit_code == 0
+    whole = out.read_text().splitlines()
+    tmp = tmp_path / ".o.jsonl.abcd1234.tmp"
+    tmp.write_text("\n".join(whole[:2]) + "\n" + whole[2][:40])  # killed while writing the third row
+    out.unlink()
+    res = _detect(detector, tmp_path / "d", "-o", out)
+    assert res.exit_code == 2 and tmp.name in res.output and "--resume" in res.output, res.output
+    assert tmp.exists() and not out.exists()
+    res = CliRunner().invoke(main, ["detect", str(tmp_path / "d"), "--detector", str(detector), "-o", str(out),
+                                    "--resume", "-j", "0"])
+    assert res.exit_code == 0, res.output
+    assert "2 rows recovered from a killed run" in res.output and "1 to do" in res.output, res.output
+    assert "1 image: 1 ok" in res.output
+    assert out.read_text().splitlines() == whole and not tmp.exists()
+    assert [json.loads(r)["image"] for r in whole] == [str(p) for p in images]
+
+
+# -- full disks: one line naming the output; the rows done are kept ---------------------------------
+
+def _enospc(*args):
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def test_detect_on_a_full_disk_is_one_line_naming_the_output(detector, tmp_path, monkeypatch):
+    from reeb_torch.runs import output_files
+
+    _frames(tmp_path / "d", ["a.png"])
+    out = tmp_path / "o.jsonl"
+    out.write_text("old\n")
+    monkeypatch.setattr(output_files.JsonlWriter, "_write", lambda self, rows: _enospc())
+    res = _detect(detector, tmp_path / "d", "-o", out, "--overwrite")
+    assert res.exit_code == 1, res.output
+    assert res.output.strip().splitlines() == [f"Error: {out}: cannot write the results (No space left on device); "
+                                               "the old file, if any, is unchanged"]
+    assert out.read_text() == "old\n" and no_temp_files(tmp_path)
+
+
+def _full_under(folder: Path, monkeypatch) -> None:
+    """The disk under ``folder`` fills: flushing a file there fails (ENOSPC)."""
+    real = os.fsync
+    target = str(folder.resolve())
+
+    def fsync(fd):
+        if os.readlink(f"/proc/self/fd/{fd}").startswith(target):
+            _enospc()
+        return real(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+
+
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="reads /proc/self/fd")
+def test_a_full_kitti_dir_stops_the_run_naming_it_and_keeps_the_rows(detector, tmp_path, monkeypatch):
+    _frames(tmp_path / "d", ["a.png", "b.png", "c.png"])
+    out, kitti = tmp_path / "o.jsonl", tmp_path / "k"
+    kitti.mkdir()
+    with monkeypatch.context() as m:
+        _full_under(kitti, m)
+        res = _detect(detector, tmp_path / "d", "-o", out, "--kitti-dir", kitti)
+    assert res.exit_code == 1, res.output
+    line = res.output.strip().splitlines()[-1]
+    assert line.startswith(f"error: --kitti-dir {kitti}: cannot write the KITTI result file a.txt (No space left on "
+                           "device); stopped: 1 of 3 images saved in"), res.output
+    assert "--resume" in line
+    assert [json.loads(r)["image"] for r in out.read_text().splitlines()] == [str(tmp_path / "d" / "a.png")]
+    res = _detect(detector, tmp_path / "d", "-o", out, "--kitti-dir", kitti, "--resume")
+    assert res.exit_code == 0, res.output
+    assert sorted(_files(kitti)) == ["a.txt", "b.txt", "c.txt"] and len(out.read_text().splitlines()) == 3
+
+
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="reads /proc/self/fd")
+@pytest.mark.parametrize("command", ["detect", "propose"])
+def test_a_full_viz_folder_is_named_once_and_the_run_goes_on(detector, tmp_path, monkeypatch, command):
+    _frames(tmp_path / "d", ["a.png", "b.png"])
+    out, viz = tmp_path / "o.jsonl", tmp_path / "v"
+    viz.mkdir()
+    _full_under(viz, monkeypatch)
+    if command == "detect":
+        res = CliRunner().invoke(main, ["detect", str(tmp_path / "d"), "--detector", str(detector), "-o", str(out),
+                                        "--viz", str(viz), "-j", "0"])
+    else:
+        res = CliRunner().invoke(main, ["propose", str(tmp_path / "d"), "-o", str(out), "--viz", str(viz), "-j", "0",
+                                        "--top-k", "100"])
+    assert res.exit_code == 1, res.output
+    named = [line for line in res.output.splitlines() if f"--viz {viz}: cannot write the picture a.png" in line]
+    assert len(named) == 1 and "No space left on device" in named[0], res.output
+    assert f"--viz {viz}: 2 pictures not written" in res.output, res.output
+    assert len(out.read_text().splitlines()) == 2 and not list(viz.iterdir())
+
+
+# -- -o through a symbolic link ----------------------------------------------------------------------
+
+def test_detect_writes_through_an_output_link_and_keeps_it(detector, tmp_path):
+    _frames(tmp_path / "d", ["a.png"])
+    (tmp_path / "real").mkdir()
+    target, link = tmp_path / "real" / "t.jsonl", tmp_path / "link.jsonl"
+    target.write_text("old\n")
+    link.symlink_to(target)
+    assert _detect(detector, tmp_path / "d", "-o", link, "--overwrite").exit_code == 0
+    assert link.is_symlink() and os.readlink(link) == str(target)
+    assert [json.loads(r)["status"] for r in target.read_text().splitlines()] == ["ok"]
+
+
+def test_files_the_package_writes_whole_keep_a_link_a_link(tmp_path):
+    from reeb_torch.io import replace_file
+
+    target, link = tmp_path / "t.json", tmp_path / "l.json"
+    target.write_text("old")
+    link.symlink_to(target)
+    replace_file(link, b"new")
+    assert link.is_symlink() and target.read_text() == "new"
+
+
+# -- odd files named on the command line: a name that is not UTF-8, a file that cannot be read ------
+
+def _unreadable(path: Path) -> list[str] | None:
+    """Make ``path`` unreadable to the command; the prefix to run the command with (``[]``),
+    or None where this cannot be done (root without ``setpriv`` to drop its file rights)."""
+    import subprocess
+
+    path.chmod(0)
+    if os.geteuid() != 0:
+        return []
+    drop = [shutil.which("setpriv") or "setpriv", "--bounding-set=-dac_override,-dac_read_search",
+            "--inh-caps=-dac_override,-dac_read_search"]
+    try:
+        r = subprocess.run([*drop, "cat", str(path)], capture_output=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return drop if r.returncode != 0 else None
+
+
+@pytest.mark.parametrize("command", ["propose", "detect"])
+def test_odd_files_named_on_the_command_line_get_their_rows(detector, tmp_path, command):
+    """A file name with the byte 0xff drawn on a --viz picture (it crashed OpenCV), and a file
+    that cannot be read named on the command line: an error row, the run goes on."""
+    import subprocess
+    import sys
+
+    d = tmp_path / "d"
+    _frames(d, ["a.png", "b.png"])
+    os.rename(os.fsencode(d / "b.png"), os.path.join(os.fsencode(d), b"x\xff.png"))
+    locked = _frames(tmp_path, ["locked.png"])[0]
+    prefix = _unreadable(locked)
+    args = ["d"] + (["locked.png"] if prefix is not None else [])
+    args += ["-o", "o.jsonl", "--viz", "v", "-j", "0", "-q"]
+    args += ["--detector", str(detector)] if command == "detect" else ["--top-k", "100", "--device", "cpu"]
+    r = subprocess.run([*(prefix or []), sys.executable, "-m", "reeb_torch.runs.cli", command, *args], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=300, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    assert r.returncode == (1 if prefix is not None else 0), r.stderr
+    assert "Traceback" not in r.stderr and "not readable" not in r.stderr, r.stderr
+    rows = [json.loads(line) for line in (tmp_path / "o.jsonl").read_text().splitlines()]
+    assert [row["image"] for row in rows[:2]] == ["d/a.png", "d/x\\xff.png"]
+    assert [row["status"] for row in rows[:2]] == ["ok", "ok"]
+    assert sorted(os.listdir(os.fsencode(tmp_path / "v"))) == [b"a.png", b"x\xff.png"]
+    if prefix is not None:
+        assert rows[2]["image"] == "locked.png" and rows[2]["status"].startswith("error: locked.png"), rows[2]
+        assert "Permission denied" in rows[2]["status"] and "locked.png" in r.stderr
