@@ -1,4 +1,4 @@
-"""The ``reeb`` command line: ``propose``, ``show``, ``eval``, ``export``, ``calibrate`` and ``tune``.
+"""The ``reeb`` command line: every command, and where each one's work lives.
 
 ::
 
@@ -10,15 +10,35 @@
     reeb eval data/kitti --limit 20               # the paper's Table 3 (reeb_torch.eval.command)
     reeb calibrate my_frames/ -o camera.json      # horizon and camera height from labelled boxes
     reeb tune my_frames/ --config camera.json -o tuned.json --trials 50 --storage sqlite:///tune.db
+    reeb fit my_frames/ --config camera.json -o mine.safetensors   # the learned ranking, cross-validated
+    reeb detector fit my_frames/ -o det.safetensors                # a detector on REEB's proposals
+    reeb detect images/ --detector det.safetensors -o dets.jsonl --kitti-dir results/
 
 Exit codes: 0 success; 1 some images failed (each is named, in the summary and in the
 output with its status) or the command failed; 2 usage error (bad option or setting, no
 images found, output not writable, or being written by another run — all checked before
 any work); 130 interrupted (what was done is saved; ``--resume`` continues).
 
-Each command checks its options and hands on: ``propose`` to :mod:`.propose_local` or
-:mod:`.propose_ray`, ``export`` to :mod:`.export`, ``eval`` is :mod:`reeb_torch.eval.command`;
-what they share (errors, settings, device, summary lines) is :mod:`.common`.
+Each command checks its options, builds its settings once (:func:`.common.build_config`,
+from the options :func:`settings_options` declares) and hands on:
+
+=====================  ==========================================================
+command                where its work lives
+=====================  ==========================================================
+``propose``            :mod:`.propose_local` (on the run engine, :mod:`.engine`),
+                       ``--engine ray``: :mod:`.propose_ray`
+``detect``             :mod:`.detect_run` (on the run engine, :mod:`.engine`)
+``detector fit/show``  :mod:`.detect` (around :mod:`reeb_torch.detection`)
+``show``               here, with :func:`.viz.inspection_figure`
+``warmup``             here, with :func:`reeb_torch.generator.warmup`
+``eval``               :mod:`reeb_torch.eval.command`
+``export``             :mod:`.export`
+``calibrate``          :mod:`.calibrate`
+``tune``               :mod:`.tune` (around :mod:`reeb_torch.eval.tune`)
+``fit``                :mod:`.fit` (around :mod:`reeb_torch.eval.fit`)
+=====================  ==========================================================
+
+What they share (errors, the finite-float type, settings, device) is :mod:`.common`.
 """
 
 from __future__ import annotations
@@ -48,25 +68,41 @@ from .common import (  # noqa: E402
     resolve_device,
 )
 
-def config_options(f):
-    """``--preset``, ``--config``, ``--set``, ``--top-k``, ``--device`` (shared)."""
+def settings_options(purpose: str = "Named settings to start from.", run: bool = True):
+    """The options that make a ReebConfig (``--preset``, ``--config``, ``--set``; with ``run``,
+    also a run's ``--top-k`` and ``--device``), declared once for every command that takes
+    them; ``purpose``: what the settings are for (``--preset``'s help). The command builds
+    the config from them once (:func:`.common.build_config`)."""
     from ..config import PRESETS
 
     options = [
         click.option("--preset", type=click.Choice(sorted(PRESETS)), default="default",
-                     show_default=True, help="Named settings to start from."),
+                     show_default=True, help=purpose),
         click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False),
-                     help="JSON file of ReebConfig fields applied over the preset."),
+                     help="JSON file of ReebConfig fields applied over the preset (e.g. reeb calibrate's "
+                          "camera.json)."),
         click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE",
                      help="Change one ReebConfig field (repeatable), e.g. --set scale=1.0."),
-        click.option("--top-k", type=click.IntRange(min=1), default=None,
-                     help="Proposals kept per image (default: the config's top_k, 2000)."),
-        click.option("--device", default="auto", show_default=True,
-                     help="cpu, cuda, cuda:N, or auto (CUDA when available)."),
     ]
-    for opt in reversed(options):
-        f = opt(f)
-    return f
+    if run:
+        options += [
+            click.option("--top-k", type=click.IntRange(min=1), default=None,
+                         help="Proposals kept per image (default: the config's top_k, 2000)."),
+            click.option("--device", default="auto", show_default=True,
+                         help="cpu, cuda, cuda:N, or auto (CUDA when available)."),
+        ]
+
+    def decorate(f):
+        for opt in reversed(options):
+            f = opt(f)
+        return f
+
+    return decorate
+
+
+config_options = settings_options()
+"""``--preset``, ``--config``, ``--set``, ``--top-k``, ``--device``: the options of a command
+that runs the generator (``propose``, ``show``)."""
 
 
 # -- the command group -------------------------------------------------------------------
@@ -428,10 +464,7 @@ def calibrate(dirs, out, class_height, samples, seed, box_factor):
 @click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
 @click.option("--score", "score_file", type=click.Path(exists=True, dir_okay=False),
               help="No search: score this config file (e.g. a tuned.json) against the base on DIRS.")
-@click.option("--preset", default="default", show_default=True, help="Base settings (the comparison).")
-@click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False),
-              help="JSON config over the preset for the base (e.g. reeb calibrate's camera.json).")
-@click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE", help="Change a base field (repeatable).")
+@settings_options("The base settings: the comparison, and what the search changes.", run=False)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
 def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, space_file, k, iou, limit,
          score_file, preset, config_file, sets, quiet):
@@ -498,10 +531,7 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
 @click.option("--iou", type=click.FloatRange(0, 1, min_open=True), default=0.7, show_default=True,
               help="IoU an object needs.")
 @click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
-@click.option("--preset", default="default", show_default=True, help="Settings the ranking is fitted for.")
-@click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False),
-              help="JSON config over the preset (e.g. reeb calibrate's camera.json).")
-@click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE", help="Change a field (repeatable).")
+@settings_options("The settings the ranking is fitted for.", run=False)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
 def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, mirror, jitter, no_orientation, drop,
         refiner, k, iou, limit, preset, config_file, sets, quiet):
