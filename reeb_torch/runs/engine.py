@@ -29,7 +29,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Sequence
+from typing import Any, Callable, Generator, Iterable, Iterator, Sequence
 
 import click
 
@@ -191,8 +191,9 @@ class ImageRun:
     def prepare(self) -> None:
         """Before the clock starts: build the model, warm it up."""
 
-    def stream(self, images: Sequence[Path]) -> Iterator[Decoded]:
-        """The decoded images, in input order (DataLoader workers: :mod:`.decoding`)."""
+    def stream(self, images: Sequence[Path]) -> Generator[Decoded, None, None]:
+        """The decoded images, in input order (:func:`.decoding.decoded_images`: closing it
+        stops its workers)."""
         raise NotImplementedError
 
     def groups(self, stream: Iterator[Decoded]) -> Iterable[list[Decoded]]:
