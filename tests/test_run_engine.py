@@ -287,3 +287,13 @@ def test_odd_files_named_on_the_command_line_get_their_rows(detector, tmp_path, 
     if prefix is not None:
         assert rows[2]["image"] == "locked.png" and rows[2]["status"].startswith("error: locked.png"), rows[2]
         assert "Permission denied" in rows[2]["status"] and "locked.png" in r.stderr
+
+
+def test_a_kitti_dir_another_run_is_writing_is_refused(detector, tmp_path):
+    from reeb_torch.runs.output_lock import lock_output
+
+    _frames(tmp_path / "d", ["a.png"])
+    with lock_output(tmp_path / "k"):  # another run writes there
+        res = _detect(detector, tmp_path / "d", "--kitti-dir", tmp_path / "k")
+    assert res.exit_code == 2 and "--kitti-dir" in res.output and "another reeb run" in res.output, res.output
+    assert not list((tmp_path / "k").iterdir())

@@ -132,7 +132,8 @@ class KittiFolder:
     """``--kitti-dir DIR``: one KITTI result file per image with an ``ok`` row
     (``<stem>.txt``, :func:`reeb_torch.detection.result_lines`), made from the row itself.
 
-    :meth:`prepare` (before any work) keeps the folder to one run's results: files that are
+    :meth:`prepare` (before any work) locks the folder (one run at a time, as an output
+    file) and keeps it to one run's results: files that are
     not KITTI result files (label files, anything else) are refused whatever the options;
     result files of an earlier run are refused unless ``--overwrite`` (they are removed) or,
     with ``--resume``, they are those of the rows the output keeps (written again from them)."""
@@ -150,6 +151,7 @@ class KittiFolder:
         rows kept from before (``kept``: their stems; they are written again from the rows),
         else nothing; other result files only with ``overwrite`` (they are removed)."""
         _writable_folder(self.option, self.path)
+        self._lock()
         entries = sorted(p for p in self.path.iterdir() if not p.name.startswith("."))
         others = [(p, why) for p in entries if (why := _result_file_problem(p))]
         if others:
@@ -166,6 +168,21 @@ class KittiFolder:
                 "add --overwrite to replace them, or choose an empty folder")
         for p in foreign:  # --overwrite: the results of the run before go (this run's are written again)
             p.unlink()
+
+    def _lock(self) -> None:
+        """One run per folder, as per output file (:func:`.output_lock.lock_output`: a hidden
+        ``.NAME.lock`` beside it), held until the command ends; a usage error when another
+        run holds it."""
+        import click
+
+        from .output_files import OutputError
+        from .output_lock import lock_output
+
+        try:
+            lock = lock_output(self.path)
+        except OutputError as e:
+            raise UsageProblem(f"{self.option} {e}") from None
+        click.get_current_context().call_on_close(lock.release)
 
     def write(self, stem: str, row: dict) -> None:
         """The result file of an ``ok`` row (its boxes, labels and scores);
