@@ -127,7 +127,7 @@ class _RayRun:
         self.kept = len(done)
         before = len(self.images)
         self.images = [p for p in self.images if row_key(p) not in done]
-        self.echo_err(resume_note(self.kept, str(out), before - len(self.images), len(self.images)))
+        click.echo(resume_note(self.kept, str(out), before - len(self.images), len(self.images)), err=True)
         if not self.images:
             click.echo(f"Nothing to do: all {before} images are already in {out}.", err=True)
             return False

@@ -126,7 +126,8 @@ class OutputPlan:
 
 
 def resume_note(kept: int, out: str, among: int, todo: int, recovered: int = 0, duplicates: int = 0) -> str:
-    """The line a resumed run starts with (the local and Ray engines)."""
+    """The line a resumed run starts with (the local and Ray engines; with ``-q`` too, as the
+    closing summary)."""
     return (f"resume: {kept} images already in {out}"
             + (f" ({recovered} rows recovered from a killed run)" if recovered else "")
             + (f", {duplicates} duplicate rows dropped" if duplicates else "")
@@ -168,7 +169,7 @@ def plan_output(out: str | None, images: Sequence[Path], *, resume: bool, overwr
     before = len(images)
     plan.keep(rows + stale_rows)
     todo = len(plan.todo)
-    echo_err(resume_note(plan.kept, out, before - todo, todo, len(stale_rows), plan.duplicates))
+    click.echo(resume_note(plan.kept, out, before - todo, todo, len(stale_rows), plan.duplicates), err=True)
     return OutputPlan(out, plan, stale, work=bool(todo or stale or plan.duplicates))
 
 
