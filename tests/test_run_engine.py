@@ -232,14 +232,38 @@ def test_detect_writes_through_an_output_link_and_keeps_it(detector, tmp_path):
     assert [json.loads(r)["status"] for r in target.read_text().splitlines()] == ["ok"]
 
 
+def _link(tmp_path: Path, name: str) -> tuple[Path, Path]:
+    """``name`` in ``tmp_path``: a symbolic link to an existing file of that name in ``real/``."""
+    (tmp_path / "real").mkdir(exist_ok=True)
+    target, link = tmp_path / "real" / name, tmp_path / name
+    target.write_bytes(b"old")
+    link.symlink_to(target)
+    return target, link
+
+
 def test_files_the_package_writes_whole_keep_a_link_a_link(tmp_path):
     from reeb_torch.io import replace_file
+    from reeb_torch.runs.rows import FORMAT_VERSION
 
-    target, link = tmp_path / "t.json", tmp_path / "l.json"
-    target.write_text("old")
-    link.symlink_to(target)
+    target, link = _link(tmp_path, "t.json")
     replace_file(link, b"new")
     assert link.is_symlink() and target.read_text() == "new"
+    row = dict(format_version=FORMAT_VERSION, image="a.png", resolved="/a.png", width=10, height=10,
+               boxes=[[0.0, 0.0, 5.0, 5.0]], scores=[0.9], status="ok", config="c")
+    (tmp_path / "r.jsonl").write_text(json.dumps(row) + "\n")
+    target, link = _link(tmp_path, "p.pkl")
+    res = CliRunner().invoke(main, ["export", str(tmp_path / "r.jsonl"), "-o", str(link)])
+    assert res.exit_code == 0 and link.is_symlink() and target.read_bytes() != b"old", res.output
+
+
+def test_detector_fit_overwrite_writes_through_an_output_link(detector, tmp_path):
+    target, link = _link(tmp_path, "det.safetensors")
+    res = CliRunner().invoke(main, ["detector", "fit", str(_example_kitti(tmp_path / "kitti")), "-o", str(link),
+                                    "--overwrite", "--cache", str(detector.parent / "cache"), "-q", "--epochs", "1",
+                                    "--min-size", "128", "--max-size", "448", "--train-proposals", "100",
+                                    "--test-proposals", "50"])
+    assert res.exit_code == 0, res.output
+    assert link.is_symlink() and target.stat().st_size > 1000
 
 
 # -- odd files named on the command line: a name that is not UTF-8, a file that cannot be read ------
