@@ -363,7 +363,7 @@ class ImageRun:
                        **self.record(done), config=self.made_by, out=str(saved) if saved else None,
                        rows=rows.rows_written if rows.writer is not None else None,
                        saved=rows.saved_now if rows.writer is not None else None,
-                       interrupted=self.interrupted, same_file=len(self.inputs.same_file))
+                       interrupted=self.interrupted, stopped=self.stopped, same_file=len(self.inputs.same_file))
         lines += closing_tail(self.inputs.skipped, self.failures, self.summary_json, summary)
         if self.stopped or self.interrupted:
             lines.append(self._stop_line(saved, done, n))
