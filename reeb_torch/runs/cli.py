@@ -20,7 +20,7 @@ images found, output not writable, or being written by another run — all check
 any work); 130 interrupted (what was done is saved; ``--resume`` continues).
 
 Each command checks its options, builds its settings once (:func:`.common.build_config`,
-from the options :func:`settings_options` declares) and hands on:
+from the options :func:`.common.settings_options` declares) and hands on:
 
 =====================  ==========================================================
 command                where its work lives
@@ -63,47 +63,12 @@ from .common import (  # noqa: E402
     box_table,
     build_config,
     bundled_sample,
+    config_options,
     label_for,
     read_labels,
     resolve_device,
+    settings_options,
 )
-
-def settings_options(purpose: str = "Named settings to start from.", run: bool = True):
-    """The options that make a ReebConfig (``--preset``, ``--config``, ``--set``; with ``run``,
-    also a run's ``--top-k`` and ``--device``), declared once for every command that takes
-    them; ``purpose``: what the settings are for (``--preset``'s help). The command builds
-    the config from them once (:func:`.common.build_config`)."""
-    from ..config import PRESETS
-
-    options = [
-        click.option("--preset", type=click.Choice(sorted(PRESETS)), default="default",
-                     show_default=True, help=purpose),
-        click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False),
-                     help="JSON file of ReebConfig fields applied over the preset (e.g. reeb calibrate's "
-                          "camera.json)."),
-        click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE",
-                     help="Change one ReebConfig field (repeatable), e.g. --set scale=1.0."),
-    ]
-    if run:
-        options += [
-            click.option("--top-k", type=click.IntRange(min=1), default=None,
-                         help="Proposals kept per image (default: the config's top_k, 2000)."),
-            click.option("--device", default="auto", show_default=True,
-                         help="cpu, cuda, cuda:N, or auto (CUDA when available)."),
-        ]
-
-    def decorate(f):
-        for opt in reversed(options):
-            f = opt(f)
-        return f
-
-    return decorate
-
-
-config_options = settings_options()
-"""``--preset``, ``--config``, ``--set``, ``--top-k``, ``--device``: the options of a command
-that runs the generator (``propose``, ``show``)."""
-
 
 # -- the command group -------------------------------------------------------------------
 

@@ -21,6 +21,9 @@ __all__ = [
     "UsageProblem",
     "Failure",
     "FiniteFloat",
+    "settings_options",
+    "config_options",
+    "device_option",
     "SAMPLE_NAME",
     "repo_root",
     "bundled_sample",
@@ -66,6 +69,49 @@ class FiniteFloat(click.FloatRange):
         if not math.isfinite(rv):
             self.fail(f"{value!r} is not a finite number.", param, ctx)
         return rv
+
+
+# -- options shared by the commands -----------------------------------------------------
+
+device_option = click.option("--device", default="auto", show_default=True,
+                             help="cpu, cuda, cuda:N, or auto (CUDA when available).")
+"""``--device`` of every command that runs a model (:func:`resolve_device` reads it)."""
+
+
+def settings_options(purpose: str = "Named settings to start from.", run: bool = True):
+    """The options that make a ReebConfig (``--preset``, ``--config``, ``--set``; with ``run``,
+    also a run's ``--top-k`` and ``--device``), declared once for every command that takes
+    them; ``purpose``: what the settings are for (``--preset``'s help). The command builds
+    the config from them once (:func:`build_config`)."""
+    from ..config import PRESETS
+
+    options = [
+        click.option("--preset", type=click.Choice(sorted(PRESETS)), default="default",
+                     show_default=True, help=purpose),
+        click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False),
+                     help="JSON file of ReebConfig fields applied over the preset (e.g. reeb calibrate's "
+                          "camera.json)."),
+        click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE",
+                     help="Change one ReebConfig field (repeatable), e.g. --set scale=1.0."),
+    ]
+    if run:
+        options += [
+            click.option("--top-k", type=click.IntRange(min=1), default=None,
+                         help="Proposals kept per image (default: the config's top_k, 2000)."),
+            device_option,
+        ]
+
+    def decorate(f):
+        for opt in reversed(options):
+            f = opt(f)
+        return f
+
+    return decorate
+
+
+config_options = settings_options()
+"""``--preset``, ``--config``, ``--set``, ``--top-k``, ``--device``: the options of a command
+that runs the generator (``propose``, ``show``)."""
 
 
 # -- settings, device, sample ---------------------------------------------------------

@@ -32,7 +32,7 @@ from typing import Any
 
 import click
 
-from .common import CONTEXT, FiniteFloat, UsageProblem, resolve_device
+from .common import CONTEXT, FiniteFloat, UsageProblem, device_option, resolve_device
 from .engine import ImageRun
 
 __all__ = ["detect", "StageTimes"]
@@ -185,7 +185,7 @@ def _load_detector(path: str, device: str) -> tuple[Any, str, Any]:
               help="Images run through the detector together.")
 @click.option("-j", "--workers", type=click.IntRange(min=0), default=None,
               help="Decoding processes beside the detector (0 = decode inline). [default: min(2, CPUs)]")
-@click.option("--device", default="auto", show_default=True, help="cpu, cuda, cuda:N, or auto (CUDA when available).")
+@device_option
 @click.option("-r", "--recursive", is_flag=True, help="Look for images in sub-folders too.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar, no per-file messages.")
 def detect(paths, detector_path, out, overwrite, resume, kitti_dir, viz_dir, min_score, viz_min_score, batch_size,
