@@ -59,6 +59,7 @@ from .common import (  # noqa: E402
     CONTEXT,
     Failure,
     FiniteFloat,
+    device_option,
     UsageProblem,
     box_table,
     build_config,
@@ -534,11 +535,57 @@ def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, mir
     click.echo(record["text"])
 
 
-from .detect import detector as _detector  # noqa: E402
-from .detect_run import detect as _detect  # noqa: E402
+# -- reeb detector fit / show, reeb detect ------------------------------------------------
+
+from .detect import detector as _detector  # noqa: E402 - a click group: imports click only
 
 main.add_command(_detector)
-main.add_command(_detect)
+
+
+@main.command(context_settings=CONTEXT)
+@click.argument("paths", nargs=-1, required=True, type=click.Path(readable=False))
+@click.option("--detector", "detector_path", required=True, type=click.Path(dir_okay=False),
+              help="The detector file reeb detector fit wrote.")
+@click.option("-o", "--out", type=click.Path(dir_okay=False),
+              help="Write one row per image here: .jsonl (JSON Lines) or .parquet.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out file (and the files in --kitti-dir).")
+@click.option("--resume", is_flag=True,
+              help="Keep the rows this detector already wrote to --out; detect only on the images missing there "
+                   "(or that failed).")
+@click.option("--kitti-dir", type=click.Path(file_okay=False),
+              help="Write one KITTI result file per image here (<image stem>.txt), as KITTI's devkit scores them; "
+                   "an empty folder, or one of this output's results with --resume.")
+@click.option("--viz", "viz_dir", type=click.Path(file_okay=False),
+              help="Save a picture per image here, with each detection's class and score.")
+@click.option("--min-score", type=FiniteFloat(0, 1), default=0.0, show_default=True,
+              help="Keep detections scoring at least this (in every output).")
+@click.option("--viz-min-score", type=FiniteFloat(0, 1), default=0.3, show_default=True,
+              help="Draw detections scoring at least this in the --viz pictures.")
+@click.option("-b", "--batch-size", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Images run through the detector together.")
+@click.option("-j", "--workers", type=click.IntRange(min=0), default=None,
+              help="Decoding processes beside the detector (0 = decode inline). [default: min(2, CPUs)]")
+@device_option
+@click.option("-r", "--recursive", is_flag=True, help="Look for images in sub-folders too.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar, no per-file messages.")
+def detect(paths, detector_path, out, overwrite, resume, kitti_dir, viz_dir, min_score, viz_min_score, batch_size,
+           workers, device, recursive, quiet):
+    """Run a trained detector on images (PATHS: files, folders or globs) and write its
+    detections: rows to OUT, KITTI result files to --kitti-dir, pictures to --viz.
+
+    A file that cannot be processed never stops the run: it gets an "error: ..." row, is
+    named in the summary, and the exit code is 1. The output is written atomically; after
+    Ctrl-C what is done is saved, and --resume continues (also from the rows a killed run
+    left in a hidden .NAME.*.tmp file).
+    """
+    from .detect_run import detect_images, load_detector
+
+    if not (out or kitti_dir or viz_dir):
+        raise UsageProblem("nothing to write: give -o/--out, --kitti-dir or --viz")
+    det, det_id, dev = load_detector(detector_path, device)
+    return detect_images(paths, det, det_id, dev, out=out, overwrite=overwrite, resume=resume, kitti_dir=kitti_dir,
+                         viz_dir=viz_dir, min_score=min_score, viz_min_score=viz_min_score, batch_size=batch_size,
+                         workers=workers, recursive=recursive, quiet=quiet)
 
 ctrl_c.restore(_BEFORE)  # the command's imports are done; main() takes over
 

@@ -5,8 +5,8 @@
     reeb detect images/ --detector det.safetensors -o dets.jsonl --kitti-dir out/ --viz pics/
     reeb detect images/ --detector det.safetensors -o dets.jsonl --resume   # after an interruption
 
-The command loads the detector (:class:`reeb_torch.detection.ReebDetector`) and hands the
-images to :class:`_DetectRun`, the detector on :class:`.engine.ImageRun`: everything
+The command (:mod:`.cli`) loads the detector (:func:`load_detector`) and hands the images to
+:func:`detect_images`: :class:`_DetectRun`, the detector on :class:`.engine.ImageRun`; everything
 ``reeb propose`` promises about inputs, outputs, ``--resume`` (a killed run's ``.tmp`` rows
 included), Ctrl-C and exit codes holds here too. Rows have ``reeb propose``'s schema:
 ``boxes`` (the detections, xyxy pixels, best first), ``scores``, ``labels`` (the class
@@ -26,16 +26,14 @@ from __future__ import annotations
 import hashlib
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-import click
-
-from .common import CONTEXT, FiniteFloat, UsageProblem, device_option, resolve_device
+from .common import UsageProblem, resolve_device
 from .engine import ImageRun
 
-__all__ = ["detect", "StageTimes"]
+__all__ = ["detect_images", "load_detector", "StageTimes"]
 
 
 class StageTimes:
@@ -150,7 +148,10 @@ class _DetectRun(ImageRun):
                 f"{per['backbone']}, heads {per['heads']} ms; {self.dev})"]
 
 
-def _load_detector(path: str, device: str) -> tuple[Any, str, Any]:
+def load_detector(path: str, device: str) -> tuple[Any, str, Any]:
+    """The detector file at ``path`` loaded on ``device`` (``--device``), what its rows'
+    ``config`` holds (``det-`` and the file's SHA-256, first 16 digits) and the device; a
+    usage error when it cannot be loaded."""
     from ..detection import DetectorFileError, ReebDetector
 
     dev = resolve_device(device)
@@ -162,45 +163,16 @@ def _load_detector(path: str, device: str) -> tuple[Any, str, Any]:
     return det, f"det-{digest[:16]}", dev
 
 
-@click.command("detect", context_settings=CONTEXT)
-@click.argument("paths", nargs=-1, required=True, type=click.Path(readable=False))
-@click.option("--detector", "detector_path", required=True, type=click.Path(dir_okay=False),
-              help="The detector file reeb detector fit wrote.")
-@click.option("-o", "--out", type=click.Path(dir_okay=False),
-              help="Write one row per image here: .jsonl (JSON Lines) or .parquet.")
-@click.option("--overwrite", is_flag=True, help="Replace an existing --out file (and the files in --kitti-dir).")
-@click.option("--resume", is_flag=True,
-              help="Keep the rows this detector already wrote to --out; detect only on the images missing there "
-                   "(or that failed).")
-@click.option("--kitti-dir", type=click.Path(file_okay=False),
-              help="Write one KITTI result file per image here (<image stem>.txt), as KITTI's devkit scores them; "
-                   "an empty folder, or one of this output's results with --resume.")
-@click.option("--viz", "viz_dir", type=click.Path(file_okay=False),
-              help="Save a picture per image here, with each detection's class and score.")
-@click.option("--min-score", type=FiniteFloat(0, 1), default=0.0, show_default=True,
-              help="Keep detections scoring at least this (in every output).")
-@click.option("--viz-min-score", type=FiniteFloat(0, 1), default=0.3, show_default=True,
-              help="Draw detections scoring at least this in the --viz pictures.")
-@click.option("-b", "--batch-size", type=click.IntRange(min=1), default=1, show_default=True,
-              help="Images run through the detector together.")
-@click.option("-j", "--workers", type=click.IntRange(min=0), default=None,
-              help="Decoding processes beside the detector (0 = decode inline). [default: min(2, CPUs)]")
-@device_option
-@click.option("-r", "--recursive", is_flag=True, help="Look for images in sub-folders too.")
-@click.option("-q", "--quiet", is_flag=True, help="No progress bar, no per-file messages.")
-def detect(paths, detector_path, out, overwrite, resume, kitti_dir, viz_dir, min_score, viz_min_score, batch_size,
-           workers, device, recursive, quiet):
-    """Run a trained detector on images (PATHS: files, folders or globs) and write its
-    detections: rows to OUT, KITTI result files to --kitti-dir, pictures to --viz.
+def detect_images(paths: Sequence[str], det: Any, det_id: str, dev: Any, *, out: str | None, overwrite: bool,
+                  resume: bool, kitti_dir: str | None, viz_dir: str | None, min_score: float, viz_min_score: float,
+                  batch_size: int, workers: int | None, recursive: bool, quiet: bool) -> None:
+    """``reeb detect``: ``det`` (a loaded detector, :func:`load_detector`; ``det_id`` what its
+    rows' ``config`` holds) on the images of ``paths``, the options as the command takes them.
 
-    A file that cannot be processed never stops the run: it gets an "error: ..." row, is
-    named in the summary, and the exit code is 1. The output is written atomically; after
-    Ctrl-C what is done is saved, and --resume continues (also from the rows a killed run
-    left in a hidden .NAME.*.tmp file).
+    Usage errors (exit 2) are raised as :class:`~.common.UsageProblem` before any work;
+    the process exits 1 when an image failed or an output could not be written in full, 130
+    when interrupted.
     """
-    if not (out or kitti_dir or viz_dir):
-        raise UsageProblem("nothing to write: give -o/--out, --kitti-dir or --viz")
-    det, det_id, dev = _load_detector(detector_path, device)
     run = _DetectRun(det, det_id, dev, out=out, batch_size=batch_size, workers=workers, min_score=min_score,
                      viz_min_score=viz_min_score, quiet=quiet)
     run.find_inputs(paths, recursive)  # 1. inputs
