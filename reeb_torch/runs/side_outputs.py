@@ -66,7 +66,8 @@ def _writable_folder(option: str, folder: Path) -> None:
 class PictureFolder:
     """``--viz DIR``: a picture per image, ``<stem>.png``. When one cannot be written (a full
     disk) a warning names the folder, the picture and the cause, and no more are tried;
-    :attr:`problem` is then that line (the closing summary repeats it, the exit code is 1)."""
+    :attr:`problem` is then the cause (the closing summary counts the pictures not written,
+    the exit code is 1)."""
 
     option = "--viz"
 
@@ -90,15 +91,16 @@ class PictureFolder:
             self.written += 1
         except OSError as e:
             self.not_written += 1
-            self.problem = (f"{self.option} {self.path}: cannot write the picture {target.name} ({_why(e)}); "
-                            "no more pictures are written in this run")
-            self.warn(f"warning: {self.problem}")
+            self.problem = _why(e)
+            self.warn(f"warning: {self.option} {self.path}: cannot write the picture {target.name} ({self.problem}); "
+                      "no more pictures are written in this run")
 
     def summary(self) -> list[str]:
+        """The closing summary's line on the pictures."""
         if self.problem is None:
             return [f"pictures in {self.path}/"] if self.written else []
         return [f"warning: {self.option} {self.path}: {self.not_written} pictures not written, "
-                f"{self.written} written (the first failure: {self.problem.split(' (', 1)[-1].split(')')[0]})"]
+                f"{self.written} written ({self.problem})"]
 
 
 def _result_file_problem(p: Path) -> str | None:
