@@ -170,7 +170,7 @@ def test_detect_on_a_full_disk_is_one_line_naming_the_output(detector, tmp_path,
 def _full_under(folder: Path, monkeypatch) -> None:
     """The disk under ``folder`` fills: flushing a file there fails (ENOSPC)."""
     real = os.fsync
-    target = str(folder.resolve())
+    target = str(folder.resolve()) + os.sep
 
     def fsync(fd):
         if os.readlink(f"/proc/self/fd/{fd}").startswith(target):
