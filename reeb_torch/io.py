@@ -108,12 +108,15 @@ def read_image(path: str | os.PathLike) -> torch.Tensor:
 def replace_file(path: str | os.PathLike, data: bytes) -> Path:
     """Write ``data`` to ``path`` through a temporary file beside it (hidden, ``.<name>.*.tmp``),
     flushed to disk and renamed into place: ``path`` holds its old bytes or the new ones, never
-    a part. The file gets the umask's permissions; missing folders are made.
+    a part. The file gets the umask's permissions; missing folders are made. A symbolic link
+    at ``path`` stays a link: the file it points to is written.
 
     Raises:
         OSError: it cannot be written (the temporary file is removed; ``path`` is as it was).
     """
     out = Path(path)
+    if out.is_symlink():
+        out = Path(os.path.realpath(out))
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{out.name[:200]}.", suffix=".tmp", dir=out.parent)
     try:

@@ -48,3 +48,32 @@ def test_the_best_boxes_carry_their_class_hint():
     # the tag above each box is wider with its hint (the number alone ends within a few pixels)
     tag = lambda pic, x1: int((pic[40:56, x1 + 12: x1 + 40].max(axis=2) > 0).sum())  # noqa: E731
     assert tag(plain, 20) == 0 and tag(hinted, 20) > 0 and tag(hinted, 120) > 0
+
+
+def test_near_duplicate_boxes_share_one_label_and_labels_do_not_overlap():
+    """The best boxes of a ranking are often one object (the bundled frame's top five are one
+    truck): one label lists their ranks, the picture says so, and no two labels overlap."""
+    from reeb_torch.runs.viz import _free_spot, draw_proposals, rank_labels
+
+    truck = [[600, 155, 632, 195], [592, 155, 640, 195], [608, 155, 640, 195], [600, 159, 640, 191]]
+    boxes = np.array(truck + [[392, 179, 424, 199], [604, 157, 630, 196]], np.float32)
+    labels = rank_labels(boxes, 6, ["Truck"] * 4 + ["Car", "Car"])
+    assert labels == [([0, 1, 2, 3, 5], "1,2,3,4,6 Truck/Car"), ([4], "5 Car")]
+    placed: list = []
+    spots = [_free_spot(600, 140, 80, 12, placed, 1242, 375) for _ in range(3)]  # three labels wanted in one place
+    assert len(set(spots)) == 3 and all(abs(a[1] - b[1]) >= 12 for a, b in zip(spots, spots[1:]))
+    img = torch.zeros(3, 375, 1242, dtype=torch.uint8)
+    with_note = draw_proposals(img, torch.from_numpy(boxes), top=6, title="x")
+    without = draw_proposals(img, torch.from_numpy(boxes[[0, 4]]), top=2, title="x")
+    band = lambda pic: int((pic[: pic.shape[0] - 375].max(axis=2) > 100).sum())  # noqa: E731
+    assert band(with_note) > 3 * band(without)  # the band explains the shared label
+
+
+def test_text_that_opencv_cannot_draw_is_made_ascii():
+    from reeb_torch.runs.viz import cv_text, draw_detections, draw_proposals
+
+    assert cv_text("x\udcff.png") == "x\\xff.png" and cv_text("caf\u00e9") == "caf?"
+    img = torch.zeros(3, 60, 120, dtype=torch.uint8)
+    boxes = torch.tensor([[10.0, 20.0, 50.0, 50.0]])
+    assert draw_proposals(img, boxes, title="x\udcff.png", gt=[("P\udcff", (5, 5, 30, 30))]).shape[1] == 120
+    assert draw_detections(img, boxes, ["Car\udcff"], torch.tensor([0.9]), title="x\udcff").shape[1] == 120

@@ -3,11 +3,24 @@
 =====================  ==============================================================
 module                 what it holds
 =====================  ==============================================================
-:mod:`.cli`            the ``reeb`` command: ``propose``, ``show``, ``eval``, ``export``
-:mod:`.common`         what the command's runs share: errors and exit codes, settings
-                       from the command line, the device, the closing summary
-:mod:`.propose_local`  ``reeb propose`` on this machine
+:mod:`.cli`            the ``reeb`` command: every command's options, and ``show``
+                       and ``warmup``; its opening comment says where each command's
+                       work lives
+:mod:`.common`         what the commands share: errors and exit codes, the finite-float
+                       option type, settings from the command line, the device, the
+                       output's claim (checked and locked)
+:mod:`.engine`         the run engine of every command that turns images into rows:
+                       inputs, the steps of a run, the closing summary and exit codes
+:mod:`.run_output`     the engine's output file: the lock, a killed run's rows, the
+                       resume plan, the ordered writer
+:mod:`.side_outputs`   the engine's folders: ``--viz`` pictures, ``--kitti-dir`` results
+:mod:`.propose_local`  ``reeb propose`` on this machine (the generator on the engine)
 :mod:`.propose_ray`    ``reeb propose --engine ray``
+:mod:`.detect_run`     ``reeb detect`` (a trained detector on the engine)
+:mod:`.detect`         ``reeb detector fit`` and ``reeb detector show``
+:mod:`.calibrate`      ``reeb calibrate``
+:mod:`.tune`           ``reeb tune``
+:mod:`.fit`            ``reeb fit``
 :mod:`.inputs`         finding the images: files, folders and glob patterns expanded
 :mod:`.decoding`       decoding them in DataLoader workers, batches of equal size
 :mod:`.rows`           the result rows: their schema, formatting, error rows
@@ -17,21 +30,25 @@ module                 what it holds
 :mod:`.ctrl_c`         what a Ctrl-C does while the command starts, runs and has
                        finished, and the critical section around writing a row
 :mod:`.distributed`    the Ray engine, a library: ``propose_dataset``, ``write_results``
-:mod:`.export`         result rows to detectron2's precomputed proposals
+:mod:`.export`         ``reeb export``: result rows to detectron2's precomputed proposals
 :mod:`.viz`            the pictures (``reeb show``, ``--viz``, crop sheets)
 :mod:`.detector_fit`   ``reeb detector fit``: its inputs checked before any work, the
                        training and its held-out scores
 =====================  ==============================================================
 
-``reeb propose`` reads top to bottom: :func:`.inputs.scan_images` lists the images,
-:func:`.output_files.check_output` and :func:`.output_lock.lock_output` secure the output
-before any work, :func:`.decoding.decoded_images` decodes in worker processes while
-:func:`.decoding.size_batches` groups images of equal size for the generator, each image
+``reeb propose`` and ``reeb detect`` read top to bottom (:mod:`.engine`):
+:func:`.engine.find_inputs` lists the images, :func:`.run_output.plan_output` secures the
+output before any work (its lock, a killed run's rows, the rows ``--resume`` keeps),
+:class:`.side_outputs.PictureFolder` and :class:`.side_outputs.KittiFolder` check their
+folders, :func:`.decoding.decoded_images` decodes in worker processes while the model runs
+(``reeb propose`` groups images of equal size: :func:`.decoding.size_batches`), each image
 becomes one row (:func:`.rows.result_row`, or :func:`.rows.error_row` for a file that
-failed) written in input order inside a :class:`.ctrl_c.CriticalSection`, and
-:meth:`.output_files.ResultWriter.commit` renames the finished file into place.
+failed) placed in input order by :class:`.run_output.OrderedWriter` inside a
+:class:`.ctrl_c.CriticalSection`, and :meth:`.output_files.ResultWriter.commit` renames the
+finished file into place before the closing summary.
 
 The libraries (inputs, decoding, rows, output_files, output_lock, ctrl_c, distributed,
-export, viz) do not import the command (cli, common, propose_local, propose_ray); the
-algorithm (:mod:`reeb_torch.generator`) imports nothing from here.
+export, viz) do not import the commands (cli, common, engine, run_output, side_outputs,
+propose_local, propose_ray, detect, detect_run, calibrate, tune, fit); the algorithm
+(:mod:`reeb_torch.generator`) imports nothing from here.
 """

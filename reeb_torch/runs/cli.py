@@ -1,4 +1,4 @@
-"""The ``reeb`` command line: ``propose``, ``show``, ``eval``, ``export``, ``calibrate`` and ``tune``.
+"""The ``reeb`` command line: every command, and where each one's work lives.
 
 ::
 
@@ -10,15 +10,35 @@
     reeb eval data/kitti --limit 20               # the paper's Table 3 (reeb_torch.eval.command)
     reeb calibrate my_frames/ -o camera.json      # horizon and camera height from labelled boxes
     reeb tune my_frames/ --config camera.json -o tuned.json --trials 50 --storage sqlite:///tune.db
+    reeb fit my_frames/ --config camera.json -o mine.safetensors   # the learned ranking, cross-validated
+    reeb detector fit my_frames/ -o det.safetensors                # a detector on REEB's proposals
+    reeb detect images/ --detector det.safetensors -o dets.jsonl --kitti-dir results/
 
 Exit codes: 0 success; 1 some images failed (each is named, in the summary and in the
 output with its status) or the command failed; 2 usage error (bad option or setting, no
 images found, output not writable, or being written by another run — all checked before
 any work); 130 interrupted (what was done is saved; ``--resume`` continues).
 
-Each command checks its options and hands on: ``propose`` to :mod:`.propose_local` or
-:mod:`.propose_ray`, ``export`` to :mod:`.export`, ``eval`` is :mod:`reeb_torch.eval.command`;
-what they share (errors, settings, device, summary lines) is :mod:`.common`.
+Each command checks its options, builds its settings once (:func:`.common.build_config`,
+from the options :func:`.common.settings_options` declares) and hands on:
+
+=====================  ==========================================================
+command                where its work lives
+=====================  ==========================================================
+``propose``            :mod:`.propose_local` (on the run engine, :mod:`.engine`),
+                       ``--engine ray``: :mod:`.propose_ray`
+``detect``             :mod:`.detect_run` (on the run engine, :mod:`.engine`)
+``detector fit/show``  :mod:`.detect` (around :mod:`reeb_torch.detection`)
+``show``               here, with :func:`.viz.inspection_figure`
+``warmup``             here, with :func:`reeb_torch.generator.warmup`
+``eval``               :mod:`reeb_torch.eval.command`
+``export``             :mod:`.export`
+``calibrate``          :mod:`.calibrate`
+``tune``               :mod:`.tune` (around :mod:`reeb_torch.eval.tune`)
+``fit``                :mod:`.fit` (around :mod:`reeb_torch.eval.fit`)
+=====================  ==========================================================
+
+What they share (errors, the finite-float type, settings, device) is :mod:`.common`.
 """
 
 from __future__ import annotations
@@ -36,40 +56,20 @@ from pathlib import Path  # noqa: E402
 import click  # noqa: E402
 
 from .common import (  # noqa: E402
+    CONTEXT,
     Failure,
     FiniteFloat,
+    device_option,
     UsageProblem,
     box_table,
     build_config,
     bundled_sample,
+    config_options,
     label_for,
     read_labels,
     resolve_device,
+    settings_options,
 )
-
-CONTEXT = dict(help_option_names=["-h", "--help"], max_content_width=100)
-
-
-def config_options(f):
-    """``--preset``, ``--config``, ``--set``, ``--top-k``, ``--device`` (shared)."""
-    from ..config import PRESETS
-
-    options = [
-        click.option("--preset", type=click.Choice(sorted(PRESETS)), default="default",
-                     show_default=True, help="Named settings to start from."),
-        click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False),
-                     help="JSON file of ReebConfig fields applied over the preset."),
-        click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE",
-                     help="Change one ReebConfig field (repeatable), e.g. --set scale=1.0."),
-        click.option("--top-k", type=click.IntRange(min=1), default=None,
-                     help="Proposals kept per image (default: the config's top_k, 2000)."),
-        click.option("--device", default="auto", show_default=True,
-                     help="cpu, cuda, cuda:N, or auto (CUDA when available)."),
-    ]
-    for opt in reversed(options):
-        f = opt(f)
-    return f
-
 
 # -- the command group -------------------------------------------------------------------
 
@@ -125,7 +125,7 @@ def main() -> None:
 # -- reeb propose ------------------------------------------------------------------------
 
 @main.command(context_settings=CONTEXT)
-@click.argument("paths", nargs=-1, type=click.Path())
+@click.argument("paths", nargs=-1, type=click.Path(readable=False))
 @click.option("-o", "--out", type=click.Path(),
               help="Write one row per image here: .jsonl (JSON Lines) or .parquet.")
 @click.option("--resume", is_flag=True,
@@ -157,7 +157,7 @@ def main() -> None:
                    "instance sized to this machine].")
 @click.option("--actors", type=click.IntRange(min=1), default=1, show_default=True,
               help="--engine ray: actors, each holding one proposal generator.")
-@click.option("--cpus-per-actor", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--cpus-per-actor", type=FiniteFloat(min=0, min_open=True), default=None,
               help="--engine ray: CPUs each actor reserves (and its torch threads) "
                    "[default: leaves one CPU to Ray's read/write tasks].")
 def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, device,
@@ -178,20 +178,18 @@ def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, dev
     --resume matches rows on the resolved file, and also takes the finished rows a killed
     run left in a hidden .NAME.*.tmp file.
     """
+    cfg, dev = build_config(preset, config_file, sets, top_k), resolve_device(device)
     if engine == "ray":
         from .propose_ray import propose_ray
 
-        return propose_ray(paths, out=out, resume=resume, overwrite=overwrite, preset=preset,
-                           config_file=config_file, sets=sets, top_k=top_k, device=device,
-                           batch_size=batch_size, recursive=recursive, summary_json=summary_json,
-                           quiet=quiet, address=address, actors=actors,
-                           cpus_per_actor=cpus_per_actor, viz_dir=viz_dir)
+        return propose_ray(paths, cfg, dev, out=out, resume=resume, overwrite=overwrite, batch_size=batch_size,
+                           recursive=recursive, summary_json=summary_json, quiet=quiet, address=address,
+                           actors=actors, cpus_per_actor=cpus_per_actor, viz_dir=viz_dir)
     from .propose_local import propose_local
 
-    return propose_local(paths, out=out, resume=resume, overwrite=overwrite, preset=preset,
-                         config_file=config_file, sets=sets, top_k=top_k, device=device,
-                         batch_size=batch_size, workers=workers, viz_dir=viz_dir, viz_top=viz_top,
-                         recursive=recursive, print_top=print_top, summary_json=summary_json, quiet=quiet)
+    return propose_local(paths, cfg, dev, out=out, resume=resume, overwrite=overwrite, batch_size=batch_size,
+                         workers=workers, viz_dir=viz_dir, viz_top=viz_top, recursive=recursive, print_top=print_top,
+                         summary_json=summary_json, quiet=quiet)
 
 
 # -- reeb warmup -------------------------------------------------------------------------
@@ -385,7 +383,7 @@ def _class_heights(items: tuple[str, ...]) -> dict[str, float] | None:
 @click.option("--samples", type=click.IntRange(min=1), default=500, show_default=True,
               help="Frame-bootstrap samples for the intervals.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the bootstrap.")
-@click.option("--box-factor", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--box-factor", type=FiniteFloat(min=0, min_open=True), default=None,
               help="2D box height / 3D object height at the bottom's depth [default: 1.055, measured on KITTI "
                    "with its known 1.65 m; 1 = the plain model].")
 def calibrate(dirs, out, class_height, samples, seed, box_factor):
@@ -432,10 +430,7 @@ def calibrate(dirs, out, class_height, samples, seed, box_factor):
 @click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
 @click.option("--score", "score_file", type=click.Path(exists=True, dir_okay=False),
               help="No search: score this config file (e.g. a tuned.json) against the base on DIRS.")
-@click.option("--preset", default="default", show_default=True, help="Base settings (the comparison).")
-@click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False),
-              help="JSON config over the preset for the base (e.g. reeb calibrate's camera.json).")
-@click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE", help="Change a base field (repeatable).")
+@settings_options("The base settings: the comparison, and what the search changes.", run=False)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
 def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, space_file, k, iou, limit,
          score_file, preset, config_file, sets, quiet):
@@ -502,10 +497,7 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
 @click.option("--iou", type=FiniteFloat(0, 1, min_open=True), default=0.7, show_default=True,
               help="IoU an object needs.")
 @click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
-@click.option("--preset", default="default", show_default=True, help="Settings the ranking is fitted for.")
-@click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False),
-              help="JSON config over the preset (e.g. reeb calibrate's camera.json).")
-@click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE", help="Change a field (repeatable).")
+@settings_options("The settings the ranking is fitted for.", run=False)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
 def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, mirror, jitter, no_orientation, drop,
         refiner, k, iou, limit, preset, config_file, sets, quiet):
@@ -543,10 +535,58 @@ def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, mir
     click.echo(record["text"])
 
 
-from .detect import detect as _detect, detector as _detector  # noqa: E402
+# -- reeb detector fit / show, reeb detect ------------------------------------------------
+
+from .detect import detector as _detector  # noqa: E402 - a click group: imports click only
 
 main.add_command(_detector)
-main.add_command(_detect)
+
+
+@main.command(context_settings=CONTEXT)
+@click.argument("paths", nargs=-1, required=True, type=click.Path(readable=False))
+@click.option("--detector", "detector_path", default="kitti", show_default=True, type=click.Path(dir_okay=False),
+              help="The detector file reeb detector fit wrote, or a shipped name: kitti (Car, Pedestrian, "
+                   "Cyclist; fitted on KITTI frames: reeb detector show kitti).")
+@click.option("-o", "--out", type=click.Path(dir_okay=False),
+              help="Write one row per image here: .jsonl (JSON Lines) or .parquet.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out file (and the files in --kitti-dir).")
+@click.option("--resume", is_flag=True,
+              help="Keep the rows this detector already wrote to --out; detect only on the images missing there "
+                   "(or that failed).")
+@click.option("--kitti-dir", type=click.Path(file_okay=False),
+              help="Write one KITTI result file per image here (<image stem>.txt), as KITTI's devkit scores them; "
+                   "an empty folder, or one of this output's results with --resume.")
+@click.option("--viz", "viz_dir", type=click.Path(file_okay=False),
+              help="Save a picture per image here, with each detection's class and score.")
+@click.option("--min-score", type=FiniteFloat(0, 1), default=0.0, show_default=True,
+              help="Keep detections scoring at least this (in every output).")
+@click.option("--viz-min-score", type=FiniteFloat(0, 1), default=0.3, show_default=True,
+              help="Draw detections scoring at least this in the --viz pictures.")
+@click.option("-b", "--batch-size", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Images run through the detector together.")
+@click.option("-j", "--workers", type=click.IntRange(min=0), default=None,
+              help="Decoding processes beside the detector (0 = decode inline). [default: min(2, CPUs)]")
+@device_option
+@click.option("-r", "--recursive", is_flag=True, help="Look for images in sub-folders too.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar, no per-file messages.")
+def detect(paths, detector_path, out, overwrite, resume, kitti_dir, viz_dir, min_score, viz_min_score, batch_size,
+           workers, device, recursive, quiet):
+    """Run a trained detector on images (PATHS: files, folders or globs) and write its
+    detections: rows to OUT, KITTI result files to --kitti-dir, pictures to --viz.
+
+    A file that cannot be processed never stops the run: it gets an "error: ..." row, is
+    named in the summary, and the exit code is 1. The output is written atomically; after
+    Ctrl-C what is done is saved, and --resume continues (also from the rows a killed run
+    left in a hidden .NAME.*.tmp file).
+    """
+    from .detect_run import detect_images, load_detector
+
+    if not (out or kitti_dir or viz_dir):
+        raise UsageProblem("nothing to write: give -o/--out, --kitti-dir or --viz")
+    det, det_id, dev = load_detector(detector_path, device)
+    return detect_images(paths, det, det_id, dev, out=out, overwrite=overwrite, resume=resume, kitti_dir=kitti_dir,
+                         viz_dir=viz_dir, min_score=min_score, viz_min_score=viz_min_score, batch_size=batch_size,
+                         workers=workers, recursive=recursive, quiet=quiet)
 
 ctrl_c.restore(_BEFORE)  # the command's imports are done; main() takes over
 

@@ -1,9 +1,11 @@
-"""What the ``reeb`` command's runs share: errors with their exit codes, the settings from
-the command line, the device, the bundled sample, and the closing summary's lines.
+"""What the ``reeb`` command's runs share: errors with their exit codes, the finite-float
+option type, the settings from the command line, the device, the bundled sample, the output's
+claim (checked and locked) and the printed table of boxes.
 
-The command (:mod:`.cli`), the local run (:mod:`.propose_local`) and the Ray run
-(:mod:`.propose_ray`) import this module; the libraries they call (:mod:`.rows`,
-:mod:`.output_files`, :mod:`.distributed`, :mod:`.export`, :mod:`.viz`, ...) import none of them.
+The command (:mod:`.cli`) and its runs (:mod:`.engine` and the commands on it) import this
+module; the libraries they call (:mod:`.rows`, :mod:`.output_files`, :mod:`.distributed`,
+:mod:`.export`, :mod:`.viz`, ...) import none of them. The closing summary's lines are the
+engine's (:mod:`.engine`).
 """
 
 from __future__ import annotations
@@ -16,9 +18,13 @@ from typing import Any, Sequence
 import click
 
 __all__ = [
+    "CONTEXT",
     "UsageProblem",
     "Failure",
     "FiniteFloat",
+    "settings_options",
+    "config_options",
+    "device_option",
     "SAMPLE_NAME",
     "repo_root",
     "bundled_sample",
@@ -28,12 +34,12 @@ __all__ = [
     "label_for",
     "read_labels",
     "box_table",
-    "ms_per_img",
-    "count_line",
-    "failures_and_summary",
 ]
 
 SAMPLE_NAME = "kitti_000001.png"
+
+CONTEXT = dict(help_option_names=["-h", "--help"], max_content_width=100)
+"""click's context settings of every ``reeb`` command: ``-h`` for help, 100 columns."""
 
 
 class UsageProblem(click.ClickException):
@@ -49,17 +55,63 @@ class Failure(click.ClickException):
 
 
 class FiniteFloat(click.FloatRange):
-    """A float option within an optional range, refusing NaN and infinities (click's
-    ``FloatRange`` lets NaN through: every comparison with it is false): a usage error naming
-    the option, as for any value out of range."""
+    """A float option that must be a finite number within its range: ``nan``, ``inf`` and
+    ``-inf`` are usage errors naming the option (click's ``FloatRange`` lets ``nan`` through,
+    since every comparison with it is false, and ``inf`` where the range has no bound on
+    that side). Takes ``FloatRange``'s arguments: ``FiniteFloat(0, 1)``,
+    ``FiniteFloat(min=0, min_open=True)``."""
 
-    name = "finite float"
+    name = "float"
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+
         rv = super().convert(value, param, ctx)
         if not math.isfinite(rv):
             self.fail(f"{value!r} is not a finite number.", param, ctx)
         return rv
+
+
+# -- options shared by the commands -----------------------------------------------------
+
+device_option = click.option("--device", default="auto", show_default=True,
+                             help="cpu, cuda, cuda:N, or auto (CUDA when available).")
+"""``--device`` of every command that runs a model (:func:`resolve_device` reads it)."""
+
+
+def settings_options(purpose: str = "Named settings to start from.", run: bool = True):
+    """The options that make a ReebConfig (``--preset``, ``--config``, ``--set``; with ``run``,
+    also a run's ``--top-k`` and ``--device``), declared once for every command that takes
+    them; ``purpose``: what the settings are for (``--preset``'s help). The command builds
+    the config from them once (:func:`build_config`)."""
+    from ..config import PRESETS
+
+    options = [
+        click.option("--preset", type=click.Choice(sorted(PRESETS)), default="default",
+                     show_default=True, help=purpose),
+        click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False),
+                     help="JSON file of ReebConfig fields applied over the preset (e.g. reeb calibrate's "
+                          "camera.json)."),
+        click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE",
+                     help="Change one ReebConfig field (repeatable), e.g. --set scale=1.0."),
+    ]
+    if run:
+        options += [
+            click.option("--top-k", type=click.IntRange(min=1), default=None,
+                         help="Proposals kept per image (default: the config's top_k, 2000)."),
+            device_option,
+        ]
+
+    def decorate(f):
+        for opt in reversed(options):
+            f = opt(f)
+        return f
+
+    return decorate
+
+
+config_options = settings_options()
+"""``--preset``, ``--config``, ``--set``, ``--top-k``, ``--device``: the options of a command
+that runs the generator (``propose``, ``show``)."""
 
 
 # -- settings, device, sample ---------------------------------------------------------
@@ -312,31 +364,3 @@ def box_table(name: str, size: tuple[int, int], boxes, scores, n: int, total: in
             lines.append(f"{i:>5} {b[0]:8.1f} {b[1]:8.1f} {b[2]:8.1f} {b[3]:8.1f} {s:10.4f}"
                          + (f"  {hints[i - 1]}" if hints is not None else ""))
     return "\n".join(lines)
-
-
-def ms_per_img(seconds: float, n: int) -> str:
-    """``seconds`` over ``n`` images as ``"12.3 ms/img"`` (``"n/a"`` for none)."""
-    return f"{1000 * seconds / n:.1f} ms/img" if n else "n/a"
-
-
-# -- the closing summary ----------------------------------------------------------------
-
-def count_line(done: int, ok: int, failed: int, proposals: int) -> str:
-    """The first line of a run's closing summary (local and Ray engines)."""
-    return (f"{done} image{'s' if done != 1 else ''}: {ok} ok, {failed} failed; {proposals} proposals"
-            + (f" ({proposals / ok:.0f} per image)" if ok else ""))
-
-
-def failures_and_summary(failures: Sequence[str], summary_json: str | None, summary: dict) -> list[str]:
-    """Closing-summary lines naming the failed images; writes ``summary`` to ``summary_json``
-    (a warning line instead if it cannot be written). Shared by the local and Ray engines."""
-    lines = []
-    if failures:
-        lines.append(f"failed ({len(failures)}):")
-        lines += [f"  {m}" for m in failures]
-    if summary_json:
-        try:
-            Path(summary_json).write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-        except OSError as e:
-            lines.append(f"warning: {summary_json}: cannot write the summary ({e.strerror or e})")
-    return lines

@@ -204,10 +204,11 @@ def detectron2_proposals(rows: Iterable[dict], id_map: Mapping[str, object] | No
 
 
 def write_detectron2(proposals: dict, out: str | os.PathLike) -> Path:
-    """Pickle ``proposals`` to ``out`` (through a temporary file renamed into place)."""
+    """Pickle ``proposals`` to ``out`` (through a temporary file renamed into place; a
+    symbolic link at ``out`` stays a link, the file it points to is written)."""
     from .output_files import hidden_stem
 
-    out = Path(out)
+    out = Path(os.path.realpath(out) if os.path.islink(out) else out)  # a link stays a link: its target is written
     tmp = out.with_name(f"{hidden_stem(out)}.tmp")
     try:
         with open(tmp, "wb") as f:

@@ -4,8 +4,10 @@ run, with the output a folder of Parquet files written by Ray Data.
 :func:`propose_ray` checks the inputs and the output folder (with ``--resume``, the rows
 kept from before) before any work, starts or reaches Ray, runs
 :func:`reeb_torch.runs.distributed.propose_dataset` and writes it with
-:func:`~reeb_torch.runs.distributed.write_results`, then prints the closing summary. The Ray
-engine itself (:mod:`.distributed`) is a library and knows nothing of the command.
+:func:`~reeb_torch.runs.distributed.write_results`, then prints the closing summary. Ray
+runs the images; what the run engine does for every command (:mod:`.engine`: the inputs, the
+resume lines, the closing summary's lines) is shared with it. The Ray engine itself
+(:mod:`.distributed`) is a library and knows nothing of the command.
 """
 
 from __future__ import annotations
@@ -19,30 +21,23 @@ from typing import Callable, Sequence
 import click
 
 from . import distributed as D
-from .common import (
-    Failure,
-    UsageProblem,
-    build_config,
-    count_line,
-    failures_and_summary,
-    ms_per_img,
-    resolve_device,
-)
-from .inputs import NoImagesError, same_file_note, scan_images
+from .common import Failure, UsageProblem
+from .engine import closing_tail, count_line, find_inputs, ms_per_img, mismatch_line
+from .inputs import same_file_note
 from .output_files import OutputError, check_output, read_result_dir, result_files
 from .output_lock import lock_output
 from .rows import row_key
+from .run_output import resume_note
 
 __all__ = ["propose_ray"]
 
 
-def propose_ray(paths: Sequence[str], *, out: str | None, resume: bool, overwrite: bool,
-                preset: str, config_file: str | None, sets: Sequence[str], top_k: int | None,
-                device: str, batch_size: int, recursive: bool, summary_json: str | None,
-                quiet: bool, address: str | None, actors: int, cpus_per_actor: float | None,
-                viz_dir: str | None = None) -> None:
+def propose_ray(paths: Sequence[str], cfg, dev, *, out: str | None, resume: bool, overwrite: bool,
+                batch_size: int, recursive: bool, summary_json: str | None, quiet: bool, address: str | None,
+                actors: int, cpus_per_actor: float | None, viz_dir: str | None = None) -> None:
     """``reeb propose --engine ray``: the same inputs, rows, summary and exit codes as the
-    single-machine path, with the output a folder of Parquet files written by Ray.
+    single-machine path, with the output a folder of Parquet files written by Ray; ``cfg``
+    (a ReebConfig) and ``dev`` (a ``torch.device``) as the command line built them.
 
     Usage errors (exit 2) are raised as :class:`~.common.UsageProblem` before any work;
     the process exits 1 when an image failed, 130 when interrupted.
@@ -52,8 +47,7 @@ def propose_ray(paths: Sequence[str], *, out: str | None, resume: bool, overwrit
         ray = D.require_ray()
     except D.RayMissingError as e:
         raise UsageProblem(str(e))
-    run = _RayRun(ray, build_config(preset, config_file, sets, top_k), resolve_device(device), out=out,
-                  batch_size=batch_size, quiet=quiet, echo_err=echo_err)
+    run = _RayRun(ray, cfg, dev, out=out, batch_size=batch_size, quiet=quiet, echo_err=echo_err)
     if viz_dir:
         raise UsageProblem("--viz is not available with --engine ray (use --engine local)")
     run.find_inputs(paths, recursive)  # 1. inputs
@@ -83,13 +77,8 @@ class _RayRun:
     def find_inputs(self, paths: Sequence[str], recursive: bool) -> None:
         if not paths:
             raise UsageProblem("--engine ray needs PATHS (images, folders or glob patterns)")
-        try:
-            found = scan_images(paths, recursive)
-        except NoImagesError as e:
-            raise UsageProblem(str(e))
-        for n in found.notes:
-            self.echo_err(f"note: {n}")
-        self.images, self.same_file = found.images, found.same_file  # the latter named in the summary too
+        found = find_inputs(paths, recursive, self.echo_err)
+        self.images, self.same_file, self.skipped = found.images, found.same_file, found.skipped
 
     def check_out_dir(self, resume: bool, overwrite: bool) -> bool:
         """``--out`` must be a folder; its results are replaced (``--overwrite``) or kept
@@ -131,17 +120,14 @@ class _RayRun:
             rows = read_result_dir(self.out_dir)
         except OSError as e:
             raise UsageProblem(f"cannot read {out} for --resume: {e}")
-        other = {r.get("config") for r in rows if r.get("status") == "ok"} - {self.fingerprint}
+        other = {str(r.get("config")) for r in rows if r.get("status") == "ok"} - {self.fingerprint}
         if other:
-            raise UsageProblem(
-                f"{out} was made with different settings (config {', '.join(sorted(map(str, other)))}, "
-                f"now {self.fingerprint}); use the same options, another --out, or --overwrite")
+            raise UsageProblem(mismatch_line(str(out), sorted(other), self.fingerprint))
         done = {D.row_key(r) for r in rows if r.get("status") == "ok"}
         self.kept = len(done)
         before = len(self.images)
         self.images = [p for p in self.images if row_key(p) not in done]
-        self.echo_err(f"resume: {self.kept} images already in {out}, {before - len(self.images)} of them among "
-                      f"the inputs; {len(self.images)} to do")
+        click.echo(resume_note(self.kept, str(out), before - len(self.images), len(self.images)), err=True)
         if not self.images:
             click.echo(f"Nothing to do: all {before} images are already in {out}.", err=True)
             return False
@@ -264,7 +250,7 @@ class _RayRun:
             lines.append(f"wrote {out_dir}/ ({done} rows in {len(self.new_files)} new Parquet file"
                          f"{'s' if len(self.new_files) != 1 else ''}"
                          + (f", {self.kept} kept from before" if self.kept else "") + ")")
-        lines += failures_and_summary(failures, summary_json, summary)
+        lines += closing_tail(self.skipped, failures, summary_json, summary)
         if self.interrupted:
             lines.append(f"interrupted: {done} of {len(images)} images saved in {out_dir}/; run the "
                          "same command with --resume to do the rest")

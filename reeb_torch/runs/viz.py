@@ -3,7 +3,8 @@
 Three pictures, for three uses:
 
 - :func:`draw_proposals` — fast (OpenCV), one image with its top proposals ranked by
-  colour; ``reeb propose --viz`` writes one per image.
+  colour; ``reeb propose --viz`` writes one per image (:func:`draw_detections`: a detector's
+  boxes with their classes and scores, ``reeb detect --viz``).
 - :func:`crop_sheet` — many objects at a glance: a crop around each with its ground truth
   and the proposal nearest to it, and a caption (``benchmarks/diagnose_recall.py --show``
   lays out every object the proposals miss).
@@ -11,6 +12,12 @@ Three pictures, for three uses:
   panels over the same image that follow the paper's pipeline, (1) edges and road mask
   (Sec. 3.4–3.5), (2) region strips with their entropy H and proposal share (Sec. 3.6,
   eqs. 2 and 9), (3) the top proposals with the ground-truth boxes (eqs. 1, 10–13).
+
+The best boxes carry their rank; near-duplicate boxes (IoU 0.5 or more with a better one)
+share one label listing their ranks (``1,2,4 Truck``), and labels are moved off each other
+(:func:`rank_labels`), so a ranking whose best boxes are all one object stays legible. Text
+drawn with OpenCV goes through :func:`cv_text` (its fonts draw ASCII; a file name that is
+not UTF-8 would crash it).
 
 Images are RGB ``uint8`` tensors ``(3, H, W)`` (as :func:`reeb_torch.read_image` returns)
 or ``(H, W, 3)`` NumPy arrays; boxes are ``Tensor[N, 4]`` ``(x1, y1, x2, y2)`` in input
@@ -29,14 +36,74 @@ import numpy as np
 import torch
 
 from ..io import replace_file
+from .rows import text_path
 
-__all__ = ["rank_colors", "draw_proposals", "crop_sheet", "save_png", "inspection_figure", "save_figure",
-           "gt_pairs"]
+__all__ = ["rank_colors", "draw_proposals", "draw_detections", "crop_sheet", "save_png", "inspection_figure",
+           "save_figure", "gt_pairs", "cv_text", "rank_labels"]
 
 GT_COLOR = (0, 255, 128)
 """Ground-truth boxes: spring green, unlike any colour of the proposal ranking."""
 NEAREST_COLOR = (255, 96, 32)
 """The proposal nearest to a ground-truth box in :func:`crop_sheet`: orange."""
+CLASS_COLOURS = ((255, 200, 0), (0, 200, 255), (255, 80, 200), (120, 255, 80), (255, 120, 60), (160, 120, 255))
+"""The classes of :func:`draw_detections`, in the detector's order."""
+DUPLICATE_IOU = 0.5
+"""Boxes overlapping a better-ranked labelled box this much share its label (:func:`rank_labels`)."""
+
+
+def cv_text(text: object) -> str:
+    """``text`` as OpenCV's Hershey fonts can draw it: ASCII. A byte of a file name that is
+    not UTF-8 (Python holds it as a lone surrogate, which crashes ``cv2.putText``) becomes
+    ``\\xNN`` as in the rows (:func:`.rows.text_path`); any other non-ASCII character ``?``."""
+    return text_path(str(text)).encode("ascii", "replace").decode("ascii")
+
+
+def rank_labels(boxes: np.ndarray, n: int, hints: Sequence[str] | None = None) -> list[tuple[list[int], str]]:
+    """The labels of the best ``n`` of ``boxes`` (``[N, 4]``, best first): ``(indices, text)``
+    per label, best first. A box whose IoU with the first box of an earlier label is
+    :data:`DUPLICATE_IOU` or more joins that label (``"1,2,4 Truck"``: the ranks, then the
+    hint of each distinct class where ``hints`` are given)."""
+    groups: list[list[int]] = []
+    for i in range(min(n, len(boxes))):
+        for g in groups:
+            if _iou(boxes[g[0]], boxes[i]) >= DUPLICATE_IOU:
+                g.append(i)
+                break
+        else:
+            groups.append([i])
+    out = []
+    for g in groups:
+        text = ",".join(str(i + 1) for i in g)
+        if hints is not None:
+            text += " " + "/".join(dict.fromkeys(str(hints[i]) for i in g))
+        out.append((g, text))
+    return out
+
+
+def _iou(a: Sequence[float], b: Sequence[float]) -> float:
+    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = ix * iy
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return float(inter / union) if union > 0 else 0.0
+
+
+def _free_spot(x: float, y: float, tw: float, th: float, placed: list[tuple[float, float, float, float]],
+               width: float, height: float) -> tuple[float, float]:
+    """Where a ``tw`` × ``th`` label wanted at top-left ``(x, y)`` overlaps none of ``placed``:
+    there, else a line higher, then lower, a line at a time, within the picture (where none
+    is free, where it was wanted); the spot is added to ``placed``."""
+    x = min(max(0.0, x), max(0.0, width - tw))
+    y = min(max(0.0, y), max(0.0, height - th))
+
+    def free(ty: float) -> bool:
+        return not any(x < px2 and px1 < x + tw and ty < py2 and py1 < ty + th for px1, py1, px2, py2 in placed)
+
+    steps = int(height // max(th, 1.0)) + 1
+    tries = [y] + [y - k * th for k in range(1, steps)] + [y + k * th for k in range(1, steps)]
+    spot = next((t for t in tries if 0 <= t <= height - th and free(t)), y)
+    placed.append((x, spot, x + tw, spot + th))
+    return x, spot
 
 
 def _hwc(image: torch.Tensor | np.ndarray) -> np.ndarray:
@@ -106,9 +173,10 @@ def draw_proposals(
 
     Proposals are coloured by rank (rank 1 bright yellow and thickest, the last dim purple,
     drawn first so that the best lie on top) and the best five carry their rank number, and
-    their class hint where ``hints`` (one per box, e.g. ``"Car"``) are given. Ground truth
-    boxes are green with their class name. ``title`` goes in a dark band above the image.
-    Returns an RGB ``uint8`` array ``(H', W, 3)``.
+    their class hint where ``hints`` (one per box, e.g. ``"Car"``) are given; near-duplicates
+    share one label and labels do not overlap (:func:`rank_labels`; the band says so). Ground
+    truth boxes are green with their class name. ``title`` goes in a dark band above the
+    image. Returns an RGB ``uint8`` array ``(H', W, 3)``.
     """
     import cv2
 
@@ -120,25 +188,54 @@ def draw_proposals(
     fs = max(0.35, min(w, 2 * h) / 1600)
     for i in range(len(b) - 1, -1, -1):
         x1, y1, x2, y2 = (int(round(v)) for v in b[i])
-        c = tuple(int(v) for v in colors[i])
-        thick = 2 if i < 3 else 1
-        cv2.rectangle(canvas, (x1, y1), (x2, y2), c, thick, cv2.LINE_AA)
-        if i < 5:
-            label = f"{i + 1} {hints[i]}" if hints is not None else str(i + 1)
-            (tw, th), _ = cv2.getTextSize(label, font, fs, 1)
-            ty = max(th + 2, y1 - 2)
-            cv2.rectangle(canvas, (x1, ty - th - 2), (x1 + tw + 2, ty + 1), c, -1)
-            cv2.putText(canvas, label, (x1 + 1, ty - 1), font, fs, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.rectangle(canvas, (x1, y1), (x2, y2), tuple(int(v) for v in colors[i]), 2 if i < 3 else 1, cv2.LINE_AA)
+    labels = rank_labels(b, 5, hints)
+    placed: list[tuple[float, float, float, float]] = []
+    for group, text in labels:
+        label = cv_text(text)
+        (tw, th), _ = cv2.getTextSize(label, font, fs, 1)
+        x1, y1 = (int(round(v)) for v in b[group[0]][:2])
+        tx, ty = (int(v) for v in _free_spot(x1, y1 - th - 4, tw + 2, th + 3, placed, w, h))
+        c = tuple(int(v) for v in colors[group[0]])
+        cv2.rectangle(canvas, (tx, ty), (tx + tw + 2, ty + th + 3), c, -1)
+        cv2.putText(canvas, label, (tx + 1, ty + th + 1), font, fs, (0, 0, 0), 1, cv2.LINE_AA)
     for label, (gx1, gy1, gx2, gy2) in gt_pairs(gt):
         p1, p2 = (int(round(gx1)), int(round(gy1))), (int(round(gx2)), int(round(gy2)))
         cv2.rectangle(canvas, p1, p2, GT_COLOR, 1, cv2.LINE_AA)
-        cv2.putText(canvas, label, (p1[0], min(h - 3, p2[1] + int(14 * fs / 0.5))), font, fs,
+        cv2.putText(canvas, cv_text(label), (p1[0], min(h - 3, p2[1] + int(14 * fs / 0.5))), font, fs,
                     GT_COLOR, 1, cv2.LINE_AA)
+    if any(len(g) > 1 for g, _ in labels):
+        title = (f"{title}; " if title else "") + "ranks 1,2,..: near-duplicate boxes under one label"
     if title:
         band = max(18, int(round(30 * fs / 0.5)))
         head = np.full((band, w, 3), 24, np.uint8)
-        cv2.putText(head, title, (6, band - int(band * 0.3)), font, fs, (235, 235, 235), 1, cv2.LINE_AA)
+        cv2.putText(head, cv_text(title), (6, band - int(band * 0.3)), font, fs, (235, 235, 235), 1, cv2.LINE_AA)
         canvas = np.concatenate([head, canvas], axis=0)
+    return canvas
+
+
+def draw_detections(image: Any, boxes: Any, labels: Sequence[str], scores: Any, title: str | None = None,
+                    classes: Sequence[str] = ()) -> np.ndarray:
+    """``image`` (``uint8 [3, H, W]``) with each detection's box (``[D, 4]`` xyxy), class name
+    and score, one colour per class (the colours follow ``classes``' order, where given); an RGB
+    ``uint8`` array ``(H', W, 3)`` (a title band on top)."""
+    import cv2
+
+    canvas = _hwc(image).copy()
+    h, w = canvas.shape[:2]
+    fs = max(0.35, min(w, 2 * h) / 1600)
+    colours: dict[str, tuple[int, int, int]] = {n: CLASS_COLOURS[i % len(CLASS_COLOURS)] for i, n in enumerate(classes)}
+    for (x1, y1, x2, y2), name, s in reversed(list(zip(_boxes(boxes).tolist(), labels, torch.as_tensor(scores).tolist()))):
+        c = colours.setdefault(name, CLASS_COLOURS[len(colours) % len(CLASS_COLOURS)])
+        p1, p2 = (int(round(x1)), int(round(y1))), (int(round(x2)), int(round(y2)))
+        cv2.rectangle(canvas, p1, p2, c, 2, cv2.LINE_AA)
+        cv2.putText(canvas, cv_text(f"{name} {s:.2f}"), (p1[0], max(p1[1] - 3, 10)), cv2.FONT_HERSHEY_SIMPLEX, fs, c,
+                    1, cv2.LINE_AA)
+    if title:
+        band = np.full((int(28 * fs / 0.5), w, 3), 30, np.uint8)
+        cv2.putText(band, cv_text(title), (6, band.shape[0] - 8), cv2.FONT_HERSHEY_SIMPLEX, fs, (255, 255, 255), 1,
+                    cv2.LINE_AA)
+        canvas = np.concatenate([band, canvas])
     return canvas
 
 
@@ -192,7 +289,7 @@ def crop_sheet(
             draw(nearest, NEAREST_COLOR)
         draw(box, GT_COLOR)
         fs = 0.36
-        text = caption
+        text = cv_text(caption)
         while len(text) > 4 and cv2.getTextSize(text, font, fs, 1)[0][0] > tw - 4:
             text = text[:-2]
         cv2.putText(cell, text, (2, th + band - 4), font, fs, (235, 235, 235), 1, cv2.LINE_AA)
@@ -419,10 +516,14 @@ def _proposals_panel(ax, rgb: np.ndarray, boxes: np.ndarray, gts: list, top: int
         lw = 2.6 if i < 3 else (1.6 if i < 10 else 1.0)
         ax.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, ec=colors[i], lw=lw,
                                alpha=1.0 if i < 10 else 0.85))
-        if i < 5:
-            ax.text(x1 + 1, y1 + 1, str(i + 1), color="black", fontsize=8, va="top",
-                    ha="left", fontweight="bold",
-                    bbox=dict(boxstyle="square,pad=0.1", fc=colors[i], ec="none"))
+    labels = rank_labels(shown, 5)
+    char_w, line_h = 0.62 * 8 / 72 * w / layout["aw"], 12 / 72 * h / layout["img_h"]  # data units, 8 pt bold
+    placed: list[tuple[float, float, float, float]] = []
+    for group, text in labels:
+        x1, y1 = shown[group[0]][:2]
+        tx, ty = _free_spot(x1 + 1, y1 + 1, char_w * len(text) + char_w, line_h, placed, w, h)
+        ax.text(tx, ty, text, color="black", fontsize=8, va="top", ha="left", fontweight="bold",
+                bbox=dict(boxstyle="square,pad=0.1", fc=colors[group[0]], ec="none"))
     gt_hex = "#%02x%02x%02x" % GT_COLOR
     _gt_labels(ax, boxes, gts, gt_hex, w, h, layout)
     handles: list[Any] = []
@@ -430,6 +531,9 @@ def _proposals_panel(ax, rgb: np.ndarray, boxes: np.ndarray, gts: list, top: int
         handles.append(Patch(facecolor=colors[0], label="rank 1 (best)"))
         if len(shown) > 1:
             handles.append(Patch(facecolor=colors[-1], label=f"rank {len(shown)}"))
+    if any(len(g) > 1 for g, _ in labels):
+        handles.append(Patch(facecolor="none", edgecolor="none",
+                             label=f"ranks 1,2,..: near-duplicate boxes (IoU ≥ {DUPLICATE_IOU:g}) under one label"))
     if gts:
         handles.append(Line2D([], [], color=gt_hex, ls="--", lw=1.8,
                               label="ground truth: best IoU over all proposals (#rank)"))

@@ -1,0 +1,163 @@
+"""``reeb detect``: a trained detector run over images, on the run engine.
+
+::
+
+    reeb detect images/ --detector det.safetensors -o dets.jsonl --kitti-dir out/ --viz pics/
+    reeb detect images/ --detector det.safetensors -o dets.jsonl --resume   # after an interruption
+
+The command (:mod:`.cli`) loads the detector (:func:`load_detector`) and hands the images to
+:func:`detect_images`: :class:`_DetectRun`, the detector on :class:`.engine.ImageRun`; everything
+``reeb propose`` promises about inputs, outputs, ``--resume`` (a killed run's ``.tmp`` rows
+included), Ctrl-C and exit codes holds here too. Rows have ``reeb propose``'s schema:
+``boxes`` (the detections, xyxy pixels, best first), ``scores``, ``labels`` (the class
+names) and ``config`` (``det-`` and the detector file's SHA-256, first 16 digits);
+``--resume`` keeps only the rows of the same detector file. ``--kitti-dir`` writes one
+KITTI result file per image (:class:`.side_outputs.KittiFolder`), ``--viz`` a picture per
+image (:func:`.viz.draw_detections`); both are named by the whole input list.
+
+Exit codes: 0 success; 1 an image failed (named in its row and the summary) or the command
+failed (an output that could not be written: one line naming it); 2 usage error (bad
+option, no images, an unusable detector file or output, all checked before any work); 130
+interrupted (the rows done are saved).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+from .common import UsageProblem, resolve_device
+from .engine import ImageRun
+
+__all__ = ["detect_images", "load_detector"]
+
+
+def _chunks(stream: Iterator[Any], size: int) -> Iterator[list[Any]]:
+    chunk: list[Any] = []
+    for item in stream:
+        chunk.append(item)
+        if len(chunk) == size:
+            yield chunk
+            chunk = []
+    if chunk:
+        yield chunk
+
+
+class _DetectRun(ImageRun):
+    """One ``reeb detect`` run: the detector on :class:`~.engine.ImageRun`."""
+
+    noun = "detections"
+    desc = "detect"
+
+    def __init__(self, det: Any, det_id: str, dev: Any, *, out: str | None, batch_size: int, workers: int | None,
+                 min_score: float, viz_min_score: float, quiet: bool) -> None:
+        super().__init__(made_by=det_id, out=out, batch_size=batch_size, workers=workers, quiet=quiet)
+        self.det, self.dev = det, dev
+        self.min_score, self.viz_min_score = min_score, viz_min_score
+        self.warm: tuple[int, float, dict[str, float]] | None = None
+        """(images, detector seconds, stage seconds) of the first batch, which pays the warm-up."""
+        self.detect_s = 0.0
+        from ..detection.inference import StageClock
+
+        det.clock = StageClock(dev)
+        self.stages = det.clock
+
+    def mismatch(self, out: str, configs: list[str]) -> str:
+        return (f"{out} holds detections of another detector ({', '.join(configs)}, this one is "
+                f"{self.made_by}); use another --out, or --overwrite")
+
+    def stream(self, images):
+        from .decoding import decoded_images
+
+        return decoded_images(images, self.workers, quiet=self.quiet)
+
+    def groups(self, stream):
+        return _chunks(stream, self.batch_size)
+
+    def run_batch(self, items: list) -> list:
+        t0 = time.perf_counter()
+        outs = self.det([it.image.to(self.dev) for it in items])
+        self.detect_s += time.perf_counter() - t0
+        return outs
+
+    def after_group(self) -> None:
+        if self.warm is None and self.stats["ok"]:
+            self.warm = (self.stats["ok"], self.detect_s, dict(self.stages.seconds))
+
+    def finish(self, item: Any, out: dict) -> None:
+        from .rows import result_row
+
+        keep = out["scores"] >= self.min_score
+        out = {k: v[keep].cpu() for k, v in out.items()}
+        names = [self.det.categories[int(i)] for i in out["labels"]]
+        h, w = item.image.shape[-2:]
+        row = result_row(item.path, w, h, out["boxes"], out["scores"], self.made_by, labels=names)
+        self.emit(item, row, len(names))
+        stem = self.stem(item)
+        if self.kitti is not None and row["status"] == "ok":
+            self.kitti.write(stem, row)
+        if self.pictures is not None:
+            self.pictures.save(stem, lambda: self._picture(item, out, names))
+
+    def _picture(self, item: Any, out: dict, names: list[str]) -> Any:
+        from .viz import draw_detections
+
+        shown = (out["scores"] >= self.viz_min_score).nonzero().flatten().tolist()
+        title = f"{Path(item.path).name}: {len(shown)} detections scoring {self.viz_min_score:g} or more"
+        return draw_detections(item.image, out["boxes"][shown], [names[i] for i in shown], out["scores"][shown],
+                               title, self.det.classes)
+
+    def time_lines(self, done: int) -> list[str]:
+        if not self.stats["ok"]:
+            return []
+        n, det_s, stages, note = self.stats["ok"], self.detect_s, self.stages.seconds, ""
+        if self.warm is not None and n > self.warm[0]:  # after the first batch (warm-up)
+            n, det_s = n - self.warm[0], self.detect_s - self.warm[1]
+            stages = {k: v - self.warm[2][k] for k, v in stages.items()}
+            note = ", after the first batch"
+        per = {k: 1000 * v / n for k, v in stages.items()}
+        heads = sum(per[k] for k in ("neck", "roi_align", "box_head", "postprocess"))
+        return [f"time: {self.wall:.1f} s, {1000 * self.wall / max(1, done):.0f} ms/img end to end; in the detector "
+                f"{1000 * det_s / n:.0f} ms/img{note} (proposals {per['proposals']:.0f}, resize {per['resize']:.0f}, "
+                f"backbone {per['backbone']:.0f}, heads {heads:.0f} ms; {self.dev}, backbone in "
+                f"{self.det.precision})"]
+
+
+def load_detector(path: str, device: str) -> tuple[Any, str, Any]:
+    """The detector file at ``path`` loaded on ``device`` (``--device``), what its rows'
+    ``config`` holds (``det-`` and the file's SHA-256, first 16 digits) and the device; a
+    usage error when it cannot be loaded."""
+    from ..detection import DetectorFileError, ReebDetector
+    from ..detection.detector import resolve_detector
+
+    dev = resolve_device(device)
+    try:
+        det = ReebDetector.load(path, device=dev)
+    except (DetectorFileError, ImportError) as e:
+        raise UsageProblem(" ".join(str(e).split()))
+    digest = hashlib.sha256(resolve_detector(path).read_bytes()).hexdigest()
+    return det, f"det-{digest[:16]}", dev
+
+
+def detect_images(paths: Sequence[str], det: Any, det_id: str, dev: Any, *, out: str | None, overwrite: bool,
+                  resume: bool, kitti_dir: str | None, viz_dir: str | None, min_score: float, viz_min_score: float,
+                  batch_size: int, workers: int | None, recursive: bool, quiet: bool) -> None:
+    """``reeb detect``: ``det`` (a loaded detector, :func:`load_detector`; ``det_id`` what its
+    rows' ``config`` holds) on the images of ``paths``, the options as the command takes them.
+
+    Usage errors (exit 2) are raised as :class:`~.common.UsageProblem` before any work;
+    the process exits 1 when an image failed or an output could not be written in full, 130
+    when interrupted.
+    """
+    run = _DetectRun(det, det_id, dev, out=out, batch_size=batch_size, workers=workers, min_score=min_score,
+                     viz_min_score=viz_min_score, quiet=quiet)
+    run.find_inputs(paths, recursive)  # 1. inputs
+    work = run.plan_output(resume, overwrite)  # 2. the output, checked and locked before any work
+    run.side_outputs(viz_dir, kitti_dir, det.categories, resume=resume, overwrite=overwrite)  # 3. its folders
+    if not work:
+        return run.nothing_to_do()
+    run.run()  # 4. the run
+    run.save_and_summarise()  # 5. save and summarise

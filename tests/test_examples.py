@@ -1,0 +1,24 @@
+"""The README's Python examples, as scripts in ``examples/``, run as a user runs them (from the
+repository root) and end by printing what came out."""
+
+from __future__ import annotations
+
+import runpy
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("script, words", [
+    ("quickstart.py", ["2000 proposals, the best", "training-free: 300", "regions"]),
+    ("torchvision_rpn.py", ["'boxes': (", "ReebRPN proposals"]),
+])
+def test_an_example_prints_what_came_out(script, words, monkeypatch, capsys):
+    if script == "torchvision_rpn.py":
+        pytest.importorskip("torchvision")
+    monkeypatch.chdir(REPO)
+    runpy.run_path(str(REPO / "examples" / script), run_name="__main__")
+    printed = capsys.readouterr().out.strip().splitlines()
+    assert printed and all(w in printed[-1] for w in words), printed
