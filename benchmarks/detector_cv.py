@@ -144,7 +144,7 @@ def run_arm(options: str, seed: int, items: list[dict], blocks: list[list[int]],
         record["steps"].append(det.history["steps"])
         try:
             found = detect(det.model, cached_frames(det, [items[i] for i in block], args.cache, not args.quiet),
-                           progress=False)
+                           progress=False, passes=det.settings.box_passes)
         finally:
             det.model.rpn.cache = None
         for i, d in zip(block, found):

@@ -162,3 +162,25 @@ def test_bfloat16_where_native_runs_bfloat16(images):
         det = ReebDetector(settings=DetectorSettings(**{**TINY.__dict__, "precision": "bfloat16"}))
     assert det.precision == "bfloat16"
     assert len(det(images[:1])[0]["boxes"])
+
+
+def test_a_second_box_pass_pools_the_regressed_boxes(images):
+    """Two passes: the second pools each box where the first regressed it and averages the
+    class probabilities; with a box regression of zero it pools the same boxes again, so the
+    detections are the first pass's."""
+    from dataclasses import replace
+
+    torch.manual_seed(0)
+    det = ReebDetector(settings=TINY)
+    one = det(images[:1])[0]
+    det.settings = replace(TINY, box_passes=2)
+    two = det(images[:1])[0]
+    assert len(two["boxes"]) and not torch.equal(one["boxes"], two["boxes"])
+    torch.nn.init.zeros_(det.model.roi_heads.box_predictor.bbox_pred.weight)
+    torch.nn.init.zeros_(det.model.roi_heads.box_predictor.bbox_pred.bias)
+    det.settings = TINY
+    one = det(images[:1])[0]
+    det.settings = replace(TINY, box_passes=2)
+    two = det(images[:1])[0]
+    torch.testing.assert_close(two["boxes"], one["boxes"])
+    torch.testing.assert_close(two["scores"], one["scores"], atol=1e-6, rtol=1e-5)

@@ -82,6 +82,8 @@ class DetectorSettings:
         crop_top: the share of the resized image's height, from the top, that the backbone
             skips (rounded down to a multiple of 32 rows; 0: none): rows where no object of
             the classes lies (``reeb detector fit`` sets it from the training labels).
+        box_passes: the box head's passes in detection: each after the first pools the boxes
+            the last one regressed and averages its class scores in (training is one pass).
         proposals_train, proposals_test: REEB proposals per image handed to the box head.
         rois: RoIs sampled per image for the box head's loss.
         score_thresh: detections below this score are dropped.
@@ -95,6 +97,7 @@ class DetectorSettings:
     representation_size: int = 1024
     precision: Literal["float32", "bfloat16"] = "float32"
     crop_top: float = 0.0
+    box_passes: int = 1
     proposals_train: int = 2000
     proposals_test: int = 1000
     rois: int = 256
@@ -131,6 +134,7 @@ SETTINGS_RANGES: dict[str, str | None] = {
     "representation_size": "[1, 8192]",
     "precision": None,
     "crop_top": "[0, 0.9]",
+    "box_passes": "[1, 4]",
     "proposals_train": "[1, 20000]",
     "proposals_test": "[1, 20000]",
     "rois": "[1, 4096]",
@@ -306,7 +310,7 @@ class ReebDetector(nn.Module):
 
         for im in images:
             _check_image(im)
-        return detect_images(self.model, list(images), self.settings.crop_top, self.clock)
+        return detect_images(self.model, list(images), self.settings.crop_top, self.clock, self.settings.box_passes)
 
     # -- file -------------------------------------------------------------------------------
     def metadata(self) -> dict[str, Any]:

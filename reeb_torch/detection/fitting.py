@@ -172,7 +172,8 @@ def detector_stats(det: Any, folders: Sequence[str | os.PathLike], *, limit: int
 
     items = load_frames(folders, det.classes, limit)
     try:
-        detections = detect(det.model, cached_frames(det, items, cache_dir, progress), progress=progress)
+        detections = detect(det.model, cached_frames(det, items, cache_dir, progress), progress=progress,
+                            passes=det.settings.box_passes)
     finally:
         det.model.rpn.cache = None
     dets = [{**d, "labels": d["labels"] - 1} for d in detections]

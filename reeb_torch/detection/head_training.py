@@ -37,6 +37,7 @@ from torch import Tensor, nn
 from torchvision.models.detection.image_list import ImageList
 from torchvision.models.detection.transform import resize_boxes
 from torchvision.ops import box_iou
+from torchvision.ops import boxes as box_ops
 
 from .feature_cache import FrameFeatures
 from .rpn import ReebRPN
@@ -130,8 +131,19 @@ def _resized(boxes: Tensor, f: FrameFeatures) -> Tensor:
     return out - out.new_tensor([0.0, f.top, 0.0, f.top]) if f.top else out
 
 
+def _refined(heads: Any, logits: Tensor, deltas: Tensor, boxes: Tensor,
+             size: tuple[int, int]) -> tuple[Tensor, list[Tensor]]:
+    """The class probabilities of a box-head pass and, per box, the box regressed for its most
+    likely object class (clipped to ``size``): the next pass's input."""
+    probs = torch.softmax(logits, -1)
+    decoded = heads.box_coder.decode(deltas, [boxes])  # [N, classes, 4]
+    best = probs[:, 1:].argmax(1) + 1
+    refined = box_ops.clip_boxes_to_image(decoded[torch.arange(len(boxes)), best], size)
+    return probs, [refined]
+
+
 def frame_forward(model: nn.Module, frame: CachedFrame, proposals: Tensor | None = None,
-                  clock: Callable[[str], ContextManager[Any]] | None = None) -> dict[str, Tensor]:
+                  clock: Callable[[str], ContextManager[Any]] | None = None, passes: int = 1) -> dict[str, Tensor]:
     """One frame through neck, proposals and box head: the losses in training mode, the
     detections (``boxes`` in input pixels, ``labels``, ``scores``) in evaluation mode.
 
@@ -140,7 +152,9 @@ def frame_forward(model: nn.Module, frame: CachedFrame, proposals: Tensor | None
     cache). The heads work in the frame of the maps: the resized image less its top
     ``frame.features.top`` rows. ``clock(stage)``: a context that times each stage of the
     evaluation (``neck``, ``roi_align``, ``box_head``, ``postprocess``;
-    :class:`~reeb_torch.detection.inference.StageClock`)."""
+    :class:`~reeb_torch.detection.inference.StageClock`). ``passes``: in evaluation, the box
+    head's passes: each after the first pools the boxes the last one regressed (each box for
+    its most likely class) and averages its class probabilities with the earlier passes'."""
     stage = clock or (lambda name: nullcontext())
     f = frame.features
     det: Any = model  # a detector: nn.Module leaves its parts (transform, backbone, ...) untyped
@@ -162,10 +176,15 @@ def frame_forward(model: nn.Module, frame: CachedFrame, proposals: Tensor | None
         _, roi_losses = det.roi_heads(features, placed, images.image_sizes, targets)
         return {**rpn_losses, **roi_losses}
     heads = det.roi_heads  # RoIHeads.forward's evaluation path for boxes, stage by stage
-    with stage("roi_align"):
-        pooled = heads.box_roi_pool(features, placed, images.image_sizes)
-    with stage("box_head"):
-        logits, deltas = heads.box_predictor(heads.box_head(pooled))
+    for n in range(passes):
+        if n:  # another pass over the boxes the last one regressed, its class scores averaged in
+            probs, placed = _refined(heads, logits, deltas, placed[0], images.image_sizes[0])
+        with stage("roi_align"):
+            pooled = heads.box_roi_pool(features, placed, images.image_sizes)
+        with stage("box_head"):
+            logits, deltas = heads.box_predictor(heads.box_head(pooled))
+            if n:
+                logits = torch.log((probs * n + torch.softmax(logits, -1)) / (n + 1))
     with stage("postprocess"):
         boxes, scores, labels = heads.postprocess_detections(logits, deltas, placed, images.image_sizes)
         found = boxes[0] + boxes[0].new_tensor([0.0, top, 0.0, top]) if top else boxes[0]
@@ -234,10 +253,13 @@ def train_heads(model: nn.Module, frames: Sequence[CachedFrame], settings: Train
 
 
 @torch.no_grad()
-def detect(model: nn.Module, frames: Sequence[CachedFrame], progress: bool = True) -> list[dict[str, Tensor]]:
+def detect(model: nn.Module, frames: Sequence[CachedFrame], progress: bool = True,
+           passes: int = 1) -> list[dict[str, Tensor]]:
     """Detections of every frame (``boxes [D, 4]`` input pixels, ``labels [D]`` 1..C,
-    ``scores [D]``), the model in evaluation mode."""
+    ``scores [D]``), the model in evaluation mode, the box head run ``passes`` times
+    (:func:`frame_forward`)."""
     from tqdm import tqdm
 
     model.eval()
-    return [frame_forward(model, f) for f in tqdm(frames, desc="detect", unit="img", disable=not progress)]
+    return [frame_forward(model, f, passes=passes)
+            for f in tqdm(frames, desc="detect", unit="img", disable=not progress)]

@@ -63,11 +63,12 @@ class StageClock:
 
 @torch.no_grad()
 def detect_images(model: nn.Module, images: Sequence[Tensor], crop_top: float = 0.0,
-                  clock: StageClock | None = None) -> list[dict[str, Tensor]]:
+                  clock: StageClock | None = None, passes: int = 1) -> list[dict[str, Tensor]]:
     """Detections of each image (``[3, H, W]`` RGB, uint8 or float in [0, 1]; sizes may
     differ; on the model's device): ``boxes`` ``float32 [D, 4]`` input pixels, ``labels``
     ``int64 [D]``, ``scores`` ``float32 [D]``, best first (module doc). The model in
-    evaluation mode."""
+    evaluation mode. ``passes``: the box head's
+    (:func:`~reeb_torch.detection.head_training.frame_forward`)."""
     stage: Any = clock or (lambda name: nullcontext())
     det: Any = model
     model.eval()
@@ -86,5 +87,5 @@ def detect_images(model: nn.Module, images: Sequence[Tensor], crop_top: float = 
         feats = batch_features(model, [images[i] for i in members], crop_top, clock=clock)
         for i, f in zip(members, feats):
             frame = CachedFrame(images[i], f, empty, torch.zeros(0, dtype=torch.int64))
-            out[i] = frame_forward(model, frame, proposals[i], clock=clock)
+            out[i] = frame_forward(model, frame, proposals[i], clock=clock, passes=passes)
     return out

@@ -42,7 +42,8 @@ def detector() -> None:
 
 SETTINGS_OPTIONS = {"min_size": "min_size", "max_size": "max_size", "train_proposals": "proposals_train",
                     "test_proposals": "proposals_test", "precision": "precision", "crop_top": "crop_top",
-                    "neck_channels": "neck_channels", "head_width": "representation_size"}
+                    "neck_channels": "neck_channels", "head_width": "representation_size",
+                    "box_passes": "box_passes"}
 """``reeb detector fit``'s options that set :class:`~reeb_torch.detection.DetectorSettings`
 fields: option parameter -> field."""
 
@@ -97,12 +98,15 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
               help="Channels of the neck and of the pooled RoI features.")
 @click.option("--head-width", type=SettingRange("representation_size"), default=1024, show_default=True,
               help="Units of each of the box head's two layers.")
+@click.option("--box-passes", type=SettingRange("box_passes"), default=1, show_default=True,
+              help="The box head's passes in detection: each after the first pools the boxes the last one "
+                   "regressed and averages its class scores in.")
 @click.option("--cache", "cache_dir", type=click.Path(file_okay=False),
               help="Where each frame's backbone maps and proposals are kept [default: ~/.cache/reeb-torch/detection].")
 @click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
 def fit(dirs, out, overwrite, proposals, classes, epochs, seed, val, hflip, min_size, max_size, train_proposals,
-        test_proposals, precision, crop_top, neck_channels, head_width, cache_dir, limit, quiet):
+        test_proposals, precision, crop_top, neck_channels, head_width, box_passes, cache_dir, limit, quiet):
     """Train a detector on labelled KITTI-format folders (DIRS: images/ and labels/, or image_2/ and
     label_2/) and write it to OUT. The backbone's maps and REEB's proposals of each frame are
     cached, so a second fit on the same frames trains at once. Deterministic for a seed.
