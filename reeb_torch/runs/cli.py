@@ -320,6 +320,8 @@ def _eval_settings(preset, config_file, sets, top_k, device, **given):
     (built as ``reeb propose`` builds them); ``--device``: where the REEB rows run."""
     ctx = click.get_current_context()
     if top_k is not None:  # the proposals kept per image: --max-proposals, by its other name
+        if top_k < 2000:
+            raise UsageProblem(f"--top-k {top_k}: reeb eval needs at least 2000 proposals (Table 3's largest column)")
         if ctx.get_parameter_source("max_proposals") == click.core.ParameterSource.COMMANDLINE and \
                 top_k != given["max_proposals"]:
             raise UsageProblem("give --top-k or --max-proposals, not both")
