@@ -38,16 +38,16 @@ __all__ = ["FrameVanishingPoint", "HorizonEstimate", "HorizonError", "frame_vani
 
 BOX_BOTTOM_OFFSET = 0.006
 """How far (a fraction of the image height) the row the labelled boxes' bottoms point to lies
-below the vanishing point: on KITTI's 60 object frames ``reeb calibrate`` fits 0.4714 from the
-boxes, the calibration's principal row (a level camera's horizon) is 0.4655 and the vanishing
-points give 0.4647. A 2D box's bottom is its object's nearest corner, so box bottoms sit below
-the line of the objects' centres; the gap grows with the focal length (a zoomed camera's is
-larger), which images alone do not tell."""
+below the vanishing point: the gap on KITTI's object frames between ``reeb calibrate``'s fit to
+their labelled boxes and their calibration's principal row (a level camera's horizon), where the
+vanishing points agree with the latter (``docs/results.md``, "The horizon without labels"). A
+2D box's bottom is its object's nearest corner, so box bottoms sit below the line through the
+objects' centres; the gap grows with the focal length, which images alone do not tell."""
 
 MIN_FRAMES = 5
 """Fewest frames :func:`estimate_horizon` takes: the mode over frames needs a few to outvote a
-frame whose lines meet elsewhere (about 40 give an interval within ±0.01 of the height on
-KITTI's frames: ``docs/results.md``)."""
+frame whose lines meet elsewhere (how the interval narrows with more frames:
+``docs/results.md``, "The horizon without labels")."""
 
 _WIDTH = 640  # frames are shrunk to this width for the line detector
 _MIN_LENGTH = 0.03  # shortest segment, a fraction of the image width

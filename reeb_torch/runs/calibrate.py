@@ -149,19 +149,11 @@ def calibrate(roots: Sequence[str | os.PathLike], out: str | os.PathLike,
 # -- writing, and the routes without labels ------------------------------------------------------
 
 def write_record(out: Path, record: dict) -> None:
-    """Write the config file whole or not at all: a temporary file beside ``out``, then renamed
-    over it (a failed write leaves the previous file as it was)."""
-    import tempfile
+    """Write the config file whole or not at all (:func:`reeb_torch.io.replace_file`): a failed
+    write leaves the previous file as it was."""
+    from ..io import replace_file
 
-    out = Path(out)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent if str(out.parent) else ".")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(json.dumps(record, indent=2) + "\n")
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    replace_file(out, (json.dumps(record, indent=2) + "\n").encode("utf-8"))
 
 
 def has_labels(root: str | os.PathLike) -> bool:
