@@ -115,6 +115,7 @@ def test_cli_calibrate_kitti(kitti_dir, tmp_path):
     res = CliRunner().invoke(main, ["calibrate", str(kitti_dir), "-o", str(out), "--samples", "30"])
     assert res.exit_code == 0, res.output
     assert "horizon" in res.output and "P2 horizon" in res.output and "Car" in res.output
+    assert "route            labelled boxes" in res.output
     record = json.loads(out.read_text())
     cfg = build_config("default", str(out), (), None)  # what reeb propose --config reads
     assert cfg.horizon == record["config"]["horizon"]
@@ -124,12 +125,12 @@ def test_cli_calibrate_kitti(kitti_dir, tmp_path):
     assert (tmp_path / "camera.png").stat().st_size > 1000
 
 
-def test_cli_calibrate_refuses_a_folder_without_labels(tmp_path):
+def test_cli_calibrate_a_folder_without_labels_takes_the_images_route(tmp_path):
     from reeb_torch.runs.cli import main
 
     (tmp_path / "images").mkdir()
     shutil.copy("examples/data/kitti_000001.png", tmp_path / "images" / "000001.png")
     res = CliRunner().invoke(main, ["calibrate", str(tmp_path), "-o", str(tmp_path / "c.json")])
-    assert res.exit_code == 2 and "no label folder" in res.output
+    assert res.exit_code == 2 and "1 frame: too few to estimate the horizon from images" in res.output
     res = CliRunner().invoke(main, ["calibrate", str(tmp_path), "--class-height", "Car=-2"])
     assert res.exit_code == 2 and "CLASS=METRES" in res.output

@@ -465,3 +465,43 @@ def test_table3_whole_drives_row_never_fits_on_a_frame_of_a_held_out_drive(tmp_p
     assert all(a < b for a, b in zip(firsts, seconds))
     csv_rows = list(csv.DictReader(open(tmp_path / "t3" / "table3.csv")))
     assert any(r["method"] == "reeb-default-wd" and r["average"] == "Pedestrian" for r in csv_rows)
+
+
+def test_reeb_eval_scores_your_own_settings_as_reeb_propose_takes_them(tmp_path, monkeypatch):
+    """``reeb eval --config FILE --set FIELD=VALUE``: a row with those settings (built as ``reeb
+    propose`` builds them) beside the preset's own; the rerun line names them."""
+    import json as _json
+
+    from reeb_torch.runs import cli
+
+    data = _example_kitti(tmp_path / "kitti")
+    camera = tmp_path / "camera.json"
+    camera.write_text(_json.dumps({"config": {"horizon": 0.47, "camera_height_m": 1.65}, "fit": {"route": "images"}}))
+    monkeypatch.chdir(tmp_path)
+    record = cli.main.main(["eval", str(data), "--preset", "training-free", "--config", str(camera), "--set",
+                            "seed=0", "--batch", "0", "--out", "t3", "--device", "cpu"],
+                           prog_name="reeb", standalone_mode=False)
+    rows = record["methods"]
+    assert list(rows) == ["reeb-training-free", "reeb-config"]  # the preset's row, then the settings'
+    assert rows["reeb-config"]["label"].startswith("REEB with your settings")
+    # the same settings as the preset's (the file holds its defaults): the same recall, object for object
+    assert rows["reeb-config"]["recall"] == rows["reeb-training-free"]["recall"]
+    assert "--config" in record["rerun"] and "--set seed=0" in record["rerun"]
+    camera.write_text(_json.dumps({"config": {"horizon": 0.30}}))
+    record = cli.main.main(["eval", str(data), "--preset", "training-free", "--config", str(camera), "--methods",
+                            "reeb-training-free", "--batch", "0", "--out", "t3", "--device", "cpu"],
+                           prog_name="reeb", standalone_mode=False)
+    assert record["methods"]["reeb-config"]["recall"] != record["methods"]["reeb-training-free"]["recall"]
+
+
+@pytest.mark.parametrize("args,words", [(["--set", "horizon=2"], "horizon"), (["--set", "nope=1"], "nope"),
+                                        (["--top-k", "100"], "at least 2000")])
+def test_reeb_eval_refuses_bad_settings_in_one_line(tmp_path, args, words):
+    from click.testing import CliRunner
+
+    from reeb_torch.runs.cli import main
+
+    data = _example_kitti(tmp_path / "kitti")
+    res = CliRunner().invoke(main, ["eval", str(data), "--out", str(tmp_path / "t3"), *args])
+    assert res.exit_code == 2 and "Traceback" not in res.output, res.output
+    assert words in res.output and not (tmp_path / "t3").exists()

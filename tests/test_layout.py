@@ -25,7 +25,7 @@ SELECTION = {"reeb_torch.selection", "reeb_torch.selection.cache", "reeb_torch.s
              "reeb_torch.selection.score", "reeb_torch.selection.suppress"}
 RANKER = {"reeb_torch.ranker", "reeb_torch.ranker.features", "reeb_torch.ranker.model", "reeb_torch.ranker.prefilter",
           "reeb_torch.ranker.step", "reeb_torch.ranker.weights"}
-ALGORITHM = {"reeb_torch.config", "reeb_torch.generator", "reeb_torch._checks", "reeb_torch.camera",
+ALGORITHM = {"reeb_torch.config", "reeb_torch.generator", "reeb_torch._checks", "reeb_torch.camera", "reeb_torch.horizon",
              "reeb_torch.io"} | SELECTION | RANKER
 RUNS_LIBRARIES = {"reeb_torch.runs.inputs", "reeb_torch.runs.decoding", "reeb_torch.runs.rows",
                   "reeb_torch.runs.output_files", "reeb_torch.runs.output_lock", "reeb_torch.runs.ctrl_c",

@@ -164,10 +164,16 @@ def run_table3(options: Table3Options, out: str | os.PathLike, rerun: str = "") 
     return write_report(compute(options), out, rerun)
 
 
-def _run(data: Sequence[Path], out: Path, methods: tuple[str, ...], **given: Any) -> dict[str, Any]:
+def _run(data: Sequence[Path], out: Path, methods: tuple[str, ...], config: Any = None, preset: str | None = None,
+         **given: Any) -> dict[str, Any]:
+    """The command's callback. ``config``: the caller's settings (``reeb eval --config / --set``,
+    a row of their own); then without ``methods`` the rows are the ``preset``'s and theirs."""
     ctx = click.get_current_context()
+    if not methods:
+        own = {"default": "reeb-default", "training-free": "reeb-training-free", "paper": "reeb-paper"}
+        methods = (own.get(preset or "default", "reeb-default"),) if config is not None else DEFAULT_METHODS
     try:
-        options = Table3Options(data=data, methods=methods or DEFAULT_METHODS, **given)
+        options = Table3Options(data=data, methods=methods, config=config, **given)
         return run_table3(options, out, _command_line(ctx))
     except Table3Error as e:
         raise BadData(str(e)) from None

@@ -25,7 +25,10 @@ text tables show IoU 0.5 / 0.7 alone at 100 / 300: :data:`TEXT_GRID`). Methods
   ``leave_folder_out``]: the same with one block per data folder (another drive, another
   camera set-up): how a model holds on frames unlike those it was fitted on;
 - REEB as printed [reeb-paper-no-regions, reeb-paper]: the ``paper`` preset, without / with
-  region enhancement.
+  region enhancement;
+- REEB with your settings [reeb-config, with ``config``]: a :class:`~reeb_torch.ReebConfig` of
+  the caller's (``reeb eval --config FILE --set FIELD=VALUE``: a camera file of ``reeb
+  calibrate``, weights of ``reeb fit``), run as ``reeb propose`` runs it.
 
 This module imports neither torch nor OpenCV (a method's model is built when it runs), so
 the command line can list the methods and check its options at once.
@@ -49,6 +52,7 @@ __all__ = [
     "CROSS_VALIDATED",
     "WHOLE_DRIVES",
     "LEAVE_FOLDER_OUT",
+    "CONFIGURED",
     "Table3Error",
     "Method",
     "METHODS",
@@ -70,6 +74,8 @@ WHOLE_DRIVES = "reeb-default-wd"
 training side (``cross_validate`` and ``whole_drives``)."""
 LEAVE_FOLDER_OUT = "reeb-default-lofo"
 """The key of the row ranked by models fitted on the other folders (``leave_folder_out``)."""
+CONFIGURED = "reeb-config"
+"""The key of the row with the caller's settings (``config``; not a ``methods`` choice)."""
 
 
 class Table3Error(ValueError):
@@ -95,17 +101,35 @@ class Method:
     its boxes come from :func:`cross_validated_boxes`, not from ``build``."""
 
 
+def _on(gen: Any, device: str | None) -> Callable:
+    """``gen`` (a :class:`~reeb_torch.ProposalGenerator`) run on ``device``: the images are
+    moved there (None or ``cpu``: as they are)."""
+    if device is None or device == "cpu":
+        return gen
+    gen.to(device)
+    return lambda images: gen([im.to(device) for im in images])
+
+
 def _reeb(preset: str, **changes: Any) -> Callable[..., Callable]:
     """The generator of a REEB row: the preset with ``changes`` (``use_regions=False``: the
-    rows without the region enhancement)."""
-    def build(max_proposals: int, **_: Any) -> Callable:
+    rows without the region enhancement), on ``device``."""
+    def build(max_proposals: int, device: str | None = None, **_: Any) -> Callable:
         from .. import ProposalGenerator, get_preset
 
         gen = ProposalGenerator(get_preset(preset).replace(**changes), top_k=max_proposals)
         gen.eval()
-        return gen
+        return _on(gen, device)
 
     return build
+
+
+def _configured(max_proposals: int, config: Any = None, device: str | None = None, **_: Any) -> Callable:
+    """The generator of the row with the caller's settings (``config``), on ``device``."""
+    from .. import ProposalGenerator
+
+    gen = ProposalGenerator(config, top_k=max_proposals)
+    gen.eval()
+    return _on(gen, device)
 
 
 def _baseline(name: str) -> Callable[..., Callable]:
@@ -142,10 +166,11 @@ METHODS: dict[str, Method] = {
         Method("reeb-paper-no-regions", "REEB paper preset, no regions", _reeb("paper", use_regions=False), True,
                "paper"),
         Method("reeb-paper", "REEB paper preset", _reeb("paper"), True, "paper"),
+        Method(CONFIGURED, "REEB with your settings (--config / --set)", _configured, True),
     ]
 }
 
-DEFAULT_METHODS: tuple[str, ...] = tuple(k for k, m in METHODS.items() if not m.cross_validated)
+DEFAULT_METHODS: tuple[str, ...] = tuple(k for k, m in METHODS.items() if not m.cross_validated and k != CONFIGURED)
 """The methods one can choose (``methods``), in table order; all of them by default."""
 
 
@@ -173,6 +198,9 @@ class Table3Options:
             the other folders (needs two or more folders).
         bing_model: BING's model folder (its nine ``ObjNessB2W8*.yml.gz`` files); without one
             the BING row is skipped, with a note.
+        config: the caller's settings (a :class:`~reeb_torch.ReebConfig`): a row of its own
+            (:data:`CONFIGURED`), after ``methods``.
+        device: where the REEB rows run (``cpu``, ``cuda``, ``cuda:N``; None: the CPU).
     """
 
     data: Sequence[str | os.PathLike]
@@ -186,6 +214,8 @@ class Table3Options:
     leave_folder_out: bool = False
     whole_drives: bool = False
     bing_model: str | os.PathLike | None = None
+    config: Any = None
+    device: str | None = None
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__  # frozen: normalise once, here
@@ -220,7 +250,21 @@ class Table3Options:
                                     (LEAVE_FOLDER_OUT, self.leave_folder_out)) if on]
         m = list(self.methods)
         at = m.index("reeb-default") + 1 if "reeb-default" in m else len(m)
-        return (*m[:at], *held_out, *m[at:])
+        own = (CONFIGURED,) if self.config is not None else ()
+        return (*m[:at], *held_out, *m[at:], *own)
+
+    def ranker_of(self, key: str) -> str | None:
+        """The learned ranking of the REEB row ``key`` (a name or a weights file), or None
+        (a baseline, or a row that ranks by REEB's own score)."""
+        from ..config import get_preset
+
+        if key == CONFIGURED:
+            spec = getattr(self.config, "ranker", "none")
+        elif METHODS[key].preset is None:
+            return None
+        else:
+            spec = get_preset(METHODS[key].preset or "default").ranker
+        return None if spec == "none" else spec
 
     @property
     def data_text(self) -> str:

@@ -32,7 +32,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -237,7 +237,7 @@ def compute(options: Table3Options) -> Table3:
     frames = load_frames(options)
     excluded: dict[str, str] = {}
     if options.exclude_fitted:
-        frames, excluded = _without_fitted(frames, [k for k in options.methods if METHODS[k].preset], options)
+        frames, excluded = _without_fitted(frames, [k for k in options.rows if options.ranker_of(k)], options)
     if options.cross_validate > len(frames.images):
         raise Table3Error(f"--cross-validate {options.cross_validate} needs at least as many frames, "
                           f"got {len(frames.images)}")
@@ -247,7 +247,8 @@ def compute(options: Table3Options) -> Table3:
     reference = reference_row(done)
     _pair_with_reference(results, hits, splits, done, reference)
     # after exclude_fitted no frame left was seen: no need to hash them again
-    seen = {} if options.exclude_fitted else in_sample_frames([k for k in done if METHODS[k].preset], frames)
+    ranked = {k: options.ranker_of(k) for k in done if options.ranker_of(k)}
+    seen = {} if options.exclude_fitted else in_sample_frames(list(ranked), frames, ranked)
     return Table3(options, frames, splits, results, done, reference, curves, seen, excluded)
 
 
@@ -287,7 +288,7 @@ def _without_fitted(frames: Frames, keys: Sequence[str], options: Table3Options)
     was fitted on, and those left out (``{id: the model's name for it}``); a
     :class:`Table3Error` when nothing with an object is left."""
     left: dict[str, str] = {}
-    for seen in in_sample_frames(keys, frames).values():
+    for seen in in_sample_frames(keys, frames, {k: options.ranker_of(k) for k in keys}).values():
         left.update(seen)
     out = frames.subset([i for i, f in enumerate(frames.ids) if f not in left])
     if out.n_obj == 0:
@@ -332,7 +333,8 @@ def _run_methods(options: Table3Options, frames: Frames, splits: list[tuple[str,
                                                       whole_drives=key == WHOLE_DRIVES)
             else:
                 boxes, timing = run_method(method, frames.images, options.max_proposals, options.batch,
-                                           bing_model=options.bing_model)
+                                           bing_model=options.bing_model, config=options.config,
+                                           device=options.device)
         except (FileNotFoundError, ImportError) as e:  # e.g. no BING model folder
             print(f"skipped {method.label}: {e}", flush=True)
             results[key] = {"label": method.label, "skipped": str(e)}
@@ -444,18 +446,20 @@ def _pair_with_reference(results: dict[str, Any], hits: dict[str, list[torch.Ten
                 "reference": reference, "gained": c.gained, "lost": c.lost, "p_value": c.p_value}
 
 
-def in_sample_frames(keys: Sequence[str], frames: Frames) -> dict[str, dict[str, str]]:
+def in_sample_frames(keys: Sequence[str], frames: Frames,
+                     rankers: Mapping[str, str | None] | None = None) -> dict[str, dict[str, str]]:
     """For each REEB row ``keys`` whose preset ranks with a learned model: the frames that model
     was fitted on (the same pictures, :func:`~reeb_torch.ranker.fitted_frames`), ``{frame id:
     the model's name for it}``; rows whose model saw none of them are left out. Its recall
-    there is in-sample, not an estimate."""
+    there is in-sample, not an estimate. ``rankers``: each row's model where it is not its
+    preset's (:meth:`~reeb_torch.eval.methods.Table3Options.ranker_of`)."""
     from .. import get_preset
     from ..ranker import fitted_frames, load_ranker
 
     out: dict[str, dict[str, str]] = {}
     looked: dict[str, dict[str, str]] = {}
     for k in keys:
-        spec = get_preset(METHODS[k].preset or "default").ranker
+        spec = (rankers or {}).get(k) or get_preset(METHODS[k].preset or "default").ranker
         if spec == "none":
             continue
         if spec not in looked:

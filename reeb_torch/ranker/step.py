@@ -37,16 +37,34 @@ NOT_SEEN_BY_RANKER: tuple[str, ...] = ("top_k", "ranker", "ranker_keep", "ranker
 """Fields a ranking model does not depend on (they act after it)."""
 
 
+SAME_SETTING_REL_TOL = 1e-3
+"""Two numbers of a setting are the same when they differ by less than this share (a value
+written to 3 or 4 significant digits, as ``camera_height_m=1.676`` for a fitted 1.67575)."""
+
+
+def _same(a: object, b: object) -> bool:
+    """Whether two settings (JSON values) are the same: numbers within
+    :data:`SAME_SETTING_REL_TOL` of each other, lists item by item, anything else equal."""
+    if isinstance(a, bool) or isinstance(b, bool) or a is None or b is None:
+        return a == b
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return math.isclose(a, b, rel_tol=SAME_SETTING_REL_TOL, abs_tol=1e-12)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return a == b
+
+
 def _warn_if_fitted_elsewhere(config: ReebConfig, fitted: dict | None) -> None:
     """Warn (once per setting) when ``config`` differs from the one the ranking model was fitted
-    with in a field its features or candidates depend on: it still runs, likely worse."""
+    with in a field its features or candidates depend on (numbers beyond a rounding:
+    :func:`_same`): it still runs, likely worse."""
     if not fitted:
         return
     import json
     import warnings
 
     now = json.loads(json.dumps(config.to_dict(), default=list))
-    differ = [k for k, v in now.items() if k in fitted and k not in NOT_SEEN_BY_RANKER and fitted[k] != v]
+    differ = [k for k, v in now.items() if k in fitted and k not in NOT_SEEN_BY_RANKER and not _same(fitted[k], v)]
     if differ:
         shown = ", ".join(f"{k}={now[k]!r} (fitted with {fitted[k]!r})" for k in differ[:3])
         more = f" and {len(differ) - 3} more" if len(differ) > 3 else ""

@@ -1,16 +1,26 @@
-"""``reeb calibrate``: fit the horizon and the camera height from a folder's labelled boxes
-(:func:`reeb_torch.camera.fit_camera`), print the fit, write a config file and a picture."""
+"""``reeb calibrate``: the camera's horizon (and height) by one of three routes, written as the
+same config file (``{"config": {"horizon", "camera_height_m"}, "fit": {"route": ...}}``):
+
+* ``labels``: fit the horizon and the camera height to a folder's labelled boxes
+  (:func:`reeb_torch.camera.fit_camera`), with a picture of the fit;
+* ``images``: the horizon from the frames alone, where the road's lines meet
+  (:func:`reeb_torch.horizon.estimate_horizon`), the camera height given or the default;
+* ``intrinsics``: the horizon of a level camera, ``cy / H``, from a KITTI calibration file's
+  ``P2`` or from ``cy`` and the image height.
+"""
 
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from ..camera import CameraFit, fit_camera, read_kitti_calib
 
-__all__ = ["read_boxes", "calibrate", "format_fit", "plot_fit"]
+__all__ = ["read_boxes", "calibrate", "format_fit", "plot_fit", "has_labels", "calibrate_images",
+           "calibrate_intrinsics"]
 
 
 def read_boxes(roots: Sequence[str | os.PathLike]) -> dict[str, Any]:
@@ -122,6 +132,7 @@ def calibrate(roots: Sequence[str | os.PathLike], out: str | os.PathLike,
     record = {
         "config": fit.config_changes(),
         "fit": {
+            "route": "labels",
             "horizon_interval": fit.horizon_interval, "camera_height_interval": fit.camera_height_interval,
             "level": fit.level, "num_boxes": fit.num_boxes, "num_frames": fit.num_frames,
             "num_outliers": fit.num_outliers, "class_heights_m": heights, "box_height_factor": factor,
@@ -130,6 +141,158 @@ def calibrate(roots: Sequence[str | os.PathLike], out: str | os.PathLike,
             "data": [str(r) for r in roots],
         },
     }
-    out.write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
+    write_record(out, record)
     picture = plot_fit(fit, out.with_suffix(".png"))
-    return text, out, picture
+    return "route            labelled boxes\n" + text, out, picture
+
+
+# -- writing, and the routes without labels ------------------------------------------------------
+
+def write_record(out: Path, record: dict) -> None:
+    """Write the config file whole or not at all (:func:`reeb_torch.io.replace_file`): a failed
+    write leaves the previous file as it was."""
+    from ..io import replace_file
+
+    replace_file(out, (json.dumps(record, indent=2) + "\n").encode("utf-8"))
+
+
+def has_labels(root: str | os.PathLike) -> bool:
+    """Whether ``root`` is a KITTI-format folder with a label folder."""
+    from ..eval.data import KittiDataset
+
+    try:
+        return KittiDataset(root).label_dir is not None
+    except ValueError:  # not a KITTI folder: a plain folder of images
+        return False
+
+
+def _image_folders(roots: Sequence[str | os.PathLike]) -> list[Path]:
+    """The image folder of each root: ``images/`` or ``image_2/`` of a KITTI folder, else the root."""
+    from ..eval.data import KittiDataset
+
+    out = []
+    for r in roots:
+        try:
+            out.append(KittiDataset(r).image_dir)
+        except ValueError:
+            out.append(Path(r))
+    return out
+
+
+def _camera_height(camera_height: float | None) -> float:
+    from ..config import ReebConfig
+
+    return ReebConfig().camera_height_m if camera_height is None else float(camera_height)
+
+
+def calibrate_images(roots: Sequence[str | os.PathLike], out: str | os.PathLike, camera_height: float | None = None,
+                     samples: int = 500, level: float = 0.95, seed: int = 0,
+                     progress: bool = True) -> tuple[str, Path, list[str]]:
+    """The ``images`` route: the horizon from the frames of ``roots`` (KITTI folders or plain
+    folders of images) without labels; write the config. A frame that cannot be read is left
+    out with a note.
+
+    Returns ``(the printed text, the JSON path, the notes)``.
+
+    Raises:
+        reeb_torch.horizon.HorizonError: too few frames, or no road seen in them.
+        ValueError: no image in the folders.
+    """
+    from tqdm import tqdm
+
+    from ..horizon import estimate_horizon, frame_vanishing_point
+    from ..io import ImageReadError, read_image
+    from .inputs import NoImagesError, scan_images
+
+    try:
+        found = scan_images(_image_folders(roots))
+    except NoImagesError as e:
+        raise ValueError(str(e)) from None
+    notes, points = list(found.notes), []
+    for path in tqdm(found.images, desc="vanishing points", unit="frame", disable=not progress, leave=False):
+        try:
+            points.append(frame_vanishing_point(read_image(path)))
+        except (ImageReadError, ValueError) as e:
+            notes.append(f"{path}: left out ({' '.join(str(e).split())})")
+    est = estimate_horizon((), level=level, samples=samples, seed=seed, points=points)
+    cam_h = _camera_height(camera_height)
+    lo, hi = est.interval
+    sure = "within ±0.01 of the height" if hi - lo <= 0.02 else "wider than ±0.01 of the height: give more frames"
+    text = "\n".join([
+        "route            images without labels (where the road's lines meet)",
+        f"horizon          {est.horizon:.4f} of the image height ({100 * level:g} % interval {lo:.4f}-{hi:.4f}: {sure})",
+        f"frames           {est.num_frames}, a road seen in {est.num_road}; {est.agree} of them meet within 0.02 of it",
+        f"                 (vanishing point {est.vanishing_row:.4f}, + {est.offset:g} to the boxes' bottoms)",
+        f"camera height    {cam_h:.3f} m ({'given' if camera_height is not None else 'the default; --camera-height sets it'})",
+    ])
+    record = {"config": {"horizon": est.horizon, "camera_height_m": cam_h},
+              "fit": {"route": "images", "horizon_interval": list(est.interval), "level": level,
+                      "vanishing_row": est.vanishing_row, "offset": est.offset, "num_frames": est.num_frames,
+                      "num_road": est.num_road, "agree": est.agree, "camera_height_given": camera_height is not None,
+                      "data": [str(r) for r in roots]}}
+    out = Path(out)
+    write_record(out, record)
+    return text, out, notes
+
+
+def _heights(roots: Sequence[str | os.PathLike]) -> list[int]:
+    """The height in pixels of every image in ``roots`` (read from the files' headers)."""
+    from PIL import Image
+
+    from .inputs import NoImagesError, scan_images
+
+    try:
+        found = scan_images(_image_folders(roots))
+    except NoImagesError as e:
+        raise ValueError(str(e)) from None
+    heights = []
+    for p in found.images:
+        try:
+            with Image.open(p) as im:
+                heights.append(im.size[1])
+        except OSError:
+            continue
+    if not heights:
+        raise ValueError(f"{', '.join(map(str, roots))}: no readable image to take the image height from")
+    return heights
+
+
+def calibrate_intrinsics(out: str | os.PathLike, calib: str | os.PathLike | None = None, cy: float | None = None,
+                         height: int | None = None, roots: Sequence[str | os.PathLike] = (),
+                         camera_height: float | None = None) -> tuple[str, Path]:
+    """The ``intrinsics`` route: the horizon of a level camera, ``cy / H``, with ``cy`` from
+    ``calib``'s ``P2`` (a KITTI calibration file) or given, and ``H`` given or the images' in
+    ``roots`` (their most common height); write the config.
+
+    Raises:
+        ValueError: no ``P2`` in ``calib``, no height to divide by, or ``cy`` outside the image.
+    """
+    from collections import Counter
+
+    from ..camera import Camera
+
+    cam = Camera.from_kitti_calib(calib) if calib is not None else None
+    row = cam.cy if cam is not None else cy
+    if row is None:
+        raise ValueError("the intrinsics route needs --calib FILE or --cy PIXELS")
+    if height is None:
+        if not roots:
+            raise ValueError("the image height is needed: give --height PIXELS or folders of the camera's frames")
+        height = Counter(_heights(roots)).most_common(1)[0][0]
+    if not 0 < row < height:
+        raise ValueError(f"the principal row cy = {row:g} px lies outside the image height {height} px")
+    cam_h = _camera_height(camera_height)
+    source = f"P2 of {calib}" if cam is not None else "--cy"
+    lines = [
+        "route            intrinsics (the horizon of a level camera: cy / image height)",
+        f"horizon          {row / height:.4f} of the image height = cy {row:.1f} px / {height} px ({source}); exact "
+        "for a level camera, off by the camera's pitch otherwise",
+        f"camera height    {cam_h:.3f} m ({'given' if camera_height is not None else 'the default; --camera-height sets it'})",
+    ]
+    fit: dict = {"route": "intrinsics", "cy_px": row, "image_height_px": height, "source": source,
+                 "camera_height_given": camera_height is not None}
+    if cam is not None:
+        fit.update(fx_px=cam.fx, fy_px=cam.fy, vertical_fov_deg=math.degrees(2 * math.atan(height / (2 * cam.fy))))
+    out = Path(out)
+    write_record(out, {"config": {"horizon": row / height, "camera_height_m": cam_h}, "fit": fit})
+    return "\n".join(lines), out

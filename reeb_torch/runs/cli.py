@@ -8,7 +8,7 @@
     reeb show                            # the bundled sample, explained: reeb_show.png
     reeb show frame.png --label frame.txt --top 30 --out frame_reeb.png
     reeb eval data/kitti --limit 20               # the paper's Table 3 (reeb_torch.eval.command)
-    reeb calibrate my_frames/ -o camera.json      # horizon and camera height from labelled boxes
+    reeb calibrate my_frames/ -o camera.json      # the horizon from labelled boxes, the images, or --calib
     reeb tune my_frames/ --config camera.json -o tuned.json --trials 50 --storage sqlite:///tune.db
     reeb fit my_frames/ --config camera.json -o mine.safetensors   # the learned ranking, cross-validated
     reeb detector fit my_frames/ -o det.safetensors                # a detector on REEB's proposals
@@ -305,8 +305,33 @@ def show(image, label, no_label, top, out, preset, config_file, sets, top_k, dev
 
 # -- reeb eval ---------------------------------------------------------------------------
 
-from ..eval.command import main as _eval  # noqa: E402 - a click command: imports click only
+from ..eval.command import table3_command  # noqa: E402 - a click command: imports click only
 
+_eval = table3_command()
+_n = len(_eval.params)
+config_options(_eval)  # reeb eval takes the settings reeb propose takes
+_eval.params[_n:] = _eval.params[_n:][::-1]  # in reeb propose's order
+_eval_table = _eval.callback
+
+
+def _eval_settings(preset, config_file, sets, top_k, device, **given):
+    """``reeb eval``'s ``--preset / --config / --set``: given any, a row with those settings
+    (built as ``reeb propose`` builds them); ``--device``: where the REEB rows run."""
+    ctx = click.get_current_context()
+    if top_k is not None:  # the proposals kept per image: --max-proposals, by its other name
+        if top_k < 2000:
+            raise UsageProblem(f"--top-k {top_k}: reeb eval needs at least 2000 proposals (Table 3's largest column)")
+        if ctx.get_parameter_source("max_proposals") == click.core.ParameterSource.COMMANDLINE and \
+                top_k != given["max_proposals"]:
+            raise UsageProblem("give --top-k or --max-proposals, not both")
+        given["max_proposals"] = top_k
+    own = any(ctx.get_parameter_source(n) == click.core.ParameterSource.COMMANDLINE
+              for n in ("preset", "config_file", "sets"))
+    cfg = build_config(preset, config_file, sets, None) if own else None
+    return _eval_table(config=cfg, preset=preset, device=str(resolve_device(device)), **given)
+
+
+_eval.callback = _eval_settings
 main.add_command(_eval, "eval")
 
 
@@ -374,9 +399,20 @@ def _class_heights(items: tuple[str, ...]) -> dict[str, float] | None:
 
 
 @main.command(context_settings=CONTEXT)
-@click.argument("dirs", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False))
+@click.argument("dirs", nargs=-1, type=click.Path(exists=True, file_okay=False))
 @click.option("-o", "--out", type=click.Path(dir_okay=False), default="camera.json", show_default=True,
-              help="Config file to write (reeb propose --config reads it); the picture goes beside it (.png).")
+              help="Config file to write (reeb propose --config reads it); the labelled route's picture goes beside "
+                   "it (.png).")
+@click.option("--no-labels", is_flag=True,
+              help="Estimate the horizon from the images even where DIRS have labels (to compare the routes).")
+@click.option("--calib", type=click.Path(exists=True, dir_okay=False),
+              help="A KITTI calibration file: the horizon of a level camera, P2's cy / image height (the height from "
+                   "the images in DIRS, or --height).")
+@click.option("--cy", type=click.FloatRange(min=0, min_open=True), metavar="PIXELS",
+              help="The principal point's row: the horizon of a level camera, cy / --height.")
+@click.option("--height", type=click.IntRange(min=1), metavar="PIXELS", help="The image height, for --calib or --cy.")
+@click.option("--camera-height", type=click.FloatRange(min=0, min_open=True), metavar="METRES",
+              help="The camera's height above the road where it is not fitted (images, intrinsics) [default: 1.65].")
 @click.option("--class-height", "class_height", multiple=True, metavar="CLASS=METRES",
               help="Real height of a label class (repeatable); default KITTI's means: Car 1.53, Van 2.21, "
                    "Truck 3.25, Pedestrian 1.76, Cyclist 1.74, Tram 3.53.")
@@ -386,25 +422,57 @@ def _class_heights(items: tuple[str, ...]) -> dict[str, float] | None:
 @click.option("--box-factor", type=FiniteFloat(min=0, min_open=True), default=None,
               help="2D box height / 3D object height at the bottom's depth [default: 1.055, measured on KITTI "
                    "with its known 1.65 m; 1 = the plain model].")
-def calibrate(dirs, out, class_height, samples, seed, box_factor):
-    """Fit the horizon row and the camera height from the labelled boxes of KITTI-format
-    folders (DIRS: images/ + labels/, or image_2/ + label_2/).
+def calibrate(dirs, out, no_labels, calib, cy, height, camera_height, class_height, samples, seed, box_factor):
+    """The camera's horizon row (and height) for reeb propose --config, by one of three routes:
 
-    Objects standing on a flat road obey bottom - horizon = box height x camera height /
-    class height: a line, fitted robustly (Tukey's biweight), with frame-bootstrap intervals.
-    Prints the fit and the residuals per class; writes the config (horizon, camera_height_m)
-    and a picture of the boxes with the fitted line.
+    \b
+    labels      DIRS are KITTI-format folders with labels (images/ + labels/, or image_2/ +
+                label_2/): bottom - horizon = box height x camera height / class height, a
+                line fitted robustly (Tukey's biweight); the horizon and the camera height,
+                with frame-bootstrap intervals, the residuals per class and a picture.
+    images      DIRS hold frames without labels (or --no-labels): the horizon from where
+                the road's lines meet in each frame (the mode over frames, with a frame-
+                bootstrap interval); the camera height stays 1.65 m or --camera-height.
+    intrinsics  --calib FILE or --cy PIXELS: the horizon of a level camera, cy / image
+                height (--height, or the height of the images in DIRS).
+
+    Prints the route, the horizon and how sure it is; writes the config (horizon,
+    camera_height_m) with the route's record.
     """
-    from .calibrate import calibrate as run
+    from . import calibrate as C
+    from ..horizon import HorizonError
 
+    intrinsics = calib is not None or cy is not None
+    if calib is not None and cy is not None:
+        raise UsageProblem("give --calib FILE or --cy PIXELS, not both")
+    if not intrinsics and height is not None:
+        raise UsageProblem("--height goes with --calib or --cy (the images route reads each frame's own height)")
+    if cy is not None and height is None:
+        raise UsageProblem("--cy needs --height PIXELS (the image height it is a row of)")
+    if not dirs and not intrinsics:
+        raise UsageProblem("give folders of the camera's frames (DIRS), or --calib FILE, or --cy PIXELS --height PIXELS")
+    labels = not intrinsics and not no_labels and all(C.has_labels(d) for d in dirs)
+    if camera_height is not None and labels:
+        raise UsageProblem("--camera-height: the labelled route fits the camera height from the boxes; give it "
+                           "with --no-labels, --calib or --cy")
     heights = _class_heights(class_height)
+    notes: list[str] = []
+    picture = None
     try:
-        text, path, picture = run(dirs, out, heights, samples=samples, seed=seed, box_height_factor=box_factor)
-    except (ValueError, FileNotFoundError) as e:
+        if intrinsics:
+            text, path = C.calibrate_intrinsics(out, calib, cy, height, dirs, camera_height)
+        elif labels:
+            text, path, picture = C.calibrate(dirs, out, heights, samples=samples, seed=seed,
+                                              box_height_factor=box_factor)
+        else:
+            text, path, notes = C.calibrate_images(dirs, out, camera_height, samples=samples, seed=seed)
+    except (HorizonError, ValueError, FileNotFoundError) as e:
         raise UsageProblem(" ".join(str(e).split()))
+    for note in notes:
+        click.echo(f"note: {note}", err=True)
     click.echo(text)
-    click.echo(f"wrote {path}" + (f" and {picture}" if picture else " (no picture: matplotlib is not installed)"),
-               err=True)
+    tail = f" and {picture}" if picture else (" (no picture: matplotlib is not installed)" if labels else "")
+    click.echo(f"wrote {path}{tail}", err=True)
 
 
 # -- reeb tune ---------------------------------------------------------------------------
