@@ -23,7 +23,8 @@ Writes ``OUT/cv.txt`` (the tables) and ``OUT/cv.json`` (per arm its scores and p
 fits' times; per comparison per class ``a``, ``b``, ``diff``, intervals, ``share_b_better``,
 ``verdict``, and the same per folder; the command; the machine). With ``--work``, each
 fold's ranking and each (arm, seed)'s detections are kept there and reused by a later run of
-the same options.
+the same options; arms that differ only in detection settings (``--test-proposals``,
+``--box-passes``) share their fitted heads there.
 """
 
 from __future__ import annotations
@@ -112,14 +113,50 @@ def fold_rankers(roots: list[Path], items: list[dict], train_sides: list[list[in
     return [str(p) for p in paths]
 
 
+INFERENCE_ONLY = ("proposals_test", "box_passes")
+"""The settings that change detection, not training: arms that differ only in them share
+their fitted heads (kept under ``--work``)."""
+
+
+def _fold_detector(settings: Any, training: Any, o: dict[str, Any], proposals: str, side: list[int],
+                   items: list[dict], args: argparse.Namespace) -> tuple[Any, dict[str, Any] | None]:
+    """The fold's detector with the arm's settings: its heads trained here, or read from a fit
+    of the same training settings kept under ``--work`` (record None)."""
+    import dataclasses
+
+    from reeb_torch.detection import ReebDetector
+    from reeb_torch.detection.detector_file import read_detector_file
+    from reeb_torch.detection.fitting import train_detector
+
+    classes = tuple(c.strip() for c in o["classes"].split(",") if c.strip())
+    trained_as = dataclasses.replace(settings, **{k: getattr(type(settings)(), k) for k in INFERENCE_ONLY})
+    top_k = max(settings.proposals_train, settings.proposals_test)  # REEB's top_k: the training proposals' too
+    key = hashlib.sha256(json.dumps([dataclasses.asdict(trained_as), dataclasses.asdict(training), classes, top_k,
+                                     proposals, sorted(side), args.limit]).encode()).hexdigest()[:16]
+    kept = args.work / "detectors" / f"{key}.safetensors" if args.work else None
+    if kept is not None and kept.is_file():
+        det = ReebDetector(classes, proposals, settings)
+        det.model.load_state_dict(read_detector_file(kept)[0], strict=False)
+        return det.eval(), None
+    t0 = time.perf_counter()
+    det = train_detector(ReebDetector, [items[i] for i in side], args.roots, classes=classes, proposals=proposals,
+                         settings=settings, training=training, cache_dir=args.cache, progress=not args.quiet)
+    record = {"fit_s": round(time.perf_counter() - t0, 1), "train_heads_s": round(det.history["train_s"], 1),
+              "steps": det.history["steps"]}
+    if kept is not None:
+        kept.parent.mkdir(parents=True, exist_ok=True)
+        det.save(kept)
+    return det, record
+
+
 def run_arm(options: str, seed: int, items: list[dict], blocks: list[list[int]], sides: list[list[int]],
             rankers: list[str], args: argparse.Namespace) -> tuple[list[dict], dict[str, Any]]:
     """The detections of every frame by the arm's detectors (each trained without the frame's
     block), and the fits' record; kept under ``--work`` by options and seed."""
     import torch
 
-    from reeb_torch.detection import ReebDetector, TrainSettings, detect
-    from reeb_torch.detection.fitting import cached_frames, train_detector
+    from reeb_torch.detection import TrainSettings, detect
+    from reeb_torch.detection.fitting import cached_frames
     from reeb_torch.runs.detect import fit_settings
 
     o = fit_options(args.roots, options)
@@ -128,20 +165,15 @@ def run_arm(options: str, seed: int, items: list[dict], blocks: list[list[int]],
     if kept is not None and kept.is_file():
         saved = torch.load(kept, weights_only=True)
         return saved["detections"], saved["record"]
-    classes = tuple(c.strip() for c in o["classes"].split(",") if c.strip())
     settings = fit_settings(o)
     training = TrainSettings(epochs=o["epochs"], seed=seed, hflip=o["hflip"])
     detections: list[dict] = [{} for _ in items]
     record: dict[str, Any] = {"fit_s": [], "train_heads_s": [], "steps": []}
     for f, (block, side) in enumerate(zip(blocks, sides)):
         proposals = rankers[f] if o["proposals"] == "default" else o["proposals"]
-        t0 = time.perf_counter()
-        det = train_detector(ReebDetector, [items[i] for i in side], args.roots, classes=classes,
-                             proposals=proposals, settings=settings, training=training, cache_dir=args.cache,
-                             progress=not args.quiet)
-        record["fit_s"].append(round(time.perf_counter() - t0, 1))
-        record["train_heads_s"].append(round(det.history["train_s"], 1))
-        record["steps"].append(det.history["steps"])
+        det, fitted = _fold_detector(settings, training, o, proposals, side, items, args)
+        for k, v in (fitted or {"fit_s": 0.0, "train_heads_s": 0.0, "steps": 0}).items():
+            record[k].append(v)
         try:
             found = detect(det.model, cached_frames(det, [items[i] for i in block], args.cache, not args.quiet),
                            progress=False, passes=det.settings.box_passes)
