@@ -176,13 +176,14 @@ def frame_forward(model: nn.Module, frame: CachedFrame, proposals: Tensor | None
         _, roi_losses = det.roi_heads(features, placed, images.image_sizes, targets)
         return {**rpn_losses, **roi_losses}
     heads = det.roi_heads  # RoIHeads.forward's evaluation path for boxes, stage by stage
+    low = getattr(det.backbone, "precision", "float32") == "bfloat16"  # the box head's products too
     for n in range(passes):
         if n:  # another pass over the boxes the last one regressed, its class scores averaged in
             probs, placed = _refined(heads, logits, deltas, placed[0], images.image_sizes[0])
         with stage("roi_align"):
             pooled = heads.box_roi_pool(features, placed, images.image_sizes)
-        with stage("box_head"):
-            logits, deltas = heads.box_predictor(heads.box_head(pooled))
+        with stage("box_head"), torch.autocast(pooled.device.type, torch.bfloat16, enabled=low):
+            logits, deltas = (t.float() for t in heads.box_predictor(heads.box_head(pooled)))
             if n:
                 logits = torch.log((probs * n + torch.softmax(logits, -1)) / (n + 1))
     with stage("postprocess"):
