@@ -145,14 +145,15 @@ def fit(dirs, out, overwrite, proposals, classes, epochs, seed, val, hflip, min_
 @detector.command("show", context_settings=CONTEXT)
 @click.argument("path", type=click.Path(dir_okay=False))
 def show(path):
-    """What a detector file (PATH) holds: its classes, settings, proposals, the frames it was
-    trained on, its held-out scores and the command that trains it again; a warning where
-    reeb detect would refuse it."""
+    """What a detector file (PATH, or a shipped name such as kitti) holds: its classes,
+    settings, proposals, the frames it was trained on, its held-out scores and the command
+    that trains it again; a warning where reeb detect would refuse it."""
     from ..detection import DetectorFileError, ReebDetector
+    from ..detection.detector import resolve_detector
     from ..detection.detector_file import read_detector_file
 
     try:
-        tensors, meta, ranker = read_detector_file(path)
+        tensors, meta, ranker = read_detector_file(resolve_detector(path))
     except DetectorFileError as e:
         raise UsageProblem(str(e))
     prov, backbone, proposals = (_part(meta, k) for k in ("provenance", "backbone", "proposals"))
