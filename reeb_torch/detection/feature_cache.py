@@ -203,7 +203,7 @@ def frozen_features(model: torch.nn.Module, items: Sequence[Mapping[str, Any]], 
             out.append(cache.load(digest))
             continue
         except (FileNotFoundError, StaleCacheError):
-            f = compute_features(model, it["image"], cache.key["crop_top"])
+            f = compute_features(model, it["image"], float(cache.key["crop_top"]))  # type: ignore[arg-type]
         if writable:
             try:
                 cache.save(digest, f)

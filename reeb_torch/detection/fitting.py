@@ -141,7 +141,7 @@ def train_detector(cls: type, items: Sequence[dict], folders: Sequence[str | os.
     if det.precision != settings.precision:  # bfloat16 asked for where it is not native: trained in float32
         det.settings = dataclasses.replace(settings, precision=det.precision)
     mirrors = [mirrored(it) for it in items] if training.hflip else []
-    frames = cached_frames(det, items + mirrors, cache_dir, progress)
+    frames = cached_frames(det, [*items, *mirrors], cache_dir, progress)
     train = frames[:len(items)]
     for frame, mirror in zip(train, frames[len(items):]):
         frame.mirror = mirror

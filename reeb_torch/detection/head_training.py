@@ -177,6 +177,7 @@ def frame_forward(model: nn.Module, frame: CachedFrame, proposals: Tensor | None
         return {**rpn_losses, **roi_losses}
     heads = det.roi_heads  # RoIHeads.forward's evaluation path for boxes, stage by stage
     low = getattr(det.backbone, "precision", "float32") == "bfloat16"  # the box head's products too
+    logits = deltas = probs = torch.empty(0)
     for n in range(passes):
         if n:  # another pass over the boxes the last one regressed, its class scores averaged in
             probs, placed = _refined(heads, logits, deltas, placed[0], images.image_sizes[0])

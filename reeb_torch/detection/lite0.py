@@ -166,8 +166,11 @@ class _FoldedConv(nn.Module):
 
     def __init__(self, conv: SameConv2d, bn: nn.BatchNorm2d, relu6: bool) -> None:
         super().__init__()
+        assert bn.running_var is not None and bn.running_mean is not None, "a BatchNorm with statistics"
         with torch.no_grad():
             scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
+            self.weight: Tensor
+            self.bias: Tensor
             self.register_buffer("weight", conv.weight * scale[:, None, None, None])
             self.register_buffer("bias", bn.bias - bn.running_mean * scale)
         self.kernel, self.stride, self.groups = conv.kernel_size[0], conv.stride[0], conv.groups
@@ -229,7 +232,8 @@ class FrozenLite0(nn.Module):
         self.precision = precision
         self.stem = _FoldedConv(net._conv_stem, net._bn0, True)
         last = max(block for block, _, _ in PYRAMID_LEVELS.values())
-        self.blocks = nn.ModuleList(_FoldedBlock(b) for b in list(net._blocks)[:last + 1])
+        self.blocks = nn.ModuleList(_FoldedBlock(b) for b in list(net._blocks)[:last + 1]  # type: ignore[arg-type]
+                                    )
         self._outputs = {block: name for name, (block, _, _) in PYRAMID_LEVELS.items()}
         self.to(PRECISIONS[precision]).to(memory_format=torch.channels_last)
         self.eval().requires_grad_(False)

@@ -31,7 +31,7 @@ __all__ = ["PyramidRoIAlign", "roi_align_levels"]
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _corner(v: float, size: int) -> tuple[int, int, float]:
+def _corner(v: Any, size: int) -> tuple[int, int, Any]:
     """torchvision's bilinear corner for one coordinate: low index, high index, and the
     fraction toward the high one (``v`` already known to lie in ``[-1, size]``)."""
     if v <= 0:
