@@ -41,9 +41,10 @@ _GRID_CELLS = 16
 """Cells along the longer side of the boxes' extent in the grid-bucketed kernel."""
 _SIZE_BINS = 32
 """Most log-width (and log-height) bins per cell: IoU > t needs width and height ratios > t.
-In practice the bins' width (at least −log t) caps them first (~26 at t = 0.7): on KITTI's
-candidates, fine size bins halve the kernel's time (3.3 → 1.8 ms/img) and coarse cells
-keep the table small; the result is the same whatever these two constants are."""
+In practice the bins' width (at least −log t) caps them first: fine size bins make the
+kernel faster on KITTI's candidates and coarse cells keep the table small (timed with
+``benchmarks/kernel_ab.py``; docs/results.md, "What makes the CPU path fast"); the result is
+the same whatever these two constants are."""
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -88,8 +89,7 @@ def _box_columns(boxes: np.ndarray):  # pragma: no cover - compiled
 def _size_edges(wmax: float, iou: float):  # pragma: no cover - compiled
     """The size bins of boxes up to ``wmax`` at threshold ``iou``: ``(edge, nb)``, bin ``q``
     holding sizes from ``floor · e^(q · bw)``, found by a binary search of these lower edges
-    (:func:`_size_bin`; no logarithm per box: 0.92x the time); consecutive edges are more
-    than 1/t apart."""
+    (:func:`_size_bin`; no logarithm per box); consecutive edges are more than 1/t apart."""
     floor_ = wmax * 1e-4
     span = np.log(wmax / floor_)
     bw = max(-np.log(min(iou, 0.999)) * 1.01 + 1e-9, span / (_SIZE_BINS - 0.5))
@@ -104,7 +104,7 @@ def _size_edges(wmax: float, iou: float):  # pragma: no cover - compiled
 def _suppressed(head: np.ndarray, base: int, nb: int, bx: int, by: int, ent: np.ndarray, e_next: np.ndarray,
                 ix1, iy1, ix2, iy2, ia, iou: float, zero) -> bool:  # pragma: no cover - compiled
     """Whether a kept box registered in the cell at ``base`` in the 3 × 3 size bins around
-    ``(by, bx)`` (its own first: ~10 % faster) overlaps the box ``ix1, iy1, ix2, iy2`` (area
+    ``(by, bx)`` (its own first: the likeliest to hold it) overlaps the box ``ix1, iy1, ix2, iy2`` (area
     ``ia``) at IoU over ``iou``, with torchvision's arithmetic in the boxes' dtype."""
     for q in range(9):
         bb, ba = by + (q // 3 + 1) % 3 - 1, bx + (q % 3 + 1) % 3 - 1
@@ -189,9 +189,8 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int, labels: np.ndarray,
     head = np.full(gw * gh * nb * nb, -1, np.int32)  # per cell and size bin: a linked list
     # of the kept boxes registered there, each entry holding its box (no second lookup):
     # x1, y1, x2, y2 and area side by side in a row of 8 (one cache line per test, where
-    # five arrays took five: 0.85x the time on KITTI's candidates), the links apart; one
-    # flat array read at unsigned offsets (no test for negative indices; a 2-D array took
-    # ~0.3 s longer to compile)
+    # five arrays take five), the links apart; one flat array read at unsigned offsets (no
+    # test for negative indices, and quicker to compile than a 2-D array)
     cap = 4 * n + 64
     ent, e_next = np.empty(cap * 8, boxes.dtype), np.empty(cap, np.int32)
     used = 0
@@ -252,7 +251,7 @@ def _torchvision_sorted(order: Tensor, sboxes: Tensor, iou: float, k: int, first
     """The torchvision path of :func:`nms_top_k` on boxes already sorted by ``order``:
     ``nms`` on a growing prefix of the ranking (a box's fate depends only on the boxes
     ranked above it)."""
-    from torchvision.ops import nms  # here: its import takes ~2.7 s (torch._dynamo); the compiled path needs none
+    from torchvision.ops import nms  # here: its import is slow (torch._dynamo); the compiled path needs none
 
     n = sboxes.shape[0]
     rank_score = torch.arange(n, 0, -1, device=sboxes.device, dtype=torch.float32)  # strict order
@@ -397,8 +396,8 @@ def _nms_window_image(chosen: np.ndarray, boxes: np.ndarray, scores: np.ndarray,
 def _candidate_scores(chosen: np.ndarray, scores: np.ndarray):  # pragma: no cover - compiled
     """The chosen windows (ascending), their float32 scores, and whether one is NaN: a
     counting pass, then one pass that writes every window at the next free place and moves
-    on only past a chosen one (no branch per window: 0.62x the time of ``np.nonzero`` and
-    a gather on KITTI's 50 000-170 000 windows)."""
+    on only past a chosen one (no branch per window, where ``np.nonzero`` and a gather
+    would take one)."""
     n = chosen.shape[0]
     m = 0
     for i in range(n):
