@@ -434,6 +434,11 @@ class ReebConfig:
     ranker_v_share: float = _knob(0.0, "[0, 1]")
     """The share of the ``ranker_keep`` candidates that are each image's best by V whatever
     the prefilter says (not in the paper). ``0``: the prefilter alone; ``1``: V alone."""
+    rank_quality: float = _knob(0.0, "[0, 100]")
+    """With a ranker whose weights hold a localisation-quality head (``FitOptions.quality_hidden``):
+    each ranked candidate's score is the model's logit plus this times the head's sigmoid,
+    how tight the box is on its object were it on one, so that of the boxes on one object the
+    tight one goes first into the NMS. ``0``: the logit alone. Not in the paper."""
     class_quota: ClassQuota = _knob((), _CLASS_QUOTA)
     """With a ranker that has a class head (``kitti``: Car, Pedestrian, Cyclist, Truck): the
     share of the ``top_k`` proposals a class gets first (the best boxes after NMS the head

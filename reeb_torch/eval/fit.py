@@ -42,8 +42,8 @@ from ..ranker import (ORIENTATION_NAMES, TARGET_SCALE, BoxRanker, BoxRefiner, dr
 from .tune import FrameCache, Frames, fold_blocks, held_out
 
 __all__ = ["FitFrames", "FitOptions", "Sample", "FitCrossValidation", "load_fit_frames", "frame_sample",
-           "frame_samples", "mirrored_sample", "jitter_of", "fit_ranker", "fit_refiner", "initial_model", "similar_frames",
-           "training_frames", "cross_validate", "best_ious", "held_out_outputs", "hinted_classes", "drive_of", "other_boxes"]
+           "frame_samples", "mirrored_sample", "jitter_of", "fit_ranker", "fit_quality", "fit_refiner", "initial_model",
+           "similar_frames", "training_frames", "cross_validate", "best_ious", "held_out_outputs", "hinted_classes", "drive_of", "other_boxes"]
 
 
 @dataclass
@@ -130,11 +130,20 @@ class FitOptions:
             ``(seed, i, 3)``); as ``mirror``, only the rows a model is fitted on.
         refine_hidden: widths of the box refiner's hidden layers
             (:class:`~reeb_torch.ranker.BoxRefiner`, used by ``ReebConfig.refine_top``), or
-            None (default) for no refiner: it did not raise recall held out (docs/results.md).
+            None (default) for no refiner (why: docs/results.md, "Box refinement").
         refine_iou: the refiner is fitted on the candidates at this IoU or more with a target.
         refine_per_object: at most this many of them per object (a seeded draw, after the negatives').
         refine_epochs, refine_batch, refine_lr: the refiner's passes, rows per step and peak
             learning rate (AdamW, one-cycle, ``weight_decay``).
+        quality_hidden: widths of the localisation-quality head's hidden layers
+            (:meth:`~reeb_torch.ranker.BoxRanker.quality_logits`, used by
+            ``ReebConfig.rank_quality``), or None (default) for none. Fitted after the ranking
+            (which it leaves as it is) on the candidates of objects only.
+        quality_iou: ``(lo, hi)``: the quality head's rows are the candidates at IoU ≥ ``lo``
+            with a target (each object's weigh 1 together), its target
+            ``clamp((IoU − lo) / (hi − lo), 0, 1)`` (a soft target of the logistic loss).
+        quality_epochs, quality_batch: the quality head's passes and rows per step (its rows,
+            the candidates of the objects, are a small share of the ranking's).
         orientation: the model reads the edge-orientation columns
             (:data:`~reeb_torch.ranker.orientation.ORIENTATION_NAMES`) beside the others; without,
             the generator does not compute them for it (a fine-tuned model reads its own columns).
@@ -174,6 +183,10 @@ class FitOptions:
     refine_epochs: int = 20
     refine_batch: int = 512
     refine_lr: float = 3e-3
+    quality_hidden: tuple[int, ...] | None = None
+    quality_iou: tuple[float, float] = (0.5, 0.9)
+    quality_epochs: int = 30
+    quality_batch: int = 256
     orientation: bool = True
     drop_features: tuple[str, ...] = ()
 
@@ -188,7 +201,12 @@ class Sample:
     positive, 0 a negative), ``weight float32 [n]`` and ``label int64 [n]`` (the class of a
     positive's object, -1 for a negative); and the box refiner's: ``refine_x float32 [m, R]``
     (:func:`~reeb_torch.ranker.refine_features` of candidates near an object) and
-    ``refine_y float32 [m, 4]`` (their side offsets to it, :func:`~reeb_torch.ranker.offset_targets`)."""
+    ``refine_y float32 [m, 4]`` (their side offsets to it, :func:`~reeb_torch.ranker.offset_targets`).
+    With :attr:`FitOptions.quality_hidden`, ``iou float32 [n]``, each row's best IoU with a
+    target, and ``object_weight float32 [n]``, 1 / the rows of its object at IoU ≥
+    ``quality_iou[0]`` (0 for a negative); the rows then also hold the candidates of objects
+    below ``positive_iou`` (near misses: ``target`` NaN, weight 0, read by the quality head
+    only). Empty otherwise."""
 
     features: Tensor
     target: Tensor
@@ -196,6 +214,8 @@ class Sample:
     label: Tensor
     refine_x: Tensor = field(default_factory=_no_refine_rows)
     refine_y: Tensor = field(default_factory=lambda: torch.zeros(0, 4))
+    iou: Tensor = field(default_factory=lambda: torch.zeros(0))
+    object_weight: Tensor = field(default_factory=lambda: torch.zeros(0))
 
 
 def _labels(boxes: Tensor, gt: Tensor, ignore: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -223,11 +243,19 @@ def frame_sample(features: Tensor, boxes: Tensor, gt: Tensor, labels: Tensor, ig
     neg = neg[torch.from_numpy(rng.random(len(neg)) < opts.negatives)]
     per_object = torch.bincount(which[pos], minlength=max(1, len(gt))).float()
     w_pos = 1.0 / per_object[which[pos]]
-    idx = torch.cat([pos, neg])
-    target = torch.cat([torch.ones(len(pos)), torch.zeros(len(neg))])
-    weight = torch.cat([w_pos, torch.ones(len(neg))])
-    label = torch.cat([labels[which[pos]], torch.full((len(neg),), -1, dtype=torch.long)])
+    near = torch.zeros(0, dtype=torch.long)
+    if opts.quality_hidden is not None:  # the quality head's rows below the positives
+        near = torch.nonzero((best >= opts.quality_iou[0]) & (best < opts.positive_iou)).squeeze(1)
+    idx = torch.cat([pos, neg, near])
+    target = torch.cat([torch.ones(len(pos)), torch.zeros(len(neg)), torch.full((len(near),), math.nan)])
+    weight = torch.cat([w_pos, torch.ones(len(neg)), torch.zeros(len(near))])
+    label = torch.cat([labels[which[pos]], torch.full((len(neg),), -1, dtype=torch.long), labels[which[near]]])
     sample = Sample(features[idx].contiguous(), target, weight, label)
+    if opts.quality_hidden is not None:
+        mine = (best[idx] >= opts.quality_iou[0]) & (label >= 0)
+        count = torch.bincount(which[idx][mine], minlength=max(1, len(gt))).float().clamp(min=1.0)
+        sample.iou = best[idx].float()
+        sample.object_weight = torch.where(mine, 1.0 / count[which[idx].clamp(min=0)], 0.0)
     if refine is not None and opts.refine_hidden is not None and len(gt):
         near = torch.nonzero(best >= opts.refine_iou).squeeze(1)
         order = torch.from_numpy(rng.permutation(len(near)))
@@ -345,11 +373,15 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
         x = x[:, [names.index(n) for n in wanted]]
     y = torch.cat([s.target for s in samples])
     w = torch.cat([s.weight for s in samples])
+    label = torch.cat([s.label for s in samples])
+    quality_rows = _quality_rows(samples, x, label, opts)  # before the near misses leave the rows
+    known = ~torch.isnan(y)  # the near misses are the quality head's rows only
+    if not bool(known.all()):
+        x, y, w, label = x[known], y[known], w[known], label[known]
     if not bool((y == 1).any()) or not bool((y == 0).any()):
         raise ValueError("no candidate overlaps a labelled object at the positive IoU (or none is background): "
                          "the ranking cannot be fitted on these frames")
     w_object = w  # each object's positives weigh 1 together (the class head's weights)
-    label = torch.cat([s.label for s in samples])
     w = _balanced(w_object, y, label, opts.balance)
     w_pre = w if opts.prefilter_balance is None else _balanced(w_object, y, label, opts.prefilter_balance)
     if opts.init is not None:
@@ -382,10 +414,59 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
     finally:
         torch.set_num_threads(threads)
     model.ignore_columns(dropped)  # and read nothing from them when run
+    if quality_rows is not None:  # fitted after the ranking, which it leaves as it is
+        schedule = fit if model.quality is not None else opts  # a fine-tuned model's own head is tuned
+        fit_quality(model, *quality_rows, dataclasses.replace(schedule, epochs=opts.quality_epochs,
+                                                              batch=opts.quality_batch), dropped)
     rx = torch.cat([s.refine_x for s in samples])
     if opts.refine_hidden is not None and len(rx):  # fitted last: the ranking's weights do not depend on it
         model.refiner = fit_refiner(rx, torch.cat([s.refine_y for s in samples]), opts)
     return model.eval().requires_grad_(False)
+
+
+def _quality_rows(samples: Sequence[Sample], x: Tensor, label: Tensor,
+                  opts: FitOptions) -> tuple[Tensor, Tensor, Tensor] | None:
+    """The quality head's rows of ``x`` (the samples' features, the model's columns), their
+    targets and weights (:attr:`FitOptions.quality_iou`; each object's rows weigh 1
+    together, each class's objects as in the ranking), or None without
+    ``opts.quality_hidden`` or rows."""
+    iou = torch.cat([s.iou for s in samples])
+    ow = torch.cat([s.object_weight for s in samples])
+    if opts.quality_hidden is None or len(iou) != len(x) or not bool((ow > 0).any()):
+        return None
+    rows = ow > 0
+    lo, hi = opts.quality_iou
+    target = ((iou[rows] - lo) / (hi - lo)).clamp(0.0, 1.0)
+    w, lab = ow[rows], label[rows]
+    if opts.balance:
+        per_class = torch.bincount(lab, weights=w)
+        factor = torch.where(per_class > 0, (per_class.sum() / per_class.clamp(min=1e-9)) ** opts.balance, 0.0)
+        w = w * factor[lab].float()
+    return x[rows], target, w
+
+
+def fit_quality(model: BoxRanker, x: Tensor, target: Tensor, weight: Tensor, opts: FitOptions,
+                dropped: Sequence[int] = ()) -> None:
+    """Give ``model`` a localisation-quality head (``opts.quality_hidden``; a fine-tuned
+    model's own is tuned) fitted on the rows ``x`` (``float [m, F]``, the model's columns) to
+    ``target`` (``float [m]`` in [0, 1]: how tight each box is on its object) with row weights
+    ``weight``: the logistic loss with soft targets, AdamW, seeded by ``opts.seed``, on one CPU
+    thread; the columns ``dropped`` held at their mean and read by nothing."""
+    fresh = model.quality is None
+    if fresh:
+        assert opts.quality_hidden is not None
+        model.set_quality(opts.quality_hidden)
+    assert model.quality is not None
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        xs = model.standardise(x)
+        xs[:, list(dropped)] = 0.0
+        model.quality.requires_grad_(True)
+        _fit_member(model.quality, xs, target.float(), weight.float(), opts, opts.seed * 1000 + 996, fresh=fresh)
+    finally:
+        torch.set_num_threads(threads)
+    model.ignore_columns(dropped)
 
 
 def fit_refiner(x: Tensor, y: Tensor, opts: FitOptions) -> BoxRefiner:
