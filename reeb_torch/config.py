@@ -468,6 +468,13 @@ class ReebConfig:
     nms_iou: float = _knob(0.75, "(0, 1]")
     """Eq. 13's IoU threshold. The paper prints 0.7 (kept by ``paper``); 0.75 is Edge Boxes'
     setting for recall at IoU 0.7 (β = 0.75)."""
+    nms_iou_thin: float = _knob(0.0, "[0, 1]")
+    """Above ``nms_iou``: the threshold for the boxes narrower than ``nms_thin_aspect`` times
+    their height (a person's), whose loose and tight boxes overlap more than a wide box's
+    (a tight box is kept beside a looser one that ranks first). ``0``: ``nms_iou`` for
+    every box, as the paper. Not in the paper."""
+    nms_thin_aspect: float = _knob(0.5, "(0, 4]")
+    """The width / height under which ``nms_iou_thin`` applies to a box."""
     top_k: int = _knob(2000, ">= 1")
     """Proposals returned per image (at most)."""
 
