@@ -9,9 +9,11 @@ frames, and estimate by cross-validation how it does on frames it never saw.
   (an object's positives weigh 1 together, so each object counts once) and a seeded sample
   of those below ``negative_iou`` with every labelled box.
 * :func:`fit_ranker` fits a :class:`~reeb_torch.ranker.BoxRanker` (weighted logistic loss,
-  AdamW, one CPU thread, seeded: the same frames and options give the same bits), and its box
-  refiner (:func:`fit_refiner`: smooth-L1 to the side offsets of the candidates that overlap
-  an object at IoU ≥ ``refine_iou``, from the same frames' rows).
+  AdamW, one CPU thread, seeded: the same frames and options give the same bits:
+  :func:`~reeb_torch.eval.training.fit_member`), its localisation-quality head where asked
+  (:func:`~reeb_torch.eval.training.fit_quality`), and its box refiner (:func:`fit_refiner`:
+  smooth-L1 to the side offsets of the candidates that overlap an object at IoU ≥
+  ``refine_iou``, from the same frames' rows).
 * :func:`cross_validate` splits the frames into blocks
   (:func:`~reeb_torch.eval.tune.fold_blocks`), fits on all blocks but one, keeping the
   held-out block's drive neighbours out (:func:`training_frames`), scores the generator with
@@ -39,11 +41,12 @@ from torchvision.ops import box_iou
 from ..config import ReebConfig
 from ..ranker import (ORIENTATION_NAMES, TARGET_SCALE, BoxRanker, BoxRefiner, dropped_columns, offset_targets,
                       refine_feature_names, save_ranker)
+from .training import class_loss, fit_member, fit_quality, quality_rows
 from .tune import FrameCache, Frames, fold_blocks, held_out
 
 __all__ = ["FitFrames", "FitOptions", "Sample", "FitCrossValidation", "load_fit_frames", "frame_sample",
-           "frame_samples", "mirrored_sample", "jitter_of", "fit_ranker", "fit_quality", "fit_refiner", "initial_model",
-           "similar_frames", "training_frames", "cross_validate", "best_ious", "held_out_outputs", "hinted_classes", "drive_of", "other_boxes"]
+           "frame_samples", "mirrored_sample", "jitter_of", "fit_ranker", "fit_refiner", "initial_model", "similar_frames",
+           "training_frames", "cross_validate", "best_ious", "held_out_outputs", "hinted_classes", "drive_of", "other_boxes"]
 
 
 @dataclass
@@ -374,7 +377,10 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
     y = torch.cat([s.target for s in samples])
     w = torch.cat([s.weight for s in samples])
     label = torch.cat([s.label for s in samples])
-    quality_rows = _quality_rows(samples, x, label, opts)  # before the near misses leave the rows
+    q_rows = None  # the quality head's rows, before the near misses leave the rows
+    if opts.quality_hidden is not None and len(samples[0].iou):
+        q_rows = quality_rows(torch.cat([s.iou for s in samples]), torch.cat([s.object_weight for s in samples]), x,
+                              label, opts.quality_iou, opts.balance)
     known = ~torch.isnan(y)  # the near misses are the quality head's rows only
     if not bool(known.all()):
         x, y, w, label = x[known], y[known], w[known], label[known]
@@ -403,70 +409,26 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
         xs = model.standardise(x)
         xs[:, dropped] = 0.0  # at their mean: the fit learns nothing from them
         for m, member in enumerate(model.members):
-            _fit_member(member, xs, y, w, fit, opts.seed * 1000 + m, fresh=fresh)
+            fit_member(member, xs, y, w, fit, opts.seed * 1000 + m, fresh=fresh)
         if model.prefilter is not None:
-            _fit_member(model.prefilter, xs[:, : model.cheap], y, w_pre, fit, opts.seed * 1000 + 999, fresh=fresh)
+            fit_member(model.prefilter, xs[:, : model.cheap], y, w_pre, fit, opts.seed * 1000 + 999, fresh=fresh)
         pos = (y == 1) & (label >= 0)
         if model.classifier is not None and bool(pos.any()):
-            _fit_member(model.classifier, xs[pos], label[pos], w_object[pos],
+            fit_member(model.classifier, xs[pos], label[pos], w_object[pos],
                         dataclasses.replace(fit, epochs=fit.class_epochs, batch=fit.class_batch),
-                        opts.seed * 1000 + 998, _class_loss, fresh=fresh)
+                        opts.seed * 1000 + 998, class_loss, fresh=fresh)
     finally:
         torch.set_num_threads(threads)
     model.ignore_columns(dropped)  # and read nothing from them when run
-    if quality_rows is not None:  # fitted after the ranking, which it leaves as it is
+    if q_rows is not None:  # fitted after the ranking, which it leaves as it is
         schedule = fit if model.quality is not None else opts  # a fine-tuned model's own head is tuned
-        fit_quality(model, *quality_rows, dataclasses.replace(schedule, epochs=opts.quality_epochs,
-                                                              batch=opts.quality_batch), dropped)
+        fit_quality(model, *q_rows, dataclasses.replace(schedule, epochs=opts.quality_epochs,
+                                                        batch=opts.quality_batch), opts.seed, opts.quality_hidden,
+                    dropped)
     rx = torch.cat([s.refine_x for s in samples])
     if opts.refine_hidden is not None and len(rx):  # fitted last: the ranking's weights do not depend on it
         model.refiner = fit_refiner(rx, torch.cat([s.refine_y for s in samples]), opts)
     return model.eval().requires_grad_(False)
-
-
-def _quality_rows(samples: Sequence[Sample], x: Tensor, label: Tensor,
-                  opts: FitOptions) -> tuple[Tensor, Tensor, Tensor] | None:
-    """The quality head's rows of ``x`` (the samples' features, the model's columns), their
-    targets and weights (:attr:`FitOptions.quality_iou`; each object's rows weigh 1
-    together, each class's objects as in the ranking), or None without
-    ``opts.quality_hidden`` or rows."""
-    iou = torch.cat([s.iou for s in samples])
-    ow = torch.cat([s.object_weight for s in samples])
-    if opts.quality_hidden is None or len(iou) != len(x) or not bool((ow > 0).any()):
-        return None
-    rows = ow > 0
-    lo, hi = opts.quality_iou
-    target = ((iou[rows] - lo) / (hi - lo)).clamp(0.0, 1.0)
-    w, lab = ow[rows], label[rows]
-    if opts.balance:
-        per_class = torch.bincount(lab, weights=w)
-        factor = torch.where(per_class > 0, (per_class.sum() / per_class.clamp(min=1e-9)) ** opts.balance, 0.0)
-        w = w * factor[lab].float()
-    return x[rows], target, w
-
-
-def fit_quality(model: BoxRanker, x: Tensor, target: Tensor, weight: Tensor, opts: FitOptions,
-                dropped: Sequence[int] = ()) -> None:
-    """Give ``model`` a localisation-quality head (``opts.quality_hidden``; a fine-tuned
-    model's own is tuned) fitted on the rows ``x`` (``float [m, F]``, the model's columns) to
-    ``target`` (``float [m]`` in [0, 1]: how tight each box is on its object) with row weights
-    ``weight``: the logistic loss with soft targets, AdamW, seeded by ``opts.seed``, on one CPU
-    thread; the columns ``dropped`` held at their mean and read by nothing."""
-    fresh = model.quality is None
-    if fresh:
-        assert opts.quality_hidden is not None
-        model.set_quality(opts.quality_hidden)
-    assert model.quality is not None
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        xs = model.standardise(x)
-        xs[:, list(dropped)] = 0.0
-        model.quality.requires_grad_(True)
-        _fit_member(model.quality, xs, target.float(), weight.float(), opts, opts.seed * 1000 + 996, fresh=fresh)
-    finally:
-        torch.set_num_threads(threads)
-    model.ignore_columns(dropped)
 
 
 def fit_refiner(x: Tensor, y: Tensor, opts: FitOptions) -> BoxRefiner:
@@ -493,7 +455,7 @@ def fit_refiner(x: Tensor, y: Tensor, opts: FitOptions) -> BoxRefiner:
     torch.set_num_threads(1)
     try:
         xs = (x - refiner.mean) / refiner.scale
-        _fit_member(refiner.mlp, xs, y.float() / TARGET_SCALE, torch.ones(len(x)), fit, opts.seed * 1000 + 997,
+        fit_member(refiner.mlp, xs, y.float() / TARGET_SCALE, torch.ones(len(x)), fit, opts.seed * 1000 + 997,
                     _offset_loss)
     finally:
         torch.set_num_threads(threads)
@@ -532,46 +494,6 @@ def _relabelled(label: Tensor, classes: Sequence[str] | None, head: Sequence[str
         return label
     to_head = torch.tensor([head.index(c) if c in head else -1 for c in classes] + [-1])
     return to_head[label]  # label -1 takes the last entry
-
-
-def _logistic_loss(logits: Tensor, y: Tensor, w: Tensor) -> Tensor:
-    return torch.nn.functional.binary_cross_entropy_with_logits(logits.squeeze(1), y, weight=w, reduction="sum")
-
-
-def _class_loss(logits: Tensor, y: Tensor, w: Tensor) -> Tensor:
-    return (torch.nn.functional.cross_entropy(logits, y, reduction="none") * w).sum()
-
-
-def _fit_member(net: torch.nn.Module, x: Tensor, y: Tensor, w: Tensor, opts: FitOptions, seed: int,
-                loss_fn: Callable[[Tensor, Tensor, Tensor], Tensor] = _logistic_loss, fresh: bool = True) -> None:
-    """Fit ``net`` on rows ``x`` with targets ``y`` and row weights ``w`` (``loss_fn``: the
-    weighted sum over a step's rows, divided by their weight): AdamW, seeded; ``fresh``: from
-    seeded initial weights with a one-cycle schedule, else from ``net``'s weights at a
-    constant rate (fine-tuning)."""
-    gen = torch.Generator().manual_seed(seed)
-    if fresh:
-        for p in net.parameters():  # the same initial weights for the same seed, whatever ran before
-            if p.ndim == 2:
-                bound = 1.0 / math.sqrt(p.shape[1])
-                p.data.uniform_(-bound, bound, generator=gen)
-            else:
-                p.data.zero_()
-    opt = torch.optim.AdamW(net.parameters(), lr=opts.lr, weight_decay=opts.weight_decay)
-    n = len(x)
-    steps = opts.epochs * math.ceil(n / opts.batch)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=opts.lr, total_steps=steps) if fresh else None
-    net.train()
-    for _ in range(opts.epochs):
-        perm = torch.randperm(n, generator=gen)
-        for s in range(0, n, opts.batch):
-            b = perm[s: s + opts.batch]
-            loss = loss_fn(net(x[b]), y[b], w[b])
-            opt.zero_grad()
-            (loss / w[b].sum()).backward()
-            opt.step()
-            if sched is not None:
-                sched.step()
-    net.eval()
 
 
 # -- folds ---------------------------------------------------------------------------------------

@@ -32,8 +32,8 @@ from .refine import merge_refined
 __all__ = ["CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANKER"]
 
 NOT_SEEN_BY_RANKER: tuple[str, ...] = ("top_k", "ranker", "ranker_keep", "ranker_v_share", "nms_iou", "nms_iou_thin",
-                                        "nms_thin_aspect", "rank_quality", "class_quota", "refine_top", "refine_class", "refine_order",
-                                        "refine_steps", "refine_nms")
+                                        "nms_thin_aspect", "rank_quality", "class_quota", "refine_top", "refine_class",
+                                        "refine_order", "refine_steps", "refine_nms")
 """Fields a ranking model does not depend on (they act after it)."""
 
 
