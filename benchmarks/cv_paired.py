@@ -82,7 +82,9 @@ def _fit_value(name: str, text: str) -> object:
         return None if text.lower() in ("none", "null") else text
     if name == "drop_features":  # names or groups: place,log_v
         return tuple(x.strip() for x in text.split(",") if x.strip())
-    if name in ("hidden", "prefilter", "class_hidden", "refine_hidden"):
+    if name == "quality_iou":  # two IoUs: 0.5,0.9
+        return tuple(float(x) for x in text.split(","))
+    if name in ("hidden", "prefilter", "class_hidden", "refine_hidden", "quality_hidden"):
         if text.lower() in ("none", "null") and name != "hidden":
             return None
         return tuple(int(x) for x in text.split(",") if x.strip())
@@ -135,8 +137,10 @@ def cross_validated_best(cache: FrameCache, configs: list[ReebConfig], seed: int
     block's training frames hold no frame of its drives (``reeb fit --whole-drives``), not
     only none within 2 frames of it. Where one of ``configs`` refines boxes
     (``refine_top``), the fold models also get a box refiner (``refine_hidden`` 64, 64: fitted
-    after the ranking, which it leaves as it is)."""
-    opts = F.FitOptions(seed=seed, refine_hidden=(64, 64) if any(c.refine_top for c in configs) else None)
+    after the ranking, which it leaves as it is); where one ranks by the quality head
+    (``rank_quality``), a quality head (``quality_hidden`` 32, the same way)."""
+    opts = F.FitOptions(seed=seed, refine_hidden=(64, 64) if any(c.refine_top for c in configs) else None,
+                        quality_hidden=(32,) if any(c.rank_quality for c in configs) else None)
     base = ReebConfig()
     samples = F.frame_samples(cache, base, opts)
     gap = len(cache.frames) if whole_drives else 2

@@ -461,6 +461,11 @@ class ReebConfig:
     ranker_v_share: float = _knob(0.0, "[0, 1]")
     """The share of the ``ranker_keep`` candidates that are each image's best by V whatever
     the prefilter says (not in the paper). ``0``: the prefilter alone; ``1``: V alone."""
+    rank_quality: float = _knob(0.0, "[0, 100]")
+    """With a ranker whose weights hold a localisation-quality head (``FitOptions.quality_hidden``):
+    each ranked candidate's score is the model's logit plus this times the head's sigmoid,
+    how tight the box is on its object were it on one, so that of the boxes on one object the
+    tight one goes first into the NMS. ``0``: the logit alone. Not in the paper."""
     class_quota: ClassQuota = _knob((), _CLASS_QUOTA)
     """With a ranker that has a class head (``kitti``: Car, Pedestrian, Cyclist, Truck): the
     share of the ``top_k`` proposals a class gets first (the best boxes after NMS the head
@@ -490,6 +495,13 @@ class ReebConfig:
     nms_iou: float = _knob(0.75, "(0, 1]")
     """Eq. 13's IoU threshold. The paper prints 0.7 (kept by ``paper``); 0.75 is Edge Boxes'
     setting for recall at IoU 0.7 (β = 0.75)."""
+    nms_iou_thin: float = _knob(0.0, "[0, 1]")
+    """Above ``nms_iou``: the threshold for the boxes narrower than ``nms_thin_aspect`` times
+    their height (a person's), whose loose and tight boxes overlap more than a wide box's
+    (a tight box is kept beside a looser one that ranks first). ``0``: ``nms_iou`` for
+    every box, as the paper. Not in the paper."""
+    nms_thin_aspect: float = _knob(0.5, "(0, 4]")
+    """The width / height under which ``nms_iou_thin`` applies to a box."""
     top_k: int = _knob(2000, ">= 1")
     """Proposals returned per image (at most)."""
 

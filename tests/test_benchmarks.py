@@ -463,3 +463,17 @@ def test_adapt_scores_four_ways_on_frames_away_from_the_adapt_block(tmp_path):
     png.unlink()
     assert adapt.main(["--plot", str(tmp_path / "out" / "adapt.json")]) == json.loads(
         (tmp_path / "out" / "adapt.json").read_text()) and png.is_file()  # redrawn from the record
+
+
+@pytest.mark.kitti
+def test_quality_head_adds_a_head_and_keeps_the_ranking(kitti_dir, tmp_path):
+    """benchmarks/quality_head.py: the shipped ranking, bit for bit, plus a quality head that
+    the generator reads with rank_quality."""
+    from reeb_torch.ranker import load_ranker
+
+    out = _script("quality_head").main(["--data", str(kitti_dir), "--limit", "3", "--hidden", "8",
+                                        "--out", str(tmp_path / "q.safetensors")])
+    model, shipped = load_ranker(str(out)), load_ranker("kitti")
+    assert model.quality_hidden == (8,) and "quality_head" in model.meta["provenance"]
+    for name, t in shipped.state_dict().items():
+        assert torch.equal(t, model.state_dict()[name]), name

@@ -118,8 +118,8 @@ def test_generator_candidates_equal_torchvision():
     path = Path(__file__).resolve().parents[1] / "examples" / "data" / "kitti_000001.png"
     caught = []
 
-    def spy(chosen, boxes, scores, iou, k, boxes_ok=None, classes=None, need=None):
-        assert classes is None and need is None  # no quota here
+    def spy(chosen, boxes, scores, iou, k, boxes_ok=None, classes=None, need=None, thin=(0.0, 0.0)):
+        assert classes is None and need is None and thin[0] <= iou  # no quota, one threshold here
         for i in range(chosen.shape[0]):
             cand = chosen[i].nonzero().squeeze(1)
             caught.append((boxes[cand], scores[i, cand], iou, k))
@@ -272,3 +272,43 @@ def test_nms_windows_cpu_sorts_a_prefix_first_and_all_when_it_keeps_too_few():
         got = nms_windows_cpu(chosen, boxes, scores, 0.7, k)
         for i in range(2):
             assert torch.equal(got[i], nms_top_k(boxes, scores[i], 0.7, k)), (i, k)
+
+
+def _greedy_by_hand(b: torch.Tensor, s: torch.Tensor, iou: float, thin: tuple[float, float], k: int) -> list[int]:
+    """Greedy NMS written out: a thin box's threshold is ``thin[0]``."""
+    from torchvision.ops import box_iou
+
+    kept: list[int] = []
+    for i in torch.sort(s, descending=True, stable=True).indices.tolist():
+        w, h = float(b[i, 2] - b[i, 0]), float(b[i, 3] - b[i, 1])
+        t = max(thin[0], iou) if w < thin[1] * h else iou
+        if not kept or not bool((box_iou(b[i: i + 1], b[kept])[0] > t).any()):
+            kept.append(i)
+        if len(kept) == k:
+            break
+    return kept
+
+
+def test_thin_boxes_are_suppressed_only_above_their_own_threshold():
+    """nms_top_k's ``thin``: every path (the compiled grid kernel, the window kernel, the
+    tensor loop of other devices) keeps what greedy NMS with a threshold of its own for the
+    thin boxes keeps; a thin box's tight and loose copies both survive at 0.75."""
+    from reeb_torch.stages.nms import _greedy_thin, nms_windows_cpu
+
+    tall = torch.tensor([[0.0, 0, 20, 60], [0, 0, 24, 60], [100, 0, 160, 40], [100, 0, 166, 40]])
+    s = torch.tensor([1.0, 2.0, 3.0, 4.0])
+    assert nms_top_k(tall, s, 0.75, 10).tolist() == [3, 1]  # IoU 20/24 = 0.83 and 60/66 = 0.91
+    assert nms_top_k(tall, s, 0.75, 10, thin=(0.85, 0.5)).tolist() == [3, 1, 0]  # 20 < 0.5 · 60
+    gen = torch.Generator().manual_seed(3)
+    for n in (50, 800):
+        xy = torch.rand(n, 2, generator=gen) * 100
+        wh = torch.rand(n, 2, generator=gen) * torch.tensor([20.0, 60.0]) + 4
+        b = torch.cat([xy, xy + wh], 1)
+        sc = torch.rand(n, generator=gen)
+        for thin in ((0.8, 0.5), (0.9, 0.4)):
+            want = _greedy_by_hand(b, sc, 0.75, thin, 60)
+            assert nms_top_k(b, sc, 0.75, 60, thin=thin).tolist() == want
+            order = torch.sort(sc, descending=True, stable=True).indices
+            assert order[_greedy_thin(b[order], 0.75, thin, 60)].tolist() == want
+            got = nms_windows_cpu(torch.ones(1, n, dtype=torch.bool), b, sc[None], 0.75, 60, thin=thin)[0]
+            assert got.tolist() == want

@@ -361,10 +361,8 @@ class BingBaseline:
     - ``"interleaved"``: ascending rank key (stable), which interleaves the three lists as
       Cheng's "BING-diversified" code does; ``scores = -key``.
 
-    On the first 30 of the project's KITTI frames, micro recall at 1000 / 2000 proposals
-    and IoU 0.5 was 47.7 / 68.6 % in OpenCV's order, 45.3 / 65.1 % interleaved and
-    8.1 / 12.8 % by descending key (identical at 500: the first 500 are MAXBGR's in both),
-    hence the default. Box conversion: see :func:`bing_to_xyxy`.
+    OpenCV's order recalled the most on KITTI frames (docs/results.md, "Recall of the
+    presets"), hence the default. Box conversion: see :func:`bing_to_xyxy`.
     """
 
     name = "BING"
@@ -445,8 +443,8 @@ class SelectiveSearchBaseline:
       ``scores`` are ``1 - i / N`` (rank-derived, non-increasing), not a real objectness.
     - ``base_k`` (150), ``inc_k`` (150), ``sigma`` (0.8): OpenCV's fast-mode defaults.
     - ``scale`` (1.0): resize factor applied before segmenting (``INTER_AREA``); boxes are
-      mapped back by dividing by the factor. 1.0 = full resolution (KITTI frames, about
-      1242 x 375, take a few seconds).
+      mapped back by dividing by the factor. 1.0 = full resolution (slow: Table 3's time
+      column, docs/results.md).
     - ``seed`` (0): ``cv2.setRNGSeed`` before each call, so the ranking is reproducible
       (the global OpenCV RNG is reseeded; nothing else here uses it).
 

@@ -9,9 +9,11 @@ frames, and estimate by cross-validation how it does on frames it never saw.
   (an object's positives weigh 1 together, so each object counts once) and a seeded sample
   of those below ``negative_iou`` with every labelled box.
 * :func:`fit_ranker` fits a :class:`~reeb_torch.ranker.BoxRanker` (weighted logistic loss,
-  AdamW, one CPU thread, seeded: the same frames and options give the same bits), and its box
-  refiner (:func:`fit_refiner`: smooth-L1 to the side offsets of the candidates that overlap
-  an object at IoU ≥ ``refine_iou``, from the same frames' rows).
+  AdamW, one CPU thread, seeded: the same frames and options give the same bits:
+  :func:`~reeb_torch.eval.training.fit_member`), its localisation-quality head where asked
+  (:func:`~reeb_torch.eval.training.fit_quality`), and its box refiner (:func:`fit_refiner`:
+  smooth-L1 to the side offsets of the candidates that overlap an object at IoU ≥
+  ``refine_iou``, from the same frames' rows).
 * :func:`cross_validate` splits the frames into blocks
   (:func:`~reeb_torch.eval.tune.fold_blocks`), fits on all blocks but one, keeping the
   held-out block's drive neighbours out (:func:`training_frames`), scores the generator with
@@ -39,6 +41,7 @@ from torchvision.ops import box_iou
 from ..config import ReebConfig
 from ..ranker import (ORIENTATION_NAMES, TARGET_SCALE, BoxRanker, BoxRefiner, dropped_columns, offset_targets,
                       refine_feature_names, save_ranker)
+from .training import class_loss, fit_member, fit_quality, quality_rows
 from .tune import FrameCache, Frames, fold_blocks, held_out
 
 __all__ = ["FitFrames", "FitOptions", "Sample", "FitCrossValidation", "load_fit_frames", "frame_sample",
@@ -130,11 +133,20 @@ class FitOptions:
             ``(seed, i, 3)``); as ``mirror``, only the rows a model is fitted on.
         refine_hidden: widths of the box refiner's hidden layers
             (:class:`~reeb_torch.ranker.BoxRefiner`, used by ``ReebConfig.refine_top``), or
-            None (default) for no refiner: it did not raise recall held out (docs/results.md).
+            None (default) for no refiner (why: docs/results.md, "Box refinement").
         refine_iou: the refiner is fitted on the candidates at this IoU or more with a target.
         refine_per_object: at most this many of them per object (a seeded draw, after the negatives').
         refine_epochs, refine_batch, refine_lr: the refiner's passes, rows per step and peak
             learning rate (AdamW, one-cycle, ``weight_decay``).
+        quality_hidden: widths of the localisation-quality head's hidden layers
+            (:meth:`~reeb_torch.ranker.BoxRanker.quality_logits`, used by
+            ``ReebConfig.rank_quality``), or None (default) for none. Fitted after the ranking
+            (which it leaves as it is) on the candidates of objects only.
+        quality_iou: ``(lo, hi)``: the quality head's rows are the candidates at IoU ≥ ``lo``
+            with a target (each object's weigh 1 together), its target
+            ``clamp((IoU − lo) / (hi − lo), 0, 1)`` (a soft target of the logistic loss).
+        quality_epochs, quality_batch: the quality head's passes and rows per step (its rows,
+            the candidates of the objects, are a small share of the ranking's).
         orientation: the model reads the edge-orientation columns
             (:data:`~reeb_torch.ranker.orientation.ORIENTATION_NAMES`) beside the others; without,
             the generator does not compute them for it (a fine-tuned model reads its own columns).
@@ -174,6 +186,10 @@ class FitOptions:
     refine_epochs: int = 20
     refine_batch: int = 512
     refine_lr: float = 3e-3
+    quality_hidden: tuple[int, ...] | None = None
+    quality_iou: tuple[float, float] = (0.5, 0.9)
+    quality_epochs: int = 30
+    quality_batch: int = 256
     orientation: bool = True
     drop_features: tuple[str, ...] = ()
 
@@ -188,7 +204,12 @@ class Sample:
     positive, 0 a negative), ``weight float32 [n]`` and ``label int64 [n]`` (the class of a
     positive's object, -1 for a negative); and the box refiner's: ``refine_x float32 [m, R]``
     (:func:`~reeb_torch.ranker.refine_features` of candidates near an object) and
-    ``refine_y float32 [m, 4]`` (their side offsets to it, :func:`~reeb_torch.ranker.offset_targets`)."""
+    ``refine_y float32 [m, 4]`` (their side offsets to it, :func:`~reeb_torch.ranker.offset_targets`).
+    With :attr:`FitOptions.quality_hidden`, ``iou float32 [n]``, each row's best IoU with a
+    target, and ``object_weight float32 [n]``, 1 / the rows of its object at IoU ≥
+    ``quality_iou[0]`` (0 for a negative); the rows then also hold the candidates of objects
+    below ``positive_iou`` (near misses: ``target`` NaN, weight 0, read by the quality head
+    only). Empty otherwise."""
 
     features: Tensor
     target: Tensor
@@ -196,6 +217,8 @@ class Sample:
     label: Tensor
     refine_x: Tensor = field(default_factory=_no_refine_rows)
     refine_y: Tensor = field(default_factory=lambda: torch.zeros(0, 4))
+    iou: Tensor = field(default_factory=lambda: torch.zeros(0))
+    object_weight: Tensor = field(default_factory=lambda: torch.zeros(0))
 
 
 def _labels(boxes: Tensor, gt: Tensor, ignore: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -223,11 +246,19 @@ def frame_sample(features: Tensor, boxes: Tensor, gt: Tensor, labels: Tensor, ig
     neg = neg[torch.from_numpy(rng.random(len(neg)) < opts.negatives)]
     per_object = torch.bincount(which[pos], minlength=max(1, len(gt))).float()
     w_pos = 1.0 / per_object[which[pos]]
-    idx = torch.cat([pos, neg])
-    target = torch.cat([torch.ones(len(pos)), torch.zeros(len(neg))])
-    weight = torch.cat([w_pos, torch.ones(len(neg))])
-    label = torch.cat([labels[which[pos]], torch.full((len(neg),), -1, dtype=torch.long)])
+    near = torch.zeros(0, dtype=torch.long)
+    if opts.quality_hidden is not None:  # the quality head's rows below the positives
+        near = torch.nonzero((best >= opts.quality_iou[0]) & (best < opts.positive_iou)).squeeze(1)
+    idx = torch.cat([pos, neg, near])
+    target = torch.cat([torch.ones(len(pos)), torch.zeros(len(neg)), torch.full((len(near),), math.nan)])
+    weight = torch.cat([w_pos, torch.ones(len(neg)), torch.zeros(len(near))])
+    label = torch.cat([labels[which[pos]], torch.full((len(neg),), -1, dtype=torch.long), labels[which[near]]])
     sample = Sample(features[idx].contiguous(), target, weight, label)
+    if opts.quality_hidden is not None:
+        mine = (best[idx] >= opts.quality_iou[0]) & (label >= 0)
+        count = torch.bincount(which[idx][mine], minlength=max(1, len(gt))).float().clamp(min=1.0)
+        sample.iou = best[idx].float()
+        sample.object_weight = torch.where(mine, 1.0 / count[which[idx].clamp(min=0)], 0.0)
     if refine is not None and opts.refine_hidden is not None and len(gt):
         near = torch.nonzero(best >= opts.refine_iou).squeeze(1)
         order = torch.from_numpy(rng.permutation(len(near)))
@@ -345,11 +376,18 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
         x = x[:, [names.index(n) for n in wanted]]
     y = torch.cat([s.target for s in samples])
     w = torch.cat([s.weight for s in samples])
+    label = torch.cat([s.label for s in samples])
+    q_rows = None  # the quality head's rows, before the near misses leave the rows
+    if opts.quality_hidden is not None and len(samples[0].iou):
+        q_rows = quality_rows(torch.cat([s.iou for s in samples]), torch.cat([s.object_weight for s in samples]), x,
+                              label, opts.quality_iou, opts.balance)
+    known = ~torch.isnan(y)  # the near misses are the quality head's rows only
+    if not bool(known.all()):
+        x, y, w, label = x[known], y[known], w[known], label[known]
     if not bool((y == 1).any()) or not bool((y == 0).any()):
         raise ValueError("no candidate overlaps a labelled object at the positive IoU (or none is background): "
                          "the ranking cannot be fitted on these frames")
     w_object = w  # each object's positives weigh 1 together (the class head's weights)
-    label = torch.cat([s.label for s in samples])
     w = _balanced(w_object, y, label, opts.balance)
     w_pre = w if opts.prefilter_balance is None else _balanced(w_object, y, label, opts.prefilter_balance)
     if opts.init is not None:
@@ -371,17 +409,22 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
         xs = model.standardise(x)
         xs[:, dropped] = 0.0  # at their mean: the fit learns nothing from them
         for m, member in enumerate(model.members):
-            _fit_member(member, xs, y, w, fit, opts.seed * 1000 + m, fresh=fresh)
+            fit_member(member, xs, y, w, fit, opts.seed * 1000 + m, fresh=fresh)
         if model.prefilter is not None:
-            _fit_member(model.prefilter, xs[:, : model.cheap], y, w_pre, fit, opts.seed * 1000 + 999, fresh=fresh)
+            fit_member(model.prefilter, xs[:, : model.cheap], y, w_pre, fit, opts.seed * 1000 + 999, fresh=fresh)
         pos = (y == 1) & (label >= 0)
         if model.classifier is not None and bool(pos.any()):
-            _fit_member(model.classifier, xs[pos], label[pos], w_object[pos],
+            fit_member(model.classifier, xs[pos], label[pos], w_object[pos],
                         dataclasses.replace(fit, epochs=fit.class_epochs, batch=fit.class_batch),
-                        opts.seed * 1000 + 998, _class_loss, fresh=fresh)
+                        opts.seed * 1000 + 998, class_loss, fresh=fresh)
     finally:
         torch.set_num_threads(threads)
     model.ignore_columns(dropped)  # and read nothing from them when run
+    if q_rows is not None:  # fitted after the ranking, which it leaves as it is
+        schedule = fit if model.quality is not None else opts  # a fine-tuned model's own head is tuned
+        fit_quality(model, *q_rows, dataclasses.replace(schedule, epochs=opts.quality_epochs,
+                                                        batch=opts.quality_batch), opts.seed, opts.quality_hidden,
+                    dropped)
     rx = torch.cat([s.refine_x for s in samples])
     if opts.refine_hidden is not None and len(rx):  # fitted last: the ranking's weights do not depend on it
         model.refiner = fit_refiner(rx, torch.cat([s.refine_y for s in samples]), opts)
@@ -412,7 +455,7 @@ def fit_refiner(x: Tensor, y: Tensor, opts: FitOptions) -> BoxRefiner:
     torch.set_num_threads(1)
     try:
         xs = (x - refiner.mean) / refiner.scale
-        _fit_member(refiner.mlp, xs, y.float() / TARGET_SCALE, torch.ones(len(x)), fit, opts.seed * 1000 + 997,
+        fit_member(refiner.mlp, xs, y.float() / TARGET_SCALE, torch.ones(len(x)), fit, opts.seed * 1000 + 997,
                     _offset_loss)
     finally:
         torch.set_num_threads(threads)
@@ -451,46 +494,6 @@ def _relabelled(label: Tensor, classes: Sequence[str] | None, head: Sequence[str
         return label
     to_head = torch.tensor([head.index(c) if c in head else -1 for c in classes] + [-1])
     return to_head[label]  # label -1 takes the last entry
-
-
-def _logistic_loss(logits: Tensor, y: Tensor, w: Tensor) -> Tensor:
-    return torch.nn.functional.binary_cross_entropy_with_logits(logits.squeeze(1), y, weight=w, reduction="sum")
-
-
-def _class_loss(logits: Tensor, y: Tensor, w: Tensor) -> Tensor:
-    return (torch.nn.functional.cross_entropy(logits, y, reduction="none") * w).sum()
-
-
-def _fit_member(net: torch.nn.Module, x: Tensor, y: Tensor, w: Tensor, opts: FitOptions, seed: int,
-                loss_fn: Callable[[Tensor, Tensor, Tensor], Tensor] = _logistic_loss, fresh: bool = True) -> None:
-    """Fit ``net`` on rows ``x`` with targets ``y`` and row weights ``w`` (``loss_fn``: the
-    weighted sum over a step's rows, divided by their weight): AdamW, seeded; ``fresh``: from
-    seeded initial weights with a one-cycle schedule, else from ``net``'s weights at a
-    constant rate (fine-tuning)."""
-    gen = torch.Generator().manual_seed(seed)
-    if fresh:
-        for p in net.parameters():  # the same initial weights for the same seed, whatever ran before
-            if p.ndim == 2:
-                bound = 1.0 / math.sqrt(p.shape[1])
-                p.data.uniform_(-bound, bound, generator=gen)
-            else:
-                p.data.zero_()
-    opt = torch.optim.AdamW(net.parameters(), lr=opts.lr, weight_decay=opts.weight_decay)
-    n = len(x)
-    steps = opts.epochs * math.ceil(n / opts.batch)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=opts.lr, total_steps=steps) if fresh else None
-    net.train()
-    for _ in range(opts.epochs):
-        perm = torch.randperm(n, generator=gen)
-        for s in range(0, n, opts.batch):
-            b = perm[s: s + opts.batch]
-            loss = loss_fn(net(x[b]), y[b], w[b])
-            opt.zero_grad()
-            (loss / w[b].sum()).backward()
-            opt.step()
-            if sched is not None:
-                sched.step()
-    net.eval()
 
 
 # -- folds ---------------------------------------------------------------------------------------

@@ -62,6 +62,8 @@ class BoxRanker(nn.Module):
         class_hidden: the widths of the class head's hidden layers.
         refine_hidden: the widths of the box refiner's hidden layers
             (:class:`~reeb_torch.ranker.refine.BoxRefiner`), or None for no refiner.
+        quality_hidden: the widths of the localisation-quality head's hidden layers
+            (:meth:`quality_logits`), or None for none.
 
     Attributes:
         mean, scale: ``float32 [F]`` buffers; a feature enters the MLPs as ``(x − mean) / scale``.
@@ -75,10 +77,12 @@ class BoxRanker(nn.Module):
     prefilter: nn.Sequential | None
     classifier: nn.Sequential | None
     refiner: BoxRefiner | None
+    quality: nn.Sequential | None
 
     def __init__(self, feature_names: Sequence[str], hidden: Sequence[int] = (64, 64), members: int = 1,
                  prefilter: Sequence[int] | None = (16,), classes: Sequence[str] | None = None,
-                 class_hidden: Sequence[int] = (32,), refine_hidden: Sequence[int] | None = None) -> None:
+                 class_hidden: Sequence[int] = (32,), refine_hidden: Sequence[int] | None = None,
+                 quality_hidden: Sequence[int] | None = None) -> None:
         super().__init__()
         if members < 1 or not hidden or min(hidden) < 1 or (prefilter and min(prefilter) < 1) \
                 or (classes is not None and (len(classes) < 2 or (class_hidden and min(class_hidden) < 1))):
@@ -101,12 +105,25 @@ class BoxRanker(nn.Module):
         """The class head: which class a box looks like, were it an object (softmax logits)."""
         self.refiner = None if refine_hidden is None else BoxRefiner(refine_feature_names(), refine_hidden)
         """The box refiner (side offsets of the output boxes, ``ReebConfig.refine_top``), or None."""
+        self.quality = None
+        self.quality_hidden: tuple[int, ...] | None = None
+        if quality_hidden is not None:
+            self.set_quality(quality_hidden)
         self.meta: dict = {}
+
+    def set_quality(self, hidden: Sequence[int]) -> None:
+        """Give the model a new localisation-quality head (:meth:`quality_logits`) with hidden
+        layers ``hidden`` (``()``: linear), in place of any it had."""
+        if hidden and min(hidden) < 1:
+            raise ValueError(f"BoxRanker's quality head needs widths >= 1, got {tuple(hidden)}")
+        self.quality_hidden = tuple(int(h) for h in hidden)
+        self.quality = _mlp(len(self.feature_names), self.quality_hidden)
+        """The localisation-quality head: how tight a box is on its object, were it on one."""
 
     def extra_repr(self) -> str:
         return (f"features={len(self.feature_names)}, hidden={self.hidden}, members={len(self.members)}, "
                 f"prefilter={self.prefilter_hidden}, classes={self.classes}, "
-                f"refiner={None if self.refiner is None else self.refiner.hidden}")
+                f"refiner={None if self.refiner is None else self.refiner.hidden}, quality={self.quality_hidden}")
 
     def prefilter_scores(self, cheap: Tensor) -> Tensor:
         """``float [K, cheap]`` (the first :attr:`cheap` columns of the features) -> ``float32 [K]``
@@ -137,6 +154,17 @@ class BoxRanker(nn.Module):
         Raises ValueError without a class head."""
         return softmax_rows(self.class_logits(features))
 
+    @torch.no_grad()
+    def quality_logits(self, features: Tensor) -> Tensor:
+        """``float [K, F] -> float32 [K]``: the quality head's logit of each box, how tight it
+        is on its object were it on one (fitted on the boxes at IoU ≥ 0.5 with an object, to
+        their IoU graded to [0, 1]), computed as :meth:`rank` computes the ranking's. Raises
+        ValueError without a quality head."""
+        if self.quality is None:
+            raise ValueError("this BoxRanker has no quality head (FitOptions.quality_hidden fits one)")
+        self._check(features)
+        return self._run_folded([self._folded(self.quality)], features.float(), 1).squeeze(1)
+
     def _check(self, features: Tensor) -> None:
         if features.ndim != 2 or features.shape[1] != len(self.feature_names):
             raise ValueError(f"BoxRanker expects features of shape [K, {len(self.feature_names)}], "
@@ -146,7 +174,7 @@ class BoxRanker(nn.Module):
     def ignore_columns(self, cols: Sequence[int]) -> None:
         """Set every MLP's first-layer weights from the feature columns ``cols`` to zero, so
         its output does not depend on them (the prefilter skips those past its cheap columns)."""
-        for net in [*self.members, self.prefilter, self.classifier]:
+        for net in [*self.members, self.prefilter, self.classifier, self.quality]:
             if net is not None and len(cols):
                 first = net[0]
                 assert isinstance(first, nn.Linear)

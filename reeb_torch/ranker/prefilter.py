@@ -24,7 +24,7 @@ def _prefilter_kernel(table: np.ndarray, scores: np.ndarray, share: np.ndarray, 
     """Rows ``lo:hi`` of :func:`prefilter_cpu`. The hidden units in SIMD lanes: the ReLU a
     ``max``, not a branch (a unit's sign is a coin toss from row to row), and the output's
     sum over the units reassociated (``fastmath``), not one dependent add after another
-    (together 0.5x the time; the logits move by float32 rounding, ~1e-6)."""
+    (the logits move by float32 rounding; timed with ``benchmarks/speed_ab.py``, docs/results.md)."""
     nh = table.shape[1]
     wv, ws, we = w_dyn[:, 0].copy(), w_dyn[:, 1].copy(), w_dyn[:, 2].copy()
     zero = np.float32(0.0)

@@ -31,9 +31,9 @@ from .refine import merge_refined
 
 __all__ = ["CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANKER"]
 
-NOT_SEEN_BY_RANKER: tuple[str, ...] = ("top_k", "ranker", "ranker_keep", "ranker_v_share", "nms_iou",
-                                        "class_quota", "refine_top", "refine_class", "refine_order",
-                                        "refine_steps", "refine_nms")
+NOT_SEEN_BY_RANKER: tuple[str, ...] = ("top_k", "ranker", "ranker_keep", "ranker_v_share", "nms_iou", "nms_iou_thin",
+                                        "nms_thin_aspect", "rank_quality", "class_quota", "refine_top", "refine_class",
+                                        "refine_order", "refine_steps", "refine_nms")
 """Fields a ranking model does not depend on (they act after it)."""
 
 
@@ -264,6 +264,11 @@ class LearnedRanking(CandidateFeatures):
 
             warnings.warn(f"ReebConfig.class_quota is ignored: the ranker {config.ranker!r} has no class head "
                           "(fit one with reeb fit, whose models have one by default)", UserWarning, stacklevel=3)
+        if config.rank_quality and self.model.quality is None:
+            import warnings
+
+            warnings.warn(f"ReebConfig.rank_quality is ignored: the ranker {config.ranker!r} has no quality head "
+                          "(FitOptions.quality_hidden fits one)", UserWarning, stacklevel=3)
         if config.refine_top and self.model.refiner is None:
             import warnings
 
@@ -354,7 +359,10 @@ class LearnedRanking(CandidateFeatures):
             with timed("ranker.features", dev):
                 feats = self.features_of(maps, grid, scores, share, entropy, bi, ni)
             with timed("ranker.model", dev):
-                out[bi, ni] = model.rank(feats)
+                logit = model.rank(feats)
+                if self.config.rank_quality and model.quality is not None:
+                    logit += self.config.rank_quality * torch.sigmoid(model.quality_logits(feats))
+                out[bi, ni] = logit
                 kept[bi, ni] = True
             if features_out is not None:
                 features_out.append((bi, ni, feats))

@@ -3,7 +3,8 @@
 A file holds the tensors of a :class:`~reeb_torch.ranker.model.BoxRanker` (``mean``,
 ``scale``, ``members.<i>.<layer>.weight|bias``, ``prefilter.<layer>.weight|bias``, and with a
 class head ``classifier.<layer>.weight|bias``, with a box refiner ``refiner.mean``,
-``refiner.scale``, ``refiner.mlp.<layer>.weight|bias``) and one metadata entry, ``reeb-ranker``: a
+``refiner.scale``, ``refiner.mlp.<layer>.weight|bias``, with a localisation-quality head
+``quality.<layer>.weight|bias``) and one metadata entry, ``reeb-ranker``: a
 JSON object (keys sorted, so the same model gives the same bytes) with
 
 * ``features_version``: the :data:`~reeb_torch.ranker.features.FEATURES_VERSION` it was
@@ -11,6 +12,8 @@ JSON object (keys sorted, so the same model gives the same bytes) with
   ``classes``, ``class_hidden``: its class head's, where it has one (older files have none);
   ``refine_hidden``, ``refine_features``: its box refiner's widths and feature columns
   (:mod:`reeb_torch.ranker.refine`), where it has one (older files have none);
+  ``quality_hidden``: its localisation-quality head's widths, where it has one (older files
+  have none);
 * ``provenance``: the frames it was fitted on (their folders, ids and, in files written
   since frame hashes were added, ``frame_hashes``: a :func:`frame_hash` of each image, so
   that :func:`fitted_frames` can say which of someone's frames the model saw whatever they
@@ -150,7 +153,7 @@ def _read(path: Path, spec: str) -> BoxRanker:
     try:
         _check_values(tensors, info["feature_names"])
         model = BoxRanker(info["feature_names"], info["hidden"], info["members"], info["prefilter"],
-                          info["classes"], info["class_hidden"], info["refine_hidden"])
+                          info["classes"], info["class_hidden"], info["refine_hidden"], info["quality_hidden"])
         model.load_state_dict({k: v.float() for k, v in tensors.items()}, strict=True)
     except (ValueError, RuntimeError) as e:
         reason = str(e).splitlines()[0] if str(e) else type(e).__name__
@@ -195,6 +198,8 @@ def _meta(meta: dict[str, str]) -> dict:
         if names != refine_feature_names():
             raise ValueError(f"its box refiner reads {len(names)} features ({_differ(names, refine_feature_names())})"
                              f" but this reeb-torch computes {len(refine_feature_names())}: refit them with `reeb fit`")
+    quality = info.get("quality_hidden")
+    out["quality_hidden"] = None if quality is None else _widths(quality, "quality_hidden", 0)
     for key in ("provenance", "config"):
         if key in info and not isinstance(info[key], dict):
             raise ValueError(f"its {key!r} metadata is not a JSON object (a JSON {_json_type(info[key])})")
@@ -256,6 +261,8 @@ def _shapes(info: dict, header: dict[str, tuple[tuple[int, ...], str]]) -> dict[
             info["prefilter"], 1)
     if info["classes"] is not None:
         mlp("classifier", f, info["class_hidden"], len(info["classes"]))
+    if info.get("quality_hidden") is not None:
+        mlp("quality", f, info["quality_hidden"], 1)
     if info.get("refine_hidden") is not None:
         r = len(refine_feature_names())
         expected["refiner.mean"], expected["refiner.scale"] = (r,), (r,)
@@ -315,6 +322,8 @@ def ranker_bytes(model: BoxRanker, provenance: dict | None = None, config: dict 
     if model.refiner is not None:  # files without a refiner keep the earlier bytes
         info["refine_hidden"] = list(model.refiner.hidden)
         info["refine_features"] = list(model.refiner.feature_names)
+    if model.quality_hidden is not None:  # files without a quality head keep the earlier bytes
+        info["quality_hidden"] = list(model.quality_hidden)
     if provenance is not None:
         info["provenance"] = provenance
     if config is not None:

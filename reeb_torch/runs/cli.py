@@ -420,8 +420,8 @@ def _class_heights(items: tuple[str, ...]) -> dict[str, float] | None:
               help="Frame-bootstrap samples for the intervals.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the bootstrap.")
 @click.option("--box-factor", type=FiniteFloat(min=0, min_open=True), default=None,
-              help="2D box height / 3D object height at the bottom's depth [default: 1.055, measured on KITTI "
-                   "with its known 1.65 m; 1 = the plain model].")
+              help="2D box height / 3D object height at the bottom's depth [default: 1.055, fitted on KITTI "
+                   "frames, docs/results.md; 1 = the plain model].")
 def calibrate(dirs, out, no_labels, calib, cy, height, camera_height, class_height, samples, seed, box_factor):
     """The camera's horizon row (and height) for reeb propose --config, by one of three routes:
 
@@ -559,7 +559,7 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
                    "(where the box lies in the frame: top, bottom, centre_x, off_centre, at_border).")
 @click.option("--refiner", is_flag=True,
               help="Also fit a box refiner into the weights (side offsets of the best boxes, applied with "
-                   "--set refine_top=N; it did not raise recall held out on KITTI, so off by default).")
+                   "--set refine_top=N; off by default: docs/results.md, \"Box refinement\").")
 @click.option("-k", "--proposals", "k", type=click.IntRange(min=1), default=2000, show_default=True,
               help="Proposals counted per frame.")
 @click.option("--iou", type=FiniteFloat(0, 1, min_open=True), default=0.7, show_default=True,

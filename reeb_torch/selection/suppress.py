@@ -47,7 +47,8 @@ class Suppression(GridCache):
         if class_share is not None:
             assert class_of is not None  # class_share is made only with it
             groups, need = class_of.long().clamp(min=0), self.quota_counts(class_share)
-        kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, cfg.top_k, ok, groups, need)
+        thin = (cfg.nms_iou_thin, cfg.nms_thin_aspect)
+        kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, cfg.top_k, ok, groups, need, thin)
         cands = None
         if kept is not None:
             pairs = [(boxes_in, scores[i]) for i in range(b)]
@@ -55,7 +56,8 @@ class Suppression(GridCache):
         else:
             cands = [torch.nonzero(chosen[i]).squeeze(1) for i in range(b)]
             pairs = [(boxes_in[c], scores[i, c]) for i, c in enumerate(cands)]
-            kept = nms_top_k_many(pairs, cfg.nms_iou, max(len(p[1]) for p in pairs) if quota else cfg.top_k)
+            kept = nms_top_k_many(pairs, cfg.nms_iou, max(len(p[1]) for p in pairs) if quota else cfg.top_k,
+                                  thin=thin)
             windows = [c[k] for c, k in zip(cands, kept)]
         results = []
         h_in, w_in = maps.input_size

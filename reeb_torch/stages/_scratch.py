@@ -1,11 +1,11 @@
 """Scratch buffers that one ``ProposalGenerator.forward`` call reuses from the last.
 
-A batch's large per-image arrays (the integral images and the enclosed-sum tables, about
-8 MB per KITTI image; the score and candidate arrays; the edge maps) are needed only until
-the batch's boxes are chosen. Freshly allocated each batch, they cost the machine a page
-fault per 4 KiB on first touch (measured: about a tenth of the whole run on a 2-core CPU, and
-more on the helper thread, whose half of each array lies past the memory the allocator
-had mapped). Inside :func:`reusing` (the generator's ``forward`` only), :func:`empty`
+A batch's large per-image arrays (the integral images and the enclosed-sum tables, several
+MB per KITTI image; the score and candidate arrays; the edge maps) are needed only until the
+batch's boxes are chosen. Freshly allocated each batch, they cost the machine a page fault
+per 4 KiB on first touch, more on the helper thread, whose half of each array lies past the
+memory the allocator had mapped (measured in docs/results.md, "What makes the CPU path
+fast"). Inside :func:`reusing` (the generator's ``forward`` only), :func:`empty`
 hands out the same memory batch after batch, per thread and per call site (``key``).
 
 Nothing returned to a caller may be such a buffer: the generator's results are copies

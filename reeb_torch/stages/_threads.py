@@ -18,8 +18,8 @@ _inside = threading.local()
 
 
 def _worker() -> ThreadPoolExecutor:
-    """One helper thread for the whole process, started on first use (a pool per call cost
-    ~0.1 ms of thread start-up, a dozen times per batch); a forked child starts its own."""
+    """One helper thread for the whole process, started on first use (a pool per call would
+    pay a thread's start-up a dozen times per batch); a forked child starts its own."""
     global _pool
     with _lock:
         if _pool is None:
@@ -96,8 +96,8 @@ def torch_single_threaded() -> Iterator[None]:
     several concurrent blocks ends). The compiled kernels split their work onto their own
     helper thread; torch's ops between them are small, and after each op that opens
     torch's OpenMP pool its idle workers spin for milliseconds against that helper
-    thread (measured: 15.1 against 12.3 ms/img at batch 8; ``GOMP_SPINCOUNT=0`` removes
-    it too)."""
+    thread (``GOMP_SPINCOUNT=0`` removes it too; measured in docs/results.md, "What makes
+    the CPU path fast")."""
     global _torch_users, _torch_saved
     with _torch_lock:
         if _torch_users == 0:

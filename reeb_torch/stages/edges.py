@@ -226,8 +226,8 @@ def _unit8(v: int) -> float:  # pragma: no cover - compiled
     """A uint8 pixel in [0, 1] as ``x.float().div_(255.0)`` (torch's correctly rounded
     float32 division): a product by 1/255 corrected by its residual (two fused
     multiply-adds; the same float32 as the division for each of the 256 values, tested):
-    0.58x the time of the vectorised division, where a 256-entry table was a gather per
-    pixel (0.45 ms per KITTI image)."""
+    quicker than the vectorised division, and than a 256-entry table, a gather per pixel
+    (timed with ``benchmarks/kernel_ab.py``)."""
     x = np.float32(v)
     q = x * _INV_255
     return _fma(_fma(-q, np.float32(255.0), x), _INV_255, q)
@@ -352,7 +352,7 @@ def _working_gray_kernel(img8: np.ndarray, img: np.ndarray, xlo: np.ndarray, xn:
             for c in range(3):  # on slices from the first output, by an index from 0: the compiler
                 src, dst = f[c, a0:], rows[c, y, i0:i1]  # sees it is never negative and vectorises
                 for t in range(i1 - i0):  # the loop (with 2·i + off, its test for negative indices
-                    a = 2 * t  # kept it scalar: 15x the time of this loop alone)
+                    a = 2 * t  # kept it scalar, many times slower)
                     dst[t] = _fma(src[a + 3], c3, _fma(src[a + 2], c2, _fma(src[a + 1], c1, src[a] * c0)))
         _row_taps(fr, fg, fb, xlo, xn, xw, dr, dg, db, i1, wo)
     wr, wg, wb = np.float32(0.299), np.float32(0.587), np.float32(0.114)
@@ -372,8 +372,8 @@ def _working_gray_kernel(img8: np.ndarray, img: np.ndarray, xlo: np.ndarray, xn:
                 above = green[yo]
             below = green[yo + 1]
             below[0] = 0
-            for i in range(wo):  # the mask first, in a loop the compiler vectorises (the
-                gm[i] = (lg[i] > lr[i]) & (lg[i] > lb[i])  # running count's branch cost 0.3 ms)
+            for i in range(wo):  # the mask first, in a loop the compiler vectorises (not a
+                gm[i] = (lg[i] > lr[i]) & (lg[i] > lb[i])  # branch inside the running count)
             run = 0
             for i in range(wo):
                 run += gm[i]
@@ -415,7 +415,8 @@ def _blur_weights(sigma: float, h: int, w: int, like: Tensor) -> Tensor:
 @functools.lru_cache(maxsize=16)
 def _gaussian_1d(k: int, sigma: float, device: torch.device, dtype: torch.dtype) -> Tensor:
     """kornia's ``get_gaussian_kernel1d(k, sigma)[0]``, built once per setting (building it
-    cost more than the blur of a 621×188 image); the tensor is read, never written."""
+    costs more than a blur of a KITTI image at the working size); the tensor is read, never
+    written."""
     return kornia.filters.get_gaussian_kernel1d(k, sigma, device=device, dtype=dtype)[0]
 
 
@@ -424,8 +425,8 @@ def sobel_gradients(gray: Tensor) -> tuple[Tensor, Tensor]:
     unit step gives 1 (the 3×3 Sobel kernels / 4), replicated borders.
 
     Computed separably with shifted slices (the same numbers as
-    ``kornia.filters.spatial_gradient(..., normalized=True) / 0.5``, several times faster
-    than a one-channel ``conv2d`` on the CPU).
+    ``kornia.filters.spatial_gradient(..., normalized=True) / 0.5``, and faster than a
+    one-channel ``conv2d`` on the CPU).
     """
     p = F.pad(gray, (1, 1, 1, 1), mode="replicate")[:, 0]
     dx = p[:, :, 2:] - p[:, :, :-2]  # (B, H + 2, W)

@@ -32,7 +32,7 @@ from torch import Tensor
 from ._radix import descending_order, kth_largest
 from ._threads import on_two_cores
 
-__all__ = ["nms_top_k", "nms_top_k_many", "nms_windows_cpu"]
+__all__ = ["NO_THIN", "nms_top_k", "nms_top_k_many", "nms_windows_cpu"]
 
 NO_CLASSES = np.zeros(0, np.int64)
 """The empty ``labels`` and ``wanted`` of :func:`_grid_nms_sorted`: stop at ``k`` kept boxes."""
@@ -41,9 +41,10 @@ _GRID_CELLS = 16
 """Cells along the longer side of the boxes' extent in the grid-bucketed kernel."""
 _SIZE_BINS = 32
 """Most log-width (and log-height) bins per cell: IoU > t needs width and height ratios > t.
-In practice the bins' width (at least −log t) caps them first (~26 at t = 0.7): on KITTI's
-candidates, fine size bins halve the kernel's time (3.3 → 1.8 ms/img) and coarse cells
-keep the table small; the result is the same whatever these two constants are."""
+In practice the bins' width (at least −log t) caps them first: fine size bins make the
+kernel faster on KITTI's candidates and coarse cells keep the table small (timed with
+``benchmarks/kernel_ab.py``; docs/results.md, "What makes the CPU path fast"); the result is
+the same whatever these two constants are."""
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -88,8 +89,7 @@ def _box_columns(boxes: np.ndarray):  # pragma: no cover - compiled
 def _size_edges(wmax: float, iou: float):  # pragma: no cover - compiled
     """The size bins of boxes up to ``wmax`` at threshold ``iou``: ``(edge, nb)``, bin ``q``
     holding sizes from ``floor · e^(q · bw)``, found by a binary search of these lower edges
-    (:func:`_size_bin`; no logarithm per box: 0.92x the time); consecutive edges are more
-    than 1/t apart."""
+    (:func:`_size_bin`; no logarithm per box); consecutive edges are more than 1/t apart."""
     floor_ = wmax * 1e-4
     span = np.log(wmax / floor_)
     bw = max(-np.log(min(iou, 0.999)) * 1.01 + 1e-9, span / (_SIZE_BINS - 0.5))
@@ -104,7 +104,7 @@ def _size_edges(wmax: float, iou: float):  # pragma: no cover - compiled
 def _suppressed(head: np.ndarray, base: int, nb: int, bx: int, by: int, ent: np.ndarray, e_next: np.ndarray,
                 ix1, iy1, ix2, iy2, ia, iou: float, zero) -> bool:  # pragma: no cover - compiled
     """Whether a kept box registered in the cell at ``base`` in the 3 × 3 size bins around
-    ``(by, bx)`` (its own first: ~10 % faster) overlaps the box ``ix1, iy1, ix2, iy2`` (area
+    ``(by, bx)`` (its own first: the likeliest to hold it) overlaps the box ``ix1, iy1, ix2, iy2`` (area
     ``ia``) at IoU over ``iou``, with torchvision's arithmetic in the boxes' dtype."""
     for q in range(9):
         bb, ba = by + (q // 3 + 1) % 3 - 1, bx + (q % 3 + 1) % 3 - 1
@@ -164,9 +164,11 @@ def _register(head: np.ndarray, ent: np.ndarray, e_next: np.ndarray, used: int, 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")  # 0/0 -> NaN, as in C++
 def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int, labels: np.ndarray,
-                     wanted: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+                     wanted: np.ndarray, thin_iou: float, thin_aspect: float) -> np.ndarray:  # pragma: no cover
     """Rows of ``boxes`` (``[N, 4]`` x1, y1, x2, y2, best first, finite, x1 <= x2, y1 <= y2)
-    that greedy NMS keeps at threshold ``iou >= 0.5``, the first ``k`` of them, in order.
+    that greedy NMS keeps at threshold ``iou >= 0.5``, the first ``k`` of them, in order; a
+    box narrower than ``thin_aspect`` times its height is suppressed only above
+    ``thin_iou`` where that is higher (:func:`nms_top_k`'s ``thin``).
     With ``wanted`` (``int64 [C]``, else empty) and ``labels`` (``int64 [N]`` in ``0..C-1``, else
     empty): the first ones until ``k`` are kept *and* each class ``c`` has ``wanted[c]`` of its
     boxes among them (or all): what an output quota per class draws from (:data:`NO_CLASSES`)."""
@@ -189,9 +191,8 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int, labels: np.ndarray,
     head = np.full(gw * gh * nb * nb, -1, np.int32)  # per cell and size bin: a linked list
     # of the kept boxes registered there, each entry holding its box (no second lookup):
     # x1, y1, x2, y2 and area side by side in a row of 8 (one cache line per test, where
-    # five arrays took five: 0.85x the time on KITTI's candidates), the links apart; one
-    # flat array read at unsigned offsets (no test for negative indices; a 2-D array took
-    # ~0.3 s longer to compile)
+    # five arrays take five), the links apart; one flat array read at unsigned offsets (no
+    # test for negative indices, and quicker to compile than a 2-D array)
     cap = 4 * n + 64
     ent, e_next = np.empty(cap * 8, boxes.dtype), np.empty(cap, np.int32)
     used = 0
@@ -204,7 +205,10 @@ def _grid_nms_sorted(boxes: np.ndarray, iou: float, k: int, labels: np.ndarray,
         ix1, iy1, ix2, iy2, ia = x1[i], y1[i], x2[i], y2[i], areas[i]
         bx = _size_bin(edge, float(ix2) - float(ix1))
         by = _size_bin(edge, float(iy2) - float(iy1))
-        if _suppressed(head, (cy * gw + cx) * nb * nb, nb, bx, by, ent, e_next, ix1, iy1, ix2, iy2, ia, iou, zero):
+        t = iou  # (a higher threshold suppresses fewer: the grid built for iou holds every pair over it)
+        if thin_iou > iou and float(ix2) - float(ix1) < thin_aspect * (float(iy2) - float(iy1)):
+            t = thin_iou
+        if _suppressed(head, (cy * gw + cx) * nb * nb, nb, bx, by, ent, e_next, ix1, iy1, ix2, iy2, ia, t, zero):
             continue
         keep[nk] = i
         nk += 1
@@ -229,10 +233,16 @@ def _grid_ok(boxes: Tensor, iou: float) -> bool:
     return bool((boxes[:, 2] >= boxes[:, 0]).all() and (boxes[:, 3] >= boxes[:, 1]).all())
 
 
-def nms_top_k(boxes: Tensor, scores: Tensor, iou: float, k: int, first: int | None = None) -> Tensor:
+NO_THIN = (0.0, 0.0)
+"""``thin`` of :func:`nms_top_k`: one threshold for every box."""
+
+
+def nms_top_k(boxes: Tensor, scores: Tensor, iou: float, k: int, first: int | None = None,
+              thin: tuple[float, float] = NO_THIN) -> Tensor:
     """Indices (into ``boxes``) of the first ``k`` boxes greedy NMS keeps, best first.
 
-    Equal to ``torchvision.ops.nms(boxes, scores, iou)[:k]``, ties included.
+    Equal to ``torchvision.ops.nms(boxes, scores, iou)[:k]``, ties included (with ``thin``,
+    a greedy NMS of the same order whose threshold is ``thin_iou`` for the thin boxes).
 
     Args:
         boxes: ``float [N, 4]`` (x1, y1, x2, y2), CPU or CUDA.
@@ -241,18 +251,25 @@ def nms_top_k(boxes: Tensor, scores: Tensor, iou: float, k: int, first: int | No
         k: number of boxes wanted.
         first: initial prefix length on the torchvision path (default ``2k``); the
             compiled CPU path stops at ``k`` kept by itself and ignores it.
+        thin: ``(thin_iou, thin_aspect)``: a box narrower than ``thin_aspect`` times its
+            height is suppressed only by a kept box it overlaps at IoU over ``thin_iou``
+            (where that is above ``iou``): thin boxes (a person) whose loose and tight boxes
+            overlap more than wide ones' do. :data:`NO_THIN`: ``iou`` for every box.
 
     Returns:
         ``int64 [min(k, kept)]`` on ``boxes``' device.
     """
-    return nms_top_k_many([(boxes, scores)], iou, k, first)[0]
+    return nms_top_k_many([(boxes, scores)], iou, k, first, thin)[0]
 
 
-def _torchvision_sorted(order: Tensor, sboxes: Tensor, iou: float, k: int, first: int | None = None) -> Tensor:
+def _torchvision_sorted(order: Tensor, sboxes: Tensor, iou: float, k: int, first: int | None = None,
+                        thin: tuple[float, float] = NO_THIN) -> Tensor:
     """The torchvision path of :func:`nms_top_k` on boxes already sorted by ``order``:
     ``nms`` on a growing prefix of the ranking (a box's fate depends only on the boxes
-    ranked above it)."""
-    from torchvision.ops import nms  # here: its import takes ~2.7 s (torch._dynamo); the compiled path needs none
+    ranked above it); with ``thin``, a greedy loop in tensor ops (:func:`_greedy_thin`)."""
+    if thin[0] > iou:
+        return order[_greedy_thin(sboxes, iou, thin, k)]
+    from torchvision.ops import nms  # here: its import is slow (torch._dynamo); the compiled path needs none
 
     n = sboxes.shape[0]
     rank_score = torch.arange(n, 0, -1, device=sboxes.device, dtype=torch.float32)  # strict order
@@ -264,8 +281,28 @@ def _torchvision_sorted(order: Tensor, sboxes: Tensor, iou: float, k: int, first
         p = n
 
 
+def _greedy_thin(sboxes: Tensor, iou: float, thin: tuple[float, float], k: int) -> Tensor:
+    """Greedy NMS of boxes sorted best first with :func:`nms_top_k`'s ``thin`` thresholds, in
+    tensor ops on the boxes' device (a box at a time: the path of devices other than the
+    CPU); the first ``k`` kept, ``int64``. The IoU in the boxes' dtype, as torchvision's."""
+    from torchvision.ops import box_iou
+
+    w, h = sboxes[:, 2] - sboxes[:, 0], sboxes[:, 3] - sboxes[:, 1]
+    limit = torch.where(w < thin[1] * h, max(thin[0], iou), iou).tolist()
+    kept: list[int] = []
+    kept_boxes = sboxes[:0]
+    for i in range(len(sboxes)):
+        if len(kept) >= k:
+            break
+        if len(kept) and bool((box_iou(sboxes[i: i + 1], kept_boxes)[0] > limit[i]).any()):
+            continue
+        kept.append(i)
+        kept_boxes = sboxes[kept]
+    return torch.tensor(kept, dtype=torch.long, device=sboxes.device)
+
+
 def nms_top_k_many(pairs: list[tuple[Tensor, Tensor]], iou: float, k: int,
-                   first: int | None = None) -> list[Tensor]:
+                   first: int | None = None, thin: tuple[float, float] = NO_THIN) -> list[Tensor]:
     """:func:`nms_top_k` of each ``(boxes, scores)`` pair (the images of a batch): the
     compiled CPU kernels of the images run two at a time (they release the GIL) after the
     sorting, which stays in torch."""
@@ -280,12 +317,12 @@ def nms_top_k_many(pairs: list[tuple[Tensor, Tensor]], iou: float, k: int,
         if _grid_ok(sboxes, iou):
             todo.append((i, order, sboxes.contiguous().numpy()))
         else:
-            out[i] = _torchvision_sorted(order, sboxes, iou, k, first)
+            out[i] = _torchvision_sorted(order, sboxes, iou, k, first, thin)
     kept: list[np.ndarray | None] = [None] * len(todo)
 
     def run(lo: int, hi: int) -> None:
         for j in range(lo, hi):
-            kept[j] = _grid_nms_sorted(todo[j][2], float(iou), int(k), NO_CLASSES, NO_CLASSES)
+            kept[j] = _grid_nms_sorted(todo[j][2], float(iou), int(k), NO_CLASSES, NO_CLASSES, *map(float, thin))
 
     on_two_cores(run, len(todo))
     for (i, order, _), keep in zip(todo, kept):
@@ -295,7 +332,7 @@ def nms_top_k_many(pairs: list[tuple[Tensor, Tensor]], iou: float, k: int,
 
 def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k: int,
                     boxes_ok: bool | None = None, classes: Tensor | None = None,
-                    need: Tensor | None = None) -> list[Tensor] | None:
+                    need: Tensor | None = None, thin: tuple[float, float] = NO_THIN) -> list[Tensor] | None:
     """For each image ``b``, the windows (indices into ``boxes``) that
     ``nms_top_k(boxes[c], scores[b, c], iou, k)`` keeps, best first, with ``c`` the
     chosen windows ``chosen[b].nonzero()``: the same indices (tested), but the whole
@@ -315,6 +352,7 @@ def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k
             group has its ``need`` among them (or the candidates run out), so that the quota's
             output is the same as from all of them (the first boxes of each group and the best
             of the rest all lie in that prefix).
+        thin: :func:`nms_top_k`'s.
 
     Returns ``None`` where this path does not apply (not CPU float32, ``iou < 0.5``); an
     image whose candidates hold NaN scores or boxes that are not finite with
@@ -338,14 +376,16 @@ def nms_windows_cpu(chosen: Tensor, boxes: Tensor, scores: Tensor, iou: float, k
     def run(lo: int, hi: int) -> None:
         for i in range(lo, hi):
             out[i] = _nms_window_image(ch[i], bx, sc[i], float(iou), int(k), boxes_ok,
-                                       cl[i] if cl is not None else None, nd[i] if nd is not None else NO_CLASSES)
+                                       cl[i] if cl is not None else None, nd[i] if nd is not None else NO_CLASSES,
+                                       thin)
 
     on_two_cores(run, ch.shape[0])
     result = []
     for i, keep in enumerate(out):
         if keep is None:  # NaN or bad boxes: the checked path
             cand = torch.nonzero(chosen[i]).squeeze(1)
-            result.append(cand[nms_top_k(boxes[cand], scores[i, cand], iou, k if cl is None else len(cand))])
+            result.append(cand[nms_top_k(boxes[cand], scores[i, cand], iou, k if cl is None else len(cand),
+                                         thin=thin)])
         else:
             result.append(torch.from_numpy(keep))
     return result
@@ -367,7 +407,7 @@ prefix keeps fewer than ``k`` does it sort and suppress all of them."""
 
 def _nms_window_image(chosen: np.ndarray, boxes: np.ndarray, scores: np.ndarray, iou: float, k: int,
                       boxes_ok: bool, classes: np.ndarray | None = None,
-                      need: np.ndarray = NO_CLASSES) -> np.ndarray | None:
+                      need: np.ndarray = NO_CLASSES, thin: tuple[float, float] = NO_THIN) -> np.ndarray | None:
     """:func:`nms_windows_cpu` for one image, in compiled steps (each its own kernel, so each
     compiles on its own and quickly); ``None`` where the checked path must run.
     ``boxes_ok``: every row of ``boxes`` is finite with ``x1 <= x2, y1 <= y2`` (checked
@@ -382,7 +422,7 @@ def _nms_window_image(chosen: np.ndarray, boxes: np.ndarray, scores: np.ndarray,
     if boxes_ok and 0 < m < len(cand) and classes is None:  # (a quota's needs often outrun the prefix)
         sel = np.flatnonzero(vals >= kth_largest(vals, m))  # the best m and their ties, in window order
         order, sb, _ = _sorted_boxes(sel, cand, vals, boxes)  # valid: boxes_ok
-        keep = _grid_nms_sorted(sb, iou, k, NO_CLASSES, NO_CLASSES)
+        keep = _grid_nms_sorted(sb, iou, k, NO_CLASSES, NO_CLASSES, *map(float, thin))
         if len(keep) == k:
             return cand[sel[order[keep]]]
     sel = np.arange(len(cand))
@@ -390,15 +430,15 @@ def _nms_window_image(chosen: np.ndarray, boxes: np.ndarray, scores: np.ndarray,
     if not ok:
         return None
     labels = classes[cand[order]] if classes is not None else NO_CLASSES
-    return cand[order[_grid_nms_sorted(sb, iou, k, labels, need)]]
+    return cand[order[_grid_nms_sorted(sb, iou, k, labels, need, *map(float, thin))]]
 
 
 @numba.njit(cache=True, nogil=True)
 def _candidate_scores(chosen: np.ndarray, scores: np.ndarray):  # pragma: no cover - compiled
     """The chosen windows (ascending), their float32 scores, and whether one is NaN: a
     counting pass, then one pass that writes every window at the next free place and moves
-    on only past a chosen one (no branch per window: 0.62x the time of ``np.nonzero`` and
-    a gather on KITTI's 50 000-170 000 windows)."""
+    on only past a chosen one (no branch per window, where ``np.nonzero`` and a gather
+    would take one)."""
     n = chosen.shape[0]
     m = 0
     for i in range(n):

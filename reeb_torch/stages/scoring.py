@@ -89,8 +89,8 @@ def _integral_kernel(x: np.ndarray, out: np.ndarray) -> None:  # pragma: no cove
 
     Four rows at a time: a row's running sum is a chain of dependent float64 additions
     (one per pixel, each waiting for the last), and four independent chains side by side
-    keep the core busy; every entry is the same two additions as row by row
-    (``benchmarks/kernel_ab.py``: 0.84× the time at batch 8, 0.94× at batch 1)."""
+    keep the core busy; every entry is the same two additions as row by row (timed with
+    ``benchmarks/kernel_ab.py``; docs/results.md, "What makes the CPU path fast")."""
     nb, h, w = x.shape
     for b in range(nb):
         out[b, 0].fill(0)
@@ -433,7 +433,7 @@ def row_order(plan: np.ndarray) -> np.ndarray:
     """The window rows of ``plan`` (:data:`PLAN_COLUMNS`), ``int64 [Σ ny, 2]`` (size, row),
     by their bottom row, then size: rows that read the same table rows (four of the five
     tables at the bottom, the grey strips) come together while those rows are in cache
-    (0.95x the scoring kernel's time of size by size, measured on KITTI's windows)."""
+    (timed against size by size with ``benchmarks/kernel_ab.py``)."""
     ny = plan[:, 5]
     k = np.repeat(np.arange(plan.shape[0], dtype=np.int64), ny)
     j = np.arange(int(ny.sum()), dtype=np.int64) - np.repeat(np.cumsum(ny) - ny, ny)
