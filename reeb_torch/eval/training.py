@@ -20,10 +20,14 @@ __all__ = ["Schedule", "fit_member", "logistic_loss", "class_loss", "quality_row
 class Schedule(Protocol):
     """What :func:`fit_member` reads of its options (:class:`~reeb_torch.eval.fit.FitOptions` has it)."""
 
-    epochs: int
-    batch: int
-    lr: float
-    weight_decay: float
+    @property
+    def epochs(self) -> int: ...
+    @property
+    def batch(self) -> int: ...
+    @property
+    def lr(self) -> float: ...
+    @property
+    def weight_decay(self) -> float: ...
 
 
 def logistic_loss(logits: Tensor, y: Tensor, w: Tensor) -> Tensor:
