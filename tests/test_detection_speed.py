@@ -170,17 +170,18 @@ def test_a_second_box_pass_pools_the_regressed_boxes(images):
     detections are the first pass's."""
     from dataclasses import replace
 
+    tiny = replace(TINY, precision="float32")  # the box head in float32: the same products each pass
     torch.manual_seed(0)
-    det = ReebDetector(settings=TINY)
+    det = ReebDetector(settings=tiny)
     one = det(images[:1])[0]
-    det.settings = replace(TINY, box_passes=2)
+    det.settings = replace(tiny, box_passes=2)
     two = det(images[:1])[0]
     assert len(two["boxes"]) and not torch.equal(one["boxes"], two["boxes"])
     torch.nn.init.zeros_(det.model.roi_heads.box_predictor.bbox_pred.weight)
     torch.nn.init.zeros_(det.model.roi_heads.box_predictor.bbox_pred.bias)
-    det.settings = TINY
+    det.settings = tiny
     one = det(images[:1])[0]
-    det.settings = replace(TINY, box_passes=2)
+    det.settings = replace(tiny, box_passes=2)
     two = det(images[:1])[0]
     torch.testing.assert_close(two["boxes"], one["boxes"])
     torch.testing.assert_close(two["scores"], one["scores"], atol=1e-6, rtol=1e-5)

@@ -228,9 +228,9 @@ def test_a_ranker_named_by_path_and_replaced_by_junk_is_one_line(fitted, tmp_pat
 
 # -- the cache: damaged entries recomputed, a full disk or a read-only folder --------------------
 
-def test_damaged_cache_entries_are_recomputed(tiny_kitti, detector_cache, tmp_path):
+def test_damaged_cache_entries_are_recomputed(tiny_kitti, tmp_path):
     cache = tmp_path / "cache"
-    shutil.copytree(detector_cache, cache)
+    assert _fit(tiny_kitti, "-o", tmp_path / "first.safetensors", cache=cache).exit_code == 0  # the entries
     entries = sorted((cache / "features").rglob("*.pt"))
     assert len(entries) >= 2
     entries[0].write_bytes(entries[0].read_bytes()[:1000])  # cut short
@@ -294,3 +294,26 @@ def test_a_black_frame_is_said_to_have_no_edges(tmp_path):
     rows = [json.loads(line) for line in out.read_text().splitlines()]
     assert [r["status"] for r in rows] == ["ok", "ok"] and all(r["boxes"] == [] for r in rows)
     assert no_temp_files(tmp_path)
+
+
+def test_fit_skips_the_rows_above_the_labels_unless_told(tiny_kitti, detector_cache, tmp_path):
+    """--crop-top auto (the default): the share above the labels' highest object, less a
+    margin (crop_from_labels), stored in the file and said; a number is taken as given."""
+    from reeb_torch.detection.fitting import crop_from_labels
+    from reeb_torch.detection.kitti import load_frames
+
+    expected = crop_from_labels(load_frames([tiny_kitti], ("Car", "Pedestrian", "Cyclist")))
+    res = _fit(tiny_kitti, "-o", tmp_path / "auto.safetensors", cache=detector_cache)
+    assert res.exit_code == 0, res.output
+    assert ReebDetector.load(tmp_path / "auto.safetensors").settings.crop_top == expected
+    assert f"skips the top {expected:g}" in res.output
+    res = _fit(tiny_kitti, "-o", tmp_path / "none.safetensors", "--crop-top", "0", cache=detector_cache)
+    assert res.exit_code == 0 and "skips the top" not in res.output, res.output
+    assert ReebDetector.load(tmp_path / "none.safetensors").settings.crop_top == 0.0
+    assert "--crop-top" in _one_line_error(_fit(tiny_kitti, "-o", tmp_path / "x.safetensors", "--crop-top", "top"))
+
+
+def test_settings_default_to_bfloat16_and_a_file_without_the_field_was_float32():
+    assert DetectorSettings().precision == "bfloat16"
+    assert DetectorSettings.from_dict({}).precision == "float32"
+    assert DetectorSettings.from_dict({"precision": "bfloat16"}).precision == "bfloat16"

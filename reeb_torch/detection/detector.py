@@ -76,12 +76,15 @@ class DetectorSettings:
         min_size, max_size: the input resize (shorter side; bound on the longer side).
         neck_channels: channels of the neck and the pooled RoI features.
         representation_size: units of each of the box head's two fully connected layers.
-        precision: the frozen backbone's, ``"float32"`` or ``"bfloat16"``: the heads are
-            trained on the maps it gives, and detection computes them the same way where
-            the device computes bfloat16 natively (otherwise in float32, with a warning).
+        precision: the frozen backbone's, ``"bfloat16"`` (the default) or ``"float32"``:
+            the heads are trained on the maps it gives, and detection computes them the same
+            way where the device computes bfloat16 natively (otherwise in float32, with a
+            warning). A file without this field was trained on float32 maps.
         crop_top: the share of the resized image's height, from the top, that the backbone
             skips (rounded down to a multiple of 32 rows; 0: none): rows where no object of
-            the classes lies (``reeb detector fit`` sets it from the training labels).
+            the classes lies (``ReebDetector.fit(auto_crop=True)`` and ``reeb detector fit``
+            set it from the training labels: :func:`~reeb_torch.detection.fitting.
+            crop_from_labels`).
         box_passes: the box head's passes in detection: each after the first pools the boxes
             the last one regressed and averages its class scores in (training is one pass).
         proposals_train, proposals_test: REEB proposals per image handed to the box head.
@@ -95,7 +98,7 @@ class DetectorSettings:
     max_size: int = 2048
     neck_channels: int = 128
     representation_size: int = 1024
-    precision: Literal["float32", "bfloat16"] = "float32"
+    precision: Literal["float32", "bfloat16"] = "bfloat16"
     crop_top: float = 0.0
     box_passes: int = 1
     proposals_train: int = 2000
@@ -124,7 +127,7 @@ class DetectorSettings:
         unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
         if unknown:
             raise ValueError(f"{owner} has fields this version does not know: {', '.join(map(str, unknown))}")
-        return cls(**_checked_settings(owner, d))
+        return cls(**_checked_settings(owner, {"precision": "float32", **d}))
 
 
 SETTINGS_RANGES: dict[str, str | None] = {
@@ -396,18 +399,21 @@ class ReebDetector(nn.Module):
             proposals: str = "default", epochs: int = 12, seed: int = 0,
             settings: DetectorSettings = DetectorSettings(), training: TrainSettings | None = None,
             cache_dir: str | os.PathLike | None = None, limit: int | None = None, hflip: bool = False,
-            progress: bool = True, command: str | None = None) -> ReebDetector:
+            auto_crop: bool = False, progress: bool = True, command: str | None = None) -> ReebDetector:
         """Train a detector on labelled KITTI-format ``folders`` (:func:`~reeb_torch.
         detection.fitting.fit_detector`: the backbone's maps and REEB's proposals cached
         per frame under ``cache_dir``, the heads trained for ``epochs`` with ``seed``);
         deterministic for a seed. ``training`` overrides the optimiser's settings
-        (its ``epochs``, ``seed`` and ``hflip`` are these arguments')."""
+        (its ``epochs``, ``seed`` and ``hflip`` are these arguments'); ``auto_crop``: the
+        settings' ``crop_top`` from the training labels instead (:func:`~reeb_torch.
+        detection.fitting.crop_from_labels`)."""
         from .fitting import fit_detector
 
         base = training or TrainSettings()
         train = dataclasses.replace(base, epochs=epochs, seed=seed, hflip=hflip)
         return fit_detector(cls, folders, classes=classes, proposals=proposals, settings=settings, training=train,
-                            cache_dir=cache_dir, limit=limit, progress=progress, command=command)
+                            cache_dir=cache_dir, limit=limit, auto_crop=auto_crop, progress=progress,
+                            command=command)
 
     def extra_repr(self) -> str:
         return f"classes={self.classes}, proposals={self.proposals['spec']!r}, settings={self.settings}"

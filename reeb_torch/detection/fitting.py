@@ -103,9 +103,11 @@ def _provenance(items: Sequence[dict], folders: Sequence[str | os.PathLike], tra
 
 def fit_detector(cls: type, folders: Sequence[str | os.PathLike], *, classes: Sequence[str], proposals: str,
                  settings: Any, training: TrainSettings, cache_dir: str | os.PathLike | None = None,
-                 limit: int | None = None, progress: bool = True, command: str | None = None) -> Any:
+                 limit: int | None = None, auto_crop: bool = False, progress: bool = True,
+                 command: str | None = None) -> Any:
     """A ``cls`` (:class:`~reeb_torch.detection.ReebDetector`) trained on ``folders`` (module
     doc; a folder named twice is read once); ``det.history``: ``{"losses", "steps", "train_s"}``.
+    ``auto_crop``: ``settings.crop_top`` from the frames' labels (:func:`crop_from_labels`).
 
     Raises:
         ValueError: a folder without labels, no frame, or no object of ``classes``.
@@ -116,6 +118,8 @@ def fit_detector(cls: type, folders: Sequence[str | os.PathLike], *, classes: Se
         raise ValueError(f"no frames in {', '.join(map(str, folders))}")
     if not sum(len(it["boxes"]) for it in items):
         raise ValueError(f"no object of {', '.join(classes)} in {', '.join(map(str, folders))}")
+    if auto_crop:
+        settings = dataclasses.replace(settings, crop_top=crop_from_labels(items))
     return train_detector(cls, items, folders, classes=classes, proposals=proposals, settings=settings,
                           training=training, cache_dir=cache_dir, progress=progress, command=command)
 

@@ -71,6 +71,17 @@ class FiniteFloat(click.FloatRange):
         return rv
 
 
+class FloatOrAuto(FiniteFloat):
+    """:class:`FiniteFloat`, or the word ``auto`` (kept as the string ``"auto"``)."""
+
+    name = "float|auto"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if isinstance(value, str) and value.strip().lower() == "auto":
+            return "auto"
+        return super().convert(value, param, ctx)
+
+
 # -- options shared by the commands -----------------------------------------------------
 
 device_option = click.option("--device", default="auto", show_default=True,

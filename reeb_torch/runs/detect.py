@@ -23,7 +23,7 @@ from typing import Any
 
 import click
 
-from .common import CONTEXT, Failure, FiniteFloat, UsageProblem
+from .common import CONTEXT, Failure, FloatOrAuto, UsageProblem
 from .detector_fit import SettingRange, check_cache, check_frames, claim_weights_out, distinct, train, warnings_as_lines
 
 __all__ = ["detector", "fit", "show"]
@@ -53,7 +53,8 @@ def fit_settings(params: dict[str, Any]) -> Any:
     parameters (``params``: the command's, as click parses them)."""
     from ..detection import DetectorSettings
 
-    return DetectorSettings(**{field: params[name] for name, field in SETTINGS_OPTIONS.items() if name in params})
+    return DetectorSettings(**{field: params[name] for name, field in SETTINGS_OPTIONS.items()
+                               if name in params and params[name] != "auto"})
 
 
 def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
@@ -81,19 +82,20 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
               help="Labelled folder kept out of training: its KITTI AP|R40 is printed and stored (repeatable).")
 @click.option("--hflip", is_flag=True, help="Train on each frame's mirror image half of the time.")
 @click.option("--min-size", type=SettingRange("min_size"), default=576, show_default=True,
-              help="Shorter side of the resized input, pixels; the backbone's time grows about with its square "
-                   "(KITTI frames: 375 runs about 2x faster on a CPU and finds fewer small pedestrians).")
+              help="Shorter side of the resized input, pixels; the backbone's time grows about with its square, "
+                   "and small objects are lost as it shrinks.")
 @click.option("--max-size", type=SettingRange("max_size"), default=2048, show_default=True,
               help="Bound on the longer side of the resized input.")
 @click.option("--train-proposals", type=SettingRange("proposals_train"), default=2000, show_default=True,
               help="REEB proposals per image in training.")
 @click.option("--test-proposals", type=SettingRange("proposals_test"), default=1000, show_default=True,
               help="REEB proposals per image in detection (the heads' time grows with it).")
-@click.option("--precision", type=click.Choice(["float32", "bfloat16"]), default="float32", show_default=True,
+@click.option("--precision", type=click.Choice(["bfloat16", "float32"]), default="bfloat16", show_default=True,
               help="The frozen backbone's precision; the heads train on its maps and detection uses the same "
                    "(bfloat16 where the CPU or GPU computes it natively, float32 elsewhere).")
-@click.option("--crop-top", type=FiniteFloat(0, 0.9), default=0.0, show_default=True,
-              help="Share of the image's height, from the top, the backbone skips (rows where no object lies).")
+@click.option("--crop-top", type=FloatOrAuto(0, 0.9), default="auto", show_default=True, metavar="SHARE|auto",
+              help="Share of the image's height, from the top, the backbone skips (rows where no object lies); "
+                   "auto: above the highest object of the training labels, less a margin.")
 @click.option("--neck-channels", type=SettingRange("neck_channels"), default=128, show_default=True,
               help="Channels of the neck and of the pooled RoI features.")
 @click.option("--head-width", type=SettingRange("representation_size"), default=1024, show_default=True,
@@ -129,7 +131,7 @@ def fit(dirs, out, overwrite, proposals, classes, epochs, seed, val, hflip, min_
                        + (["--limit", str(limit)] if limit else []))
     with warnings_as_lines():
         det, lines = train(dirs, val, names, proposals, epochs, seed, settings, cache_dir, limit, hflip, quiet,
-                           command)
+                           command, auto_crop=crop_top == "auto")
     try:
         det.save(path)
     except OSError as e:

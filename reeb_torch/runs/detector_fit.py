@@ -156,7 +156,7 @@ def warnings_as_lines() -> Iterator[None]:
 
 def train(dirs: Sequence[str], val: Sequence[str], names: tuple[str, ...], proposals: str, epochs: int, seed: int,
            settings: Any, cache_dir: str | None, limit: int | None, hflip: bool, quiet: bool,
-           command: str) -> tuple[Any, list[str]]:
+           command: str, auto_crop: bool = False) -> tuple[Any, list[str]]:
     """``reeb detector fit``'s work once its inputs are checked: the trained detector (its
     ``--val`` scores in its provenance) and the lines that tell of it."""
     from ..detection import ReebDetector, evaluate_detector, format_scores
@@ -165,13 +165,16 @@ def train(dirs: Sequence[str], val: Sequence[str], names: tuple[str, ...], propo
     try:
         det: Any = ReebDetector.fit(dirs, classes=names, proposals=proposals, epochs=epochs, seed=seed,
                                     settings=settings, cache_dir=cache_dir, limit=limit, hflip=hflip,
-                                    progress=not quiet, command=command)  # its history: set by fit
+                                    auto_crop=auto_crop, progress=not quiet, command=command)  # its history: set by fit
     except (ValueError, FileNotFoundError, ImportError) as e:
         raise UsageProblem(" ".join(str(e).split()))
     prov = det.meta["provenance"]
     lines = [f"trained on {len(prov['frames'])} frames ("
              + ", ".join(f"{n} {c}" for c, n in prov["objects"].items()) + f"): {det.history['steps']} steps, "
              f"{det.history['train_s']:.0f} s of head training, {time.perf_counter() - t0:.0f} s in all"]
+    if auto_crop:
+        lines.append(f"the backbone skips the top {det.settings.crop_top:g} of each image's height (above the "
+                     "labels' highest object; --crop-top to choose)")
     if val:
         try:
             scores = evaluate_detector(det, val, cache_dir=cache_dir, progress=not quiet, seed=seed)
