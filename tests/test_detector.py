@@ -429,3 +429,20 @@ def test_a_ranker_file_laid_out_otherwise_is_named_by_path(tmp_path):
     assert not det.ranker_embedded
     keys, entries = _entries(det.save(tmp_path / "det.safetensors"))
     assert set(entries) == {"reeb-detector"} and not any(k.startswith("proposals_ranker.") for k in keys)
+
+
+def test_the_shipped_detector_finds_the_bundled_frames_cars():
+    """``ReebDetector.load("kitti")``: the detector shipped in the package (fitted on 106 KITTI
+    frames, the bundled ones among them) puts a confident box on each moderate car of one."""
+    from torchvision.ops import box_iou
+
+    det = ReebDetector.load("kitti")
+    assert det.classes == ("Car", "Pedestrian", "Cyclist") and det.settings.crop_top > 0
+    assert len(det.meta["provenance"]["frames"]) == 106
+    root = Path(__file__).resolve().parents[1] / "examples" / "data"
+    found = det([read_image(root / "kitti_000008.png")])[0]
+    cars = torch.tensor([o.box for o in read_kitti_labels(root / "kitti_000008.txt", ["Car"])
+                         if o.occluded <= 1 and o.box[3] - o.box[1] >= 25])  # KITTI's moderate cars
+    assert len(cars) == 4
+    hits = box_iou(cars, found["boxes"][(found["labels"] == 1) & (found["scores"] > 0.5)])
+    assert (hits.max(1).values > 0.7).all(), hits.max(1).values

@@ -630,8 +630,9 @@ main.add_command(_detector)
               help="Keep detections scoring at least this (in every output).")
 @click.option("--viz-min-score", type=FiniteFloat(0, 1), default=0.3, show_default=True,
               help="Draw detections scoring at least this in the --viz pictures.")
-@click.option("-b", "--batch-size", type=click.IntRange(min=1), default=1, show_default=True,
-              help="Images run through the detector together.")
+@click.option("-b", "--batch-size", type=click.IntRange(min=1), default=8, show_default=True,
+              help="Images run through the detector together (REEB's proposals as one batch; on a CPU the "
+                   "backbone still takes them one by one).")
 @click.option("-j", "--workers", type=click.IntRange(min=0), default=None,
               help="Decoding processes beside the detector (0 = decode inline). [default: min(2, CPUs)]")
 @device_option
