@@ -41,7 +41,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import environment, rerun_line  # noqa: E402
-from detector_paired import _mean_scores, fit_options, parse_arm  # noqa: E402
+from detector_paired import _mean_scores, fit_options, parse_arm, parse_with_arms  # noqa: E402
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -55,14 +55,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--work", type=Path, help="keep each fold's ranking and each arm's detections here")
     p.add_argument("--cache", type=Path, help="backbone-map and proposal cache [default: reeb's]")
     p.add_argument("--limit", type=int, help="only the first N frames of each folder")
-    p.add_argument("--samples", type=int, default=1000, help="bootstrap draws")
-    p.add_argument("--seed", type=int, default=0, help="the bootstrap's seed")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
-    args = p.parse_args(argv)
-    names = [n for n, _ in args.arm]
-    if len(args.arm) < 2 or len(set(names)) != len(names):
-        p.error(f"give two or more --arm with distinct names (got {names})")
-    return args
+    return parse_with_arms(p, argv)
 
 
 def training_sides(items: list[dict], folds: int) -> tuple[list[list[int]], list[list[int]]]:

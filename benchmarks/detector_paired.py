@@ -69,6 +69,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--seeds", type=int, nargs="+", metavar="S",
                    help="fit every arm with each of these seeds and compare the arms' mean AP over them "
                         "(default: each arm's own --seed, once)")
+    return parse_with_arms(p, argv)
+
+
+def parse_with_arms(p: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """``p``'s arguments with the options every paired benchmark shares (``--samples``,
+    ``--seed``, ``-q``), checked for two or more ``--arm`` of distinct names."""
     p.add_argument("--samples", type=int, default=1000, help="bootstrap draws")
     p.add_argument("--seed", type=int, default=0, help="the bootstrap's seed")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")

@@ -42,6 +42,30 @@ def _corner(v: Any, size: int) -> tuple[int, int, Any]:
     return low, low + 1, np.float32(v - np.float32(low))
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _box_bins(boxes: Any, n: int, s: Any, pooled: Any) -> tuple[Any, Any, Any, Any]:
+    """Box ``n``'s corner on the level (``x0``, ``y0``) and its bins' width and height, as
+    torchvision computes them (a box at least 1 level pixel wide and high)."""
+    x0, y0 = boxes[n, 0] * s, boxes[n, 1] * s
+    roi_w = max(boxes[n, 2] * s - x0, np.float32(1.0))
+    roi_h = max(boxes[n, 3] * s - y0, np.float32(1.0))
+    return x0, y0, roi_w / pooled, roi_h / pooled
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _sample(y: Any, x: Any, height: int, width: int) -> tuple[bool, int, int, int, int, Any, Any, Any, Any]:
+    """The bilinear sample at ``(y, x)``: whether it counts (inside ``[-1, size]``), its
+    corners ``yl, yh, xl, xh`` and their weights ``w1..w4`` (top-left, top-right,
+    bottom-left, bottom-right)."""
+    zero = np.float32(0.0)
+    if y < -1.0 or y > height or x < -1.0 or x > width:
+        return False, 0, 0, 0, 0, zero, zero, zero, zero
+    yl, yh, ly = _corner(y, height)
+    xl, xh, lx = _corner(x, width)
+    hy, hx = np.float32(1.0) - ly, np.float32(1.0) - lx
+    return True, yl, yh, xl, xh, hy * hx, hy * lx, ly * hx, ly * lx
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _pool_range(data, boxes, scale, out_size, sampling, out, lo, hi):  # pragma: no cover - compiled
     """``out[n]`` (``[out_size, out_size, C]``) for the boxes ``lo..hi-1`` of one level:
@@ -54,10 +78,7 @@ def _pool_range(data, boxes, scale, out_size, sampling, out, lo, hi):  # pragma:
     pooled = np.float32(out_size)
     acc = np.zeros(channels, np.float32)
     for n in range(lo, hi):
-        x0, y0 = boxes[n, 0] * s, boxes[n, 1] * s
-        roi_w = max(boxes[n, 2] * s - x0, np.float32(1.0))
-        roi_h = max(boxes[n, 3] * s - y0, np.float32(1.0))
-        bin_w, bin_h = roi_w / pooled, roi_h / pooled
+        x0, y0, bin_w, bin_h = _box_bins(boxes, n, s, pooled)
         for ph in range(out_size):
             for pw in range(out_size):
                 acc[:] = 0
@@ -65,12 +86,9 @@ def _pool_range(data, boxes, scale, out_size, sampling, out, lo, hi):  # pragma:
                     y = y0 + np.float32(ph) * bin_h + np.float32(iy + 0.5) * bin_h / grid
                     for ix in range(sampling):
                         x = x0 + np.float32(pw) * bin_w + np.float32(ix + 0.5) * bin_w / grid
-                        if y < -1.0 or y > height or x < -1.0 or x > width:
+                        inside, yl, yh, xl, xh, w1, w2, w3, w4 = _sample(y, x, height, width)
+                        if not inside:
                             continue
-                        yl, yh, ly = _corner(y, height)
-                        xl, xh, lx = _corner(x, width)
-                        hy, hx = np.float32(1.0) - ly, np.float32(1.0) - lx
-                        w1, w2, w3, w4 = hy * hx, hy * lx, ly * hx, ly * lx
                         for c in range(channels):
                             acc[c] += (w1 * data[yl, xl, c] + w2 * data[yl, xh, c]
                                        + w3 * data[yh, xl, c] + w4 * data[yh, xh, c])
@@ -90,22 +108,16 @@ def _grad_range(grad, boxes, scale, out_size, sampling, out, c_lo, c_hi):  # pra
     count = np.float32(sampling * sampling)
     pooled = np.float32(out_size)
     for n in range(boxes.shape[0]):
-        x0, y0 = boxes[n, 0] * s, boxes[n, 1] * s
-        roi_w = max(boxes[n, 2] * s - x0, np.float32(1.0))
-        roi_h = max(boxes[n, 3] * s - y0, np.float32(1.0))
-        bin_w, bin_h = roi_w / pooled, roi_h / pooled
+        x0, y0, bin_w, bin_h = _box_bins(boxes, n, s, pooled)
         for ph in range(out_size):
             for pw in range(out_size):
                 for iy in range(sampling):
                     y = y0 + np.float32(ph) * bin_h + np.float32(iy + 0.5) * bin_h / grid
                     for ix in range(sampling):
                         x = x0 + np.float32(pw) * bin_w + np.float32(ix + 0.5) * bin_w / grid
-                        if y < -1.0 or y > height or x < -1.0 or x > width:
+                        inside, yl, yh, xl, xh, w1, w2, w3, w4 = _sample(y, x, height, width)
+                        if not inside:
                             continue
-                        yl, yh, ly = _corner(y, height)
-                        xl, xh, lx = _corner(x, width)
-                        hy, hx = np.float32(1.0) - ly, np.float32(1.0) - lx
-                        w1, w2, w3, w4 = hy * hx, hy * lx, ly * hx, ly * lx
                         for c in range(c_lo, c_hi):
                             g = grad[n, ph, pw, c]
                             out[yl, xl, c] += g * w1 / count
