@@ -118,6 +118,8 @@ class _DetectRun(ImageRun):
             n, det_s = n - self.warm[0], self.detect_s - self.warm[1]
             stages = {k: v - self.warm[2][k] for k, v in stages.items()}
             note = ", after the first batch"
+        else:
+            note = ", the warm-up included (one batch)"
         per = {k: 1000 * v / n for k, v in stages.items()}
         heads = sum(per[k] for k in ("neck", "roi_align", "box_head", "postprocess"))
         return [f"time: {self.wall:.1f} s, {1000 * self.wall / max(1, done):.0f} ms/img end to end; in the detector "
