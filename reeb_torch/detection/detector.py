@@ -86,7 +86,8 @@ class DetectorSettings:
             set it from the training labels: :func:`~reeb_torch.detection.fitting.
             crop_from_labels`).
         box_passes: the box head's passes in detection: each after the first pools the boxes
-            the last one regressed and averages its class scores in (training is one pass).
+            the last one regressed and averages its class scores in (training is one pass;
+            an inference setting, so a file's heads run with any number).
         proposals_train, proposals_test: REEB proposals per image handed to the box head.
         rois: RoIs sampled per image for the box head's loss.
         score_thresh: detections below this score are dropped.
@@ -100,7 +101,7 @@ class DetectorSettings:
     representation_size: int = 1024
     precision: Literal["float32", "bfloat16"] = "bfloat16"
     crop_top: float = 0.0
-    box_passes: int = 1
+    box_passes: int = 2
     proposals_train: int = 2000
     proposals_test: int = 1000
     rois: int = 256

@@ -154,7 +154,9 @@ def frame_forward(model: nn.Module, frame: CachedFrame, proposals: Tensor | None
     evaluation (``neck``, ``roi_align``, ``box_head``, ``postprocess``;
     :class:`~reeb_torch.detection.inference.StageClock`). ``passes``: in evaluation, the box
     head's passes: each after the first pools the boxes the last one regressed (each box for
-    its most likely class) and averages its class probabilities with the earlier passes'."""
+    its most likely class) and averages its class probabilities with the earlier passes',
+    over the boxes some class scores ``score_thresh`` or more on (the others are dropped:
+    their scores are below what detection keeps)."""
     stage = clock or (lambda name: nullcontext())
     f = frame.features
     det: Any = model  # a detector: nn.Module leaves its parts (transform, backbone, ...) untyped
@@ -180,7 +182,11 @@ def frame_forward(model: nn.Module, frame: CachedFrame, proposals: Tensor | None
     logits = deltas = probs = torch.empty(0)
     for n in range(passes):
         if n:  # another pass over the boxes the last one regressed, its class scores averaged in
-            probs, placed = _refined(heads, logits, deltas, placed[0], images.image_sizes[0])
+            probs, refined = _refined(heads, logits, deltas, placed[0], images.image_sizes[0])
+            keep = probs[:, 1:].amax(1) >= heads.score_thresh  # the rest could not be kept anyway
+            if not bool(keep.any()):
+                break
+            probs, placed = probs[keep], [refined[0][keep]]
         with stage("roi_align"):
             pooled = heads.box_roi_pool(features, placed, images.image_sizes)
         with stage("box_head"), torch.autocast(pooled.device.type, torch.bfloat16, enabled=low):

@@ -100,7 +100,7 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
               help="Channels of the neck and of the pooled RoI features.")
 @click.option("--head-width", type=SettingRange("representation_size"), default=1024, show_default=True,
               help="Units of each of the box head's two layers.")
-@click.option("--box-passes", type=SettingRange("box_passes"), default=1, show_default=True,
+@click.option("--box-passes", type=SettingRange("box_passes"), default=2, show_default=True,
               help="The box head's passes in detection: each after the first pools the boxes the last one "
                    "regressed and averages its class scores in.")
 @click.option("--cache", "cache_dir", type=click.Path(file_okay=False),
