@@ -134,3 +134,16 @@ def test_cli_calibrate_a_folder_without_labels_takes_the_images_route(tmp_path):
     assert res.exit_code == 2 and "1 frame: too few to estimate the horizon from images" in res.output
     res = CliRunner().invoke(main, ["calibrate", str(tmp_path), "--class-height", "Car=-2"])
     assert res.exit_code == 2 and "CLASS=METRES" in res.output
+
+
+@pytest.mark.parametrize("args, option", [
+    (["calibrate", "--cy", "inf", "--height", "375"], "--cy"),
+    (["calibrate", "--cy", "180", "--height", "375", "--camera-height", "nan"], "--camera-height"),
+    (["calibrate", "--cy", "180", "--height", "375", "--box-factor", "nan"], "--box-factor"),
+])
+def test_a_number_that_is_not_finite_is_a_usage_error(args, option, tmp_path):
+    from reeb_torch.runs.cli import main
+
+    res = CliRunner().invoke(main, [*args, "-o", str(tmp_path / "camera.json")])
+    assert res.exit_code == 2 and f"'{option}'" in res.output and "not a finite number" in res.output, res.output
+    assert not (tmp_path / "camera.json").exists()

@@ -408,10 +408,10 @@ def _class_heights(items: tuple[str, ...]) -> dict[str, float] | None:
 @click.option("--calib", type=click.Path(exists=True, dir_okay=False),
               help="A KITTI calibration file: the horizon of a level camera, P2's cy / image height (the height from "
                    "the images in DIRS, or --height).")
-@click.option("--cy", type=click.FloatRange(min=0, min_open=True), metavar="PIXELS",
+@click.option("--cy", type=FiniteFloat(min=0, min_open=True), metavar="PIXELS",
               help="The principal point's row: the horizon of a level camera, cy / --height.")
 @click.option("--height", type=click.IntRange(min=1), metavar="PIXELS", help="The image height, for --calib or --cy.")
-@click.option("--camera-height", type=click.FloatRange(min=0, min_open=True), metavar="METRES",
+@click.option("--camera-height", type=FiniteFloat(min=0, min_open=True), metavar="METRES",
               help="The camera's height above the road where it is not fitted (images, intrinsics) [default: 1.65].")
 @click.option("--class-height", "class_height", multiple=True, metavar="CLASS=METRES",
               help="Real height of a label class (repeatable); default KITTI's means: Car 1.53, Van 2.21, "
