@@ -15,6 +15,8 @@ from reeb_torch.eval import fit as F
 from reeb_torch.ranker import NOT_SEEN_BY_RANKER, BoxRanker, RankerWeightsError, load_ranker, save_ranker
 from reeb_torch.ranker.features import feature_names
 
+from test_refine import small_ranker  # noqa: E402
+
 
 def test_quality_rows_by_hand():
     """With a quality head, the candidates of an object from IoU 0.5 join the rows (the near
@@ -75,12 +77,7 @@ def test_the_quality_head_learns_how_tight_a_box_is_and_leaves_the_ranking_alone
 
 
 def _ranker(quality: bool) -> BoxRanker:
-    torch.manual_seed(0)
-    m = BoxRanker(feature_names(4), hidden=(8,), prefilter=(4,), classes=("Car", "Pedestrian"), class_hidden=(4,),
-                  quality_hidden=(6,) if quality else None)
-    for p in m.parameters():
-        p.data.normal_()
-    return m.eval()
+    return small_ranker(quality_hidden=(6,) if quality else None)
 
 
 @pytest.mark.parametrize("quality", [False, True])

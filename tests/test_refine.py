@@ -63,13 +63,19 @@ def test_no_boxes_give_no_rows():
     assert x.shape == (0, len(refine_feature_names()))
 
 
-def _ranker(refine: bool) -> BoxRanker:
+def small_ranker(**heads) -> BoxRanker:
+    """A small ranker with random weights (seed 0) and the optional ``heads`` given
+    (``refine_hidden=``, ``quality_hidden=``)."""
     torch.manual_seed(0)
     m = BoxRanker(feature_names(4), hidden=(8,), prefilter=(4,), classes=("Car", "Pedestrian"),
-                  class_hidden=(4,), refine_hidden=(8, 8) if refine else None)
+                  class_hidden=(4,), **heads)
     for p in m.parameters():
         p.data.normal_()
     return m.eval()
+
+
+def _ranker(refine: bool) -> BoxRanker:
+    return small_ranker(refine_hidden=(8, 8) if refine else None)
 
 
 @pytest.mark.parametrize("refine", [False, True])

@@ -21,6 +21,7 @@ __all__ = [
     "CONTEXT",
     "UsageProblem",
     "Failure",
+    "writable_folder",
     "FiniteFloat",
     "settings_options",
     "config_options",
@@ -52,6 +53,21 @@ class Failure(click.ClickException):
     """A one-line error with exit code 1 (the command could not do its work)."""
 
     exit_code = 1
+
+
+def writable_folder(option: str, folder: Path) -> None:
+    """Make ``folder`` if needed and check that a file can be written there; a usage error
+    naming ``option`` and the folder when not (before any work)."""
+    import os
+    import tempfile
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".reeb-probe.", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise UsageProblem(f"{option} {folder}: cannot write there ({e.strerror or e})") from None
 
 
 class FiniteFloat(click.FloatRange):

@@ -14,7 +14,6 @@ be written: the fit goes on without it) are one ``warning:`` line each.
 from __future__ import annotations
 
 import os
-import tempfile
 import time
 import warnings
 from collections import Counter
@@ -25,7 +24,7 @@ from typing import Any
 
 import click
 
-from .common import UsageProblem
+from .common import UsageProblem, writable_folder
 
 __all__ = ["claim_weights_out", "SettingRange", "distinct", "check_frames", "check_cache", "warnings_as_lines",
            "train"]
@@ -136,13 +135,7 @@ def check_cache(cache_dir: str | None) -> str | None:
     if cache_dir is None:
         return None
     p = Path(os.path.expanduser(cache_dir))
-    try:
-        p.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".reeb-probe-", dir=p)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as e:
-        raise UsageProblem(f"--cache {cache_dir}: cannot write there ({e.strerror or e})") from None
+    writable_folder("--cache", p)
     return str(p)
 
 

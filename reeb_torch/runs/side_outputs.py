@@ -19,7 +19,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-from .common import UsageProblem
+from .common import UsageProblem, writable_folder
 
 __all__ = ["unique_stems", "SideOutputError", "PictureFolder", "KittiFolder"]
 
@@ -49,20 +49,6 @@ def _why(e: OSError) -> str:
     return e.strerror or str(e)
 
 
-def _writable_folder(option: str, folder: Path) -> None:
-    """Make ``folder`` if needed and check that a file can be written there; a usage error
-    naming ``option`` when not (before any work)."""
-    import tempfile
-
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".reeb-probe.", dir=folder)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as e:
-        raise UsageProblem(f"{option} {folder}: cannot write there ({_why(e)})") from None
-
-
 class PictureFolder:
     """``--viz DIR``: a picture per image, ``<stem>.png``. When one cannot be written (a full
     disk) a warning names the folder, the picture and the cause, and no more are tried;
@@ -73,7 +59,7 @@ class PictureFolder:
 
     def __init__(self, path: str | os.PathLike, warn: Callable[[str], None]) -> None:
         self.path = Path(path)
-        _writable_folder(self.option, self.path)
+        writable_folder(self.option, self.path)
         self.warn = warn
         self.problem: str | None = None
         self.written = self.not_written = 0
@@ -155,7 +141,7 @@ class KittiFolder:
         """Check the folder before any work: with ``resume`` it may hold the files of the
         rows kept from before (``kept``: their stems; they are written again from the rows),
         else nothing; other result files only with ``overwrite`` (they are removed)."""
-        _writable_folder(self.option, self.path)
+        writable_folder(self.option, self.path)
         self._lock()
         entries = sorted(p for p in self.path.iterdir() if not p.name.startswith("."))
         others = [(p, why) for p in entries if (why := _result_file_problem(p))]
