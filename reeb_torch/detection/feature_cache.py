@@ -86,8 +86,9 @@ class FeatureCache:
 
     def __init__(self, root: str | os.PathLike, weights: str, min_size: int, max_size: int,
                  precision: str = "float32", crop_top: float = 0.0) -> None:
+        self.crop_top = float(crop_top)
         self.key = {"format": _FORMAT, "version": _VERSION, "weights": weights, "min_size": int(min_size),
-                    "max_size": int(max_size), "precision": str(precision), "crop_top": float(crop_top)}
+                    "max_size": int(max_size), "precision": str(precision), "crop_top": self.crop_top}
         crop = f"-top{crop_top:g}" if crop_top else ""
         self.folder = Path(root) / "features" / f"lite0-{weights[:16]}-{min_size}x{max_size}-{precision}{crop}"
 
@@ -203,7 +204,7 @@ def frozen_features(model: torch.nn.Module, items: Sequence[Mapping[str, Any]], 
             out.append(cache.load(digest))
             continue
         except (FileNotFoundError, StaleCacheError):
-            f = compute_features(model, it["image"], float(cache.key["crop_top"]))  # type: ignore[arg-type]
+            f = compute_features(model, it["image"], cache.crop_top)
         if writable:
             try:
                 cache.save(digest, f)

@@ -132,14 +132,17 @@ def _resized(boxes: Tensor, f: FrameFeatures) -> Tensor:
 
 
 def _refined(heads: Any, logits: Tensor, deltas: Tensor, boxes: Tensor,
-             size: tuple[int, int]) -> tuple[Tensor, list[Tensor]]:
-    """The class probabilities of a box-head pass and, per box, the box regressed for its most
-    likely object class (clipped to ``size``): the next pass's input."""
+             size: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    """The next pass's input from a box-head pass over ``boxes``: the boxes some class scores
+    ``heads.score_thresh`` or more on (the others could not be kept), their class
+    probabilities ``[K, classes]`` and the box regressed for each one's most likely object
+    class, clipped to ``size`` (``[K, 4]``)."""
     probs = torch.softmax(logits, -1)
-    decoded = heads.box_coder.decode(deltas, [boxes])  # [N, classes, 4]
+    keep = (probs[:, 1:].amax(1) >= heads.score_thresh).nonzero().flatten()
+    probs = probs[keep]
+    decoded = heads.box_coder.decode(deltas[keep], [boxes[keep]])  # [K, classes, 4]
     best = probs[:, 1:].argmax(1) + 1
-    refined = box_ops.clip_boxes_to_image(decoded[torch.arange(len(boxes)), best], size)
-    return probs, [refined]
+    return probs, box_ops.clip_boxes_to_image(decoded[torch.arange(len(keep)), best], size)
 
 
 def frame_forward(model: nn.Module, frame: CachedFrame, proposals: Tensor | None = None,
@@ -182,11 +185,10 @@ def frame_forward(model: nn.Module, frame: CachedFrame, proposals: Tensor | None
     logits = deltas = probs = torch.empty(0)
     for n in range(passes):
         if n:  # another pass over the boxes the last one regressed, its class scores averaged in
-            probs, refined = _refined(heads, logits, deltas, placed[0], images.image_sizes[0])
-            keep = probs[:, 1:].amax(1) >= heads.score_thresh  # the rest could not be kept anyway
-            if not bool(keep.any()):
+            kept, refined = _refined(heads, logits, deltas, placed[0], images.image_sizes[0])
+            if not len(refined):
                 break
-            probs, placed = probs[keep], [refined[0][keep]]
+            probs, placed = kept, [refined]
         with stage("roi_align"):
             pooled = heads.box_roi_pool(features, placed, images.image_sizes)
         with stage("box_head"), torch.autocast(pooled.device.type, torch.bfloat16, enabled=low):

@@ -39,6 +39,7 @@ import math
 import os
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -232,8 +233,8 @@ class FrozenLite0(nn.Module):
         self.precision = precision
         self.stem = _FoldedConv(net._conv_stem, net._bn0, True)
         last = max(block for block, _, _ in PYRAMID_LEVELS.values())
-        self.blocks = nn.ModuleList(_FoldedBlock(b) for b in list(net._blocks)[:last + 1]  # type: ignore[arg-type]
-                                    )
+        blocks: list[Any] = list(net._blocks)[:last + 1]  # MBConv modules
+        self.blocks = nn.ModuleList(_FoldedBlock(b) for b in blocks)
         self._outputs = {block: name for name, (block, _, _) in PYRAMID_LEVELS.items()}
         self.to(PRECISIONS[precision]).to(memory_format=torch.channels_last)
         self.eval().requires_grad_(False)
