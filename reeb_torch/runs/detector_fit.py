@@ -167,7 +167,8 @@ def train(dirs: Sequence[str], val: Sequence[str], names: tuple[str, ...], propo
              f"{det.history['train_s']:.0f} s of head training, {time.perf_counter() - t0:.0f} s in all"]
     if auto_crop:
         lines.append(f"the backbone skips the top {det.settings.crop_top:g} of each image's height (above the "
-                     "labels' highest object; --crop-top to choose)")
+                     "labels' highest object; --crop-top to choose)" if det.settings.crop_top else
+                     "the backbone skips no rows: a training object reaches the top of its image")
     if val:
         try:
             scores = evaluate_detector(det, val, cache_dir=cache_dir, progress=not quiet, seed=seed)
