@@ -31,7 +31,6 @@ import argparse
 import json
 import os
 import platform
-import shlex
 import statistics
 import sys
 import time
@@ -97,22 +96,18 @@ def machine(device: Any) -> dict[str, Any]:
 
 def ours(args: argparse.Namespace, device: Any) -> list[tuple[str, Any]]:
     """``(name, detector)`` of every ``--detector`` and ``--arm``."""
-    import click
+    from detector_paired import fit_options
 
     from reeb_torch.detection import ReebDetector
     from reeb_torch.detection.inference import StageClock
-    from reeb_torch.runs.detect import fit, fit_settings
+    from reeb_torch.runs.detect import fit_settings
 
     out = []
     for spec in args.detector:
         out.append((Path(spec).name, ReebDetector.load(spec, device)))
     for text in args.arm:
         name, _, options = text.partition("=")
-        try:
-            with fit.make_context("fit", ["."] + shlex.split(options)) as ctx:
-                settings = fit_settings(ctx.params)
-        except click.ClickException as e:
-            raise SystemExit(f"--arm {text!r}: {e.format_message()}") from None
+        settings = fit_settings(fit_options([Path(".")], options))  # --crop-top auto: none, untrained
         out.append((name, ReebDetector(settings=settings, device=device).to(device).eval()))
     for _, det in out:
         det.clock = StageClock(device)
