@@ -477,3 +477,27 @@ def test_quality_head_adds_a_head_and_keeps_the_ranking(kitti_dir, tmp_path):
     assert model.quality_hidden == (8,) and "quality_head" in model.meta["provenance"]
     for name, t in shipped.state_dict().items():
         assert torch.equal(t, model.state_dict()[name]), name
+
+
+def test_cuda_check_compares_and_times_on_the_device_it_is_given(tmp_path):
+    """The GPU machine's prepared run, checked on the CPU: the boxes of a device against
+    themselves are identical, recall is the same, and every preset and the detector is timed."""
+    check = _script("cuda_check")
+    root = _example_kitti(tmp_path / "kitti")
+    out = check.main(["--data", str(root), "--device", "cpu", "--limit", "1", "--repeats", "1", "--no-tests",
+                      "--out", str(tmp_path / "out")])
+    record = json.loads(out.with_suffix(".json").read_text())
+    assert set(record["boxes"]) == {"default", "training-free", "paper"}
+    for r in record["boxes"].values():
+        assert r["identical"] == r["frames"] == 1 and r["recall_cpu"] == r["recall_device"]
+    assert set(record["speed"]) == {"default", "training-free", "detector kitti"}
+    assert all(v > 0 for r in record["speed"].values() for v in r.values())
+    assert "pytest -m cuda" not in out.read_text()
+
+
+def test_cuda_check_refuses_a_missing_device(tmp_path, capsys):
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA device")
+    with pytest.raises(SystemExit):
+        _script("cuda_check").main(["--out", str(tmp_path)])
+    assert "no CUDA device here" in capsys.readouterr().err
