@@ -43,6 +43,7 @@ from _common import default_dev_dirs, environment, rerun_line, write_outputs  # 
 
 from reeb_torch import ReebConfig  # noqa: E402
 from reeb_torch.eval import fit as F  # noqa: E402
+from reeb_torch.eval import fit_cv  # noqa: E402
 from reeb_torch.eval.metrics import object_hits, sign_test  # noqa: E402
 from reeb_torch.eval.tune import FrameCache  # noqa: E402
 from reeb_torch.ranker import save_ranker  # noqa: E402
@@ -87,7 +88,7 @@ def run_seed(cache: FrameCache, cfg: ReebConfig, scens: list[dict], seed: int, t
         outputs = cache.outputs(cfg.replace(ranker=ranker), test)
         gts = [frames.gts[i] for i in test]
         if ranker != "none":
-            hinted = torch.cat(F.hinted_classes(outputs, gts))
+            hinted = torch.cat(fit_cv.hinted_classes(outputs, gts))
             truth = torch.cat([frames.labels[i] for i in test])
             hints[name] = (int((hinted == truth).sum()), int((hinted >= 0).sum()))
         return torch.cat(object_hits([o["boxes"] for o in outputs], gts, 2000, 0.7))

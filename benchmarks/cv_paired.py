@@ -47,6 +47,7 @@ from _common import (default_dev_dirs, environment, rerun_line, setting_pairs, s
 
 from reeb_torch import ReebConfig, get_preset  # noqa: E402
 from reeb_torch.eval import fit as F  # noqa: E402
+from reeb_torch.eval import fit_cv  # noqa: E402
 from reeb_torch.eval.metrics import compare_recall, sign_test  # noqa: E402
 from reeb_torch.eval.tune import FrameCache, bootstrap_interval  # noqa: E402
 from reeb_torch.ranker import NOT_SEEN_BY_RANKER  # noqa: E402
@@ -131,7 +132,7 @@ def cross_validated_best(cache: FrameCache, configs: list[ReebConfig], seed: int
                          whole_drives: bool = False) -> list[list]:
     """Per frame, ``float32 [N_i, len(ks)]``: each object's best IoU with the top ``k`` held-out
     proposals of the default, then of each of ``configs``, all run with the same fold models
-    (:func:`reeb_torch.eval.fit.cross_validate`, fitted as ``reeb fit`` fits, on the default's
+    (:func:`reeb_torch.eval.fit_cv.cross_validate`, fitted as ``reeb fit`` fits, on the default's
     candidates); then of each ``(config, fit options)`` of ``refits``, with fold models fitted
     on the same folds with those options, for that config. ``whole_drives``: a held-out
     block's training frames hold no frame of its drives (``reeb fit --whole-drives``), not
@@ -144,13 +145,13 @@ def cross_validated_best(cache: FrameCache, configs: list[ReebConfig], seed: int
     base = ReebConfig()
     samples = F.frame_samples(cache, base, opts)
     gap = len(cache.frames) if whole_drives else 2
-    cv = F.cross_validate(cache, base, base.training_free(), samples, opts, folds, ks[0], gap=gap, also=configs,
+    cv = fit_cv.cross_validate(cache, base, base.training_free(), samples, opts, folds, ks[0], gap=gap, also=configs,
                           best_ks=ks)
     out = [cv.ranked_best, *cv.also_best]
     for cfg, changes in refits:
         o = dataclasses.replace(opts, **{"refine_hidden": (64, 64) if cfg.refine_top else None, **changes})
         s = F.frame_samples(cache, cfg, o)
-        out.append(F.cross_validate(cache, cfg, cfg.training_free(), s, o, folds, ks[0], gap=gap,
+        out.append(fit_cv.cross_validate(cache, cfg, cfg.training_free(), s, o, folds, ks[0], gap=gap,
                                     best_ks=ks).ranked_best)
     return out
 

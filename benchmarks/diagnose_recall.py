@@ -220,7 +220,7 @@ def _parser() -> argparse.ArgumentParser:
 def held_out_generators(data: list[Path], limit: int | None, config, folds: int, seed: int,
                         whole_drives: bool = False) -> dict[tuple[str, str], Callable[[], ProposalGenerator]]:
     """Per frame ``(folder, image id)``, a function that makes the generator of ``config``
-    with a ranking model fitted without the frame's block (:func:`reeb_torch.eval.fit.cross_validate`'s
+    with a ranking model fitted without the frame's block (:func:`reeb_torch.eval.fit_cv.cross_validate`'s
     folds, training frames and fit; the weights saved in a temporary folder that lives as
     long as the functions), the one generator per block made once, when its first frame asks;
     ``whole_drives``: every frame of a held-out block's drives stays off its training side."""

@@ -15,6 +15,7 @@ import torch
 
 from conftest import DATA
 from reeb_torch.eval import fit as F
+from reeb_torch.eval import fit_cv
 from reeb_torch.eval.tune import fold_blocks
 from reeb_torch.ranker.features import FEATURE_GROUPS, dropped_columns, feature_names
 
@@ -195,10 +196,10 @@ def test_hinted_classes_by_hand():
     gts = [torch.tensor([[0.0, 0, 10, 10], [20, 20, 30, 30], [50, 50, 60, 60]]), torch.zeros(0, 4)]
     out = {"boxes": torch.tensor([[0.0, 0, 10, 9], [0, 0, 10, 10], [20, 20, 30, 31], [50, 50, 51, 51]]),
            "labels": torch.tensor([2, 1, 0, 3])}
-    got = F.hinted_classes([out, {"boxes": torch.zeros(0, 4), "labels": torch.zeros(0, dtype=torch.long)}], gts)
+    got = fit_cv.hinted_classes([out, {"boxes": torch.zeros(0, 4), "labels": torch.zeros(0, dtype=torch.long)}], gts)
     assert got[0].tolist() == [1, 0, -1] and got[1].shape == (0,)  # the best box's hint; a miss is -1
-    assert F.hinted_classes([out], gts[:1], k=1)[0].tolist() == [2, -1, -1]  # only the top k count
-    assert F.hinted_classes([{"boxes": out["boxes"]}], gts[:1])[0].tolist() == [-1, -1, -1]  # no hints
+    assert fit_cv.hinted_classes([out], gts[:1], k=1)[0].tolist() == [2, -1, -1]  # only the top k count
+    assert fit_cv.hinted_classes([{"boxes": out["boxes"]}], gts[:1])[0].tolist() == [-1, -1, -1]  # no hints
 
 
 def test_folds_keep_neighbouring_frames_of_a_drive_apart():
@@ -269,11 +270,11 @@ def test_cross_validate_runs_after_the_model_settings_with_the_same_fold_models(
     cache = FrameCache(frames)
     cfg, opts = ReebConfig(), dataclasses.replace(F.FitOptions(), epochs=2, class_hidden=None)
     samples = F.frame_samples(cache, cfg, opts)
-    cv = F.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 2, also=[cfg, cfg.replace(top_k=100)])
+    cv = fit_cv.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 2, also=[cfg, cfg.replace(top_k=100)])
     same, short = cv.also_hits
     assert all(torch.equal(a, b) for a, b in zip(same, cv.ranked_hits))
     assert all(bool((b <= a).all()) for a, b in zip(cv.ranked_hits, short))
-    assert F.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 2).also_hits == []
+    assert fit_cv.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 2).also_hits == []
 
 
 def test_held_out_outputs_are_the_cross_validated_models(kitti_dir):
@@ -289,11 +290,11 @@ def test_held_out_outputs_are_the_cross_validated_models(kitti_dir):
     cache = FrameCache(frames)
     cfg, opts = ReebConfig(), dataclasses.replace(F.FitOptions(), epochs=2, class_hidden=None)
     samples = F.frame_samples(cache, cfg, opts)
-    outputs = F.held_out_outputs(cache, cfg, samples, opts, 3)
-    cv = F.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 3)
+    outputs = fit_cv.held_out_outputs(cache, cfg, samples, opts, 3)
+    cv = fit_cv.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 3)
     hits = object_hits([o["boxes"] for o in outputs], frames.gts, 2000, 0.7)
     assert all(torch.equal(a, b) for a, b in zip(hits, cv.ranked_hits))
-    given = F.held_out_outputs(cache, cfg, samples, opts, fold_blocks(6, 3))  # the blocks themselves
+    given = fit_cv.held_out_outputs(cache, cfg, samples, opts, fold_blocks(6, 3))  # the blocks themselves
     assert all(torch.equal(a["boxes"], b["boxes"]) for a, b in zip(given, outputs))
     assert all(0 < len(o["boxes"]) <= 2000 and "labels" not in o for o in outputs)  # no class head here
     others = F.other_boxes(kitti_dir, frames.ids)
@@ -368,7 +369,7 @@ def test_reeb_fit_on_two_folders_reports_a_model_fitted_on_the_other(kitti_dir, 
     line = next(x for x in done["text"].splitlines() if "fitted on other folders" in x)
     frames = F.load_fit_frames(roots, limit=3)
     cache = FrameCache(frames)
-    outputs = F.held_out_outputs(cache, ReebConfig(), F.frame_samples(cache, ReebConfig(), opts), opts,
+    outputs = fit_cv.held_out_outputs(cache, ReebConfig(), F.frame_samples(cache, ReebConfig(), opts), opts,
                                  [[0, 1, 2], [3, 4, 5]])
     hits = object_hits([o["boxes"] for o in outputs], frames.gts, 2000, 0.7)
     found, total = sum(int(h.sum()) for h in hits), sum(h.numel() for h in hits)
@@ -483,7 +484,7 @@ def test_mirror_and_jitter_leave_the_held_out_frames_as_they_are(kitti_dir):
     front_of = cache._front_of
     cache._front_of = lambda c, i, mirrored=False, photometric=None: (
         seen.append(mirrored or photometric is not None) or front_of(c, i, mirrored, photometric))
-    cv = F.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 2)
+    cv = fit_cv.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 2)
     assert seen and not any(seen)
     assert [len(h) for h in cv.ranked_hits] == [len(g) for g in frames.gts]
 
@@ -522,3 +523,37 @@ def test_jitter_adds_each_frames_jittered_copy_rows(kitti_dir):
         assert 1.5 * n < len(j.target) < 3 * n and 0 < float(j.weight[n:][j.target[n:] == 1].sum())
         assert torch.equal(j.features[:n], p.features) and torch.equal(b.features[:k], m.features)
         assert torch.equal(b.features[k:], j.features[n:]) and torch.equal(b.target[k:], j.target[n:])
+
+
+@pytest.mark.kitti
+def test_hard_negatives_fit_the_mlp_on_what_the_prefilter_keeps(kitti_dir):
+    """FitOptions.hard_negatives: the prefilter, fitted first on the uniform rows, is the same
+    bit for bit; the MLP learns from the candidates it keeps (each frame's best ranker_keep),
+    seeded; without the frames (no hard_rows) the option changes nothing."""
+    import dataclasses
+
+    from reeb_torch import ReebConfig
+    from reeb_torch.eval.tune import FrameCache
+
+    frames = F.load_fit_frames([str(kitti_dir)], limit=3)
+    cache = FrameCache(frames)
+    cfg = ReebConfig(ranker_keep=3000)
+    opts = dataclasses.replace(F.FitOptions(), epochs=2, class_hidden=None)
+    hard = dataclasses.replace(opts, hard_negatives=0.2)
+    samples = F.frame_samples(cache, cfg, opts)
+    names = cache.candidates(cfg.unranked(), 0).feature_names
+    plain = F.fit_ranker(samples, names, opts)
+    rows = fit_cv.kept_rows(cache, cfg, hard, range(3))
+    cascade = F.fit_ranker(samples, names, hard, None, rows)
+    assert all(torch.equal(a, b) for a, b in zip(plain.prefilter.state_dict().values(),
+                                                 cascade.prefilter.state_dict().values()))
+    assert not torch.equal(plain.members[0][0].weight, cascade.members[0][0].weight)
+    assert torch.equal(F.fit_ranker(samples, names, hard, None, rows).members[0][0].weight,
+                       cascade.members[0][0].weight)
+    assert torch.equal(F.fit_ranker(samples, names, hard).members[0][0].weight, plain.members[0][0].weight)
+    kept = rows(cascade)[0]
+    pre = cascade.prefilter_scores(cache.candidates(cfg.unranked(), 0).features[:, : cascade.cheap])
+    cut = float(pre.sort(descending=True).values[cfg.ranker_keep - 1])
+    assert bool((cascade.prefilter_scores(kept.features[:, : cascade.cheap]) >= cut - 1e-4).all())
+    negatives = int((kept.target == 0).sum())
+    assert 0.1 * cfg.ranker_keep < negatives < 0.3 * cfg.ranker_keep and bool((kept.target == 1).any())

@@ -12,6 +12,7 @@ from torchvision.ops import box_iou
 
 from reeb_torch import ProposalGenerator, ReebConfig
 from reeb_torch.eval import fit as F
+from reeb_torch.eval import fit_cv
 from reeb_torch.eval.tune import Frames
 from reeb_torch.ranker import (NOT_SEEN_BY_RANKER, BoxRanker, BoxRefiner, RankerWeightsError, load_ranker,
                                offset_targets, refine_feature_names, refine_features, save_ranker)
@@ -263,7 +264,7 @@ def test_the_refiner_is_fitted_only_on_the_training_side(monkeypatch, tmp_path):
     monkeypatch.setattr(F, "fit_refiner", recording)
     opts = F.FitOptions(hidden=(4,), prefilter=None, class_hidden=None, epochs=1, refine_hidden=(4,))
     cache = SimpleNamespace(frames=frames)
-    with F._HeldOutModels(cache, names, samples, opts, 4, gap=n, scratch=tmp_path) as models:
+    with fit_cv._HeldOutModels(cache, names, samples, opts, 4, gap=n, scratch=tmp_path) as models:
         for f in range(len(models.blocks)):
             model = load_ranker(str(models.fit(f)))
             assert model.refiner is not None

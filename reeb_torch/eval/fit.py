@@ -14,11 +14,8 @@ frames, and estimate by cross-validation how it does on frames it never saw.
   (:func:`~reeb_torch.eval.training.fit_quality`), and its box refiner (:func:`fit_refiner`:
   smooth-L1 to the side offsets of the candidates that overlap an object at IoU ≥
   ``refine_iou``, from the same frames' rows).
-* :func:`cross_validate` splits the frames into blocks
-  (:func:`~reeb_torch.eval.tune.fold_blocks`), fits on all blocks but one, keeping the
-  held-out block's drive neighbours out (:func:`training_frames`), scores the generator with
-  that model on the held-out block, and collects the held-out hits
-  (:func:`~reeb_torch.eval.tune.held_out`).
+* :func:`training_frames`: the frames to fit on when a block is held out, keeping its drive
+  neighbours out; the cross-validation itself is :mod:`reeb_torch.eval.fit_cv`.
 """
 
 from __future__ import annotations
@@ -28,9 +25,7 @@ import dataclasses
 import math
 import os
 import re
-import tempfile
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
@@ -40,13 +35,13 @@ from torchvision.ops import box_iou
 
 from ..config import ReebConfig
 from ..ranker import (ORIENTATION_NAMES, TARGET_SCALE, BoxRanker, BoxRefiner, dropped_columns, offset_targets,
-                      refine_feature_names, save_ranker)
+                      refine_feature_names)
 from .training import class_loss, fit_member, fit_quality, quality_rows
-from .tune import FrameCache, Frames, fold_blocks, held_out
+from .tune import FrameCache, Frames
 
-__all__ = ["FitFrames", "FitOptions", "Sample", "FitCrossValidation", "load_fit_frames", "frame_sample",
-           "frame_samples", "mirrored_sample", "jitter_of", "fit_ranker", "fit_refiner", "initial_model", "similar_frames",
-           "training_frames", "cross_validate", "best_ious", "held_out_outputs", "hinted_classes", "drive_of", "other_boxes"]
+__all__ = ["FitFrames", "FitOptions", "Sample", "load_fit_frames", "frame_sample", "frame_samples", "mirrored_sample",
+           "jitter_of", "fit_ranker", "fit_refiner", "initial_model", "similar_frames", "training_frames", "drive_of",
+           "other_boxes"]
 
 
 @dataclass
@@ -150,6 +145,13 @@ class FitOptions:
         orientation: the model reads the edge-orientation columns
             (:data:`~reeb_torch.ranker.orientation.ORIENTATION_NAMES`) beside the others; without,
             the generator does not compute them for it (a fine-tuned model reads its own columns).
+        hard_negatives: above 0, the ranking's MLP learns from negatives drawn at this
+            fraction from the candidates its prefilter keeps in each training frame (the best
+            ``ranker_keep``, ``ranker_v_share`` of them by V, as at run time), where it ranks at
+            run time, and from the positives among them, in place of the uniform ``negatives``
+            sample (a cascade's training; the prefilter, fitted first, and the class head keep
+            the uniform rows). Read only where the fit is given the frames
+            (:func:`~reeb_torch.eval.fit_cv.kept_rows`: ``reeb fit`` and the cross-validations); 0: off.
         drop_features: feature columns the model does not read (names of
             :func:`~reeb_torch.ranker.features.feature_names`, or a group of
             :data:`~reeb_torch.ranker.features.FEATURE_GROUPS` such as ``"place"``): held at
@@ -192,6 +194,7 @@ class FitOptions:
     quality_batch: int = 256
     orientation: bool = True
     drop_features: tuple[str, ...] = ()
+    hard_negatives: float = 0.0
 
 
 def _no_refine_rows() -> Tensor:
@@ -342,7 +345,8 @@ def _balanced(w: Tensor, y: Tensor, label: Tensor, balance: float) -> Tensor:
 
 
 def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: FitOptions,
-               classes: Sequence[str] | None = None) -> BoxRanker:
+               classes: Sequence[str] | None = None,
+               hard_rows: Callable[[BoxRanker], Sequence[Sample]] | None = None) -> BoxRanker:
     """A :class:`BoxRanker` fitted on ``samples`` (weighted logistic loss; the positives'
     total weight is made the negatives'), its prefilter on the same rows, and, given the
     ``classes`` the samples' labels index (and ``opts.class_hidden``), a class head on the
@@ -361,7 +365,9 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
         RankerWeightsError: ``opts.init`` cannot be read, or reads columns the samples lack.
 
     ``feature_names`` names the samples' columns; the model reads them all, or all but the
-    orientation ones without ``opts.orientation``, or, fine-tuned, its own.
+    orientation ones without ``opts.orientation``, or, fine-tuned, its own. ``hard_rows``
+    (:func:`~reeb_torch.eval.fit_cv.kept_rows`): with ``opts.hard_negatives`` and a prefilter, the prefilter is
+    fitted first and the MLP on the rows it gives for it.
     """
     x = torch.cat([s.features for s in samples]).float()
     names = list(feature_names)
@@ -408,9 +414,18 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
     try:
         xs = model.standardise(x)
         xs[:, dropped] = 0.0  # at their mean: the fit learns nothing from them
+        cascade = opts.hard_negatives > 0 and hard_rows is not None and model.prefilter is not None
+        if model.prefilter is not None and cascade:  # first: the MLP learns where it keeps
+            fit_member(model.prefilter, xs[:, : model.cheap], y, w_pre, fit, opts.seed * 1000 + 999, fresh=fresh)
+        xm, ym, wm = xs, y, w
+        if cascade:
+            assert hard_rows is not None
+            with torch.no_grad():
+                hard = hard_rows(model)
+            xm, ym, wm = _mlp_rows(hard, names, wanted, model, opts, dropped)
         for m, member in enumerate(model.members):
-            fit_member(member, xs, y, w, fit, opts.seed * 1000 + m, fresh=fresh)
-        if model.prefilter is not None:
+            fit_member(member, xm, ym, wm, fit, opts.seed * 1000 + m, fresh=fresh)
+        if model.prefilter is not None and not cascade:
             fit_member(model.prefilter, xs[:, : model.cheap], y, w_pre, fit, opts.seed * 1000 + 999, fresh=fresh)
         pos = (y == 1) & (label >= 0)
         if model.classifier is not None and bool(pos.any()):
@@ -429,6 +444,22 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
     if opts.refine_hidden is not None and len(rx):  # fitted last: the ranking's weights do not depend on it
         model.refiner = fit_refiner(rx, torch.cat([s.refine_y for s in samples]), opts)
     return model.eval().requires_grad_(False)
+
+
+def _mlp_rows(samples: Sequence[Sample], names: list[str], wanted: list[str], model: BoxRanker, opts: FitOptions,
+              dropped: Sequence[int]) -> tuple[Tensor, Tensor, Tensor]:
+    """The ranking MLP's rows from :func:`~reeb_torch.eval.fit_cv.kept_rows`' samples: ``(xs, y, w)``, standardised
+    as the model's, the dropped columns at their mean, weighed as :func:`fit_ranker` weighs."""
+    x = torch.cat([s.features for s in samples]).float()
+    if wanted != names:
+        x = x[:, [names.index(n) for n in wanted]]
+    y = torch.cat([s.target for s in samples])
+    if not bool((y == 1).any()) or not bool((y == 0).any()):
+        raise ValueError("hard_negatives: the prefilter keeps no positive or no negative in the training frames")
+    w = _balanced(torch.cat([s.weight for s in samples]), y, torch.cat([s.label for s in samples]), opts.balance)
+    xs = model.standardise(x)
+    xs[:, list(dropped)] = 0.0
+    return xs, y, w
 
 
 def fit_refiner(x: Tensor, y: Tensor, opts: FitOptions) -> BoxRefiner:
@@ -539,159 +570,3 @@ def training_frames(blocks: list[list[int]], held: int, ids: Sequence[str], fold
     for i in held_set:
         near.update(similar[i] if similar else ())
     return [i for b, block in enumerate(blocks) if b != held for i in block if i not in near]
-
-
-@dataclass
-class FitCrossValidation:
-    """Held-out recall of fitted rankings against a base config on the same frames.
-
-    Attributes:
-        folds: the frame indices of each held-out block.
-        ranked_hits, base_hits: per frame (in frame order), ``bool [N_i]``: the objects the
-            generator with the model fitted without that frame's block finds, and ``base``'s.
-        per_fold: per block, ``(ranked recall, base recall)``.
-        trained: per block, how many frames its model was fitted on.
-        hinted: per frame, ``int64 [N_i]``: the class (index into the frames' classes) the
-            held-out model hints for each object it finds (:func:`hinted_classes`), -1 for
-            one it misses or where the model has no class head.
-        also_hits: per config of :func:`cross_validate`'s ``also``, per frame, its hits with
-            the same held-out models (settings that act after the model, paired exactly).
-        ranked_best, also_best: with :func:`cross_validate`'s ``best_ks``, per frame
-            ``float32 [N_i, len(best_ks)]``: each object's best IoU with the top ``k`` proposals
-            of the ranked config (and of each ``also`` config) for each ``k`` (recall at any
-            IoU, AR); empty otherwise.
-    """
-
-    folds: list[list[int]]
-    ranked_hits: list[Tensor] = field(repr=False)
-    base_hits: list[Tensor] = field(repr=False)
-    per_fold: list[tuple[float, float]] = field(default_factory=list)
-    hinted: list[Tensor] = field(default_factory=list, repr=False)
-    trained: list[int] = field(default_factory=list)
-    also_hits: list[list[Tensor]] = field(default_factory=list, repr=False)
-    ranked_best: list[Tensor] = field(default_factory=list, repr=False)
-    also_best: list[list[Tensor]] = field(default_factory=list, repr=False)
-
-
-def best_ious(outputs: Sequence[dict[str, Tensor]], gts: Sequence[Tensor], ks: Sequence[int]) -> list[Tensor]:
-    """Per frame, ``float32 [N_i, len(ks)]``: each object's (``gts[i]``) best IoU with the top
-    ``k`` boxes of ``outputs[i]``, for each ``k`` of ``ks``."""
-    from .metrics import best_iou
-
-    return [torch.stack([best_iou(o["boxes"], g, k).float() for k in ks], 1) if len(g)
-            else torch.zeros(0, len(ks)) for o, g in zip(outputs, gts)]
-
-
-def hinted_classes(outputs: Sequence[dict[str, Tensor]], gts: Sequence[Tensor], k: int = 2000,
-                   iou: float = 0.7) -> list[Tensor]:
-    """Per frame, ``int64 [N_i]``: for each object (``gts[i]``, ``[N_i, 4]``) that the top
-    ``k`` proposals find at ``iou``, the class hinted (``labels``) by the proposal that
-    overlaps it most; -1 where none finds it, or the outputs hold no ``labels``."""
-    out = []
-    for o, g in zip(outputs, gts):
-        hint = torch.full((len(g),), -1, dtype=torch.long)
-        boxes = o["boxes"][:k]
-        if len(g) and len(boxes) and "labels" in o:
-            best, which = box_iou(g.float(), boxes.float()).max(1)
-            found = best >= iou
-            hint[found] = o["labels"][:k][which[found]]
-        out.append(hint)
-    return out
-
-
-class _HeldOutModels:
-    """The models fitted without each block of frames (``folds`` blocks of
-    :func:`~reeb_torch.eval.tune.fold_blocks`, or the blocks ``folds``), in a temporary folder
-    removed on leaving the ``with`` block: :meth:`fit` fits block ``f``'s, keeping every
-    drive neighbour and near-copy of the block out of its training frames
-    (:func:`training_frames`), and records how many frames it was fitted on. ``scratch``: the
-    folder the temporary one is made in (default: the system's)."""
-
-    def __init__(self, cache: FrameCache, names: Sequence[str], samples: Sequence[Sample], opts: FitOptions,
-                 folds: int | Sequence[Sequence[int]], gap: int, scratch: str | os.PathLike | None = None) -> None:
-        frames = cache.frames
-        self.frames, self.names, self.samples, self.opts, self.gap = frames, names, samples, opts, gap
-        self.blocks = fold_blocks(len(frames), folds) if isinstance(folds, int) else [list(b) for b in folds]
-        self.similar = similar_frames(frames.images)
-        self.trained: list[int] = []
-        self._tmp = tempfile.TemporaryDirectory(prefix="reeb-fit-", dir=scratch)
-
-    def __enter__(self) -> _HeldOutModels:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._tmp.cleanup()
-
-    def fit(self, f: int) -> Path:
-        """Fit the model without block ``f``; its weights file."""
-        frames = self.frames
-        train = training_frames(self.blocks, f, frames.ids, frames.folders, self.similar, self.gap)
-        model = fit_ranker([self.samples[i] for i in train], self.names, self.opts, frames.classes)
-        self.trained.append(len(train))
-        return save_ranker(model, Path(self._tmp.name) / f"fold{f}.safetensors")
-
-
-def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[Sample], opts: FitOptions,
-                     folds: int | Sequence[Sequence[int]], gap: int = 2,
-                     progress: Callable | None = None,
-                     scratch: str | os.PathLike | None = None) -> list[dict[str, Tensor]]:
-    """Per frame (in frame order), ``ProposalGenerator(cfg)``'s output dict with the ranking
-    fitted without the frame's block (``folds`` blocks: the folds and models of
-    :func:`cross_validate`; or the blocks given, the frame indices of each, covering every
-    frame once; from ``samples`` = :func:`frame_samples` under ``cfg``): proposals from a model
-    that never saw the frame, for any recall table.
-
-    Raises:
-        ValueError: fewer than 2 folds, or fewer frames than folds.
-    """
-    names = cache.candidates(cfg.unranked(), 0).feature_names
-    out: list = [None] * len(cache.frames)
-    with _HeldOutModels(cache, names, samples, opts, folds, gap, scratch) as models:
-        for f in progress(range(len(models.blocks))) if progress else range(len(models.blocks)):
-            block = models.blocks[f]
-            for i, o in zip(block, cache.outputs(cfg.replace(ranker=str(models.fit(f))), block)):
-                out[i] = o
-    return out
-
-
-def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples: Sequence[Sample],
-                   opts: FitOptions, folds: int, k: int = 2000, iou: float = 0.7, gap: int = 2,
-                   progress: Callable | None = None, also: Sequence[ReebConfig] = (),
-                   scratch: str | os.PathLike | None = None, best_ks: Sequence[int] = ()) -> FitCrossValidation:
-    """For each of ``folds`` blocks of frames: fit on the others (:func:`training_frames`),
-    run the generator of ``cfg`` with that model on the block, and pair its hits with
-    ``base``'s on the same objects; each config of ``also`` (settings that act after the
-    model: ``class_quota``, ``top_k``, ``refine_top``, ...) runs with the same model too
-    (``also_hits``); with ``best_ks``, each object's best IoU at those proposal counts is kept
-    too (``ranked_best``, ``also_best``: :func:`best_ious`); the loop over the blocks is
-    :func:`~reeb_torch.eval.tune.held_out`'s."""
-    from .metrics import object_hits
-
-    frames = cache.frames
-    names = cache.candidates(cfg.unranked(), 0).feature_names
-    hinted: list[Tensor] = []
-    also_hits: list[list[Tensor]] = [[] for _ in also]
-    ranked_best: list[Tensor] = []
-    also_best: list[list[Tensor]] = [[] for _ in also] if best_ks else []
-    path: list[Path] = []  # the current block's model
-
-    def fitted(f: int) -> ReebConfig:
-        path[:] = [models.fit(f)]
-        return cfg.replace(ranker=str(path[0]))
-
-    def each(block: list[int], outputs: list[dict[str, Tensor]]) -> None:
-        gts = [frames.gts[i] for i in block]
-        hinted.extend(hinted_classes(outputs, gts, k, iou))
-        if best_ks:
-            ranked_best.extend(best_ious(outputs, gts, best_ks))
-        for j, (other, hits) in enumerate(zip(also, also_hits)):
-            outs = cache.outputs(other.replace(ranker=str(path[0])), block)
-            hits += object_hits([o["boxes"] for o in outs], gts, k, iou)
-            if best_ks:
-                also_best[j].extend(best_ious(outs, gts, best_ks))
-
-    with _HeldOutModels(cache, names, samples, opts, folds, gap, scratch) as models:
-        scored = held_out(cache, models.blocks, fitted, base, k, iou, each=each, progress=progress)
-    return FitCrossValidation(models.blocks, scored.hits, scored.base_hits, per_fold=scored.per_fold,
-                              trained=models.trained, hinted=hinted, also_hits=also_hits, ranked_best=ranked_best,
-                              also_best=also_best)

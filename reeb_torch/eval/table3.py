@@ -361,7 +361,7 @@ def cross_validated_boxes(frames: Frames, roots: Sequence[str | os.PathLike], fo
     """The default's ranked boxes (``Tensor[N_i, 4]``, at most ``max_proposals``) on each of
     ``frames`` (read from the folders ``roots``), each ranked by a model fitted without the
     frame's block of ``folds`` (a number of blocks, or the blocks: the frame indices of each;
-    :func:`reeb_torch.eval.fit.held_out_outputs`, with ``reeb fit``'s default options and seed:
+    :func:`reeb_torch.eval.fit_cv.held_out_outputs`, with ``reeb fit``'s default options and seed:
     the same models as ``reeb fit ROOTS --folds FOLDS``; ``whole_drives``: without any frame
     of the block's drives either, as ``reeb fit --whole-drives``), and the
     seconds it took (``fit_s``: candidates, fits, proposals; no ms per image: the row runs the
@@ -371,7 +371,8 @@ def cross_validated_boxes(frames: Frames, roots: Sequence[str | os.PathLike], fo
     from tqdm import tqdm
 
     from .. import get_preset
-    from .fit import FitFrames, FitOptions, frame_samples, held_out_outputs, other_boxes
+    from .fit import FitFrames, FitOptions, frame_samples, other_boxes
+    from .fit_cv import held_out_outputs
     from .tune import FrameCache
 
     def bar(desc: str) -> Callable:

@@ -29,7 +29,7 @@ from .orientation import ORIENTATION_NAMES, orientation_features, orientation_in
 from .prefilter import prefilter_cpu
 from .refine import merge_refined
 
-__all__ = ["CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANKER"]
+__all__ = ["CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANKER", "best_per_image"]
 
 NOT_SEEN_BY_RANKER: tuple[str, ...] = ("top_k", "ranker", "ranker_keep", "ranker_v_share", "nms_iou", "nms_iou_thin",
                                         "nms_thin_aspect", "rank_quality", "class_quota", "refine_top", "refine_class",
@@ -101,7 +101,7 @@ def _gather(values: Tensor, bi: Tensor, ni: Tensor, counts: Tensor) -> Tensor:
     return torch.from_numpy(np.concatenate(parts) if parts else rows.reshape(-1)[:0].copy())
 
 
-def _best_per_image(values: Tensor, counts: Tensor, keep: int) -> Tensor:
+def best_per_image(values: Tensor, counts: Tensor, keep: int) -> Tensor:
     """Indices of the best ``keep`` of each image's ``values`` (the images' values lie in
     consecutive runs of ``counts``), ties to the earlier; ascending. On the CPU a compiled
     radix selection (:func:`~reeb_torch.stages._radix.kth_largest`), elsewhere a stable sort."""
@@ -346,12 +346,12 @@ class LearnedRanking(CandidateFeatures):
             by_v = round(self.config.ranker_v_share * keep)
             if model.prefilter is not None and len(bi) and int(counts.max()) > keep:
                 if by_v >= keep:  # V alone
-                    sel = _best_per_image(_gather(scores, bi, ni, counts), counts, keep)
+                    sel = best_per_image(_gather(scores, bi, ni, counts), counts, keep)
                 else:
                     pre = self.prefilter(model, maps, grid, scores, share, entropy, bi, ni)
                     if by_v:  # each image's best by V first, whatever the prefilter says
-                        pre[_best_per_image(_gather(scores, bi, ni, counts), counts, by_v)] = math.inf
-                    sel = _best_per_image(pre, counts, keep)
+                        pre[best_per_image(_gather(scores, bi, ni, counts), counts, by_v)] = math.inf
+                    sel = best_per_image(pre, counts, keep)
                 bi, ni = bi[sel], ni[sel]
         out = torch.full_like(scores, -math.inf)
         kept = torch.zeros_like(chosen)

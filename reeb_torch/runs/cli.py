@@ -552,6 +552,10 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
 @click.option("--jitter", type=FiniteFloat(0, 1), default=0.0, show_default=True,
               help="Fit also on a copy of each training frame with its contrast scaled by 1 ± up to JITTER and "
                    "up to JITTER × 255 grey levels added (drawn per frame, seeded); 0: none.")
+@click.option("--hard-negatives", "hard", type=FiniteFloat(0, 1), default=0.0, show_default=True,
+              help="Draw the ranking MLP's negatives at this fraction from the candidates the prefilter keeps "
+                   "(where the MLP ranks at run time) in place of the uniform sample; 0: off "
+                   "(docs/results.md, \"Tight boxes and a wider cut\").")
 @click.option("--no-orientation", "no_orientation", is_flag=True,
               help="Fit a model without the edge-orientation columns (faster to run, ranked less well on KITTI).")
 @click.option("--drop-features", "drop", metavar="NAMES",
@@ -567,8 +571,8 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
 @click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
 @settings_options("The settings the ranking is fitted for.", run=False)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
-def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, mirror, jitter, no_orientation, drop,
-        refiner, k, iou, limit, preset, config_file, sets, quiet):
+def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, mirror, jitter, hard, no_orientation,
+        drop, refiner, k, iou, limit, preset, config_file, sets, quiet):
     """Fit the learned ranking on labelled KITTI-format folders (DIRS) for another camera, and
     estimate by cross-validation over blocks of frames how it does on frames it never saw,
     beside the training-free settings and the shipped model on the same frames. Writes the
@@ -591,7 +595,7 @@ def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, mir
     except ValueError:
         raise click.BadParameter(f"{hidden!r}: expected widths such as 64,64", param_hint="--hidden") from None
     opts = FitOptions(hidden=widths, seed=seed, balance=balance, init=init, mirror=mirror, jitter=jitter,
-                      refine_hidden=(64, 64) if refiner else None, orientation=not no_orientation,
+                      hard_negatives=hard, refine_hidden=(64, 64) if refiner else None, orientation=not no_orientation,
                       drop_features=tuple(x.strip() for x in (drop or "").split(",") if x.strip()))
     if epochs is not None:
         opts = dataclasses.replace(opts, **{"tune_epochs" if init else "epochs": epochs})

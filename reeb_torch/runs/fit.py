@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 from ..config import ReebConfig
 from ..eval import fit as F
+from ..eval import fit_cv
 from ..eval.common import folder_blocks
 from ..eval.metrics import compare_recall
 from ..eval.tune import FrameCache, bootstrap_interval, fold_blocks, objective
@@ -141,7 +142,7 @@ def _other_folder_hits(cache: FrameCache, cfg: ReebConfig, samples: Sequence[F.S
     blocks = [idx for _, idx in folder_blocks(cache.frames.folders)]
     if not blocks:
         return None
-    outputs = F.held_out_outputs(cache, cfg, samples, opts, blocks, progress=_iterate("other folders", quiet),
+    outputs = fit_cv.held_out_outputs(cache, cfg, samples, opts, blocks, progress=_iterate("other folders", quiet),
                                  scratch=scratch)
     return object_hits([o["boxes"] for o in outputs], cache.frames.gts, k, iou)
 
@@ -309,9 +310,10 @@ def _run_fit(roots: Sequence[str], outputs: FitOutputs, cfg: ReebConfig, opts: F
     dropped_columns(names, opts.drop_features)  # and so does an unknown column
     samples = F.frame_samples(cache, cfg, opts, progress=_iterate("candidates", quiet))
     gap = len(frames) if whole_drives else 2  # drive frames within ``gap`` of a held-out block stay out
-    cv = F.cross_validate(cache, cfg, base, samples, opts, folds, k, iou, gap, progress=_iterate("folds", quiet),
-                          scratch=outputs.scratch)
-    model = F.fit_ranker(samples, names, opts, frames.classes)
+    cv = fit_cv.cross_validate(cache, cfg, base, samples, opts, folds, k, iou, gap, progress=_iterate("folds", quiet),
+                               scratch=outputs.scratch)
+    hard = fit_cv.kept_rows(cache, cfg, opts, range(len(frames))) if opts.hard_negatives > 0 else None
+    model = F.fit_ranker(samples, names, opts, frames.classes, hard)
     fitted = "fine-tuned (cross-validated)" if opts.init else "fitted (cross-validated)"
     rows = {"training-free": cv.base_hits, fitted: cv.ranked_hits}
     table, record = _report(frames, rows, cv.base_hits)  # kept in the weights: the same for the same frames
@@ -387,10 +389,10 @@ def _seen_note(who: str, model: BoxRanker, frames: F.FitFrames, digest: str, row
 
 def _options_record(opts: F.FitOptions) -> dict[str, Any]:
     """The fit options kept in the weights' provenance; ``mirror``, ``jitter``,
-    ``drop_features`` and the box refiner's options only where they are on (a fit without them
-    records what it always did)."""
+    ``drop_features``, ``hard_negatives`` and the box refiner's options only where they are on
+    (a fit without them records what it always did)."""
     record = dataclasses.asdict(opts)
-    for name in ("mirror", "jitter", "drop_features"):
+    for name in ("mirror", "jitter", "drop_features", "hard_negatives"):
         if not record[name]:
             del record[name]
     if opts.refine_hidden is None:
