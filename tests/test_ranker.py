@@ -464,12 +464,12 @@ def test_chosen_pairs_are_torch_nonzero_and_gather_reads_them():
 
 def test_best_per_image_keeps_the_best_ties_to_the_earlier():
     """Each image's best `keep` values, ties to the earlier, ascending: as a stable sort."""
-    from reeb_torch.ranker.step import best_per_image
+    from reeb_torch.ranker.step import _best_per_image
 
     torch.manual_seed(0)
     values = torch.randint(0, 20, (300,)).float()  # many ties
     counts = torch.tensor([120, 5, 0, 175])
-    got = best_per_image(values, counts, 30)
+    got = _best_per_image(values, counts, 30)
     want, start = [], 0
     for n in counts.tolist():
         part = values[start: start + n]

@@ -36,7 +36,7 @@ from torchvision.ops import box_iou
 from ..config import ReebConfig
 from ..ranker import (ORIENTATION_NAMES, TARGET_SCALE, BoxRanker, BoxRefiner, dropped_columns, offset_targets,
                       refine_feature_names)
-from .training import class_loss, fit_member, fit_quality, quality_rows
+from .training import class_loss, fit_member, fit_quality, quality_rows, standardised
 from .tune import FrameCache, Frames
 
 __all__ = ["FitFrames", "FitOptions", "Sample", "load_fit_frames", "frame_sample", "frame_samples", "mirrored_sample",
@@ -366,23 +366,19 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
 
     ``feature_names`` names the samples' columns; the model reads them all, or all but the
     orientation ones without ``opts.orientation``, or, fine-tuned, its own. ``hard_rows``
-    (:func:`~reeb_torch.eval.fit_cv.kept_rows`): with ``opts.hard_negatives`` and a prefilter, the prefilter is
-    fitted first and the MLP on the rows it gives for it.
+    (:func:`~reeb_torch.eval.fit_cv.kept_rows`): with ``opts.hard_negatives`` and a prefilter,
+    the MLP is fitted on the rows it gives for the prefilter (fitted first), not on ``samples``.
     """
-    x = torch.cat([s.features for s in samples]).float()
     names = list(feature_names)
-    if x.shape[1] != len(names):
-        raise ValueError(f"the samples hold {x.shape[1]} feature columns, feature_names names {len(names)}")
+    width = samples[0].features.shape[1] if samples else len(names)
+    if width != len(names):
+        raise ValueError(f"the samples hold {width} feature columns, feature_names names {len(names)}")
     if opts.init is not None:
         model = initial_model(opts.init, names)
         wanted = list(model.feature_names)
     else:
         wanted = [n for n in names if opts.orientation or n not in ORIENTATION_NAMES]
-    if wanted != names:  # the columns the model reads, of those the samples hold
-        x = x[:, [names.index(n) for n in wanted]]
-    y = torch.cat([s.target for s in samples])
-    w = torch.cat([s.weight for s in samples])
-    label = torch.cat([s.label for s in samples])
+    x, y, w, label = _stacked(samples, names, wanted)
     q_rows = None  # the quality head's rows, before the near misses leave the rows
     if opts.quality_hidden is not None and len(samples[0].iou):
         q_rows = quality_rows(torch.cat([s.iou for s in samples]), torch.cat([s.object_weight for s in samples]), x,
@@ -412,21 +408,15 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        xs = model.standardise(x)
-        xs[:, dropped] = 0.0  # at their mean: the fit learns nothing from them
-        cascade = opts.hard_negatives > 0 and hard_rows is not None and model.prefilter is not None
-        if model.prefilter is not None and cascade:  # first: the MLP learns where it keeps
+        xs = standardised(model, x, dropped)  # the dropped columns at their mean: the fit learns nothing from them
+        if model.prefilter is not None:  # first (each part is seeded on its own): hard_rows reads it
             fit_member(model.prefilter, xs[:, : model.cheap], y, w_pre, fit, opts.seed * 1000 + 999, fresh=fresh)
         xm, ym, wm = xs, y, w
-        if cascade:
-            assert hard_rows is not None
+        if opts.hard_negatives > 0 and hard_rows is not None and model.prefilter is not None:
             with torch.no_grad():
-                hard = hard_rows(model)
-            xm, ym, wm = _mlp_rows(hard, names, wanted, model, opts, dropped)
+                xm, ym, wm = _mlp_rows(hard_rows(model), names, wanted, model, opts, dropped)
         for m, member in enumerate(model.members):
             fit_member(member, xm, ym, wm, fit, opts.seed * 1000 + m, fresh=fresh)
-        if model.prefilter is not None and not cascade:
-            fit_member(model.prefilter, xs[:, : model.cheap], y, w_pre, fit, opts.seed * 1000 + 999, fresh=fresh)
         pos = (y == 1) & (label >= 0)
         if model.classifier is not None and bool(pos.any()):
             fit_member(model.classifier, xs[pos], label[pos], w_object[pos],
@@ -446,20 +436,24 @@ def fit_ranker(samples: Sequence[Sample], feature_names: Sequence[str], opts: Fi
     return model.eval().requires_grad_(False)
 
 
+def _stacked(samples: Sequence[Sample], names: list[str], wanted: list[str]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The rows of ``samples`` (columns ``names``) together: ``(features, target, weight,
+    label)``, the features' columns those ``wanted``."""
+    x = torch.cat([s.features for s in samples]).float()
+    if wanted != names:  # the columns the model reads, of those the samples hold
+        x = x[:, [names.index(n) for n in wanted]]
+    return (x, torch.cat([s.target for s in samples]), torch.cat([s.weight for s in samples]),
+            torch.cat([s.label for s in samples]))
+
+
 def _mlp_rows(samples: Sequence[Sample], names: list[str], wanted: list[str], model: BoxRanker, opts: FitOptions,
               dropped: Sequence[int]) -> tuple[Tensor, Tensor, Tensor]:
-    """The ranking MLP's rows from :func:`~reeb_torch.eval.fit_cv.kept_rows`' samples: ``(xs, y, w)``, standardised
-    as the model's, the dropped columns at their mean, weighed as :func:`fit_ranker` weighs."""
-    x = torch.cat([s.features for s in samples]).float()
-    if wanted != names:
-        x = x[:, [names.index(n) for n in wanted]]
-    y = torch.cat([s.target for s in samples])
+    """The ranking MLP's rows from :func:`~reeb_torch.eval.fit_cv.kept_rows`' samples:
+    ``(xs, y, w)``, standardised as the model's, weighed as :func:`fit_ranker` weighs."""
+    x, y, w, label = _stacked(samples, names, wanted)
     if not bool((y == 1).any()) or not bool((y == 0).any()):
         raise ValueError("hard_negatives: the prefilter keeps no positive or no negative in the training frames")
-    w = _balanced(torch.cat([s.weight for s in samples]), y, torch.cat([s.label for s in samples]), opts.balance)
-    xs = model.standardise(x)
-    xs[:, list(dropped)] = 0.0
-    return xs, y, w
+    return standardised(model, x, dropped), y, _balanced(w, y, label, opts.balance)
 
 
 def fit_refiner(x: Tensor, y: Tensor, opts: FitOptions) -> BoxRefiner:

@@ -14,7 +14,6 @@ fit on all blocks of frames but one, score the held-out block with that model.
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import tempfile
 from dataclasses import dataclass, field
@@ -27,7 +26,7 @@ from torch import Tensor
 from torchvision.ops import box_iou
 
 from ..config import ReebConfig
-from ..ranker import BoxRanker, best_per_image, save_ranker
+from ..ranker import BoxRanker, keep_candidates, save_ranker
 from . import fit as F
 from .tune import FrameCache, fold_blocks, held_out
 
@@ -39,7 +38,7 @@ def kept_rows(cache: FrameCache, cfg: ReebConfig, opts: F.FitOptions,
     """For :attr:`~reeb_torch.eval.fit.FitOptions.hard_negatives`: a function of a model
     with a fitted prefilter that gives, per frame of ``indices`` of ``cache``,
     :func:`~reeb_torch.eval.fit.frame_sample`'s rows of the candidates the prefilter keeps
-    under ``cfg`` (``ranker_keep``, ``ranker_v_share`` of them by V, as
+    under ``cfg`` (:func:`~reeb_torch.ranker.keep_candidates`, as
     :meth:`~reeb_torch.ranker.LearnedRanking.rank` keeps them), the negatives drawn at
     ``opts.hard_negatives`` by a generator seeded with ``(opts.seed, i, 4)``."""
     unranked = cfg.unranked()
@@ -47,24 +46,17 @@ def kept_rows(cache: FrameCache, cfg: ReebConfig, opts: F.FitOptions,
     frames = cache.frames
 
     def rows(model: BoxRanker) -> list[F.Sample]:
-        out = []
-        for i in indices:
+        def frame(i: int) -> F.Sample:
             c = cache.candidates(unranked, i)
             names = list(c.feature_names)
             cheap = c.features[:, [names.index(n) for n in model.feature_names[: model.cheap]]]
-            keep, counts = cfg.ranker_keep, torch.tensor([len(cheap)])
-            if len(cheap) > keep:
-                by_v = round(cfg.ranker_v_share * keep)
-                pre = model.prefilter_scores(cheap)
-                if by_v:
-                    pre[best_per_image(c.scores, counts, min(by_v, keep))] = math.inf
-                sel = best_per_image(pre, counts, keep)
-            else:
-                sel = torch.arange(len(cheap))
+            sel = keep_candidates(lambda: c.scores, lambda: model.prefilter_scores(cheap), torch.tensor([len(cheap)]),
+                                  cfg.ranker_keep, cfg.ranker_v_share)
             ignore = frames.ignore[i] if isinstance(frames, F.FitFrames) else torch.zeros(0, 4)
-            out.append(F.frame_sample(c.features[sel], c.boxes[sel], frames.gts[i], frames.labels[i], ignore, hard,
-                                    np.random.default_rng([opts.seed, i, 4])))
-        return out
+            return F.frame_sample(c.features[sel], c.boxes[sel], frames.gts[i], frames.labels[i], ignore, hard,
+                                  np.random.default_rng([opts.seed, i, 4]))
+
+        return [frame(i) for i in indices]
 
     return rows
 
@@ -156,8 +148,8 @@ class _HeldOutModels:
         """Fit the model without block ``f``; its weights file."""
         frames = self.frames
         train = F.training_frames(self.blocks, f, frames.ids, frames.folders, self.similar, self.gap)
-        hard = kept_rows(self.cache, self.cfg, self.opts, train) if self.opts.hard_negatives > 0 else None
-        model = F.fit_ranker([self.samples[i] for i in train], self.names, self.opts, frames.classes, hard)
+        model = F.fit_ranker([self.samples[i] for i in train], self.names, self.opts, frames.classes,
+                             kept_rows(self.cache, self.cfg, self.opts, train))
         self.trained.append(len(train))
         return save_ranker(model, Path(self._tmp.name) / f"fold{f}.safetensors")
 

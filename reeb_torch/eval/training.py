@@ -14,7 +14,7 @@ from torch import Tensor
 
 from ..ranker import BoxRanker
 
-__all__ = ["Schedule", "fit_member", "logistic_loss", "class_loss", "quality_rows", "fit_quality"]
+__all__ = ["Schedule", "fit_member", "logistic_loss", "class_loss", "standardised", "quality_rows", "fit_quality"]
 
 
 class Schedule(Protocol):
@@ -72,6 +72,14 @@ def fit_member(net: torch.nn.Module, x: Tensor, y: Tensor, w: Tensor, opts: Sche
     net.eval()
 
 
+def standardised(model: BoxRanker, x: Tensor, dropped: Sequence[int] = ()) -> Tensor:
+    """``x`` (``float [n, F]``, the model's columns) as the model's MLPs read it
+    (:meth:`~reeb_torch.ranker.BoxRanker.standardise`), the columns ``dropped`` at their mean (0)."""
+    xs = model.standardise(x)
+    xs[:, list(dropped)] = 0.0
+    return xs
+
+
 def quality_rows(iou: Tensor, object_weight: Tensor, x: Tensor, label: Tensor, grade: tuple[float, float],
                  balance: float) -> tuple[Tensor, Tensor, Tensor] | None:
     """The quality head's rows of ``x`` (``float [n, F]``, the model's columns): those with an
@@ -108,8 +116,7 @@ def fit_quality(model: BoxRanker, x: Tensor, target: Tensor, weight: Tensor, opt
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        xs = model.standardise(x)
-        xs[:, list(dropped)] = 0.0
+        xs = standardised(model, x, dropped)
         model.quality.requires_grad_(True)
         fit_member(model.quality, xs, target.float(), weight.float(), opts, seed * 1000 + 996, fresh=fresh)
     finally:

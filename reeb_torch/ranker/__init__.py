@@ -32,7 +32,7 @@ from .features import FEATURE_GROUPS, dropped_columns
 from .model import BoxRanker
 from .orientation import ORIENTATION_NAMES
 from .refine import TARGET_SCALE, BoxRefiner, offset_targets, refine_feature_names, refine_features
-from .step import NOT_SEEN_BY_RANKER, CandidateFeatures, LearnedRanking, best_per_image
+from .step import NOT_SEEN_BY_RANKER, CandidateFeatures, LearnedRanking, keep_candidates
 from .weights import (SAME_IMAGE_BITS, SHIPPED, RankerWeightsError, fitted_frames, frame_hash, hash_distance,
                       load_ranker, resolve_ranker, save_ranker, seen_hashes, shipped_path)
 
@@ -40,4 +40,4 @@ __all__ = ["BoxRanker", "CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANK
            "load_ranker", "resolve_ranker", "save_ranker", "shipped_path", "frame_hash", "hash_distance", "seen_hashes",
            "fitted_frames", "SAME_IMAGE_BITS", "BoxRefiner", "refine_features", "refine_feature_names",
            "offset_targets", "TARGET_SCALE", "FEATURE_GROUPS", "dropped_columns",
-           "ORIENTATION_NAMES", "best_per_image"]
+           "ORIENTATION_NAMES", "keep_candidates"]

@@ -29,7 +29,7 @@ from .orientation import ORIENTATION_NAMES, orientation_features, orientation_in
 from .prefilter import prefilter_cpu
 from .refine import merge_refined
 
-__all__ = ["CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANKER", "best_per_image"]
+__all__ = ["CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANKER", "keep_candidates"]
 
 NOT_SEEN_BY_RANKER: tuple[str, ...] = ("top_k", "ranker", "ranker_keep", "ranker_v_share", "nms_iou", "nms_iou_thin",
                                         "nms_thin_aspect", "rank_quality", "class_quota", "refine_top", "refine_class",
@@ -101,7 +101,7 @@ def _gather(values: Tensor, bi: Tensor, ni: Tensor, counts: Tensor) -> Tensor:
     return torch.from_numpy(np.concatenate(parts) if parts else rows.reshape(-1)[:0].copy())
 
 
-def best_per_image(values: Tensor, counts: Tensor, keep: int) -> Tensor:
+def _best_per_image(values: Tensor, counts: Tensor, keep: int) -> Tensor:
     """Indices of the best ``keep`` of each image's ``values`` (the images' values lie in
     consecutive runs of ``counts``), ties to the earlier; ascending. On the CPU a compiled
     radix selection (:func:`~reeb_torch.stages._radix.kth_largest`), elsewhere a stable sort."""
@@ -121,6 +121,22 @@ def best_per_image(values: Tensor, counts: Tensor, keep: int) -> Tensor:
         out.append(sel + start)
         start += n
     return torch.cat(out) if out else values.new_zeros(0, dtype=torch.long)
+
+
+def keep_candidates(v: Callable[[], Tensor], prefilter: Callable[[], Tensor], counts: Tensor, keep: int,
+                    v_share: float) -> Tensor:
+    """Indices (ascending) of the candidates the learned ranking ranks: each image's best
+    ``keep`` (the images' candidates lie in consecutive runs of ``counts``),
+    ``round(v_share · keep)`` of them its best by V (``v()``, ``float [K]``) whatever the
+    prefilter says, the rest its best by the prefilter's logit (``prefilter()``, ``float32
+    [K]``); each is computed only where it is needed."""
+    by_v = round(v_share * keep)
+    if by_v >= keep:  # V alone
+        return _best_per_image(v(), counts, keep)
+    pre = prefilter()
+    if by_v:  # each image's best by V first, whatever the prefilter says
+        pre[_best_per_image(v(), counts, by_v)] = math.inf
+    return _best_per_image(pre, counts, keep)
 
 
 class CandidateFeatures:
@@ -343,15 +359,10 @@ class LearnedRanking(CandidateFeatures):
             bi, ni = _chosen(chosen)
             keep = self.config.ranker_keep
             counts = torch.bincount(bi, minlength=scores.shape[0])
-            by_v = round(self.config.ranker_v_share * keep)
             if model.prefilter is not None and len(bi) and int(counts.max()) > keep:
-                if by_v >= keep:  # V alone
-                    sel = best_per_image(_gather(scores, bi, ni, counts), counts, keep)
-                else:
-                    pre = self.prefilter(model, maps, grid, scores, share, entropy, bi, ni)
-                    if by_v:  # each image's best by V first, whatever the prefilter says
-                        pre[best_per_image(_gather(scores, bi, ni, counts), counts, by_v)] = math.inf
-                    sel = best_per_image(pre, counts, keep)
+                sel = keep_candidates(lambda: _gather(scores, bi, ni, counts),
+                                      lambda: self.prefilter(model, maps, grid, scores, share, entropy, bi, ni),
+                                      counts, keep, self.config.ranker_v_share)
                 bi, ni = bi[sel], ni[sel]
         out = torch.full_like(scores, -math.inf)
         kept = torch.zeros_like(chosen)

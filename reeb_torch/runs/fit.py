@@ -312,8 +312,7 @@ def _run_fit(roots: Sequence[str], outputs: FitOutputs, cfg: ReebConfig, opts: F
     gap = len(frames) if whole_drives else 2  # drive frames within ``gap`` of a held-out block stay out
     cv = fit_cv.cross_validate(cache, cfg, base, samples, opts, folds, k, iou, gap, progress=_iterate("folds", quiet),
                                scratch=outputs.scratch)
-    hard = fit_cv.kept_rows(cache, cfg, opts, range(len(frames))) if opts.hard_negatives > 0 else None
-    model = F.fit_ranker(samples, names, opts, frames.classes, hard)
+    model = F.fit_ranker(samples, names, opts, frames.classes, fit_cv.kept_rows(cache, cfg, opts, range(len(frames))))
     fitted = "fine-tuned (cross-validated)" if opts.init else "fitted (cross-validated)"
     rows = {"training-free": cv.base_hits, fitted: cv.ranked_hits}
     table, record = _report(frames, rows, cv.base_hits)  # kept in the weights: the same for the same frames
