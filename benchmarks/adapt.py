@@ -43,6 +43,7 @@ from _common import default_dev_dirs, environment, rerun_line, write_outputs  # 
 
 from reeb_torch import ReebConfig  # noqa: E402
 from reeb_torch.eval import fit as F  # noqa: E402
+from reeb_torch.ranker import fit as RF  # noqa: E402
 from reeb_torch.eval import fit_cv  # noqa: E402
 from reeb_torch.eval.metrics import object_hits, sign_test  # noqa: E402
 from reeb_torch.eval.tune import FrameCache  # noqa: E402
@@ -78,7 +79,7 @@ def run_seed(cache: FrameCache, cfg: ReebConfig, scens: list[dict], seed: int, t
     and under ``"hints"``, per condition with a class head, ``(right, found)``: of the test
     objects it finds, how many its best proposal's class hint names rightly."""
     frames = cache.frames
-    opts = F.FitOptions(seed=seed)
+    opts = RF.FitOptions(seed=seed)
     samples = F.frame_samples(cache, cfg, opts)
     names = cache.candidates(cfg.unranked(), 0).feature_names
     bases: dict[tuple, Path] = {}
@@ -96,12 +97,12 @@ def run_seed(cache: FrameCache, cfg: ReebConfig, scens: list[dict], seed: int, t
     for s in scens:
         key = tuple(s["source"])
         if key not in bases:
-            model = F.fit_ranker([samples[i] for i in s["source"]], names, opts, frames.classes)
+            model = RF.fit_ranker([samples[i] for i in s["source"]], names, opts, frames.classes)
             bases[key] = save_ranker(model, tmp / f"base{len(bases)}_{seed}.safetensors")
         adapt = [samples[i] for i in s["adapt"]]
         tag = f"{len(out)}_{seed}"  # a file of its own: a generator reads its weights once
-        scratch = save_ranker(F.fit_ranker(adapt, names, opts, frames.classes), tmp / f"scratch{tag}.safetensors")
-        tuned = F.fit_ranker(adapt, names, dataclasses.replace(opts, init=str(bases[key])), frames.classes)
+        scratch = save_ranker(RF.fit_ranker(adapt, names, opts, frames.classes), tmp / f"scratch{tag}.safetensors")
+        tuned = RF.fit_ranker(adapt, names, dataclasses.replace(opts, init=str(bases[key])), frames.classes)
         tuned_path = save_ranker(tuned, tmp / f"tuned{tag}.safetensors")
         hints: dict = {}
         out[s["name"]] = {c: hits(r, s["test"], hints, c) for c, r in

@@ -19,7 +19,7 @@ test on those: the seeds' noise averaged within each object, the objects the uni
 a preset name; a field the model reads (the candidates, the features), or the ranker
 itself, is refused.
 
-``--refit`` takes the same pairs, and also :class:`~reeb_torch.eval.fit.FitOptions` fields
+``--refit`` takes the same pairs, and also :class:`~reeb_torch.ranker.fit.FitOptions` fields
 (``hidden=32,32``, ``members=2``, ``mirror=1``, ``jitter=0.2``, ...: ``reeb fit``'s options)
 and the fields the model reads: each fold's model is fitted again with them (same seed, same folds), so the pairing
 is of two fits, not of one model under two settings:
@@ -47,6 +47,7 @@ from _common import (default_dev_dirs, environment, rerun_line, setting_pairs, s
 
 from reeb_torch import ReebConfig, get_preset  # noqa: E402
 from reeb_torch.eval import fit as F  # noqa: E402
+from reeb_torch.ranker import fit as RF  # noqa: E402
 from reeb_torch.eval import fit_cv  # noqa: E402
 from reeb_torch.eval.metrics import compare_recall, sign_test  # noqa: E402
 from reeb_torch.eval.tune import FrameCache, bootstrap_interval  # noqa: E402
@@ -70,14 +71,14 @@ def parse_variant(text: str) -> ReebConfig:
     return cfg
 
 
-_FIT_FIELDS = {f.name for f in dataclasses.fields(F.FitOptions)} - {"seed"}
+_FIT_FIELDS = {f.name for f in dataclasses.fields(RF.FitOptions)} - {"seed"}
 
 
 def _fit_value(name: str, text: str) -> object:
-    """A :class:`~reeb_torch.eval.fit.FitOptions` value from text: widths as ``32,32``
+    """A :class:`~reeb_torch.ranker.fit.FitOptions` value from text: widths as ``32,32``
     (``none`` for no layer where the field allows it), numbers as numbers, switches
     (``mirror``) as ``1`` / ``0``."""
-    default = getattr(F.FitOptions(), name)
+    default = getattr(RF.FitOptions(), name)
     text = text.strip()
     if name == "init":  # a model to fine-tune: a shipped name or a weights file
         return None if text.lower() in ("none", "null") else text
@@ -103,7 +104,7 @@ def _fit_value(name: str, text: str) -> object:
 def parse_refit(text: str) -> tuple[ReebConfig, dict]:
     """``FIELD=VALUE;...`` of ``--refit``: the config (fields of :class:`~reeb_torch.ReebConfig`
     on the default, as ``reeb propose --set``) and the fit options (fields of
-    :class:`~reeb_torch.eval.fit.FitOptions` but the seed) the fold models are fitted with.
+    :class:`~reeb_torch.ranker.fit.FitOptions` but the seed) the fold models are fitted with.
     ValueError for a bad value or a ``ranker`` (the fit makes the model)."""
     opts, pairs = {}, []
     for pair in setting_pairs(text):
@@ -140,7 +141,7 @@ def cross_validated_best(cache: FrameCache, configs: list[ReebConfig], seed: int
     (``refine_top``), the fold models also get a box refiner (``refine_hidden`` 64, 64: fitted
     after the ranking, which it leaves as it is); where one ranks by the quality head
     (``rank_quality``), a quality head (``quality_hidden`` 32, the same way)."""
-    opts = F.FitOptions(seed=seed, refine_hidden=(64, 64) if any(c.refine_top for c in configs) else None,
+    opts = RF.FitOptions(seed=seed, refine_hidden=(64, 64) if any(c.refine_top for c in configs) else None,
                         quality_hidden=(32,) if any(c.rank_quality for c in configs) else None)
     base = ReebConfig()
     samples = F.frame_samples(cache, base, opts)

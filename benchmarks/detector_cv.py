@@ -78,6 +78,7 @@ def fold_rankers(roots: list[Path], items: list[dict], train_sides: list[list[in
 
     from reeb_torch.config import ReebConfig
     from reeb_torch.eval import fit as F
+    from reeb_torch.ranker import fit as RF
     from reeb_torch.eval.tune import FrameCache
     from reeb_torch.ranker import save_ranker
 
@@ -94,12 +95,12 @@ def fold_rankers(roots: list[Path], items: list[dict], train_sides: list[list[in
     cfg = ReebConfig()
     cache = FrameCache(frames)
     names = cache.candidates(cfg.unranked(), 0).feature_names
-    opts = F.FitOptions()
+    opts = RF.FitOptions()
     samples = F.frame_samples(cache, cfg, opts)
     for f, (side, path) in enumerate(zip(train_sides, paths)):
         if not path.is_file():
             t0 = time.perf_counter()
-            model = F.fit_ranker([samples[i] for i in side], names, opts, frames.classes)
+            model = RF.fit_ranker([samples[i] for i in side], names, opts, frames.classes)
             save_ranker(model, path, {"frames": [keys[i] for i in side]}, cfg.to_dict())
             if not quiet:
                 print(f"fold {f}: ranking fitted on {len(side)} frames in {time.perf_counter() - t0:.0f} s",

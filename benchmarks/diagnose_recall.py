@@ -225,12 +225,13 @@ def held_out_generators(data: list[Path], limit: int | None, config, folds: int,
     long as the functions), the one generator per block made once, when its first frame asks;
     ``whole_drives``: every frame of a held-out block's drives stays off its training side."""
     from reeb_torch.eval import fit as F
+    from reeb_torch.ranker import fit as RF
     from reeb_torch.eval.tune import FrameCache, fold_blocks
     from reeb_torch.ranker import save_ranker
 
     frames = F.load_fit_frames(data, limit)
     cache = FrameCache(frames)
-    opts = F.FitOptions(seed=seed)
+    opts = RF.FitOptions(seed=seed)
     samples = F.frame_samples(cache, config, opts)
     blocks = fold_blocks(len(frames), folds)
     similar = F.similar_frames(frames.images)
@@ -244,7 +245,7 @@ def held_out_generators(data: list[Path], limit: int | None, config, folds: int,
                 made.clear()  # one block's generator at a time: the frames come block by block
                 train = F.training_frames(blocks, f, frames.ids, frames.folders, similar,
                                           len(frames) if whole_drives else 2)
-                model = F.fit_ranker([samples[i] for i in train], names, opts, frames.classes)
+                model = RF.fit_ranker([samples[i] for i in train], names, opts, frames.classes)
                 path = save_ranker(model, Path(tmp.name) / f"fold{f}.safetensors")
                 made[f] = ProposalGenerator(config.replace(ranker=str(path)))
             return made[f]

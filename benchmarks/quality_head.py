@@ -1,6 +1,6 @@
 """Add a localisation-quality head to an existing ranker's weights, fitted on labelled frames.
 
-The head (:func:`reeb_torch.eval.training.fit_quality`, used with ``ReebConfig.rank_quality``)
+The head (:func:`reeb_torch.ranker.training.fit_quality`, used with ``ReebConfig.rank_quality``)
 is fitted after the ranking and leaves it as it is, so the file it writes ranks exactly as
 the model it started from when ``rank_quality`` is 0: a paired check of the head alone on
 other frames (``ranker=OUT;rank_quality=4``). Its rows are the candidates at IoU >= 0.5 with
@@ -25,7 +25,8 @@ from _common import default_dev_dirs, rerun_line  # noqa: E402
 
 from reeb_torch import ReebConfig  # noqa: E402
 from reeb_torch.eval import fit as F  # noqa: E402
-from reeb_torch.eval import training as T  # noqa: E402
+from reeb_torch.ranker import fit as RF  # noqa: E402
+from reeb_torch.ranker import training as T  # noqa: E402
 from reeb_torch.eval.tune import FrameCache  # noqa: E402
 from reeb_torch.ranker import load_ranker, save_ranker  # noqa: E402
 
@@ -43,7 +44,7 @@ def main(argv: list[str] | None = None) -> Path:
     start = load_ranker(args.ranker)
     model = copy.deepcopy(start)
     model.meta = copy.deepcopy(start.meta)
-    opts = F.FitOptions(seed=args.seed, quality_hidden=tuple(int(w) for w in args.hidden.split(",")))
+    opts = RF.FitOptions(seed=args.seed, quality_hidden=tuple(int(w) for w in args.hidden.split(",")))
     frames = F.load_fit_frames([str(d) for d in args.data], limit=args.limit)
     cache = FrameCache(frames)
     samples = F.frame_samples(cache, ReebConfig(), opts)
@@ -54,7 +55,7 @@ def main(argv: list[str] | None = None) -> Path:
                           torch.cat([s.label for s in samples]), opts.quality_iou, opts.balance)
     if rows is None:
         ap.error("no candidate at IoU >= 0.5 with an object: nothing to fit the head on")
-    schedule = F.FitOptions(epochs=opts.quality_epochs, batch=opts.quality_batch)
+    schedule = RF.FitOptions(epochs=opts.quality_epochs, batch=opts.quality_batch)
     T.fit_quality(model.requires_grad_(False), *rows, schedule, opts.seed, opts.quality_hidden)
     model.eval().requires_grad_(False)
     for name, tensor in start.state_dict().items():  # the ranking as it was, bit for bit

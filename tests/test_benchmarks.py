@@ -100,6 +100,7 @@ def test_show_needs_lost(diagnose, tmp_path):
 
 def test_folds_rank_each_frame_by_a_model_fitted_without_its_block(diagnose, tmp_path):
     from reeb_torch.eval import fit as F
+    from reeb_torch.ranker import fit as RF
     from reeb_torch.eval import fit_cv
     from reeb_torch.eval.tune import FrameCache
 
@@ -107,7 +108,7 @@ def test_folds_rank_each_frame_by_a_model_fitted_without_its_block(diagnose, tmp
     record = diagnose.main(["--data", str(root), "--folds", "2", "--set", "top_k=150"])
     # the very folds, fits and hits of reeb fit's cross-validation, not the shipped model's
     frames = F.load_fit_frames([root])
-    cache, cfg, opts = FrameCache(frames), ReebConfig(top_k=150), F.FitOptions()
+    cache, cfg, opts = FrameCache(frames), ReebConfig(top_k=150), RF.FitOptions()
     cv = fit_cv.cross_validate(cache, cfg, cfg.training_free(), F.frame_samples(cache, cfg, opts), opts, 2, k=150)
     held_out = 100.0 * float(torch.cat(cv.ranked_hits).float().mean())
     final = record["splits"]["all"]["stages"]

@@ -618,3 +618,42 @@ def test_hflip_training_draws_mirrors_deterministically(lite0, frames, tmp_path)
             frame.mirror = mirror
         runs.append(train_heads(model, train, s, progress=False)["losses"])
     assert runs[0] == runs[1] and runs[0] != runs[2]
+
+
+@pytest.mark.parametrize("every", [250, 1])
+def test_killed_head_training_goes_on_to_the_same_weights(lite0, frames, tmp_path, monkeypatch, every):
+    """train_heads with a checkpoint: stopped after an epoch (or mid-epoch, a state kept every
+    step) and started again, the losses and weights of a run never stopped, bit for bit."""
+    from reeb_torch.detection import TrainSettings, head_training, train_heads
+    from reeb_torch.ranker.store import Checkpoints
+
+    monkeypatch.setattr(head_training, "CHECKPOINT_STEPS", every)
+
+    class Killed(Exception):
+        pass
+
+    class KillAfter:
+        def __init__(self, slot, steps):
+            self.slot, self.steps = slot, steps
+
+        def load(self):
+            return self.slot.load()
+
+        def save(self, state):
+            self.slot.save(state)
+            if state["step"] >= self.steps:
+                raise Killed
+
+    settings = TrainSettings(max_steps=3, warmup=1, lr=1e-3, batch_size=1)
+    model = tiny_lite0("reeb", tmp_path)
+    train, _ = cached(model, frames, tmp_path)
+    whole = train_heads(model, train, settings, progress=False)["losses"]
+    expected = model.state_dict()
+    slot = Checkpoints(tmp_path / "states", ["key"]).slot("heads")
+    model = tiny_lite0("reeb", tmp_path)
+    with pytest.raises(Killed):
+        train_heads(model, cached(model, frames, tmp_path)[0], settings, progress=False, checkpoint=KillAfter(slot, 1))
+    model = tiny_lite0("reeb", tmp_path)
+    again = train_heads(model, cached(model, frames, tmp_path)[0], settings, progress=False, checkpoint=slot)
+    assert again["losses"] == whole
+    assert all(torch.equal(v, model.state_dict()[k]) for k, v in expected.items())

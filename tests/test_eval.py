@@ -372,6 +372,7 @@ def test_table3_cross_validated_row_is_reeb_fits_estimate(kitti_dir, tmp_path, m
     row, which is in sample; every row is then paired with training-free."""
     from reeb_torch import ReebConfig
     from reeb_torch.eval import fit as F
+    from reeb_torch.ranker import fit as RF
     from reeb_torch.eval import fit_cv
     from reeb_torch.eval.tune import FrameCache
 
@@ -383,7 +384,7 @@ def test_table3_cross_validated_row_is_reeb_fits_estimate(kitti_dir, tmp_path, m
     assert row["timing"]["ms_per_img"] is None and row["timing"]["folds"] == 2
     frames = F.load_fit_frames([str(kitti_dir)], limit=6)
     cache = FrameCache(frames)
-    cfg, opts = ReebConfig(), F.FitOptions()
+    cfg, opts = ReebConfig(), RF.FitOptions()
     cv = fit_cv.cross_validate(cache, cfg, cfg.training_free(), F.frame_samples(cache, cfg, opts), opts, 2)
     found = sum(int(h.sum()) for h in cv.ranked_hits)
     objects = sum(h.numel() for h in cv.ranked_hits)
@@ -414,6 +415,7 @@ def test_table3_whole_drives_row_never_fits_on_a_frame_of_a_held_out_drive(tmp_p
         pytest.skip(f"{TRACKING} is absent (set $REEB_DATA to the folder holding kitti_tracking/)")
     from reeb_torch import ReebConfig
     from reeb_torch.eval import fit as F
+    from reeb_torch.ranker import fit as RF
     from reeb_torch.eval import fit_cv
     from reeb_torch.eval.tune import FrameCache
 
@@ -446,7 +448,7 @@ def test_table3_whole_drives_row_never_fits_on_a_frame_of_a_held_out_drive(tmp_p
     monkeypatch.setattr(F, "training_frames", training_frames)
     frames = F.load_fit_frames([str(data)])
     cache = FrameCache(frames)
-    cfg, opts = ReebConfig(), F.FitOptions()
+    cfg, opts = ReebConfig(), RF.FitOptions()
     cv = fit_cv.cross_validate(cache, cfg, cfg.training_free(), F.frame_samples(cache, cfg, opts), opts, 3,
                           gap=len(frames))  # reeb fit --whole-drives's estimate
     found, objects = sum(int(h.sum()) for h in cv.ranked_hits), sum(h.numel() for h in cv.ranked_hits)

@@ -15,6 +15,7 @@ import torch
 
 from conftest import DATA
 from reeb_torch.eval import fit as F
+from reeb_torch.ranker import fit as RF
 from reeb_torch.eval import fit_cv
 from reeb_torch.eval.tune import fold_blocks
 from reeb_torch.ranker.features import FEATURE_GROUPS, dropped_columns, feature_names
@@ -33,7 +34,7 @@ def test_frame_sample_by_hand():
                           [50.0, 50.0, 60.0, 60.0],   # background: negative
                           [100.0, 0.0, 110.0, 11.0]])  # on an ignored van: neither
     feats = torch.arange(5.0)[:, None].expand(5, 3)
-    s = F.frame_sample(feats, boxes, gt, torch.tensor([2]), ignore, F.FitOptions(negatives=1.0),
+    s = F.frame_sample(feats, boxes, gt, torch.tensor([2]), ignore, RF.FitOptions(negatives=1.0),
                        np.random.default_rng(0))
     assert s.features[:, 0].tolist() == [0.0, 1.0, 3.0]
     assert s.target.tolist() == [1.0, 1.0, 0.0]
@@ -41,20 +42,20 @@ def test_frame_sample_by_hand():
     assert s.label.tolist() == [2, 2, -1]
 
 
-def _samples(seed: int, n: int = 3000) -> list[F.Sample]:
+def _samples(seed: int, n: int = 3000) -> list[RF.Sample]:
     g = torch.Generator().manual_seed(seed)
     x = torch.randn(n, 47, generator=g)
     y = (x[:, 0] + 0.3 * torch.randn(n, generator=g) > 1).float()
-    return [F.Sample(x, y, torch.ones(n), torch.where(y > 0, 0, -1))]
+    return [RF.Sample(x, y, torch.ones(n), torch.where(y > 0, 0, -1))]
 
 
 def test_fit_is_seeded_and_learns():
-    opts = F.FitOptions(epochs=10, hidden=(8,), batch=256)
-    a = F.fit_ranker(_samples(0), feature_names(4), opts)
+    opts = RF.FitOptions(epochs=10, hidden=(8,), batch=256)
+    a = RF.fit_ranker(_samples(0), feature_names(4), opts)
     torch.randn(3)  # whatever ran between
-    b = F.fit_ranker(_samples(0), feature_names(4), opts)
+    b = RF.fit_ranker(_samples(0), feature_names(4), opts)
     assert all(torch.equal(p, q) for p, q in zip(a.state_dict().values(), b.state_dict().values()))
-    c = F.fit_ranker(_samples(0), feature_names(4), F.FitOptions(epochs=10, hidden=(8,), batch=256, seed=1))
+    c = RF.fit_ranker(_samples(0), feature_names(4), RF.FitOptions(epochs=10, hidden=(8,), batch=256, seed=1))
     assert not torch.equal(a.members[0][0].weight, c.members[0][0].weight)
     test = _samples(1)[0]
     with torch.no_grad():
@@ -62,7 +63,7 @@ def test_fit_is_seeded_and_learns():
     pos, neg = logit[test.target == 1], logit[test.target == 0]
     assert float((pos[:, None] > neg[None, :]).float().mean()) > 0.8  # AUC on new rows (0.5: chance)
     with pytest.raises(ValueError, match="cannot be fitted"):
-        F.fit_ranker([F.Sample(torch.zeros(3, 47), torch.zeros(3), torch.ones(3), torch.full((3,), -1))],
+        RF.fit_ranker([RF.Sample(torch.zeros(3, 47), torch.zeros(3), torch.ones(3), torch.full((3,), -1))],
                      feature_names(4), opts)
 
 
@@ -75,12 +76,12 @@ def test_class_head_is_seeded_learns_and_leaves_the_ranking_alone():
         x = torch.randn(n, 47, generator=g)
         y = (x[:, 0] + 0.3 * torch.randn(n, generator=g) > 1).float()
         label = torch.where(x[:, 1] > 0.3, 1, 0)  # the class shows in another column
-        return [F.Sample(x, y, torch.ones(n), torch.where(y > 0, label, -1))]
+        return [RF.Sample(x, y, torch.ones(n), torch.where(y > 0, label, -1))]
 
-    opts = F.FitOptions(epochs=20, hidden=(8,), batch=512, class_hidden=(8,))
-    plain = F.fit_ranker(samples(0), feature_names(4), opts)
-    a = F.fit_ranker(samples(0), feature_names(4), opts, ("Car", "Pedestrian"))
-    b = F.fit_ranker(samples(0), feature_names(4), opts, ("Car", "Pedestrian"))
+    opts = RF.FitOptions(epochs=20, hidden=(8,), batch=512, class_hidden=(8,))
+    plain = RF.fit_ranker(samples(0), feature_names(4), opts)
+    a = RF.fit_ranker(samples(0), feature_names(4), opts, ("Car", "Pedestrian"))
+    b = RF.fit_ranker(samples(0), feature_names(4), opts, ("Car", "Pedestrian"))
     assert plain.classifier is None and a.classes == ("Car", "Pedestrian")
     for name, p in plain.state_dict().items():
         assert torch.equal(p, a.state_dict()[name]), name
@@ -91,7 +92,7 @@ def test_class_head_is_seeded_learns_and_leaves_the_ranking_alone():
     torch.testing.assert_close(probs.sum(1), torch.ones(len(probs)))
     truth = test.label[test.target == 1]
     assert float((probs.argmax(1) == truth).float().mean()) > 0.85
-    assert F.fit_ranker(samples(0), feature_names(4), F.FitOptions(epochs=2, hidden=(8,), class_hidden=None),
+    assert RF.fit_ranker(samples(0), feature_names(4), RF.FitOptions(epochs=2, hidden=(8,), class_hidden=None),
                         ("Car", "Pedestrian")).classifier is None
 
 
@@ -105,11 +106,11 @@ def test_dropped_features_change_no_score():
     n = 6000
     x = torch.randn(n, 47, generator=g)
     y = (x[:, 0] + x[:, top] > 1).float()  # the place column tells half of it
-    samples = [F.Sample(x, y, torch.ones(n), torch.where(y > 0, (x[:, top] > 0).long(), -1))]
-    opts = F.FitOptions(epochs=4, hidden=(8,), batch=512, class_hidden=(8,))
-    free = F.fit_ranker(samples, names, dataclasses.replace(opts, drop_features=("place", "log_v")),
+    samples = [RF.Sample(x, y, torch.ones(n), torch.where(y > 0, (x[:, top] > 0).long(), -1))]
+    opts = RF.FitOptions(epochs=4, hidden=(8,), batch=512, class_hidden=(8,))
+    free = RF.fit_ranker(samples, names, dataclasses.replace(opts, drop_features=("place", "log_v")),
                         ("Car", "Pedestrian"))
-    kept = F.fit_ranker(samples, names, opts, ("Car", "Pedestrian"))
+    kept = RF.fit_ranker(samples, names, opts, ("Car", "Pedestrian"))
     moved = x[:50].clone()
     cols = [names.index(c) for c in (*FEATURE_GROUPS["place"], "log_v")]
     moved[:, cols] = torch.randn(50, len(cols), generator=g) * 5
@@ -122,7 +123,7 @@ def test_dropped_features_change_no_score():
         assert not torch.allclose(kept(x[:50]), kept(moved))
     assert dropped_columns(names, ["place"]) == sorted(names.index(c) for c in FEATURE_GROUPS["place"])
     with pytest.raises(ValueError, match="'lattitude' is no feature column or group"):
-        F.fit_ranker(samples, names, dataclasses.replace(opts, drop_features=("lattitude",)))
+        RF.fit_ranker(samples, names, dataclasses.replace(opts, drop_features=("lattitude",)))
 
 
 def test_prefilter_balance_weighs_only_the_prefilter():
@@ -133,11 +134,11 @@ def test_prefilter_balance_weighs_only_the_prefilter():
     x = torch.randn(n, 47, generator=g)
     y = (x[:, 0] + 0.3 * torch.randn(n, generator=g) > 1).float()
     label = torch.where(x[:, 1] > 1.0, 1, 0)  # a rare class among the positives
-    samples = [F.Sample(x, y, torch.ones(n), torch.where(y > 0, label, -1))]
-    opts = F.FitOptions(epochs=3, hidden=(8,), batch=512, class_hidden=None)
-    base = F.fit_ranker(samples, feature_names(4), opts)
-    same = F.fit_ranker(samples, feature_names(4), dataclasses.replace(opts, prefilter_balance=opts.balance))
-    other = F.fit_ranker(samples, feature_names(4), dataclasses.replace(opts, prefilter_balance=1.0))
+    samples = [RF.Sample(x, y, torch.ones(n), torch.where(y > 0, label, -1))]
+    opts = RF.FitOptions(epochs=3, hidden=(8,), batch=512, class_hidden=None)
+    base = RF.fit_ranker(samples, feature_names(4), opts)
+    same = RF.fit_ranker(samples, feature_names(4), dataclasses.replace(opts, prefilter_balance=opts.balance))
+    other = RF.fit_ranker(samples, feature_names(4), dataclasses.replace(opts, prefilter_balance=1.0))
     assert all(torch.equal(p, q) for p, q in zip(base.state_dict().values(), same.state_dict().values()))
     assert all(torch.equal(p, q) for p, q in zip(base.members.state_dict().values(), other.members.state_dict().values()))
     assert not all(torch.equal(p, q) for p, q in zip(base.prefilter.state_dict().values(),
@@ -152,18 +153,18 @@ def test_fine_tuning_starts_from_the_model_keeps_its_shape_and_leaves_it_alone(t
     from reeb_torch.ranker import load_ranker, save_ranker
 
     names = feature_names(4)
-    start = F.fit_ranker(_samples(0), names, F.FitOptions(epochs=3, hidden=(8,), batch=512, class_hidden=(4,)),
+    start = RF.fit_ranker(_samples(0), names, RF.FitOptions(epochs=3, hidden=(8,), batch=512, class_hidden=(4,)),
                          ("Car", "Pedestrian"))
     path = save_ranker(start, tmp_path / "start.safetensors", {"frames_digest": "abc"})
     shared = load_ranker(str(path))
     before = {k: v.clone() for k, v in shared.state_dict().items()}
-    opts = F.FitOptions(init=str(path), hidden=(64, 64), prefilter=None, tune_batch=512)
+    opts = RF.FitOptions(init=str(path), hidden=(64, 64), prefilter=None, tune_batch=512)
     samples = _samples(1)  # labels 0 (a positive's class, "Car" here) and -1
     still = dataclasses.replace(opts, tune_epochs=0, class_epochs=0)
-    none = F.fit_ranker(samples, names, still, ("Car", "Pedestrian"))
+    none = RF.fit_ranker(samples, names, still, ("Car", "Pedestrian"))
     assert all(torch.equal(p, q) for p, q in zip(none.state_dict().values(), before.values()))
-    a = F.fit_ranker(samples, names, opts, ("Car", "Pedestrian"))
-    b = F.fit_ranker(samples, names, opts, ("Car", "Pedestrian"))
+    a = RF.fit_ranker(samples, names, opts, ("Car", "Pedestrian"))
+    b = RF.fit_ranker(samples, names, opts, ("Car", "Pedestrian"))
     assert a.hidden == (8,) and a.prefilter is not None and a.classes == ("Car", "Pedestrian")
     assert torch.equal(a.mean, shared.mean) and torch.equal(a.scale, shared.scale)
     assert all(torch.equal(p, q) for p, q in zip(a.state_dict().values(), b.state_dict().values()))
@@ -173,9 +174,9 @@ def test_fine_tuning_starts_from_the_model_keeps_its_shape_and_leaves_it_alone(t
     assert all(torch.equal(p, before[k]) for k, p in shared.state_dict().items())  # the shared model is untouched
     assert a.meta["provenance"] == {"frames_digest": "abc"} and not any(p.requires_grad for p in a.parameters())
     # a head without the frames' classes is left as it is; by name, not by position
-    other = F.fit_ranker(samples, names, opts, ("Truck", "Tram"))
+    other = RF.fit_ranker(samples, names, opts, ("Truck", "Tram"))
     assert all(torch.equal(p, before[f"classifier.{k}"]) for k, p in other.classifier.state_dict().items())
-    assert F._relabelled(torch.tensor([0, 1, -1, 2]), ("Pedestrian", "Car", "Van"), ("Car", "Pedestrian")).tolist() \
+    assert RF._relabelled(torch.tensor([0, 1, -1, 2]), ("Pedestrian", "Car", "Van"), ("Car", "Pedestrian")).tolist() \
         == [1, 0, -1, -1]
 
 
@@ -183,13 +184,13 @@ def test_fine_tuning_refuses_a_model_it_cannot_tune(tmp_path):
     from reeb_torch.ranker import RankerWeightsError, save_ranker
 
     with pytest.raises(RankerWeightsError, match="no such file"):
-        F.fit_ranker(_samples(0), feature_names(4), F.FitOptions(init=str(tmp_path / "nope.safetensors")))
-    path = save_ranker(F.fit_ranker(_samples(0), feature_names(4), F.FitOptions(epochs=1, hidden=(4,))),
+        RF.fit_ranker(_samples(0), feature_names(4), RF.FitOptions(init=str(tmp_path / "nope.safetensors")))
+    path = save_ranker(RF.fit_ranker(_samples(0), feature_names(4), RF.FitOptions(epochs=1, hidden=(4,))),
                        tmp_path / "four.safetensors")
     x = _samples(0)[0]
-    three = [F.Sample(x.features[:, :len(feature_names(3))], x.target, x.weight, x.label)]
+    three = [RF.Sample(x.features[:, :len(feature_names(3))], x.target, x.weight, x.label)]
     with pytest.raises(RankerWeightsError, match="read 47 features"):
-        F.fit_ranker(three, feature_names(3), F.FitOptions(init=str(path)))
+        RF.fit_ranker(three, feature_names(3), RF.FitOptions(init=str(path)))
 
 
 def test_hinted_classes_by_hand():
@@ -268,7 +269,7 @@ def test_cross_validate_runs_after_the_model_settings_with_the_same_fold_models(
 
     frames = F.load_fit_frames([str(kitti_dir)], limit=6)
     cache = FrameCache(frames)
-    cfg, opts = ReebConfig(), dataclasses.replace(F.FitOptions(), epochs=2, class_hidden=None)
+    cfg, opts = ReebConfig(), dataclasses.replace(RF.FitOptions(), epochs=2, class_hidden=None)
     samples = F.frame_samples(cache, cfg, opts)
     cv = fit_cv.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 2, also=[cfg, cfg.replace(top_k=100)])
     same, short = cv.also_hits
@@ -288,7 +289,7 @@ def test_held_out_outputs_are_the_cross_validated_models(kitti_dir):
 
     frames = F.load_fit_frames([str(kitti_dir)], limit=6)
     cache = FrameCache(frames)
-    cfg, opts = ReebConfig(), dataclasses.replace(F.FitOptions(), epochs=2, class_hidden=None)
+    cfg, opts = ReebConfig(), dataclasses.replace(RF.FitOptions(), epochs=2, class_hidden=None)
     samples = F.frame_samples(cache, cfg, opts)
     outputs = fit_cv.held_out_outputs(cache, cfg, samples, opts, 3)
     cv = fit_cv.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 3)
@@ -363,7 +364,7 @@ def test_reeb_fit_on_two_folders_reports_a_model_fitted_on_the_other(kitti_dir, 
     tracking = REPO_DATA / "kitti_tracking"
     if not tracking.is_dir():
         pytest.skip(f"{tracking} is absent")
-    opts = dataclasses.replace(F.FitOptions(), epochs=2, class_hidden=None)
+    opts = dataclasses.replace(RF.FitOptions(), epochs=2, class_hidden=None)
     roots = [str(kitti_dir), str(tracking)]
     done = run_fit(roots, str(tmp_path / "m.safetensors"), ReebConfig(), opts, 2, limit=3, quiet=True)
     line = next(x for x in done["text"].splitlines() if "fitted on other folders" in x)
@@ -410,12 +411,12 @@ def test_shipped_weights_refit(kitti_dir):
     dirs = [REPO_DATA / d for d in prov["data"]]
     if not all(d.is_dir() for d in dirs):
         pytest.skip(f"the frames the shipped weights were fitted on are absent: {dirs}")
-    opts = F.FitOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in prov["options"].items()})
+    opts = RF.FitOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in prov["options"].items()})
     frames = F.load_fit_frames(dirs)
     assert len(frames) == prov["frames"]
     cache = FrameCache(frames)
     samples = F.frame_samples(cache, ReebConfig(), opts)
-    model = F.fit_ranker(samples, cache.candidates(ReebConfig().unranked(), 0).feature_names, opts, shipped.classes)
+    model = RF.fit_ranker(samples, cache.candidates(ReebConfig().unranked(), 0).feature_names, opts, shipped.classes)
     assert model.feature_names == shipped.feature_names
     assert {k: v.shape for k, v in model.state_dict().items()} == {k: v.shape for k, v in shipped.state_dict().items()}
     rows = torch.cat([s.features for s in samples])
@@ -433,7 +434,7 @@ def test_mirrored_boxes_by_hand():
     assert torch.equal(F._mirror_boxes(boxes, 100), torch.tensor([[70.0, 5, 90, 20], [0, 0, 100, 50]]))
     assert torch.equal(F._mirror_boxes(F._mirror_boxes(boxes, 100), 100), boxes)
     assert F._mirror_boxes(torch.zeros(0, 4), 100).shape == (0, 4)
-    assert F.FitOptions().mirror is False
+    assert RF.FitOptions().mirror is False
 
 
 @pytest.mark.kitti
@@ -447,13 +448,13 @@ def test_mirror_adds_each_frames_mirror_image_rows_cached_apart(kitti_dir):
     frames = F.load_fit_frames([str(kitti_dir)], limit=3)
     cfg = ReebConfig()
     cache = FrameCache(frames)
-    plain = F.frame_samples(cache, cfg, F.FitOptions())
+    plain = F.frame_samples(cache, cfg, RF.FitOptions())
     assert cache.front_computed == 3
-    opts = F.FitOptions(mirror=True)
+    opts = RF.FitOptions(mirror=True)
     both = F.frame_samples(cache, cfg, opts)
     assert cache.front_computed == 6  # the mirror images' front ends, the frames' own kept
     assert all(torch.equal(a.features, b.features) and torch.equal(a.weight, b.weight)
-               for a, b in zip(plain, F.frame_samples(cache, cfg, F.FitOptions())))
+               for a, b in zip(plain, F.frame_samples(cache, cfg, RF.FitOptions())))
     for i, (p, b) in enumerate(zip(plain, both)):
         m = F.mirrored_sample(cache, cfg, opts, i)
         n = len(p.target)
@@ -478,7 +479,7 @@ def test_mirror_and_jitter_leave_the_held_out_frames_as_they_are(kitti_dir):
     frames = F.load_fit_frames([str(kitti_dir)], limit=4)
     cache = FrameCache(frames)
     cfg = ReebConfig()
-    opts = dataclasses.replace(F.FitOptions(mirror=True, jitter=0.2), epochs=2, class_hidden=None)
+    opts = dataclasses.replace(RF.FitOptions(mirror=True, jitter=0.2), epochs=2, class_hidden=None)
     samples = F.frame_samples(cache, cfg, opts)
     seen = []
     front_of = cache._front_of
@@ -497,9 +498,9 @@ def test_photometric_jitter_by_hand():
     assert torch.equal(photometric_jitter(image, 1.0, 0.0), image)
     assert photometric_jitter(image, 2.0, 10.0)[0].tolist() == [[80, 160], [120, 200]]
     assert photometric_jitter(image, 1.0, 200.0).max() == 255 and photometric_jitter(image, 1.0, -200.0).max() == 0
-    c, b = F.jitter_of(F.FitOptions(jitter=0.2, seed=3), 5)
-    assert 0.8 <= c <= 1.2 and -51 <= b <= 51 and (c, b) == F.jitter_of(F.FitOptions(jitter=0.2, seed=3), 5)
-    assert (c, b) != F.jitter_of(F.FitOptions(jitter=0.2, seed=3), 6) != F.jitter_of(F.FitOptions(jitter=0.2), 5)
+    c, b = F.jitter_of(RF.FitOptions(jitter=0.2, seed=3), 5)
+    assert 0.8 <= c <= 1.2 and -51 <= b <= 51 and (c, b) == F.jitter_of(RF.FitOptions(jitter=0.2, seed=3), 5)
+    assert (c, b) != F.jitter_of(RF.FitOptions(jitter=0.2, seed=3), 6) != F.jitter_of(RF.FitOptions(jitter=0.2), 5)
 
 
 @pytest.mark.kitti
@@ -512,11 +513,11 @@ def test_jitter_adds_each_frames_jittered_copy_rows(kitti_dir):
     frames = F.load_fit_frames([str(kitti_dir)], limit=2)
     cfg = ReebConfig()
     cache = FrameCache(frames)
-    plain = F.frame_samples(cache, cfg, F.FitOptions())
-    mirrored = F.frame_samples(cache, cfg, F.FitOptions(mirror=True))
-    opts = F.FitOptions(jitter=0.2)
+    plain = F.frame_samples(cache, cfg, RF.FitOptions())
+    mirrored = F.frame_samples(cache, cfg, RF.FitOptions(mirror=True))
+    opts = RF.FitOptions(jitter=0.2)
     jittered = F.frame_samples(cache, cfg, opts)
-    both = F.frame_samples(cache, cfg, F.FitOptions(mirror=True, jitter=0.2))
+    both = F.frame_samples(cache, cfg, RF.FitOptions(mirror=True, jitter=0.2))
     assert cache.front_computed == 6
     for p, m, j, b in zip(plain, mirrored, jittered, both):
         n, k = len(p.target), len(m.target)
@@ -538,19 +539,19 @@ def test_hard_negatives_fit_the_mlp_on_what_the_prefilter_keeps(kitti_dir):
     frames = F.load_fit_frames([str(kitti_dir)], limit=3)
     cache = FrameCache(frames)
     cfg = ReebConfig(ranker_keep=3000)
-    opts = dataclasses.replace(F.FitOptions(), epochs=2, class_hidden=None)
+    opts = dataclasses.replace(RF.FitOptions(), epochs=2, class_hidden=None)
     hard = dataclasses.replace(opts, hard_negatives=0.2)
     samples = F.frame_samples(cache, cfg, opts)
     names = cache.candidates(cfg.unranked(), 0).feature_names
-    plain = F.fit_ranker(samples, names, opts)
+    plain = RF.fit_ranker(samples, names, opts)
     rows = fit_cv.kept_rows(cache, cfg, hard, range(3))
-    cascade = F.fit_ranker(samples, names, hard, None, rows)
+    cascade = RF.fit_ranker(samples, names, hard, None, rows)
     assert all(torch.equal(a, b) for a, b in zip(plain.prefilter.state_dict().values(),
                                                  cascade.prefilter.state_dict().values()))
     assert not torch.equal(plain.members[0][0].weight, cascade.members[0][0].weight)
-    assert torch.equal(F.fit_ranker(samples, names, hard, None, rows).members[0][0].weight,
+    assert torch.equal(RF.fit_ranker(samples, names, hard, None, rows).members[0][0].weight,
                        cascade.members[0][0].weight)
-    assert torch.equal(F.fit_ranker(samples, names, hard).members[0][0].weight, plain.members[0][0].weight)
+    assert torch.equal(RF.fit_ranker(samples, names, hard).members[0][0].weight, plain.members[0][0].weight)
     kept = rows(cascade)[0]
     pre = cascade.prefilter_scores(cache.candidates(cfg.unranked(), 0).features[:, : cascade.cheap])
     cut = float(pre.sort(descending=True).values[cfg.ranker_keep - 1])

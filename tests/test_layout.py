@@ -29,7 +29,8 @@ ALGORITHM = {"reeb_torch.config", "reeb_torch.generator", "reeb_torch._checks", 
              "reeb_torch.io"} | SELECTION | RANKER
 RUNS_LIBRARIES = {"reeb_torch.runs.inputs", "reeb_torch.runs.decoding", "reeb_torch.runs.rows",
                   "reeb_torch.runs.output_files", "reeb_torch.runs.output_lock", "reeb_torch.runs.ctrl_c",
-                  "reeb_torch.runs.distributed", "reeb_torch.runs.export", "reeb_torch.runs.viz"}
+                  "reeb_torch.runs.distributed", "reeb_torch.runs.export", "reeb_torch.runs.viz",
+                  "reeb_torch.runs.fit_ray"}
 COMMAND = {"reeb_torch.runs.cli", "reeb_torch.runs.common", "reeb_torch.runs.engine", "reeb_torch.runs.run_output",
            "reeb_torch.runs.side_outputs", "reeb_torch.runs.propose_local", "reeb_torch.runs.propose_ray",
            "reeb_torch.runs.detect_run", "reeb_torch.runs.detect", "reeb_torch.runs.detector_fit",
@@ -207,6 +208,21 @@ SAFETENSORS_READERS = {"ranker/weights.py", "detection/detector_file.py"}
 trained detector's (a file of its own, with its own metadata)."""
 
 
+RANKER_TRAINING = {"reeb_torch.ranker.fit", "reeb_torch.ranker.training", "reeb_torch.ranker.store"}
+"""The learned ranking's training (the fit on rows, its loop, the on-disk rows and
+checkpoints): public modules of ``reeb_torch/ranker/`` that ``reeb fit`` and the benchmarks
+import by name, and that nothing the generator runs imports."""
+
+
+def test_inference_imports_no_training(graph):
+    """The generator and the ranking it runs reach none of the ranking's training modules,
+    and the package's front door none of them either."""
+    for m in ALGORITHM | {"reeb_torch"}:
+        wrong = _reach(graph, m) & RANKER_TRAINING
+        assert not wrong, f"{m} reaches the training modules {sorted(wrong)}"
+    assert RANKER_TRAINING <= set(graph)
+
+
 def test_one_home_for_the_learned_ranking(graph):
     """The learned ranking is defined in ``reeb_torch/ranker/`` only: no module elsewhere
     defines its classes or functions, imports its inner modules (features, prefilter, model,
@@ -216,7 +232,7 @@ def test_one_home_for_the_learned_ranking(graph):
                for node in ast.walk(tree)
                if isinstance(node, (ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.name in RANKER_NAMES}
     assert not defined, f"the learned ranking defined outside reeb_torch/ranker/: {sorted(defined)}"
-    inner = {m for m in graph if m.startswith("reeb_torch.ranker.")}
+    inner = {m for m in graph if m.startswith("reeb_torch.ranker.")} - RANKER_TRAINING
     assert {"reeb_torch.ranker.features", "reeb_torch.ranker.prefilter"} <= inner
     reach_in = {m: graph[m] & inner for m in graph if not m.startswith("reeb_torch.ranker")}
     assert not {m: d for m, d in reach_in.items() if d}, "import reeb_torch.ranker, not its inner modules"

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from reeb_torch import ProposalGenerator, ReebConfig
-from reeb_torch.eval import fit as F
+from reeb_torch.ranker import fit as RF
 from reeb_torch.ranker import ORIENTATION_NAMES, BoxRanker, save_ranker
 from reeb_torch.ranker import orientation as O
 from reeb_torch.ranker.features import feature_names
@@ -120,15 +120,15 @@ def test_the_fit_reads_the_orientation_columns_unless_told_not_to(tmp_path):
     g = torch.Generator().manual_seed(1)
     x = torch.rand(3000, len(names), generator=g)
     y = (x[:, -8] > 0.7).float()  # the label is an orientation column's
-    samples = [F.Sample(x, y, torch.ones(len(x)), torch.where(y > 0, 0, -1))]
-    opts = F.FitOptions(epochs=3, hidden=(8,), batch=512, class_hidden=None)
-    both = F.fit_ranker(samples, names, opts)
-    base = F.fit_ranker(samples, names, F.FitOptions(epochs=3, hidden=(8,), batch=512, class_hidden=None,
+    samples = [RF.Sample(x, y, torch.ones(len(x)), torch.where(y > 0, 0, -1))]
+    opts = RF.FitOptions(epochs=3, hidden=(8,), batch=512, class_hidden=None)
+    both = RF.fit_ranker(samples, names, opts)
+    base = RF.fit_ranker(samples, names, RF.FitOptions(epochs=3, hidden=(8,), batch=512, class_hidden=None,
                                                      orientation=False))
     assert both.feature_names == names and base.feature_names == feature_names(4)
     # fine-tuning a model without them on samples with them reads the model's own columns
     path = save_ranker(base, tmp_path / "base.safetensors")
-    tuned = F.fit_ranker(samples, names, F.FitOptions(init=str(path), class_hidden=None))
+    tuned = RF.fit_ranker(samples, names, RF.FitOptions(init=str(path), class_hidden=None))
     assert tuned.feature_names == feature_names(4)
     with pytest.raises(ValueError, match="hold 55 feature columns"):
-        F.fit_ranker(samples, feature_names(4), opts)
+        RF.fit_ranker(samples, feature_names(4), opts)

@@ -12,6 +12,7 @@ import torch
 
 from reeb_torch import ProposalGenerator, ReebConfig
 from reeb_torch.eval import fit as F
+from reeb_torch.ranker import fit as RF
 from reeb_torch.ranker import NOT_SEEN_BY_RANKER, BoxRanker, RankerWeightsError, load_ranker, save_ranker
 from reeb_torch.ranker.features import feature_names
 
@@ -30,9 +31,9 @@ def test_quality_rows_by_hand():
                           [50.0, 50.0, 60.0, 60.0]])  # background: negative
     feats = torch.arange(5.0)[:, None].expand(5, 3)
     none = torch.zeros(0, 4)
-    plain = F.frame_sample(feats, boxes, gt, torch.tensor([2]), none, F.FitOptions(negatives=1.0),
+    plain = F.frame_sample(feats, boxes, gt, torch.tensor([2]), none, RF.FitOptions(negatives=1.0),
                            np.random.default_rng(0))
-    s = F.frame_sample(feats, boxes, gt, torch.tensor([2]), none, F.FitOptions(negatives=1.0, quality_hidden=(8,)),
+    s = F.frame_sample(feats, boxes, gt, torch.tensor([2]), none, RF.FitOptions(negatives=1.0, quality_hidden=(8,)),
                        np.random.default_rng(0))
     assert s.features[:, 0].tolist() == [0.0, 1.0, 3.0, 4.0, 2.0]
     assert s.target[:4].tolist() == plain.target.tolist() == [1.0, 1.0, 0.0, 0.0] and np.isnan(float(s.target[4]))
@@ -42,7 +43,7 @@ def test_quality_rows_by_hand():
     assert len(plain.iou) == 0 and len(plain.object_weight) == 0
 
 
-def _samples(seed: int, n: int = 6000) -> list[F.Sample]:
+def _samples(seed: int, n: int = 6000) -> list[RF.Sample]:
     """Rows whose first column says object or not and whose second says how tight a box
     on an object is (its IoU)."""
     g = torch.Generator().manual_seed(seed)
@@ -52,18 +53,18 @@ def _samples(seed: int, n: int = 6000) -> list[F.Sample]:
     target = torch.where(obj & (iou >= 0.7), 1.0, torch.where(obj, float("nan"), 0.0))
     weight = torch.where(torch.isnan(target), 0.0, 1.0)
     label = torch.where(obj, 0, -1)
-    s = F.Sample(x, target, weight, label)
+    s = RF.Sample(x, target, weight, label)
     s.iou = torch.where(obj, iou, 0.0)
     s.object_weight = torch.where(obj & (iou >= 0.5), 1.0, 0.0)
     return [s]
 
 
 def test_the_quality_head_learns_how_tight_a_box_is_and_leaves_the_ranking_alone():
-    opts = F.FitOptions(epochs=8, hidden=(8,), batch=512, class_hidden=(4,), quality_batch=128)
-    plain = F.fit_ranker(_samples(0), feature_names(4), opts, ("Car", "Pedestrian"))
-    with_q = F.fit_ranker(_samples(0), feature_names(4), F.FitOptions(**{**vars(opts), "quality_hidden": (8,)}),
+    opts = RF.FitOptions(epochs=8, hidden=(8,), batch=512, class_hidden=(4,), quality_batch=128)
+    plain = RF.fit_ranker(_samples(0), feature_names(4), opts, ("Car", "Pedestrian"))
+    with_q = RF.fit_ranker(_samples(0), feature_names(4), RF.FitOptions(**{**vars(opts), "quality_hidden": (8,)}),
                           ("Car", "Pedestrian"))
-    again = F.fit_ranker(_samples(0), feature_names(4), F.FitOptions(**{**vars(opts), "quality_hidden": (8,)}),
+    again = RF.fit_ranker(_samples(0), feature_names(4), RF.FitOptions(**{**vars(opts), "quality_hidden": (8,)}),
                          ("Car", "Pedestrian"))
     assert plain.quality is None and with_q.quality_hidden == (8,)
     for name, p in plain.state_dict().items():  # the ranking, the prefilter, the class head: the same bits

@@ -12,6 +12,7 @@ from torchvision.ops import box_iou
 
 from reeb_torch import ProposalGenerator, ReebConfig
 from reeb_torch.eval import fit as F
+from reeb_torch.ranker import fit as RF
 from reeb_torch.eval import fit_cv
 from reeb_torch.eval.tune import Frames
 from reeb_torch.ranker import (NOT_SEEN_BY_RANKER, BoxRanker, BoxRefiner, RankerWeightsError, load_ranker,
@@ -143,12 +144,12 @@ def _training_rows(seed: int, count: int) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.cat(xs), torch.cat(ys)
 
 
-_TINY = F.FitOptions(refine_hidden=(32, 32), refine_epochs=40, refine_batch=128, refine_lr=1e-2)
+_TINY = RF.FitOptions(refine_hidden=(32, 32), refine_epochs=40, refine_batch=128, refine_lr=1e-2)
 
 
 def test_a_tiny_fit_moves_a_shifted_box_towards_the_rectangle():
     x, y = _training_rows(0, 40)
-    refiner = F.fit_refiner(x, y, _TINY)
+    refiner = RF.fit_refiner(x, y, _TINY)
     rect = torch.tensor([[70.0, 35.0, 130.0, 85.0]])
     ii_e, ii_g = _rectangle_image([(70, 35, 130, 85)])
     shifted = rect + torch.tensor([[7.0, -5.0, 7.0, -5.0]])
@@ -158,10 +159,10 @@ def test_a_tiny_fit_moves_a_shifted_box_towards_the_rectangle():
 
 def test_the_fit_is_deterministic():
     x, y = _training_rows(1, 6)
-    opts = F.FitOptions(refine_hidden=(16,), refine_epochs=3, refine_batch=32)
-    a, b = F.fit_refiner(x, y, opts), F.fit_refiner(x, y, opts)
+    opts = RF.FitOptions(refine_hidden=(16,), refine_epochs=3, refine_batch=32)
+    a, b = RF.fit_refiner(x, y, opts), RF.fit_refiner(x, y, opts)
     assert all(torch.equal(p, q) for p, q in zip(a.state_dict().values(), b.state_dict().values()))
-    c = F.fit_refiner(x, y, F.FitOptions(refine_hidden=(16,), refine_epochs=3, refine_batch=32, seed=1))
+    c = RF.fit_refiner(x, y, RF.FitOptions(refine_hidden=(16,), refine_epochs=3, refine_batch=32, seed=1))
     assert not torch.equal(a.mlp[0].weight, c.mlp[0].weight)
 
 
@@ -252,7 +253,7 @@ def test_the_refiner_is_fitted_only_on_the_training_side(monkeypatch, tmp_path):
                     [torch.zeros(0, dtype=torch.long)] * n, ("Car", "Pedestrian"),
                     [f"d{i // 4}_{i:06d}" for i in range(n)], ["a"] * n)
     gen = torch.Generator().manual_seed(0)
-    samples = [F.Sample(torch.randn(6, len(names), generator=gen), torch.tensor([1.0, 1, 0, 0, 0, 0]), torch.ones(6),
+    samples = [RF.Sample(torch.randn(6, len(names), generator=gen), torch.tensor([1.0, 1, 0, 0, 0, 0]), torch.ones(6),
                         torch.tensor([0, 1, -1, -1, -1, -1]), torch.full((3, len(refine_feature_names())), float(i)),
                         torch.zeros(3, 4)) for i in range(n)]
     seen: list[set[int]] = []
@@ -261,8 +262,8 @@ def test_the_refiner_is_fitted_only_on_the_training_side(monkeypatch, tmp_path):
         seen.append({int(v) for v in x[:, 0].tolist()})
         return BoxRefiner(refine_feature_names(), opts.refine_hidden)
 
-    monkeypatch.setattr(F, "fit_refiner", recording)
-    opts = F.FitOptions(hidden=(4,), prefilter=None, class_hidden=None, epochs=1, refine_hidden=(4,))
+    monkeypatch.setattr(RF, "fit_refiner", recording)
+    opts = RF.FitOptions(hidden=(4,), prefilter=None, class_hidden=None, epochs=1, refine_hidden=(4,))
     cache = SimpleNamespace(frames=frames)
     with fit_cv._HeldOutModels(cache, names, samples, opts, 4, gap=n, scratch=tmp_path) as models:
         for f in range(len(models.blocks)):

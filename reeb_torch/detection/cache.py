@@ -172,6 +172,11 @@ class ProposalCache:
                 f"proposal cache was built by reeb-torch {self.reeb_version}, this is "
                 f"{_reeb_version()}; rebuild it with build_cache")
 
+    def by_digest(self, digest: str) -> CacheEntry | None:
+        """The entry of an image of this :func:`image_digest`, or None."""
+        image_id = self._by_digest.get(digest)
+        return None if image_id is None else self.entries[image_id]
+
     def lookup(self, image: Tensor) -> tuple[Tensor, Tensor]:
         """``(boxes, scores)`` cached for an image with this content.
 

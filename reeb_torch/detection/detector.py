@@ -400,21 +400,25 @@ class ReebDetector(nn.Module):
             proposals: str = "default", epochs: int = 12, seed: int = 0,
             settings: DetectorSettings = DetectorSettings(), training: TrainSettings | None = None,
             cache_dir: str | os.PathLike | None = None, limit: int | None = None, hflip: bool = False,
-            auto_crop: bool = False, progress: bool = True, command: str | None = None) -> ReebDetector:
+            auto_crop: bool = False, progress: bool = True, command: str | None = None,
+            checkpoints: str | os.PathLike | None = None, frames_by: Any = None) -> ReebDetector:
         """Train a detector on labelled KITTI-format ``folders`` (:func:`~reeb_torch.
         detection.fitting.fit_detector`: the backbone's maps and REEB's proposals cached
         per frame under ``cache_dir``, the heads trained for ``epochs`` with ``seed``);
         deterministic for a seed. ``training`` overrides the optimiser's settings
         (its ``epochs``, ``seed`` and ``hflip`` are these arguments'); ``auto_crop``: the
         settings' ``crop_top`` from the training labels instead (:func:`~reeb_torch.
-        detection.fitting.crop_from_labels`)."""
+        detection.fitting.crop_from_labels`). ``checkpoints``: a folder where the training's
+        state is kept after each epoch, so the same call after a kill goes on from it.
+        ``frames_by``: the per-frame pass done elsewhere (:func:`~reeb_torch.detection.
+        fitting.stored_frames`; ``reeb detector fit --engine ray``)."""
         from .fitting import fit_detector
 
         base = training or TrainSettings()
         train = dataclasses.replace(base, epochs=epochs, seed=seed, hflip=hflip)
         return fit_detector(cls, folders, classes=classes, proposals=proposals, settings=settings, training=train,
                             cache_dir=cache_dir, limit=limit, auto_crop=auto_crop, progress=progress,
-                            command=command)
+                            command=command, checkpoints=checkpoints, frames_by=frames_by)
 
     def extra_repr(self) -> str:
         return f"classes={self.classes}, proposals={self.proposals['spec']!r}, settings={self.settings}"

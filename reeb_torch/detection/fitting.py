@@ -21,18 +21,19 @@ import dataclasses
 import math
 import os
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
+from torch import Tensor
 
 from .cache import CacheEntry, ProposalCache, StaleCacheError, image_digest
-from .feature_cache import FeatureCache, frozen_features
+from .feature_cache import FeatureCache, FrameFeatures, compute_features, frozen_features
 from .head_training import CachedFrame, TrainSettings, detect, train_heads
-from .kitti import distinct_folders, load_frames, mirrored
+from .kitti import distinct_folders, frame_image, load_frames, mirrored
 
-__all__ = ["default_cache_dir", "cached_frames", "fit_detector", "train_detector", "crop_from_labels", "detector_stats", "evaluate_detector", "scores_of",
+__all__ = ["default_cache_dir", "StoredFrame", "stored_frames", "cached_frames", "fit_detector", "train_detector", "crop_from_labels", "detector_stats", "evaluate_detector", "scores_of",
            "paired_scores", "format_scores", "format_paired"]
 
 
@@ -48,12 +49,7 @@ def _proposal_cache(det: Any, items: Sequence[dict], root: Path, progress: bool)
     from tqdm import tqdm
 
     rpn = det.model.rpn
-    ranker = (det.proposals.get("ranker_sha256") or "none")[:16]
-    path = root / "proposals" / f"reeb-{rpn.config.fingerprint()}-{ranker}.pt"
-    try:
-        cache = ProposalCache.load(path, config=rpn.config)
-    except (FileNotFoundError, StaleCacheError, ValueError, RuntimeError):
-        cache = ProposalCache(rpn.config)  # none yet, or stale: start again
+    cache, path = _open_proposals(det, root)
     todo = [it for it in items if not cache.has_image(it["image"])]
     with torch.no_grad():
         for it in tqdm(todo, desc="REEB proposals", unit="img", disable=not progress or not todo):
@@ -67,6 +63,146 @@ def _proposal_cache(det: Any, items: Sequence[dict], root: Path, progress: bool)
         except OSError as e:
             warnings.warn(f"not caching the proposals: {e}; training goes on without", RuntimeWarning, stacklevel=3)
     return cache
+
+
+FramesBy = Callable[[Any, Sequence[dict], FeatureCache], Iterator[dict]]
+"""The per-frame pass of a fit done elsewhere (:func:`stored_frames`' ``frames_by``)."""
+
+
+class StoredFrame:
+    """A training frame whose image, backbone maps and proposals stay on disk: what a
+    :class:`~reeb_torch.detection.head_training.CachedFrame` holds, each read when used (the
+    maps from the :class:`~reeb_torch.detection.feature_cache.FeatureCache`, the proposals
+    from the :class:`~reeb_torch.detection.ProposalCache` by the image's digest, the image
+    decoded from its file), so training over many frames holds one step's frames at a time."""
+
+    def __init__(self, item: dict, digest: str, features: FeatureCache | FrameFeatures,
+                 proposals: ProposalCache) -> None:
+        self.path, self.flipped, self.digest = item["path"], bool(item.get("flipped")), digest
+        self.boxes, self.labels = item["boxes"], item["labels"]
+        self.ignore, self.dontcare = item["ignore"], item["dontcare"]
+        self._features, self._proposals = features, proposals
+        self.mirror: StoredFrame | None = None
+
+    @property
+    def image(self) -> Tensor:
+        """``uint8 [3, H, W]``, decoded from its file."""
+        return frame_image({"path": self.path, "flipped": self.flipped})
+
+    @property
+    def features(self) -> FrameFeatures:
+        f = self._features
+        return f if isinstance(f, FrameFeatures) else f.load(self.digest)
+
+    @property
+    def proposals(self) -> Tensor:
+        """REEB's boxes of the image (input pixels, best first)."""
+        entry = self._proposals.by_digest(self.digest)
+        if entry is None:
+            raise StaleCacheError(f"{self.path}: its proposals are not in the cache")
+        return entry.boxes
+
+
+def _open_proposals(det: Any, root: Path) -> tuple[ProposalCache, Path]:
+    """The proposal cache file of the detector's settings under ``root``, as it is (a new
+    one where there is none, or a stale one)."""
+    rpn = det.model.rpn
+    ranker = (det.proposals.get("ranker_sha256") or "none")[:16]
+    path = root / "proposals" / f"reeb-{rpn.config.fingerprint()}-{ranker}.pt"
+    try:
+        return ProposalCache.load(path, config=rpn.config), path
+    except (FileNotFoundError, StaleCacheError, ValueError, RuntimeError):
+        return ProposalCache(rpn.config), path  # none yet, or stale: start again
+
+
+def stored_frames(det: Any, items: Sequence[dict], cache_dir: str | os.PathLike | None = None,
+                  progress: bool = True, save_every: int = 256, frames_by: FramesBy | None = None) -> list[StoredFrame]:
+    """:func:`cached_frames` for lazy items (:func:`~reeb_torch.detection.kitti.load_frames`
+    with ``lazy``): one pass decodes each image in turn, computes what the caches lack (REEB's
+    proposals, the frozen backbone's maps: the same numbers as :func:`cached_frames`) and
+    notes its :func:`~reeb_torch.ranker.frame_hash` (``item["hash"]``); the frames then read
+    them from disk when used. The proposals are saved every ``save_every`` new frames, so a
+    killed fit keeps what it computed. A cache that cannot be written is one
+    ``RuntimeWarning``, and what it would hold is kept in memory.
+
+    ``frames_by(det, items, feature_cache)``: the per-frame work done elsewhere (on Ray:
+    :func:`reeb_torch.runs.fit_ray.ray_frames`), an iterator of ``{"digest", "hash", "size",
+    "boxes", "scores"}`` per item in order, the maps written to the feature cache."""
+    from tqdm import tqdm
+
+    from ..ranker import frame_hash
+
+    root = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    rpn = det.model.rpn
+    proposals, path = _open_proposals(det, root)
+    s = det.settings
+    features = FeatureCache(root, det.backbone_sha256, s.min_size, s.max_size, det.precision, s.crop_top)
+    precision = getattr(getattr(det.model, "backbone", None), "precision", "float32")
+    if precision != features.key["precision"]:
+        raise ValueError(f"the model's backbone computes in {precision}, the cache holds "
+                         f"{features.key['precision']} maps")
+    out: list[StoredFrame] = []
+    writable = {"features": True, "proposals": True}
+    new = 0
+
+    def save_proposals() -> None:
+        if writable["proposals"]:
+            try:
+                proposals.save(path)
+            except OSError as e:
+                writable["proposals"] = False
+                warnings.warn(f"not caching the proposals: {e}; training goes on without", RuntimeWarning,
+                              stacklevel=3)
+
+    computed = frames_by(det, items, features) if frames_by is not None else None
+    with torch.no_grad():
+        for it in tqdm(items, desc="proposals and backbone maps", unit="img", disable=not progress):
+            if computed is not None:
+                r = next(computed)
+                it["hash"] = r["hash"]
+                if proposals.by_digest(r["digest"]) is None:
+                    proposals.add(f"{it['folder']}/{it['image_id']}", CacheEntry(
+                        r["digest"], tuple(r["size"]), torch.from_numpy(r["boxes"]), torch.from_numpy(r["scores"]),
+                        str(it.get("path", ""))))
+                    new += 1
+                out.append(StoredFrame(it, r["digest"], features, proposals))
+                continue
+            image = frame_image(it)
+            digest = image_digest(image)
+            it["hash"] = frame_hash(image)
+            if proposals.by_digest(digest) is None:
+                r = rpn.generator([image])[0]
+                proposals.add(f"{it['folder']}/{it['image_id']}", CacheEntry(
+                    digest, (int(image.shape[-2]), int(image.shape[-1])), r["boxes"].float().cpu(),
+                    r["scores"].float().cpu(), str(it.get("path", ""))))
+                new += 1
+                if new % save_every == 0:
+                    save_proposals()
+            out.append(StoredFrame(it, digest, _features_of(det, features, image, digest, writable), proposals))
+    if new % save_every:
+        save_proposals()
+    rpn.cache, rpn.on_miss = proposals, "compute"
+    return out
+
+
+def _features_of(det: Any, cache: FeatureCache, image: Tensor, digest: str,
+                 writable: dict[str, bool]) -> FeatureCache | FrameFeatures:
+    """Where a frame's maps are read from: the cache (computed and saved where it lacks
+    them), or the maps themselves where the cache cannot be written."""
+    try:
+        cache.load(digest)
+        return cache
+    except (FileNotFoundError, StaleCacheError):
+        f = compute_features(det.model, image, cache.crop_top)
+    if writable["features"]:
+        try:
+            cache.save(digest, f)
+            return cache
+        except OSError as e:
+            writable["features"] = False
+            warnings.warn(f"not caching the backbone maps: {e}; training goes on without", RuntimeWarning,
+                          stacklevel=4)
+    return f
 
 
 def cached_frames(det: Any, items: Sequence[dict], cache_dir: str | os.PathLike | None = None,
@@ -93,7 +229,7 @@ def _provenance(items: Sequence[dict], folders: Sequence[str | os.PathLike], tra
     losses = list(history["losses"])[-20:]
     counts = torch.cat([it["labels"] for it in items]).bincount(minlength=len(classes) + 1).tolist()
     return {"folders": [str(f) for f in folders], "frames": names,
-            "frame_hashes": {n: frame_hash(it["image"]) for n, it in zip(names, items)},
+            "frame_hashes": {n: it.get("hash") or frame_hash(it["image"]) for n, it in zip(names, items)},
             "objects": {c: int(counts[i + 1]) for i, c in enumerate(classes)},
             "training": {"epochs": training.epochs, "steps": history["steps"], "seed": training.seed,
                          "batch_size": training.batch_size, "lr": training.lr, "hflip": training.hflip,
@@ -104,16 +240,20 @@ def _provenance(items: Sequence[dict], folders: Sequence[str | os.PathLike], tra
 def fit_detector(cls: type, folders: Sequence[str | os.PathLike], *, classes: Sequence[str], proposals: str,
                  settings: Any, training: TrainSettings, cache_dir: str | os.PathLike | None = None,
                  limit: int | None = None, auto_crop: bool = False, progress: bool = True,
-                 command: str | None = None) -> Any:
+                 command: str | None = None, checkpoints: str | os.PathLike | None = None,
+                 frames_by: FramesBy | None = None) -> Any:
     """A ``cls`` (:class:`~reeb_torch.detection.ReebDetector`) trained on ``folders`` (module
     doc; a folder named twice is read once); ``det.history``: ``{"losses", "steps", "train_s"}``.
     ``auto_crop``: ``settings.crop_top`` from the frames' labels (:func:`crop_from_labels`).
+    The frames are read one at a time (:func:`stored_frames`): memory does not grow with
+    them. ``checkpoints``: a folder where the training state is kept after each epoch, so the
+    same call after a kill goes on from the last finished one (:func:`train_detector`).
 
     Raises:
         ValueError: a folder without labels, no frame, or no object of ``classes``.
     """
     folders = distinct_folders(folders)[0]  # a folder named twice trains once
-    items = load_frames(folders, classes, limit)
+    items = load_frames(folders, classes, limit, lazy=True)  # each image decoded in its turn
     if not items:
         raise ValueError(f"no frames in {', '.join(map(str, folders))}")
     if not sum(len(it["boxes"]) for it in items):
@@ -121,7 +261,8 @@ def fit_detector(cls: type, folders: Sequence[str | os.PathLike], *, classes: Se
     if auto_crop:
         settings = dataclasses.replace(settings, crop_top=crop_from_labels(items))
     return train_detector(cls, items, folders, classes=classes, proposals=proposals, settings=settings,
-                          training=training, cache_dir=cache_dir, progress=progress, command=command)
+                          training=training, cache_dir=cache_dir, progress=progress, command=command,
+                          checkpoints=checkpoints, frames_by=frames_by)
 
 
 def crop_from_labels(items: Sequence[dict], margin: float = 0.1, step: float = 0.05) -> float:
@@ -129,7 +270,8 @@ def crop_from_labels(items: Sequence[dict], margin: float = 0.1, step: float = 0
     items): the highest top edge of any of their objects, as a share of its image's height,
     less ``margin``, rounded down to a multiple of ``step`` (0 when an object reaches the
     top ``margin`` of its image, or there is none)."""
-    tops = [float(it["boxes"][:, 1].min()) / it["image"].shape[-2] for it in items if len(it["boxes"])]
+    tops = [float(it["boxes"][:, 1].min()) / (it["size"][0] if "size" in it else it["image"].shape[-2])
+            for it in items if len(it["boxes"])]
     if not tops:
         return 0.0
     return round(max(0.0, math.floor((min(tops) - margin) / step + 1e-9) * step), 6)
@@ -137,20 +279,33 @@ def crop_from_labels(items: Sequence[dict], margin: float = 0.1, step: float = 0
 
 def train_detector(cls: type, items: Sequence[dict], folders: Sequence[str | os.PathLike], *, classes: Sequence[str],
                    proposals: str, settings: Any, training: TrainSettings, cache_dir: str | os.PathLike | None = None,
-                   progress: bool = True, command: str | None = None) -> Any:
+                   progress: bool = True, command: str | None = None,
+                   checkpoints: str | os.PathLike | None = None, frames_by: FramesBy | None = None) -> Any:
     """:func:`fit_detector` on frames already read (:func:`~reeb_torch.detection.kitti.
-    load_frames`' items, from ``folders``)."""
+    load_frames`' items, from ``folders``; lazy items are read one at a time). ``checkpoints``:
+    the folder of the training's state after each epoch
+    (:class:`~reeb_torch.ranker.store.Checkpoints`, keyed by the settings and the frames'
+    digests: a state of another fit is not read)."""
     torch.manual_seed(training.seed)  # the heads' initial weights
     det = cls(classes, proposals, settings)
     if det.precision != settings.precision:  # bfloat16 asked for where it is not native: trained in float32
         det.settings = dataclasses.replace(settings, precision=det.precision)
     mirrors = [mirrored(it) for it in items] if training.hflip else []
-    frames = cached_frames(det, [*items, *mirrors], cache_dir, progress)
+    lazy = bool(items) and "image" not in items[0]
+    frames: Sequence[Any] = (stored_frames(det, [*items, *mirrors], cache_dir, progress, frames_by=frames_by) if lazy
+                             else cached_frames(det, [*items, *mirrors], cache_dir, progress))
     train = frames[:len(items)]
     for frame, mirror in zip(train, frames[len(items):]):
         frame.mirror = mirror
+    slot = None
+    if checkpoints is not None:
+        from ..ranker.store import Checkpoints
+
+        digests = [getattr(f, "digest", None) or image_digest(f.image) for f in frames]
+        key = [dataclasses.asdict(training), repr(det.settings), list(det.classes), proposals, digests]
+        slot = Checkpoints(checkpoints, key).slot("heads")
     try:
-        history = train_heads(det.model, train, training, progress=progress)
+        history = train_heads(det.model, train, training, progress=progress, checkpoint=slot)
     finally:
         det.model.rpn.cache = None  # new images: REEB runs on them
     det.meta = {"provenance": _provenance(items, folders, training, history, det.classes, command)}

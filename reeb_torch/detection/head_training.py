@@ -214,7 +214,8 @@ def _step(model: nn.Module, frames: Sequence[CachedFrame], optimizer: torch.opti
     optimizer.zero_grad(set_to_none=True)
     total = 0.0
     for frame in frames:
-        loss = cast(Tensor, sum(frame_forward(model, frame).values())) / len(frames)
+        proposals = getattr(frame, "proposals", None)  # a StoredFrame's, read from its cache
+        loss = cast(Tensor, sum(frame_forward(model, frame, proposals).values())) / len(frames)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"non-finite training loss {loss.item()}")
         loss.backward()
@@ -223,10 +224,22 @@ def _step(model: nn.Module, frames: Sequence[CachedFrame], optimizer: torch.opti
     return total
 
 
+CHECKPOINT_STEPS = 250
+"""Besides each epoch's end, :func:`train_heads` keeps its state every this many steps (an
+epoch of a large data set is long)."""
+
+
 def train_heads(model: nn.Module, frames: Sequence[CachedFrame], settings: TrainSettings = TrainSettings(),
-                progress: bool = True) -> dict[str, object]:
+                progress: bool = True, checkpoint: Any = None) -> dict[str, object]:
     """Train every parameter of ``model`` that requires a gradient (the neck, the box head
-    and predictor, the learned RPN's head; the frozen backbone has none) over ``frames``.
+    and predictor, the learned RPN's head; the frozen backbone has none) over ``frames``
+    (:class:`CachedFrame`, or :class:`~reeb_torch.detection.fitting.StoredFrame` read from disk).
+
+    ``checkpoint`` (a :class:`~reeb_torch.ranker.store.CheckpointSlot`): the training state
+    (weights, optimiser, generators, step, losses) is saved there after each epoch (and every
+    :data:`CHECKPOINT_STEPS` steps), and a
+    saved state is gone on from: a fit killed and started again ends with the weights of one
+    never stopped.
 
     Returns:
         ``{"losses": [mean loss per step], "steps": int, "train_s": wall seconds}``.
@@ -244,8 +257,17 @@ def train_heads(model: nn.Module, frames: Sequence[CachedFrame], settings: Train
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=settings.lr, weight_decay=settings.weight_decay)
     model.train()
-    losses, t0 = [], time.perf_counter()
-    bar = tqdm(range(total), desc="train heads", unit="step", disable=not progress)
+    losses: list[float] = []
+    t0, start = time.perf_counter(), 0
+    state = checkpoint.load() if checkpoint is not None else None
+    if state is not None:  # a killed fit's last finished epoch
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        order.set_state(state["order"])
+        torch.set_rng_state(state["rng"])
+        start, losses = int(state["step"]), list(state["losses"])
+    perm: list[int] = list(state["perm"]) if state is not None else []
+    bar = tqdm(range(start, total), desc="train heads", unit="step", disable=not progress, initial=start, total=total)
     for step in bar:
         if step % per_epoch == 0:
             perm = torch.randperm(len(frames), generator=order).tolist()
@@ -255,9 +277,14 @@ def train_heads(model: nn.Module, frames: Sequence[CachedFrame], settings: Train
         batch = [frames[i] for i in perm[pos:pos + settings.batch_size]]
         if settings.hflip:
             flips = torch.rand(len(batch), generator=order) < 0.5
-            batch = [f.mirror if flip else f for f, flip in zip(batch, flips.tolist())]
+            batch = [cast(CachedFrame, f.mirror) if flip else f for f, flip in zip(batch, flips.tolist())]
         losses.append(_step(model, batch, optimizer))
         bar.set_postfix(loss=f"{losses[-1]:.3f}")
+        if checkpoint is not None and ((step + 1) % per_epoch == 0 or (step + 1) % CHECKPOINT_STEPS == 0
+                                       or step + 1 == total):
+            checkpoint.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                             "order": order.get_state(), "rng": torch.get_rng_state(), "step": step + 1,
+                             "losses": losses, "perm": perm})
     model.eval()
     return {"losses": losses, "steps": total, "train_s": time.perf_counter() - t0}
 

@@ -26,7 +26,7 @@ from torch import Tensor
 
 from ..io import replace_file
 
-__all__ = ["KITTI_CLASSES", "NEIGHBOURS", "load_frames", "FolderSurvey", "survey_folder", "distinct_folders",
+__all__ = ["KITTI_CLASSES", "NEIGHBOURS", "load_frames", "image_size", "frame_image", "FolderSurvey", "survey_folder", "distinct_folders",
            "mirrored", "result_lines", "write_results", "write_text"]
 
 KITTI_CLASSES = ("Car", "Pedestrian", "Cyclist")
@@ -42,8 +42,10 @@ def _boxes_of(objects: Sequence[Any], types: Sequence[str]) -> Tensor:
 
 
 def load_frames(folders: Sequence[str | os.PathLike], classes: Sequence[str] = KITTI_CLASSES,
-                limit: int | None = None) -> list[dict[str, Any]]:
-    """Every labelled frame of ``folders``, in folder then id order.
+                limit: int | None = None, lazy: bool = False) -> list[dict[str, Any]]:
+    """Every labelled frame of ``folders``, in folder then id order. ``lazy``: no image is
+    decoded (no ``image`` entry; ``size``, ``(H, W)`` from the file's header, in its place):
+    for frames too many to hold, each decoded when its turn comes.
 
     Returns:
         One dict per frame: ``image`` (``uint8 [3, H, W]``), ``boxes`` (``float32 [N, 4]``
@@ -65,13 +67,50 @@ def load_frames(folders: Sequence[str | os.PathLike], classes: Sequence[str] = K
         if ds.label_dir is None:
             raise ValueError(f"{root}: no label folder (labels/ or label_2/): a detector trains on labelled frames")
         for i in range(len(ds)):
-            it = ds[i]
+            if lazy:
+                size = image_size(ds.image_paths[i])
+                it = ds.load_target(i, (size[1], size[0]))
+                picture: dict[str, Any] = {"size": size}
+            else:
+                it = ds[i]
+                picture = {"image": it["image"]}
             objects = read_kitti_labels(ds.label_dir / f"{it['image_id']}.txt")
-            items.append({"image": it["image"], "boxes": it["boxes"], "labels": it["labels"] + 1,
+            items.append({**picture, "boxes": it["boxes"], "labels": it["labels"] + 1,
                           "occluded": it["occluded"], "truncated": it["truncated"], "objects": objects,
                           "ignore": _boxes_of(objects, neighbours), "dontcare": _boxes_of(objects, ("DontCare",)),
                           "image_id": str(it["image_id"]), "folder": root.name, "path": str(it["path"])})
     return items
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """``(H, W)`` of an image file, from its header (the whole image decoded where the header
+    cannot be read that way).
+
+    Raises:
+        ValueError: the file is no image that can be read (one line naming it).
+    """
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+            return int(h), int(w)
+    except Exception:  # noqa: BLE001 - a format PIL does not read: the image reader's turn
+        from ..io import read_image
+
+        image = read_image(path)
+        return int(image.shape[-2]), int(image.shape[-1])
+
+
+def frame_image(item: dict[str, Any]) -> Tensor:
+    """An item's ``uint8 [3, H, W]`` image: its ``image``, or decoded from its ``path`` (and
+    flipped left to right where it is a lazy mirror, :func:`mirrored`)."""
+    if "image" in item:
+        return item["image"]
+    from ..io import read_image
+
+    image = read_image(item["path"])
+    return image.flip(-1).contiguous() if item.get("flipped") else image
 
 
 @dataclass
@@ -131,6 +170,11 @@ def mirrored(item: dict[str, Any]) -> dict[str, Any]:
     """A training item flipped left to right (the image and every box)."""
     from .head_training import mirror_boxes
 
+    if "image" not in item:  # a lazy item: flipped when decoded (frame_image)
+        w = item["size"][1]
+        return {**item, "flipped": True, "boxes": mirror_boxes(item["boxes"], w),
+                "ignore": mirror_boxes(item["ignore"], w), "dontcare": mirror_boxes(item["dontcare"], w),
+                "image_id": f"{item['image_id']}-mirror"}
     w = item["image"].shape[-1]
     return {**item, "image": item["image"].flip(-1).contiguous(), "boxes": mirror_boxes(item["boxes"], w),
             "ignore": mirror_boxes(item["ignore"], w), "dontcare": mirror_boxes(item["dontcare"], w),

@@ -3,17 +3,19 @@ fit on all blocks of frames but one, score the held-out block with that model.
 
 * :func:`cross_validate` splits the frames into blocks
   (:func:`~reeb_torch.eval.tune.fold_blocks`), fits on all blocks but one
-  (:func:`~reeb_torch.eval.fit.fit_ranker`), keeping the held-out block's drive neighbours out
+  (:func:`~reeb_torch.ranker.fit.fit_ranker`), keeping the held-out block's drive neighbours out
   (:func:`~reeb_torch.eval.fit.training_frames`), scores the generator with that model on the
   held-out block, and collects the held-out hits (:func:`~reeb_torch.eval.tune.held_out`).
 * :func:`held_out_outputs` gives each frame's proposals from the model that never saw it.
 * :func:`kept_rows`: the rows of the candidates a fitted prefilter keeps
-  (:attr:`~reeb_torch.eval.fit.FitOptions.hard_negatives`).
+  (:attr:`~reeb_torch.ranker.fit.FitOptions.hard_negatives`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import os
 import tempfile
 from dataclasses import dataclass, field
@@ -27,15 +29,17 @@ from torchvision.ops import box_iou
 
 from ..config import ReebConfig
 from ..ranker import BoxRanker, keep_candidates, save_ranker
+from ..ranker.store import Checkpoints, StoredFrames
 from . import fit as F
+from ..ranker import fit as RF
 from .tune import FrameCache, fold_blocks, held_out
 
 __all__ = ["FitCrossValidation", "cross_validate", "held_out_outputs", "best_ious", "hinted_classes", "kept_rows"]
 
 
-def kept_rows(cache: FrameCache, cfg: ReebConfig, opts: F.FitOptions,
-              indices: Sequence[int]) -> Callable[[BoxRanker], list[F.Sample]]:
-    """For :attr:`~reeb_torch.eval.fit.FitOptions.hard_negatives`: a function of a model
+def kept_rows(cache: FrameCache, cfg: ReebConfig, opts: RF.FitOptions,
+              indices: Sequence[int]) -> Callable[[BoxRanker], list[RF.Sample]]:
+    """For :attr:`~reeb_torch.ranker.fit.FitOptions.hard_negatives`: a function of a model
     with a fitted prefilter that gives, per frame of ``indices`` of ``cache``,
     :func:`~reeb_torch.eval.fit.frame_sample`'s rows of the candidates the prefilter keeps
     under ``cfg`` (:func:`~reeb_torch.ranker.keep_candidates`, as
@@ -45,8 +49,8 @@ def kept_rows(cache: FrameCache, cfg: ReebConfig, opts: F.FitOptions,
     hard = dataclasses.replace(opts, negatives=opts.hard_negatives, quality_hidden=None, refine_hidden=None)
     frames = cache.frames
 
-    def rows(model: BoxRanker) -> list[F.Sample]:
-        def frame(i: int) -> F.Sample:
+    def rows(model: BoxRanker) -> list[RF.Sample]:
+        def frame(i: int) -> RF.Sample:
             c = cache.candidates(unranked, i)
             names = list(c.feature_names)
             cheap = c.features[:, [names.index(n) for n in model.feature_names[: model.cheap]]]
@@ -127,37 +131,55 @@ class _HeldOutModels:
     (:func:`~reeb_torch.eval.fit.training_frames`), and records how many frames it was fitted on. ``scratch``: the
     folder the temporary one is made in (default: the system's)."""
 
-    def __init__(self, cache: FrameCache, names: Sequence[str], samples: Sequence[F.Sample], opts: F.FitOptions,
-                 folds: int | Sequence[Sequence[int]], gap: int, scratch: str | os.PathLike | None = None,
-                 cfg: ReebConfig | None = None) -> None:
+    def __init__(self, cache: FrameCache, names: Sequence[str], samples: Sequence[RF.Sample] | StoredFrames,
+                 opts: RF.FitOptions, folds: int | Sequence[Sequence[int]], gap: int,
+                 scratch: str | os.PathLike | None = None, cfg: ReebConfig | None = None,
+                 keep: str | os.PathLike | None = None) -> None:
         frames = cache.frames
         self.frames, self.names, self.samples, self.opts, self.gap = frames, names, samples, opts, gap
         self.cache, self.cfg = cache, cfg if cfg is not None else ReebConfig()
         self.blocks = fold_blocks(len(frames), folds) if isinstance(folds, int) else [list(b) for b in folds]
         self.similar = F.similar_frames(frames.images)
         self.trained: list[int] = []
-        self._tmp = tempfile.TemporaryDirectory(prefix="reeb-fit-", dir=scratch)
+        self._tmp = None if keep is not None else tempfile.TemporaryDirectory(prefix="reeb-fit-", dir=scratch)
+        self.keep: Path | None = None
+        if keep is not None:  # each block's model and training state, found again after a kill
+            digest = hashlib.sha256(json.dumps([dataclasses.asdict(opts), self.blocks, gap, list(names)],
+                                               sort_keys=True, default=str).encode()).hexdigest()[:16]
+            self.keep = Path(keep) / f"held-out-{digest}"
 
     def __enter__(self) -> _HeldOutModels:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self._tmp.cleanup()
+        if self._tmp is not None:
+            self._tmp.cleanup()
 
     def fit(self, f: int) -> Path:
-        """Fit the model without block ``f``; its weights file."""
+        """Fit the model without block ``f`` (or find the one fitted before a kill); its weights file."""
         frames = self.frames
         train = F.training_frames(self.blocks, f, frames.ids, frames.folders, self.similar, self.gap)
-        model = F.fit_ranker([self.samples[i] for i in train], self.names, self.opts, frames.classes,
-                             kept_rows(self.cache, self.cfg, self.opts, train))
+        folder = self.keep if self.keep is not None else Path(self._tmp.name)  # type: ignore[union-attr]
+        path = folder / f"fold{f}.safetensors"
         self.trained.append(len(train))
-        return save_ranker(model, Path(self._tmp.name) / f"fold{f}.safetensors")
+        if self.keep is not None and path.exists():
+            return path
+        slots = None
+        if self.keep is not None:
+            states = Checkpoints(self.keep / f"fold{f}", [len(train)])
+            slots = states.slot
+        picked = self.samples.subset(train) if isinstance(self.samples, StoredFrames) else [self.samples[i]
+                                                                                            for i in train]
+        model = RF.fit_ranker(picked, self.names, self.opts, frames.classes,
+                             kept_rows(self.cache, self.cfg, self.opts, train), checkpoints=slots)
+        return save_ranker(model, path)
 
 
-def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[F.Sample], opts: F.FitOptions,
+def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[RF.Sample] | StoredFrames, opts: RF.FitOptions,
                      folds: int | Sequence[Sequence[int]], gap: int = 2,
                      progress: Callable | None = None,
-                     scratch: str | os.PathLike | None = None) -> list[dict[str, Tensor]]:
+                     scratch: str | os.PathLike | None = None,
+                     keep: str | os.PathLike | None = None) -> list[dict[str, Tensor]]:
     """Per frame (in frame order), ``ProposalGenerator(cfg)``'s output dict with the ranking
     fitted without the frame's block (``folds`` blocks: the folds and models of
     :func:`cross_validate`; or the blocks given, the frame indices of each, covering every
@@ -169,7 +191,7 @@ def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[F.Sam
     """
     names = cache.candidates(cfg.unranked(), 0).feature_names
     out: list = [None] * len(cache.frames)
-    with _HeldOutModels(cache, names, samples, opts, folds, gap, scratch, cfg) as models:
+    with _HeldOutModels(cache, names, samples, opts, folds, gap, scratch, cfg, keep) as models:
         for f in progress(range(len(models.blocks))) if progress else range(len(models.blocks)):
             block = models.blocks[f]
             for i, o in zip(block, cache.outputs(cfg.replace(ranker=str(models.fit(f))), block)):
@@ -177,17 +199,20 @@ def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[F.Sam
     return out
 
 
-def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples: Sequence[F.Sample],
-                   opts: F.FitOptions, folds: int, k: int = 2000, iou: float = 0.7, gap: int = 2,
+def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples: Sequence[RF.Sample] | StoredFrames,
+                   opts: RF.FitOptions, folds: int, k: int = 2000, iou: float = 0.7, gap: int = 2,
                    progress: Callable | None = None, also: Sequence[ReebConfig] = (),
-                   scratch: str | os.PathLike | None = None, best_ks: Sequence[int] = ()) -> FitCrossValidation:
+                   scratch: str | os.PathLike | None = None, best_ks: Sequence[int] = (),
+                   keep: str | os.PathLike | None = None) -> FitCrossValidation:
     """For each of ``folds`` blocks of frames: fit on the others (:func:`~reeb_torch.eval.fit.training_frames`),
     run the generator of ``cfg`` with that model on the block, and pair its hits with
     ``base``'s on the same objects; each config of ``also`` (settings that act after the
     model: ``class_quota``, ``top_k``, ``refine_top``, ...) runs with the same model too
     (``also_hits``); with ``best_ks``, each object's best IoU at those proposal counts is kept
     too (``ranked_best``, ``also_best``: :func:`best_ious`); the loop over the blocks is
-    :func:`~reeb_torch.eval.tune.held_out`'s."""
+    :func:`~reeb_torch.eval.tune.held_out`'s. ``keep``: a folder where each block's model
+    and its training states stay (:class:`~reeb_torch.ranker.store.Checkpoints`), so a killed
+    run started again goes on from them (default: a temporary folder in ``scratch``)."""
     from .metrics import object_hits
 
     frames = cache.frames
@@ -213,7 +238,7 @@ def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples
             if best_ks:
                 also_best[j].extend(best_ious(outs, gts, best_ks))
 
-    with _HeldOutModels(cache, names, samples, opts, folds, gap, scratch, cfg) as models:
+    with _HeldOutModels(cache, names, samples, opts, folds, gap, scratch, cfg, keep) as models:
         scored = held_out(cache, models.blocks, fitted, base, k, iou, each=each, progress=progress)
     return FitCrossValidation(models.blocks, scored.hits, scored.base_hits, per_fold=scored.per_fold,
                               trained=models.trained, hinted=hinted, also_hits=also_hits, ranked_best=ranked_best,

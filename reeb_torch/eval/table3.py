@@ -371,7 +371,8 @@ def cross_validated_boxes(frames: Frames, roots: Sequence[str | os.PathLike], fo
     from tqdm import tqdm
 
     from .. import get_preset
-    from .fit import FitFrames, FitOptions, frame_samples, other_boxes
+    from ..ranker.fit import FitOptions
+    from .fit import FitFrames, frame_samples, other_boxes
     from .fit_cv import held_out_outputs
     from .tune import FrameCache
 

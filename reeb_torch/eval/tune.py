@@ -98,10 +98,15 @@ class FrameCache:
     groups, road mask) once per setting of :data:`~reeb_torch.generator.FRONT_END_FIELDS` (the
     latest one is kept). The boxes are those of ``ProposalGenerator(cfg)(image)``, bit for bit."""
 
-    def __init__(self, frames: Frames) -> None:
+    def __init__(self, frames: Frames, budget: int | None = None) -> None:
         self.frames = frames
+        self.budget = budget
+        """Bytes of front ends kept (the first frames' ones; the last one computed is kept
+        too); None: every frame's (fast, but memory grows with the frames)."""
         self._key: tuple | None = None
         self._front: dict[int | tuple, FrontEnd] = {}
+        self._bytes = 0
+        self._last: tuple[int | tuple, FrontEnd] | None = None
         self.front_computed = 0
         """How many frames' front ends were computed (for tests and the summary)."""
         self._generators: dict[tuple, ProposalGenerator] = {}
@@ -125,7 +130,7 @@ class FrameCache:
         input, and that image's front end (each variant cached apart from the frame's own)."""
         key = tuple(getattr(cfg, f) for f in FRONT_END_FIELDS)
         if key != self._key:
-            self._key, self._front = key, {}
+            self._key, self._front, self._bytes, self._last = key, {}, 0, None
         gen = self._generator(cfg)
         image = self.frames.images[i]
         if mirrored:
@@ -134,11 +139,19 @@ class FrameCache:
             image = photometric_jitter(image, *photometric)
         img = gen.prepare([image])
         slot: int | tuple = (i, mirrored, photometric) if mirrored or photometric is not None else i
-        if slot not in self._front:
-            with torch.no_grad():
-                self._front[slot] = gen.front_end(img)
-            self.front_computed += 1
-        return gen, img, self._front[slot]
+        if slot in self._front:
+            return gen, img, self._front[slot]
+        if self._last is not None and self._last[0] == slot:
+            return gen, img, self._last[1]
+        with torch.no_grad():
+            front = gen.front_end(img)
+        self.front_computed += 1
+        size = _nbytes(front) if self.budget is not None else 0
+        if self.budget is None or self._bytes + size <= self.budget:
+            self._front[slot] = front
+            self._bytes += size
+        self._last = (slot, front)
+        return gen, img, front
 
     def outputs(self, cfg: ReebConfig, indices: Sequence[int]) -> list[dict[str, Tensor]]:
         """``ProposalGenerator(cfg)``'s output dict (``boxes``, ``scores``, and ``labels``,
@@ -183,6 +196,33 @@ class FrameCache:
     def hits(self, cfg: ReebConfig, indices: Sequence[int], k: int, iou: float) -> list[Tensor]:
         """Per frame of ``indices``, ``bool Tensor[N_i]``: objects the top ``k`` boxes find at ``iou``."""
         return object_hits(self.proposals(cfg, indices), [self.frames.gts[i] for i in indices], k, iou)
+
+
+def _nbytes(obj: Any, seen: set | None = None) -> int:
+    """Bytes of the tensors ``obj`` holds (in its fields, lists, tuples and dicts), each once."""
+    seen = set() if seen is None else seen
+    if id(obj) in seen:
+        return 0
+    seen.add(id(obj))
+    if isinstance(obj, Tensor):
+        storage = obj.untyped_storage()
+        if ("storage", storage.data_ptr()) in seen:
+            return 0
+        seen.add(("storage", storage.data_ptr()))  # type: ignore[arg-type]
+        return storage.nbytes()
+    if isinstance(obj, np.ndarray):
+        return obj.nbytes
+    if isinstance(obj, dict):
+        return sum(_nbytes(v, seen) for v in obj.values())
+    if isinstance(obj, (list, tuple)):
+        return sum(_nbytes(v, seen) for v in obj)
+    if dataclasses.is_dataclass(obj) or hasattr(obj, "__dict__"):
+        fields = vars(obj) if hasattr(obj, "__dict__") else {f.name: getattr(obj, f.name)
+                                                             for f in dataclasses.fields(obj)}
+        return sum(_nbytes(v, seen) for v in fields.values())
+    if hasattr(obj, "__slots__"):
+        return sum(_nbytes(getattr(obj, n, None), seen) for n in obj.__slots__)
+    return 0
 
 
 def photometric_jitter(image: Tensor, contrast: float, brightness: float) -> Tensor:

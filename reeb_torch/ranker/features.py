@@ -89,7 +89,7 @@ FEATURE_GROUPS: dict[str, tuple[str, ...]] = {
     "place": ("top", "bottom", "centre_x", "off_centre", "at_border"),
 }
 """Named groups of feature columns for ``reeb fit --drop-features``
-(:attr:`~reeb_torch.eval.fit.FitOptions.drop_features`). ``place``: where the box lies in the
+(:attr:`~reeb_torch.ranker.fit.FitOptions.drop_features`). ``place``: where the box lies in the
 frame (its top and bottom rows, its centre's column, how far off the image's centre, whether
 it touches the border), which a model of a few drives can learn as where those drives had
 their objects."""

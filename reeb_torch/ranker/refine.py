@@ -13,7 +13,7 @@ offsets ``(dx1 / w, dy1 / h, dx2 / w, dy2 / h)``; :func:`apply_offsets` moves th
 
 The refiner lives in the ranking model's weights file (``refiner.*`` tensors, optional, as the
 class head: :mod:`reeb_torch.ranker.weights`); ``reeb fit`` fits it on the training frames'
-candidates that overlap an object (:func:`reeb_torch.eval.fit.fit_refiner`). Off by default
+candidates that overlap an object (:func:`reeb_torch.ranker.fit.fit_refiner`). Off by default
 (``refine_top=0``): on the dev frames, cross-validated by whole drives, no arrangement of the
 refined boxes beside the originals found more objects at 2000 proposals / IoU 0.7
 (``docs/results/ranker/refine_whole_drives``).

@@ -60,6 +60,7 @@ from .common import (  # noqa: E402
     Failure,
     FiniteFloat,
     device_option,
+    engine_options,
     UsageProblem,
     box_table,
     build_config,
@@ -149,17 +150,8 @@ def main() -> None:
 @click.option("--summary-json", type=click.Path(dir_okay=False),
               help="Also write the closing summary as JSON (for scripts and benchmarks).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar, no per-file messages.")
-@click.option("--engine", type=click.Choice(["local", "ray"]), default="local", show_default=True,
-              help="local: this process; ray: Ray Data actors (a folder of Parquet files; "
-                   "pip install 'reeb-torch[ray]').")
-@click.option("--address", default=None,
-              help="--engine ray: the Ray cluster (auto, ray://HOST:PORT) [default: a local Ray "
-                   "instance sized to this machine].")
-@click.option("--actors", type=click.IntRange(min=1), default=1, show_default=True,
-              help="--engine ray: actors, each holding one proposal generator.")
-@click.option("--cpus-per-actor", type=FiniteFloat(min=0, min_open=True), default=None,
-              help="--engine ray: CPUs each actor reserves (and its torch threads) "
-                   "[default: leaves one CPU to Ray's read/write tasks].")
+@engine_options("local: this process; ray: Ray Data actors (a folder of Parquet files; "
+                "pip install 'reeb-torch[ray]').", "--engine ray: actors, each holding one proposal generator.")
 def propose(paths, out, resume, overwrite, preset, config_file, sets, top_k, device,
             batch_size, workers, viz_dir, viz_top, recursive, print_top, summary_json, quiet,
             engine, address, actors, cpus_per_actor):
@@ -564,15 +556,21 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
 @click.option("--refiner", is_flag=True,
               help="Also fit a box refiner into the weights (side offsets of the best boxes, applied with "
                    "--set refine_top=N; off by default: docs/results.md, \"Box refinement\").")
+@click.option("--val", multiple=True, type=click.Path(exists=True, file_okay=False), metavar="DIR",
+              help="Labelled folder kept out of the fit and scored instead of the cross-validation (one fit, one "
+                   "pass over it: for data sets where --folds fits would take long; repeatable).")
 @click.option("-k", "--proposals", "k", type=click.IntRange(min=1), default=2000, show_default=True,
               help="Proposals counted per frame.")
 @click.option("--iou", type=FiniteFloat(0, 1, min_open=True), default=0.7, show_default=True,
               help="IoU an object needs.")
 @click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
 @settings_options("The settings the ranking is fitted for.", run=False)
+@engine_options("Where each frame's candidates and rows are made: this process, or Ray Data actors (training "
+                "runs here, from the rows; pip install 'reeb-torch[ray]').",
+                "--engine ray: actors, each making frames' rows.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
 def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, mirror, jitter, hard, no_orientation,
-        drop, refiner, k, iou, limit, preset, config_file, sets, quiet):
+        drop, refiner, val, k, iou, limit, preset, config_file, sets, engine, address, actors, cpus_per_actor, quiet):
     """Fit the learned ranking on labelled KITTI-format folders (DIRS) for another camera, and
     estimate by cross-validation over blocks of frames how it does on frames it never saw,
     beside the training-free settings and the shipped model on the same frames. Writes the
@@ -580,11 +578,21 @@ def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, mir
 
     With a few labelled frames (a dozen or so), fine-tune the shipped model (--init kitti)
     rather than fit one from scratch.
+
+    The frames are read one at a time and their rows kept on disk beside OUT until the
+    weights are written: memory does not grow with the frames, and a fit that was stopped,
+    started again with the same command, goes on from where it was.
     """
     import dataclasses
+    import os
 
-    from ..eval.fit import FitOptions
+    from ..ranker.fit import FitOptions
     from . import fit as R
+
+    shared = {os.path.realpath(v) for v in val} & {os.path.realpath(d) for d in dirs}
+    if shared:
+        raise click.BadParameter(f"{', '.join(sorted(shared))} is also a training folder: --val scores frames the "
+                                 "fit does not see", param_hint="--val")
 
     cfg = build_config(preset, config_file, sets, None)
     if init and hidden:
@@ -601,7 +609,8 @@ def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, mir
         opts = dataclasses.replace(opts, **{"tune_epochs" if init else "epochs": epochs})
     command = " ".join(["reeb fit", *map(shlex.quote, sys.argv[2:])])
     try:
-        record = R.run_fit(dirs, out, cfg, opts, folds, k, iou, limit, quiet, command, whole_drives)
+        engine_ray = (address, actors, cpus_per_actor) if engine == "ray" else None
+        record = R.run_fit(dirs, out, cfg, opts, folds, k, iou, limit, quiet, command, whole_drives, val, engine_ray)
     except (ValueError, FileNotFoundError) as e:
         raise UsageProblem(" ".join(str(e).split()))
     click.echo(record["text"])

@@ -23,6 +23,7 @@ __all__ = [
     "Failure",
     "writable_folder",
     "FiniteFloat",
+    "engine_options",
     "settings_options",
     "config_options",
     "device_option",
@@ -142,6 +143,29 @@ that runs the generator (``propose``, ``show``)."""
 
 
 # -- settings, device, sample ---------------------------------------------------------
+
+def engine_options(engine_help: str, actor_help: str):
+    """``--engine``, ``--address``, ``--actors``, ``--cpus-per-actor``: where a command's
+    per-image work runs (this process, or Ray Data actors)."""
+    options = [
+        click.option("--engine", type=click.Choice(["local", "ray"]), default="local", show_default=True,
+                     help=engine_help),
+        click.option("--address", default=None,
+                     help="--engine ray: the Ray cluster (auto, ray://HOST:PORT) [default: a local Ray "
+                          "instance sized to this machine]."),
+        click.option("--actors", type=click.IntRange(min=1), default=1, show_default=True, help=actor_help),
+        click.option("--cpus-per-actor", type=FiniteFloat(min=0, min_open=True), default=None,
+                     help="--engine ray: CPUs each actor reserves (and its torch threads) "
+                          "[default: leaves one CPU to Ray's read/write tasks]."),
+    ]
+
+    def decorate(f):
+        for option in reversed(options):
+            f = option(f)
+        return f
+
+    return decorate
+
 
 def claim_output(out: str) -> None:
     """Check that ``out`` can be written and hold its lock (one writer per output) until the

@@ -17,14 +17,16 @@ from __future__ import annotations
 
 import hashlib
 import shlex
+import shutil
 import sys
 import warnings
 from typing import Any
 
 import click
 
-from .common import CONTEXT, Failure, FloatOrAuto, UsageProblem
-from .detector_fit import SettingRange, check_cache, check_frames, claim_weights_out, distinct, train, warnings_as_lines
+from .common import CONTEXT, Failure, FloatOrAuto, UsageProblem, engine_options
+from .detector_fit import (SettingRange, check_cache, check_frames, claim_weights_out, distinct, train, training_states,
+                           warnings_as_lines)
 
 __all__ = ["detector", "fit", "show"]
 
@@ -77,6 +79,9 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
 @click.option("--classes", default="Car,Pedestrian,Cyclist", show_default=True,
               help="Comma-separated class names, as the label files write them.")
 @click.option("--epochs", type=click.IntRange(min=1), default=12, show_default=True, help="Passes over the frames.")
+@click.option("--steps", type=click.IntRange(min=1),
+              help="Train for this many steps (2 frames each) instead, the schedule spread over them: for data "
+                   "sets where --epochs passes would take long.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the heads' weights and the frame order.")
 @click.option("--val", multiple=True, type=click.Path(exists=True, file_okay=False), metavar="DIR",
               help="Labelled folder kept out of training: its KITTI AP|R40 is printed and stored (repeatable).")
@@ -106,12 +111,21 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
 @click.option("--cache", "cache_dir", type=click.Path(file_okay=False),
               help="Where each frame's backbone maps and proposals are kept [default: ~/.cache/reeb-torch/detection].")
 @click.option("--limit", type=click.IntRange(min=1), help="Use only the first N frames of each folder.")
+@engine_options("Where each frame's proposals and backbone maps are computed: this process, or Ray Data actors "
+                "(they write the maps to --cache, which every worker must reach; training runs here; "
+                "pip install 'reeb-torch[ray]').", "--engine ray: actors, each holding one detector.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
-def fit(dirs, out, overwrite, proposals, classes, epochs, seed, val, hflip, min_size, max_size, train_proposals,
-        test_proposals, precision, crop_top, neck_channels, head_width, box_passes, cache_dir, limit, quiet):
+def fit(dirs, out, overwrite, proposals, classes, epochs, steps, seed, val, hflip, min_size, max_size, train_proposals,
+        test_proposals, precision, crop_top, neck_channels, head_width, box_passes, cache_dir, limit, engine, address,
+        actors, cpus_per_actor, quiet):
     """Train a detector on labelled KITTI-format folders (DIRS: images/ and labels/, or image_2/ and
     label_2/) and write it to OUT. The backbone's maps and REEB's proposals of each frame are
     cached, so a second fit on the same frames trains at once. Deterministic for a seed.
+
+    The frames are read one at a time and the maps read from the cache as training needs
+    them: memory does not grow with the frames. The training state is kept beside OUT after
+    each epoch until the detector is written, so a fit that was stopped, started again with
+    the same command, goes on from its last finished epoch.
     """
     from click.core import ParameterSource
 
@@ -126,16 +140,19 @@ def fit(dirs, out, overwrite, proposals, classes, epochs, seed, val, hflip, min_
     cache_dir = check_cache(cache_dir)
     command = " ".join(["reeb detector fit", *map(shlex.quote, dirs), "-o", shlex.quote(out), "--proposals",
                         shlex.quote(proposals), "--classes", shlex.quote(",".join(names)), "--epochs", str(epochs),
-                        "--seed", str(seed)] + (["--hflip"] if hflip else [])
+                        "--seed", str(seed)] + (["--steps", str(steps)] if steps else []) + (["--hflip"] if hflip else [])
                        + _changed_options(click.get_current_context(), SETTINGS_OPTIONS)
                        + (["--limit", str(limit)] if limit else []))
+    states = training_states(path)
     with warnings_as_lines():
         det, lines = train(dirs, val, names, proposals, epochs, seed, settings, cache_dir, limit, hflip, quiet,
-                           command, auto_crop=crop_top == "auto")
+                           command, auto_crop=crop_top == "auto", checkpoints=states, steps=steps,
+                           engine=(address, actors, cpus_per_actor) if engine == "ray" else None)
     try:
         det.save(path)
     except OSError as e:
         raise Failure(f"{out}: cannot write the detector ({e.strerror or e})")
+    shutil.rmtree(states, ignore_errors=True)  # written: nothing to go on from
     lines.append(f"wrote {path}; run it with: reeb detect IMAGES --detector {shlex.quote(str(path))} -o dets.jsonl")
     errors = [line for line in lines if line.startswith("error: ")]
     click.echo("\n".join(line for line in lines if line not in errors))

@@ -27,7 +27,7 @@ import click
 from .common import UsageProblem, writable_folder
 
 __all__ = ["claim_weights_out", "SettingRange", "distinct", "check_frames", "check_cache", "warnings_as_lines",
-           "train"]
+           "training_states", "train"]
 
 
 def claim_weights_out(out: str, overwrite: bool) -> Path:
@@ -147,18 +147,59 @@ def warnings_as_lines() -> Iterator[None]:
         yield
 
 
+def training_states(out: Path) -> Path:
+    """The folder beside ``out`` where ``reeb detector fit`` keeps its training state after
+    each epoch (a killed fit, started again with the same command, goes on from it); removed
+    once the detector is written."""
+    from .output_files import hidden_stem
+
+    return out.parent / f"{hidden_stem(out)}.train"
+
+
+def _on_ray(engine: tuple[str | None, int, float | None], quiet: bool) -> Any:
+    """The detector fit's per-frame pass on Ray (``--engine ray``): Ray started, or a
+    one-line error."""
+    from .common import Failure
+    from .fit_ray import ray_frames, start_ray
+
+    address, actors, cpus_per_actor = engine
+    try:
+        cpus = start_ray(address, actors, cpus_per_actor, quiet)
+    except RuntimeError as e:
+        raise Failure(str(e)) from None
+    except ValueError as e:
+        raise UsageProblem(str(e)) from None
+
+    def frames_by(det: Any, items: Sequence[dict], cache: Any) -> Any:
+        try:
+            yield from ray_frames(det, items, cache, actors, cpus)
+        except Exception as e:  # noqa: BLE001 - a failed Ray job: the maps cached so far stay
+            raise Failure(f"the Ray job failed: {' '.join(str(e).split())[:2000]}") from None
+
+    return frames_by
+
+
 def train(dirs: Sequence[str], val: Sequence[str], names: tuple[str, ...], proposals: str, epochs: int, seed: int,
-           settings: Any, cache_dir: str | None, limit: int | None, hflip: bool, quiet: bool,
-           command: str, auto_crop: bool = False) -> tuple[Any, list[str]]:
+          settings: Any, cache_dir: str | None, limit: int | None, hflip: bool, quiet: bool,
+          command: str, auto_crop: bool = False, checkpoints: Path | None = None,
+          steps: int | None = None,
+          engine: tuple[str | None, int, float | None] | None = None) -> tuple[Any, list[str]]:
     """``reeb detector fit``'s work once its inputs are checked: the trained detector (its
     ``--val`` scores in its provenance) and the lines that tell of it."""
-    from ..detection import ReebDetector, evaluate_detector, format_scores
+    from ..detection import ReebDetector, TrainSettings, evaluate_detector, format_scores
 
     t0 = time.perf_counter()
+    frames_by = _on_ray(engine, quiet) if engine is not None else None
+    resumed = checkpoints is not None and checkpoints.is_dir()
+    if resumed and not quiet:
+        click.echo(f"note: going on from the training state in {checkpoints} (a fit on this output that was "
+                   "stopped); a state of other settings or frames is not used", err=True)
     try:
         det: Any = ReebDetector.fit(dirs, classes=names, proposals=proposals, epochs=epochs, seed=seed,
                                     settings=settings, cache_dir=cache_dir, limit=limit, hflip=hflip,
-                                    auto_crop=auto_crop, progress=not quiet, command=command)  # its history: set by fit
+                                    auto_crop=auto_crop, progress=not quiet, command=command,
+                                    training=TrainSettings(max_steps=steps), checkpoints=checkpoints,
+                                    frames_by=frames_by)
     except (ValueError, FileNotFoundError, ImportError) as e:
         raise UsageProblem(" ".join(str(e).split()))
     prov = det.meta["provenance"]

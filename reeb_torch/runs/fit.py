@@ -23,11 +23,13 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 from ..config import ReebConfig
 from ..eval import fit as F
+from ..ranker import fit as RF
 from ..eval import fit_cv
 from ..eval.common import folder_blocks
 from ..eval.metrics import compare_recall
 from ..eval.tune import FrameCache, bootstrap_interval, fold_blocks, objective
 from ..ranker import dropped_columns
+from ..ranker.store import Checkpoints, RowStore, StoredFrames, StoreError
 
 if TYPE_CHECKING:
     from ..ranker import BoxRanker
@@ -103,7 +105,7 @@ def _report(frames: F.FitFrames, rows: dict[str, list], ref: list) -> tuple[list
     return lines, record
 
 
-def _hint_report(frames: F.FitFrames, hinted: list) -> tuple[list[str], dict[str, Any]]:
+def _hint_report(frames: F.FitFrames, hinted: list, how: str = "cross-validated") -> tuple[list[str], dict[str, Any]]:
     """How often the cross-validated models' class hints name the class of the objects their
     proposals find (the hint of each object's best proposal), overall and per class."""
     pairs = [(c, h) for lab, hint in zip(frames.labels, hinted) for c, h in zip(lab.tolist(), hint.tolist()) if h >= 0]
@@ -117,7 +119,7 @@ def _hint_report(frames: F.FitFrames, hinted: list) -> tuple[list[str], dict[str
                                "taken_for": {frames.classes[o]: hints.count(o) for o in sorted(set(hints)) if o != c}}
     right = sum(t == h for t, h in pairs)
     shown = ", ".join(f"{n} {v['right']}/{v['found']}" for n, v in per_class.items())
-    line = (f"class hints (cross-validated; the hint of each found object's best proposal): "
+    line = (f"class hints ({how}; the hint of each found object's best proposal): "
             f"{100 * right / len(pairs):.1f} % right of {len(pairs)} ({shown})")
     return [line], {"right": right, "found": len(pairs), "per_class": per_class}
 
@@ -132,8 +134,9 @@ def _shipped_hits(cache: FrameCache, cfg: ReebConfig, k: int, iou: float) -> lis
         return None
 
 
-def _other_folder_hits(cache: FrameCache, cfg: ReebConfig, samples: Sequence[F.Sample], opts: F.FitOptions,
-                       k: int, iou: float, quiet: bool, scratch: Path) -> list | None:
+def _other_folder_hits(cache: FrameCache, cfg: ReebConfig, samples: Sequence[RF.Sample] | StoredFrames,
+                       opts: RF.FitOptions, k: int, iou: float, quiet: bool, scratch: Path,
+                       keep: Path | None = None) -> list | None:
     """Per frame, the objects the generator finds with a model fitted (or fine-tuned) on the
     other folders only, a block per folder: how a model holds on frames unlike those it saw;
     None for frames of one folder."""
@@ -143,7 +146,7 @@ def _other_folder_hits(cache: FrameCache, cfg: ReebConfig, samples: Sequence[F.S
     if not blocks:
         return None
     outputs = fit_cv.held_out_outputs(cache, cfg, samples, opts, blocks, progress=_iterate("other folders", quiet),
-                                 scratch=scratch)
+                                      scratch=scratch, keep=keep)
     return object_hits([o["boxes"] for o in outputs], cache.frames.gts, k, iou)
 
 
@@ -176,6 +179,9 @@ class FitOutputs:
         if problem:
             raise UsageProblem(problem)
         self.scratch = self.weights.parent / f"{_hidden(self.weights)}.fit"
+        self.store = self.weights.parent / f"{_hidden(self.weights)}.store"
+        """The fit's row store, held-out models and training states: kept after a kill (the
+        same command goes on from it), removed once the weights are written."""
         self._locks: list = []
 
     def __enter__(self) -> "FitOutputs":
@@ -261,10 +267,25 @@ def _unwritable(path: Path) -> str | None:
     return None
 
 
-def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions, folds: int, k: int = 2000,
+def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: RF.FitOptions, folds: int, k: int = 2000,
             iou: float = 0.7, limit: int | None = None, quiet: bool = False,
-            command: str = "", whole_drives: bool = False) -> dict[str, Any]:
+            command: str = "", whole_drives: bool = False, val: Sequence[str] = (),
+            engine: tuple[str | None, int, float | None] | None = None) -> dict[str, Any]:
     """The whole of ``reeb fit``; returns the record (also in the weights' metadata).
+
+    ``val``: labelled folders the ranking is scored on instead of a cross-validation (one fit,
+    one pass over them: the estimate for data sets where ``folds`` fits would take long;
+    ``folds`` and ``whole_drives`` then do not apply).
+
+    Memory does not grow with the frames: the images are read when used, each frame's rows
+    are appended to a store beside ``out`` and trained from by minibatch
+    (:func:`~reeb_torch.eval.fit.row_store`), and the training states are kept after each
+    epoch, so a killed fit, started again with the same arguments, goes on from where it was
+    and ends with the weights of one never stopped.
+
+    ``engine``: ``(address, actors, cpus_per_actor)``: each frame's rows are made on Ray Data
+    (:func:`~reeb_torch.runs.fit_ray.ray_rows`: a local Ray instance, or the cluster at
+    ``address``); None: in this process. The rows are the same either way.
 
     ``whole_drives``: a held-out block's training frames leave out every frame of its drives
     (ids naming a drive, as KITTI tracking's), not only those within 2 frames of it: an
@@ -290,86 +311,264 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: F.FitOptions,
         # generator's warning that they were fitted with other settings is no news here
         warnings.filterwarnings("ignore", message=r"reeb: the ranker .* was fitted with other settings",
                                 category=UserWarning)
-        return _run_fit(roots, outputs, cfg, opts, folds, k, iou, limit, quiet, command, whole_drives)
+        try:
+            return _run_fit(roots, outputs, cfg, opts, folds, k, iou, limit, quiet, command, whole_drives, val,
+                            engine)
+        except StoreError as e:  # a full disk under the row store: the weights there stay
+            from .common import Failure
+
+            raise Failure(f"{e}; {outputs.weights} is unchanged") from None
 
 
-def _run_fit(roots: Sequence[str], outputs: FitOutputs, cfg: ReebConfig, opts: F.FitOptions, folds: int, k: int,
-             iou: float, limit: int | None, quiet: bool, command: str, whole_drives: bool) -> dict[str, Any]:
+def _run_fit(roots: Sequence[str], outputs: FitOutputs, cfg: ReebConfig, opts: RF.FitOptions, folds: int, k: int,
+             iou: float, limit: int | None, quiet: bool, command: str, whole_drives: bool,
+             val: Sequence[str] = (), engine: tuple[str | None, int, float | None] | None = None) -> dict[str, Any]:
     from ..ranker import frame_hash, load_ranker, seen_hashes
 
     t0 = time.monotonic()
     if opts.init:
         load_ranker(opts.init)  # a file that is no model is refused before the frames are read
-    frames = F.load_fit_frames(roots, limit=limit)
-    fold_blocks(len(frames), folds)  # refuse fewer frames than folds before any work
-    cache = FrameCache(frames)
-    base = cfg.training_free()
+    frames = F.load_fit_frames(roots, limit=limit, lazy=True)
+    scored = F.load_fit_frames(val, lazy=True) if val else None  # read before any work: its problems first
+    if scored is None:
+        fold_blocks(len(frames), folds)  # refuse fewer frames than folds before any work
+    cache = FrameCache(frames, budget=FRONT_END_BUDGET)
     names = cache.candidates(cfg.unranked(), 0).feature_names
     if opts.init:
-        F.initial_model(opts.init, names)  # a model that cannot be tuned here fails before any work
+        RF.initial_model(opts.init, names)  # a model that cannot be tuned here fails before any work
     dropped_columns(names, opts.drop_features)  # and so does an unknown column
-    samples = F.frame_samples(cache, cfg, opts, progress=_iterate("candidates", quiet))
-    gap = len(frames) if whole_drives else 2  # drive frames within ``gap`` of a held-out block stay out
-    cv = fit_cv.cross_validate(cache, cfg, base, samples, opts, folds, k, iou, gap, progress=_iterate("folds", quiet),
-                               scratch=outputs.scratch)
-    model = F.fit_ranker(samples, names, opts, frames.classes, fit_cv.kept_rows(cache, cfg, opts, range(len(frames))))
-    fitted = "fine-tuned (cross-validated)" if opts.init else "fitted (cross-validated)"
-    rows = {"training-free": cv.base_hits, fitted: cv.ranked_hits}
-    table, record = _report(frames, rows, cv.base_hits)  # kept in the weights: the same for the same frames
-    hint_lines, hint_record = _hint_report(frames, cv.hinted)
-    shown = dict(rows)
-    other = _other_folder_hits(cache, cfg, samples, opts, k, iou, quiet, outputs.scratch)
-    other_row = f"{'fine-tuned' if opts.init else 'fitted'} on other folders"
-    if other is not None:
-        shown[other_row] = other
-    if opts.init and opts.init != "kitti":
-        start = cfg.replace(ranker=opts.init)
-        shown[f"{Path(opts.init).name} as it is"] = cache.hits(start, range(len(frames)), k, iou)
-    shipped = _shipped_hits(cache, cfg, k, iou)
-    if shipped is not None:
-        shown["shipped kitti model"] = shipped
-    if len(shown) > len(rows):
-        table = _report(frames, shown, cv.base_hits)[0]
+    store = _open_store(outputs, cache, cfg, opts, quiet)
+    clock = _Stages(t0)
+    clock("frames")
+    samples = _rows(cache, cfg, opts, store, engine, quiet)
+    clock("rows")
+    est = None
+    if scored is None:
+        est = _cross_validated(cache, cfg, samples, opts, folds, k, iou, whole_drives, quiet, outputs, clock)
+    states = Checkpoints(outputs.store / "final", [dataclasses.asdict(opts), len(frames)])
+    model = RF.fit_ranker(samples, names, opts, frames.classes, fit_cv.kept_rows(cache, cfg, opts, range(len(frames))),
+                         checkpoints=states.slot)
+    clock("fit")
+    if scored is not None:
+        est = _validated(scored, model, cfg, opts, k, iou, outputs, quiet, clock)
+    assert est is not None
     provenance: dict[str, Any] = {
         "data": [os.path.basename(os.path.normpath(r)) for r in roots], "frames": len(frames),
         "objects": sum(len(g) for g in frames.gts), "frames_digest": frames_digest(frames),
         "frame_hashes": {f"{os.path.basename(os.path.normpath(f))}/{i}": frame_hash(im)
                          for f, i, im in zip(frames.folders, frames.ids, frames.images)},
-        "options": _options_record(opts), "folds": folds, "k": k, "iou": iou, "command": command,
-        "cross_validated": record,
+        "options": _options_record(opts), "k": k, "iou": iou, "command": command,
     }
+    if scored is None:
+        provenance.update(folds=folds, cross_validated=est.record)
+    else:
+        provenance["validated"] = {"folders": [str(v) for v in val], **est.record}
     if whole_drives:
         provenance["whole_drives"] = True
     if opts.init:
         was = model.meta.get("provenance", {})
         provenance["init"] = {"model": opts.init, "data": was.get("data"), "frames_digest": was.get("frames_digest"),
                               "frame_hashes": seen_hashes(was)}
-    if hint_record:
-        provenance["class_hints"] = hint_record
+    if est.hint_record:
+        provenance["class_hints"] = est.hint_record
     outputs.write(model, provenance, cfg)
     load_ranker(str(outputs.weights), model.feature_names)  # what it wrote reads back
-    apart = ("no frame of a held-out block's drives on the training side" if whole_drives
-             else "no neighbouring frames of one drive on both sides")
-    head = (f"{len(frames)} frames, {provenance['objects']} objects; {folds} folds of blocks of frames ({apart}); "
-            f"recall at {k} proposals, IoU {iou}, "
-            "95 % frame-bootstrap intervals; "
-            f"{time.monotonic() - t0:.0f} s")
-    note = []
-    if other is not None and objective(other, frames.labels) < objective(cv.base_hits, frames.labels):
-        note.append(f"  ({other_row}: each folder ranked by a model that saw only the others finds fewer objects "
-                    "than training-free: a model may not carry to frames unlike those it was fitted on)")
-    if shipped is not None:
-        note += _seen_note("the shipped model", load_ranker("kitti"), frames, provenance["frames_digest"],
-                           "its row")
+    store.remove()  # the weights are written: nothing to go on from
+    if scored is None:
+        apart = ("no frame of a held-out block's drives on the training side" if whole_drives
+                 else "no neighbouring frames of one drive on both sides")
+        how = f"{len(frames)} frames, {provenance['objects']} objects; {folds} folds of blocks of frames ({apart})"
+    else:
+        how = (f"fitted on {len(frames)} frames ({provenance['objects']} objects), scored on the {len(scored)} "
+               f"frames of --val ({sum(len(g) for g in scored.gts)} objects)")
+    head = f"{how}; recall at {k} proposals, IoU {iou}, 95 % frame-bootstrap intervals; {time.monotonic() - t0:.0f} s"
+    note = est.notes
+    shown_frames = est.frames
+    digest = frames_digest(shown_frames)
+    if est.shipped:
+        note += _seen_note("the shipped model", load_ranker("kitti"), shown_frames, digest, "its row")
     if not opts.init and len(frames) < FEW_FRAMES:
         note.append(f"  ({len(frames)} frames: with 5 or 10 frames of a drive, fine-tuning a model fitted elsewhere "
                     "(--init kitti) beat a fit from scratch on the dev folders; see reeb fit in docs/cli.md)")
     if opts.init:
-        note += _seen_note(f"the model fine-tuned, {opts.init},", load_ranker(opts.init), frames,
-                           provenance["frames_digest"], f"the {fitted} row")
-    text = "\n".join([head] + table + note + hint_lines
-                     + [outputs.hint()])
-    return {"provenance": provenance, "text": text, "weights": str(outputs.weights), "config": str(outputs.config)}
+        note += _seen_note(f"the model fine-tuned, {opts.init},", load_ranker(opts.init), shown_frames, digest,
+                           f"the {est.fitted} row")
+    text = "\n".join([head] + est.table + note + est.hint_lines + [clock.line(), outputs.hint()])
+    return {"provenance": provenance, "text": text, "weights": str(outputs.weights), "config": str(outputs.config),
+            "stages_s": clock.seconds}
+
+
+@dataclasses.dataclass
+class _Estimate:
+    """How the fitted ranking does on frames it was not fitted on: the table's lines and
+    record, the frames it scored, the name of the fitted row, notes, the class hints' lines
+    and record, and whether the shipped model has a row."""
+
+    table: list[str]
+    record: dict[str, Any]
+    frames: F.FitFrames
+    fitted: str
+    notes: list[str]
+    hint_lines: list[str]
+    hint_record: dict[str, Any]
+    shipped: bool
+
+
+def _other_rows(cache: FrameCache, cfg: ReebConfig, opts: RF.FitOptions, k: int, iou: float,
+                clock: _Stages) -> dict[str, list]:
+    """The rows beside the fitted one on ``cache``'s frames: the ``--init`` model as it is (not
+    the shipped one) and the shipped model (where it can rank these features)."""
+    out: dict[str, list] = {}
+    if opts.init and opts.init != "kitti":
+        start = cfg.replace(ranker=opts.init)
+        out[f"{Path(opts.init).name} as it is"] = cache.hits(start, range(len(cache.frames)), k, iou)
+    shipped = _shipped_hits(cache, cfg, k, iou)
+    clock("shipped model")
+    if shipped is not None:
+        out["shipped kitti model"] = shipped
+    return out
+
+
+def _cross_validated(cache: FrameCache, cfg: ReebConfig, samples: Sequence[RF.Sample] | StoredFrames,
+                     opts: RF.FitOptions, folds: int, k: int, iou: float, whole_drives: bool, quiet: bool,
+                     outputs: FitOutputs, clock: _Stages) -> _Estimate:
+    """``reeb fit``'s estimate by cross-validation over blocks of its frames, and the models
+    fitted on the other folders (one block per folder)."""
+    frames = cache.frames
+    assert isinstance(frames, F.FitFrames)
+    base = cfg.training_free()
+    gap = len(frames) if whole_drives else 2  # drive frames within ``gap`` of a held-out block stay out
+    cv = fit_cv.cross_validate(cache, cfg, base, samples, opts, folds, k, iou, gap, progress=_iterate("folds", quiet),
+                               scratch=outputs.scratch, keep=outputs.store)
+    clock("cross-validation")
+    fitted = "fine-tuned (cross-validated)" if opts.init else "fitted (cross-validated)"
+    rows = {"training-free": cv.base_hits, fitted: cv.ranked_hits}
+    table, record = _report(frames, rows, cv.base_hits)  # kept in the weights: the same for the same frames
+    hint_lines, hint_record = _hint_report(frames, cv.hinted)  # type: ignore[arg-type]
+    shown = dict(rows)
+    other = _other_folder_hits(cache, cfg, samples, opts, k, iou, quiet, outputs.scratch, outputs.store)
+    clock("other folders" if other is not None else None)
+    other_row = f"{'fine-tuned' if opts.init else 'fitted'} on other folders"
+    if other is not None:
+        shown[other_row] = other
+    beside = _other_rows(cache, cfg, opts, k, iou, clock)
+    shown.update(beside)
+    if len(shown) > len(rows):
+        table = _report(frames, shown, cv.base_hits)[0]
+    notes = []
+    if other is not None and objective(other, frames.labels) < objective(cv.base_hits, frames.labels):
+        notes.append(f"  ({other_row}: each folder ranked by a model that saw only the others finds fewer objects "
+                     "than training-free: a model may not carry to frames unlike those it was fitted on)")
+    return _Estimate(table, record, frames, fitted, notes, hint_lines, hint_record,  # type: ignore[arg-type]
+                     "shipped kitti model" in beside)
+
+
+def _validated(scored: F.FitFrames, model: BoxRanker, cfg: ReebConfig, opts: RF.FitOptions, k: int, iou: float,
+               outputs: FitOutputs, quiet: bool, clock: _Stages) -> _Estimate:
+    """``reeb fit --val``'s estimate: the fitted model on the ``--val`` frames (which it was
+    not fitted on) beside training-free and the shipped model, one pass over them."""
+    from ..ranker import save_ranker
+
+    cache = FrameCache(scored, budget=FRONT_END_BUDGET)
+    weights = save_ranker(model, outputs.store / "validated.safetensors")
+    every = range(len(scored))
+    from ..eval.metrics import object_hits
+
+    with _bar(2, "--val frames", quiet) as bar:
+        base = cache.hits(cfg.training_free(), every, k, iou)
+        bar.update()
+        found = cache.outputs(cfg.replace(ranker=str(weights)), every)
+        bar.update()
+    clock("validation")
+    ranked = object_hits([o["boxes"] for o in found], scored.gts, k, iou)
+    fitted = "fine-tuned (on DIRS)" if opts.init else "fitted (on DIRS)"
+    rows = {"training-free": base, fitted: ranked}
+    table, record = _report(scored, rows, base)
+    hint_lines, hint_record = _hint_report(scored, fit_cv.hinted_classes(found, scored.gts, k, iou), "on --val")
+    del found
+    beside = _other_rows(cache, cfg, opts, k, iou, clock)
+    if beside:
+        table = _report(scored, {**rows, **beside}, base)[0]
+    return _Estimate(table, record, scored, fitted, [], hint_lines, hint_record,  # type: ignore[arg-type]
+                     "shipped kitti model" in beside)
+
+
+class _Stages:
+    """Wall seconds of each stage of a fit, from ``t0`` (``clock(name)`` ends the stage)."""
+
+    def __init__(self, t0: float) -> None:
+        self.last, self.seconds = t0, {}  # type: float, dict[str, float]
+
+    def __call__(self, name: str | None) -> None:
+        """End the stage ``name`` (None: one that did not run, not shown)."""
+        now = time.monotonic()
+        if name is not None:
+            self.seconds[name] = round(now - self.last, 2)
+        self.last = now
+
+    def line(self) -> str:
+        return "stages: " + ", ".join(f"{n} {v:.0f} s" for n, v in self.seconds.items())
+
+
+FRONT_END_BUDGET = 0
+"""Bytes of the frames' front ends (edges, groups, road mask) a fit keeps between its passes
+over the frames (the last one read is kept too); the others are computed again when read. A
+front end kept holds its tables and the memory its scoring left in use, so a fit keeps none:
+its memory then does not grow with the frames (docs/results.md, "Fits at scale")."""
+
+
+def _rows(cache: FrameCache, cfg: ReebConfig, opts: F.FitOptions, store: RowStore,
+          engine: tuple[str | None, int, float | None] | None, quiet: bool) -> StoredFrames:
+    """Every frame's training rows in ``store``: those it lacks made here
+    (:func:`~reeb_torch.eval.fit.frame_samples`) or on Ray (``engine``)."""
+    if engine is None:
+        out = F.frame_samples(cache, cfg, opts, progress=_iterate("candidates", quiet), store=store)
+        assert isinstance(out, StoredFrames)
+        return out
+    from .common import Failure, UsageProblem
+    from .fit_ray import ray_rows, start_ray
+
+    address, actors, cpus_per_actor = engine
+    try:
+        cpus = start_ray(address, actors, cpus_per_actor, quiet)
+    except RuntimeError as e:
+        raise Failure(str(e)) from None
+    except ValueError as e:
+        raise UsageProblem(str(e)) from None
+    total = len(cache.frames) - len(store)
+
+    def counted(items):
+        with _bar(total, "candidates (ray)", quiet) as bar:
+            for it in items:
+                yield it
+                bar.update()
+
+    try:
+        ray_rows(store, cache.frames, cfg, opts, actors, cpus, progress=counted)
+    except StoreError:
+        raise
+    except Exception as e:  # noqa: BLE001 - a failed Ray job: the frames finished so far stay in the store
+        raise Failure(f"the Ray job failed: {' '.join(str(e).split())[:2000]}") from None
+    return store.frames()
+
+
+def _open_store(outputs: FitOutputs, cache: FrameCache, cfg: ReebConfig, opts: RF.FitOptions,
+                quiet: bool) -> RowStore:
+    """The fit's row store beside its output (:func:`~reeb_torch.eval.fit.row_store`), with a
+    line where a killed fit's rows are gone on from or a store made otherwise is made again."""
+    from .common import Failure
+
+    try:
+        store = F.row_store(outputs.store, cache, cfg, opts)
+    except StoreError as e:
+        raise Failure(str(e)) from None
+    if not quiet:
+        if store.rebuilt:
+            print(f"reeb fit: the row store {outputs.store} was {store.rebuilt}: made again", file=sys.stderr)
+        elif len(store):
+            print(f"reeb fit: going on from {outputs.store} ({len(store)} of {len(cache.frames)} frames' rows "
+                  "made before)", file=sys.stderr)
+    return store
 
 
 def _seen_note(who: str, model: BoxRanker, frames: F.FitFrames, digest: str, row: str) -> list[str]:
@@ -386,7 +585,7 @@ def _seen_note(who: str, model: BoxRanker, frames: F.FitFrames, digest: str, row
     return []
 
 
-def _options_record(opts: F.FitOptions) -> dict[str, Any]:
+def _options_record(opts: RF.FitOptions) -> dict[str, Any]:
     """The fit options kept in the weights' provenance; ``mirror``, ``jitter``,
     ``drop_features``, ``hard_negatives`` and the box refiner's options only where they are on
     (a fit without them records what it always did)."""
