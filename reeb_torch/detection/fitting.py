@@ -28,6 +28,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .._memory import trim_heap
 from .cache import CacheEntry, ProposalCache, StaleCacheError, image_digest
 from .feature_cache import FeatureCache, FrameFeatures, compute_features, frozen_features
 from .head_training import CachedFrame, TrainSettings, detect, train_heads
@@ -64,6 +65,9 @@ def _proposal_cache(det: Any, items: Sequence[dict], root: Path, progress: bool)
             warnings.warn(f"not caching the proposals: {e}; training goes on without", RuntimeWarning, stacklevel=3)
     return cache
 
+
+TRIM_EVERY = 8
+"""The per-frame pass hands freed memory back every this many frames (:func:`reeb_torch._memory.trim_heap`)."""
 
 FramesBy = Callable[[Any, Sequence[dict], FeatureCache], Iterator[dict]]
 """The per-frame pass of a fit done elsewhere (:func:`stored_frames`' ``frames_by``)."""
@@ -179,6 +183,8 @@ def stored_frames(det: Any, items: Sequence[dict], cache_dir: str | os.PathLike 
                 if new % save_every == 0:
                     save_proposals()
             out.append(StoredFrame(it, digest, _features_of(det, features, image, digest, writable), proposals))
+            if len(out) % TRIM_EVERY == 0:
+                trim_heap()
     if new % save_every:
         save_proposals()
     rpn.cache, rpn.on_miss = proposals, "compute"

@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 from torchvision.ops import box_iou
 
+from .._memory import trim_heap
 from ..config import ReebConfig
 from ..ranker import offset_targets, refine_feature_names
 from ..ranker.fit import FitOptions, Sample
@@ -245,6 +246,8 @@ def frame_samples(cache: FrameCache, cfg: ReebConfig, opts: FitOptions, indices:
             out.append(sample)
         else:
             store.append({f.name: getattr(sample, f.name) for f in dataclasses.fields(Sample)})
+            if (i + 1) % 8 == 0:  # what the frames freed, handed back: memory stays flat
+                trim_heap()
     return out if store is None else store.frames()
 
 

@@ -20,7 +20,7 @@ import os
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -179,12 +179,14 @@ def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[RF.Sa
                      folds: int | Sequence[Sequence[int]], gap: int = 2,
                      progress: Callable | None = None,
                      scratch: str | os.PathLike | None = None,
-                     keep: str | os.PathLike | None = None) -> list[dict[str, Tensor]]:
+                     keep: str | os.PathLike | None = None,
+                     reduce: Callable[[int, dict[str, Tensor]], Any] | None = None) -> list:
     """Per frame (in frame order), ``ProposalGenerator(cfg)``'s output dict with the ranking
     fitted without the frame's block (``folds`` blocks: the folds and models of
     :func:`cross_validate`; or the blocks given, the frame indices of each, covering every
     frame once; from ``samples`` = :func:`~reeb_torch.eval.fit.frame_samples` under ``cfg``): proposals from a model
-    that never saw the frame, for any recall table.
+    that never saw the frame, for any recall table. ``reduce(i, output)``: what is kept of
+    frame ``i``'s output in its place (its hits, say), so that the outputs are not all held.
 
     Raises:
         ValueError: fewer than 2 folds, or fewer frames than folds.
@@ -194,8 +196,10 @@ def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[RF.Sa
     with _HeldOutModels(cache, names, samples, opts, folds, gap, scratch, cfg, keep) as models:
         for f in progress(range(len(models.blocks))) if progress else range(len(models.blocks)):
             block = models.blocks[f]
-            for i, o in zip(block, cache.outputs(cfg.replace(ranker=str(models.fit(f))), block)):
-                out[i] = o
+            ranked = cfg.replace(ranker=str(models.fit(f)))
+            for i in block:  # one frame's output at a time
+                o = cache.outputs(ranked, [i])[0]
+                out[i] = reduce(i, o) if reduce is not None else o
     return out
 
 

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._memory import trim_heap
 from ..config import ReebConfig
 from ..generator import FRONT_END_FIELDS, Candidates, FrontEnd, ProposalGenerator
 from .metrics import RecallInterval, bootstrap_recalls, object_hits, recall_interval
@@ -557,11 +558,12 @@ class HeldOut:
 def held_out(cache: FrameCache, blocks: Sequence[Sequence[int]], chosen: Callable[[int], ReebConfig],
              base: ReebConfig, k: int = 2000, iou: float = 0.7, balanced: bool = False,
              each: Callable[[list[int], list[dict[str, Tensor]]], None] | None = None,
-             progress: Callable | None = None) -> HeldOut:
+             progress: Callable | None = None, chunk: int = 64) -> HeldOut:
     """For each block ``f`` of frame indices, in turn: ``chosen(f)``, a config picked without
     the block (settings tuned, or a model fitted, on the other blocks), run on the block; its
     hits of the top ``k`` at ``iou`` paired with ``base``'s on the same objects.
-    ``each(block, outputs)``, if given, sees each block's output dicts of the chosen config;
+    ``each(frames, outputs)``, if given, sees the output dicts of the chosen config, a part of
+    a block at a time (``chunk`` frames, in order: a block's outputs are never all held);
     ``progress`` wraps the iteration over the blocks (e.g. a progress bar)."""
     frames = cache.frames
     hits: list[Tensor] = []
@@ -569,13 +571,19 @@ def held_out(cache: FrameCache, blocks: Sequence[Sequence[int]], chosen: Callabl
     per_fold = []
     for f in progress(range(len(blocks))) if progress else range(len(blocks)):
         block = list(blocks[f])
-        outputs = cache.outputs(chosen(f), block)
-        found = object_hits([o["boxes"] for o in outputs], [frames.gts[i] for i in block], k, iou)
-        base_found = cache.hits(base, block, k, iou)
+        cfg = chosen(f)
+        found: list[Tensor] = []
+        base_found: list[Tensor] = []
+        for s in range(0, len(block), chunk):
+            part = block[s: s + chunk]
+            outputs = cache.outputs(cfg, part)
+            found += object_hits([o["boxes"] for o in outputs], [frames.gts[i] for i in part], k, iou)
+            base_found += cache.hits(base, part, k, iou)
+            if each is not None:
+                each(part, outputs)
+            trim_heap()
         labels = [frames.labels[i] for i in block]
         per_fold.append((objective(found, labels, balanced), objective(base_found, labels, balanced)))
-        if each is not None:
-            each(block, outputs)
         hits += found
         base_hits += base_found
     return HeldOut(hits, base_hits, per_fold)

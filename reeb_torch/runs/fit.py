@@ -145,9 +145,10 @@ def _other_folder_hits(cache: FrameCache, cfg: ReebConfig, samples: Sequence[RF.
     blocks = [idx for _, idx in folder_blocks(cache.frames.folders)]
     if not blocks:
         return None
-    outputs = fit_cv.held_out_outputs(cache, cfg, samples, opts, blocks, progress=_iterate("other folders", quiet),
-                                      scratch=scratch, keep=keep)
-    return object_hits([o["boxes"] for o in outputs], cache.frames.gts, k, iou)
+    gts = cache.frames.gts
+    return fit_cv.held_out_outputs(cache, cfg, samples, opts, blocks, progress=_iterate("other folders", quiet),
+                                   scratch=scratch, keep=keep,
+                                   reduce=lambda i, o: object_hits([o["boxes"]], [gts[i]], k, iou)[0])
 
 
 class FitOutputs:
