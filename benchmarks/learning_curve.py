@@ -60,12 +60,13 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, nargs="+", default=default_dev_dirs(), metavar="DIR")
     ap.add_argument("--folds", type=int, default=10)
+    ap.add_argument("--limit", type=int, help="the first N frames of each folder (a quick check)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("-k", type=int, default=2000)
     ap.add_argument("--iou", type=float, default=0.7)
     ap.add_argument("--out", type=Path, default=Path("docs/results/ranker/learning_curve"))
     args = ap.parse_args(argv)
-    frames = F.load_fit_frames(args.data)
+    frames = F.load_fit_frames(args.data, limit=args.limit)
     cache = FrameCache(frames)
     samples = F.frame_samples(cache, ReebConfig(), RF.FitOptions())  # the rows do not depend on the fit seed
     blocks = fold_blocks(len(frames), args.folds)
@@ -82,7 +83,7 @@ def main(argv: list[str] | None = None) -> None:
     lines = [f"{len(frames)} frames, {sum(len(g) for g in frames.gts)} objects; {args.folds} folds, whole drives "
              f"held out; recall @{args.k} / IoU {args.iou}; fit seeds {' '.join(map(str, args.seeds))}",
              f"{'share of training frames':<26}{'frames fitted':>14}  {'recall % (95 % interval)':<26}"
-             f"{'per class':<44}against all"]
+             f"{'per class':<52}against all"]
     record = {"command": rerun_line("benchmarks/learning_curve.py", sys.argv[1:] if argv is None else argv),
               "environment": environment(), "shares": {}}
     total = {s: [torch.stack([h[i] for h in found[s]]).float().mean(0) for i in range(len(frames))] for s in SHARES}
@@ -102,7 +103,7 @@ def main(argv: list[str] | None = None) -> None:
         paired = "" if share == "all" else f"+{gained} / -{lost}, p {p:.2g}"
         shown = ", ".join(f"{n} {v:.1f}" for n, v in per_class.items())
         lines.append(f"{share:<26}{sum(trained[share]) / len(trained[share]):>14.1f}  "
-                     f"{100 * mean:5.1f} ({100 * lo:.1f}-{100 * hi:.1f}){'':<8}{shown:<44}{paired}")
+                     f"{100 * mean:5.1f} ({100 * lo:.1f}-{100 * hi:.1f}){'':<8}{shown:<52}{paired}")
         record["shares"][share] = {"every": SHARES[share], "frames_fitted_mean": sum(trained[share]) / len(trained[share]),
                                    "recall": 100 * mean, "interval_95": [100 * lo, 100 * hi], "per_class": per_class,
                                    "per_seed": [100 * e.recall for e in per_seed],

@@ -50,6 +50,10 @@ def _calib_shape(key: str) -> tuple[int, int] | None:
     return None
 
 
+CALIB_MAX_BYTES = 64 * 1024
+"""The most a calib file is read: KITTI's are under 1 KiB."""
+
+
 def read_kitti_calib(path: str | os.PathLike) -> dict[str, Tensor]:
     """Read a KITTI ``calib`` file: lines ``KEY: v1 v2 ...`` (the colon may be missing).
 
@@ -67,31 +71,40 @@ def read_kitti_calib(path: str | os.PathLike) -> dict[str, Tensor]:
     """
     p = Path(path)
     calib: dict[str, Tensor] = {}
-    with open(p, encoding="utf-8") as f:
-        for lineno, line in enumerate(f, start=1):
-            if not line.strip():
-                continue
-            if ":" in line:
-                key, _, rest = line.partition(":")
-                key, fields = key.strip(), rest.split()
-            else:
-                key, *fields = line.split()
-            if not key or not fields:
-                raise ValueError(f"{p}:{lineno}: expected 'KEY: v1 v2 ...', got {line.strip()!r}")
-            try:
-                values = [float(v) for v in fields]
-            except ValueError as e:
-                raise ValueError(f"{p}:{lineno}: non-numeric value for {key} ({e})") from None
-            t = torch.tensor(values, dtype=torch.float64)
-            shape = _calib_shape(key)
-            if shape is not None:
-                if t.numel() != shape[0] * shape[1]:
-                    raise ValueError(
-                        f"{p}:{lineno}: {key} needs {shape[0] * shape[1]} values "
-                        f"({shape[0]}x{shape[1]}), got {t.numel()}"
-                    )
-                t = t.reshape(shape)
-            calib[key] = t
+    if p.exists() and not p.is_file():  # a FIFO, a device: it could block, or never end
+        raise ValueError(f"{p}: not a regular file (a calib file is a small text file)")
+    with open(p, "rb") as fb:
+        raw = fb.read(CALIB_MAX_BYTES + 1)
+    if len(raw) > CALIB_MAX_BYTES:
+        raise ValueError(f"{p}: over {CALIB_MAX_BYTES // 1024} KiB: not a KITTI calib file")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{p}: not a text file (byte {e.start} is not UTF-8): not a KITTI calib file") from None
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        if not line.strip():
+            continue
+        if ":" in line:
+            key, _, rest = line.partition(":")
+            key, fields = key.strip(), rest.split()
+        else:
+            key, *fields = line.split()
+        if not key or not fields:
+            raise ValueError(f"{p}:{lineno}: expected 'KEY: v1 v2 ...', got {line.strip()!r}")
+        try:
+            values = [float(v) for v in fields]
+        except ValueError as e:
+            raise ValueError(f"{p}:{lineno}: non-numeric value for {key} ({e})") from None
+        t = torch.tensor(values, dtype=torch.float64)
+        shape = _calib_shape(key)
+        if shape is not None:
+            if t.numel() != shape[0] * shape[1]:
+                raise ValueError(
+                    f"{p}:{lineno}: {key} needs {shape[0] * shape[1]} values "
+                    f"({shape[0]}x{shape[1]}), got {t.numel()}"
+                )
+            t = t.reshape(shape)
+        calib[key] = t
     return calib
 
 

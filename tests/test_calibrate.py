@@ -3,6 +3,7 @@ synthetic boxes, outliers do not move it, bad input is refused with a message.""
 
 from __future__ import annotations
 
+import os
 import json
 import shutil
 
@@ -147,3 +148,23 @@ def test_a_number_that_is_not_finite_is_a_usage_error(args, option, tmp_path):
     res = CliRunner().invoke(main, [*args, "-o", str(tmp_path / "camera.json")])
     assert res.exit_code == 2 and f"'{option}'" in res.output and "not a finite number" in res.output, res.output
     assert not (tmp_path / "camera.json").exists()
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes here")
+def test_calib_that_is_no_file_or_never_ends_is_one_line(tmp_path):
+    """A FIFO (which would block) and /dev/zero (which never ends) as --calib: refused at
+    once, one line, exit 2; a binary file: one line naming it."""
+    from click.testing import CliRunner
+
+    from reeb_torch.runs.cli import main
+
+    fifo = tmp_path / "f"
+    os.mkfifo(fifo)
+    binary = tmp_path / "b.txt"
+    binary.write_bytes(b"P2: \x80\x81 1 2\n")
+    for calib, words in ((fifo, "not a regular file"), ("/dev/zero", "not a regular file"),
+                         (binary, "not a text file")):
+        res = CliRunner().invoke(main, ["calibrate", "--calib", str(calib), "--height", "375",
+                                        "-o", str(tmp_path / "c.json")])
+        assert res.exit_code == 2 and words in res.output and str(calib) in res.output, res.output
+        assert "Traceback" not in res.output

@@ -197,7 +197,10 @@ def test_calibrate_a_folder_of_images_writes_the_camera_file(tmp_path):
     assert record["fit"]["route"] == "images" and record["fit"]["num_frames"] == 7
     cfg = build_config("default", str(out), (), None)  # what reeb propose --config reads
     assert abs(cfg.horizon - 0.405 - BOX_BOTTOM_OFFSET) < 0.01 and cfg.camera_height_m == 1.65
-    res = _cli([str(folder), "-o", str(out), "--samples", "20", "--camera-height", "1.4"])
+    again = [str(folder), "-o", str(out), "--samples", "20", "--camera-height", "1.4"]
+    res = _cli(again)  # a file there already: replaced only with --overwrite
+    assert res.exit_code == 2 and "add --overwrite" in res.output and json.loads(out.read_text()) == record
+    res = _cli([*again, "--overwrite"])
     assert res.exit_code == 0 and json.loads(out.read_text())["config"]["camera_height_m"] == 1.4
     assert "1.400 m (given)" in res.output
 
@@ -216,11 +219,11 @@ def test_calibrate_from_intrinsics(tmp_path):
     assert res.exit_code == 0, res.output
     assert "route            intrinsics" in res.output and json.loads(out.read_text())["config"]["horizon"] == 0.5
     calib = EXAMPLES / "kitti_000001_calib.txt"
-    res = _cli(["--calib", str(calib), "--height", "375", "-o", str(out)])
+    res = _cli(["--calib", str(calib), "--height", "375", "-o", str(out), "--overwrite"])
     assert res.exit_code == 0, res.output
     assert json.loads(out.read_text())["config"]["horizon"] == pytest.approx(172.854 / 375)
     frames = _write(tmp_path / "f", [np.zeros((300, 400, 3), np.uint8)])  # the height from the images
-    res = _cli(["--calib", str(calib), str(frames), "-o", str(out), "--camera-height", "2"])
+    res = _cli(["--calib", str(calib), str(frames), "-o", str(out), "--camera-height", "2", "--overwrite"])
     assert res.exit_code == 0, res.output
     record = json.loads(out.read_text())
     assert record["config"] == {"horizon": pytest.approx(172.854 / 300), "camera_height_m": 2.0}

@@ -19,7 +19,7 @@ from typing import Any, Mapping, Sequence
 
 from ..camera import CameraFit, fit_camera, read_kitti_calib
 
-__all__ = ["read_boxes", "calibrate", "format_fit", "plot_fit", "has_labels", "calibrate_images",
+__all__ = ["check_out", "read_boxes", "calibrate", "format_fit", "plot_fit", "has_labels", "calibrate_images",
            "calibrate_intrinsics"]
 
 
@@ -147,6 +147,31 @@ def calibrate(roots: Sequence[str | os.PathLike], out: str | os.PathLike,
 
 
 # -- writing, and the routes without labels ------------------------------------------------------
+
+def check_out(out: Path, picture: bool, overwrite: bool) -> None:
+    """``-o`` before any work: a usage error (one line, exit 2) where it is a folder, its
+    folder is a file, the picture beside it (``picture``: the labelled route's ``<stem>.png``)
+    would be the config itself, or the config or the picture is there already without
+    ``overwrite``."""
+    from .common import UsageProblem
+
+    if out.is_dir():
+        raise UsageProblem(f"-o {out}: is a folder; give a file name such as {out / 'camera.json'}")
+    above = next((q for q in out.parents if q.exists()), None)
+    if above is not None and not above.is_dir():
+        raise UsageProblem(f"-o {out}: cannot write, {above} is a file, not a folder")
+    targets = [out]
+    if picture:
+        png = out.with_suffix(".png")
+        if png == out:
+            raise UsageProblem(f"-o {out}: the picture written beside the config is {png}, the same file; name the "
+                               f"config {out.with_suffix('.json')}")
+        targets.append(png)
+    there = [str(t) for t in targets if t.exists()]
+    if there and not overwrite:
+        raise UsageProblem(f"{' and '.join(there)} exist{'s' if len(there) == 1 else ''}; add --overwrite to replace "
+                           f"{'it' if len(there) == 1 else 'them'}")
+
 
 def write_record(out: Path, record: dict) -> None:
     """Write the config file whole or not at all (:func:`reeb_torch.io.replace_file`): a failed

@@ -414,7 +414,9 @@ def _class_heights(items: tuple[str, ...]) -> dict[str, float] | None:
 @click.option("--box-factor", type=FiniteFloat(min=0, min_open=True), default=None,
               help="2D box height / 3D object height at the bottom's depth [default: 1.055, fitted on KITTI "
                    "frames, docs/results.md; 1 = the plain model].")
-def calibrate(dirs, out, no_labels, calib, cy, height, camera_height, class_height, samples, seed, box_factor):
+@click.option("--overwrite", is_flag=True, help="Replace OUT (and its picture) where they exist.")
+def calibrate(dirs, out, no_labels, calib, cy, height, camera_height, class_height, samples, seed, box_factor,
+              overwrite):
     """The camera's horizon row (and height) for reeb propose --config, by one of three routes:
 
     \b
@@ -448,6 +450,7 @@ def calibrate(dirs, out, no_labels, calib, cy, height, camera_height, class_heig
         raise UsageProblem("--camera-height: the labelled route fits the camera height from the boxes; give it "
                            "with --no-labels, --calib or --cy")
     heights = _class_heights(class_height)
+    C.check_out(Path(os.path.expanduser(out)), picture=labels, overwrite=overwrite)
     notes: list[str] = []
     picture = None
     try:
@@ -460,6 +463,9 @@ def calibrate(dirs, out, no_labels, calib, cy, height, camera_height, class_heig
             text, path, notes = C.calibrate_images(dirs, out, camera_height, samples=samples, seed=seed)
     except (HorizonError, ValueError, FileNotFoundError) as e:
         raise UsageProblem(" ".join(str(e).split()))
+    except OSError as e:  # the writes are atomic: what was there stays
+        raise Failure(f"{e.filename or out}: cannot write ({e.strerror or e}); the file that was there is "
+                      "unchanged") from None
     for note in notes:
         click.echo(f"note: {note}", err=True)
     click.echo(text)

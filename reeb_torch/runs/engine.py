@@ -160,6 +160,8 @@ class ImageRun:
         """Check the ``--viz`` and ``--kitti-dir`` folders (before any work)."""
         warn = (lambda m: click.echo(m, err=True)) if self.quiet else (lambda m: self._bar_write(m))
         self.pictures = PictureFolder(viz_dir, warn) if viz_dir else None
+        if self.pictures is not None:
+            self.pictures.prepare(self.inputs.images, self.stems, resume=resume, overwrite=overwrite)
         if kitti_dir:
             self.kitti = KittiFolder(kitti_dir, categories)
             self.kitti.prepare({stem for stem, _ in self._kept_rows()}, resume=resume, overwrite=overwrite)

@@ -38,7 +38,7 @@ def propose_local(paths: Sequence[str], cfg: Any, dev: Any, *, out: str | None, 
                     summary_json=summary_json, quiet=quiet)
     run.find_inputs(paths, recursive)  # 1. inputs
     work = run.plan_output(resume, overwrite)  # 2. the output, checked and locked before any work
-    run.check_pictures(viz_dir, print_top)  # 3. the pictures
+    run.check_pictures(viz_dir, print_top, resume=resume, overwrite=overwrite)  # 3. the pictures
     if not work:
         return run.nothing_to_do()
     run.run()  # 4. the run
@@ -66,10 +66,11 @@ class _LocalRun(ImageRun):
         self.sample_mode = not paths
         super().find_inputs([bundled_sample()] if self.sample_mode else paths, recursive)
 
-    def check_pictures(self, viz_dir: str | None, print_top: int | None) -> None:
+    def check_pictures(self, viz_dir: str | None, print_top: int | None, *, resume: bool = False,
+                       overwrite: bool = False) -> None:
         """Where pictures go (``--viz``, or ``reeb_proposals.png`` for the sample) and how many
         boxes are printed per image."""
-        self.side_outputs(viz_dir)
+        self.side_outputs(viz_dir, resume=resume, overwrite=overwrite)
         sample_png = Path("reeb_proposals.png") if self.sample_mode and viz_dir is None else None
         if sample_png is not None and not os.access(sample_png.parent.resolve(), os.W_OK):
             raise UsageProblem(f"cannot write {sample_png.resolve()}: the current folder is not "

@@ -50,8 +50,10 @@ def _why(e: OSError) -> str:
 
 
 class PictureFolder:
-    """``--viz DIR``: a picture per image, ``<stem>.png``. When one cannot be written (a full
-    disk) a warning names the folder, the picture and the cause, and no more are tried;
+    """``--viz DIR``: a picture per image, ``<stem>.png``, never over an input image, and over
+    a file already there only with ``--overwrite`` (or ``--resume``: :meth:`prepare`). When
+    one cannot be written (a full disk) a warning names the folder, the picture and the
+    cause, and no more are tried;
     :attr:`problem` is then the cause (the closing summary counts the pictures not written,
     the exit code is 1)."""
 
@@ -63,6 +65,26 @@ class PictureFolder:
         self.warn = warn
         self.problem: str | None = None
         self.written = self.not_written = 0
+
+    def prepare(self, inputs: Sequence[str | os.PathLike], stems: Sequence[str], *, resume: bool,
+                overwrite: bool) -> None:
+        """Before any work: a usage error where a picture would be written over an input image
+        (whatever the options), or over a file already there (unless ``overwrite``, or
+        ``resume``: the pictures of the run it goes on with)."""
+        names = {f"{stem}.png" for stem in stems}
+        folder = self.path.resolve()
+        for p in inputs:
+            q = Path(p).resolve()
+            if q.parent == folder and q.name in names:
+                raise UsageProblem(f"{self.option} {self.path}: its pictures would be written over the input "
+                                   f"image {p}; give a folder that holds no input")
+        if overwrite or resume:
+            return
+        there = sorted(n for n in names if (self.path / n).exists())
+        if there:
+            shown = ", ".join(there[:3]) + (f" and {len(there) - 3} more" if len(there) > 3 else "")
+            raise UsageProblem(f"{self.option} {self.path}: holds {shown} already; add --overwrite to replace "
+                               "them, or give another folder")
 
     def save(self, stem: str, picture: Callable[[], Any]) -> None:
         """Write ``picture()`` (an RGB array) as ``<stem>.png``, unless pictures have stopped."""
