@@ -3,8 +3,8 @@ synthetic boxes, outliers do not move it, bad input is refused with a message.""
 
 from __future__ import annotations
 
-import os
 import json
+import os
 import shutil
 
 import numpy as np

@@ -312,6 +312,11 @@ class ReebDetector(nn.Module):
     def forward(self, images: Sequence[Tensor]) -> list[dict[str, Tensor]]:
         from .inference import detect_images
 
+        if isinstance(images, Tensor) and images.dim() == 4:
+            images = list(images)
+        if not isinstance(images, (list, tuple)):
+            raise TypeError(f"ReebDetector expects a list of images [3, H, W] or a (B, 3, H, W) tensor, got "
+                            f"{type(images).__name__}")
         for im in images:
             _check_image(im)
         return detect_images(self.model, list(images), self.settings.crop_top, self.clock, self.settings.box_passes)

@@ -78,7 +78,7 @@ def ranker_parts(data: bytes) -> tuple[dict[str, Tensor], dict[str, str]]:
         tensors = load(data)
         size = int.from_bytes(data[:8], "little")
         metadata = json.loads(data[8: 8 + size]).get("__metadata__") or {}
-    except (SafetensorError, ValueError, AttributeError) as e:
+    except (SafetensorError, ValueError, AttributeError, RecursionError) as e:
         raise ValueError(f"not a safetensors file ({_first_line(e)})") from None
     return tensors, dict(metadata)
 
@@ -158,6 +158,8 @@ def read_detector_file(path: str | os.PathLike) -> tuple[dict[str, Tensor], dict
         meta = json.loads(raw)
     except ValueError as e:
         raise DetectorFileError(f"detector {p}: its {FORMAT!r} metadata is not JSON ({_first_line(e)})") from None
+    except RecursionError:  # brackets nested past any real file's
+        raise DetectorFileError(f"detector {p}: its {FORMAT!r} metadata is nested too deep to read") from None
     if not isinstance(meta, dict):
         raise DetectorFileError(f"detector {p}: its {FORMAT!r} metadata is not a JSON object")
     if meta.get("version") != VERSION:

@@ -266,9 +266,28 @@ def fit_detector(cls: type, folders: Sequence[str | os.PathLike], *, classes: Se
         raise ValueError(f"no object of {', '.join(classes)} in {', '.join(map(str, folders))}")
     if auto_crop:
         settings = dataclasses.replace(settings, crop_top=crop_from_labels(items))
+    elif settings.crop_top > 0:
+        _check_crop(items, settings.crop_top)
     return train_detector(cls, items, folders, classes=classes, proposals=proposals, settings=settings,
                           training=training, cache_dir=cache_dir, progress=progress, command=command,
                           checkpoints=checkpoints, frames_by=frames_by)
+
+
+def _check_crop(items: Sequence[dict], crop_top: float) -> None:
+    """A ``crop_top`` that skips the rows of every labelled object is refused (the heads
+    would learn from nothing); one that skips some of them is a warning."""
+    inside = total = 0
+    for it in items:
+        height = it["size"][0] if "size" in it else it["image"].shape[-2]
+        if len(it["boxes"]):
+            total += len(it["boxes"])
+            inside += int((it["boxes"][:, 3] > crop_top * height).sum())
+    if total and not inside:
+        raise ValueError(f"crop_top {crop_top:g}: every labelled object lies in the rows the backbone skips (the top "
+                         f"{crop_top:g} of each image); lower --crop-top, or use auto")
+    if inside < total:
+        warnings.warn(f"crop_top {crop_top:g}: {total - inside} of {total} labelled objects lie wholly in the rows the "
+                      "backbone skips: the detector cannot learn them", RuntimeWarning, stacklevel=3)
 
 
 def crop_from_labels(items: Sequence[dict], margin: float = 0.1, step: float = 0.05) -> float:

@@ -49,9 +49,13 @@ def read_boxes(roots: Sequence[str | os.PathLike]) -> dict[str, Any]:
             out["classes"].append([o.type for o in objects])
             out["heights"].append(height)
             if ds.calib_dir is not None:
-                calib = read_kitti_calib(ds.calib_dir / f"{image_id}.txt")
+                path = ds.calib_dir / f"{image_id}.txt"
+                calib = read_kitti_calib(path)
                 if "P2" in calib:
-                    out["p2_horizon"].append(float(calib["P2"][1, 2]) / height)
+                    cy = float(calib["P2"][1, 2])
+                    if not math.isfinite(cy) or cy <= 0:
+                        raise ValueError(f"{path}: P2's cy is {cy}: a calib file gives a positive, finite cy")
+                    out["p2_horizon"].append(cy / height)
     return out
 
 

@@ -320,6 +320,13 @@ def _eval_settings(preset, config_file, sets, top_k, device, **given):
     own = any(ctx.get_parameter_source(n) == click.core.ParameterSource.COMMANDLINE
               for n in ("preset", "config_file", "sets"))
     cfg = build_config(preset, config_file, sets, None) if own else None
+    if cfg is not None and cfg.ranker != "none":  # a ranker that cannot be read: one line, before any row
+        from ..ranker import RankerWeightsError, load_ranker
+
+        try:
+            load_ranker(cfg.ranker)
+        except RankerWeightsError as e:
+            raise UsageProblem(" ".join(str(e).split())) from None
     return _eval_table(config=cfg, preset=preset, device=str(resolve_device(device)), **given)
 
 
