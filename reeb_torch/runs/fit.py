@@ -46,16 +46,35 @@ def _bar(total: int, desc: str, quiet: bool) -> Any:
     return tqdm(total=total, desc=desc, disable=True if quiet else None, file=sys.stderr, dynamic_ncols=True)
 
 
+ESTIMATE_AFTER = 8
+"""A long stage prints its estimated time once this many of its items are done."""
+
+
 def _iterate(desc: str, quiet: bool):
-    """A progress-bar wrapper for the engine's loops (``progress=``)."""
+    """A progress-bar wrapper for the engine's loops (``progress=``); a stage of many items
+    says, once its first :data:`ESTIMATE_AFTER` are done, how long the whole should take."""
     def wrap(items):
         items = list(items)
+        t0 = time.monotonic()
         with _bar(len(items), desc, quiet) as bar:
-            for it in items:
+            for n, it in enumerate(items, 1):
                 yield it
                 bar.update()
+                if n == ESTIMATE_AFTER and len(items) > 4 * ESTIMATE_AFTER and not quiet:
+                    each = (time.monotonic() - t0) / n
+                    bar.write(f"reeb fit: {desc}: about {_duration(each * len(items))} for {len(items)} "
+                              f"({each:.2f} s each, from the first {n})", file=sys.stderr)
 
     return wrap
+
+
+def _duration(seconds: float) -> str:
+    """``seconds`` as a person reads it: ``40 s``, ``12 min``, ``3.5 h``."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
 
 
 def frames_digest(frames: F.FitFrames) -> str:
