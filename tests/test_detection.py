@@ -629,20 +629,7 @@ def test_killed_head_training_goes_on_to_the_same_weights(lite0, frames, tmp_pat
 
     monkeypatch.setattr(head_training, "CHECKPOINT_STEPS", every)
 
-    class Killed(Exception):
-        pass
-
-    class KillAfter:
-        def __init__(self, slot, steps):
-            self.slot, self.steps = slot, steps
-
-        def load(self):
-            return self.slot.load()
-
-        def save(self, state):
-            self.slot.save(state)
-            if state["step"] >= self.steps:
-                raise Killed
+    from test_fit_store import KillAfter, Killed
 
     settings = TrainSettings(max_steps=3, warmup=1, lr=1e-3, batch_size=1)
     model = tiny_lite0("reeb", tmp_path)
@@ -652,7 +639,7 @@ def test_killed_head_training_goes_on_to_the_same_weights(lite0, frames, tmp_pat
     slot = Checkpoints(tmp_path / "states", ["key"]).slot("heads")
     model = tiny_lite0("reeb", tmp_path)
     with pytest.raises(Killed):
-        train_heads(model, cached(model, frames, tmp_path)[0], settings, progress=False, checkpoint=KillAfter(slot, 1))
+        train_heads(model, cached(model, frames, tmp_path)[0], settings, progress=False, checkpoint=KillAfter(slot, 1, "step"))
     model = tiny_lite0("reeb", tmp_path)
     again = train_heads(model, cached(model, frames, tmp_path)[0], settings, progress=False, checkpoint=slot)
     assert again["losses"] == whole

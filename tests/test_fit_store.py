@@ -109,23 +109,23 @@ def test_fit_from_the_store_gives_the_weights_of_rows_in_memory(tmp_path, orient
         assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
 
 
-class _Killed(Exception):
-    pass
+class Killed(Exception):
+    """What stops a fit in these tests (as a kill would, between two saved states)."""
 
 
-class _KillAfter:
-    """A checkpoint slot that saves, then stops the fit after ``epochs`` epochs."""
+class KillAfter:
+    """A checkpoint slot that saves, then stops the fit once ``state[key]`` reaches ``n``."""
 
-    def __init__(self, slot, epochs: int) -> None:
-        self.slot, self.epochs = slot, epochs
+    def __init__(self, slot, n: int, key: str = "epoch") -> None:
+        self.slot, self.n, self.key = slot, n, key
 
     def load(self):
         return self.slot.load()
 
     def save(self, state):
         self.slot.save(state)
-        if state["epoch"] >= self.epochs:
-            raise _Killed
+        if state[self.key] >= self.n:
+            raise Killed
 
 
 def test_a_killed_fit_goes_on_to_the_weights_of_one_never_stopped(tmp_path):
@@ -142,8 +142,8 @@ def test_a_killed_fit_goes_on_to_the_weights_of_one_never_stopped(tmp_path):
     fit_member(whole, x, y, w, opts, seed=3)
     states = Checkpoints(tmp_path / "c", ["key"])
     broken = net()
-    with pytest.raises(_Killed):
-        fit_member(broken, x, y, w, opts, seed=3, checkpoint=_KillAfter(states.slot("m"), 2))
+    with pytest.raises(Killed):
+        fit_member(broken, x, y, w, opts, seed=3, checkpoint=KillAfter(states.slot("m"), 2))
     resumed = net()
     fit_member(resumed, x, y, w, opts, seed=3, checkpoint=states.slot("m"))
     assert all(torch.equal(p, q) for p, q in zip(whole.state_dict().values(), resumed.state_dict().values()))
@@ -218,12 +218,12 @@ def test_reeb_fit_stopped_goes_on_from_its_rows(tiny_kitti, tmp_path, monkeypatc
     def stop_at_the_final_fit(*a, **k):
         calls.append(1)
         if len(calls) == 3:  # two fold models, then the final fit
-            raise _Killed
+            raise Killed
         return real(*a, **k)
 
     monkeypatch.setattr(RF, "fit_ranker", stop_at_the_final_fit)
     out = tmp_path / "r.safetensors"
-    with pytest.raises(_Killed):
+    with pytest.raises(Killed):
         CliRunner().invoke(main, [*args, "-q", "-o", str(out)], catch_exceptions=False)
     assert (tmp_path / ".r.safetensors.store" / "index.jsonl").read_text().count("\n") == 2
     monkeypatch.setattr(RF, "fit_ranker", real)

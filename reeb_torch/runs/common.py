@@ -24,6 +24,7 @@ __all__ = [
     "writable_folder",
     "FiniteFloat",
     "engine_options",
+    "ray_engine",
     "settings_options",
     "config_options",
     "device_option",
@@ -165,6 +166,21 @@ def engine_options(engine_help: str, actor_help: str):
         return f
 
     return decorate
+
+
+def ray_engine(engine: tuple[str | None, int, float | None], quiet: bool) -> tuple[int, float]:
+    """Ray started for ``--engine ray`` (``engine``: ``(address, actors, cpus_per_actor)``,
+    :func:`reeb_torch.runs.fit_ray.start_ray`): the actors and the CPUs each reserves, or a
+    one-line error (Ray cannot be reached: exit 1; more CPUs asked for than it has: exit 2)."""
+    from .fit_ray import start_ray
+
+    address, actors, cpus_per_actor = engine
+    try:
+        return actors, start_ray(address, actors, cpus_per_actor, quiet)
+    except RuntimeError as e:
+        raise Failure(str(e)) from None
+    except ValueError as e:
+        raise UsageProblem(str(e)) from None
 
 
 def claim_output(out: str) -> None:

@@ -159,16 +159,10 @@ def training_states(out: Path) -> Path:
 def _on_ray(engine: tuple[str | None, int, float | None], quiet: bool) -> Any:
     """The detector fit's per-frame pass on Ray (``--engine ray``): Ray started, or a
     one-line error."""
-    from .common import Failure
-    from .fit_ray import ray_frames, start_ray
+    from .common import Failure, ray_engine
+    from .fit_ray import ray_frames
 
-    address, actors, cpus_per_actor = engine
-    try:
-        cpus = start_ray(address, actors, cpus_per_actor, quiet)
-    except RuntimeError as e:
-        raise Failure(str(e)) from None
-    except ValueError as e:
-        raise UsageProblem(str(e)) from None
+    actors, cpus = ray_engine(engine, quiet)
 
     def frames_by(det: Any, items: Sequence[dict], cache: Any) -> Any:
         try:

@@ -545,16 +545,10 @@ def _rows(cache: FrameCache, cfg: ReebConfig, opts: F.FitOptions, store: RowStor
         out = F.frame_samples(cache, cfg, opts, progress=_iterate("candidates", quiet), store=store)
         assert isinstance(out, StoredFrames)
         return out
-    from .common import Failure, UsageProblem
-    from .fit_ray import ray_rows, start_ray
+    from .common import Failure, ray_engine
+    from .fit_ray import ray_rows
 
-    address, actors, cpus_per_actor = engine
-    try:
-        cpus = start_ray(address, actors, cpus_per_actor, quiet)
-    except RuntimeError as e:
-        raise Failure(str(e)) from None
-    except ValueError as e:
-        raise UsageProblem(str(e)) from None
+    actors, cpus = ray_engine(engine, quiet)
     total = len(cache.frames) - len(store)
 
     def counted(items):
