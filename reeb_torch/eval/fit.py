@@ -60,6 +60,7 @@ class ImageFiles(Sequence[Tensor]):
         self._kept: dict[int, Tensor] = {}
         self._bytes = 0
         self._last: tuple[int, Tensor] | None = None
+        self._reads = 0
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -75,6 +76,9 @@ class ImageFiles(Sequence[Tensor]):
         from ..io import read_image
 
         image = read_image(self.paths[i])
+        self._reads += 1
+        if self._reads % 8 == 0:  # a pass over many images of a few sizes fragments the heap: hand it back
+            trim_heap()
         size = image.numel() * image.element_size()
         if self._bytes + size <= self.budget:
             self._kept[i] = image
