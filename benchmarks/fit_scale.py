@@ -98,9 +98,9 @@ def _du(path: Path) -> int:
     return total
 
 
-def run(cmd: list[str], watch: Path, env: dict[str, str]) -> dict:
-    """Run ``cmd``; its peak RSS (GB), wall seconds, the peak bytes under ``watch`` and its
-    output."""
+def run(cmd: list[str], watch: Path, env: dict[str, str], cwd: Path) -> dict:
+    """Run ``cmd`` in ``cwd``; its peak RSS (GB), wall seconds, the peak bytes under ``watch``
+    and its output."""
     peak = [0]
     stop = threading.Event()
 
@@ -111,7 +111,7 @@ def run(cmd: list[str], watch: Path, env: dict[str, str]) -> dict:
     t = threading.Thread(target=poll, daemon=True)
     t.start()
     t0 = time.monotonic()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, text=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, text=True, cwd=cwd)
     out = proc.stdout.read() if proc.stdout else ""
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.monotonic() - t0
@@ -148,7 +148,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--code", type=Path, default=REPO_ROOT, help="the checkout whose reeb_torch runs")
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "docs" / "results" / "fit_scale")
     args = ap.parse_args(argv)
-    work = args.work or Path(tempfile.mkdtemp(prefix="reeb-fit-scale-"))
+    work = (args.work or Path(tempfile.mkdtemp(prefix="reeb-fit-scale-"))).resolve()
+    args.data = [d.resolve() for d in args.data]
     env = {**os.environ, "PYTHONPATH": str(args.code.resolve())}
     cli = [sys.executable, "-m", "reeb_torch.runs.cli"]
     rows = []
@@ -165,7 +166,7 @@ def main(argv: list[str] | None = None) -> None:
             else:
                 cmd = [*cli, "detector", "fit", *map(str, data), "--epochs", "1", "-q", "--cache",
                        str(run_dir / "cache"), "-o", str(run_dir / "detector.safetensors")]
-            r = run(cmd, run_dir, env)
+            r = run(cmd, run_dir, env, args.code.resolve())  # there, `python -m` imports that checkout's package
             row = {"fit": fit, "scale": scale, "frames": frames, **{k: v for k, v in r.items() if k != "output"},
                    "stages_s": _stages(r["output"])}
             if r["status"] != 0:
