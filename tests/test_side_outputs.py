@@ -16,7 +16,9 @@ SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "data" / "kitti_0000
 
 
 def _propose(*args):
-    return CliRunner().invoke(main, ["propose", *map(str, args), "-q", "--set", "top_k=50"])
+    # decoding in this process: a DataLoader worker forked from a test process that other tests
+    # left threads in (numba's, OpenCV's) can hang
+    return CliRunner().invoke(main, ["propose", *map(str, args), "-q", "--set", "top_k=50", "--workers", "0"])
 
 
 def test_viz_onto_the_input_folder_is_refused_and_the_input_kept(tmp_path):
