@@ -39,7 +39,8 @@ from torch import Tensor
 
 from .cache import StaleCacheError, _write_error, image_digest
 
-__all__ = ["FrameFeatures", "FeatureCache", "compute_features", "batch_features", "frozen_features", "top_rows"]
+__all__ = ["FrameFeatures", "FeatureCache", "compute_features", "batch_features", "frozen_features", "cached_features",
+           "top_rows"]
 
 _FORMAT = "reeb-lite0-features"
 _VERSION = 2
@@ -196,26 +197,31 @@ def frozen_features(model: torch.nn.Module, items: Sequence[Mapping[str, Any]], 
     precision = getattr(getattr(model, "backbone", None), "precision", "float32")
     if precision != cache.key["precision"]:
         raise ValueError(f"the model's backbone computes in {precision}, the cache holds {cache.key['precision']} maps")
-    out = []
-    writable = True
-    for it in tqdm(items, desc="backbone features", unit="img", disable=not progress):
-        digest = image_digest(it["image"])
+    writable = [True]
+    return [cached_features(model, it["image"], image_digest(it["image"]), cache, writable)[0]
+            for it in tqdm(items, desc="backbone features", unit="img", disable=not progress)]
+
+
+def cached_features(model: torch.nn.Module, image: Tensor, digest: str, cache: FeatureCache,
+                    writable: list[bool]) -> tuple[FrameFeatures, bool]:
+    """The frozen maps of ``image`` (its :func:`~reeb_torch.detection.cache.image_digest`
+    ``digest``) from ``cache``, computed (:func:`compute_features`) and saved where they are
+    missing, stale or damaged; and whether the cache holds them. ``writable[0]``: whether
+    the cache is still written; the first write that fails (a full disk) is one
+    ``RuntimeWarning`` and sets it False, and the maps are then given as computed."""
+    try:
+        return cache.load(digest), True
+    except (FileNotFoundError, StaleCacheError):
+        f = compute_features(model, image, cache.crop_top)
+    if writable[0]:
         try:
-            out.append(cache.load(digest))
-            continue
-        except (FileNotFoundError, StaleCacheError):
-            f = compute_features(model, it["image"], cache.crop_top)
-        if writable:
-            try:
-                cache.save(digest, f)
-                out.append(cache.load(digest))
-                continue
-            except OSError as e:
-                writable = False
-                warnings.warn(f"not caching the backbone maps: {e}; training goes on without", RuntimeWarning,
-                              stacklevel=2)
-        out.append(f)  # float16 maps, as the cache gives them back
-    return out
+            cache.save(digest, f)
+            return cache.load(digest), True
+        except OSError as e:
+            writable[0] = False
+            warnings.warn(f"not caching the backbone maps: {e}; training goes on without", RuntimeWarning,
+                          stacklevel=3)
+    return f, False  # float16 maps, as the cache gives them back
 
 
 def _pair(v: Any) -> tuple[int, int]:

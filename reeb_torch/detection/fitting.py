@@ -30,7 +30,7 @@ from torch import Tensor
 
 from .._memory import trim_heap
 from .cache import CacheEntry, ProposalCache, StaleCacheError, image_digest
-from .feature_cache import FeatureCache, FrameFeatures, compute_features, frozen_features
+from .feature_cache import FeatureCache, FrameFeatures, cached_features, frozen_features
 from .head_training import CachedFrame, TrainSettings, detect, train_heads
 from .kitti import distinct_folders, frame_image, load_frames, mirrored
 
@@ -146,7 +146,8 @@ def stored_frames(det: Any, items: Sequence[dict], cache_dir: str | os.PathLike 
         raise ValueError(f"the model's backbone computes in {precision}, the cache holds "
                          f"{features.key['precision']} maps")
     out: list[StoredFrame] = []
-    writable = {"features": True, "proposals": True}
+    writable = {"proposals": True}
+    feature_writes = [True]
     new = 0
 
     def save_proposals() -> None:
@@ -182,33 +183,14 @@ def stored_frames(det: Any, items: Sequence[dict], cache_dir: str | os.PathLike 
                 new += 1
                 if new % save_every == 0:
                     save_proposals()
-            out.append(StoredFrame(it, digest, _features_of(det, features, image, digest, writable), proposals))
+            maps, held = cached_features(det.model, image, digest, features, feature_writes)
+            out.append(StoredFrame(it, digest, features if held else maps, proposals))
             if len(out) % TRIM_EVERY == 0:
                 trim_heap()
     if new % save_every:
         save_proposals()
     rpn.cache, rpn.on_miss = proposals, "compute"
     return out
-
-
-def _features_of(det: Any, cache: FeatureCache, image: Tensor, digest: str,
-                 writable: dict[str, bool]) -> FeatureCache | FrameFeatures:
-    """Where a frame's maps are read from: the cache (computed and saved where it lacks
-    them), or the maps themselves where the cache cannot be written."""
-    try:
-        cache.load(digest)
-        return cache
-    except (FileNotFoundError, StaleCacheError):
-        f = compute_features(det.model, image, cache.crop_top)
-    if writable["features"]:
-        try:
-            cache.save(digest, f)
-            return cache
-        except OSError as e:
-            writable["features"] = False
-            warnings.warn(f"not caching the backbone maps: {e}; training goes on without", RuntimeWarning,
-                          stacklevel=4)
-    return f
 
 
 def cached_frames(det: Any, items: Sequence[dict], cache_dir: str | os.PathLike | None = None,

@@ -40,6 +40,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..io import replace_file
+
 __all__ = ["RowStore", "StoredRows", "StoredFrames", "RowView", "StoreError", "Checkpoints", "CheckpointSlot"]
 
 _FORMAT = "reeb-fit-rows"
@@ -116,7 +118,7 @@ class RowStore:
         for name in self.fields:
             (self.folder / f"{name}.bin").touch()
         (self.folder / "index.jsonl").touch()
-        _write_atomic(self.folder / "manifest.json", json.dumps(self._manifest(), sort_keys=True).encode())
+        replace_file(self.folder / "manifest.json", json.dumps(self._manifest(), sort_keys=True).encode())
         self._index = []
         self._starts = {}
 
@@ -204,7 +206,7 @@ class RowStore:
     def _array(self, name: str) -> np.ndarray:
         if name not in self._maps:
             f = self.fields[name]
-            total = sum(int(e["rows"][name]) for e in self._index)
+            total = self.starts(name)[-1]
             if total == 0:
                 arr = np.zeros((0, *f.dims), dtype=f.dtype)
                 self._maps[name] = (None, arr)  # type: ignore[assignment]
@@ -310,7 +312,7 @@ class RowView:
     ``len(view)`` rows; ``view.rows(b)`` the rows at positions ``b`` (``int64 [m]``) as a
     float32 ``[m, F]`` tensor in memory (the columns ``columns`` of the field, all by default)."""
 
-    def __init__(self, store: RowStore, name: str, index: Tensor, columns: Sequence[int] | None = None) -> None:
+    def __init__(self, store: RowStore, name: str, index: Tensor, columns: Sequence[int] | Tensor | None = None) -> None:
         self.store, self.name, self.index = store, name, index
         self.columns = None if columns is None else torch.as_tensor(list(columns), dtype=torch.long)
 
@@ -325,9 +327,7 @@ class RowView:
 
     def subset(self, positions: Tensor) -> "RowView":
         """The rows at ``positions`` of this view."""
-        out = RowView(self.store, self.name, self.index[positions])
-        out.columns = self.columns
-        return out
+        return RowView(self.store, self.name, self.index[positions], self.columns)
 
     def __getitem__(self, which: Tensor) -> Tensor:
         """The rows a ``bool [n]`` mask or an ``int64`` index picks, in memory."""
@@ -350,7 +350,7 @@ class RowView:
         same bits as ``x.mean(0)``, ``x.std(0)`` of :meth:`whole`."""
         whole = self.store.tensor(self.name)
         if self.columns is None and len(self) == len(whole) and bool((self.index == torch.arange(len(whole))).all()):
-            x = whole.float() if whole.dtype != torch.float32 else whole  # the map itself: no copy
+            x = whole.float()  # the map itself (float32 already): no copy
         else:
             x = self.whole()
         try:
@@ -358,19 +358,6 @@ class RowView:
         finally:
             del x
             self.store.release()
-
-
-def _write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except OSError:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 class Checkpoints:
