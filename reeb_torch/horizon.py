@@ -62,7 +62,10 @@ _AGREE = 0.02  # a frame agrees with the estimate when its row is this close
 
 
 class HorizonError(ValueError):
-    """The frames do not give a horizon (too few frames, or no road seen); a one-line message."""
+    """The frames do not give a horizon (too few frames, or no road seen); a one-line message.
+    ``notes``: the frames left out before it, and why (where the caller read the frames)."""
+
+    notes: list[str] = []
 
 
 @dataclass(frozen=True)

@@ -93,3 +93,71 @@ def test_detector_fit_whose_crop_skips_every_object_is_refused(tmp_path):
                                     "-o", str(tmp_path / "d.safetensors")])
     _one_line(res, "crop_top 0.5", "every labelled object")
     assert not (tmp_path / "d.safetensors").exists()
+
+
+def test_every_command_that_writes_a_file_keeps_one_there_without_overwrite(tmp_path):
+    """The output rule: fit (its weights and the config beside them), tune, export, calibrate,
+    propose and detect each leave a file that is there alone unless given --overwrite."""
+    from test_eval import _example_kitti
+
+    data = _example_kitti(tmp_path / "kitti")
+    images = next(p for p in data.iterdir() if p.name in ("images", "image_2"))
+    rows = tmp_path / "rows.jsonl"
+    rows.write_text("{}\n")
+    cases = [
+        (["fit", str(data)], tmp_path / "r.safetensors"),
+        (["fit", str(data), "-o", str(tmp_path / "w.safetensors")], tmp_path / "w.json"),  # the config beside
+        (["tune", str(data), "--trials", "1"], tmp_path / "t.json"),
+        (["tune", str(data), "--trials", "1", "-o", str(tmp_path / "u.json")], tmp_path / "u_trials.png"),
+        (["export", str(rows)], tmp_path / "p.pkl"),
+        (["calibrate", "--cy", "180", "--height", "375"], tmp_path / "c.json"),
+        (["propose", str(images)], tmp_path / "p.jsonl"),
+        (["detect", str(images)], tmp_path / "d.jsonl"),
+    ]
+    for args, there in cases:
+        there.write_bytes(b"kept")
+        res = CliRunner().invoke(main, args + ([] if "-o" in args else ["-o", str(there)]))
+        _one_line(res, str(there), "--overwrite")
+        assert there.read_bytes() == b"kept", args
+    res = CliRunner().invoke(main, ["export", str(rows), "-o", str(rows)])
+    _one_line(res, "is RESULTS")
+
+
+def test_a_labelled_folder_missing_a_calib_file_names_it(tmp_path):
+    """Not the images route's 'no images found': the labelled folder's own fault, named."""
+    from test_eval import _example_kitti
+
+    data = _example_kitti(tmp_path / "kitti")
+    gone = sorted((data / "calib").glob("*.txt"))[0]
+    gone.unlink()
+    res = CliRunner().invoke(main, ["calibrate", str(data), "-o", str(tmp_path / "c.json")])
+    _one_line(res, "calib", gone.stem)
+    assert "no images" not in res.output
+
+
+def test_frames_left_out_are_named_when_too_few_remain(tmp_path):
+    for i in range(6):
+        (tmp_path / f"{i}.png").write_bytes(b"")
+    res = CliRunner().invoke(main, ["calibrate", str(tmp_path), "-o", str(tmp_path / "c.json")])
+    _one_line(res, "too few")
+    notes = [ln for ln in res.output.splitlines() if ln.startswith("note:")]
+    assert len(notes) == 6 and all("empty file" in n and ".png: left out" in n for n in notes), res.output
+
+
+def test_a_dead_runs_lock_is_swept_by_the_next_run_in_its_folder(tmp_path):
+    """What a kill -9 leaves (its hidden lock file) goes with the next lock taken beside it;
+    a live run's lock stays."""
+    from reeb_torch.runs.output_lock import lock_output
+
+    dead = tmp_path / ".killed.safetensors.reeb-lock"
+    dead.write_text("999999\n")
+    other = tmp_path / "not-ours.lock"
+    other.write_text("1\n")
+    live = lock_output(tmp_path / "a.jsonl")
+    try:
+        with lock_output(tmp_path / "b.jsonl"):
+            assert not dead.exists() and other.exists()
+            assert (tmp_path / ".a.jsonl.reeb-lock").exists()
+    finally:
+        live.release()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["not-ours.lock"]

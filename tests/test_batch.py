@@ -52,7 +52,7 @@ def test_second_writer_fails_at_once_and_loses_nothing(tmp_path):
     assert first.returncode == 0, err
     rows = read_jsonl(tmp_path / "cc.jsonl")
     assert len(rows) == n and all(r["image"].startswith("A") for r in rows)
-    assert not (tmp_path / ".cc.jsonl.lock").exists() and no_temp_files(tmp_path)
+    assert not (tmp_path / ".cc.jsonl.reeb-lock").exists() and no_temp_files(tmp_path)
     # after the first one, the second runs
     reeb("propose", "B", "-o", "cc.jsonl", "--resume", *FAST, cwd=tmp_path, check_rc=0)
     assert len(read_jsonl(tmp_path / "cc.jsonl")) == n + 2
@@ -66,22 +66,22 @@ def test_a_run_on_a_locked_output_fails_before_any_work(tmp_path):
         for extra in ([], ["--resume"], ["--overwrite"]):
             r = reeb("propose", "B", "-o", "cc.jsonl", *extra, *FAST, cwd=tmp_path, check_rc=2)
             assert f"another reeb run (pid {os.getpid()})" in r.stderr, r.stderr
-            assert sorted(p.name for p in tmp_path.iterdir()) == [".cc.jsonl.lock", "B"]
+            assert sorted(p.name for p in tmp_path.iterdir()) == [".cc.jsonl.reeb-lock", "B"]
 
 
 def test_lock_of_a_dead_run_is_taken_over(tmp_path):
     from reeb_torch.runs.output_lock import OutputBusyError, lock_output
 
     out = tmp_path / "o.jsonl"
-    (tmp_path / ".o.jsonl.lock").write_text("999999\n")  # left by a killed run: not locked
+    (tmp_path / ".o.jsonl.reeb-lock").write_text("999999\n")  # left by a killed run: not locked
     with lock_output(out):
-        assert (tmp_path / ".o.jsonl.lock").read_text().strip() == str(os.getpid())
+        assert (tmp_path / ".o.jsonl.reeb-lock").read_text().strip() == str(os.getpid())
         code = ("import sys; from reeb_torch.runs.output_lock import lock_output, OutputBusyError\n"
                 f"try:\n    lock_output({str(out)!r})\nexcept OutputBusyError as e:\n"
                 "    print(e); sys.exit(3)\n")
         r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
         assert r.returncode == 3 and str(os.getpid()) in r.stdout
-    assert not (tmp_path / ".o.jsonl.lock").exists()
+    assert not (tmp_path / ".o.jsonl.reeb-lock").exists()
     assert issubclass(OutputBusyError, OSError)
 
 

@@ -398,13 +398,13 @@ def test_backbone_weights_from_a_local_file(tmp_path):
         reeb_fasterrcnn_mobilenet_v3(5, backbone_weights=tmp_path / "bad.pt", **SMALL)
 
 
-# -- the example script -----------------------------------------------------------------------
+# -- the REEB-against-a-learned-RPN experiment (benchmarks/rpn_arms.py) -----------------------------------------------------------------------
 
 
 def test_train_script_trains_checkpoints_and_resumes(tmp_path):
-    sys.path.insert(0, str(ROOT / "examples"))
+    sys.path.insert(0, str(ROOT / "benchmarks"))
     try:
-        import train_kitti_detector as script
+        import rpn_arms as script
     finally:
         sys.path.pop(0)
     data = tmp_path / "kitti"
@@ -417,6 +417,8 @@ def test_train_script_trains_checkpoints_and_resumes(tmp_path):
               "--min-size", "96", "--max-size", "640", "--box-batch-size", "32", "--proposals-train", "100",
               "--proposals-test", "50", "--recall-ks", "50,100", "--warmup", "1",
               "--checkpoint-every", "1", "--preset", "default"]
+    with pytest.raises(SystemExit, match="--data .*nothing"):
+        script.main(["--data", str(tmp_path / "nothing"), "--out", str(tmp_path / "x")])
     first = script.main(common + ["--iterations", "2"])
     assert (tmp_path / "run" / "last.pt").exists() and (tmp_path / "run" / "reeb_cache.pt").exists()
     assert first["val_frames"] == 1 and set(first["AP50_per_class"]) == set(CLASSES)

@@ -509,3 +509,26 @@ def test_reeb_eval_refuses_bad_settings_in_one_line(tmp_path, args, words):
     res = CliRunner().invoke(main, ["eval", str(data), "--out", str(tmp_path / "t3"), *args])
     assert res.exit_code == 2 and "Traceback" not in res.output, res.output
     assert words in res.output and not (tmp_path / "t3").exists()
+
+
+def test_reeb_eval_runs_the_quick_rows_unless_asked_for_all(tmp_path, monkeypatch):
+    """Without --methods: Edge Boxes and REEB's two presets, BING with its model; `all` and the
+    benchmark's command run every row."""
+    from click.testing import CliRunner
+
+    from reeb_torch.eval import command as C
+    from reeb_torch.eval.methods import DEFAULT_METHODS
+    from reeb_torch.runs.cli import main
+
+    data = _example_kitti(tmp_path / "kitti")
+    seen = []
+    monkeypatch.setattr(C, "run_table3", lambda options, out, rerun: seen.append(tuple(options.methods)) or {})
+    bing = tmp_path / "bing"
+    bing.mkdir()
+    for args in ([], ["--bing-model", str(bing)], ["--methods", "all"]):
+        res = CliRunner().invoke(main, ["eval", str(data), "--out", str(tmp_path / "t3"), *args])
+        assert res.exit_code == 0, res.output
+    assert set(seen[0]) == set(C.QUICK_METHODS) and set(seen[1]) == {"bing", *C.QUICK_METHODS}
+    assert set(seen[2]) == set(DEFAULT_METHODS)
+    C.table3_command("t3", data_default=[str(data)]).main(["--out", str(tmp_path / "t3")], standalone_mode=False)
+    assert set(seen[3]) == set(DEFAULT_METHODS)

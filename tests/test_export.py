@@ -81,7 +81,7 @@ def test_ids_from_a_mapping_file(results_file, tmp_path):
     assert pickle.loads(out.read_bytes())["ids"] == [7, 123, 200]
     csv = tmp_path / "ids.csv"
     csv.write_text("image,id\ndata/000007.png,a\nother/000123.png,b\n")
-    res = CliRunner().invoke(main, ["export", str(results_file), "-o", str(out), "--ids", str(csv)])
+    res = CliRunner().invoke(main, ["export", str(results_file), "-o", str(out), "--ids", str(csv), "--overwrite"])
     assert res.exit_code == 2 and "000200.png: not in the id mapping" in res.output
 
 

@@ -88,7 +88,7 @@ def test_a_second_fit_on_the_same_output_exits_2(tmp_path, monkeypatch):
     (tmp_path / "w.safetensors").write_bytes(b"old")
     monkeypatch.setattr(F, "load_fit_frames", lambda *a, **k: pytest.fail("the frames were read"))
     with lock_output(tmp_path / "w.safetensors"):  # the first fit, still running
-        line = _one_line(_fit(["d", "--folds", "2", "-q", "-o", "w.safetensors"], tmp_path, monkeypatch), 2)
+        line = _one_line(_fit(["d", "--folds", "2", "-q", "-o", "w.safetensors", "--overwrite"], tmp_path, monkeypatch), 2)
     assert "another reeb run" in line and f"pid {os.getpid()}" in line
     assert (tmp_path / "w.safetensors").read_bytes() == b"old"
 
@@ -134,7 +134,7 @@ def test_a_full_disk_leaves_the_old_weights_and_config(tmp_path, monkeypatch):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
     monkeypatch.setattr(W.os, "fsync", full)
-    with FitOutputs(tmp_path / "w.safetensors") as outputs, pytest.raises(Failure) as e:
+    with FitOutputs(tmp_path / "w.safetensors", overwrite=True) as outputs, pytest.raises(Failure) as e:
         outputs.write(_model(), {}, ReebConfig())
     assert e.value.exit_code == 1 and "No space left" in e.value.message and "unchanged" in e.value.message
     assert (tmp_path / "w.safetensors").read_bytes() == b"old weights"

@@ -192,7 +192,7 @@ def test_reeb_fit_on_a_full_disk_is_one_line_and_the_weights_stay(tiny_kitti, tm
         raise StoreError(f"{self.folder}: cannot write the fit's row store (No space left on device)")
 
     monkeypatch.setattr(RowStore, "append", full)
-    res = CliRunner().invoke(main, ["fit", str(tiny_kitti), "--folds", "2", "-q", "-o", str(out)])
+    res = CliRunner().invoke(main, ["fit", str(tiny_kitti), "--folds", "2", "-q", "-o", str(out), "--overwrite"])
     assert res.exit_code == 1 and "Traceback" not in res.output, res.output
     lines = [line for line in res.output.splitlines() if line.strip()]
     assert len(lines) == 1 and "No space left on device" in lines[0] and f"{out} is unchanged" in lines[0]

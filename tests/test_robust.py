@@ -316,7 +316,7 @@ def test_a_long_legal_output_name_works(tmp_path):
     name = "p" * 240 + ".jsonl"  # 246 characters: legal, but .NAME.XXXXXXXX.tmp is not
     reeb("propose", "d", "-o", name, "-q", *FAST, cwd=tmp_path, check_rc=0)
     assert len(read_jsonl(tmp_path / name)) == 1
-    assert no_temp_files(tmp_path) and not [p for p in tmp_path.iterdir() if p.name.endswith(".lock")]
+    assert no_temp_files(tmp_path) and not [p for p in tmp_path.iterdir() if p.name.endswith(".reeb-lock")]
 
 
 def test_an_output_symlink_writes_its_target_and_stays_a_link(tmp_path):

@@ -252,7 +252,7 @@ def test_files_the_package_writes_whole_keep_a_link_a_link(tmp_path):
                boxes=[[0.0, 0.0, 5.0, 5.0]], scores=[0.9], status="ok", config="c")
     (tmp_path / "r.jsonl").write_text(json.dumps(row) + "\n")
     target, link = _link(tmp_path, "p.pkl")
-    res = CliRunner().invoke(main, ["export", str(tmp_path / "r.jsonl"), "-o", str(link)])
+    res = CliRunner().invoke(main, ["export", str(tmp_path / "r.jsonl"), "-o", str(link), "--overwrite"])
     assert res.exit_code == 0 and link.is_symlink() and target.read_bytes() != b"old", res.output
 
 

@@ -77,3 +77,25 @@ def test_text_that_opencv_cannot_draw_is_made_ascii():
     boxes = torch.tensor([[10.0, 20.0, 50.0, 50.0]])
     assert draw_proposals(img, boxes, title="x\udcff.png", gt=[("P\udcff", (5, 5, 30, 30))]).shape[1] == 120
     assert draw_detections(img, boxes, ["Car\udcff"], torch.tensor([0.9]), title="x\udcff").shape[1] == 120
+
+
+def test_detection_labels_in_a_crowd_do_not_cover_each_other(monkeypatch):
+    """Six detections on one spot: six labels, none over another (as propose --viz spreads its)."""
+    from reeb_torch.runs import viz
+
+    spots = []
+    real = viz._free_spot
+
+    def spy(x, y, tw, th, placed, width, height):
+        out = real(x, y, tw, th, placed, width, height)
+        spots.append((*out, out[0] + tw, out[1] + th))
+        return out
+
+    monkeypatch.setattr(viz, "_free_spot", spy)
+    img = torch.zeros(3, 200, 300, dtype=torch.uint8)
+    boxes = torch.tensor([[100.0 + i, 80.0, 140.0 + i, 150.0] for i in range(6)])
+    viz.draw_detections(img, boxes, ["Pedestrian"] * 6, torch.linspace(0.9, 0.4, 6))
+    assert len(spots) == 6
+    for i, a in enumerate(spots):
+        for b in spots[i + 1:]:
+            assert not (a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]), (a, b)

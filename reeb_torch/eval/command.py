@@ -26,7 +26,7 @@ import click
 from .common import FrameRange, parse_frame_range, rerun_line
 from .methods import DEFAULT_METHODS, KS, Table3Error, Table3Options
 
-__all__ = ["FrameRanges", "Methods", "BadData", "table3_command", "run_table3"]
+__all__ = ["FrameRanges", "Methods", "BadData", "QUICK_METHODS", "table3_command", "run_table3"]
 
 CONTEXT = dict(help_option_names=["-h", "--help"], max_content_width=100)
 
@@ -62,9 +62,11 @@ class Methods(click.ParamType):
         if isinstance(value, tuple):
             return value
         keys = tuple(k.strip() for k in str(value).split(",") if k.strip())
+        if keys == ("all",):
+            return DEFAULT_METHODS
         bad = [k for k in keys if k not in DEFAULT_METHODS]
         if bad or not keys:
-            self.fail(f"{(bad or [value])[0]!r} is not a method; choose from {', '.join(DEFAULT_METHODS)}",
+            self.fail(f"{(bad or [value])[0]!r} is not a method; choose from all, {', '.join(DEFAULT_METHODS)}",
                       param, ctx)
         return keys
 
@@ -98,8 +100,11 @@ def _options(data_default: Sequence[str | os.PathLike] | None,
         click.Option(["-o", "--out"], type=click.Path(file_okay=False, path_type=Path), default="runs/table3",
                      show_default=True, help="Folder for table3.txt, table3.csv, table3.json and the plots."),
         click.Option(["--methods"], type=Methods(), multiple=True, callback=_flatten,
-                     help=f"Rows to run, in table order (repeatable or comma-separated): "
-                          f"{', '.join(DEFAULT_METHODS)}. Default: all."),
+                     help=f"Rows to run, in table order (repeatable or comma-separated), or all: "
+                          f"{', '.join(DEFAULT_METHODS)}. Default: "
+                          + ("all." if data_default is not None else
+                             f"{', '.join(QUICK_METHODS)}, and bing with --bing-model (selective-search, the "
+                             f"slowest, only when asked).")),
         click.Option(["--max-proposals"], type=int, default=max(KS), show_default=True,
                      help=f"Proposals kept per image (at least {max(KS)})."),
         click.Option(["--batch"], type=click.IntRange(min=0), default=8, show_default=True,
@@ -120,8 +125,8 @@ def _options(data_default: Sequence[str | os.PathLike] | None,
                      help="Also the default ranked, on each folder, by a model fitted on the other folders."),
         click.Option(["--bing-model"], type=click.Path(file_okay=False, path_type=Path),
                      default=None if bing_default is None else str(bing_default), show_default=bing_default is not None,
-                     metavar="DIR", help=bing_help + (": without it the BING row is skipped." if bing_default is None
-                                                      else ".")),
+                     metavar="DIR", help=bing_help + (": its row is added; without it there is no BING row."
+                                                      if bing_default is None else ".")),
     ]
 
 
@@ -164,14 +169,26 @@ def run_table3(options: Table3Options, out: str | os.PathLike, rerun: str = "") 
     return write_report(compute(options), out, rerun)
 
 
+QUICK_METHODS: tuple[str, ...] = ("edgeboxes", "reeb-training-free", "reeb-default")
+"""``reeb eval``'s rows without ``--methods``: the fast baseline and REEB's two presets (BING
+joins them where ``--bing-model`` is given; Selective Search, the slowest by far, with
+``--methods all`` or by name)."""
+
+
 def _run(data: Sequence[Path], out: Path, methods: tuple[str, ...], config: Any = None, preset: str | None = None,
-         **given: Any) -> dict[str, Any]:
+         quick: bool = False, **given: Any) -> dict[str, Any]:
     """The command's callback. ``config``: the caller's settings (``reeb eval --config / --set``,
-    a row of their own); then without ``methods`` the rows are the ``preset``'s and theirs."""
+    a row of their own); then without ``methods`` the rows are the ``preset``'s and theirs.
+    ``quick``: without ``methods``, :data:`QUICK_METHODS` (and BING given its model), else all."""
     ctx = click.get_current_context()
     if not methods:
         own = {"default": "reeb-default", "training-free": "reeb-training-free", "paper": "reeb-paper"}
-        methods = (own.get(preset or "default", "reeb-default"),) if config is not None else DEFAULT_METHODS
+        if config is not None:
+            methods = (own.get(preset or "default", "reeb-default"),)
+        elif quick:
+            methods = (("bing",) if given.get("bing_model") else ()) + QUICK_METHODS
+        else:
+            methods = DEFAULT_METHODS
     try:
         options = Table3Options(data=data, methods=methods, config=config, **given)
         return run_table3(options, out, _command_line(ctx))
@@ -190,8 +207,11 @@ def table3_command(name: str = "eval", *, data_default: Sequence[str | os.PathLi
             they are ``--data DIR`` options, these by default.
         bing_default: the default of ``--bing-model`` (none: BING is skipped unless given).
     """
+    import functools
+
     return click.Command(
-        name, callback=_run, params=_options(data_default, bing_default), context_settings=CONTEXT,
+        name, callback=functools.partial(_run, quick=data_default is None), params=_options(data_default, bing_default),
+        context_settings=CONTEXT,
         short_help="Recall table (the paper's Table 3) and plots on KITTI-format folders.",
         help="Recall table (the paper's Table 3) and plots on KITTI-format folders: every table for each "
              "folder and for all of them together.\n\n"

@@ -37,6 +37,7 @@ from ..io import IMAGE_EXTENSIONS, read_image
 __all__ = [
     "DEFAULT_CLASSES",
     "KittiObject",
+    "find_layout",
     "KittiDataset",
     "read_kitti_labels",
     "box_problem",
@@ -189,7 +190,11 @@ def read_kitti_labels(
 # ---------------------------------------------------------------------------------------
 
 
-def _find_layout(root: Path) -> tuple[Path, Path, Path]:
+def find_layout(root: str | os.PathLike) -> tuple[Path, Path, Path]:
+    """The image, label and calib folders of a KITTI-format folder (the last two may not
+    exist); a ``ValueError`` when ``root`` is not one (it has no image folder of either
+    layout), without reading any file."""
+    root = Path(root)
     for base in (root, root / "training"):
         for images, labels, calib in _LAYOUTS:
             if (base / images).is_dir():
@@ -249,7 +254,7 @@ class KittiDataset(torch.utils.data.Dataset):
         self._class_index = {c: i for i, c in enumerate(self.classes) if c != DONT_CARE}
         self.transform = transform
 
-        self.image_dir, label_dir, calib_dir = _find_layout(self.root)
+        self.image_dir, label_dir, calib_dir = find_layout(self.root)
         self.label_dir: Path | None = label_dir if label_dir.is_dir() else None
         self.calib_dir: Path | None = calib_dir if calib_dir.is_dir() else None
 

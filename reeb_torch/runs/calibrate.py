@@ -20,7 +20,7 @@ from typing import Any, Mapping, Sequence
 from ..camera import CameraFit, fit_camera, read_kitti_calib
 
 __all__ = ["check_out", "read_boxes", "calibrate", "format_fit", "plot_fit", "has_labels", "calibrate_images",
-           "calibrate_intrinsics"]
+           "calibrate_intrinsics", "class_heights", "print_notes"]
 
 
 def read_boxes(roots: Sequence[str | os.PathLike]) -> dict[str, Any]:
@@ -186,23 +186,24 @@ def write_record(out: Path, record: dict) -> None:
 
 
 def has_labels(root: str | os.PathLike) -> bool:
-    """Whether ``root`` is a KITTI-format folder with a label folder."""
-    from ..eval.data import KittiDataset
+    """Whether ``root`` is a KITTI-format folder with a label folder (by its layout alone: a
+    frame without its label or calib file is the labelled route's error, named there)."""
+    from ..eval.data import find_layout
 
     try:
-        return KittiDataset(root).label_dir is not None
+        return find_layout(root)[1].is_dir()
     except ValueError:  # not a KITTI folder: a plain folder of images
         return False
 
 
 def _image_folders(roots: Sequence[str | os.PathLike]) -> list[Path]:
     """The image folder of each root: ``images/`` or ``image_2/`` of a KITTI folder, else the root."""
-    from ..eval.data import KittiDataset
+    from ..eval.data import find_layout
 
     out = []
     for r in roots:
         try:
-            out.append(KittiDataset(r).image_dir)
+            out.append(find_layout(r)[0])
         except ValueError:
             out.append(Path(r))
     return out
@@ -224,12 +225,13 @@ def calibrate_images(roots: Sequence[str | os.PathLike], out: str | os.PathLike,
     Returns ``(the printed text, the JSON path, the notes)``.
 
     Raises:
-        reeb_torch.horizon.HorizonError: too few frames, or no road seen in them.
+        reeb_torch.horizon.HorizonError: too few frames, or no road seen in them (its
+            ``notes``: the frames left out, and why).
         ValueError: no image in the folders.
     """
     from tqdm import tqdm
 
-    from ..horizon import estimate_horizon, frame_vanishing_point
+    from ..horizon import HorizonError, estimate_horizon, frame_vanishing_point
     from ..io import ImageReadError, read_image
     from .inputs import NoImagesError, scan_images
 
@@ -242,8 +244,13 @@ def calibrate_images(roots: Sequence[str | os.PathLike], out: str | os.PathLike,
         try:
             points.append(frame_vanishing_point(read_image(path)))
         except (ImageReadError, ValueError) as e:
-            notes.append(f"{path}: left out ({' '.join(str(e).split())})")
-    est = estimate_horizon((), level=level, samples=samples, seed=seed, points=points)
+            reason = " ".join(str(e).split()).removeprefix(f"{path}: ")
+            notes.append(f"{path}: left out ({reason})")
+    try:
+        est = estimate_horizon((), level=level, samples=samples, seed=seed, points=points)
+    except HorizonError as e:
+        e.notes = notes  # the frames left out say why there were too few
+        raise
     cam_h = _camera_height(camera_height)
     lo, hi = est.interval
     sure = "within ±0.01 of the height" if hi - lo <= 0.02 else "wider than ±0.01 of the height: give more frames"
@@ -325,3 +332,36 @@ def calibrate_intrinsics(out: str | os.PathLike, calib: str | os.PathLike | None
     out = Path(out)
     write_record(out, {"config": {"horizon": row / height, "camera_height_m": cam_h}, "fit": fit})
     return "\n".join(lines), out
+
+
+def class_heights(items: tuple[str, ...]) -> dict[str, float] | None:
+    """``--class-height CLASS=METRES`` items over KITTI's class heights (None without any);
+    a usage error naming the item that is not CLASS=METRES with metres > 0."""
+    import click
+
+    from ..camera import KITTI_CLASS_HEIGHTS_M
+
+    if not items:
+        return None
+    heights = dict(KITTI_CLASS_HEIGHTS_M)
+    for item in items:
+        name, sep, value = item.partition("=")
+        try:
+            h = float(value)
+        except ValueError:
+            h = float("nan")
+        if not sep or not name.strip() or not h > 0:
+            raise click.BadParameter(f"{item!r}: expected CLASS=METRES with metres > 0, e.g. Car=1.53",
+                                     param_hint="--class-height")
+        heights[name.strip()] = h
+    return heights
+
+
+def print_notes(notes: list[str], most: int = 10) -> None:
+    """The frames left out, one ``note:`` line each on stderr (the first ``most``, then a count)."""
+    import click
+
+    for note in notes[:most]:
+        click.echo(f"note: {note}", err=True)
+    if len(notes) > most:
+        click.echo(f"note: ... and {len(notes) - most} more frames left out", err=True)

@@ -68,6 +68,7 @@ from .common import (  # noqa: E402
     config_options,
     label_for,
     read_labels,
+    refuse_existing,
     resolve_device,
     settings_options,
 )
@@ -347,7 +348,8 @@ main.add_command(_eval, "eval")
                    "path as written, the file name or the stem. [default: file stems]")
 @click.option("--id-type", type=click.Choice(["str", "int"]), default="str", show_default=True,
               help="int: ids such as 000123 become 123 (datasets with numeric image_id).")
-def export(results, out, fmt, ids_file, id_type):
+@click.option("--overwrite", is_flag=True, help="Replace OUT where it exists.")
+def export(results, out, fmt, ids_file, id_type, overwrite):
     """Convert RESULTS of `reeb propose` (a .jsonl/.parquet file, or the Parquet folder of
     --engine ray) into a detector framework's proposal file.
 
@@ -357,6 +359,10 @@ def export(results, out, fmt, ids_file, id_type):
     """
     from . import export as E
 
+    target = Path(os.path.expanduser(out))
+    if os.path.realpath(target) == os.path.realpath(results):
+        raise UsageProblem(f"-o {out}: is RESULTS, the file read; give another name")
+    refuse_existing([target], overwrite)
     try:
         id_map = E.read_id_map(ids_file) if ids_file else None
         rows = E.read_rows(results)
@@ -377,25 +383,6 @@ def export(results, out, fmt, ids_file, id_type):
 
 
 # -- reeb calibrate ----------------------------------------------------------------------
-
-def _class_heights(items: tuple[str, ...]) -> dict[str, float] | None:
-    from ..camera import KITTI_CLASS_HEIGHTS_M
-
-    if not items:
-        return None
-    heights = dict(KITTI_CLASS_HEIGHTS_M)
-    for item in items:
-        name, sep, value = item.partition("=")
-        try:
-            h = float(value)
-        except ValueError:
-            h = float("nan")
-        if not sep or not name.strip() or not h > 0:
-            raise click.BadParameter(f"{item!r}: expected CLASS=METRES with metres > 0, e.g. Car=1.53",
-                                     param_hint="--class-height")
-        heights[name.strip()] = h
-    return heights
-
 
 @main.command(context_settings=CONTEXT)
 @click.argument("dirs", nargs=-1, type=click.Path(exists=True, file_okay=False))
@@ -456,7 +443,7 @@ def calibrate(dirs, out, no_labels, calib, cy, height, camera_height, class_heig
     if camera_height is not None and labels:
         raise UsageProblem("--camera-height: the labelled route fits the camera height from the boxes; give it "
                            "with --no-labels, --calib or --cy")
-    heights = _class_heights(class_height)
+    heights = C.class_heights(class_height)
     C.check_out(Path(os.path.expanduser(out)), picture=labels, overwrite=overwrite)
     notes: list[str] = []
     picture = None
@@ -469,12 +456,12 @@ def calibrate(dirs, out, no_labels, calib, cy, height, camera_height, class_heig
         else:
             text, path, notes = C.calibrate_images(dirs, out, camera_height, samples=samples, seed=seed)
     except (HorizonError, ValueError, FileNotFoundError) as e:
+        C.print_notes(getattr(e, "notes", ()))
         raise UsageProblem(" ".join(str(e).split()))
     except OSError as e:  # the writes are atomic: what was there stays
         raise Failure(f"{e.filename or out}: cannot write ({e.strerror or e}); the file that was there is "
                       "unchanged") from None
-    for note in notes:
-        click.echo(f"note: {note}", err=True)
+    C.print_notes(notes)
     click.echo(text)
     tail = f" and {picture}" if picture else (" (no picture: matplotlib is not installed)" if labels else "")
     click.echo(f"wrote {path}{tail}", err=True)
@@ -505,8 +492,9 @@ def calibrate(dirs, out, no_labels, calib, cy, height, camera_height, class_heig
               help="No search: score this config file (e.g. a tuned.json) against the base on DIRS.")
 @settings_options("The base settings: the comparison, and what the search changes.", run=False)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@click.option("--overwrite", is_flag=True, help="Replace OUT and its plots where they exist.")
 def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, space_file, k, iou, limit,
-         score_file, preset, config_file, sets, quiet):
+         score_file, preset, config_file, sets, quiet, overwrite):
     """Search the settings that matter on labelled KITTI-format folders (DIRS) with Optuna,
     and estimate by nested cross-validation over frames how they do on new frames, beside the
     base config on the same frames. Runs on the CPU; needs the extra 'tune'.
@@ -518,6 +506,7 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
         if score_file:
             click.echo(R.run_score(dirs, build_config(preset, score_file, (), None), base, k, iou, balanced, limit))
             return
+        R.check_out(Path(os.path.expanduser(out)), overwrite)
         record = R.run_tune(dirs, out, base, space_file, trials, folds, seed, storage, resume, timeout, balanced,
                             k, iou, limit, quiet)
     except KeyboardInterrupt:
@@ -582,8 +571,10 @@ def tune(dirs, out, trials, folds, seed, storage, resume, timeout, balanced, spa
                 "runs here, from the rows; pip install 'reeb-torch[ray]').",
                 "--engine ray: actors, each making frames' rows.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
+@click.option("--overwrite", is_flag=True, help="Replace OUT and the config beside it where they exist.")
 def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, mirror, jitter, hard, no_orientation,
-        drop, refiner, val, k, iou, limit, preset, config_file, sets, engine, address, actors, cpus_per_actor, quiet):
+        drop, refiner, val, k, iou, limit, preset, config_file, sets, engine, address, actors, cpus_per_actor, quiet,
+        overwrite):
     """Fit the learned ranking on labelled KITTI-format folders (DIRS) for another camera, and
     estimate by cross-validation over blocks of frames how it does on frames it never saw,
     beside the training-free settings and the shipped model on the same frames. Writes the
@@ -623,7 +614,8 @@ def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, mir
     command = " ".join(["reeb fit", *map(shlex.quote, sys.argv[2:])])
     try:
         engine_ray = (address, actors, cpus_per_actor) if engine == "ray" else None
-        record = R.run_fit(dirs, out, cfg, opts, folds, k, iou, limit, quiet, command, whole_drives, val, engine_ray)
+        record = R.run_fit(dirs, out, cfg, opts, folds, k, iou, limit, quiet, command, whole_drives, val, engine_ray,
+                           overwrite=overwrite)
     except (ValueError, FileNotFoundError) as e:
         raise UsageProblem(" ".join(str(e).split()))
     click.echo(record["text"])

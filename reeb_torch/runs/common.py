@@ -22,6 +22,8 @@ __all__ = [
     "UsageProblem",
     "Failure",
     "writable_folder",
+    "OUTPUT_RULE",
+    "refuse_existing",
     "FiniteFloat",
     "engine_options",
     "ray_engine",
@@ -70,6 +72,27 @@ def writable_folder(option: str, folder: Path) -> None:
         os.unlink(probe)
     except OSError as e:
         raise UsageProblem(f"{option} {folder}: cannot write there ({e.strerror or e})") from None
+
+
+OUTPUT_RULE = ("A command never replaces a file that is there already unless given --overwrite, never writes "
+               "into a folder it reads, and writes each file whole or not at all.")
+"""The rule every ``reeb`` command that writes a file keeps (``propose``, ``detect``, ``fit``,
+``tune``, ``calibrate``, ``export``, ``detector fit``); the views made only for looking
+(``reeb show``'s picture, the bare ``reeb propose`` sample's, ``reeb eval``'s report folder)
+are redrawn in place."""
+
+
+def refuse_existing(paths: Sequence[Path], overwrite: bool) -> None:
+    """Before any work: a usage error (one line, exit 2) naming the files of ``paths`` that
+    are there already, unless ``overwrite`` (see :data:`OUTPUT_RULE`); also where one is a
+    folder."""
+    for p in paths:
+        if p.is_dir():
+            raise UsageProblem(f"-o {p}: is a folder; give a file name")
+    there = [str(p) for p in paths if p.exists() or p.is_symlink()]
+    if there and not overwrite:
+        raise UsageProblem(f"{' and '.join(there)} exist{'s' if len(there) == 1 else ''}; add --overwrite to "
+                           f"replace {'it' if len(there) == 1 else 'them'}")
 
 
 class FiniteFloat(click.FloatRange):

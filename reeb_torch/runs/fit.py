@@ -184,8 +184,8 @@ class FitOutputs:
     next fit on the same output (with the temporary files a killed write left).
     """
 
-    def __init__(self, out: str | os.PathLike) -> None:
-        from .common import UsageProblem
+    def __init__(self, out: str | os.PathLike, overwrite: bool = False) -> None:
+        from .common import UsageProblem, refuse_existing
 
         text = os.fspath(out)
         if not text.strip():
@@ -198,6 +198,7 @@ class FitOutputs:
         problem = _unwritable(self.weights) or _unwritable(self.config)
         if problem:
             raise UsageProblem(problem)
+        refuse_existing([self.weights, self.config], overwrite)
         self.scratch = self.weights.parent / f"{_hidden(self.weights)}.fit"
         self.store = self.weights.parent / f"{_hidden(self.weights)}.store"
         """The fit's row store, held-out models and training states: kept after a kill (the
@@ -290,7 +291,7 @@ def _unwritable(path: Path) -> str | None:
 def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: RF.FitOptions, folds: int, k: int = 2000,
             iou: float = 0.7, limit: int | None = None, quiet: bool = False,
             command: str = "", whole_drives: bool = False, val: Sequence[str] = (),
-            engine: tuple[str | None, int, float | None] | None = None) -> dict[str, Any]:
+            engine: tuple[str | None, int, float | None] | None = None, overwrite: bool = False) -> dict[str, Any]:
     """The whole of ``reeb fit``; returns the record (also in the weights' metadata).
 
     ``val``: labelled folders the ranking is scored on instead of a cross-validation (one fit,
@@ -315,7 +316,8 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: RF.FitOptions
     replaced by the new weights); it is compared with ``cfg.training_free()`` and, where it
     can rank these features, the shipped ``kitti`` model, on the same frames.
 
-    The output is checked and locked before any work (:class:`FitOutputs`).
+    The output is checked and locked before any work (:class:`FitOutputs`); weights or a
+    config already there are replaced only with ``overwrite``.
 
     Raises:
         ValueError: no labels, fewer frames than folds, nothing to fit on; a ``--init`` model that
@@ -325,7 +327,7 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: RF.FitOptions
     """
     import warnings
 
-    outputs = FitOutputs(out)
+    outputs = FitOutputs(out, overwrite)
     with outputs, warnings.catch_warnings():
         # the shipped model's row and a --init model run on this config by design: the
         # generator's warning that they were fitted with other settings is no news here

@@ -42,7 +42,7 @@ class OutputError(OSError):
     """The output file cannot be written (checked before any work is done)."""
 
 
-#: Longest output name whose hidden companions (``.NAME.lock``, ``.NAME.XXXXXXXX.tmp``) are
+#: Longest output name whose hidden companions (``.NAME.reeb-lock``, ``.NAME.XXXXXXXX.tmp``) are
 #: named after it; a longer (legal) name gets companions named after its hash instead, so any
 #: name the file system takes works as an output (255 bytes on most).
 _PLAIN_NAME_BYTES = 200

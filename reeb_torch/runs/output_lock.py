@@ -10,25 +10,60 @@ from pathlib import Path
 
 from .output_files import OutputError, hidden_stem
 
-__all__ = ["OutputBusyError", "OutputLock", "lock_output"]
+__all__ = ["OutputBusyError", "OutputLock", "lock_output", "sweep_dead_locks", "LOCK_SUFFIX"]
 
 
 class OutputBusyError(OutputError):
     """Another process is writing the same output file (it holds the lock beside it)."""
 
 
+LOCK_SUFFIX = ".reeb-lock"
+
+
 def _lock_path(path: str | os.PathLike) -> Path:
     p = Path(path)
-    return p.with_name(f"{hidden_stem(p)}.lock")
+    return p.with_name(f"{hidden_stem(p)}{LOCK_SUFFIX}")
+
+
+def sweep_dead_locks(folder: Path, keep: Path | None = None) -> None:
+    """Remove the lock files in ``folder`` that no live run holds (those a ``kill -9`` left).
+
+    Each is locked, checked to be the file at its name, unlinked and closed, as
+    :meth:`OutputLock.release` does: a run that opened it just before finds the file gone
+    after its own ``flock`` and starts again on a new one (:func:`lock_output`), so no two
+    runs ever hold one output. Only ``.*.reeb-lock`` files are touched; errors are ignored.
+    """
+    import fcntl
+
+    try:
+        names = [q for q in folder.iterdir() if q.name.startswith(".") and q.name.endswith(LOCK_SUFFIX)]
+    except OSError:
+        return
+    for q in names:
+        if keep is not None and q.name == keep.name:
+            continue
+        try:
+            fd = os.open(q, os.O_RDWR | os.O_NOFOLLOW)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            if os.path.samestat(os.fstat(fd), os.stat(q, follow_symlinks=False)):
+                q.unlink()
+        except OSError:
+            pass  # held by a live run, or gone
+        finally:
+            os.close(fd)
 
 
 class OutputLock:
     """An exclusive lock on an output file, held by this process (see :func:`lock_output`).
 
-    The lock is ``fcntl.flock`` on a hidden ``.<name>.lock`` file beside the output, which
-    holds the owner's process id. The operating system drops the lock when its process
-    ends in any way (also ``kill -9``), so a lock file left behind by a dead run is simply
-    taken over: there is no stale lock to clear by hand. :meth:`release` removes the file.
+    The lock is ``fcntl.flock`` on a hidden ``.<name>.reeb-lock`` file beside the output,
+    which holds the owner's process id. The operating system drops the lock when its process
+    ends in any way (also ``kill -9``); the file such a run leaves is taken over, or removed
+    by the next run that takes a lock in its folder (:func:`sweep_dead_locks`): there is no
+    stale lock to clear by hand. :meth:`release` removes the file.
     """
 
     def __init__(self, path: Path, fd: int) -> None:
@@ -90,4 +125,5 @@ def lock_output(path: str | os.PathLike) -> OutputLock:
             continue
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        sweep_dead_locks(lock.parent, keep=lock)
         return OutputLock(lock, fd)

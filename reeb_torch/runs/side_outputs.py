@@ -184,7 +184,7 @@ class KittiFolder:
 
     def _lock(self) -> None:
         """One run per folder, as per output file (:func:`.output_lock.lock_output`: a hidden
-        ``.NAME.lock`` beside it), held until the command ends; a usage error when another
+        ``.NAME.reeb-lock`` beside it), held until the command ends; a usage error when another
         run holds it."""
         import click
 

@@ -30,6 +30,29 @@ def _changed(base: ReebConfig, cfg: ReebConfig) -> dict[str, Any]:
     return {k: v for k, v in cfg.to_dict().items() if default[k] != v}
 
 
+def plot_paths(stem: Path) -> list[Path]:
+    """The pictures :func:`plot_study` may write beside ``<stem>.json``."""
+    return [stem.with_name(stem.name + "_trials.png"), stem.with_name(stem.name + "_importances.png")]
+
+
+def check_out(out: Path, overwrite: bool) -> None:
+    """``-o`` before any work: a usage error (one line, exit 2) where it or a plot beside it
+    is there already without ``overwrite``, or it is a folder."""
+    from .common import refuse_existing
+
+    refuse_existing([out, *plot_paths(out.with_suffix(""))], overwrite)
+
+
+def _save(fig: Any, path: Path) -> None:
+    import io
+
+    from ..io import replace_file
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    replace_file(path, buf.getvalue())
+
+
 def plot_study(study: Any, stem: Path) -> list[Path]:
     """``<stem>_trials.png`` (recall per trial and the best so far) and, where Optuna can
     compute them, ``<stem>_importances.png``; nothing without matplotlib."""
@@ -52,9 +75,10 @@ def plot_study(study: Any, stem: Path) -> list[Path]:
     ax.set_ylabel("recall (%)")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(stem.with_name(stem.name + "_trials.png"), dpi=110)
+    trials_png, importances_png = plot_paths(stem)
+    _save(fig, trials_png)
     plt.close(fig)
-    out.append(stem.with_name(stem.name + "_trials.png"))
+    out.append(trials_png)
     try:
         import optuna
 
@@ -67,9 +91,9 @@ def plot_study(study: Any, stem: Path) -> list[Path]:
     ax.barh(names, [imp[n] for n in names])
     ax.set_xlabel("importance (optuna.importance, its default evaluator)")
     fig.tight_layout()
-    fig.savefig(stem.with_name(stem.name + "_importances.png"), dpi=110)
+    _save(fig, importances_png)
     plt.close(fig)
-    out.append(stem.with_name(stem.name + "_importances.png"))
+    out.append(importances_png)
     return out
 
 
@@ -132,7 +156,9 @@ def run_tune(roots: Sequence[str], out: str, base: ReebConfig, space_file: str |
             "all_frames": vars(full), "trials_completed": len([t for t in study.trials if t.value is not None]),
         },
     }
-    Path(out).write_text(json.dumps(record, indent=2, default=str) + "\n", encoding="utf-8")
+    from ..io import replace_file
+
+    replace_file(Path(out), (json.dumps(record, indent=2, default=str) + "\n").encode("utf-8"))
     pictures = plot_study(study, Path(out).with_suffix("")) if plots else []
     record["text"] = "\n".join(lines + [f"wrote {out}" + "".join(f", {p}" for p in pictures)])
     return record

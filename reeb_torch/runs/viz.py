@@ -216,21 +216,28 @@ def draw_proposals(
 
 def draw_detections(image: Any, boxes: Any, labels: Sequence[str], scores: Any, title: str | None = None,
                     classes: Sequence[str] = ()) -> np.ndarray:
-    """``image`` (``uint8 [3, H, W]``) with each detection's box (``[D, 4]`` xyxy), class name
-    and score, one colour per class (the colours follow ``classes``' order, where given); an RGB
-    ``uint8`` array ``(H', W, 3)`` (a title band on top)."""
+    """``image`` (``uint8 [3, H, W]``) with each detection's box (``[D, 4]`` xyxy, best first),
+    class name and score, one colour per class (the colours follow ``classes``' order, where
+    given); labels are moved off each other, the best placed first; an RGB ``uint8`` array
+    ``(H', W, 3)`` (a title band on top)."""
     import cv2
 
     canvas = _hwc(image).copy()
     h, w = canvas.shape[:2]
     fs = max(0.35, min(w, 2 * h) / 1600)
     colours: dict[str, tuple[int, int, int]] = {n: CLASS_COLOURS[i % len(CLASS_COLOURS)] for i, n in enumerate(classes)}
-    for (x1, y1, x2, y2), name, s in reversed(list(zip(_boxes(boxes).tolist(), labels, torch.as_tensor(scores).tolist()))):
+    dets = sorted(zip(_boxes(boxes).tolist(), labels, torch.as_tensor(scores).tolist()), key=lambda d: -d[2])
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    for (x1, y1, x2, y2), name, _ in reversed(dets):  # the best drawn last, on top
         c = colours.setdefault(name, CLASS_COLOURS[len(colours) % len(CLASS_COLOURS)])
-        p1, p2 = (int(round(x1)), int(round(y1))), (int(round(x2)), int(round(y2)))
-        cv2.rectangle(canvas, p1, p2, c, 2, cv2.LINE_AA)
-        cv2.putText(canvas, cv_text(f"{name} {s:.2f}"), (p1[0], max(p1[1] - 3, 10)), cv2.FONT_HERSHEY_SIMPLEX, fs, c,
-                    1, cv2.LINE_AA)
+        cv2.rectangle(canvas, (int(round(x1)), int(round(y1))), (int(round(x2)), int(round(y2))), c, 2, cv2.LINE_AA)
+    placed: list[tuple[float, float, float, float]] = []
+    for (x1, y1, _, _), name, s in dets:  # labels best first, each moved off those placed before
+        text = cv_text(f"{name} {s:.2f}")
+        (tw, th), _ = cv2.getTextSize(text, font, fs, 1)
+        tx, ty = (int(v) for v in _free_spot(round(x1), round(y1) - th - 4, tw + 2, th + 3, placed, w, h))
+        cv2.rectangle(canvas, (tx, ty), (tx + tw + 2, ty + th + 3), colours[name], -1)
+        cv2.putText(canvas, text, (tx + 1, ty + th + 1), font, fs, (0, 0, 0), 1, cv2.LINE_AA)
     if title:
         band = np.full((int(28 * fs / 0.5), w, 3), 30, np.uint8)
         cv2.putText(band, cv_text(title), (6, band.shape[0] - 8), cv2.FONT_HERSHEY_SIMPLEX, fs, (255, 255, 255), 1,

@@ -1,4 +1,6 @@
-"""Train and evaluate a MobileNetV3 Faster R-CNN on REEB (or learned) proposals, on KITTI.
+"""REEB's proposals against a learned RPN in one MobileNetV3 Faster R-CNN trained from scratch,
+on KITTI: the experiment behind docs/detection_experiment.md's first section (the shipped
+detector is ``reeb detector fit``'s, on the public API).
 
 The first ``--train-frames`` frames of a KITTI-format folder (sorted by id) are the
 training set, the rest (or the next ``--val-frames``) the validation set. Every
@@ -16,8 +18,8 @@ with torchvision's RPN. A checkpoint ``OUT/last.pt`` is written every
 ``--checkpoint-every`` iterations and at the end; ``--resume`` continues from it (data
 order, learning rate and random state included). Runs on the GPU when there is one.
 
-    python examples/train_kitti_detector.py --data ../shared/data/kitti \\
-        --train-frames 45 --proposals reeb --iterations 300 --out runs/reeb
+    python benchmarks/rpn_arms.py --data ../shared/data/kitti \\
+        --train-frames 45 --proposals reeb --iterations 300 --out /tmp/rpn_arms/reeb
 
 Nothing is downloaded: the backbone trains from scratch unless ``--backbone-weights``
 names a local ``mobilenet_v3_large`` state dict.
@@ -70,7 +72,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--backbone-weights", default=None, help="local mobilenet_v3_large state dict")
     p.add_argument("--eval-every", type=int, default=0, help="0: evaluate at the end only")
     p.add_argument("--checkpoint-every", type=int, default=100)
-    p.add_argument("--out", default="runs/detector", help="folder for checkpoints and metrics")
+    p.add_argument("--out", required=True, help="folder for checkpoints and metrics")
     p.add_argument("--resume", action="store_true",
                    help="continue from OUT/last.pt (read with weights_only=True: tensors and plain values only)")
     p.add_argument("--device", default=None, help="default: cuda when available, else cpu")
@@ -85,7 +87,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def load_split(args: argparse.Namespace) -> tuple[list[dict], list[dict], tuple[str, ...]]:
     """Decode every frame once (the sets are small): (train items, val items, classes)."""
     classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
-    ds = KittiDataset(args.data, classes=classes)
+    try:
+        ds = KittiDataset(args.data, classes=classes)
+    except (ValueError, OSError) as e:
+        raise SystemExit(f"--data {args.data}: {e}") from None
     n_val = len(ds) - args.train_frames if args.val_frames is None else args.val_frames
     if args.train_frames < 1 or n_val < 1 or args.train_frames + n_val > len(ds):
         raise SystemExit(f"{args.data}: {len(ds)} frames, cannot take {args.train_frames} "
