@@ -28,6 +28,7 @@ ROW_FIELDS = {"format_version", "image", "resolved", "width", "height", "boxes",
 
 # -- concurrent writers ------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_second_writer_fails_at_once_and_loses_nothing(tmp_path):
     n = 300  # enough work that the other runs start while the first one is writing
     good_folder(tmp_path / "A", n)
@@ -58,6 +59,7 @@ def test_second_writer_fails_at_once_and_loses_nothing(tmp_path):
     assert len(read_jsonl(tmp_path / "cc.jsonl")) == n + 2
 
 
+@pytest.mark.slow
 def test_a_run_on_a_locked_output_fails_before_any_work(tmp_path):
     from reeb_torch.runs.output_lock import lock_output
 
@@ -87,6 +89,7 @@ def test_lock_of_a_dead_run_is_taken_over(tmp_path):
 
 # -- resume matches the resolved file ----------------------------------------------------------
 
+@pytest.mark.slow
 def test_resume_from_another_folder_symlink_and_absolute_path(tmp_path):
     paths = good_folder(tmp_path / "set", 5)
     names = [p.name for p in paths]
@@ -197,6 +200,7 @@ def test_config_errors_are_usage_errors_before_any_work(tmp_path):
 
 # -- kill -9 and Ctrl-C ------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_rows_of_a_killed_run_are_recovered_by_resume(tmp_path):
     n = 40
     paths = good_folder(tmp_path / "imgs", n)
@@ -227,6 +231,7 @@ def read_jsonl_lenient(p: Path) -> list[dict]:
     return rows
 
 
+@pytest.mark.slow
 def test_interrupt_summary_counts_the_rows_in_the_file(tmp_path):
     import re
 
@@ -256,6 +261,7 @@ def test_interrupt_is_deferred_while_a_row_is_written():
 
 # -- row order, .json, sizes in error rows -----------------------------------------------------
 
+@pytest.mark.slow
 def test_rows_in_input_order_with_error_rows_and_sizes(tmp_path):
     d = tmp_path / "mix"
     d.mkdir()
@@ -276,6 +282,7 @@ def test_rows_in_input_order_with_error_rows_and_sizes(tmp_path):
     assert "3 ok, 2 failed" in r.stderr
 
 
+@pytest.mark.slow
 def test_json_output_is_refused_with_a_hint(tmp_path):
     good_folder(tmp_path / "imgs", 1)
     r = reeb("propose", "imgs", "-o", "x.json", *FAST, cwd=tmp_path, check_rc=2)
@@ -283,6 +290,7 @@ def test_json_output_is_refused_with_a_hint(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["imgs"]
 
 
+@pytest.mark.slow
 def test_parquet_rows_carry_the_schema(tmp_path):
     pq = pytest.importorskip("pyarrow.parquet")
     good_folder(tmp_path / "imgs", 1)
@@ -296,6 +304,7 @@ def test_parquet_rows_carry_the_schema(tmp_path):
     assert len(good["labels"]) == len(good["boxes"]) > 0 and set(good["labels"]) <= set(KITTI_CLASSES)
 
 
+@pytest.mark.slow
 def test_rows_carry_class_hints_only_where_the_settings_give_them(tmp_path):
     good_folder(tmp_path / "imgs", 1)
     reeb("propose", "imgs", "-o", "free.jsonl", "--preset", "training-free", *FAST, cwd=tmp_path, check_rc=0)
@@ -303,6 +312,7 @@ def test_rows_carry_class_hints_only_where_the_settings_give_them(tmp_path):
     assert free["labels"] is None and len(free["boxes"]) > 0  # no ranker: no class head
 
 
+@pytest.mark.slow
 def test_resume_keeps_rows_of_the_previous_format(tmp_path):
     # a file written before the rows had labels (format 1): its rows are kept as they were,
     # the new image's row has them
@@ -359,6 +369,7 @@ def test_scan_names_the_paths_to_the_same_file(tmp_path):
     assert found.notes == [note]
 
 
+@pytest.mark.slow
 def test_a_folder_of_links_says_how_many_paths_were_the_same_file(tmp_path):
     real = good_folder(tmp_path / "real", 2)
     (tmp_path / "links").mkdir()
@@ -376,6 +387,7 @@ def test_a_folder_of_links_says_how_many_paths_were_the_same_file(tmp_path):
 
 # -- reeb eval without data --------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_eval_without_frames_or_labels_is_a_usage_error(tmp_path):
     (tmp_path / "empty").mkdir()
     (tmp_path / "nolab" / "images").mkdir(parents=True)
@@ -386,6 +398,7 @@ def test_eval_without_frames_or_labels_is_a_usage_error(tmp_path):
         assert len(r.stderr.strip().splitlines()) == 1, r.stderr  # one line, no usage block
 
 
+@pytest.mark.slow
 def test_show_on_a_folder_is_a_usage_error(tmp_path):
     (tmp_path / "d").mkdir()
     r = reeb("show", "d", cwd=tmp_path, check_rc=2)

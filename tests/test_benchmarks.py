@@ -98,6 +98,7 @@ def test_show_needs_lost(diagnose, tmp_path):
     assert info.value.code == 2
 
 
+@pytest.mark.slow
 def test_folds_rank_each_frame_by_a_model_fitted_without_its_block(diagnose, tmp_path):
     from reeb_torch.eval import fit as F
     from reeb_torch.ranker import fit as RF
@@ -124,6 +125,7 @@ def test_folds_rank_each_frame_by_a_model_fitted_without_its_block(diagnose, tmp
     assert info.value.code == 2
 
 
+@pytest.mark.slow
 def test_whole_drives_holds_out_the_drives_of_each_block(diagnose, tmp_path, monkeypatch):
     """--whole-drives: the training frames are reeb fit --whole-drives' (every frame of a
     held-out block's drives out), recorded as such."""
@@ -240,6 +242,7 @@ def test_selection_variants_at_their_neutral_settings_are_the_default(variants_m
         assert torch.equal(variants_mod.interleave(ref, ref[:0], 0.3), ref)
 
 
+@pytest.mark.slow
 def test_selection_variants_change_the_ranking(variants_mod, bundled):
     """Narrow boxes scored x 0 instead of the shadow term score 0 and rank behind every
     other box; with NMS at 0.5 inside the regions no two candidates of a region overlap
@@ -433,6 +436,7 @@ def test_cv_paired_cuts_and_ar_come_from_each_objects_best_iou():
     assert cv.average_recall(best, [0, 1]) == pytest.approx(100 * (9 + 2 + 5) / 30)
 
 
+@pytest.mark.slow
 def test_adapt_scores_four_ways_on_frames_away_from_the_adapt_block(tmp_path):
     """adapt.py: per ordered pair of folders, a base model fitted on the source, the first /
     last k target frames to adapt with, the other target frames to test on; the record
@@ -481,6 +485,7 @@ def test_quality_head_adds_a_head_and_keeps_the_ranking(kitti_dir, tmp_path):
         assert torch.equal(t, model.state_dict()[name]), name
 
 
+@pytest.mark.slow
 def test_cuda_check_compares_and_times_on_the_device_it_is_given(tmp_path):
     """The GPU machine's prepared run, checked on the CPU: the boxes of a device against
     themselves are identical, recall is the same, and every preset and the detector is timed."""

@@ -115,6 +115,7 @@ def _run(code: str, env: dict, timeout: int = 120) -> subprocess.CompletedProces
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout, env=full)
 
 
+@pytest.mark.slow
 def test_the_kernels_are_not_cached_in_a_folder_others_can_write(tmp_path):
     shared = tmp_path / "shared"
     shared.mkdir()
@@ -233,6 +234,7 @@ def _fill(cache: Path) -> None:
     shutil.copy(marker, cache / marker.name)
 
 
+@pytest.mark.slow
 def test_a_damaged_cache_heals_itself_with_one_line_and_the_same_boxes(tmp_path):
     cache = tmp_path / "cache"
     cache.mkdir(mode=0o700)

@@ -73,6 +73,7 @@ def check_ok_row(row: dict, w: int, h: int, k: int = 100) -> None:
 
 # -- the README's first command ----------------------------------------------------------
 
+@pytest.mark.slow
 def test_propose_without_arguments_uses_the_bundled_sample(tmp_path):
     r = reeb("propose", "--top-k", "100", cwd=tmp_path, check_rc=0)
     assert "kitti_000001.png" in r.stdout and "rank" in r.stdout and "hint" in r.stdout  # class hints column
@@ -83,6 +84,7 @@ def test_propose_without_arguments_uses_the_bundled_sample(tmp_path):
     assert "1 ok, 0 failed" in r.stderr and "ms/img" in r.stderr
 
 
+@pytest.mark.slow
 def test_show_writes_the_explanatory_picture(tmp_path):
     # a half-size frame with its labels scaled to match: the show picture with ground truth
     img = cv2.resize(cv2.imread(str(SAMPLE)), (621, 187), interpolation=cv2.INTER_AREA)
@@ -103,6 +105,7 @@ def test_show_writes_the_explanatory_picture(tmp_path):
 
 # -- output formats ----------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_jsonl_and_parquet_outputs(tmp_path):
     paths = good_folder(tmp_path / "imgs", 2)
     reeb("propose", "imgs", "--out", "p.jsonl", "--viz", "viz", *FAST, cwd=tmp_path, check_rc=0)
@@ -130,6 +133,7 @@ def test_jsonl_and_parquet_outputs(tmp_path):
 
 # -- bad input ---------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_bad_files_are_reported_and_do_not_stop_the_run(tmp_path):
     d = tmp_path / "mixed"
     d.mkdir()
@@ -175,6 +179,7 @@ def test_empty_folder_is_a_usage_error(tmp_path):
     assert len(r.stderr.strip().splitlines()) <= 2
 
 
+@pytest.mark.slow
 def test_unwritable_output_fails_before_processing(tmp_path):
     good_folder(tmp_path / "imgs", 1)
     (tmp_path / "a_file").write_text("x")
@@ -228,6 +233,7 @@ def _assert_workers_hold_no_pipe(proc: subprocess.Popen) -> None:
         assert not held & ours, (k, held)
 
 
+@pytest.mark.slow
 def test_interrupt_kill_and_resume(tmp_path):
     n = 60  # enough work (several seconds) that the signals land mid-run
     paths = good_folder(tmp_path / "imgs", n)
@@ -339,6 +345,7 @@ def test_size_batches_groups_equal_sizes():
 KITTI = DATA / "kitti"
 
 
+@pytest.mark.slow
 @pytest.mark.kitti
 @pytest.mark.skipif(not (KITTI / "images").is_dir(), reason=f"needs {KITTI} (set $REEB_DATA)")
 def test_eval_runs_table3(tmp_path):

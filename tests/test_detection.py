@@ -288,6 +288,7 @@ def test_evaluation_returns_detections_in_input_pixels(frames, cache, config):
         assert set(det) == {"boxes", "labels", "scores"}
 
 
+@pytest.mark.slow
 def test_short_training_on_two_frames_overfits(frames, cache, config):
     """From scratch, cached REEB proposals: the loss falls by half or more in 20 steps."""
     torch.manual_seed(0)
@@ -401,6 +402,7 @@ def test_backbone_weights_from_a_local_file(tmp_path):
 # -- the REEB-against-a-learned-RPN experiment (benchmarks/rpn_arms.py) -----------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_train_script_trains_checkpoints_and_resumes(tmp_path):
     sys.path.insert(0, str(ROOT / "benchmarks"))
     try:

@@ -289,6 +289,7 @@ def _without_ranker(src: Path, dst: Path) -> Path:
                     meta=meta)
 
 
+@pytest.mark.slow
 def test_a_detector_runs_on_its_embedded_ranker_once_the_file_is_gone(fitted, images, tmp_path):
     import hashlib
 
@@ -446,3 +447,34 @@ def test_the_shipped_detector_finds_the_bundled_frames_cars():
     assert len(cars) == 4
     hits = box_iou(cars, found["boxes"][(found["labels"] == 1) & (found["scores"] > 0.5)])
     assert (hits.max(1).values > 0.7).all(), hits.max(1).values
+
+
+def test_a_factorised_box_head_saves_small_loads_and_detects_near_the_full_one(fitted, images, tmp_path):
+    """box_head_rank: the trained first layer replaced by its truncated SVD; the file shrinks,
+    loads to the same detections, and at full rank the layer is the same function."""
+    import copy
+
+    from reeb_torch.detection.lite0_detector import LowRankLinear
+
+    fc6 = fitted.model.roi_heads.box_head.fc6
+    x = torch.randn(5, fc6.in_features)
+    whole = LowRankLinear.from_linear(fc6, min(fc6.in_features, fc6.out_features))
+    assert torch.allclose(whole(x), fc6(x), atol=1e-4)
+    r = 16
+    low = LowRankLinear.from_linear(fc6, r)
+    sv = torch.linalg.svdvals(fc6.weight.detach().double())
+    err = torch.linalg.matrix_norm((low.up.weight @ low.down.weight).double() - fc6.weight.double(), ord=2)
+    assert abs(err.item() - sv[r].item()) < 1e-3 * sv[0].item()  # the best rank-r approximation (Eckart-Young)
+
+    small = copy.deepcopy(fitted).factorise_box_head(r)
+    assert small.settings.box_head_rank == r and isinstance(small.model.roi_heads.box_head.fc6, LowRankLinear)
+    with pytest.raises(ValueError, match="already factorised"):
+        small.factorise_box_head(8)
+    full_file = fitted.save(tmp_path / "full.safetensors")
+    small_file = small.save(tmp_path / "small.safetensors")
+    assert small_file.stat().st_size < 0.6 * full_file.stat().st_size
+    loaded = ReebDetector.load(small_file)
+    assert loaded.settings.box_head_rank == r
+    for a, b in zip(small(images), loaded(images)):
+        for k in a:
+            assert torch.equal(a[k], b[k]), k

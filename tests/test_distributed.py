@@ -85,6 +85,7 @@ def test_actor_sizing_leaves_room_for_read_and_write_tasks():
         actor_cpus(2, 0)
 
 
+@pytest.mark.slow
 def test_ray_rows_equal_single_process(local_ray, small_images, tmp_path, monkeypatch):
     # relative paths (from the working folder) are written as given
     monkeypatch.chdir(small_images.parent)
@@ -107,6 +108,7 @@ def test_ray_rows_equal_single_process(local_ray, small_images, tmp_path, monkey
     assert got[str(rel / "c_grey16.png")]["width"] == 320
 
 
+@pytest.mark.slow
 def test_bad_files_give_error_rows_and_exit_1(local_ray, small_images, tmp_path):
     bad = tmp_path / "bad"
     bad.mkdir()
@@ -147,6 +149,7 @@ def test_bad_files_give_error_rows_and_exit_1(local_ray, small_images, tmp_path)
     assert got[str(bad / "corrupt.png")]["status"].startswith("error: ")
 
 
+@pytest.mark.slow
 def test_resume_adds_only_the_missing_images(local_ray, small_images, tmp_path):
     images = sorted(small_images.glob("*.png"))
     out = tmp_path / "ray.parquet"
@@ -174,6 +177,7 @@ def test_usage_errors_before_any_work(tmp_path):
     assert res.exit_code == 2 and "--out" in res.output
 
 
+@pytest.mark.slow
 def test_api_takes_an_existing_dataset(local_ray, small_images):
     from reeb_torch import ReebConfig
     from reeb_torch.runs.output_files import ParquetWriter
@@ -188,6 +192,7 @@ def test_api_takes_an_existing_dataset(local_ray, small_images):
     assert got[str(small_images / "missing.png")]["status"].startswith("error: ")
 
 
+@pytest.mark.slow
 def test_non_utf8_name_and_quiet_ray_log(tmp_path):
     """A file name that is not UTF-8 gets an ``ok`` row in the escaped ``\\xNN`` form and
     ``--resume`` matches it; under ``-q`` none of Ray's INFO / WARNING lines reach stderr.

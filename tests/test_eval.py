@@ -258,6 +258,7 @@ def test_table3_usage_errors_exit_2(tmp_path, capsys):
         assert message in capsys.readouterr().err, argv
 
 
+@pytest.mark.slow
 def test_reeb_eval_from_a_wheel_outside_the_checkout(tmp_path):
     """``pip install`` of a built wheel (not editable) into a fresh environment, then
     ``reeb eval`` from a folder outside the checkout. The fresh environment reuses this
@@ -365,6 +366,7 @@ def test_folder_names_and_splits():
     assert folder_splits([{"folder": "k"}] * 3) == []  # one folder: no split of its own
 
 
+@pytest.mark.slow
 @pytest.mark.kitti
 def test_table3_cross_validated_row_is_reeb_fits_estimate(kitti_dir, tmp_path, monkeypatch):
     """--cross-validate: a row of the default ranked by the models reeb fit's cross-validation
@@ -406,6 +408,7 @@ DRIVE_FRAMES = ("t0000_000000", "t0000_000030", "t0000_000060", "t0000_000090", 
                 "t0016_000002", "t0016_000007", "t0016_000012")  # 6 frames of one drive, 3 of another
 
 
+@pytest.mark.slow
 def test_table3_whole_drives_row_never_fits_on_a_frame_of_a_held_out_drive(tmp_path, monkeypatch):
     """--whole-drives: a row before the cross-validated one, ranked by models fitted without
     any frame of the held-out block's drives (the training frames of each fit, checked by

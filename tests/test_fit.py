@@ -67,6 +67,7 @@ def test_fit_is_seeded_and_learns():
                      feature_names(4), opts)
 
 
+@pytest.mark.slow
 def test_class_head_is_seeded_learns_and_leaves_the_ranking_alone():
     """Given classes, a class head is fitted on the positives after the ranking parts: the
     ranking's weights are those of the fit without it, bit for bit; the head tells the
@@ -258,6 +259,7 @@ def test_similar_frames_finds_near_copies(sample_image):
     assert sim[0] == {1} and sim[1] == {0} and 2 not in sim[0]
 
 
+@pytest.mark.slow
 @pytest.mark.kitti
 def test_cross_validate_runs_after_the_model_settings_with_the_same_fold_models(kitti_dir):
     """``also``: each config runs with the very fold models of ``cfg`` (cv_paired.py's
@@ -278,6 +280,7 @@ def test_cross_validate_runs_after_the_model_settings_with_the_same_fold_models(
     assert fit_cv.cross_validate(cache, cfg, cfg.training_free(), samples, opts, 2).also_hits == []
 
 
+@pytest.mark.slow
 def test_held_out_outputs_are_the_cross_validated_models(kitti_dir):
     """held_out_outputs: each frame's proposals from the model fitted without its block, the
     very models of cross_validate (the same hits)."""
@@ -303,6 +306,7 @@ def test_held_out_outputs_are_the_cross_validated_models(kitti_dir):
     assert sum(len(b) for b in others) > 0  # vans, DontCare, ... in the first frames
 
 
+@pytest.mark.slow
 @pytest.mark.kitti
 def test_reeb_fit_end_to_end(kitti_dir, tmp_path):
     out = tmp_path / "mine.safetensors"
@@ -352,6 +356,7 @@ def test_reeb_fit_end_to_end(kitti_dir, tmp_path):
     assert bad.returncode == 2 and "cannot make 2 folds" in bad.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.kitti
 def test_reeb_fit_on_two_folders_reports_a_model_fitted_on_the_other(kitti_dir, tmp_path):
     """Frames of several folders: a row ranked, on each folder, by a model fitted on the
@@ -395,6 +400,7 @@ def test_whole_drives_keeps_every_frame_of_a_held_out_drive_out(tmp_path):
     assert near == [0, 1, 2, 3, 11] and whole == [0, 1, 2, 3]
 
 
+@pytest.mark.slow
 @pytest.mark.kitti
 def test_shipped_weights_refit(kitti_dir):
     """The model in the shipped file is the fit on all the frames it names, with its options:

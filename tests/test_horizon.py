@@ -153,6 +153,7 @@ def test_the_camera_transform_moves_pixels_labels_and_calibration_together(tmp_p
         ct.window(ct.Transform(zoom=1.0, horizon_from=0.47, horizon_to=0.2), 1242, 375)
 
 
+@pytest.mark.slow
 @pytest.mark.kitti
 def test_kitti_frames_moved_by_the_transform_move_the_estimate_with_them(kitti_dir, tmp_path):
     """On KITTI frames the estimate lies in the labelled fit's interval (0.465-0.479); zoomed

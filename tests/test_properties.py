@@ -351,6 +351,7 @@ def test_signed_zero_and_from_dict_of_a_list():
         ReebConfig.from_dict([])
 
 
+@pytest.mark.slow
 @settings(max_examples=10, **SETTINGS)
 @given(changes=st.fixed_dictionaries({}, optional=_RUNNABLE), h=st.integers(6, 120), w=st.integers(6, 160),
        y=st.integers(0, 1000), x=st.integers(0, 1000))

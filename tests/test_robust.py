@@ -29,6 +29,7 @@ def _non_utf8_folder(d: Path, n: int) -> list[str]:
     return sorted(os.listdir(d))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ext", ["jsonl", "parquet"])
 def test_a_file_name_that_is_not_utf8_gets_one_row_and_resumes(tmp_path, ext):
     if ext == "parquet":
@@ -69,6 +70,7 @@ def _parquet_result(path: Path, image: str) -> None:
                                         schema=ParquetWriter.schema()), path)
 
 
+@pytest.mark.slow
 def test_ray_overwrite_takes_the_lock_before_deleting(tmp_path):
     pytest.importorskip("ray")
     pytest.importorskip("pyarrow")
@@ -154,6 +156,7 @@ def test_ctrl_c_while_the_command_is_imported_exits_130_with_one_line(tmp_path, 
     assert r.returncode == 130 and r.stderr == "interrupted\n", (r.returncode, r.stderr)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("when", ["right after the command", "in the exit functions", "as Python shuts down"])
 @pytest.mark.parametrize("rc", [0, 1])
 def test_ctrl_c_after_the_run_has_finished_keeps_its_exit_code(tmp_path, when, rc):
@@ -260,6 +263,7 @@ def test_a_bad_device_on_the_command_line_is_exit_2(tmp_path):
 
 # -- what a folder scan skips is named; a file named on the command line gets its row ---------
 
+@pytest.mark.slow
 def test_skipped_entries_are_named_and_named_files_get_error_rows(tmp_path):
     good_folder(tmp_path / "d", 1)
     (tmp_path / "d" / "broken.png").symlink_to(tmp_path / "nowhere.png")
@@ -311,6 +315,7 @@ def test_export_of_a_broken_parquet_file_does_not_speak_of_resume(tmp_path):
 
 # -- output names: any legal name; a symbolic link writes its target ---------------------------
 
+@pytest.mark.slow
 def test_a_long_legal_output_name_works(tmp_path):
     good_folder(tmp_path / "d", 1)
     name = "p" * 240 + ".jsonl"  # 246 characters: legal, but .NAME.XXXXXXXX.tmp is not
@@ -319,6 +324,7 @@ def test_a_long_legal_output_name_works(tmp_path):
     assert no_temp_files(tmp_path) and not [p for p in tmp_path.iterdir() if p.name.endswith(".reeb-lock")]
 
 
+@pytest.mark.slow
 def test_an_output_symlink_writes_its_target_and_stays_a_link(tmp_path):
     from reeb_torch.runs.output_lock import lock_output
 
@@ -357,6 +363,7 @@ def test_a_config_that_gives_no_proposals_warns_once():
 
 # -- -q is quiet --------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_quiet_drops_the_decoders_own_error_lines(tmp_path):
     good_folder(tmp_path / "d", 1)
     data = (tmp_path / "d" / "frame_000.png").read_bytes()

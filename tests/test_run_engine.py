@@ -285,6 +285,7 @@ def _unreadable(path: Path) -> list[str] | None:
     return drop if r.returncode != 0 else None
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["propose", "detect"])
 def test_odd_files_named_on_the_command_line_get_their_rows(detector, tmp_path, command):
     """A file name with the byte 0xff drawn on a --viz picture (it crashed OpenCV), and a file

@@ -29,6 +29,7 @@ def cache(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("mypy_cache")
 
 
+@pytest.mark.slow
 def test_the_readme_code_type_checks_with_the_types_it_says(cache):
     r = _mypy(HERE / "typing" / "user_code.py", cache)
     assert r.returncode == 0, r.stdout + r.stderr
@@ -42,6 +43,7 @@ def test_mistakes_are_caught_where_they_are(cache):
     assert marked and flagged == marked, r.stdout
 
 
+@pytest.mark.slow
 def test_the_package_type_checks(cache):
     """mypy over the whole package, with the settings in pyproject.toml ([tool.mypy]: numba
     and OpenCV read as Any): no finding."""

@@ -77,6 +77,7 @@ def test_first_call_reports_its_warm_up_apart(sample_image):
     assert switched.compile_s > 0
 
 
+@pytest.mark.slow
 def test_notice_only_while_not_cached(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv(_cache.ENV, str(tmp_path))
     assert _cache.cache_dir() == tmp_path
