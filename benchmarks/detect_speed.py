@@ -19,7 +19,10 @@ model in turn within a pass (a slow spell of a shared machine hits all alike); t
 pass is reported (of an even number, the faster of the middle two).
 
     python benchmarks/detect_speed.py ../shared/data/kitti/images --limit 12 --detector kitti \\
-        --batch 1 8 --threads 1 2 --out docs/results/detector/speed
+        --detector kitti@float32 --batch 1 8 --threads 1 2 --out docs/results/detector/speed
+
+``FILE@float32`` runs a trained detector as a CPU without native bfloat16 does (its backbone
+in float32, the same heads), in the same run as the native path.
 
 Writes ``OUT/speed.txt`` and ``OUT/speed.json`` (per model, batch and threads: ms/img per
 stage, the total, the ratio to each reference, every pass; the machine and its load).
@@ -48,7 +51,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("images", nargs="*", type=Path, default=[REPO_ROOT / "examples" / "data"],
                    help="image files or folders (default: the bundled examples/data)")
     p.add_argument("--detector", action="append", default=[], metavar="FILE",
-                   help="a detector file, or a shipped name such as kitti (repeat for several)")
+                   help="a detector file, or a shipped name such as kitti (repeat for several); FILE@float32: the "
+                        "path a CPU without native bfloat16 gets; FILE@rankR: its box head factorised to rank R")
     p.add_argument("--arm", action="append", default=[], metavar='NAME="OPTIONS"',
                    help="a detector of these reeb detector fit options with untrained heads (repeatable)")
     p.add_argument("--batch", type=int, nargs="+", default=[1, 8], help="batch sizes (default: 1 8)")
@@ -94,6 +98,36 @@ def machine(device: Any) -> dict[str, Any]:
             "load_average": [round(v, 2) for v in os.getloadavg()]}
 
 
+def load_variant(spec: str, device: Any) -> Any:
+    """``FILE[@float32][@rankR]``: the trained detector, loaded as a CPU without native
+    bfloat16 loads it (``@float32``: ``REEB_NATIVE_BF16=0`` while it is built) and/or with its
+    box head factorised to rank R (``@rankR``: :meth:`~reeb_torch.detection.ReebDetector.
+    factorise_box_head`)."""
+    import warnings
+
+    from reeb_torch.detection import ReebDetector
+
+    path, *tags = spec.split("@")
+    before = os.environ.get("REEB_NATIVE_BF16")
+    try:
+        if "float32" in tags:
+            os.environ["REEB_NATIVE_BF16"] = "0"
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the float32 path's notice
+            det = ReebDetector.load(path, device)
+    finally:
+        if before is None:
+            os.environ.pop("REEB_NATIVE_BF16", None)
+        else:
+            os.environ["REEB_NATIVE_BF16"] = before
+    for tag in tags:
+        if tag.startswith("rank"):
+            det.factorise_box_head(int(tag[4:]))
+        elif tag != "float32":
+            raise SystemExit(f"--detector {spec}: unknown variant {tag!r} (float32, rankR)")
+    return det
+
+
 def ours(args: argparse.Namespace, device: Any) -> list[tuple[str, Any]]:
     """``(name, detector)`` of every ``--detector`` and ``--arm``."""
     from detector_paired import fit_options
@@ -104,7 +138,7 @@ def ours(args: argparse.Namespace, device: Any) -> list[tuple[str, Any]]:
 
     out = []
     for spec in args.detector:
-        out.append((Path(spec).name, ReebDetector.load(spec, device)))
+        out.append((Path(spec).name, load_variant(spec, device)))
     for text in args.arm:
         name, _, options = text.partition("=")
         settings = fit_settings(fit_options([Path(".")], options))  # --crop-top auto: none, untrained

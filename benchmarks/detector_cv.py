@@ -108,7 +108,7 @@ def fold_rankers(roots: list[Path], items: list[dict], train_sides: list[list[in
     return [str(p) for p in paths]
 
 
-INFERENCE_ONLY = ("proposals_test", "box_passes")
+INFERENCE_ONLY = ("proposals_test", "box_passes", "box_head_rank")
 """The settings that change detection, not training: arms that differ only in them share
 their fitted heads (kept under ``--work``)."""
 
@@ -129,19 +129,23 @@ def _fold_detector(settings: Any, training: Any, o: dict[str, Any], proposals: s
     key = hashlib.sha256(json.dumps([dataclasses.asdict(trained_as), dataclasses.asdict(training), classes, top_k,
                                      proposals, sorted(side), args.limit]).encode()).hexdigest()[:16]
     kept = args.work / "detectors" / f"{key}.safetensors" if args.work else None
+    full = dataclasses.replace(settings, box_head_rank=0)  # the heads as trained; factorised after (kept whole)
     if kept is not None and kept.is_file():
-        det = ReebDetector(classes, proposals, settings)
+        det = ReebDetector(classes, proposals, full)
         det.model.load_state_dict(read_detector_file(kept)[0], strict=False)
-        return det.eval(), None
-    t0 = time.perf_counter()
-    det = train_detector(ReebDetector, [items[i] for i in side], args.roots, classes=classes, proposals=proposals,
-                         settings=settings, training=training, cache_dir=args.cache, progress=not args.quiet)
-    record = {"fit_s": round(time.perf_counter() - t0, 1), "train_heads_s": round(det.history["train_s"], 1),
-              "steps": det.history["steps"]}
-    if kept is not None:
-        kept.parent.mkdir(parents=True, exist_ok=True)
-        det.save(kept)
-    return det, record
+        record = None
+    else:
+        t0 = time.perf_counter()
+        det = train_detector(ReebDetector, [items[i] for i in side], args.roots, classes=classes, proposals=proposals,
+                             settings=full, training=training, cache_dir=args.cache, progress=not args.quiet)
+        record = {"fit_s": round(time.perf_counter() - t0, 1), "train_heads_s": round(det.history["train_s"], 1),
+                  "steps": det.history["steps"]}
+        if kept is not None:
+            kept.parent.mkdir(parents=True, exist_ok=True)
+            det.save(kept)
+    if settings.box_head_rank:
+        det.factorise_box_head(settings.box_head_rank)
+    return det.eval(), record
 
 
 def run_arm(options: str, seed: int, items: list[dict], blocks: list[list[int]], sides: list[list[int]],

@@ -76,6 +76,10 @@ class DetectorSettings:
         min_size, max_size: the input resize (shorter side; bound on the longer side).
         neck_channels: channels of the neck and the pooled RoI features.
         representation_size: units of each of the box head's two fully connected layers.
+        box_head_rank: 0: the box head's first layer (``neck_channels * 49`` inputs by
+            ``representation_size``, most of the file and of the head's time) in full; R: the
+            trained layer replaced by its rank-R approximation once training ends
+            (:func:`~reeb_torch.detection.lite0_detector.factorise_box_head`).
         precision: the frozen backbone's, ``"bfloat16"`` (the default) or ``"float32"``:
             the heads are trained on the maps it gives, and detection computes them the same
             way where the device computes bfloat16 natively (otherwise in float32, with a
@@ -99,6 +103,7 @@ class DetectorSettings:
     max_size: int = 2048
     neck_channels: int = 128
     representation_size: int = 1024
+    box_head_rank: int = 0
     precision: Literal["float32", "bfloat16"] = "bfloat16"
     crop_top: float = 0.0
     box_passes: int = 2
@@ -136,6 +141,7 @@ SETTINGS_RANGES: dict[str, str | None] = {
     "max_size": "[32, 8192]",
     "neck_channels": "[1, 1024]",
     "representation_size": "[1, 8192]",
+    "box_head_rank": "[0, 8192]",
     "precision": None,
     "crop_top": "[0, 0.9]",
     "box_passes": "[1, 4]",
@@ -260,6 +266,11 @@ class ReebDetector(nn.Module):
     may differ) -> one dict per image: ``boxes`` ``float32 [D, 4]`` xyxy input pixels,
     ``labels`` ``int64 [D]`` (indices into :attr:`categories`), ``scores`` ``float32 [D]``,
     best first. Always in evaluation mode, without gradients.
+
+    Safe to call from several threads. The backbone's maps depend on torch's thread count
+    (its kernels split their sums by thread, and in ``bfloat16`` that shows), so scores from
+    threads sharing the process's threads may differ from a serial run's in their third
+    decimal; the proposals do not.
     """
 
     def __init__(self, classes: Sequence[str] = KITTI_CLASSES, proposals: str = "default",
@@ -285,7 +296,7 @@ class ReebDetector(nn.Module):
         self.model = reeb_fasterrcnn_lite0(
             len(self.categories), proposals="reeb", config=config, weights=weights,
             min_size=s.min_size, max_size=s.max_size, neck_channels=s.neck_channels,
-            representation_size=s.representation_size, precision=self.precision,
+            representation_size=s.representation_size, box_head_rank=s.box_head_rank, precision=self.precision,
             rpn_post_nms_top_n_train=s.proposals_train, rpn_post_nms_top_n_test=s.proposals_test,
             box_batch_size_per_image=s.rois, box_score_thresh=s.score_thresh, box_nms_thresh=s.nms_thresh,
             box_detections_per_img=s.detections_per_img)
@@ -320,6 +331,24 @@ class ReebDetector(nn.Module):
         for im in images:
             _check_image(im)
         return detect_images(self.model, list(images), self.settings.crop_top, self.clock, self.settings.box_passes)
+
+    def factorise_box_head(self, rank: int) -> "ReebDetector":
+        """Replace the trained box head's first layer by its rank-``rank`` approximation, in
+        place (:func:`~reeb_torch.detection.lite0_detector.factorise_box_head`): a smaller file
+        and a faster head, with detections close to the full layer's; ``settings.box_head_rank``
+        records it. Returns ``self``.
+
+        Raises:
+            ValueError: ``rank`` below 1, or the layer is factorised already.
+        """
+        from .lite0_detector import factorise_box_head
+
+        if rank < 1:
+            raise ValueError(f"rank must be at least 1, got {rank}")
+        factorise_box_head(self.model, rank)
+        fc6 = self.model.roi_heads.box_head.fc6
+        self.settings = dataclasses.replace(self.settings, box_head_rank=getattr(fc6, "rank", 0))
+        return self
 
     # -- file -------------------------------------------------------------------------------
     def metadata(self) -> dict[str, Any]:

@@ -294,7 +294,8 @@ def train_detector(cls: type, items: Sequence[dict], folders: Sequence[str | os.
     (:class:`~reeb_torch.ranker.store.Checkpoints`, keyed by the settings and the frames'
     digests: a state of another fit is not read)."""
     torch.manual_seed(training.seed)  # the heads' initial weights
-    det = cls(classes, proposals, settings)
+    rank = settings.box_head_rank  # trained in full, factorised once trained
+    det = cls(classes, proposals, dataclasses.replace(settings, box_head_rank=0))
     if det.precision != settings.precision:  # bfloat16 asked for where it is not native: trained in float32
         det.settings = dataclasses.replace(settings, precision=det.precision)
     mirrors = [mirrored(it) for it in items] if training.hflip else []
@@ -315,6 +316,8 @@ def train_detector(cls: type, items: Sequence[dict], folders: Sequence[str | os.
         history = train_heads(det.model, train, training, progress=progress, checkpoint=slot)
     finally:
         det.model.rpn.cache = None  # new images: REEB runs on them
+    if rank:
+        det.factorise_box_head(rank)
     det.meta = {"provenance": _provenance(items, folders, training, history, det.classes, command)}
     det.history = history
     return det.eval()

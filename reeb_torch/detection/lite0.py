@@ -205,11 +205,14 @@ class _FoldedBlock(nn.Module):
 def native_bfloat16(device: str | torch.device = "cpu") -> bool:
     """Whether ``device`` computes bfloat16 convolutions natively: a CPU with AVX512-BF16 or
     AMX-BF16 (x86) or BF16 (Arm) (:func:`torch.cpu.get_capabilities`), a CUDA GPU that
-    supports bfloat16. Elsewhere bfloat16 is emulated and slower than float32."""
+    supports bfloat16. Elsewhere bfloat16 is emulated and slower than float32.
+
+    ``REEB_NATIVE_BF16=0`` in the environment says no for every CPU: a detector then chooses
+    its path as on a CPU without native bfloat16 (to measure that path on any machine)."""
     dev = torch.device(device)
     if dev.type == "cuda":
         return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
-    if dev.type != "cpu":
+    if dev.type != "cpu" or os.environ.get("REEB_NATIVE_BF16", "").strip() == "0":
         return False
     caps = torch.cpu.get_capabilities()
     return bool(caps.get("avx512_bf16") or caps.get("amx_bf16") or caps.get("bf16") or caps.get("sve_bf16"))

@@ -45,7 +45,7 @@ def detector() -> None:
 SETTINGS_OPTIONS = {"min_size": "min_size", "max_size": "max_size", "train_proposals": "proposals_train",
                     "test_proposals": "proposals_test", "precision": "precision", "crop_top": "crop_top",
                     "neck_channels": "neck_channels", "head_width": "representation_size",
-                    "box_passes": "box_passes"}
+                    "box_passes": "box_passes", "box_head_rank": "box_head_rank"}
 """``reeb detector fit``'s options that set :class:`~reeb_torch.detection.DetectorSettings`
 fields: option parameter -> field."""
 
@@ -105,6 +105,9 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
               help="Channels of the neck and of the pooled RoI features.")
 @click.option("--head-width", type=SettingRange("representation_size"), default=1024, show_default=True,
               help="Units of each of the box head's two layers.")
+@click.option("--box-head-rank", type=SettingRange("box_head_rank"), default=0, show_default=True,
+              help="0: the box head's first layer in full; R: replaced once trained by its rank-R approximation "
+                   "(a smaller file and a faster head; docs/results.md, \"A smaller box head\").")
 @click.option("--box-passes", type=SettingRange("box_passes"), default=2, show_default=True,
               help="The box head's passes in detection: each after the first pools the boxes the last one "
                    "regressed and averages its class scores in.")
@@ -116,8 +119,8 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
                 "pip install 'reeb-torch[ray]').", "--engine ray: actors, each holding one detector.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
 def fit(dirs, out, overwrite, proposals, classes, epochs, steps, seed, val, hflip, min_size, max_size, train_proposals,
-        test_proposals, precision, crop_top, neck_channels, head_width, box_passes, cache_dir, limit, engine, address,
-        actors, cpus_per_actor, quiet):
+        test_proposals, precision, crop_top, neck_channels, head_width, box_head_rank, box_passes, cache_dir, limit, engine,
+        address, actors, cpus_per_actor, quiet):
     """Train a detector on labelled KITTI-format folders (DIRS: images/ and labels/, or image_2/ and
     label_2/) and write it to OUT. The backbone's maps and REEB's proposals of each frame are
     cached, so a second fit on the same frames trains at once. Deterministic for a seed.
