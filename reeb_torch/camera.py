@@ -162,7 +162,10 @@ class Camera:
         if key not in calib:
             what = " (the left colour camera)" if key == "P2" else ""
             raise ValueError(f"{path}: no {key} matrix{what} in this calib file")
-        return cls.from_matrix(calib[key])
+        try:
+            return cls.from_matrix(calib[key])
+        except ValueError as e:  # a focal length of 0, a principal point of nan: name the file
+            raise ValueError(f"{path}: its {key} gives no camera ({e})") from None
 
     def fov_deg(self, width: int, height: int) -> tuple[float, float]:
         """Horizontal and vertical opening angles in degrees for a ``width × height``

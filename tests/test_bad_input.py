@@ -161,3 +161,11 @@ def test_a_dead_runs_lock_is_swept_by_the_next_run_in_its_folder(tmp_path):
     finally:
         live.release()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["not-ours.lock"]
+
+
+def test_a_calib_file_with_a_zero_focal_length_names_the_file(tmp_path):
+    calib = tmp_path / "cam.txt"
+    calib.write_text("P2: 721.5 0 609.6 44.9 0 0 172.9 0.2 0 0 1 0.003\n")  # fy = 0
+    res = CliRunner().invoke(main, ["calibrate", "--calib", str(calib), "--height", "375", "-o",
+                                    str(tmp_path / "c.json")])
+    _one_line(res, "cam.txt", "fy=0")
