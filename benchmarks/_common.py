@@ -119,8 +119,8 @@ def timed(fn: Callable[[], Any]) -> tuple[Any, float]:
 
 def paired_ratios(base: Sequence[float], this: Sequence[float]) -> tuple[list[float], int, int, float]:
     """Each pair's ratio ``this / base``, the pairs where ``this`` is faster and slower, and
-    the exact sign-test p of those counts (:func:`reeb_torch.eval.metrics.sign_test`)."""
-    from reeb_torch.eval.metrics import sign_test
+    the exact sign-test p of those counts (:func:`reeb_torch.metrics.recall.sign_test`)."""
+    from reeb_torch.metrics.recall import sign_test
 
     ratios = [t / b for b, t in zip(base, this)]
     faster, slower = sum(r < 1 for r in ratios), sum(r > 1 for r in ratios)

@@ -15,10 +15,10 @@ Each row is also paired with the default (or the ``--reference`` row: on the dev
 whose objects the default's ranking model was fitted on, ``--reference training-free``) on
 the same objects (R@2000, IoU 0.7): ``+g/-l``
 counts the objects it finds that the default misses and the other way round, and ``p`` is
-the two-sided exact sign test of that split (:func:`reeb_torch.eval.metrics.compare_recall`).
+the two-sided exact sign test of that split (:func:`reeb_torch.metrics.recall.compare_recall`).
 On the 106 dev frames a difference of a few objects is p ≈ 0.3-1: not a finding. The default's
 row gives its recall's 95 % frame-bootstrap interval instead
-(:func:`reeb_torch.eval.metrics.recall_interval`).
+(:func:`reeb_torch.metrics.recall.recall_interval`).
 
 ``--variant "FIELD=VALUE;FIELD=VALUE"`` (repeatable; fields and values as ``reeb propose
 --set``) adds a row for any setting of the default: with it, only the default and these
@@ -47,7 +47,7 @@ from reeb_torch import ProposalGenerator, ReebConfig  # noqa: E402
 from _common import add_data_option, add_frames_option  # noqa: E402
 from reeb_torch.eval.common import first_few, folder_splits, load_folders  # noqa: E402
 from reeb_torch.eval.table3 import moderate_masks  # noqa: E402
-from reeb_torch.eval.metrics import (  # noqa: E402
+from reeb_torch.metrics.recall import (  # noqa: E402
     average_recall,
     compare_recall,
     object_hits,

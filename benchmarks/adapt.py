@@ -45,7 +45,7 @@ from reeb_torch import ReebConfig  # noqa: E402
 from reeb_torch.eval import fit as F  # noqa: E402
 from reeb_torch.ranker import fit as RF  # noqa: E402
 from reeb_torch.eval import fit_cv  # noqa: E402
-from reeb_torch.eval.metrics import object_hits, sign_test  # noqa: E402
+from reeb_torch.metrics.recall import object_hits, sign_test  # noqa: E402
 from reeb_torch.eval.tune import FrameCache  # noqa: E402
 from reeb_torch.ranker import save_ranker  # noqa: E402
 

@@ -15,7 +15,7 @@ import json
 
 from reeb_torch import ReebConfig
 from reeb_torch.eval import tune as T
-from reeb_torch.eval.metrics import compare_recall
+from reeb_torch.metrics.recall import compare_recall
 
 
 def _parse(text: str) -> tuple[str, dict]:

@@ -28,7 +28,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import environment, rerun_line, write_outputs  # noqa: E402
 
-from reeb_torch.eval.metrics import compare_recall, object_hits, recall_interval  # noqa: E402
+from reeb_torch.metrics.recall import compare_recall, object_hits, recall_interval  # noqa: E402
 from reeb_torch.eval.methods import CONFIGURED, METHODS, Table3Options  # noqa: E402
 from reeb_torch.eval.table3 import load_frames, run_method  # noqa: E402
 from reeb_torch.runs.common import build_config  # noqa: E402

@@ -35,7 +35,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import rerun_line  # noqa: E402
 
-from reeb_torch.eval.data import KittiDataset  # noqa: E402
+from reeb_torch.datasets.kitti import KittiDataset  # noqa: E402
 
 __all__ = ["Transform", "window", "move_label_line", "move_calib", "transform_folder", "main"]
 

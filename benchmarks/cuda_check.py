@@ -65,7 +65,7 @@ def boxes_agree(images: list[torch.Tensor], gts: list[torch.Tensor], device: str
     from torchvision.ops import box_iou
 
     from reeb_torch import ProposalGenerator, get_preset
-    from reeb_torch.eval.metrics import object_hits
+    from reeb_torch.metrics.recall import object_hits
 
     out = {}
     for name in PRESETS:

@@ -49,7 +49,7 @@ from reeb_torch import ReebConfig, get_preset  # noqa: E402
 from reeb_torch.eval import fit as F  # noqa: E402
 from reeb_torch.ranker import fit as RF  # noqa: E402
 from reeb_torch.eval import fit_cv  # noqa: E402
-from reeb_torch.eval.metrics import compare_recall, sign_test  # noqa: E402
+from reeb_torch.metrics.recall import compare_recall, sign_test  # noqa: E402
 from reeb_torch.eval.tune import FrameCache, bootstrap_interval  # noqa: E402
 from reeb_torch.ranker import NOT_SEEN_BY_RANKER  # noqa: E402
 from reeb_torch.runs.common import build_config  # noqa: E402

@@ -3,7 +3,7 @@
 For each source named in ``--proposals`` this trains a Faster R-CNN on a frozen, pretrained
 EfficientNet-Lite0 (:func:`reeb_torch.detection.reeb_fasterrcnn_lite0`; the ``detect``
 extra) on the ``--train`` folders and scores it on the ``--test`` folders with KITTI's 2D
-AP|R40 (moderate; IoU 0.7 Car, 0.5 Pedestrian and Cyclist; :mod:`reeb_torch.eval.kitti_ap`)
+AP|R40 (moderate; IoU 0.7 Car, 0.5 Pedestrian and Cyclist; :mod:`reeb_torch.metrics.kitti_ap`)
 and frame-bootstrap intervals. Sources: ``reeb`` (``ProposalGenerator()``, the package
 default), ``training-free`` (the preset of that name, when it exists), ``edgeboxes``,
 ``selective-search`` (OpenCV contrib) and ``rpn`` (a learned RPN on the same features, the
@@ -143,7 +143,7 @@ def test_proposals(model: torch.nn.Module, frames: list) -> tuple[list, list]:
 
 def proposal_recall(proposals: list, items: list[dict]) -> dict[str, float]:
     """Recall at IoU 0.7 and 0.5 of the test proposals, over the KITTI-moderate objects."""
-    from reeb_torch.eval.metrics import kitti_difficulty_mask, recall_table, select_objects
+    from reeb_torch.metrics.recall import kitti_difficulty_mask, recall_table, select_objects
 
     masks = [kitti_difficulty_mask(it["boxes"], it["occluded"], it["truncated"]) for it in items]
     gts, _ = select_objects([it["boxes"] for it in items], None, masks)
@@ -154,7 +154,7 @@ def proposal_recall(proposals: list, items: list[dict]) -> dict[str, float]:
 
 def score(detections: list, items: list[dict], samples: int, seed: int) -> dict[str, Any]:
     """AP|R40 (percent) per class and mAP, and their bootstrap intervals."""
-    from reeb_torch.eval import kitti_ap
+    from reeb_torch.metrics import kitti_ap
 
     dets = [{**d, "labels": d["labels"] - 1} for d in detections]
     stats = kitti_ap.evaluate([it["objects"] for it in items], dets, CLASSES)

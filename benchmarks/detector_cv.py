@@ -9,10 +9,10 @@ training frames (``reeb fit``'s defaults; kept per fold under ``--work``), unles
 for ``--proposals training-free``: no frame is scored by a ranking or a detector that saw it.
 
 Every frame is thus scored once per arm and seed, by detectors that never saw its drive, and
-KITTI's 2D AP|R40 (moderate; :mod:`reeb_torch.eval.kitti_ap`) is computed over all of them
+KITTI's 2D AP|R40 (moderate; :mod:`reeb_torch.metrics.kitti_ap`) is computed over all of them
 together. The first arm is A; every other arm is B against it: each arm's AP (mean over
 ``--seeds``) with its frame-bootstrap interval, and the paired bootstrap's B − A
-(:func:`~reeb_torch.eval.kitti_ap.paired_bootstrap`: the same frames drawn for both arms),
+(:func:`~reeb_torch.metrics.kitti_ap.paired_bootstrap`: the same frames drawn for both arms),
 over all frames and per folder.
 
     python benchmarks/detector_cv.py ../shared/data/kitti ../shared/data/kitti_tracking --folds 5 \\
@@ -196,7 +196,7 @@ def _subset(stats: dict[str, list], frames: list[int]) -> dict[str, list]:
 
 def main(argv: list[str] | None = None) -> int:
     from reeb_torch.detection import format_paired, load_frames, paired_scores
-    from reeb_torch.eval import kitti_ap
+    from reeb_torch.metrics import kitti_ap
 
     args = parse_args(argv)
     classes = {tuple(c.strip() for c in fit_options(args.roots, o)["classes"].split(",")) for _, o in args.arm}

@@ -3,9 +3,9 @@
 Each ``--arm NAME="OPTIONS"`` is a ``reeb detector fit`` with those options (as the command
 takes them: ``--min-size 384``, ``--test-proposals 2000``, ``--hflip``, ``--proposals FILE``,
 ...), trained on the ``--train`` folders with the same seed, then scored on the ``--val``
-folders with KITTI's 2D AP|R40 (moderate; :mod:`reeb_torch.eval.kitti_ap`). The first arm is
+folders with KITTI's 2D AP|R40 (moderate; :mod:`reeb_torch.metrics.kitti_ap`). The first arm is
 A; every other arm is B against it: each arm's AP per class and mAP with its frame-bootstrap
-interval, and :func:`~reeb_torch.eval.kitti_ap.paired_bootstrap`'s B - A (the same frames
+interval, and :func:`~reeb_torch.metrics.kitti_ap.paired_bootstrap`'s B - A (the same frames
 drawn for both arms), its 95 % interval and the share of draws where B wins. With ``--seeds`` every arm is fitted once per
 seed and an arm's AP is its mean over them, on every draw as on all frames.
 
@@ -141,7 +141,7 @@ def fit_arm(stem: str, options: str, args: argparse.Namespace) -> tuple[Any, dic
 
 def _mean_scores(runs: list[dict[str, Any]], stats: list[Any], samples: int, seed: int) -> dict[str, Any]:
     """An arm's AP (mean over its seeds) with the frame-bootstrap interval of that mean."""
-    from reeb_torch.eval.kitti_ap import bootstrap, kitti_ap
+    from reeb_torch.metrics.kitti_ap import bootstrap, kitti_ap
 
     def pct(v: float) -> float | None:
         return None if math.isnan(v) else round(100 * v, 2)
@@ -174,7 +174,7 @@ def _arm_lines(name: str, a: dict[str, Any], args: argparse.Namespace) -> list[s
 
 def main(argv: list[str] | None = None) -> int:
     from reeb_torch.detection import detector_stats, format_paired, paired_scores, scores_of
-    from reeb_torch.eval.kitti_ap import kitti_ap, paired_bootstrap
+    from reeb_torch.metrics.kitti_ap import kitti_ap, paired_bootstrap
 
     args = parse_args(argv)
     arms: dict[str, dict[str, Any]] = {}

@@ -40,7 +40,7 @@ from reeb_torch import ProposalGenerator  # noqa: E402
 from reeb_torch.runs.common import build_config  # noqa: E402
 from _common import add_data_option, add_frames_option  # noqa: E402
 from reeb_torch.eval.common import folder_splits, load_folders  # noqa: E402
-from reeb_torch.eval.metrics import kitti_difficulty_mask  # noqa: E402
+from reeb_torch.metrics.recall import kitti_difficulty_mask  # noqa: E402
 from reeb_torch.stages.nms import nms_top_k  # noqa: E402
 from reeb_torch.runs.viz import crop_sheet, save_png  # noqa: E402
 

@@ -155,7 +155,7 @@ def folder_features(folder: Path, cache: Path) -> dict:
     if cache.exists():
         return json.loads(cache.read_text(encoding="utf-8"))
     from reeb_torch import read_image
-    from reeb_torch.eval.data import KittiDataset
+    from reeb_torch.datasets.kitti import KittiDataset
 
     ds = KittiDataset(folder)
     t0 = time.perf_counter()

@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--reps", type=int, default=20)
     ap.add_argument("--preset", default="default")
     args = ap.parse_args(argv)
-    from reeb_torch.eval.data import KittiDataset
+    from reeb_torch.datasets.kitti import KittiDataset
     from reeb_torch.io import read_image
 
     print("# rerun:", rerun_line("benchmarks/kernel_ab.py", argv if argv is not None else sys.argv[1:]))

@@ -9,7 +9,7 @@ training set, the rest (or the next ``--val-frames``) the validation set. Every
 - detection AP per class at IoU 0.5 and mAP@[0.5:0.95] (torchmetrics'
   ``MeanAveragePrecision``, pycocotools backend), with ``--proposals-test`` proposals;
 - the recall of the proposal stage at ``--recall-ks`` proposals and IoU 0.5 / 0.7
-  (:func:`reeb_torch.eval.metrics.recall_table`), in the pixels of the input images.
+  (:func:`reeb_torch.metrics.recall.recall_table`), in the pixels of the input images.
 
 REEB's proposals are computed once into ``--cache`` (default ``OUT/reeb_cache.pt``;
 reused when still valid, see :mod:`reeb_torch.detection.cache`) and read from it during
@@ -40,9 +40,9 @@ from torchvision.models.detection.transform import resize_boxes
 from tqdm import tqdm
 
 from reeb_torch import ReebConfig, get_preset
-from reeb_torch.eval.data import KittiDataset
+from reeb_torch.datasets.kitti import KittiDataset
 from reeb_torch.detection import ReebRPN, build_cache, reeb_fasterrcnn_mobilenet_v3
-from reeb_torch.eval.metrics import recall_table
+from reeb_torch.metrics.recall import recall_table
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

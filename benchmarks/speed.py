@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_kitti_dir, environment, rerun_line, settings_config  # noqa: E402
 
 from reeb_torch import ProposalGenerator, ReebConfig, get_preset  # noqa: E402
-from reeb_torch.eval.data import KittiDataset  # noqa: E402
+from reeb_torch.datasets.kitti import KittiDataset  # noqa: E402
 from reeb_torch.io import read_image  # noqa: E402
 
 STAGES = [

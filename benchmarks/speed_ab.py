@@ -56,7 +56,7 @@ def summarise(pairs: list[tuple[dict[str, float], dict[str, float]]]) -> dict[st
 def _child(data: str, preset: str, batches: list[int], passes: int, limit: int | None, kind: str) -> None:
     """One run (in a process of its own, with the version under test first on the path)."""
     from reeb_torch import ProposalGenerator, get_preset
-    from reeb_torch.eval.data import KittiDataset
+    from reeb_torch.datasets.kitti import KittiDataset
     from reeb_torch.io import read_image
 
     paths = KittiDataset(data).image_paths[:limit]

@@ -1,7 +1,7 @@
 """The camera: KITTI calibration files and pinhole intrinsics.
 
 Used by :meth:`reeb_torch.ReebConfig.with_kitti_calib` (opening angles from ``P2``) and by
-the KITTI reader (:class:`reeb_torch.eval.data.KittiDataset` returns each frame's calib). It
+the KITTI reader (:class:`reeb_torch.datasets.kitti.KittiDataset` returns each frame's calib). It
 depends on nothing else in the package, so the config can use it without the dataset.
 
 A KITTI ``calib`` file has lines ``KEY: v1 v2 ...``; ``P2`` is the 3×4 projection matrix of

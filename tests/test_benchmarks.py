@@ -276,7 +276,7 @@ def test_selection_variants_script_prints_paired_rows(variants_mod, tmp_path, ca
 
 
 def test_speed_ab_pairs_runs_and_gives_the_exact_sign_test():
-    from reeb_torch.eval.metrics import sign_test
+    from reeb_torch.metrics.recall import sign_test
 
     ab = _script("speed_ab")
     assert sign_test(6, 0) == pytest.approx(2 / 64)  # all six pairs one way: p = 0.031

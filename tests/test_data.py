@@ -1,4 +1,4 @@
-"""Tests of reeb_torch.eval.data: KITTI readers and dataset, on synthetic folders and real files."""
+"""Tests of reeb_torch.datasets.kitti: KITTI readers and dataset, on synthetic folders and real files."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import torch
 
 from conftest import DATA
 from reeb_torch.camera import camera_intrinsics, read_kitti_calib
-from reeb_torch.eval.data import (
+from reeb_torch.datasets.kitti import (
     DEFAULT_CLASSES,
     KittiDataset,
     collate_keep_sizes,
@@ -277,7 +277,7 @@ def test_real_kitti_folder():
 
 def test_camera_module_is_the_one_home_of_the_readers():
     from reeb_torch import camera
-    from reeb_torch.eval import data
+    from reeb_torch.datasets import kitti as data
 
     assert "read_kitti_calib" in camera.__all__ and "camera_intrinsics" in camera.__all__
     assert "read_kitti_calib" not in data.__all__ and "camera_intrinsics" not in data.__all__

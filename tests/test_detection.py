@@ -21,7 +21,7 @@ from torchvision.models.detection import FasterRCNN, MaskRCNN
 from torchvision.models.detection.anchor_utils import AnchorGenerator
 
 from reeb_torch import ReebConfig
-from reeb_torch.eval.data import read_kitti_labels
+from reeb_torch.datasets.kitti import read_kitti_labels
 from reeb_torch.detection import (
     CACHE_FORMAT,
     ProposalCache,

@@ -27,7 +27,7 @@ from reeb_torch.detection import (  # noqa: E402
     result_lines,
     write_results,
 )
-from reeb_torch.eval.data import read_kitti_labels  # noqa: E402
+from reeb_torch.datasets.kitti import read_kitti_labels  # noqa: E402
 from reeb_torch.io import read_image  # noqa: E402
 from reeb_torch.runs.cli import main  # noqa: E402
 

@@ -1,4 +1,4 @@
-"""The paired frame bootstrap of two detectors' KITTI AP (reeb_torch.eval.kitti_ap.paired_bootstrap)
+"""The paired frame bootstrap of two detectors' KITTI AP (reeb_torch.metrics.kitti_ap.paired_bootstrap)
 and its report (reeb_torch.detection.paired_scores / format_paired).
 
 References: two identical arms (a difference of exactly 0 on every draw, B winning half the
@@ -22,8 +22,8 @@ import pytest
 import torch
 
 from reeb_torch.detection import format_paired, paired_scores
-from reeb_torch.eval.data import KittiObject
-from reeb_torch.eval.kitti_ap import bootstrap, evaluate, paired_bootstrap
+from reeb_torch.datasets.kitti import KittiObject
+from reeb_torch.metrics.kitti_ap import bootstrap, evaluate, paired_bootstrap
 from test_benchmarks import _script
 
 CLASSES = ("Car", "Pedestrian")

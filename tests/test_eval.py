@@ -152,7 +152,7 @@ def test_table3_on_bundled_frames(tmp_path, monkeypatch, layout):
     assert sum(moderate.values()) == 5  # frame 1: the truck; frame 8: 4 of 6 cars
 
     # the recalls, another way: plain IoU loops over the captured proposals
-    from reeb_torch.eval.data import KittiDataset
+    from reeb_torch.datasets.kitti import KittiDataset
 
     ds = KittiDataset(data)
     boxes = captured["reeb-default"]

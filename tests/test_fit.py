@@ -287,7 +287,7 @@ def test_held_out_outputs_are_the_cross_validated_models(kitti_dir):
     import dataclasses
 
     from reeb_torch import ReebConfig
-    from reeb_torch.eval.metrics import object_hits
+    from reeb_torch.metrics.recall import object_hits
     from reeb_torch.eval.tune import FrameCache
 
     frames = F.load_fit_frames([str(kitti_dir)], limit=6)
@@ -362,7 +362,7 @@ def test_reeb_fit_on_two_folders_reports_a_model_fitted_on_the_other(kitti_dir, 
     """Frames of several folders: a row ranked, on each folder, by a model fitted on the
     others (the blocks of held_out_outputs), paired with training-free; one folder: none."""
     from reeb_torch import ReebConfig
-    from reeb_torch.eval.metrics import object_hits
+    from reeb_torch.metrics.recall import object_hits
     from reeb_torch.eval.tune import FrameCache
     from reeb_torch.runs.fit import run_fit
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from reeb_torch.eval.data import KittiDataset, box_problem, read_kitti_labels
+from reeb_torch.datasets.kitti import KittiDataset, box_problem, read_kitti_labels
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLES = REPO / "examples" / "data"

@@ -140,7 +140,7 @@ def test_the_camera_transform_moves_pixels_labels_and_calibration_together(tmp_p
     sw, sh, x0, y0, ow, oh = ct.window(t, 1242, 375)
     assert abs((0.47 * 375 * 1.33 - y0) / oh - 0.41) < 0.003
     from reeb_torch.camera import Camera
-    from reeb_torch.eval.data import read_kitti_labels
+    from reeb_torch.datasets.kitti import read_kitti_labels
 
     before = Camera.from_kitti_calib(src / "calib" / "000001.txt")
     after = Camera.from_kitti_calib(tmp_path / "dst" / "calib" / "000001.txt")
@@ -160,7 +160,7 @@ def test_kitti_frames_moved_by_the_transform_move_the_estimate_with_them(kitti_d
     by 1.33 with the horizon moved to 0.41 and cropped to 0.55, it moves with them."""
     ct = _transform()
     from reeb_torch import read_image
-    from reeb_torch.eval.data import KittiDataset
+    from reeb_torch.datasets.kitti import KittiDataset
 
     ids = KittiDataset(kitti_dir).ids[:24]
     src = tmp_path / "src"

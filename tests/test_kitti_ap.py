@@ -1,4 +1,4 @@
-"""KITTI's 2D AP|R40 (reeb_torch.eval.kitti_ap) against hand-worked examples and, where the
+"""KITTI's 2D AP|R40 (reeb_torch.metrics.kitti_ap) against hand-worked examples and, where the
 two protocols must agree, torchmetrics' COCO-style AP on the same boxes."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from reeb_torch.eval.data import KittiObject
-from reeb_torch.eval.kitti_ap import (
+from reeb_torch.datasets.kitti import KittiObject
+from reeb_torch.metrics.kitti_ap import (
     average_precision,
     bootstrap,
     evaluate,

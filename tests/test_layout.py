@@ -2,9 +2,10 @@
 stages import only stages, the algorithm imports none of the runs, the evaluation or the
 detectors, the libraries of runs/ do not import the command, and there is one import path
 per name (no compatibility modules). Modules, classes and functions stay under their caps;
-the learned ranking has one home (``reeb_torch/ranker/``); click is the one command-line
-framework; the package reads no data beside the checkout; and the repository speaks of the
-product, not of the work that made it.
+the detectors, the KITTI reader and the measures import none of the evaluation; the learned
+ranking has one home (``reeb_torch/ranker/``); click is the one command-line framework; the
+package reads no data beside the checkout; and the repository speaks of the product, not of
+the work that made it.
 
 Imports are read from the source (``ast``), module-level and inside functions alike."""
 
@@ -132,6 +133,15 @@ def test_the_evaluation_imports_no_runs(graph):
             assert not wrong, f"{m} reaches {wrong}"
 
 
+def test_the_detector_data_and_metrics_stand_apart_from_the_evaluation(graph):
+    """The product's parts (the detectors, the KITTI reader, the measures) import nothing of
+    the evaluation lab (``reeb_torch.eval``), which may import them."""
+    for m in graph:
+        if m.startswith(("reeb_torch.detection", "reeb_torch.datasets", "reeb_torch.metrics")):
+            wrong = {d for d in _reach(graph, m) if d.startswith("reeb_torch.eval")}
+            assert not wrong, f"{m} reaches {wrong}"
+
+
 def test_functions_are_short():
     """No function over :data:`MAX_FUNCTION_LINES` lines (def to end) but the ones named, with their reasons."""
     long = set()
@@ -150,7 +160,7 @@ def test_no_compatibility_shims():
 
     for shim in ("cli", "data", "distributed", "metrics"):
         assert not (PACKAGE / f"{shim}.py").exists(), f"reeb_torch/{shim}.py is back"
-    from reeb_torch.eval import data as eval_data
+    from reeb_torch.datasets import kitti as eval_data
 
     assert not {"read_kitti_calib", "camera_intrinsics"} & set(eval_data.__all__)
     for name in reeb_torch.__all__:

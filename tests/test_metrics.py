@@ -1,4 +1,4 @@
-"""Tests of reeb_torch.eval.metrics against hand-worked cases and a brute-force loop."""
+"""Tests of reeb_torch.metrics.recall against hand-worked cases and a brute-force loop."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from reeb_torch.eval.metrics import (
+from reeb_torch.metrics.recall import (
     AR_IOUS,
     KITTI_DIFFICULTIES,
     KittiDifficulty,

@@ -15,8 +15,8 @@ from __future__ import annotations
 import pytest
 
 from reeb_torch import ProposalGenerator, get_preset
-from reeb_torch.eval.data import KittiDataset
-from reeb_torch.eval.metrics import recall_table
+from reeb_torch.datasets.kitti import KittiDataset
+from reeb_torch.metrics.recall import recall_table
 
 
 @pytest.fixture(scope="module")

@@ -24,7 +24,7 @@ def small_kitti(kitti_dir, tmp_path_factory):
     """Four KITTI frames cut to 400 × 200 px around their objects (fast), in KITTI's layout."""
     from PIL import Image
 
-    from reeb_torch.eval.data import read_kitti_labels
+    from reeb_torch.datasets.kitti import read_kitti_labels
 
     root = tmp_path_factory.mktemp("small_kitti")
     (root / "images").mkdir()
@@ -92,7 +92,7 @@ def _random_frames(n: int, seed: int) -> tuple[list[torch.Tensor], list[torch.Te
 def test_bootstrap_interval_is_recall_interval():
     """reeb fit's and reeb tune's interval of micro recall is Table 3's, to the last bit, for
     any seed and number of draws (the same frames left out, the same draws)."""
-    from reeb_torch.eval.metrics import recall_interval
+    from reeb_torch.metrics.recall import recall_interval
 
     hits, labels = _random_frames(60, 0)
     assert T.bootstrap_interval(hits, labels) == recall_interval(hits)
@@ -106,7 +106,7 @@ def test_bootstrap_interval_is_recall_interval():
 def test_balanced_interval_uses_recall_intervals_draws():
     """The class-balanced interval is taken on recall_interval's draws: with one class it is the
     micro interval exactly, and with several it is the mean class recall on those very draws."""
-    from reeb_torch.eval.metrics import recall_interval
+    from reeb_torch.metrics.recall import recall_interval
 
     hits, labels = _random_frames(60, 1)
     one = [torch.zeros_like(lab) for lab in labels]

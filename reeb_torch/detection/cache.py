@@ -275,7 +275,7 @@ def build_cache(
     Args:
         dataset: items with ``image`` (``3×H×W`` uint8 or float in [0, 1]) and ``image_id``
             (any value; stored as ``str``), optionally ``path``, as
-            :class:`reeb_torch.eval.data.KittiDataset` yields.
+            :class:`reeb_torch.datasets.kitti.KittiDataset` yields.
         path: cache file; when it exists and was built with the same config and version,
             its entries whose image is unchanged are kept and only the rest is computed.
             ``None``: nothing is written.

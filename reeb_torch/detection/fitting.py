@@ -11,7 +11,7 @@ respected)::
 so a second fit on the same frames (another seed, more epochs) skips both, then trains the
 neck and box head over the cached maps (:func:`~reeb_torch.detection.train_heads`):
 deterministic for a seed. :func:`evaluate_detector` scores a detector on other labelled
-frames with KITTI's 2D AP|R40 (moderate; :mod:`reeb_torch.eval.kitti_ap`) and
+frames with KITTI's 2D AP|R40 (moderate; :mod:`reeb_torch.metrics.kitti_ap`) and
 frame-bootstrap intervals.
 """
 
@@ -329,15 +329,15 @@ def detector_stats(det: Any, folders: Sequence[str | os.PathLike], *, limit: int
 
     Returns:
         ``(items, stats)``: the frames (:func:`~reeb_torch.detection.kitti.load_frames`, in
-        order) and :func:`reeb_torch.eval.kitti_ap.evaluate`'s per-class, per-frame counts
-        (moderate), which :func:`~reeb_torch.eval.kitti_ap.kitti_ap`,
-        :func:`~reeb_torch.eval.kitti_ap.bootstrap` and
-        :func:`~reeb_torch.eval.kitti_ap.paired_bootstrap` take.
+        order) and :func:`reeb_torch.metrics.kitti_ap.evaluate`'s per-class, per-frame counts
+        (moderate), which :func:`~reeb_torch.metrics.kitti_ap.kitti_ap`,
+        :func:`~reeb_torch.metrics.kitti_ap.bootstrap` and
+        :func:`~reeb_torch.metrics.kitti_ap.paired_bootstrap` take.
 
     Raises:
         ValueError: a class KITTI's evaluation has no overlap threshold for.
     """
-    from ..eval import kitti_ap
+    from ..metrics import kitti_ap
 
     items = load_frames(folders, det.classes, limit)
     try:
@@ -372,7 +372,7 @@ def evaluate_detector(det: Any, folders: Sequence[str | os.PathLike], *, limit: 
 
 def scores_of(det: Any, items: Sequence[dict], stats: dict, samples: int = 1000, seed: int = 0) -> dict[str, Any]:
     """:func:`evaluate_detector`'s result from :func:`detector_stats`' ``(items, stats)``."""
-    from ..eval import kitti_ap
+    from ..metrics import kitti_ap
 
     ap = kitti_ap.kitti_ap(stats)
     interval = kitti_ap.bootstrap(stats, samples=samples, seed=seed)
@@ -384,7 +384,7 @@ def scores_of(det: Any, items: Sequence[dict], stats: dict, samples: int = 1000,
 
 
 def paired_scores(result: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """:func:`~reeb_torch.eval.kitti_ap.paired_bootstrap`'s result in percent, as JSON takes it:
+    """:func:`~reeb_torch.metrics.kitti_ap.paired_bootstrap`'s result in percent, as JSON takes it:
     per key ``{"a", "b", "diff", "a_interval_95", "b_interval_95", "diff_interval_95",
     "share_b_better", "draws", "verdict"}``."""
     def span(t: tuple[float, float]) -> list[float | None]:

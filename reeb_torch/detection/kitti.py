@@ -1,14 +1,14 @@
 """KITTI-format frames in, KITTI result files out: the detector's data on disk.
 
 :func:`load_frames` reads labelled KITTI-format folders (``images/`` + ``labels/``, or
-KITTI's ``image_2/`` + ``label_2/``; :class:`reeb_torch.eval.data.KittiDataset`) into the
+KITTI's ``image_2/`` + ``label_2/``; :class:`reeb_torch.datasets.kitti.KittiDataset`) into the
 items a detector trains on. :func:`result_lines` and :func:`write_results` write one KITTI
 result file per image, the format KITTI's object devkit (and its Python ports) scores::
 
     Car -1 -1 -10 712.40 143.00 810.73 307.92 -1 -1 -1 -1000 -1000 -1000 -10 0.9731
 
 (type, truncated, occluded, alpha, the 2D box ``x1 y1 x2 y2`` in pixels, the 3D size,
-location and yaw unknown, the score). :func:`reeb_torch.eval.data.read_kitti_labels`
+location and yaw unknown, the score). :func:`reeb_torch.datasets.kitti.read_kitti_labels`
 reads them back.
 """
 
@@ -58,7 +58,7 @@ def load_frames(folders: Sequence[str | os.PathLike], classes: Sequence[str] = K
     Raises:
         ValueError: a folder without images or without labels (one line naming it).
     """
-    from ..eval.data import KittiDataset, read_kitti_labels
+    from ..datasets.kitti import KittiDataset, read_kitti_labels
 
     neighbours = tuple(n for n in NEIGHBOURS if n not in classes)
     items = []
@@ -140,7 +140,7 @@ def survey_folder(folder: str | os.PathLike, limit: int | None = None) -> Folder
         ValueError: not a KITTI-format folder, no images, a frame without its label file,
             or a label line that cannot be read (one line naming the file).
     """
-    from ..eval.data import KittiDataset, read_kitti_labels
+    from ..datasets.kitti import KittiDataset, read_kitti_labels
 
     ds = KittiDataset(folder, classes=(), limit=limit)
     objects: Counter[str] = Counter()

@@ -1,4 +1,5 @@
-"""Evaluation of proposals on KITTI-format folders, shipped with the package.
+"""Evaluation of proposals on KITTI-format folders, shipped with the package (on the KITTI
+reader of :mod:`reeb_torch.datasets.kitti` and the measures of :mod:`reeb_torch.metrics`).
 
 - :mod:`reeb_torch.eval.methods`: its rows (REEB's presets, the baselines) and options;
 - :mod:`reeb_torch.eval.table3`: the paper's Table 3 computed (recall at 500/1000/2000
@@ -7,8 +8,6 @@
 - :mod:`reeb_torch.eval.report`: the table rendered (text, CSV, JSON) and written;
 - :mod:`reeb_torch.eval.plots`: its two recall plots (matplotlib);
 - :mod:`reeb_torch.eval.command`: ``reeb eval``, the click command over them;
-- :mod:`reeb_torch.eval.data`: the KITTI reader (images, ``label_2`` files, calibration);
-- :mod:`reeb_torch.eval.metrics`: recall, AR, the paired sign test, bootstrap intervals;
 - :mod:`reeb_torch.eval.baselines`: Edge Boxes, BING and Selective Search (OpenCV contrib);
 - :mod:`reeb_torch.eval.common`: frame ranges, loading KITTI folders, the rerun line and
   the machine's description.

@@ -97,7 +97,7 @@ def load_kitti(
     frames: Sequence[FrameRange] = (),
     classes: Sequence[str] | None = None,
 ) -> tuple[list[dict[str, Any]], tuple[str, ...]]:
-    """Decode the frames of a KITTI-format folder (:class:`reeb_torch.eval.data.KittiDataset`).
+    """Decode the frames of a KITTI-format folder (:class:`reeb_torch.datasets.kitti.KittiDataset`).
 
     ``frames`` select by id first, then ``limit`` keeps the first N of those.
 
@@ -109,7 +109,7 @@ def load_kitti(
     Raises:
         ValueError: not a KITTI folder, no images, a bad id, or no frame in ``frames``.
     """
-    from .data import DEFAULT_CLASSES, KittiDataset
+    from ..datasets.kitti import DEFAULT_CLASSES, KittiDataset
 
     cls = tuple(DEFAULT_CLASSES if classes is None else classes)
     ds = KittiDataset(root, classes=cls)

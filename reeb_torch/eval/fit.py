@@ -104,7 +104,7 @@ def load_fit_frames(roots: Sequence[str | os.PathLike], limit: int | None = None
     Raises:
         ValueError: as :func:`~reeb_torch.eval.tune.load_frames`.
     """
-    from .data import KittiDataset
+    from ..datasets.kitti import KittiDataset
     from .tune import load_frames
 
     if lazy:
@@ -121,7 +121,7 @@ def _lazy_frames(roots: Sequence[str | os.PathLike], limit: int | None) -> FitFr
     :func:`~reeb_torch.eval.common.load_kitti` reads them (checked against each image's size
     from its header)."""
     from .common import folder_names
-    from .data import DEFAULT_CLASSES, KittiDataset
+    from ..datasets.kitti import DEFAULT_CLASSES, KittiDataset
 
     if not roots:
         raise ValueError("no data folder given")
@@ -159,7 +159,7 @@ def other_boxes(root: str | os.PathLike, image_ids: Sequence[str]) -> list[Tenso
     Raises:
         ValueError: ``root`` has no labels.
     """
-    from .data import DEFAULT_CLASSES, KittiDataset, read_kitti_labels
+    from ..datasets.kitti import DEFAULT_CLASSES, KittiDataset, read_kitti_labels
 
     label_dir = KittiDataset(root).label_dir
     if label_dir is None:

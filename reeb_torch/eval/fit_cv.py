@@ -100,7 +100,7 @@ class FitCrossValidation:
 def best_ious(outputs: Sequence[dict[str, Tensor]], gts: Sequence[Tensor], ks: Sequence[int]) -> list[Tensor]:
     """Per frame, ``float32 [N_i, len(ks)]``: each object's (``gts[i]``) best IoU with the top
     ``k`` boxes of ``outputs[i]``, for each ``k`` of ``ks``."""
-    from .metrics import best_iou
+    from ..metrics.recall import best_iou
 
     return [torch.stack([best_iou(o["boxes"], g, k).float() for k in ks], 1) if len(g)
             else torch.zeros(0, len(ks)) for o, g in zip(outputs, gts)]
@@ -217,7 +217,7 @@ def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples
     :func:`~reeb_torch.eval.tune.held_out`'s. ``keep``: a folder where each block's model
     and its training states stay (:class:`~reeb_torch.ranker.store.Checkpoints`), so a killed
     run started again goes on from them (default: a temporary folder in ``scratch``)."""
-    from .metrics import object_hits
+    from ..metrics.recall import object_hits
 
     frames = cache.frames
     names = cache.candidates(cfg.unranked(), 0).feature_names

@@ -30,7 +30,7 @@ from typing import Any
 import torch
 
 from .common import environment, first_few
-from .metrics import KITTI_DIFFICULTIES
+from ..metrics.recall import KITTI_DIFFICULTIES
 from .methods import CROSS_VALIDATED, HEADLINE, IOUS, KS, LEAVE_FOLDER_OUT, TEXT_GRID, WHOLE_DRIVES
 from .table3 import OBJECT_SETS, PAPER_TABLE3, Frames, Table3
 

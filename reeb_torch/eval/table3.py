@@ -5,11 +5,11 @@ The rows and the options are :mod:`reeb_torch.eval.methods`' (:data:`~reeb_torch
 
 Recall counts every non-DontCare object of the four classes (Car, Pedestrian, Cyclist,
 Truck), over all objects and over KITTI-*moderate* objects (box height >= 25 px, occlusion
-<= 1, truncation <= 0.3: :data:`reeb_torch.eval.metrics.KITTI_DIFFICULTIES`); micro, class
+<= 1, truncation <= 0.3: :data:`reeb_torch.metrics.recall.KITTI_DIFFICULTIES`); micro, class
 mean and per class; average recall (AR, IoU 0.5:0.05:0.95); the headline (2000 proposals,
 IoU 0.7, all objects) with its 95 % frame-bootstrap interval
-(:func:`reeb_torch.eval.metrics.recall_interval`); and each method paired with a reference row
-on the same objects (:func:`reeb_torch.eval.metrics.compare_recall`). Every number is given for
+(:func:`reeb_torch.metrics.recall.recall_interval`); and each method paired with a reference row
+on the same objects (:func:`reeb_torch.metrics.recall.compare_recall`). Every number is given for
 all selected frames, for each data folder when there are several, and for each frame range
 when there are several.
 
@@ -39,7 +39,7 @@ from typing import Any
 import torch
 
 from .common import first_few, folder_names, folder_splits, load_folders
-from .metrics import (
+from ..metrics.recall import (
     AR_IOUS,
     RecallResult,
     compare_recall,
@@ -153,7 +153,7 @@ def recall_tables(
 
     Returns:
         ``(table, ar_table)``: recall at :data:`KS` x :data:`IOUS`, and at :data:`KS` x
-        :data:`reeb_torch.eval.metrics.AR_IOUS` (its mean over IoUs is the average recall).
+        :data:`reeb_torch.metrics.recall.AR_IOUS` (its mean over IoUs is the average recall).
     """
     gts = [it["boxes"] for it in items]
     labels: list[torch.Tensor] | None = [it["labels"] for it in items]

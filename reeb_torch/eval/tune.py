@@ -36,7 +36,7 @@ from torch import Tensor
 from .._memory import trim_heap
 from ..config import ReebConfig
 from ..generator import FRONT_END_FIELDS, Candidates, FrontEnd, ProposalGenerator
-from .metrics import RecallInterval, bootstrap_recalls, object_hits, recall_interval
+from ..metrics.recall import RecallInterval, bootstrap_recalls, object_hits, recall_interval
 
 __all__ = ["Frames", "FrameCache", "Param", "default_space", "load_space", "Estimate", "CrossValidation",
            "load_frames", "photometric_jitter", "score_config", "objective", "bootstrap_interval", "fold_blocks",
@@ -247,17 +247,17 @@ def objective(hits: Sequence[Tensor], labels: Sequence[Tensor], balanced: bool =
 
 
 Estimate = RecallInterval
-"""A recall (fraction) with its frame-bootstrap interval: :class:`~reeb_torch.eval.metrics.RecallInterval`
+"""A recall (fraction) with its frame-bootstrap interval: :class:`~reeb_torch.metrics.recall.RecallInterval`
 (micro, or the mean of the class recalls with ``balanced``)."""
 
 
 def bootstrap_interval(hits: Sequence[Tensor], labels: Sequence[Tensor], balanced: bool = False,
                        level: float = 0.95, samples: int = 4000, seed: int = 0) -> Estimate:
     """:func:`objective` with the frame-bootstrap percentile interval of
-    :func:`~reeb_torch.eval.metrics.recall_interval` (frames with no object are left out).
+    :func:`~reeb_torch.metrics.recall.recall_interval` (frames with no object are left out).
     Micro recall is that function's estimate, interval and all, so one set of hits gives one
     interval in ``reeb fit``, ``reeb tune`` and Table 3; ``balanced`` takes the mean of the
-    class recalls on the same draws (:func:`~reeb_torch.eval.metrics.bootstrap_recalls`).
+    class recalls on the same draws (:func:`~reeb_torch.metrics.recall.bootstrap_recalls`).
 
     Raises:
         ValueError: ``level`` outside (0, 1), ``samples < 1``, or no object at all.
@@ -278,7 +278,7 @@ def bootstrap_interval(hits: Sequence[Tensor], labels: Sequence[Tensor], balance
 def score_config(cache: FrameCache, cfg: ReebConfig, indices: Sequence[int] | None = None, k: int = 2000,
                  iou: float = 0.7, balanced: bool = False) -> tuple[Estimate, list[Tensor]]:
     """``cfg``'s recall at ``k`` / ``iou`` on the frames ``indices`` (default all), with its
-    interval, and the hits per frame (for :func:`reeb_torch.eval.metrics.compare_recall`)."""
+    interval, and the hits per frame (for :func:`reeb_torch.metrics.recall.compare_recall`)."""
     idx = list(range(len(cache.frames))) if indices is None else list(indices)
     hits = cache.hits(cfg, idx, k, iou)
     return bootstrap_interval(hits, [cache.frames.labels[i] for i in idx], balanced), hits

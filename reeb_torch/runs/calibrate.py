@@ -32,7 +32,7 @@ def read_boxes(roots: Sequence[str | os.PathLike]) -> dict[str, Any]:
     """
     from PIL import Image
 
-    from ..eval.data import KittiDataset, read_kitti_labels
+    from ..datasets.kitti import KittiDataset, read_kitti_labels
 
     out: dict[str, Any] = {"boxes": [], "classes": [], "heights": [], "p2_horizon": []}
     for root in roots:
@@ -188,7 +188,7 @@ def write_record(out: Path, record: dict) -> None:
 def has_labels(root: str | os.PathLike) -> bool:
     """Whether ``root`` is a KITTI-format folder with a label folder (by its layout alone: a
     frame without its label or calib file is the labelled route's error, named there)."""
-    from ..eval.data import find_layout
+    from ..datasets.kitti import find_layout
 
     try:
         return find_layout(root)[1].is_dir()
@@ -198,7 +198,7 @@ def has_labels(root: str | os.PathLike) -> bool:
 
 def _image_folders(roots: Sequence[str | os.PathLike]) -> list[Path]:
     """The image folder of each root: ``images/`` or ``image_2/`` of a KITTI folder, else the root."""
-    from ..eval.data import find_layout
+    from ..datasets.kitti import find_layout
 
     out = []
     for r in roots:

@@ -431,7 +431,7 @@ def label_for(image: Path) -> Path | None:
 
 
 def read_labels(path: Path) -> list:
-    from ..eval.data import read_kitti_labels
+    from ..datasets.kitti import read_kitti_labels
 
     try:
         objs = read_kitti_labels(path)

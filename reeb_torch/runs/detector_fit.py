@@ -110,7 +110,7 @@ def check_frames(dirs: Sequence[str], val: Sequence[str], names: tuple[str, ...]
     """What ``reeb detector fit`` can check before any work: labelled folders, objects of the
     classes asked for (a class without any is a usage error where ``--classes`` names it, a
     note for the default classes), and ``--val`` folders KITTI's AP can score."""
-    from ..eval.kitti_ap import MIN_OVERLAP
+    from ..metrics.kitti_ap import MIN_OVERLAP
 
     held = _survey(dirs, limit, "")
     shown = ", ".join(f"{n} {c}" for c, n in held.most_common() if c != "DontCare") or "no objects"

@@ -26,7 +26,7 @@ from ..eval import fit as F
 from ..ranker import fit as RF
 from ..eval import fit_cv
 from ..eval.common import folder_blocks
-from ..eval.metrics import compare_recall
+from ..metrics.recall import compare_recall
 from ..eval.tune import FrameCache, bootstrap_interval, fold_blocks, objective
 from ..ranker import dropped_columns
 from ..ranker.store import Checkpoints, RowStore, StoredFrames, StoreError
@@ -159,7 +159,7 @@ def _other_folder_hits(cache: FrameCache, cfg: ReebConfig, samples: Sequence[RF.
     """Per frame, the objects the generator finds with a model fitted (or fine-tuned) on the
     other folders only, a block per folder: how a model holds on frames unlike those it saw;
     None for frames of one folder."""
-    from ..eval.metrics import object_hits
+    from ..metrics.recall import object_hits
 
     blocks = [idx for _, idx in folder_blocks(cache.frames.folders)]
     if not blocks:
@@ -494,7 +494,7 @@ def _validated(scored: F.FitFrames, model: BoxRanker, cfg: ReebConfig, opts: RF.
     cache = FrameCache(scored, budget=FRONT_END_BUDGET)
     weights = save_ranker(model, outputs.store / "validated.safetensors")
     every = range(len(scored))
-    from ..eval.metrics import object_hits
+    from ..metrics.recall import object_hits
 
     with _bar(2, "--val frames", quiet) as bar:
         base = cache.hits(cfg.training_free(), every, k, iou)

@@ -11,7 +11,7 @@ from typing import Any, Sequence
 
 from ..config import ReebConfig
 from ..eval import tune as T
-from ..eval.metrics import compare_recall
+from ..metrics.recall import compare_recall
 
 __all__ = ["run_tune", "run_score", "plot_study"]
 

@@ -22,7 +22,7 @@ not UTF-8 would crash it).
 Images are RGB ``uint8`` tensors ``(3, H, W)`` (as :func:`reeb_torch.read_image` returns)
 or ``(H, W, 3)`` NumPy arrays; boxes are ``Tensor[N, 4]`` ``(x1, y1, x2, y2)`` in input
 pixels, ranked best first. Ground truth is a sequence of ``(label, (x1, y1, x2, y2))``
-pairs (or objects with ``.type`` and ``.box``, as :func:`reeb_torch.eval.data.read_kitti_labels`
+pairs (or objects with ``.type`` and ``.box``, as :func:`reeb_torch.datasets.kitti.read_kitti_labels`
 returns).
 """
 

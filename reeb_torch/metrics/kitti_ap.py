@@ -23,9 +23,9 @@ of SECOND / OpenPCDet), for one class and one difficulty level:
   of the 40 precisions at indices 1..40 (index 0, recall 0, is left out).
 
 Deviations: none in the rules above. The difficulty bounds are
-:data:`reeb_torch.eval.metrics.KITTI_DIFFICULTIES` (moderate: taller than 25 px, occlusion
+:data:`reeb_torch.metrics.recall.KITTI_DIFFICULTIES` (moderate: taller than 25 px, occlusion
 <= 1, truncation <= 0.3); the devkit ignores an object exactly 25.00 px tall, as done here,
-where :func:`~reeb_torch.eval.metrics.kitti_difficulty_mask` (recall) keeps it.
+where :func:`~reeb_torch.metrics.recall.kitti_difficulty_mask` (recall) keeps it.
 
 Boxes: ``(x1, y1, x2, y2)`` pixels, float, the frame of the label files; the overlap is
 ``inter / union`` with no ``+1`` (the devkit's ``boxoverlap``).
@@ -46,8 +46,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .data import KittiObject
-from .metrics import KITTI_DIFFICULTIES, KittiDifficulty
+from ..datasets.kitti import KittiObject
+from .recall import KITTI_DIFFICULTIES, KittiDifficulty
 
 __all__ = [
     "MIN_OVERLAP",
