@@ -20,10 +20,8 @@ from .stages import _cache
 __all__ = ["warm_picture", "Notice", "COMPILE_ESTIMATE_S", "gc_paused", "start_helper", "stop_helper",
            "compile_helper_part"]
 
-#: What compiling every kernel of the default takes, as the notice says it:
-#: ``reeb_torch.warmup()`` with an empty cache takes about 8-12 s on two CPU cores with the
-#: helper process and 13-14 s in one process (``benchmarks/speed_ab.py --first-call``), and
-#: up to about a minute in one process when those two cores are busy with other work.
+#: What compiling every kernel of the default takes, as the notice says it (measured with
+#: ``benchmarks/speed_ab.py --first-call``: docs/results.md, "The first call").
 COMPILE_ESTIMATE_S = "10-40 s"
 
 
@@ -81,9 +79,9 @@ class Notice:
 def gc_paused() -> Iterator[None]:
     """Python's cyclic garbage collector off within the block, one collection after it (where
     it was on). numba's compiler leaves many long-lived objects, and the full collections
-    they set off took 1.6-2.0 s of a 14-18 s compile in one process (about 50 MB more at
-    the peak without them); with the kernels cached, the collection after takes the full
-    one (~0.12 s) that the first call would otherwise meet."""
+    they set off take a noticeable share of a compile (at a lower peak of memory without
+    them); with the kernels cached, the collection after takes the full one that the first
+    call would otherwise meet."""
     was = gc.isenabled()
     gc.disable()
     try:

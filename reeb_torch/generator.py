@@ -512,7 +512,7 @@ class ProposalGenerator(nn.Module):
         ``check_at[j]`` not ``None``: image ``j`` (image ``check_at[j]`` of the caller's
         batch, as the error names it) is float32 whose values are not yet checked; the
         compiled front end counts the values outside [0, 1] as it reads them (a float image
-        read once, not twice: 0.3 ms per KITTI image), else :func:`check_range` does."""
+        read once, not twice), else :func:`check_range` does."""
         cfg = self.config
         colour: Tensor | None = None
         gray: Tensor | None = None

@@ -76,7 +76,8 @@ def _warn_if_fitted_elsewhere(config: ReebConfig, fitted: dict | None) -> None:
 def _chosen(chosen: Tensor) -> tuple[Tensor, Tensor]:
     """``torch.nonzero(chosen, as_tuple=True)`` of a ``bool [B, N]`` mask: ``(bi, ni)``
     ``int64``, image-major, windows ascending. On the CPU numpy's ``flatnonzero``, an image
-    at a time (torch's 2-D nonzero took 3 ms for 4 KITTI images' 170 000 windows; this 0.4)."""
+    at a time, several times faster than torch's 2-D nonzero on a batch's windows
+    (docs/results.md, "What makes the CPU path fast")."""
     if chosen.device.type != "cpu":
         images, windows = torch.nonzero(chosen, as_tuple=True)
         return images, windows
@@ -89,8 +90,8 @@ def _chosen(chosen: Tensor) -> tuple[Tensor, Tensor]:
 
 def _gather(values: Tensor, bi: Tensor, ni: Tensor, counts: Tensor) -> Tensor:
     """``values[bi, ni]`` for :func:`_chosen`'s ``(bi, ni)`` (image-major, ``counts`` an
-    image): on the CPU numpy's take, an image row at a time (torch's 2-D gather took 0.25 ms
-    for a KITTI image's 77 000 candidates; this 0.07)."""
+    image): on the CPU numpy's take, an image row at a time (faster than torch's 2-D gather
+    on a frame's candidates)."""
     if values.device.type != "cpu":
         return values[bi, ni]
     rows, idx = values.numpy(), ni.numpy()
