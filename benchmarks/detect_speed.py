@@ -134,7 +134,7 @@ def ours(args: argparse.Namespace, device: Any) -> list[tuple[str, Any]]:
 
     from reeb_torch.detection import ReebDetector
     from reeb_torch.detection.inference import StageClock
-    from reeb_torch.runs.detect import fit_settings
+    from reeb_torch.runs.detector import fit_settings
 
     out = []
     for spec in args.detector:

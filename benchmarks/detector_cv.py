@@ -156,7 +156,7 @@ def run_arm(options: str, seed: int, items: list[dict], blocks: list[list[int]],
 
     from reeb_torch.detection import TrainSettings, detect
     from reeb_torch.detection.fitting import cached_frames, crop_from_labels
-    from reeb_torch.runs.detect import fit_settings
+    from reeb_torch.runs.detector import fit_settings
 
     o = fit_options(args.roots, options)
     parsed = {k: v for k, v in sorted(o.items()) if k not in ("quiet", "cache_dir", "out", "overwrite")}

@@ -89,7 +89,7 @@ def fit_options(train: list[Path], options: str) -> dict[str, Any]:
     """``reeb detector fit``'s parameters for ``train`` and ``options``, as the command parses them."""
     import click
 
-    from reeb_torch.runs.detect import fit
+    from reeb_torch.runs.detector import fit
 
     try:
         with fit.make_context("fit", [*map(str, train), *shlex.split(options)]) as ctx:
@@ -109,7 +109,7 @@ def seed_runs(name: str, options: str, seeds: list[int] | None, train: list[Path
 def fit_arm(stem: str, options: str, args: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
     """The detector of these options (fitted, or loaded from ``--work``) and its fit record."""
     from reeb_torch.detection import ReebDetector
-    from reeb_torch.runs.detect import fit_settings
+    from reeb_torch.runs.detector import fit_settings
 
     o = fit_options(args.train, options)
     auto_crop = o["crop_top"] == "auto"

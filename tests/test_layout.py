@@ -34,7 +34,7 @@ RUNS_LIBRARIES = {"reeb_torch.runs.inputs", "reeb_torch.runs.decoding", "reeb_to
                   "reeb_torch.runs.fit_ray"}
 COMMAND = {"reeb_torch.runs.cli", "reeb_torch.runs.common", "reeb_torch.runs.engine", "reeb_torch.runs.run_output",
            "reeb_torch.runs.side_outputs", "reeb_torch.runs.propose_local", "reeb_torch.runs.propose_ray",
-           "reeb_torch.runs.detect_run", "reeb_torch.runs.detect", "reeb_torch.runs.detector_fit",
+           "reeb_torch.runs.detect_run", "reeb_torch.runs.detector", "reeb_torch.runs.detector_fit",
            "reeb_torch.runs.calibrate", "reeb_torch.runs.tune",
            "reeb_torch.runs.fit"}
 MAX_MODULE_LINES = 700

@@ -623,7 +623,7 @@ def fit(dirs, out, folds, seed, whole_drives, epochs, hidden, init, balance, mir
 
 # -- reeb detector fit / show, reeb detect ------------------------------------------------
 
-from .detect import detector as _detector  # noqa: E402 - a click group: imports click only
+from .detector import detector as _detector  # noqa: E402 - a click group: imports click only
 
 main.add_command(_detector)
 
