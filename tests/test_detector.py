@@ -478,3 +478,17 @@ def test_a_factorised_box_head_saves_small_loads_and_detects_near_the_full_one(f
     for a, b in zip(small(images), loaded(images)):
         for k in a:
             assert torch.equal(a[k], b[k]), k
+
+
+def test_detector_factorise_writes_the_smaller_detector_and_says_how(saved, tmp_path):
+    out = tmp_path / "small.safetensors"
+    res = CliRunner().invoke(main, ["detector", "factorise", str(saved), "-o", str(out), "--rank", "8"])
+    assert res.exit_code == 0, res.output
+    det = ReebDetector.load(out)
+    assert det.settings.box_head_rank == 8 and out.stat().st_size < saved.stat().st_size
+    assert det.meta["provenance"]["command"].endswith(f"reeb detector factorise {saved} -o {out} --rank 8")
+    again = CliRunner().invoke(main, ["detector", "factorise", str(out), "-o", str(tmp_path / "x.safetensors"),
+                                      "--rank", "4"])
+    assert again.exit_code == 2 and "already factorised" in again.output
+    kept = CliRunner().invoke(main, ["detector", "factorise", str(saved), "-o", str(out), "--rank", "8"])
+    assert kept.exit_code == 2 and "--overwrite" in kept.output
