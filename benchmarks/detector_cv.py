@@ -121,12 +121,14 @@ def _fold_detector(settings: Any, training: Any, o: dict[str, Any], proposals: s
 
     from reeb_torch.detection import ReebDetector
     from reeb_torch.detection.detector_file import read_detector_file
-    from reeb_torch.detection.fitting import train_detector
+    from reeb_torch.detection.fitting import heads_frames, train_detector, tune_factorised
 
     classes = tuple(c.strip() for c in o["classes"].split(",") if c.strip())
     trained_as = dataclasses.replace(settings, **{k: getattr(type(settings)(), k) for k in INFERENCE_ONLY})
     top_k = max(settings.proposals_train, settings.proposals_test)  # REEB's top_k: the training proposals' too
-    key = hashlib.sha256(json.dumps([dataclasses.asdict(trained_as), dataclasses.asdict(training), classes, top_k,
+    full_training = dataclasses.replace(training, factorised_epochs=0)  # the passes after factorising come below
+    trained_by = {k: v for k, v in dataclasses.asdict(full_training).items() if k != "factorised_epochs"}
+    key = hashlib.sha256(json.dumps([dataclasses.asdict(trained_as), trained_by, classes, top_k,
                                      proposals, sorted(side), args.limit]).encode()).hexdigest()[:16]
     kept = args.work / "detectors" / f"{key}.safetensors" if args.work else None
     full = dataclasses.replace(settings, box_head_rank=0)  # the heads as trained; factorised after (kept whole)
@@ -137,14 +139,24 @@ def _fold_detector(settings: Any, training: Any, o: dict[str, Any], proposals: s
     else:
         t0 = time.perf_counter()
         det = train_detector(ReebDetector, [items[i] for i in side], args.roots, classes=classes, proposals=proposals,
-                             settings=full, training=training, cache_dir=args.cache, progress=not args.quiet)
+                             settings=full, training=full_training, cache_dir=args.cache, progress=not args.quiet)
         record = {"fit_s": round(time.perf_counter() - t0, 1), "train_heads_s": round(det.history["train_s"], 1),
                   "steps": det.history["steps"]}
         if kept is not None:
             kept.parent.mkdir(parents=True, exist_ok=True)
             det.save(kept)
     if settings.box_head_rank:
-        det.factorise_box_head(settings.box_head_rank)
+        t0 = time.perf_counter()
+        frames = (heads_frames(det, [items[i] for i in side], training, args.cache, not args.quiet)
+                  if training.factorised_epochs else [])
+        try:
+            tuned = tune_factorised(det, frames[:len(side)], settings.box_head_rank, training,
+                                    progress=not args.quiet)
+        finally:
+            det.model.rpn.cache = None
+        if tuned is not None:
+            record = {"fit_s": round(time.perf_counter() - t0, 1), "train_heads_s": round(tuned["train_s"], 1),
+                      "steps": tuned["steps"]}
     return det.eval(), record
 
 
@@ -167,7 +179,7 @@ def run_arm(options: str, seed: int, items: list[dict], blocks: list[list[int]],
         saved = torch.load(kept, weights_only=True)
         return saved["detections"], saved["record"]
     settings = fit_settings(o)
-    training = TrainSettings(epochs=o["epochs"], seed=seed, hflip=o["hflip"])
+    training = TrainSettings(epochs=o["epochs"], seed=seed, hflip=o["hflip"], factorised_epochs=o["factorised_epochs"])
     detections: list[dict] = [{} for _ in items]
     record: dict[str, Any] = {"fit_s": [], "train_heads_s": [], "steps": []}
     for f, (block, side) in enumerate(zip(blocks, sides)):

@@ -480,6 +480,30 @@ def test_a_factorised_box_head_saves_small_loads_and_detects_near_the_full_one(f
             assert torch.equal(a[k], b[k]), k
 
 
+def test_factorised_epochs_train_the_factorised_head_on_from_its_svd(fitted, data, cache):
+    """A fit with box_head_rank and factorised_epochs: the heads trained in full, as the fit
+    without them, then the factorised layer trained on (it leaves the SVD of the full fit's
+    layer); the passes are recorded, and without a rank the CLI refuses them."""
+    import copy
+    import dataclasses
+
+    from reeb_torch.detection import TrainSettings
+    from reeb_torch.detection.lite0_detector import LowRankLinear
+
+    low = dataclasses.replace(TINY, box_head_rank=8)
+    tuned = ReebDetector.fit([data], epochs=1, seed=0, settings=low, cache_dir=cache, progress=False,
+                             training=TrainSettings(factorised_epochs=1))
+    svd = copy.deepcopy(fitted).factorise_box_head(8)
+    a, b = tuned.model.roi_heads.box_head.fc6, svd.model.roi_heads.box_head.fc6
+    assert isinstance(a, LowRankLinear) and tuned.settings.box_head_rank == 8
+    assert a.down.weight.shape == b.down.weight.shape and not torch.equal(a.down.weight, b.down.weight)
+    assert tuned.meta["provenance"]["training"]["factorised_epochs"] == 1
+    assert tuned.history["factorised"]["steps"] == 1 and tuned.history["steps"] == fitted.history["steps"]
+    assert TrainSettings(lr=1e-3, factorised_epochs=3).tuning() == TrainSettings(epochs=3, lr=1e-4, warmup=10)
+    res = CliRunner().invoke(main, ["detector", "fit", str(data), "--factorised-epochs", "2"])
+    assert res.exit_code == 2 and "--box-head-rank" in res.output
+
+
 def test_detector_factorise_writes_the_smaller_detector_and_says_how(saved, tmp_path):
     out = tmp_path / "small.safetensors"
     res = CliRunner().invoke(main, ["detector", "factorise", str(saved), "-o", str(out), "--rank", "8"])

@@ -34,7 +34,7 @@ from .feature_cache import FeatureCache, FrameFeatures, cached_features, frozen_
 from .head_training import CachedFrame, TrainSettings, detect, train_heads
 from .kitti import distinct_folders, frame_image, load_frames, mirrored
 
-__all__ = ["default_cache_dir", "StoredFrame", "stored_frames", "cached_frames", "fit_detector", "train_detector", "crop_from_labels", "detector_stats", "evaluate_detector", "scores_of",
+__all__ = ["default_cache_dir", "StoredFrame", "stored_frames", "cached_frames", "fit_detector", "heads_frames", "train_detector", "tune_factorised", "crop_from_labels", "detector_stats", "evaluate_detector", "scores_of",
            "paired_scores", "format_scores", "format_paired"]
 
 
@@ -221,6 +221,7 @@ def _provenance(items: Sequence[dict], folders: Sequence[str | os.PathLike], tra
             "objects": {c: int(counts[i + 1]) for i, c in enumerate(classes)},
             "training": {"epochs": training.epochs, "steps": history["steps"], "seed": training.seed,
                          "batch_size": training.batch_size, "lr": training.lr, "hflip": training.hflip,
+                         "factorised_epochs": training.factorised_epochs,
                          "final_loss": round(sum(losses) / max(1, len(losses)), 6)},
             "command": command, "reeb_torch": __version__}
 
@@ -284,6 +285,22 @@ def crop_from_labels(items: Sequence[dict], margin: float = 0.1, step: float = 0
     return round(max(0.0, math.floor((min(tops) - margin) / step + 1e-9) * step), 6)
 
 
+def heads_frames(det: Any, items: Sequence[dict], training: TrainSettings,
+                 cache_dir: str | os.PathLike | None = None, progress: bool = True,
+                 frames_by: FramesBy | None = None) -> Sequence[Any]:
+    """The frames ``det``'s heads train on, for ``items`` (:func:`~reeb_torch.detection.kitti.
+    load_frames`' items; lazy ones read one at a time, :func:`stored_frames`): one per item,
+    in order, then with ``training.hflip`` their mirror images, each also set as its frame's
+    ``mirror``."""
+    mirrors = [mirrored(it) for it in items] if training.hflip else []
+    lazy = bool(items) and "image" not in items[0]
+    frames: Sequence[Any] = (stored_frames(det, [*items, *mirrors], cache_dir, progress, frames_by=frames_by) if lazy
+                             else cached_frames(det, [*items, *mirrors], cache_dir, progress))
+    for frame, mirror in zip(frames[:len(items)], frames[len(items):]):
+        frame.mirror = mirror
+    return frames
+
+
 def train_detector(cls: type, items: Sequence[dict], folders: Sequence[str | os.PathLike], *, classes: Sequence[str],
                    proposals: str, settings: Any, training: TrainSettings, cache_dir: str | os.PathLike | None = None,
                    progress: bool = True, command: str | None = None,
@@ -298,13 +315,8 @@ def train_detector(cls: type, items: Sequence[dict], folders: Sequence[str | os.
     det = cls(classes, proposals, dataclasses.replace(settings, box_head_rank=0))
     if det.precision != settings.precision:  # bfloat16 asked for where it is not native: trained in float32
         det.settings = dataclasses.replace(settings, precision=det.precision)
-    mirrors = [mirrored(it) for it in items] if training.hflip else []
-    lazy = bool(items) and "image" not in items[0]
-    frames: Sequence[Any] = (stored_frames(det, [*items, *mirrors], cache_dir, progress, frames_by=frames_by) if lazy
-                             else cached_frames(det, [*items, *mirrors], cache_dir, progress))
+    frames = heads_frames(det, items, training, cache_dir, progress, frames_by)
     train = frames[:len(items)]
-    for frame, mirror in zip(train, frames[len(items):]):
-        frame.mirror = mirror
     slot = None
     if checkpoints is not None:
         from ..ranker.store import Checkpoints
@@ -314,13 +326,28 @@ def train_detector(cls: type, items: Sequence[dict], folders: Sequence[str | os.
         slot = Checkpoints(checkpoints, key).slot("heads")
     try:
         history = train_heads(det.model, train, training, progress=progress, checkpoint=slot)
+        if rank:
+            tuned = tune_factorised(det, train, rank, training, progress=progress,
+                                    checkpoint=None if slot is None else Checkpoints(checkpoints, key).slot("factorised"))
+            if tuned is not None:
+                history["factorised"] = tuned
     finally:
         det.model.rpn.cache = None  # new images: REEB runs on them
-    if rank:
-        det.factorise_box_head(rank)
     det.meta = {"provenance": _provenance(items, folders, training, history, det.classes, command)}
     det.history = history
     return det.eval()
+
+
+def tune_factorised(det: Any, frames: Sequence[Any], rank: int, training: TrainSettings, *, progress: bool = True,
+                    checkpoint: Any = None) -> dict[str, object] | None:
+    """Factorise ``det``'s trained box head at ``rank`` (:meth:`ReebDetector.factorise_box_head`)
+    and, with ``training.factorised_epochs``, train its heads that many more passes over
+    ``frames`` (:meth:`TrainSettings.tuning`), in place. Returns that training's history, or
+    ``None`` without it."""
+    det.factorise_box_head(rank)
+    if not training.factorised_epochs:
+        return None
+    return train_heads(det.model, frames, training.tuning(), progress=progress, checkpoint=checkpoint)
 
 
 def detector_stats(det: Any, folders: Sequence[str | os.PathLike], *, limit: int | None = None,

@@ -25,6 +25,7 @@ generator, the RoI and anchor samplers from ``torch.manual_seed(seed)`` set at t
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -60,6 +61,9 @@ class TrainSettings:
         max_steps: stop after this many steps (``None``: ``epochs`` full passes).
         hflip: train on each frame's :attr:`CachedFrame.mirror` instead of the frame with
             probability 1/2 (every frame must have one).
+        factorised_epochs: with a ``box_head_rank``: once the full box head is trained and its
+            first layer factorised, the heads train this many more passes from there (peak
+            learning rate ``lr / 10``; 0: the factorised layer as the SVD gives it).
     """
 
     epochs: int = 12
@@ -70,6 +74,12 @@ class TrainSettings:
     seed: int = 0
     max_steps: int | None = None
     hflip: bool = False
+    factorised_epochs: int = 0
+
+    def tuning(self) -> "TrainSettings":
+        """The settings of the passes after factorising (:attr:`factorised_epochs`)."""
+        return dataclasses.replace(self, epochs=self.factorised_epochs, lr=self.lr / 10, max_steps=None,
+                                   warmup=min(self.warmup, 10), factorised_epochs=0)
 
 
 @dataclass

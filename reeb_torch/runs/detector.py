@@ -109,6 +109,9 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
 @click.option("--box-head-rank", type=SettingRange("box_head_rank"), default=0, show_default=True,
               help="0: the box head's first layer in full; R: replaced once trained by its rank-R approximation "
                    "(a smaller file and a faster head; docs/results.md, \"A smaller box head\").")
+@click.option("--factorised-epochs", type=click.IntRange(min=0), default=0, show_default=True,
+              help="With --box-head-rank: passes of further training once the layer is factorised (at a tenth of "
+                   "the learning rate); 0: the approximation as it comes.")
 @click.option("--box-passes", type=SettingRange("box_passes"), default=2, show_default=True,
               help="The box head's passes in detection: each after the first pools the boxes the last one "
                    "regressed and averages its class scores in.")
@@ -120,8 +123,8 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
                 "pip install 'reeb-torch[ray]').", "--engine ray: actors, each holding one detector.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
 def fit(dirs, out, overwrite, proposals, classes, epochs, steps, seed, val, hflip, min_size, max_size, train_proposals,
-        test_proposals, precision, crop_top, neck_channels, head_width, box_head_rank, box_passes, cache_dir, limit, engine,
-        address, actors, cpus_per_actor, quiet):
+        test_proposals, precision, crop_top, neck_channels, head_width, box_head_rank, factorised_epochs, box_passes,
+        cache_dir, limit, engine, address, actors, cpus_per_actor, quiet):
     """Train a detector on labelled KITTI-format folders (DIRS: images/ and labels/, or image_2/ and
     label_2/) and write it to OUT. The backbone's maps and REEB's proposals of each frame are
     cached, so a second fit on the same frames trains at once. Deterministic for a seed.
@@ -133,6 +136,8 @@ def fit(dirs, out, overwrite, proposals, classes, epochs, steps, seed, val, hfli
     """
     from click.core import ParameterSource
 
+    if factorised_epochs and not box_head_rank:
+        raise click.BadParameter("passes after factorising need a --box-head-rank", param_hint="--factorised-epochs")
     path = claim_weights_out(out, overwrite)
     names = tuple(c.strip() for c in classes.split(",") if c.strip())
     if not names or len(set(names)) != len(names):
@@ -145,12 +150,14 @@ def fit(dirs, out, overwrite, proposals, classes, epochs, steps, seed, val, hfli
     command = " ".join(["reeb detector fit", *map(shlex.quote, dirs), "-o", shlex.quote(out), "--proposals",
                         shlex.quote(proposals), "--classes", shlex.quote(",".join(names)), "--epochs", str(epochs),
                         "--seed", str(seed)] + (["--steps", str(steps)] if steps else []) + (["--hflip"] if hflip else [])
+                       + (["--factorised-epochs", str(factorised_epochs)] if factorised_epochs else [])
                        + _changed_options(click.get_current_context(), SETTINGS_OPTIONS)
                        + (["--limit", str(limit)] if limit else []))
     states = training_states(path)
     with warnings_as_lines():
         det, lines = train(dirs, val, names, proposals, epochs, seed, settings, cache_dir, limit, hflip, quiet,
                            command, auto_crop=crop_top == "auto", checkpoints=states, steps=steps,
+                           factorised_epochs=factorised_epochs,
                            engine=(address, actors, cpus_per_actor) if engine == "ray" else None)
     try:
         det.save(path)
