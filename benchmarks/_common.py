@@ -8,7 +8,8 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-from reeb_torch.eval.common import parse_frame_range, rerun_line
+from reeb_torch.datasets.folders import parse_frame_range
+from reeb_torch.eval.common import rerun_line
 
 __all__ = ["REPO_ROOT", "DATA_ENV", "data_root", "default_kitti_dir", "default_dev_dirs", "add_data_option", "add_frames_option", "rerun_line",
            "environment", "timed", "run_captured", "paired_ratios", "setting_pairs", "settings_config",
@@ -58,7 +59,7 @@ def add_data_option(parser: argparse.ArgumentParser, default: Sequence[str | Pat
 
 
 def _frame_range(text: str) -> Any:
-    """``type=`` of ``--frames``: :func:`reeb_torch.eval.common.parse_frame_range`."""
+    """``type=`` of ``--frames``: :func:`reeb_torch.datasets.folders.parse_frame_range`."""
     try:
         return parse_frame_range(text)
     except ValueError as e:
@@ -66,7 +67,7 @@ def _frame_range(text: str) -> Any:
 
 
 def add_frames_option(parser: argparse.ArgumentParser) -> None:
-    """Add ``--frames A:B [A:B ...]`` (:class:`reeb_torch.eval.common.FrameRange` each) to ``parser``."""
+    """Add ``--frames A:B [A:B ...]`` (:class:`reeb_torch.datasets.folders.FrameRange` each) to ``parser``."""
     parser.add_argument(
         "--frames", nargs="+", type=_frame_range, default=[], metavar="A:B",
         help="only frames whose numeric id is in these ranges (both ends included; "

@@ -45,7 +45,8 @@ from _common import default_dev_dirs, environment, rerun_line, setting_pairs, se
 
 from reeb_torch import ProposalGenerator, ReebConfig  # noqa: E402
 from _common import add_data_option, add_frames_option  # noqa: E402
-from reeb_torch.eval.common import first_few, folder_splits, load_folders  # noqa: E402
+from reeb_torch.datasets.folders import folder_splits, load_folders  # noqa: E402
+from reeb_torch.eval.common import first_few  # noqa: E402
 from reeb_torch.eval.table3 import moderate_masks  # noqa: E402
 from reeb_torch.metrics.recall import (  # noqa: E402
     average_recall,

@@ -5,7 +5,7 @@ camera. For each ordered pair of folders (source, target): a base model fitted o
 the source; ``k`` consecutive frames of the target (its first ``k`` and its last ``k``, in
 folder order) to adapt with; the other frames of the target, away from those (no frame of
 their drive within ``--gap`` of them, none that looks nearly the same:
-:func:`reeb_torch.eval.fit.training_frames`), to test on. On the test frames, recall at
+:func:`reeb_torch.ranker.frames.training_frames`), to test on. On the test frames, recall at
 2000 proposals / IoU 0.7 of:
 
 * ``training-free``: REEB alone;
@@ -42,11 +42,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_dev_dirs, environment, rerun_line, write_outputs  # noqa: E402
 
 from reeb_torch import ReebConfig  # noqa: E402
-from reeb_torch.eval import fit as F  # noqa: E402
+from reeb_torch.ranker import frames as F  # noqa: E402
 from reeb_torch.ranker import fit as RF  # noqa: E402
-from reeb_torch.eval import fit_cv  # noqa: E402
+from reeb_torch.ranker import cv as fit_cv  # noqa: E402
 from reeb_torch.metrics.recall import object_hits, sign_test  # noqa: E402
-from reeb_torch.eval.tune import FrameCache  # noqa: E402
+from reeb_torch.tuning import FrameCache  # noqa: E402
 from reeb_torch.ranker import save_ranker  # noqa: E402
 
 CONDITIONS = ("training-free", "base", "scratch", "fine-tuned")

@@ -5,7 +5,7 @@ the hand-set default, P2's horizon (ReebConfig.with_kitti_calib), and `reeb cali
         --set kitti:horizon=0.4714,camera_height_m=1.564 ...
 
 Each ``--set NAME:field=value,...`` is scored on every folder (the front end is computed once
-per frame, reeb_torch.eval.tune.FrameCache); a name may be given per folder as NAME@FOLDER.
+per frame, reeb_torch.tuning.FrameCache); a name may be given per folder as NAME@FOLDER.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import argparse
 import json
 
 from reeb_torch import ReebConfig
-from reeb_torch.eval import tune as T
+from reeb_torch import tuning as T
 from reeb_torch.metrics.recall import compare_recall
 
 

@@ -38,7 +38,7 @@ TIMED = ("default", "training-free")
 def frames(data: Path, limit: int) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
     """Up to ``limit`` frames of the KITTI-format folder ``data`` of its commonest image size,
     ``uint8 (3, H, W)`` each, and their target boxes ``float32 [N, 4]``."""
-    from reeb_torch.eval.common import load_kitti
+    from reeb_torch.datasets.folders import load_kitti
 
     items = load_kitti(data)[0]
     size = Counter(tuple(it["image"].shape[-2:]) for it in items).most_common(1)[0][0]

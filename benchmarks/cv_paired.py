@@ -46,11 +46,11 @@ from _common import (default_dev_dirs, environment, rerun_line, setting_pairs, s
                      write_outputs)
 
 from reeb_torch import ReebConfig, get_preset  # noqa: E402
-from reeb_torch.eval import fit as F  # noqa: E402
+from reeb_torch.ranker import frames as F  # noqa: E402
 from reeb_torch.ranker import fit as RF  # noqa: E402
-from reeb_torch.eval import fit_cv  # noqa: E402
+from reeb_torch.ranker import cv as fit_cv  # noqa: E402
 from reeb_torch.metrics.recall import compare_recall, sign_test  # noqa: E402
-from reeb_torch.eval.tune import FrameCache, bootstrap_interval  # noqa: E402
+from reeb_torch.tuning import FrameCache, bootstrap_interval  # noqa: E402
 from reeb_torch.ranker import NOT_SEEN_BY_RANKER  # noqa: E402
 from reeb_torch.runs.common import build_config  # noqa: E402
 
@@ -133,7 +133,7 @@ def cross_validated_best(cache: FrameCache, configs: list[ReebConfig], seed: int
                          whole_drives: bool = False) -> list[list]:
     """Per frame, ``float32 [N_i, len(ks)]``: each object's best IoU with the top ``k`` held-out
     proposals of the default, then of each of ``configs``, all run with the same fold models
-    (:func:`reeb_torch.eval.fit_cv.cross_validate`, fitted as ``reeb fit`` fits, on the default's
+    (:func:`reeb_torch.ranker.cv.cross_validate`, fitted as ``reeb fit`` fits, on the default's
     candidates); then of each ``(config, fit options)`` of ``refits``, with fold models fitted
     on the same folds with those options, for that config. ``whole_drives``: a held-out
     block's training frames hold no frame of its drives (``reeb fit --whole-drives``), not

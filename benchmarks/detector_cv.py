@@ -3,7 +3,7 @@
 The frames of the given KITTI-format folders are split into ``--folds`` contiguous blocks.
 For each block, the detector of each ``--arm`` (``reeb detector fit``'s options) is trained
 on the other blocks less every frame of the block's drives and every near-copy of one of its
-frames (:func:`reeb_torch.eval.fit.training_frames`, as ``reeb fit --whole-drives`` holds
+frames (:func:`reeb_torch.ranker.frames.training_frames`, as ``reeb fit --whole-drives`` holds
 frames out), then run on the block. The arms' proposals rank with a model fitted on the same
 training frames (``reeb fit``'s defaults; kept per fold under ``--work``), unless an arm asks
 for ``--proposals training-free``: no frame is scored by a ranking or a detector that saw it.
@@ -61,8 +61,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def training_sides(items: list[dict], folds: int) -> tuple[list[list[int]], list[list[int]]]:
     """The held-out blocks and, for each, the frames its models are fitted on (whole drives
     and near-copies of a held-out frame left out)."""
-    from reeb_torch.eval.fit import similar_frames, training_frames
-    from reeb_torch.eval.tune import fold_blocks
+    from reeb_torch.ranker.frames import similar_frames, training_frames
+    from reeb_torch.tuning import fold_blocks
 
     ids, folders = [it["image_id"] for it in items], [it["folder"] for it in items]
     blocks = fold_blocks(len(items), folds)
@@ -77,9 +77,9 @@ def fold_rankers(roots: list[Path], items: list[dict], train_sides: list[list[in
     import tempfile
 
     from reeb_torch.config import ReebConfig
-    from reeb_torch.eval import fit as F
+    from reeb_torch.ranker import frames as F
     from reeb_torch.ranker import fit as RF
-    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.tuning import FrameCache
     from reeb_torch.ranker import save_ranker
 
     folder = (work or Path(tempfile.mkdtemp(prefix="detector-cv-"))) / "rankers"

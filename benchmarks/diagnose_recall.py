@@ -39,7 +39,7 @@ from _common import default_dev_dirs, rerun_line, run_captured  # noqa: E402
 from reeb_torch import ProposalGenerator  # noqa: E402
 from reeb_torch.runs.common import build_config  # noqa: E402
 from _common import add_data_option, add_frames_option  # noqa: E402
-from reeb_torch.eval.common import folder_splits, load_folders  # noqa: E402
+from reeb_torch.datasets.folders import folder_splits, load_folders  # noqa: E402
 from reeb_torch.metrics.recall import kitti_difficulty_mask  # noqa: E402
 from reeb_torch.stages.nms import nms_top_k  # noqa: E402
 from reeb_torch.runs.viz import crop_sheet, save_png  # noqa: E402
@@ -220,13 +220,13 @@ def _parser() -> argparse.ArgumentParser:
 def held_out_generators(data: list[Path], limit: int | None, config, folds: int, seed: int,
                         whole_drives: bool = False) -> dict[tuple[str, str], Callable[[], ProposalGenerator]]:
     """Per frame ``(folder, image id)``, a function that makes the generator of ``config``
-    with a ranking model fitted without the frame's block (:func:`reeb_torch.eval.fit_cv.cross_validate`'s
+    with a ranking model fitted without the frame's block (:func:`reeb_torch.ranker.cv.cross_validate`'s
     folds, training frames and fit; the weights saved in a temporary folder that lives as
     long as the functions), the one generator per block made once, when its first frame asks;
     ``whole_drives``: every frame of a held-out block's drives stays off its training side."""
-    from reeb_torch.eval import fit as F
+    from reeb_torch.ranker import frames as F
     from reeb_torch.ranker import fit as RF
-    from reeb_torch.eval.tune import FrameCache, fold_blocks
+    from reeb_torch.tuning import FrameCache, fold_blocks
     from reeb_torch.ranker import save_ranker
 
     frames = F.load_fit_frames(data, limit)

@@ -26,9 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_dev_dirs, environment, rerun_line, write_outputs  # noqa: E402
 
 from reeb_torch import ReebConfig  # noqa: E402
-from reeb_torch.eval import fit as F  # noqa: E402
+from reeb_torch.ranker import frames as F  # noqa: E402
 from reeb_torch.metrics.recall import sign_test  # noqa: E402
-from reeb_torch.eval.tune import FrameCache, bootstrap_interval, fold_blocks  # noqa: E402
+from reeb_torch.tuning import FrameCache, bootstrap_interval, fold_blocks  # noqa: E402
 from reeb_torch.ranker import fit as RF  # noqa: E402
 from reeb_torch.ranker import save_ranker  # noqa: E402
 

@@ -24,10 +24,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_dev_dirs, rerun_line  # noqa: E402
 
 from reeb_torch import ReebConfig  # noqa: E402
-from reeb_torch.eval import fit as F  # noqa: E402
+from reeb_torch.ranker import frames as F  # noqa: E402
 from reeb_torch.ranker import fit as RF  # noqa: E402
 from reeb_torch.ranker import training as T  # noqa: E402
-from reeb_torch.eval.tune import FrameCache  # noqa: E402
+from reeb_torch.tuning import FrameCache  # noqa: E402
 from reeb_torch.ranker import load_ranker, save_ranker  # noqa: E402
 
 

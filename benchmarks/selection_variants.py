@@ -35,7 +35,7 @@ from _common import default_kitti_dir, rerun_line, run_captured  # noqa: E402
 from reeb_torch import ProposalGenerator, ReebConfig  # noqa: E402
 from reeb_torch.selection import WindowSelection  # noqa: E402
 from _common import add_frames_option  # noqa: E402
-from reeb_torch.eval.common import load_kitti  # noqa: E402
+from reeb_torch.datasets.folders import load_kitti  # noqa: E402
 from reeb_torch.metrics.recall import compare_recall, object_hits  # noqa: E402
 from reeb_torch.stages.nms import nms_top_k  # noqa: E402
 

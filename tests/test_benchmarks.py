@@ -16,7 +16,7 @@ import torch
 from torchvision.ops import box_iou
 
 from reeb_torch import ProposalGenerator, ReebConfig
-from reeb_torch.eval.common import load_kitti
+from reeb_torch.datasets.folders import load_kitti
 
 from test_eval import _example_kitti
 
@@ -100,10 +100,10 @@ def test_show_needs_lost(diagnose, tmp_path):
 
 @pytest.mark.slow
 def test_folds_rank_each_frame_by_a_model_fitted_without_its_block(diagnose, tmp_path):
-    from reeb_torch.eval import fit as F
+    from reeb_torch.ranker import frames as F
     from reeb_torch.ranker import fit as RF
-    from reeb_torch.eval import fit_cv
-    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.ranker import cv as fit_cv
+    from reeb_torch.tuning import FrameCache
 
     root = _example_kitti(tmp_path / "kitti")
     record = diagnose.main(["--data", str(root), "--folds", "2", "--set", "top_k=150"])
@@ -129,7 +129,7 @@ def test_folds_rank_each_frame_by_a_model_fitted_without_its_block(diagnose, tmp
 def test_whole_drives_holds_out_the_drives_of_each_block(diagnose, tmp_path, monkeypatch):
     """--whole-drives: the training frames are reeb fit --whole-drives' (every frame of a
     held-out block's drives out), recorded as such."""
-    from reeb_torch.eval import fit as F
+    from reeb_torch.ranker import frames as F
 
     gaps = []
     real = F.training_frames
@@ -405,8 +405,8 @@ def test_cv_paired_refit_takes_fit_options_and_the_fields_the_model_reads():
 @pytest.mark.kitti
 def test_cv_paired_refit_with_the_defaults_options_gives_the_defaults_hits(kitti_dir):
     """A refit that changes nothing fits the very fold models again (seeded): the same hits."""
-    from reeb_torch.eval import fit as F
-    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.ranker import frames as F
+    from reeb_torch.tuning import FrameCache
 
     cv = _script("cv_paired")
     cache = FrameCache(F.load_fit_frames([str(kitti_dir)], limit=6))
@@ -447,7 +447,7 @@ def test_adapt_scores_four_ways_on_frames_away_from_the_adapt_block(tmp_path):
     a = _example_kitti(tmp_path / "a")
     b = tmp_path / "b"
     shutil.copytree(a, b)
-    frames = __import__("reeb_torch.eval.fit", fromlist=["x"]).load_fit_frames([str(a), str(b)])
+    frames = __import__("reeb_torch.ranker.frames", fromlist=["x"]).load_fit_frames([str(a), str(b)])
     scens = adapt.scenarios(frames, [1], gap=2)
     assert [s["name"] for s in scens] == ["a -> b, first 1", "a -> b, last 1", "b -> a, first 1", "b -> a, last 1"]
     for s in scens:

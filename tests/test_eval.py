@@ -14,7 +14,7 @@ import torch
 
 from conftest import DATA
 from reeb_torch.eval import command, table3
-from reeb_torch.eval.common import FrameRange, parse_frame_range, select_frames
+from reeb_torch.datasets.folders import FrameRange, parse_frame_range, select_frames
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "reeb_torch"
@@ -357,7 +357,7 @@ def test_table3_on_two_folders_reports_each_and_both(tmp_path, monkeypatch):
 
 
 def test_folder_names_and_splits():
-    from reeb_torch.eval.common import folder_names, folder_splits
+    from reeb_torch.datasets.folders import folder_names, folder_splits
 
     assert folder_names(["/x/kitti", "/x/kitti_tracking"]) == ["kitti", "kitti_tracking"]
     assert folder_names(["/p/a/kitti", "/p/b/kitti"]) == ["a/kitti", "b/kitti"]
@@ -373,10 +373,10 @@ def test_table3_cross_validated_row_is_reeb_fits_estimate(kitti_dir, tmp_path, m
     fits on the same frames (its hits are cross_validate's), placed after the default's own
     row, which is in sample; every row is then paired with training-free."""
     from reeb_torch import ReebConfig
-    from reeb_torch.eval import fit as F
+    from reeb_torch.ranker import frames as F
     from reeb_torch.ranker import fit as RF
-    from reeb_torch.eval import fit_cv
-    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.ranker import cv as fit_cv
+    from reeb_torch.tuning import FrameCache
 
     monkeypatch.chdir(tmp_path)
     record = _eval(kitti_dir, "--limit", "6", "--methods", "reeb-training-free,reeb-default", "--batch", "0",
@@ -417,10 +417,10 @@ def test_table3_whole_drives_row_never_fits_on_a_frame_of_a_held_out_drive(tmp_p
     if not (TRACKING / "images").is_dir():
         pytest.skip(f"{TRACKING} is absent (set $REEB_DATA to the folder holding kitti_tracking/)")
     from reeb_torch import ReebConfig
-    from reeb_torch.eval import fit as F
+    from reeb_torch.ranker import frames as F
     from reeb_torch.ranker import fit as RF
-    from reeb_torch.eval import fit_cv
-    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.ranker import cv as fit_cv
+    from reeb_torch.tuning import FrameCache
 
     data = tmp_path / "kitti_tracking"
     for sub, ext in (("images", "png"), ("labels", "txt"), ("calib", "txt")):

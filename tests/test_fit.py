@@ -1,4 +1,4 @@
-"""Fitting the learned ranking (reeb_torch.eval.fit, reeb fit): training rows from labelled
+"""Fitting the learned ranking (reeb_torch.ranker.frames, reeb fit): training rows from labelled
 candidates (hand-worked), a seeded fit that gives the same bits twice, folds that keep
 neighbouring frames of one drive on one side, the command end to end, and the shipped
 weights refitted bit for bit from the frames and options they name."""
@@ -14,10 +14,10 @@ import pytest
 import torch
 
 from conftest import DATA
-from reeb_torch.eval import fit as F
+from reeb_torch.ranker import frames as F
 from reeb_torch.ranker import fit as RF
-from reeb_torch.eval import fit_cv
-from reeb_torch.eval.tune import fold_blocks
+from reeb_torch.ranker import cv as fit_cv
+from reeb_torch.tuning import fold_blocks
 from reeb_torch.ranker.features import FEATURE_GROUPS, dropped_columns, feature_names
 
 REPO_DATA = DATA
@@ -267,7 +267,7 @@ def test_cross_validate_runs_after_the_model_settings_with_the_same_fold_models(
     import dataclasses
 
     from reeb_torch import ReebConfig
-    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.tuning import FrameCache
 
     frames = F.load_fit_frames([str(kitti_dir)], limit=6)
     cache = FrameCache(frames)
@@ -288,7 +288,7 @@ def test_held_out_outputs_are_the_cross_validated_models(kitti_dir):
 
     from reeb_torch import ReebConfig
     from reeb_torch.metrics.recall import object_hits
-    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.tuning import FrameCache
 
     frames = F.load_fit_frames([str(kitti_dir)], limit=6)
     cache = FrameCache(frames)
@@ -363,7 +363,7 @@ def test_reeb_fit_on_two_folders_reports_a_model_fitted_on_the_other(kitti_dir, 
     others (the blocks of held_out_outputs), paired with training-free; one folder: none."""
     from reeb_torch import ReebConfig
     from reeb_torch.metrics.recall import object_hits
-    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.tuning import FrameCache
     from reeb_torch.runs.fit import run_fit
 
     tracking = REPO_DATA / "kitti_tracking"
@@ -409,7 +409,7 @@ def test_shipped_weights_refit(kitti_dir):
     so weights match bit for bit only on the kind of CPU that fitted them): its scores of the
     fit's own rows correlate with the shipped model's and put the same rows first."""
     from reeb_torch import ReebConfig
-    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.tuning import FrameCache
     from reeb_torch.ranker import load_ranker
 
     shipped = load_ranker("kitti")
@@ -449,7 +449,7 @@ def test_mirror_adds_each_frames_mirror_image_rows_cached_apart(kitti_dir):
     image (candidates of the flipped image, front ends cached apart from the frame's own);
     seeded: the same rows twice."""
     from reeb_torch import ReebConfig
-    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.tuning import FrameCache
 
     frames = F.load_fit_frames([str(kitti_dir)], limit=3)
     cfg = ReebConfig()
@@ -480,7 +480,7 @@ def test_mirror_and_jitter_leave_the_held_out_frames_as_they_are(kitti_dir):
     """The cross-validation of a fit with ``mirror`` and ``jitter`` scores its held-out frames as they are:
     no mirror image or copy is run once the rows are drawn, and the hits are of the frames' objects."""
     from reeb_torch import ReebConfig
-    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.tuning import FrameCache
 
     frames = F.load_fit_frames([str(kitti_dir)], limit=4)
     cache = FrameCache(frames)
@@ -498,7 +498,7 @@ def test_mirror_and_jitter_leave_the_held_out_frames_as_they_are(kitti_dir):
 
 def test_photometric_jitter_by_hand():
     """Contrast about the image's mean, then brightness; rounded and clipped to uint8."""
-    from reeb_torch.eval.tune import photometric_jitter
+    from reeb_torch.tuning import photometric_jitter
 
     image = torch.tensor([[[100, 140], [120, 160]]] * 3, dtype=torch.uint8)  # mean 130
     assert torch.equal(photometric_jitter(image, 1.0, 0.0), image)
@@ -514,7 +514,7 @@ def test_jitter_adds_each_frames_jittered_copy_rows(kitti_dir):
     """With ``jitter`` a frame's sample is its own rows, then those of its jittered copy (its
     own boxes; front ends cached apart); with ``mirror`` too: own, mirrored, jittered."""
     from reeb_torch import ReebConfig
-    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.tuning import FrameCache
 
     frames = F.load_fit_frames([str(kitti_dir)], limit=2)
     cfg = ReebConfig()
@@ -540,7 +540,7 @@ def test_hard_negatives_fit_the_mlp_on_what_the_prefilter_keeps(kitti_dir):
     import dataclasses
 
     from reeb_torch import ReebConfig
-    from reeb_torch.eval.tune import FrameCache
+    from reeb_torch.tuning import FrameCache
 
     frames = F.load_fit_frames([str(kitti_dir)], limit=3)
     cache = FrameCache(frames)

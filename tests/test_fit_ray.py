@@ -36,8 +36,8 @@ def test_rows_made_on_ray_are_the_rows_made_here(tiny_kitti, tmp_path):
         from pathlib import Path
         import ray, torch
         from reeb_torch import ReebConfig
-        from reeb_torch.eval import fit as F
-        from reeb_torch.eval.tune import FrameCache
+        from reeb_torch.ranker import frames as F
+        from reeb_torch.tuning import FrameCache
         from reeb_torch.ranker.fit import FitOptions
         from reeb_torch.runs.fit_ray import ray_rows, start_ray
 

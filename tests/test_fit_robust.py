@@ -73,7 +73,7 @@ def test_the_weights_and_their_config_are_never_one_file(tmp_path):
     ("w.JSON", "the same file"),
 ])
 def test_an_output_that_cannot_be_written_is_refused_before_any_work(tmp_path, monkeypatch, out, message):
-    from reeb_torch.eval import fit as F
+    from reeb_torch.ranker import frames as F
 
     _folder(tmp_path / "d")
     monkeypatch.setattr(F, "load_fit_frames", lambda *a, **k: pytest.fail("the frames were read"))
@@ -82,7 +82,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(tmp_path, m
 
 
 def test_a_second_fit_on_the_same_output_exits_2(tmp_path, monkeypatch):
-    from reeb_torch.eval import fit as F
+    from reeb_torch.ranker import frames as F
     from reeb_torch.runs.output_lock import lock_output
 
     _folder(tmp_path / "d")
@@ -98,7 +98,7 @@ def test_nan_weights_to_start_from_are_refused_before_the_frames_are_read(tmp_pa
     from safetensors.torch import load_file, save_file
     from safetensors import safe_open
 
-    from reeb_torch.eval import fit as F
+    from reeb_torch.ranker import frames as F
     from reeb_torch.ranker import shipped_path
 
     _folder(tmp_path / "d")

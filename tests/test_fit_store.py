@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from reeb_torch.eval import fit as F
+from reeb_torch.ranker import frames as F
 from reeb_torch.ranker import fit as RF
 from reeb_torch.ranker.training import fit_member
 from reeb_torch.ranker.features import feature_names

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from reeb_torch import ProposalGenerator, ReebConfig
-from reeb_torch.eval import fit as F
+from reeb_torch.ranker import frames as F
 from reeb_torch.ranker import fit as RF
 from reeb_torch.ranker import NOT_SEEN_BY_RANKER, BoxRanker, RankerWeightsError, load_ranker, save_ranker
 from reeb_torch.ranker.features import feature_names

@@ -11,10 +11,10 @@ import torch
 from torchvision.ops import box_iou
 
 from reeb_torch import ProposalGenerator, ReebConfig
-from reeb_torch.eval import fit as F
+from reeb_torch.ranker import frames as F
 from reeb_torch.ranker import fit as RF
-from reeb_torch.eval import fit_cv
-from reeb_torch.eval.tune import Frames
+from reeb_torch.ranker import cv as fit_cv
+from reeb_torch.tuning import Frames
 from reeb_torch.ranker import (NOT_SEEN_BY_RANKER, BoxRanker, BoxRefiner, RankerWeightsError, load_ranker,
                                offset_targets, refine_feature_names, refine_features, save_ranker)
 from reeb_torch.ranker.features import feature_names

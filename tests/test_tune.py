@@ -1,4 +1,4 @@
-"""reeb tune (reeb_torch.eval.tune and runs/tune.py): the search space is checked against
+"""reeb tune (reeb_torch.tuning and runs/tune.py): the search space is checked against
 ReebConfig, the frame cache gives the generator's boxes bit for bit, a tiny study is
 deterministic with a seed and resumable from SQLite, bad input is refused."""
 
@@ -11,7 +11,7 @@ import torch
 from click.testing import CliRunner
 
 from reeb_torch import ProposalGenerator, ReebConfig
-from reeb_torch.eval import tune as T
+from reeb_torch import tuning as T
 
 pytest.importorskip("optuna")
 

@@ -317,18 +317,18 @@ def train_detector(cls: type, items: Sequence[dict], folders: Sequence[str | os.
         det.settings = dataclasses.replace(settings, precision=det.precision)
     frames = heads_frames(det, items, training, cache_dir, progress, frames_by)
     train = frames[:len(items)]
-    slot = None
+    slot = after = None
     if checkpoints is not None:
         from ..ranker.store import Checkpoints
 
         digests = [getattr(f, "digest", None) or image_digest(f.image) for f in frames]
-        key = [dataclasses.asdict(training), repr(det.settings), list(det.classes), proposals, digests]
-        slot = Checkpoints(checkpoints, key).slot("heads")
+        states = Checkpoints(checkpoints, [dataclasses.asdict(training), repr(det.settings), list(det.classes),
+                                           proposals, digests])
+        slot, after = states.slot("heads"), states.slot("factorised")
     try:
         history = train_heads(det.model, train, training, progress=progress, checkpoint=slot)
         if rank:
-            tuned = tune_factorised(det, train, rank, training, progress=progress,
-                                    checkpoint=None if slot is None else Checkpoints(checkpoints, key).slot("factorised"))
+            tuned = tune_factorised(det, train, rank, training, progress=progress, checkpoint=after)
             if tuned is not None:
                 history["factorised"] = tuned
     finally:

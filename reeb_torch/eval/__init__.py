@@ -9,8 +9,10 @@ reader of :mod:`reeb_torch.datasets.kitti` and the measures of :mod:`reeb_torch.
 - :mod:`reeb_torch.eval.plots`: its two recall plots (matplotlib);
 - :mod:`reeb_torch.eval.command`: ``reeb eval``, the click command over them;
 - :mod:`reeb_torch.eval.baselines`: Edge Boxes, BING and Selective Search (OpenCV contrib);
-- :mod:`reeb_torch.eval.common`: frame ranges, loading KITTI folders, the rerun line and
-  the machine's description.
+- :mod:`reeb_torch.eval.common`: the rerun line and the machine's description.
+
+The evaluation is the research wing: the product (the generator, the ranking and its fit,
+the detectors, ``reeb tune``) imports none of it; ``reeb eval`` is its command.
 
 >>> from reeb_torch.eval import Table3Options, run_table3
 >>> record = run_table3(Table3Options(data=["kitti/"], limit=10, methods=["reeb-default"]), "runs/table3")
@@ -25,7 +27,6 @@ Importing this package imports neither torch nor OpenCV (``reeb --help`` stays q
 from __future__ import annotations
 
 from .command import main, run_table3
-from .common import FrameRange, load_kitti, parse_frame_range, select_frames
 from .methods import METHODS, Table3Options
 
 __all__ = [
@@ -33,8 +34,4 @@ __all__ = [
     "run_table3",
     "Table3Options",
     "METHODS",
-    "FrameRange",
-    "parse_frame_range",
-    "select_frames",
-    "load_kitti",
 ]

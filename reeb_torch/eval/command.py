@@ -23,7 +23,8 @@ from typing import Any
 
 import click
 
-from .common import FrameRange, parse_frame_range, rerun_line
+from ..datasets.folders import FrameRange, parse_frame_range
+from .common import rerun_line
 from .methods import DEFAULT_METHODS, KS, Table3Error, Table3Options
 
 __all__ = ["FrameRanges", "Methods", "BadData", "QUICK_METHODS", "table3_command", "run_table3"]
@@ -39,7 +40,7 @@ class BadData(click.ClickException):
 
 class FrameRanges(click.ParamType):
     """``A:B`` frame ranges (both ends included; ``A:``, ``:B`` and ``A`` too), several in one
-    value separated by commas: a tuple of :class:`~reeb_torch.eval.common.FrameRange`."""
+    value separated by commas: a tuple of :class:`~reeb_torch.datasets.folders.FrameRange`."""
 
     name = "A:B"
 

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .common import FrameRange
+from ..datasets.folders import FrameRange
 
 __all__ = [
     "KS",

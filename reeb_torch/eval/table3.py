@@ -38,7 +38,8 @@ from typing import Any
 
 import torch
 
-from .common import first_few, folder_names, folder_splits, load_folders
+from ..datasets.folders import folder_names, folder_splits, load_folders
+from .common import first_few
 from ..metrics.recall import (
     AR_IOUS,
     RecallResult,
@@ -185,7 +186,7 @@ def _ar_dict(ar: RecallResult) -> dict[str, Any]:
 @dataclass
 class Frames:
     """The selected frames of the data folders, decoded: per frame its dataset item (see
-    :func:`reeb_torch.eval.common.load_kitti`), image (uint8 ``Tensor[3, H, W]``), boxes
+    :func:`reeb_torch.datasets.folders.load_kitti`), image (uint8 ``Tensor[3, H, W]``), boxes
     (``Tensor[N_i, 4]``), labels (int64 ``Tensor[N_i]``) and id; ``n_obj`` objects in all."""
 
     items: list[dict]
@@ -262,7 +263,7 @@ def reference_row(done: Sequence[str]) -> str | None:
 
 
 def load_frames(options: Table3Options) -> Frames:
-    """The selected frames, decoded (:func:`reeb_torch.eval.common.load_folders`).
+    """The selected frames, decoded (:func:`reeb_torch.datasets.folders.load_folders`).
 
     Raises:
         Table3Error: unusable data, or the selected frames hold no object.
@@ -361,7 +362,7 @@ def cross_validated_boxes(frames: Frames, roots: Sequence[str | os.PathLike], fo
     """The default's ranked boxes (``Tensor[N_i, 4]``, at most ``max_proposals``) on each of
     ``frames`` (read from the folders ``roots``), each ranked by a model fitted without the
     frame's block of ``folds`` (a number of blocks, or the blocks: the frame indices of each;
-    :func:`reeb_torch.eval.fit_cv.held_out_outputs`, with ``reeb fit``'s default options and seed:
+    :func:`reeb_torch.ranker.cv.held_out_outputs`, with ``reeb fit``'s default options and seed:
     the same models as ``reeb fit ROOTS --folds FOLDS``; ``whole_drives``: without any frame
     of the block's drives either, as ``reeb fit --whole-drives``), and the
     seconds it took (``fit_s``: candidates, fits, proposals; no ms per image: the row runs the
@@ -372,9 +373,9 @@ def cross_validated_boxes(frames: Frames, roots: Sequence[str | os.PathLike], fo
 
     from .. import get_preset
     from ..ranker.fit import FitOptions
-    from .fit import FitFrames, frame_samples, other_boxes
-    from .fit_cv import held_out_outputs
-    from .tune import FrameCache
+    from ..ranker.frames import FitFrames, frame_samples, other_boxes
+    from ..ranker.cv import held_out_outputs
+    from ..tuning import FrameCache
 
     def bar(desc: str) -> Callable:
         return lambda items: tqdm(items, desc=f"{'cross-validated: ' + desc:<30}", file=sys.stderr, dynamic_ncols=True)

@@ -629,7 +629,7 @@ def bootstrap_recalls(found: Tensor, counts: Tensor, samples: int = 4000, seed: 
     hold per frame and class the objects found and present (C = 1 for micro recall);
     ``balanced`` takes on each draw the mean recall of the classes it holds. The draws are
     ``torch.randint`` of a generator seeded with ``seed``, the same in every caller
-    (:func:`recall_interval`, :func:`reeb_torch.eval.tune.bootstrap_interval`)."""
+    (:func:`recall_interval`, :func:`reeb_torch.tuning.bootstrap_interval`)."""
     draw = torch.randint(found.shape[0], (samples, found.shape[0]), generator=torch.Generator().manual_seed(seed))
     f, n = found[draw].sum(1), counts[draw].sum(1)  # (samples, C)
     return torch.where(n > 0, f / n.clamp(min=1), torch.nan).nanmean(1) if balanced else f.sum(1) / n.sum(1)

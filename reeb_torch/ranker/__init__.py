@@ -20,7 +20,7 @@ module              what it holds
 
 Weights are safetensors files (:func:`load_ranker`, :func:`save_ranker`); ``kitti`` ships
 with the package, and ``reeb fit`` fits new ones on a user's labelled frames
-(:mod:`reeb_torch.eval.fit`).
+(:mod:`reeb_torch.ranker.frames`).
 
 >>> from reeb_torch.ranker import load_ranker
 >>> model = load_ranker("kitti")              # a BoxRanker, eval mode

@@ -6,7 +6,7 @@ with :class:`FitOptions` and the rows' :class:`Sample`.
 The rows come in memory (a list of :class:`Sample`) or from an on-disk
 :class:`~reeb_torch.ranker.store.RowStore` read by minibatch (the same weights bit for bit);
 making them from labelled frames (the generator's candidates) is
-:mod:`reeb_torch.eval.fit`'s. Each part is fitted by
+:mod:`reeb_torch.ranker.frames`'s. Each part is fitted by
 :func:`~reeb_torch.ranker.training.fit_member` on one CPU thread with seeded draws: the same
 rows and options give the same weights, and a fit killed between epochs goes on from its
 checkpoints to the same weights.
@@ -98,7 +98,7 @@ class FitOptions:
             run time, and from the positives among them, in place of the uniform ``negatives``
             sample (a cascade's training; the prefilter, fitted first, and the class head keep
             the uniform rows). Read only where the fit is given the frames
-            (:func:`~reeb_torch.eval.fit_cv.kept_rows`: ``reeb fit`` and the cross-validations); 0: off.
+            (:func:`~reeb_torch.ranker.cv.kept_rows`: ``reeb fit`` and the cross-validations); 0: off.
         drop_features: feature columns the model does not read (names of
             :func:`~reeb_torch.ranker.features.feature_names`, or a group of
             :data:`~reeb_torch.ranker.features.FEATURE_GROUPS` such as ``"place"``): held at
@@ -204,7 +204,7 @@ def fit_ranker(samples: Sequence[Sample] | StoredFrames, feature_names: Sequence
 
     ``feature_names`` names the samples' columns; the model reads them all, or all but the
     orientation ones without ``opts.orientation``, or, fine-tuned, its own. ``hard_rows``
-    (:func:`~reeb_torch.eval.fit_cv.kept_rows`): with ``opts.hard_negatives`` and a prefilter,
+    (:func:`~reeb_torch.ranker.cv.kept_rows`): with ``opts.hard_negatives`` and a prefilter,
     the MLP is fitted on the rows it gives for the prefilter (fitted first), not on ``samples``.
 
     ``samples`` may be frames of a :class:`~reeb_torch.ranker.store.RowStore`
@@ -330,7 +330,7 @@ def _stacked(samples: Sequence[Sample] | StoredFrames, names: list[str],
 
 def _mlp_rows(samples: Sequence[Sample], names: list[str], wanted: list[str], model: BoxRanker, opts: FitOptions,
               dropped: Sequence[int]) -> tuple[Tensor, Tensor, Tensor]:
-    """The ranking MLP's rows from :func:`~reeb_torch.eval.fit_cv.kept_rows`' samples:
+    """The ranking MLP's rows from :func:`~reeb_torch.ranker.cv.kept_rows`' samples:
     ``(xs, y, w)``, standardised as the model's, weighed as :func:`fit_ranker` weighs."""
     x, y, w, label = _stacked(samples, names, wanted)
     assert isinstance(x, Tensor)  # the hard negatives' rows are in memory

@@ -34,8 +34,8 @@ command                where its work lives
 ``eval``               :mod:`reeb_torch.eval.command`
 ``export``             :mod:`.export`
 ``calibrate``          :mod:`.calibrate`
-``tune``               :mod:`.tune` (around :mod:`reeb_torch.eval.tune`)
-``fit``                :mod:`.fit` (around :mod:`reeb_torch.eval.fit`)
+``tune``               :mod:`.tune` (around :mod:`reeb_torch.tuning`)
+``fit``                :mod:`.fit` (around :mod:`reeb_torch.ranker.frames`)
 =====================  ==========================================================
 
 What they share (errors, the finite-float type, settings, device) is :mod:`.common`.

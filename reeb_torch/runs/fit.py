@@ -1,4 +1,4 @@
-"""``reeb fit``: the command's work around :mod:`reeb_torch.eval.fit` (load the frames, take
+"""``reeb fit``: the command's work around :mod:`reeb_torch.ranker.frames` (load the frames, take
 their candidates, cross-validate, fit on all of them, print, write the weights and a config
 that ``reeb propose --config`` reads).
 
@@ -22,12 +22,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
 from ..config import ReebConfig
-from ..eval import fit as F
+from ..ranker import frames as F
 from ..ranker import fit as RF
-from ..eval import fit_cv
-from ..eval.common import folder_blocks
+from ..ranker import cv as fit_cv
+from ..datasets.folders import folder_blocks
 from ..metrics.recall import compare_recall
-from ..eval.tune import FrameCache, bootstrap_interval, fold_blocks, objective
+from ..tuning import FrameCache, bootstrap_interval, fold_blocks, objective
 from ..ranker import dropped_columns
 from ..ranker.store import Checkpoints, RowStore, StoredFrames, StoreError
 
@@ -300,7 +300,7 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: RF.FitOptions
 
     Memory does not grow with the frames: the images are read when used, each frame's rows
     are appended to a store beside ``out`` and trained from by minibatch
-    (:func:`~reeb_torch.eval.fit.row_store`), and the training states are kept after each
+    (:func:`~reeb_torch.ranker.frames.row_store`), and the training states are kept after each
     epoch, so a killed fit, started again with the same arguments, goes on from where it was
     and ends with the weights of one never stopped.
 
@@ -542,7 +542,7 @@ its memory then does not grow with the frames (docs/results.md, "Fits at scale")
 def _rows(cache: FrameCache, cfg: ReebConfig, opts: F.FitOptions, store: RowStore,
           engine: tuple[str | None, int, float | None] | None, quiet: bool) -> StoredFrames:
     """Every frame's training rows in ``store``: those it lacks made here
-    (:func:`~reeb_torch.eval.fit.frame_samples`) or on Ray (``engine``)."""
+    (:func:`~reeb_torch.ranker.frames.frame_samples`) or on Ray (``engine``)."""
     if engine is None:
         out = F.frame_samples(cache, cfg, opts, progress=_iterate("candidates", quiet), store=store)
         assert isinstance(out, StoredFrames)
@@ -570,7 +570,7 @@ def _rows(cache: FrameCache, cfg: ReebConfig, opts: F.FitOptions, store: RowStor
 
 def _open_store(outputs: FitOutputs, cache: FrameCache, cfg: ReebConfig, opts: RF.FitOptions,
                 quiet: bool) -> RowStore:
-    """The fit's row store beside its output (:func:`~reeb_torch.eval.fit.row_store`), with a
+    """The fit's row store beside its output (:func:`~reeb_torch.ranker.frames.row_store`), with a
     line where a killed fit's rows are gone on from or a store made otherwise is made again."""
     from .common import Failure
 

@@ -2,7 +2,7 @@
 --engine ray``): a local Ray instance or a cluster computes each frame's part, and the driver
 keeps what comes back in frame order, as the single-machine fit does.
 
-* :func:`ray_rows`: the ranking's training rows (:func:`~reeb_torch.eval.fit.frame_samples`
+* :func:`ray_rows`: the ranking's training rows (:func:`~reeb_torch.ranker.frames.frame_samples`
   of each frame, on :class:`RowsActor` actors), appended to the fit's row store in frame
   order: the same rows as on one machine, and a fit stopped mid-way goes on from the store.
 * :func:`ray_frames`: the detector's per-frame pass (:class:`FramesActor`: each image
@@ -78,7 +78,7 @@ class RowsActor:
 
     def __init__(self, frames: Any, config: dict, opts: Any, cpus: float = 1.0) -> None:
         from ..config import ReebConfig
-        from ..eval.tune import FrameCache
+        from ..tuning import FrameCache
 
         _quiet_workers(cpus)
         self.cache = FrameCache(frames, budget=0)
@@ -87,7 +87,7 @@ class RowsActor:
     def __call__(self, batch: dict) -> dict:
         import dataclasses
 
-        from ..eval.fit import frame_samples
+        from ..ranker.frames import frame_samples
 
         indices = [int(i) for i in batch["frame"]]
         blobs = []
@@ -113,7 +113,7 @@ def ray_rows(store: Any, frames: Any, config: Any, opts: Any, actors: int, cpus:
     (:class:`RowsActor`), in frame order; ``progress`` wraps the loop (a progress bar)."""
     import torch
 
-    from ..eval.fit import FitFrames, ImageFiles
+    from ..ranker.frames import FitFrames, ImageFiles
 
     ray = require_ray()
     todo = list(range(len(store), len(frames)))

@@ -1,4 +1,4 @@
-"""``reeb tune``: the command's work around :mod:`reeb_torch.eval.tune` (load, search,
+"""``reeb tune``: the command's work around :mod:`reeb_torch.tuning` (load, search,
 cross-validate, print, write the tuned config, its record and the plots)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from ..config import ReebConfig
-from ..eval import tune as T
+from .. import tuning as T
 from ..metrics.recall import compare_recall
 
 __all__ = ["run_tune", "run_score", "plot_study"]

@@ -13,7 +13,7 @@ fit itself, on those rows, is :mod:`reeb_torch.ranker.fit`.
   (:class:`~reeb_torch.ranker.store.RowStore`), so that neither the rows nor the images are
   all held at once and a killed fit goes on from the last frame it finished.
 * :func:`training_frames`: the frames to fit on when a block is held out, keeping its drive
-  neighbours out; the cross-validation itself is :mod:`reeb_torch.eval.fit_cv`.
+  neighbours out; the cross-validation itself is :mod:`reeb_torch.ranker.cv`.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from ..config import ReebConfig
 from ..ranker import offset_targets, refine_feature_names
 from ..ranker.fit import FitOptions, Sample
 from ..ranker.store import RowStore, StoredFrames
-from .tune import FrameCache, Frames
+from ..tuning import FrameCache, Frames
 
 __all__ = ["FitFrames", "ImageFiles", "load_fit_frames", "frame_sample", "frame_samples", "mirrored_sample",
            "jitter_of", "row_store", "similar_frames", "training_frames", "drive_of", "other_boxes"]
@@ -43,7 +43,7 @@ __all__ = ["FitFrames", "ImageFiles", "load_fit_frames", "frame_sample", "frame_
 
 @dataclass
 class FitFrames(Frames):
-    """:class:`~reeb_torch.eval.tune.Frames` with, per frame, ``ignore``: ``float32 [M, 4]``
+    """:class:`~reeb_torch.tuning.Frames` with, per frame, ``ignore``: ``float32 [M, 4]``
     the labelled boxes that are no target (other classes, ``DontCare``)."""
 
     ignore: list[Tensor] = field(default_factory=list)
@@ -97,15 +97,15 @@ class ImageFiles(Sequence[Tensor]):
 
 
 def load_fit_frames(roots: Sequence[str | os.PathLike], limit: int | None = None, lazy: bool = False) -> FitFrames:
-    """Read the labelled frames of KITTI-format folders (:func:`reeb_torch.eval.tune.load_frames`)
+    """Read the labelled frames of KITTI-format folders (:func:`reeb_torch.tuning.load_frames`)
     and, per frame, the boxes of the other labelled types. ``lazy``: the images are decoded
     when read (:class:`ImageFiles`), not all at once: for frames too many to hold.
 
     Raises:
-        ValueError: as :func:`~reeb_torch.eval.tune.load_frames`.
+        ValueError: as :func:`~reeb_torch.tuning.load_frames`.
     """
     from ..datasets.kitti import KittiDataset
-    from .tune import load_frames
+    from ..tuning import load_frames
 
     if lazy:
         return _lazy_frames(roots, limit)
@@ -118,9 +118,9 @@ def load_fit_frames(roots: Sequence[str | os.PathLike], limit: int | None = None
 
 def _lazy_frames(roots: Sequence[str | os.PathLike], limit: int | None) -> FitFrames:
     """:func:`load_fit_frames` with the images left in their files: the labels read as
-    :func:`~reeb_torch.eval.common.load_kitti` reads them (checked against each image's size
+    :func:`~reeb_torch.datasets.folders.load_kitti` reads them (checked against each image's size
     from its header)."""
-    from .common import folder_names
+    from ..datasets.folders import folder_names
     from ..datasets.kitti import DEFAULT_CLASSES, KittiDataset
 
     if not roots:

@@ -33,10 +33,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._memory import trim_heap
-from ..config import ReebConfig
-from ..generator import FRONT_END_FIELDS, Candidates, FrontEnd, ProposalGenerator
-from ..metrics.recall import RecallInterval, bootstrap_recalls, object_hits, recall_interval
+from ._memory import trim_heap
+from .config import ReebConfig
+from .generator import FRONT_END_FIELDS, Candidates, FrontEnd, ProposalGenerator
+from .metrics.recall import RecallInterval, bootstrap_recalls, object_hits, recall_interval
 
 __all__ = ["Frames", "FrameCache", "Param", "default_space", "load_space", "Estimate", "CrossValidation",
            "load_frames", "photometric_jitter", "score_config", "objective", "bootstrap_interval", "fold_blocks",
@@ -63,12 +63,12 @@ class Frames:
 
 
 def load_frames(roots: Sequence[str | os.PathLike], limit: int | None = None) -> Frames:
-    """Read the frames of KITTI-format folders (:func:`reeb_torch.eval.common.load_folders`).
+    """Read the frames of KITTI-format folders (:func:`reeb_torch.datasets.folders.load_folders`).
 
     Raises:
         ValueError: no folder, a folder without labels, or no labelled object at all.
     """
-    from .common import load_folders
+    from .datasets.folders import load_folders
 
     items, classes = load_folders(roots, limit=limit)
     frames = Frames([it["image"] for it in items], [it["boxes"] for it in items],
@@ -83,7 +83,7 @@ def load_frames(roots: Sequence[str | os.PathLike], limit: int | None = None) ->
 def _weights_stamp(ranker: str) -> tuple[int, int] | None:
     """The modification time and size of the weights file ``ranker`` names; None for none, a
     shipped name, or a file that cannot be read (the generator then says what is wrong)."""
-    from ..ranker import SHIPPED
+    from .ranker import SHIPPED
 
     if ranker in ("none", *SHIPPED):
         return None
@@ -184,7 +184,7 @@ class FrameCache:
         """The box refiner's features (:func:`reeb_torch.ranker.refine_features`) of ``boxes``
         (``float [K, 4]`` input pixels) in frame ``i`` (as :meth:`candidates` takes it):
         ``float32 [K, R]``."""
-        from ..ranker import refine_features
+        from .ranker import refine_features
 
         with torch.no_grad():
             _, _, front = self._front_of(cfg, i, mirrored, photometric)

@@ -2,10 +2,10 @@
 fit on all blocks of frames but one, score the held-out block with that model.
 
 * :func:`cross_validate` splits the frames into blocks
-  (:func:`~reeb_torch.eval.tune.fold_blocks`), fits on all blocks but one
+  (:func:`~reeb_torch.tuning.fold_blocks`), fits on all blocks but one
   (:func:`~reeb_torch.ranker.fit.fit_ranker`), keeping the held-out block's drive neighbours out
-  (:func:`~reeb_torch.eval.fit.training_frames`), scores the generator with that model on the
-  held-out block, and collects the held-out hits (:func:`~reeb_torch.eval.tune.held_out`).
+  (:func:`~reeb_torch.ranker.frames.training_frames`), scores the generator with that model on the
+  held-out block, and collects the held-out hits (:func:`~reeb_torch.tuning.held_out`).
 * :func:`held_out_outputs` gives each frame's proposals from the model that never saw it.
 * :func:`kept_rows`: the rows of the candidates a fitted prefilter keeps
   (:attr:`~reeb_torch.ranker.fit.FitOptions.hard_negatives`).
@@ -30,9 +30,9 @@ from torchvision.ops import box_iou
 from ..config import ReebConfig
 from ..ranker import BoxRanker, keep_candidates, save_ranker
 from ..ranker.store import Checkpoints, StoredFrames
-from . import fit as F
+from . import frames as F
 from ..ranker import fit as RF
-from .tune import FrameCache, fold_blocks, held_out
+from ..tuning import FrameCache, fold_blocks, held_out
 
 __all__ = ["FitCrossValidation", "cross_validate", "held_out_outputs", "best_ious", "hinted_classes", "kept_rows"]
 
@@ -41,7 +41,7 @@ def kept_rows(cache: FrameCache, cfg: ReebConfig, opts: RF.FitOptions,
               indices: Sequence[int]) -> Callable[[BoxRanker], list[RF.Sample]]:
     """For :attr:`~reeb_torch.ranker.fit.FitOptions.hard_negatives`: a function of a model
     with a fitted prefilter that gives, per frame of ``indices`` of ``cache``,
-    :func:`~reeb_torch.eval.fit.frame_sample`'s rows of the candidates the prefilter keeps
+    :func:`~reeb_torch.ranker.frames.frame_sample`'s rows of the candidates the prefilter keeps
     under ``cfg`` (:func:`~reeb_torch.ranker.keep_candidates`, as
     :meth:`~reeb_torch.ranker.LearnedRanking.rank` keeps them), the negatives drawn at
     ``opts.hard_negatives`` by a generator seeded with ``(opts.seed, i, 4)``."""
@@ -125,10 +125,10 @@ def hinted_classes(outputs: Sequence[dict[str, Tensor]], gts: Sequence[Tensor], 
 
 class _HeldOutModels:
     """The models fitted without each block of frames (``folds`` blocks of
-    :func:`~reeb_torch.eval.tune.fold_blocks`, or the blocks ``folds``), in a temporary folder
+    :func:`~reeb_torch.tuning.fold_blocks`, or the blocks ``folds``), in a temporary folder
     removed on leaving the ``with`` block: :meth:`fit` fits block ``f``'s, keeping every
     drive neighbour and near-copy of the block out of its training frames
-    (:func:`~reeb_torch.eval.fit.training_frames`), and records how many frames it was fitted on. ``scratch``: the
+    (:func:`~reeb_torch.ranker.frames.training_frames`), and records how many frames it was fitted on. ``scratch``: the
     folder the temporary one is made in (default: the system's)."""
 
     def __init__(self, cache: FrameCache, names: Sequence[str], samples: Sequence[RF.Sample] | StoredFrames,
@@ -184,7 +184,7 @@ def held_out_outputs(cache: FrameCache, cfg: ReebConfig, samples: Sequence[RF.Sa
     """Per frame (in frame order), ``ProposalGenerator(cfg)``'s output dict with the ranking
     fitted without the frame's block (``folds`` blocks: the folds and models of
     :func:`cross_validate`; or the blocks given, the frame indices of each, covering every
-    frame once; from ``samples`` = :func:`~reeb_torch.eval.fit.frame_samples` under ``cfg``): proposals from a model
+    frame once; from ``samples`` = :func:`~reeb_torch.ranker.frames.frame_samples` under ``cfg``): proposals from a model
     that never saw the frame, for any recall table. ``reduce(i, output)``: what is kept of
     frame ``i``'s output in its place (its hits, say), so that the outputs are not all held.
 
@@ -208,13 +208,13 @@ def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples
                    progress: Callable | None = None, also: Sequence[ReebConfig] = (),
                    scratch: str | os.PathLike | None = None, best_ks: Sequence[int] = (),
                    keep: str | os.PathLike | None = None) -> FitCrossValidation:
-    """For each of ``folds`` blocks of frames: fit on the others (:func:`~reeb_torch.eval.fit.training_frames`),
+    """For each of ``folds`` blocks of frames: fit on the others (:func:`~reeb_torch.ranker.frames.training_frames`),
     run the generator of ``cfg`` with that model on the block, and pair its hits with
     ``base``'s on the same objects; each config of ``also`` (settings that act after the
     model: ``class_quota``, ``top_k``, ``refine_top``, ...) runs with the same model too
     (``also_hits``); with ``best_ks``, each object's best IoU at those proposal counts is kept
     too (``ranked_best``, ``also_best``: :func:`best_ious`); the loop over the blocks is
-    :func:`~reeb_torch.eval.tune.held_out`'s. ``keep``: a folder where each block's model
+    :func:`~reeb_torch.tuning.held_out`'s. ``keep``: a folder where each block's model
     and its training states stay (:class:`~reeb_torch.ranker.store.Checkpoints`), so a killed
     run started again goes on from them (default: a temporary folder in ``scratch``)."""
     from ..metrics.recall import object_hits
