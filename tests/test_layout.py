@@ -2,7 +2,8 @@
 stages import only stages, the algorithm imports none of the runs, the evaluation or the
 detectors, the libraries of runs/ do not import the command, and there is one import path
 per name (no compatibility modules). Modules, classes and functions stay under their caps;
-nothing but the command line imports the evaluation (the research wing); the learned
+nothing but the command line imports the evaluation (the research wing); the detector's
+inference reaches none of its training; the learned
 ranking has one home (``reeb_torch/ranker/``); click is the one command-line framework; the
 package reads no data beside the checkout; and the repository speaks of the product, not of
 the work that made it.
@@ -235,6 +236,23 @@ def test_inference_imports_no_training(graph):
         wrong = _reach(graph, m) & RANKER_TRAINING
         assert not wrong, f"{m} reaches the training modules {sorted(wrong)}"
     assert RANKER_TRAINING <= set(graph)
+
+
+DETECTION_INFERENCE = {"reeb_torch.detection.inference", "reeb_torch.detection.forward",
+                       "reeb_torch.detection.feature_cache", "reeb_torch.detection.rpn",
+                       "reeb_torch.detection.lite0", "reeb_torch.detection.lite0_detector",
+                       "reeb_torch.detection.roi_align", "reeb_torch.detection.detector_file"}
+DETECTION_TRAINING = {"reeb_torch.detection.head_training", "reeb_torch.detection.fitting"}
+
+
+def test_detection_imports_no_training(graph):
+    """The detector's path from image to detections (:data:`DETECTION_INFERENCE`) reaches
+    neither the heads' training loop nor the fit on folders; ``ReebDetector.fit`` imports
+    them when called."""
+    assert DETECTION_INFERENCE | DETECTION_TRAINING <= set(graph)
+    for m in DETECTION_INFERENCE:
+        wrong = _reach(graph, m) & DETECTION_TRAINING
+        assert not wrong, f"{m} reaches the training modules {sorted(wrong)}"
 
 
 def test_one_home_for_the_learned_ranking(graph):

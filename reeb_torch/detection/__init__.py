@@ -46,7 +46,8 @@ from .fitting import (
     paired_scores,
     scores_of,
 )
-from .head_training import CachedFrame, TrainSettings, detect, drop_ignored, frame_forward, mirror_boxes, train_heads
+from .forward import CachedFrame, drop_ignored, frame_forward
+from .head_training import TrainSettings, detect, mirror_boxes, train_heads
 from .kitti import KITTI_CLASSES, load_frames, mirrored, result_lines, write_results
 from .lite0 import EfficientNetLite0, load_lite0, weights_digest
 from .lite0_detector import reeb_fasterrcnn_lite0

@@ -30,7 +30,7 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 from torch import Tensor, nn
@@ -39,8 +39,10 @@ from ..config import ReebConfig
 from ..io import replace_file
 from .detector_file import (DetectorFileError, check_tensors, not_a_file, ranker_file_bytes, ranker_parts,
                             read_detector_file, trained_keys, write_detector_file)
-from .head_training import TrainSettings
 from .kitti import KITTI_CLASSES
+
+if TYPE_CHECKING:
+    from .head_training import TrainSettings
 
 __all__ = ["DetectorSettings", "SETTINGS_RANGES", "ReebDetector", "proposal_settings", "PROPOSALS",
            "SHIPPED_DETECTORS", "resolve_detector"]
@@ -447,6 +449,8 @@ class ReebDetector(nn.Module):
         ``frames_by``: the per-frame pass done elsewhere (:func:`~reeb_torch.detection.
         fitting.stored_frames`; ``reeb detector fit --engine ray``)."""
         from .fitting import fit_detector
+
+        from .head_training import TrainSettings
 
         base = training or TrainSettings()
         train = dataclasses.replace(base, epochs=epochs, seed=seed, hflip=hflip)

@@ -31,7 +31,8 @@ from torch import Tensor
 from .._memory import trim_heap
 from .cache import CacheEntry, ProposalCache, StaleCacheError, image_digest
 from .feature_cache import FeatureCache, FrameFeatures, cached_features, frozen_features
-from .head_training import CachedFrame, TrainSettings, detect, train_heads
+from .forward import CachedFrame
+from .head_training import TrainSettings, detect, train_heads
 from .kitti import distinct_folders, frame_image, load_frames, mirrored
 
 __all__ = ["default_cache_dir", "StoredFrame", "stored_frames", "cached_frames", "fit_detector", "heads_frames", "train_detector", "tune_factorised", "crop_from_labels", "detector_stats", "evaluate_detector", "scores_of",
@@ -75,7 +76,7 @@ FramesBy = Callable[[Any, Sequence[dict], FeatureCache], Iterator[dict]]
 
 class StoredFrame:
     """A training frame whose image, backbone maps and proposals stay on disk: what a
-    :class:`~reeb_torch.detection.head_training.CachedFrame` holds, each read when used (the
+    :class:`~reeb_torch.detection.forward.CachedFrame` holds, each read when used (the
     maps from the :class:`~reeb_torch.detection.feature_cache.FeatureCache`, the proposals
     from the :class:`~reeb_torch.detection.ProposalCache` by the image's digest, the image
     decoded from its file), so training over many frames holds one step's frames at a time."""

@@ -5,7 +5,7 @@ proposals of all images in one call of the generator (it batches images of one s
 itself), the backbone once per group of images of one size
 (:func:`~reeb_torch.detection.feature_cache.batch_features`: resize, normalise, pad, the
 rows above ``crop_top`` cut, the frozen body in its precision), then each image's neck, RoI
-pooling, box head and post-processing (:func:`~reeb_torch.detection.head_training.
+pooling, box head and post-processing (:func:`~reeb_torch.detection.forward.
 frame_forward`, the very path training's evaluation takes over cached maps).
 
 :class:`StageClock` times each stage (``proposals``, ``resize``, ``backbone``, ``neck``,
@@ -24,7 +24,7 @@ import torch
 from torch import Tensor, nn
 
 from .feature_cache import batch_features
-from .head_training import CachedFrame, frame_forward
+from .forward import CachedFrame, frame_forward
 from .rpn import ReebRPN
 
 __all__ = ["StageClock", "STAGES", "detect_images"]
@@ -68,7 +68,7 @@ def detect_images(model: nn.Module, images: Sequence[Tensor], crop_top: float = 
     differ; on the model's device): ``boxes`` ``float32 [D, 4]`` input pixels, ``labels``
     ``int64 [D]``, ``scores`` ``float32 [D]``, best first (module doc). The model in
     evaluation mode. ``passes``: the box head's
-    (:func:`~reeb_torch.detection.head_training.frame_forward`)."""
+    (:func:`~reeb_torch.detection.forward.frame_forward`)."""
     stage: Any = clock or (lambda name: nullcontext())
     det: Any = model
     model.eval()
