@@ -666,14 +666,14 @@ def detect(paths, detector_path, out, overwrite, resume, kitti_dir, viz_dir, min
     Ctrl-C what is done is saved, and --resume continues (also from the rows a killed run
     left in a hidden .NAME.*.tmp file).
     """
-    from .detect_run import detect_images, load_detector
+    from .detect_run import load_detector, run_detect
 
     if not (out or kitti_dir or viz_dir):
         raise UsageProblem("nothing to write: give -o/--out, --kitti-dir or --viz")
     det, det_id, dev = load_detector(detector_path, device)
-    return detect_images(paths, det, det_id, dev, out=out, overwrite=overwrite, resume=resume, kitti_dir=kitti_dir,
-                         viz_dir=viz_dir, min_score=min_score, viz_min_score=viz_min_score, batch_size=batch_size,
-                         workers=workers, recursive=recursive, quiet=quiet)
+    return run_detect(paths, det, det_id, dev, out=out, overwrite=overwrite, resume=resume, kitti_dir=kitti_dir,
+                      viz_dir=viz_dir, min_score=min_score, viz_min_score=viz_min_score, batch_size=batch_size,
+                      workers=workers, recursive=recursive, quiet=quiet)
 
 ctrl_c.restore(_BEFORE)  # the command's imports are done; main() takes over
 

@@ -6,7 +6,7 @@
     reeb detect images/ --detector det.safetensors -o dets.jsonl --resume   # after an interruption
 
 The command (:mod:`.cli`) loads the detector (:func:`load_detector`) and hands the images to
-:func:`detect_images`: :class:`_DetectRun`, the detector on :class:`.engine.ImageRun`; everything
+:func:`run_detect`: :class:`_DetectRun`, the detector on :class:`.engine.ImageRun`; everything
 ``reeb propose`` promises about inputs, outputs, ``--resume`` (a killed run's ``.tmp`` rows
 included), Ctrl-C and exit codes holds here too. Rows have ``reeb propose``'s schema:
 ``boxes`` (the detections, xyxy pixels, best first), ``scores``, ``labels`` (the class
@@ -32,7 +32,7 @@ from typing import Any
 from .common import UsageProblem, resolve_device
 from .engine import ImageRun
 
-__all__ = ["detect_images", "load_detector"]
+__all__ = ["run_detect", "load_detector"]
 
 
 def _chunks(stream: Iterator[Any], size: int) -> Iterator[list[Any]]:
@@ -144,9 +144,9 @@ def load_detector(path: str, device: str) -> tuple[Any, str, Any]:
     return det, f"det-{digest[:16]}", dev
 
 
-def detect_images(paths: Sequence[str], det: Any, det_id: str, dev: Any, *, out: str | None, overwrite: bool,
-                  resume: bool, kitti_dir: str | None, viz_dir: str | None, min_score: float, viz_min_score: float,
-                  batch_size: int, workers: int | None, recursive: bool, quiet: bool) -> None:
+def run_detect(paths: Sequence[str], det: Any, det_id: str, dev: Any, *, out: str | None, overwrite: bool,
+               resume: bool, kitti_dir: str | None, viz_dir: str | None, min_score: float, viz_min_score: float,
+               batch_size: int, workers: int | None, recursive: bool, quiet: bool) -> None:
     """``reeb detect``: ``det`` (a loaded detector, :func:`load_detector`; ``det_id`` what its
     rows' ``config`` holds) on the images of ``paths``, the options as the command takes them.
 
