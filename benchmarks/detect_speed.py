@@ -52,7 +52,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="image files or folders (default: the bundled examples/data)")
     p.add_argument("--detector", action="append", default=[], metavar="FILE",
                    help="a detector file, or a shipped name such as kitti (repeat for several); FILE@float32: the "
-                        "path a CPU without native bfloat16 gets; FILE@rankR: its box head factorised to rank R")
+                        "path a CPU without native bfloat16 gets; FILE@rankR: its box head factorised to rank R; FILE@int8: its box head in int8 (combine: FILE@float32@rank128@int8)")
     p.add_argument("--arm", action="append", default=[], metavar='NAME="OPTIONS"',
                    help="a detector of these reeb detector fit options with untrained heads (repeatable)")
     p.add_argument("--batch", type=int, nargs="+", default=[1, 8], help="batch sizes (default: 1 8)")
@@ -99,10 +99,11 @@ def machine(device: Any) -> dict[str, Any]:
 
 
 def load_variant(spec: str, device: Any) -> Any:
-    """``FILE[@float32][@rankR]``: the trained detector, loaded as a CPU without native
-    bfloat16 loads it (``@float32``: ``REEB_NATIVE_BF16=0`` while it is built) and/or with its
-    box head factorised to rank R (``@rankR``: :meth:`~reeb_torch.detection.ReebDetector.
-    factorise_box_head`)."""
+    """``FILE[@float32][@rankR][@int8]``: the trained detector, loaded as a CPU without native
+    bfloat16 loads it (``@float32``: ``REEB_NATIVE_BF16=0`` while it is built), with its box
+    head factorised to rank R (``@rankR``: :meth:`~reeb_torch.detection.ReebDetector.
+    factorise_box_head`) and/or in int8 (``@int8``: :meth:`~reeb_torch.detection.ReebDetector.
+    quantise_box_head`), in the order given."""
     import warnings
 
     from reeb_torch.detection import ReebDetector
@@ -123,8 +124,10 @@ def load_variant(spec: str, device: Any) -> Any:
     for tag in tags:
         if tag.startswith("rank"):
             det.factorise_box_head(int(tag[4:]))
+        elif tag == "int8":
+            det.quantise_box_head()
         elif tag != "float32":
-            raise SystemExit(f"--detector {spec}: unknown variant {tag!r} (float32, rankR)")
+            raise SystemExit(f"--detector {spec}: unknown variant {tag!r} (float32, rankR, int8)")
     return det
 
 

@@ -108,7 +108,7 @@ def fold_rankers(roots: list[Path], items: list[dict], train_sides: list[list[in
     return [str(p) for p in paths]
 
 
-INFERENCE_ONLY = ("proposals_test", "box_passes", "box_head_rank")
+INFERENCE_ONLY = ("proposals_test", "box_passes", "box_head_rank", "box_head_int8")
 """The settings that change detection, not training: arms that differ only in them share
 their fitted heads (kept under ``--work``)."""
 
@@ -131,7 +131,7 @@ def _fold_detector(settings: Any, training: Any, o: dict[str, Any], proposals: s
     key = hashlib.sha256(json.dumps([dataclasses.asdict(trained_as), trained_by, classes, top_k,
                                      proposals, sorted(side), args.limit]).encode()).hexdigest()[:16]
     kept = args.work / "detectors" / f"{key}.safetensors" if args.work else None
-    full = dataclasses.replace(settings, box_head_rank=0)  # the heads as trained; factorised after (kept whole)
+    full = dataclasses.replace(settings, box_head_rank=0, box_head_int8=False)  # the heads as trained (kept whole)
     if kept is not None and kept.is_file():
         det = ReebDetector(classes, proposals, full)
         det.model.load_state_dict(read_detector_file(kept)[0], strict=False)
@@ -157,6 +157,8 @@ def _fold_detector(settings: Any, training: Any, o: dict[str, Any], proposals: s
         if tuned is not None:
             record = {"fit_s": round(time.perf_counter() - t0, 1), "train_heads_s": round(tuned["train_s"], 1),
                       "steps": tuned["steps"]}
+    if settings.box_head_int8:
+        det.quantise_box_head()
     return det.eval(), record
 
 

@@ -454,7 +454,7 @@ def test_a_factorised_box_head_saves_small_loads_and_detects_near_the_full_one(f
     loads to the same detections, and at full rank the layer is the same function."""
     import copy
 
-    from reeb_torch.detection.lite0_detector import LowRankLinear
+    from reeb_torch.detection.box_head import LowRankLinear
 
     fc6 = fitted.model.roi_heads.box_head.fc6
     x = torch.randn(5, fc6.in_features)
@@ -488,7 +488,7 @@ def test_factorised_epochs_train_the_factorised_head_on_from_its_svd(fitted, dat
     import dataclasses
 
     from reeb_torch.detection import TrainSettings
-    from reeb_torch.detection.lite0_detector import LowRankLinear
+    from reeb_torch.detection.box_head import LowRankLinear
 
     low = dataclasses.replace(TINY, box_head_rank=8)
     tuned = ReebDetector.fit([data], epochs=1, seed=0, settings=low, cache_dir=cache, progress=False,
@@ -504,15 +504,67 @@ def test_factorised_epochs_train_the_factorised_head_on_from_its_svd(fitted, dat
     assert res.exit_code == 2 and "--box-head-rank" in res.output
 
 
-def test_detector_factorise_writes_the_smaller_detector_and_says_how(saved, tmp_path):
+def test_detector_compress_writes_the_smaller_detector_and_says_how(saved, tmp_path):
     out = tmp_path / "small.safetensors"
-    res = CliRunner().invoke(main, ["detector", "factorise", str(saved), "-o", str(out), "--rank", "8"])
+    res = CliRunner().invoke(main, ["detector", "compress", str(saved), "-o", str(out), "--rank", "8"])
     assert res.exit_code == 0, res.output
     det = ReebDetector.load(out)
     assert det.settings.box_head_rank == 8 and out.stat().st_size < saved.stat().st_size
-    assert det.meta["provenance"]["command"].endswith(f"reeb detector factorise {saved} -o {out} --rank 8")
-    again = CliRunner().invoke(main, ["detector", "factorise", str(out), "-o", str(tmp_path / "x.safetensors"),
+    assert det.meta["provenance"]["command"].endswith(f"reeb detector compress {saved} -o {out} --rank 8")
+    again = CliRunner().invoke(main, ["detector", "compress", str(out), "-o", str(tmp_path / "x.safetensors"),
                                       "--rank", "4"])
     assert again.exit_code == 2 and "already factorised" in again.output
-    kept = CliRunner().invoke(main, ["detector", "factorise", str(saved), "-o", str(out), "--rank", "8"])
+    kept = CliRunner().invoke(main, ["detector", "compress", str(saved), "-o", str(out), "--rank", "8"])
     assert kept.exit_code == 2 and "--overwrite" in kept.output
+    both = tmp_path / "both.safetensors"
+    res = CliRunner().invoke(main, ["detector", "compress", str(out), "-o", str(both), "--int8"])
+    assert res.exit_code == 0 and "int8" in res.output, res.output
+    small = ReebDetector.load(both)
+    assert small.settings.box_head_rank == 8 and small.settings.box_head_int8
+    none = CliRunner().invoke(main, ["detector", "compress", str(saved), "-o", str(tmp_path / "y.safetensors")])
+    assert none.exit_code == 2 and "--int8" in none.output
+
+
+def test_an_int8_box_head_is_a_quarter_the_size_exact_per_row_and_loads_to_the_same_detections(fitted, images,
+                                                                                             tmp_path):
+    """Int8Linear: int8 weights with a scale per output unit; each input row rounded with its
+    own scale, int32 sums: a row's output is the same alone or among others, and close to the
+    float layer's; the file holds int8 tensors and loads to the same detections; a file whose
+    int8 tensor was written as float is refused."""
+    import copy
+
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    from reeb_torch.detection import DetectorFileError
+    from reeb_torch.detection.box_head import Int8Linear, quantise_rows
+
+    fc6 = fitted.model.roi_heads.box_head.fc6
+    q8 = Int8Linear.from_linear(fc6)
+    x = torch.randn(20, fc6.in_features).relu()
+    with torch.no_grad():
+        full, ours = fc6(x), q8(x)
+        assert torch.equal(q8(x[3:4]), ours[3:4])  # one row alone: the same numbers
+        assert ((ours - full).norm() / full.norm()).item() < 0.02
+    q, scale = quantise_rows(x)
+    assert q.dtype == torch.int8 and (q.float() * scale[:, None] - x).abs().max() <= scale.max() / 2 + 1e-6
+    assert torch.equal(quantise_rows(torch.zeros(2, 5))[0], torch.zeros(2, 5, dtype=torch.int8))
+
+    small = copy.deepcopy(fitted).quantise_box_head()
+    assert small.settings.box_head_int8 and isinstance(small.model.roi_heads.box_head.fc7, Int8Linear)
+    with pytest.raises(ValueError, match="int8"):
+        small.factorise_box_head(8)
+    full_file = fitted.save(tmp_path / "full.safetensors")
+    small_file = small.save(tmp_path / "small.safetensors")
+    assert small_file.stat().st_size < 0.4 * full_file.stat().st_size
+    loaded = ReebDetector.load(small_file)
+    for a, b in zip(small(images), loaded(images)):
+        for k in a:
+            assert torch.equal(a[k], b[k]), k
+    tensors = load_file(small_file)
+    key = next(k for k, v in tensors.items() if v.dtype == torch.int8)
+    with safe_open(str(small_file), "pt") as f:
+        meta = f.metadata()
+    save_file({**tensors, key: tensors[key].float()}, str(tmp_path / "bad.safetensors"), metadata=meta)
+    with pytest.raises(DetectorFileError, match="int8"):
+        ReebDetector.load(tmp_path / "bad.safetensors")

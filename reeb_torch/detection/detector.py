@@ -81,7 +81,11 @@ class DetectorSettings:
         box_head_rank: 0: the box head's first layer (``neck_channels * 49`` inputs by
             ``representation_size``, most of the file and of the head's time) in full; R: the
             trained layer replaced by its rank-R approximation once training ends
-            (:func:`~reeb_torch.detection.lite0_detector.factorise_box_head`).
+            (:func:`~reeb_torch.detection.box_head.factorise_box_head`).
+        box_head_int8: the box head's layers in int8, one scale per output unit
+            (:func:`~reeb_torch.detection.box_head.quantise_box_head`: a quarter of their size,
+            and on the CPU torch's int8 kernels), made from the trained layers once training
+            ends.
         precision: the frozen backbone's, ``"bfloat16"`` (the default) or ``"float32"``:
             the heads are trained on the maps it gives, and detection computes them the same
             way where the device computes bfloat16 natively (otherwise in float32, with a
@@ -106,6 +110,7 @@ class DetectorSettings:
     neck_channels: int = 128
     representation_size: int = 1024
     box_head_rank: int = 0
+    box_head_int8: bool = False
     precision: Literal["float32", "bfloat16"] = "bfloat16"
     crop_top: float = 0.0
     box_passes: int = 2
@@ -144,6 +149,7 @@ SETTINGS_RANGES: dict[str, str | None] = {
     "neck_channels": "[1, 1024]",
     "representation_size": "[1, 8192]",
     "box_head_rank": "[0, 8192]",
+    "box_head_int8": None,
     "precision": None,
     "crop_top": "[0, 0.9]",
     "box_passes": "[1, 4]",
@@ -298,7 +304,8 @@ class ReebDetector(nn.Module):
         self.model = reeb_fasterrcnn_lite0(
             len(self.categories), proposals="reeb", config=config, weights=weights,
             min_size=s.min_size, max_size=s.max_size, neck_channels=s.neck_channels,
-            representation_size=s.representation_size, box_head_rank=s.box_head_rank, precision=self.precision,
+            representation_size=s.representation_size, box_head_rank=s.box_head_rank,
+            box_head_int8=s.box_head_int8, precision=self.precision,
             rpn_post_nms_top_n_train=s.proposals_train, rpn_post_nms_top_n_test=s.proposals_test,
             box_batch_size_per_image=s.rois, box_score_thresh=s.score_thresh, box_nms_thresh=s.nms_thresh,
             box_detections_per_img=s.detections_per_img)
@@ -336,20 +343,30 @@ class ReebDetector(nn.Module):
 
     def factorise_box_head(self, rank: int) -> "ReebDetector":
         """Replace the trained box head's first layer by its rank-``rank`` approximation, in
-        place (:func:`~reeb_torch.detection.lite0_detector.factorise_box_head`): a smaller file
+        place (:func:`~reeb_torch.detection.box_head.factorise_box_head`): a smaller file
         and a faster head, with detections close to the full layer's; ``settings.box_head_rank``
         records it. Returns ``self``.
 
         Raises:
-            ValueError: ``rank`` below 1, or the layer is factorised already.
+            ValueError: ``rank`` below 1, or the layer is factorised or in int8 already.
         """
-        from .lite0_detector import factorise_box_head
+        from .box_head import factorise_box_head
 
         if rank < 1:
             raise ValueError(f"rank must be at least 1, got {rank}")
         factorise_box_head(self.model, rank)
         fc6 = self.model.roi_heads.box_head.fc6
         self.settings = dataclasses.replace(self.settings, box_head_rank=getattr(fc6, "rank", 0))
+        return self
+
+    def quantise_box_head(self) -> "ReebDetector":
+        """The box head's layers in int8, in place (:func:`~reeb_torch.detection.box_head.
+        quantise_box_head`): a quarter of their size in the file, and on the CPU torch's
+        int8 kernels; ``settings.box_head_int8`` records it. Returns ``self``."""
+        from .box_head import quantise_box_head
+
+        quantise_box_head(self.model)
+        self.settings = dataclasses.replace(self.settings, box_head_int8=True)
         return self
 
     # -- file -------------------------------------------------------------------------------

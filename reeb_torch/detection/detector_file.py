@@ -93,13 +93,15 @@ def ranker_file_bytes(tensors: Mapping[str, Tensor], metadata: Mapping[str, str]
 
 def write_detector_file(path: str | os.PathLike, tensors: Mapping[str, Tensor], meta: dict[str, Any],
                         ranker: bytes | None = None) -> Path:
-    """Write ``tensors`` (float32, CPU) and ``meta`` (JSON-able) to ``path`` atomically (a
+    """Write ``tensors`` (CPU; floating ones as float32, int8 ones as they are) and ``meta``
+    (JSON-able) to ``path`` atomically (a
     temporary file beside it, then renamed); the same inputs give the same bytes. ``ranker``:
     the bytes of a ranker weights file to embed (:data:`RANKER_PREFIX`), or None."""
     from safetensors.torch import save
 
     info = {"version": VERSION, **meta}
-    out = {k: v.detach().to("cpu", torch.float32).contiguous() for k, v in sorted(tensors.items())}
+    out = {k: v.detach().to("cpu", v.dtype if v.dtype == torch.int8 else torch.float32).contiguous()
+           for k, v in sorted(tensors.items())}
     if ranker is not None:
         r_tensors, info[_RANKER_META] = ranker_parts(ranker)
         out.update({RANKER_PREFIX + k: v.contiguous() for k, v in r_tensors.items()})
@@ -189,7 +191,7 @@ def read_detector_file(path: str | os.PathLike) -> tuple[dict[str, Tensor], dict
 
 def check_tensors(path: str | os.PathLike, tensors: Mapping[str, Tensor], expected: Mapping[str, Tensor]) -> None:
     """Raise :class:`DetectorFileError` unless ``tensors`` has exactly the keys and shapes of
-    ``expected`` (the trained entries of the detector the metadata describes)."""
+    ``expected``, int8 where it is (the trained entries of the detector the metadata describes)."""
     missing = sorted(set(expected) - set(tensors))
     extra = sorted(set(tensors) - set(expected))
     if missing or extra:
@@ -200,3 +202,6 @@ def check_tensors(path: str | os.PathLike, tensors: Mapping[str, Tensor], expect
         if tuple(tensors[k].shape) != tuple(v.shape):
             raise DetectorFileError(f"detector {path}: tensor {k!r} has shape {tuple(tensors[k].shape)}, "
                                     f"the network its metadata describes needs {tuple(v.shape)}")
+        if (tensors[k].dtype == torch.int8) != (v.dtype == torch.int8):
+            raise DetectorFileError(f"detector {path}: tensor {k!r} is {tensors[k].dtype}, the network its "
+                                    f"metadata describes needs {v.dtype}")

@@ -312,8 +312,8 @@ def train_detector(cls: type, items: Sequence[dict], folders: Sequence[str | os.
     (:class:`~reeb_torch.ranker.store.Checkpoints`, keyed by the settings and the frames'
     digests: a state of another fit is not read)."""
     torch.manual_seed(training.seed)  # the heads' initial weights
-    rank = settings.box_head_rank  # trained in full, factorised once trained
-    det = cls(classes, proposals, dataclasses.replace(settings, box_head_rank=0))
+    rank, int8 = settings.box_head_rank, settings.box_head_int8  # trained in full, made smaller once trained
+    det = cls(classes, proposals, dataclasses.replace(settings, box_head_rank=0, box_head_int8=False))
     if det.precision != settings.precision:  # bfloat16 asked for where it is not native: trained in float32
         det.settings = dataclasses.replace(settings, precision=det.precision)
     frames = heads_frames(det, items, training, cache_dir, progress, frames_by)
@@ -334,6 +334,8 @@ def train_detector(cls: type, items: Sequence[dict], folders: Sequence[str | os.
                 history["factorised"] = tuned
     finally:
         det.model.rpn.cache = None  # new images: REEB runs on them
+    if int8:
+        det.quantise_box_head()
     det.meta = {"provenance": _provenance(items, folders, training, history, det.classes, command)}
     det.history = history
     return det.eval()

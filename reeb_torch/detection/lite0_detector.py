@@ -42,11 +42,12 @@ from torchvision.models.detection.faster_rcnn import FastRCNNPredictor, TwoMLPHe
 from torchvision.models.detection.rpn import RPNHead
 
 from ..config import ReebConfig
+from .box_head import LowRankLinear, quantise_box_head
 from .lite0 import LITE0_MEAN, LITE0_STD, PYRAMID_LEVELS, EfficientNetLite0, FrozenLite0, load_lite0
 from .roi_align import PyramidRoIAlign
 from .rpn import ReebRPN
 
-__all__ = ["LiteNeck", "Lite0Pyramid", "LowRankLinear", "factorise_box_head", "reeb_fasterrcnn_lite0", "LEARNED_ANCHOR_SIZES"]
+__all__ = ["LiteNeck", "Lite0Pyramid", "reeb_fasterrcnn_lite0", "LEARNED_ANCHOR_SIZES"]
 
 LEARNED_ANCHOR_SIZES = ((32, 64), (128, 256), (512, 1024))
 """Anchor sizes (px of the resized image) of the learned RPN on the three levels."""
@@ -120,48 +121,6 @@ def _learned_rpn_parts(channels: int) -> tuple[AnchorGenerator, RPNHead]:
     return anchors, RPNHead(channels, anchors.num_anchors_per_location()[0])
 
 
-class LowRankLinear(nn.Module):
-    """``nn.Linear(in_features, out_features)`` of rank at most ``rank``: ``up(down(x))``,
-    ``down`` without a bias. ``x``: ``[..., in_features]`` -> ``[..., out_features]``; its
-    cost and size are ``rank * (in_features + out_features)`` against ``in * out``."""
-
-    def __init__(self, in_features: int, out_features: int, rank: int) -> None:
-        super().__init__()
-        self.in_features, self.out_features, self.rank = in_features, out_features, rank
-        self.down = nn.Linear(in_features, rank, bias=False)
-        self.up = nn.Linear(rank, out_features)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.up(self.down(x))
-
-    @classmethod
-    def from_linear(cls, layer: nn.Linear, rank: int) -> "LowRankLinear":
-        """The best approximation of ``layer`` of rank ``rank`` (its weight's truncated SVD,
-        computed in float64, each factor given the square root of the singular values; the
-        bias kept)."""
-        w = layer.weight.detach().double()
-        u, sv, vh = torch.linalg.svd(w, full_matrices=False)
-        root = sv[:rank].sqrt()
-        out = cls(layer.in_features, layer.out_features, rank)
-        with torch.no_grad():
-            out.down.weight.copy_((root[:, None] * vh[:rank]).to(layer.weight.dtype))
-            out.up.weight.copy_((u[:, :rank] * root[None, :]).to(layer.weight.dtype))
-            out.up.bias.copy_(layer.bias.detach())
-        return out.to(layer.weight.device)
-
-
-def factorise_box_head(model: nn.Module, rank: int) -> None:
-    """Replace the trained box head's first layer (``roi_heads.box_head.fc6``, the largest
-    of the detector's trained tensors) by its rank-``rank`` approximation, in place
-    (:meth:`LowRankLinear.from_linear`); ``rank`` 0 or at least the layer's: nothing."""
-    head: Any = model.roi_heads.box_head  # type: ignore[union-attr]
-    fc6 = head.fc6
-    if not isinstance(fc6, nn.Linear):
-        raise ValueError(f"the box head's first layer is already factorised (rank {getattr(fc6, 'rank', '?')})")
-    if 0 < rank < min(fc6.in_features, fc6.out_features):
-        head.fc6 = LowRankLinear.from_linear(fc6, rank)
-
-
 def reeb_fasterrcnn_lite0(
     num_classes: int,
     *,
@@ -174,6 +133,7 @@ def reeb_fasterrcnn_lite0(
     neck_channels: int = 128,
     representation_size: int = 1024,
     box_head_rank: int = 0,
+    box_head_int8: bool = False,
     precision: str = "float32",
     rpn_post_nms_top_n_train: int = 2000,
     rpn_post_nms_top_n_test: int = 1000,
@@ -195,7 +155,10 @@ def reeb_fasterrcnn_lite0(
         neck_channels: channels of the neck and of the pooled RoI features.
         representation_size: units of each of the box head's two layers.
         box_head_rank: 0: the box head's first layer in full; R: as two layers through R units
-            (:class:`LowRankLinear`, what :func:`factorise_box_head` makes of a trained one).
+            (:class:`~reeb_torch.detection.box_head.LowRankLinear`, what
+            :func:`~reeb_torch.detection.box_head.factorise_box_head` makes of a trained one).
+        box_head_int8: the box head's layers as :class:`~reeb_torch.detection.box_head.
+            Int8Linear` (to be loaded with a quantised head's weights; not trainable).
         precision: the frozen body's (``"float32"`` or ``"bfloat16"``; :class:`FrozenLite0`).
         rpn_post_nms_top_n_train, rpn_post_nms_top_n_test: proposals per image handed to
             the box head in training and evaluation, for either arm.
@@ -224,6 +187,8 @@ def reeb_fasterrcnn_lite0(
     if box_head_rank:
         head: Any = model.roi_heads.box_head
         head.fc6 = LowRankLinear(head.fc6.in_features, head.fc6.out_features, box_head_rank)
+    if box_head_int8:
+        quantise_box_head(model)
     if proposals == "reeb":
         ReebRPN(config, generator=generator, post_nms_top_n_train=rpn_post_nms_top_n_train,
                 post_nms_top_n_test=rpn_post_nms_top_n_test,
