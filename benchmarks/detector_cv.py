@@ -112,6 +112,10 @@ INFERENCE_ONLY = ("proposals_test", "box_passes", "box_head_rank", "box_head_int
 """The settings that change detection, not training: arms that differ only in them share
 their fitted heads (kept under ``--work``)."""
 
+UNKEYED = ("box_head_int8",)
+"""Inference-only settings left out of the kept heads' key (heads kept before they existed
+are found)."""
+
 
 def _fold_detector(settings: Any, training: Any, o: dict[str, Any], proposals: str, side: list[int],
                    items: list[dict], args: argparse.Namespace) -> tuple[Any, dict[str, Any] | None]:
@@ -128,7 +132,8 @@ def _fold_detector(settings: Any, training: Any, o: dict[str, Any], proposals: s
     top_k = max(settings.proposals_train, settings.proposals_test)  # REEB's top_k: the training proposals' too
     full_training = dataclasses.replace(training, factorised_epochs=0)  # the passes after factorising come below
     trained_by = {k: v for k, v in dataclasses.asdict(full_training).items() if k != "factorised_epochs"}
-    key = hashlib.sha256(json.dumps([dataclasses.asdict(trained_as), trained_by, classes, top_k,
+    shape = {k: v for k, v in dataclasses.asdict(trained_as).items() if k not in UNKEYED}
+    key = hashlib.sha256(json.dumps([shape, trained_by, classes, top_k,
                                      proposals, sorted(side), args.limit]).encode()).hexdigest()[:16]
     kept = args.work / "detectors" / f"{key}.safetensors" if args.work else None
     full = dataclasses.replace(settings, box_head_rank=0, box_head_int8=False)  # the heads as trained (kept whole)
