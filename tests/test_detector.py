@@ -32,7 +32,7 @@ from reeb_torch.io import read_image  # noqa: E402
 from reeb_torch.runs.cli import main  # noqa: E402
 
 TINY = DetectorSettings(min_size=128, max_size=448, neck_channels=32, proposals_train=100, proposals_test=50,
-                        rois=32, score_thresh=0.0)
+                        rois=32, score_thresh=0.0, box_head_int8=False)
 TINY_CLI = ["--epochs", "1", "--min-size", "128", "--max-size", "448", "--train-proposals", "100",
             "--test-proposals", "50"]
 
@@ -47,8 +47,8 @@ def cache(detector_cache) -> Path:
     return detector_cache
 
 
-def tiny_fit(data: Path, cache: Path, seed: int = 0) -> ReebDetector:
-    return ReebDetector.fit([data], epochs=1, seed=seed, settings=TINY, cache_dir=cache, progress=False,
+def tiny_fit(data: Path, cache: Path, seed: int = 0, settings: DetectorSettings = TINY) -> ReebDetector:
+    return ReebDetector.fit([data], epochs=1, seed=seed, settings=settings, cache_dir=cache, progress=False,
                             command="reeb detector fit kitti")
 
 
@@ -525,13 +525,14 @@ def test_detector_compress_writes_the_smaller_detector_and_says_how(saved, tmp_p
     assert none.exit_code == 2 and "--int8" in none.output
 
 
-def test_an_int8_box_head_is_a_quarter_the_size_exact_per_row_and_loads_to_the_same_detections(fitted, images,
-                                                                                             tmp_path):
+def test_an_int8_box_head_is_a_quarter_the_size_exact_per_row_and_loads_to_the_same_detections(fitted, images, data,
+                                                                                             cache, tmp_path):
     """Int8Linear: int8 weights with a scale per output unit; each input row rounded with its
     own scale, int32 sums: a row's output is the same alone or among others, and close to the
     float layer's; the file holds int8 tensors and loads to the same detections; a file whose
     int8 tensor was written as float is refused."""
     import copy
+    import dataclasses
 
     from safetensors import safe_open
     from safetensors.torch import load_file, save_file
@@ -552,6 +553,9 @@ def test_an_int8_box_head_is_a_quarter_the_size_exact_per_row_and_loads_to_the_s
 
     small = copy.deepcopy(fitted).quantise_box_head()
     assert small.settings.box_head_int8 and isinstance(small.model.roi_heads.box_head.fc7, Int8Linear)
+    assert DetectorSettings().box_head_int8 and not DetectorSettings.from_dict({}).box_head_int8  # old files: float
+    int8_fit = tiny_fit(data, cache, settings=dataclasses.replace(TINY, box_head_int8=True))
+    assert torch.equal(int8_fit.model.roi_heads.box_head.fc6.weight_int8, small.model.roi_heads.box_head.fc6.weight_int8)
     with pytest.raises(ValueError, match="int8"):
         small.factorise_box_head(8)
     full_file = fitted.save(tmp_path / "full.safetensors")

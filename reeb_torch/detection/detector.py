@@ -84,8 +84,8 @@ class DetectorSettings:
             (:func:`~reeb_torch.detection.box_head.factorise_box_head`).
         box_head_int8: the box head's layers in int8, one scale per output unit
             (:func:`~reeb_torch.detection.box_head.quantise_box_head`: a quarter of their size,
-            and on the CPU torch's int8 kernels), made from the trained layers once training
-            ends.
+            and on the CPU an int8 product), made from the trained layers once training ends;
+            ``False``: float layers (a file without this field has them).
         precision: the frozen backbone's, ``"bfloat16"`` (the default) or ``"float32"``:
             the heads are trained on the maps it gives, and detection computes them the same
             way where the device computes bfloat16 natively (otherwise in float32, with a
@@ -110,7 +110,7 @@ class DetectorSettings:
     neck_channels: int = 128
     representation_size: int = 1024
     box_head_rank: int = 0
-    box_head_int8: bool = False
+    box_head_int8: bool = True
     precision: Literal["float32", "bfloat16"] = "bfloat16"
     crop_top: float = 0.0
     box_passes: int = 2
@@ -140,7 +140,7 @@ class DetectorSettings:
         unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
         if unknown:
             raise ValueError(f"{owner} has fields this version does not know: {', '.join(map(str, unknown))}")
-        return cls(**_checked_settings(owner, {"precision": "float32", **d}))
+        return cls(**_checked_settings(owner, {"precision": "float32", "box_head_int8": False, **d}))
 
 
 SETTINGS_RANGES: dict[str, str | None] = {

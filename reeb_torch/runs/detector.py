@@ -65,7 +65,11 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
     out = []
     for param in ctx.command.params:
         if param.name in names and ctx.params.get(param.name) != param.default:
-            out += [param.opts[0]] if getattr(param, "is_flag", False) else [param.opts[0], str(ctx.params[param.name])]
+            value = ctx.params[param.name]
+            if getattr(param, "is_flag", False):
+                out.append(param.opts[0] if value else param.secondary_opts[0])
+            else:
+                out += [param.opts[0], str(value)]
     return out
 
 
@@ -109,9 +113,9 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
 @click.option("--box-head-rank", type=SettingRange("box_head_rank"), default=0, show_default=True,
               help="0: the box head's first layer in full; R: replaced once trained by its rank-R approximation "
                    "(a smaller file and a faster head; docs/results.md, \"A smaller box head\").")
-@click.option("--int8-box-head", is_flag=True,
-              help="The box head's layers in int8 once trained: a quarter of their size, and faster on the CPU "
-                   "(docs/results.md, \"A smaller box head\").")
+@click.option("--int8-box-head/--float-box-head", default=True, show_default=True,
+              help="The box head's layers in int8 once trained (a quarter of their size, faster on the CPU, the "
+                   "same AP: docs/results.md, \"A smaller box head\"), or left in float.")
 @click.option("--factorised-epochs", type=click.IntRange(min=0), default=0, show_default=True,
               help="With --box-head-rank: passes of further training once the layer is factorised (at a tenth of "
                    "the learning rate); 0: the approximation as it comes.")
