@@ -109,6 +109,10 @@ class Int8Linear(nn.Module):
     (any float dtype) -> ``float32 [..., out_features]``. A quarter of the float layer's
     size; on the CPU, an int8 product with int32 sums (module doc)."""
 
+    weight_int8: Tensor
+    scale: Tensor
+    bias: Tensor
+
     def __init__(self, in_features: int, out_features: int) -> None:
         super().__init__()
         self.in_features, self.out_features = in_features, out_features
@@ -129,7 +133,7 @@ class Int8Linear(nn.Module):
             out.bias.copy_(layer.bias.detach().float())
         return out.to(layer.weight.device)
 
-    def weight(self) -> Tensor:
+    def dequantised(self) -> Tensor:
         """The dequantised weight, ``float32 [out, in]``."""
         return self.weight_int8.float() * self.scale[:, None]
 
@@ -137,7 +141,7 @@ class Int8Linear(nn.Module):
         lead = x.shape[:-1]
         flat = x.reshape(-1, self.in_features).float()
         if x.device.type != "cpu" or torch.is_grad_enabled() and x.requires_grad:
-            y = F.linear(flat, self.weight(), self.bias)
+            y = F.linear(flat, self.dequantised(), self.bias)
         else:
             q, row_scales = quantise_rows(flat)
             y = torch._int_mm(q, self.weight_int8.t()).float() * row_scales[:, None] * self.scale + self.bias
