@@ -1,6 +1,6 @@
 """REEB's proposals against a learned RPN in one MobileNetV3 Faster R-CNN trained from scratch,
-on KITTI: the experiment behind docs/detection_experiment.md's first section (the shipped
-detector is ``reeb detector fit``'s, on the public API).
+on KITTI: the experiment behind docs/results.md's "A MobileNetV3 detector from scratch" (the
+shipped detector is ``reeb detector fit``'s, on the public API).
 
 The first ``--train-frames`` frames of a KITTI-format folder (sorted by id) are the
 training set, the rest (or the next ``--val-frames``) the validation set. Every
