@@ -547,7 +547,18 @@ def test_an_int8_box_head_is_a_quarter_the_size_exact_per_row_and_loads_to_the_s
         full, ours = fc6(x), q8(x)
         assert torch.equal(q8(x[3:4]), ours[3:4])  # one row alone: the same numbers
         assert ((ours - full).norm() / full.norm()).item() < 0.02
+    from reeb_torch.detection import box_head
+
+    def no_kernel(*_):
+        raise RuntimeError("_int_mm: not implemented for this CPU")
+
     q, scale = quantise_rows(x)
+    w = q8.weight_int8
+    exact = box_head.int8_product(q, w)
+    assert exact.dtype == torch.int32 and torch.equal(exact, q.long() @ w.long().t())
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(torch, "_int_mm", no_kernel)
+        assert torch.equal(box_head.int8_product(q, w), exact)  # the float64 sums: the same numbers
     assert q.dtype == torch.int8 and (q.float() * scale[:, None] - x).abs().max() <= scale.max() / 2 + 1e-6
     assert torch.equal(quantise_rows(torch.zeros(2, 5))[0], torch.zeros(2, 5, dtype=torch.int8))
 

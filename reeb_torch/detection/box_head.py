@@ -10,7 +10,8 @@ in the detector's file (``DetectorSettings.box_head_rank``, ``box_head_int8``).
 :class:`Int8Linear` stores one int8 weight per entry and one float scale per output unit
 (symmetric, per channel). On the CPU each input row is rounded to int8 with its own scale
 (a compiled kernel), the product is torch's int8 matrix product with int32 sums, which are
-exact, and the scales are applied after: a row's output depends on that row alone, and is
+exact (:func:`int8_product`; the same sums in float64 where a build lacks the kernel), and
+the scales are applied after: a row's output depends on that row alone, and is
 the same on every CPU. On a GPU it computes the product from the dequantised weight in
 float32.
 """
@@ -25,7 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-__all__ = ["LowRankLinear", "Int8Linear", "factorise_box_head", "quantise_box_head", "quantise_rows"]
+__all__ = ["LowRankLinear", "Int8Linear", "factorise_box_head", "quantise_box_head", "quantise_rows", "int8_product"]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -43,6 +44,16 @@ def _quantise_range(x, q, scales, lo, hi):  # pragma: no cover - compiled
         scales[i] = s
         for j in range(k):
             q[i, j] = np.int8(min(max(np.round(x[i, j] / s), -127.0), 127.0))
+
+
+def int8_product(q: Tensor, w: Tensor) -> Tensor:
+    """``q @ w.T`` of int8 ``q [M, K]`` and ``w [N, K]`` as exact int32 sums ``[M, N]``:
+    torch's int8 kernel (``torch._int_mm``), or where this build has none for the CPU, the
+    same sums in float64 (exact for ``K`` under 2**39, slower)."""
+    try:
+        return torch._int_mm(q, w.t())
+    except (RuntimeError, NotImplementedError, AttributeError):
+        return (q.double() @ w.double().t()).to(torch.int32)
 
 
 def quantise_rows(x: Tensor) -> tuple[Tensor, Tensor]:
@@ -144,7 +155,7 @@ class Int8Linear(nn.Module):
             y = F.linear(flat, self.dequantised(), self.bias)
         else:
             q, row_scales = quantise_rows(flat)
-            y = torch._int_mm(q, self.weight_int8.t()).float() * row_scales[:, None] * self.scale + self.bias
+            y = int8_product(q, self.weight_int8).float() * row_scales[:, None] * self.scale + self.bias
         return y.reshape(*lead, self.out_features)
 
     def extra_repr(self) -> str:
