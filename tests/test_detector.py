@@ -523,6 +523,9 @@ def test_detector_compress_writes_the_smaller_detector_and_says_how(saved, tmp_p
     assert small.settings.box_head_rank == 8 and small.settings.box_head_int8
     none = CliRunner().invoke(main, ["detector", "compress", str(saved), "-o", str(tmp_path / "y.safetensors")])
     assert none.exit_code == 2 and "--int8" in none.output
+    whole = CliRunner().invoke(main, ["detector", "compress", str(saved), "-o", str(tmp_path / "z.safetensors"),
+                                      "--rank", "8192"])
+    assert whole.exit_code == 2 and "nothing to factorise" in whole.output and not (tmp_path / "z.safetensors").exists()
 
 
 def test_an_int8_box_head_is_a_quarter_the_size_exact_per_row_and_loads_to_the_same_detections(fitted, images, data,

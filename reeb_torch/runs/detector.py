@@ -241,6 +241,8 @@ def compress(path, out, rank, int8, overwrite):
             det = ReebDetector.load(path)
         if rank:
             det.factorise_box_head(rank)
+            if not det.settings.box_head_rank:
+                raise ValueError(f"--rank {rank}: not below the box head's smaller side, nothing to factorise")
         if int8:
             if det.settings.box_head_int8:
                 raise ValueError("the box head is in int8 already")
