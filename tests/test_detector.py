@@ -449,6 +449,20 @@ def test_the_shipped_detector_finds_the_bundled_frames_cars():
     assert (hits.max(1).values > 0.7).all(), hits.max(1).values
 
 
+def _saved_smaller(full: ReebDetector, small: ReebDetector, images: list, tmp_path: Path,
+                   share: float) -> ReebDetector:
+    """``small`` saved to ``tmp_path/small.safetensors``, under ``share`` of ``full``'s file,
+    and loaded back to the same detections; the loaded detector."""
+    full_file = full.save(tmp_path / "full.safetensors")
+    small_file = small.save(tmp_path / "small.safetensors")
+    assert small_file.stat().st_size < share * full_file.stat().st_size
+    loaded = ReebDetector.load(small_file)
+    for a, b in zip(small(images), loaded(images)):
+        for k in a:
+            assert torch.equal(a[k], b[k]), k
+    return loaded
+
+
 def test_a_factorised_box_head_saves_small_loads_and_detects_near_the_full_one(fitted, images, tmp_path):
     """box_head_rank: the trained first layer replaced by its truncated SVD; the file shrinks,
     loads to the same detections, and at full rank the layer is the same function."""
@@ -470,14 +484,8 @@ def test_a_factorised_box_head_saves_small_loads_and_detects_near_the_full_one(f
     assert small.settings.box_head_rank == r and isinstance(small.model.roi_heads.box_head.fc6, LowRankLinear)
     with pytest.raises(ValueError, match="already factorised"):
         small.factorise_box_head(8)
-    full_file = fitted.save(tmp_path / "full.safetensors")
-    small_file = small.save(tmp_path / "small.safetensors")
-    assert small_file.stat().st_size < 0.6 * full_file.stat().st_size
-    loaded = ReebDetector.load(small_file)
+    loaded = _saved_smaller(fitted, small, images, tmp_path, 0.6)
     assert loaded.settings.box_head_rank == r
-    for a, b in zip(small(images), loaded(images)):
-        for k in a:
-            assert torch.equal(a[k], b[k]), k
 
 
 def test_factorised_epochs_train_the_factorised_head_on_from_its_svd(fitted, data, cache):
@@ -572,13 +580,8 @@ def test_an_int8_box_head_is_a_quarter_the_size_exact_per_row_and_loads_to_the_s
     assert torch.equal(int8_fit.model.roi_heads.box_head.fc6.weight_int8, small.model.roi_heads.box_head.fc6.weight_int8)
     with pytest.raises(ValueError, match="int8"):
         small.factorise_box_head(8)
-    full_file = fitted.save(tmp_path / "full.safetensors")
-    small_file = small.save(tmp_path / "small.safetensors")
-    assert small_file.stat().st_size < 0.4 * full_file.stat().st_size
-    loaded = ReebDetector.load(small_file)
-    for a, b in zip(small(images), loaded(images)):
-        for k in a:
-            assert torch.equal(a[k], b[k]), k
+    _saved_smaller(fitted, small, images, tmp_path, 0.4)
+    small_file = tmp_path / "small.safetensors"
     tensors = load_file(small_file)
     key = next(k for k, v in tensors.items() if v.dtype == torch.int8)
     with safe_open(str(small_file), "pt") as f:
