@@ -52,7 +52,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="image files or folders (default: the bundled examples/data)")
     p.add_argument("--detector", action="append", default=[], metavar="FILE",
                    help="a detector file, or a shipped name such as kitti (repeat for several); FILE@float32: the "
-                        "path a CPU without native bfloat16 gets; FILE@rankR: its box head factorised to rank R; FILE@int8: its box head in int8 (combine: FILE@float32@rank128@int8)")
+                        "path a CPU without native bfloat16 gets; FILE@rankR: its box head factorised to rank R; "
+                        "FILE@int8: its box head in int8 (combined: FILE@float32@rank128@int8)")
     p.add_argument("--arm", action="append", default=[], metavar='NAME="OPTIONS"',
                    help="a detector of these reeb detector fit options with untrained heads (repeatable)")
     p.add_argument("--batch", type=int, nargs="+", default=[1, 8], help="batch sizes (default: 1 8)")

@@ -133,12 +133,11 @@ class Int8Linear(nn.Module):
 
     @classmethod
     def from_linear(cls, layer: nn.Linear) -> "Int8Linear":
-        """``layer``'s weight rounded to int8, one scale per output unit (its largest
-        magnitude over 127), its bias kept."""
-        w = layer.weight.detach().float()
-        scale = w.abs().amax(1).clamp(min=1e-12) / 127
+        """``layer``'s weight rounded to int8 as :func:`quantise_rows` rounds an input, one
+        scale per output unit, its bias kept."""
+        q, scale = quantise_rows(layer.weight.detach().float().cpu())
         out = cls(layer.in_features, layer.out_features)
-        out.weight_int8.copy_((w / scale[:, None]).round().clamp(-127, 127).to(torch.int8))
+        out.weight_int8.copy_(q)
         out.scale.copy_(scale)
         if layer.bias is not None:
             out.bias.copy_(layer.bias.detach().float())

@@ -131,8 +131,7 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
 def fit(dirs, out, overwrite, proposals, classes, epochs, steps, seed, val, hflip, min_size, max_size, train_proposals,
         test_proposals, precision, crop_top, neck_channels, head_width, box_head_rank, int8_box_head, factorised_epochs,
-        box_passes,
-        cache_dir, limit, engine, address, actors, cpus_per_actor, quiet):
+        box_passes, cache_dir, limit, engine, address, actors, cpus_per_actor, quiet):
     """Train a detector on labelled KITTI-format folders (DIRS: images/ and labels/, or image_2/ and
     label_2/) and write it to OUT. The backbone's maps and REEB's proposals of each frame are
     cached, so a second fit on the same frames trains at once. Deterministic for a seed.
