@@ -524,6 +524,8 @@ def test_detector_compress_writes_the_smaller_detector_and_says_how(saved, tmp_p
     assert again.exit_code == 2 and "already factorised" in again.output
     kept = CliRunner().invoke(main, ["detector", "compress", str(saved), "-o", str(out), "--rank", "8"])
     assert kept.exit_code == 2 and "--overwrite" in kept.output
+    onto = CliRunner().invoke(main, ["detector", "compress", str(out), "-o", str(out), "--int8", "--overwrite"])
+    assert onto.exit_code == 2 and "the file read" in onto.output and ReebDetector.load(out).settings.box_head_rank == 8
     both = tmp_path / "both.safetensors"
     res = CliRunner().invoke(main, ["detector", "compress", str(out), "-o", str(both), "--int8"])
     assert res.exit_code == 0 and "int8" in res.output, res.output

@@ -17,6 +17,7 @@ file or output, checked before any work).
 from __future__ import annotations
 
 import hashlib
+import os
 import shlex
 import shutil
 import sys
@@ -231,8 +232,12 @@ def compress(path, out, rank, int8, overwrite):
     faster head; check its detections on frames it was not trained on."""
     from ..detection import DetectorFileError, ReebDetector
 
+    from ..detection.detector import resolve_detector
+
     if not rank and not int8:
         raise click.UsageError("nothing to do: give --rank R, --int8 or both")
+    if os.path.realpath(os.path.expanduser(out)) == os.path.realpath(resolve_detector(path)):
+        raise UsageProblem(f"-o {out}: is PATH, the file read; give another name")
     target = claim_weights_out(out, overwrite)
     try:
         with warnings.catch_warnings():
