@@ -123,28 +123,33 @@ def _fold_detector(settings: Any, training: Any, o: dict[str, Any], proposals: s
     of the same training settings kept under ``--work`` (record None)."""
     import dataclasses
 
-    from reeb_torch.detection import ReebDetector
+    from reeb_torch.detection import ReebDetector, proposal_settings
     from reeb_torch.detection.detector_file import read_detector_file
     from reeb_torch.detection.fitting import heads_frames, train_detector, tune_factorised
+    from reeb_torch.runs.common import parse_sets
 
     classes = tuple(c.strip() for c in o["classes"].split(",") if c.strip())
-    trained_as = dataclasses.replace(settings, **{k: getattr(type(settings)(), k) for k in INFERENCE_ONLY})
+    changes = parse_sets(o.get("sets") or ())  # --set: REEB's settings over the proposals'
     top_k = max(settings.proposals_train, settings.proposals_test)  # REEB's top_k: the training proposals' too
+    config = proposal_settings(proposals, top_k, changes)[0] if changes else None
+    trained_as = dataclasses.replace(settings, **{k: getattr(type(settings)(), k) for k in INFERENCE_ONLY})
     full_training = dataclasses.replace(training, factorised_epochs=0)  # the passes after factorising come below
     trained_by = {k: v for k, v in dataclasses.asdict(full_training).items() if k != "factorised_epochs"}
     shape = {k: v for k, v in dataclasses.asdict(trained_as).items() if k not in UNKEYED}
     key = hashlib.sha256(json.dumps([shape, trained_by, classes, top_k,
-                                     proposals, sorted(side), args.limit]).encode()).hexdigest()[:16]
+                                     proposals, sorted(side), args.limit] + ([changes] if changes else []),
+                                    default=str).encode()).hexdigest()[:16]
     kept = args.work / "detectors" / f"{key}.safetensors" if args.work else None
     full = dataclasses.replace(settings, box_head_rank=0, box_head_int8=False)  # the heads as trained (kept whole)
     if kept is not None and kept.is_file():
-        det = ReebDetector(classes, proposals, full)
+        det = ReebDetector(classes, proposals, full, config=config)
         det.model.load_state_dict(read_detector_file(kept)[0], strict=False)
         record = None
     else:
         t0 = time.perf_counter()
         det = train_detector(ReebDetector, [items[i] for i in side], args.roots, classes=classes, proposals=proposals,
-                             settings=full, training=full_training, cache_dir=args.cache, progress=not args.quiet)
+                             settings=full, training=full_training, cache_dir=args.cache, progress=not args.quiet,
+                             config=config)
         record = {"fit_s": round(time.perf_counter() - t0, 1), "train_heads_s": round(det.history["train_s"], 1),
                   "steps": det.history["steps"]}
         if kept is not None:
@@ -178,7 +183,8 @@ def run_arm(options: str, seed: int, items: list[dict], blocks: list[list[int]],
     from reeb_torch.runs.detector import fit_settings
 
     o = fit_options(args.roots, options)
-    parsed = {k: v for k, v in sorted(o.items()) if k not in ("quiet", "cache_dir", "out", "overwrite")}
+    parsed = {k: v for k, v in sorted(o.items()) if k not in ("quiet", "cache_dir", "out", "overwrite")
+              and not (k == "sets" and not v)}  # no --set: the key it had before the option
     key = hashlib.sha256(json.dumps([parsed, seed, args.folds, args.limit, rankers], default=str).encode()
                          ).hexdigest()[:16]  # by the options as parsed: a changed default is another arm
     kept = args.work / "detections" / f"{key}.pt" if args.work else None

@@ -109,6 +109,7 @@ def seed_runs(name: str, options: str, seeds: list[int] | None, train: list[Path
 def fit_arm(stem: str, options: str, args: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
     """The detector of these options (fitted, or loaded from ``--work``) and its fit record."""
     from reeb_torch.detection import ReebDetector
+    from reeb_torch.runs.common import parse_sets
     from reeb_torch.runs.detector import fit_settings
 
     o = fit_options(args.train, options)
@@ -129,7 +130,8 @@ def fit_arm(stem: str, options: str, args: argparse.Namespace) -> tuple[Any, dic
     t0 = time.perf_counter()
     det = ReebDetector.fit(args.train, classes=names, proposals=o["proposals"], epochs=o["epochs"], seed=o["seed"],
                            settings=settings, cache_dir=args.cache, limit=args.limit, hflip=o["hflip"],
-                           auto_crop=auto_crop, progress=not args.quiet, command=command)
+                           auto_crop=auto_crop, progress=not args.quiet, command=command,
+                           proposal_changes=parse_sets(o["sets"]) or None)
     record = {"fit_s": round(time.perf_counter() - t0, 1), "train_heads_s": round(det.history["train_s"], 1),
               "steps": det.history["steps"]}
     if kept is not None:

@@ -27,7 +27,7 @@ import re
 import shutil
 import tempfile
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -44,7 +44,7 @@ from .kitti import KITTI_CLASSES
 if TYPE_CHECKING:
     from .head_training import TrainSettings
 
-__all__ = ["DetectorSettings", "SETTINGS_RANGES", "ReebDetector", "proposal_settings", "PROPOSALS",
+__all__ = ["DetectorSettings", "SETTINGS_RANGES", "ReebDetector", "proposal_settings", "PROPOSALS", "PROPOSAL_FIXED",
            "SHIPPED_DETECTORS", "resolve_detector"]
 
 PROPOSALS = ("default", "training-free")
@@ -175,26 +175,40 @@ def _checked_settings(owner: str, values: dict[str, Any]) -> dict[str, Any]:
     return check_fields(owner, values, typing.get_type_hints(DetectorSettings), SETTINGS_RANGES)
 
 
-def proposal_settings(spec: str, top_k: int) -> tuple[ReebConfig, dict[str, Any]]:
+PROPOSAL_FIXED = {"top_k": "the detector's proposals per image (DetectorSettings.proposals_train/_test)",
+                  "ranker": "the proposals' name or ranker weights file"}
+"""The REEB fields a detector sets itself, which ``changes`` may not: field -> what sets it."""
+
+
+def proposal_settings(spec: str, top_k: int,
+                      changes: Mapping[str, Any] | None = None) -> tuple[ReebConfig, dict[str, Any]]:
     """REEB's settings for ``spec`` and what names them in a detector file.
 
     Args:
         spec: ``"default"`` (the learned ranking, shipped weights), ``"training-free"``, or
             the path of ranker weights (``reeb fit``) used with the default settings.
         top_k: proposals REEB keeps per image.
+        changes: other values of :class:`~reeb_torch.ReebConfig` fields (``{"class_quota":
+            {"Pedestrian": 0.2}}``), applied over ``spec``'s; not ``top_k`` or ``ranker``
+            (:data:`PROPOSAL_FIXED`).
 
     Returns:
         ``(config, info)``; ``info``: ``{"spec", "config", "fingerprint", "ranker_sha256"}``.
 
     Raises:
-        ValueError: an unknown name and no such file (one line).
+        ValueError: an unknown name and no such file, a field ``changes`` may not set, or a
+            value ReebConfig refuses (one line).
     """
-    config = _proposal_config(spec, top_k)
+    config = _proposal_config(spec, top_k, changes)
     return config, _proposal_info(spec, config, _ranker_file(config)[0])
 
 
-def _proposal_config(spec: str, top_k: int) -> ReebConfig:
+def _proposal_config(spec: str, top_k: int, changes: Mapping[str, Any] | None = None) -> ReebConfig:
     from ..config import get_preset
+
+    fixed = sorted(set(changes or ()) & set(PROPOSAL_FIXED))
+    if fixed:
+        raise ValueError(f"REEB's {fixed[0]} is {PROPOSAL_FIXED[fixed[0]]}: it cannot be changed on its own")
 
     if spec in PROPOSALS:
         config = get_preset(spec)
@@ -203,6 +217,8 @@ def _proposal_config(spec: str, top_k: int) -> ReebConfig:
     else:
         raise ValueError(f"proposals {spec!r}: expected {' or '.join(PROPOSALS)} or a ranker weights file "
                          f"(reeb fit's .safetensors); {not_a_file(Path(os.path.expanduser(spec))) or 'no such file'}")
+    if changes:  # as a file gives them (lists for tuples), each checked and named when refused
+        return ReebConfig.from_dict({**config.to_dict(), **changes, "top_k": int(top_k)})
     return config.replace(top_k=int(top_k))
 
 
@@ -454,7 +470,8 @@ class ReebDetector(nn.Module):
             settings: DetectorSettings = DetectorSettings(), training: TrainSettings | None = None,
             cache_dir: str | os.PathLike | None = None, limit: int | None = None, hflip: bool = False,
             auto_crop: bool = False, progress: bool = True, command: str | None = None,
-            checkpoints: str | os.PathLike | None = None, frames_by: Any = None) -> ReebDetector:
+            checkpoints: str | os.PathLike | None = None, frames_by: Any = None,
+            proposal_changes: Mapping[str, Any] | None = None) -> ReebDetector:
         """Train a detector on labelled KITTI-format ``folders`` (:func:`~reeb_torch.
         detection.fitting.fit_detector`: the backbone's maps and REEB's proposals cached
         per frame under ``cache_dir``, the heads trained for ``epochs`` with ``seed``);
@@ -464,16 +481,20 @@ class ReebDetector(nn.Module):
         detection.fitting.crop_from_labels`). ``checkpoints``: a folder where the training's
         state is kept after each epoch, so the same call after a kill goes on from it.
         ``frames_by``: the per-frame pass done elsewhere (:func:`~reeb_torch.detection.
-        fitting.stored_frames`; ``reeb detector fit --engine ray``)."""
+        fitting.stored_frames`; ``reeb detector fit --engine ray``). ``proposal_changes``: REEB
+        fields set over ``proposals``' settings (:func:`proposal_settings`' ``changes``;
+        ``reeb detector fit --set``), kept in the file."""
         from .fitting import fit_detector
 
         from .head_training import TrainSettings
 
         base = training or TrainSettings()
         train = dataclasses.replace(base, epochs=epochs, seed=seed, hflip=hflip)
+        top_k = max(settings.proposals_train, settings.proposals_test)
+        config = proposal_settings(proposals, top_k, proposal_changes)[0] if proposal_changes else None
         return fit_detector(cls, folders, classes=classes, proposals=proposals, settings=settings, training=train,
                             cache_dir=cache_dir, limit=limit, auto_crop=auto_crop, progress=progress,
-                            command=command, checkpoints=checkpoints, frames_by=frames_by)
+                            command=command, checkpoints=checkpoints, frames_by=frames_by, config=config)
 
     def extra_repr(self) -> str:
         return f"classes={self.classes}, proposals={self.proposals['spec']!r}, settings={self.settings}"

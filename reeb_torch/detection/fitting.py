@@ -231,9 +231,10 @@ def fit_detector(cls: type, folders: Sequence[str | os.PathLike], *, classes: Se
                  settings: Any, training: TrainSettings, cache_dir: str | os.PathLike | None = None,
                  limit: int | None = None, auto_crop: bool = False, progress: bool = True,
                  command: str | None = None, checkpoints: str | os.PathLike | None = None,
-                 frames_by: FramesBy | None = None) -> Any:
+                 frames_by: FramesBy | None = None, config: Any = None) -> Any:
     """A ``cls`` (:class:`~reeb_torch.detection.ReebDetector`) trained on ``folders`` (module
-    doc; a folder named twice is read once); ``det.history``: ``{"losses", "steps", "train_s"}``.
+    doc; a folder named twice is read once), with REEB's ``config`` where given instead of
+    ``proposals``' own; ``det.history``: ``{"losses", "steps", "train_s"}``.
     ``auto_crop``: ``settings.crop_top`` from the frames' labels (:func:`crop_from_labels`).
     The frames are read one at a time (:func:`stored_frames`): memory does not grow with
     them. ``checkpoints``: a folder where the training state is kept after each epoch, so the
@@ -254,7 +255,7 @@ def fit_detector(cls: type, folders: Sequence[str | os.PathLike], *, classes: Se
         _check_crop(items, settings.crop_top)
     return train_detector(cls, items, folders, classes=classes, proposals=proposals, settings=settings,
                           training=training, cache_dir=cache_dir, progress=progress, command=command,
-                          checkpoints=checkpoints, frames_by=frames_by)
+                          checkpoints=checkpoints, frames_by=frames_by, config=config)
 
 
 def _check_crop(items: Sequence[dict], crop_top: float) -> None:
@@ -305,15 +306,17 @@ def heads_frames(det: Any, items: Sequence[dict], training: TrainSettings,
 def train_detector(cls: type, items: Sequence[dict], folders: Sequence[str | os.PathLike], *, classes: Sequence[str],
                    proposals: str, settings: Any, training: TrainSettings, cache_dir: str | os.PathLike | None = None,
                    progress: bool = True, command: str | None = None,
-                   checkpoints: str | os.PathLike | None = None, frames_by: FramesBy | None = None) -> Any:
+                   checkpoints: str | os.PathLike | None = None, frames_by: FramesBy | None = None,
+                   config: Any = None) -> Any:
     """:func:`fit_detector` on frames already read (:func:`~reeb_torch.detection.kitti.
     load_frames`' items, from ``folders``; lazy items are read one at a time). ``checkpoints``:
     the folder of the training's state after each epoch
     (:class:`~reeb_torch.ranker.store.Checkpoints`, keyed by the settings and the frames'
-    digests: a state of another fit is not read)."""
+    digests: a state of another fit is not read). ``config``: REEB's settings instead of
+    ``proposals``' own (:func:`~reeb_torch.detection.proposal_settings` with ``changes``)."""
     torch.manual_seed(training.seed)  # the heads' initial weights
     rank, int8 = settings.box_head_rank, settings.box_head_int8  # trained in full, made smaller once trained
-    det = cls(classes, proposals, dataclasses.replace(settings, box_head_rank=0, box_head_int8=False))
+    det = cls(classes, proposals, dataclasses.replace(settings, box_head_rank=0, box_head_int8=False), config=config)
     if det.precision != settings.precision:  # bfloat16 asked for where it is not native: trained in float32
         det.settings = dataclasses.replace(settings, precision=det.precision)
     frames = heads_frames(det, items, training, cache_dir, progress, frames_by)
@@ -324,7 +327,8 @@ def train_detector(cls: type, items: Sequence[dict], folders: Sequence[str | os.
 
         digests = [getattr(f, "digest", None) or image_digest(f.image) for f in frames]
         states = Checkpoints(checkpoints, [dataclasses.asdict(training), repr(det.settings), list(det.classes),
-                                           proposals, digests])
+                                           proposals, digests]
+                             + ([det.proposals["fingerprint"]] if config is not None else []))
         slot, after = states.slot("heads"), states.slot("factorised")
     try:
         history = train_heads(det.model, train, training, progress=progress, checkpoint=slot)

@@ -35,6 +35,7 @@ __all__ = [
     "bundled_sample",
     "BOOL_WORDS",
     "build_config",
+    "parse_sets",
     "resolve_device",
     "label_for",
     "read_labels",
@@ -314,6 +315,27 @@ def _field_kinds() -> tuple[set[str], dict[str, tuple[str, ...] | None]]:
     return bools, words
 
 
+def parse_sets(sets: Sequence[str]) -> dict[str, Any]:
+    """``--set FIELD=VALUE`` pairs as ReebConfig field values, parsed by each field's type
+    (:func:`build_config`); whether the fields exist and the values are in range is
+    ReebConfig's to say. A pair without ``=`` is a usage error."""
+    bools, words = _field_kinds() if sets else (set(), {})
+    out: dict[str, Any] = {}
+    for item in sets:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise click.BadParameter(f"{item!r}: expected FIELD=VALUE, e.g. scale=1.0",
+                                     param_hint="--set")
+        name = key.strip()
+        if name in bools:
+            out[name] = _parse_bool(name, value)
+        elif name in words and words[name] is None:
+            out[name] = _parse_text(value)
+        else:
+            out[name] = _parse_value(value, words.get(name) or (), name)
+    return out
+
+
 def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_k: int | None):
     """The ReebConfig from a preset, then a JSON file of fields, then ``--set`` pairs, then
     ``--top-k`` (each later source overrides the earlier ones).
@@ -346,19 +368,7 @@ def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_
         d.update(loaded)
         if isinstance(loaded.get("ranker"), str):
             d["ranker"] = _ranker_beside(loaded["ranker"], Path(config_file))
-    bools, words = _field_kinds() if sets else (set(), {})
-    for item in sets:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise click.BadParameter(f"{item!r}: expected FIELD=VALUE, e.g. scale=1.0",
-                                     param_hint="--set")
-        name = key.strip()
-        if name in bools:
-            d[name] = _parse_bool(name, value)
-        elif name in words and words[name] is None:
-            d[name] = _parse_text(value)
-        else:
-            d[name] = _parse_value(value, words.get(name) or (), name)
+    d.update(parse_sets(sets))
     if top_k is not None:
         d["top_k"] = top_k
     try:

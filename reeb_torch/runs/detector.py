@@ -22,11 +22,12 @@ import shlex
 import shutil
 import sys
 import warnings
+from collections.abc import Sequence
 from typing import Any
 
 import click
 
-from .common import CONTEXT, Failure, FloatOrAuto, UsageProblem, engine_options
+from .common import CONTEXT, Failure, FloatOrAuto, UsageProblem, engine_options, parse_sets
 from .detector_fit import (SettingRange, check_cache, check_frames, claim_weights_out, distinct, train, training_states,
                            warnings_as_lines)
 
@@ -61,6 +62,21 @@ def fit_settings(params: dict[str, Any]) -> Any:
                                if name in params and params[name] != "auto"})
 
 
+def proposal_changes(proposals: str, sets: Sequence[str], settings: Any) -> dict[str, Any] | None:
+    """``reeb detector fit --set``'s REEB fields (None without any), checked against
+    ``proposals``' settings before any work: a usage error names what is wrong."""
+    if not sets:
+        return None
+    from ..detection import proposal_settings
+
+    changes = parse_sets(sets)
+    try:
+        proposal_settings(proposals, max(settings.proposals_train, settings.proposals_test), changes)
+    except (TypeError, ValueError, ArithmeticError) as e:
+        raise click.BadParameter(" ".join(str(e).split()) or type(e).__name__, param_hint="--set") from None
+    return changes
+
+
 def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
     """``--option value`` for each of ``names`` (parameter names) whose value is not its default."""
     out = []
@@ -82,6 +98,9 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
 @click.option("--proposals", default="default", show_default=True, metavar="default|training-free|FILE",
               help="REEB's settings: the learned ranking, the training-free preset, or ranker weights "
                    "that reeb fit wrote (FILE).")
+@click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE",
+              help="A REEB setting of the proposals over --proposals' (repeatable; as reeb propose --set, e.g. "
+                   "--set 'class_quota={\"Pedestrian\": 0.2}'); kept in the detector file.")
 @click.option("--classes", default="Car,Pedestrian,Cyclist", show_default=True,
               help="Comma-separated class names, as the label files write them.")
 @click.option("--epochs", type=click.IntRange(min=1), default=12, show_default=True, help="Passes over the frames.")
@@ -130,7 +149,7 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
                 "(they write the maps to --cache, which every worker must reach; training runs here; "
                 "pip install 'reeb-torch[ray]').", "--engine ray: actors, each holding one detector.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
-def fit(dirs, out, overwrite, proposals, classes, epochs, steps, seed, val, hflip, min_size, max_size, train_proposals,
+def fit(dirs, out, overwrite, proposals, sets, classes, epochs, steps, seed, val, hflip, min_size, max_size, train_proposals,
         test_proposals, precision, crop_top, neck_channels, head_width, box_head_rank, int8_box_head, factorised_epochs,
         box_passes, cache_dir, limit, engine, address, actors, cpus_per_actor, quiet):
     """Train a detector on labelled KITTI-format folders (DIRS: images/ and labels/, or image_2/ and
@@ -151,12 +170,13 @@ def fit(dirs, out, overwrite, proposals, classes, epochs, steps, seed, val, hfli
     if not names or len(set(names)) != len(names):
         raise click.BadParameter(f"{classes!r}: expected distinct names such as Car,Pedestrian", param_hint="--classes")
     settings = fit_settings(click.get_current_context().params)
+    changes = proposal_changes(proposals, sets, settings)
     dirs, val = distinct(dirs, ""), distinct(val, "--val ")
     named = click.get_current_context().get_parameter_source("classes") is not ParameterSource.DEFAULT
     check_frames(dirs, val, names, limit, named)
     cache_dir = check_cache(cache_dir)
     command = " ".join(["reeb detector fit", *map(shlex.quote, dirs), "-o", shlex.quote(out), "--proposals",
-                        shlex.quote(proposals), "--classes", shlex.quote(",".join(names)), "--epochs", str(epochs),
+                        shlex.quote(proposals)] + [a for kv in sets for a in ("--set", shlex.quote(kv))] + ["--classes", shlex.quote(",".join(names)), "--epochs", str(epochs),
                         "--seed", str(seed)] + (["--steps", str(steps)] if steps else []) + (["--hflip"] if hflip else [])
                        + (["--factorised-epochs", str(factorised_epochs)] if factorised_epochs else [])
                        + _changed_options(click.get_current_context(), SETTINGS_OPTIONS)
@@ -165,7 +185,7 @@ def fit(dirs, out, overwrite, proposals, classes, epochs, steps, seed, val, hfli
     with warnings_as_lines():
         det, lines = train(dirs, val, names, proposals, epochs, seed, settings, cache_dir, limit, hflip, quiet,
                            command, auto_crop=crop_top == "auto", checkpoints=states, steps=steps,
-                           factorised_epochs=factorised_epochs,
+                           factorised_epochs=factorised_epochs, proposal_changes=changes,
                            engine=(address, actors, cpus_per_actor) if engine == "ray" else None)
     try:
         det.save(path)
@@ -199,8 +219,8 @@ def show(path):
     lines = [f"{path}: a detector of {', '.join(meta['classes'])} ({params / 1e6:.1f} M trained parameters)",
              f"backbone: {backbone.get('name')} (weights {str(backbone.get('sha256'))[:16]}...)",
              "settings: " + ", ".join(f"{k}={v}" for k, v in _part(meta, "settings").items()),
-             f"proposals: {proposals.get('spec')} (REEB config {proposals.get('fingerprint')}); "
-             f"ranker: {_ranker_note(proposals, ranker)}"]
+             f"proposals: {proposals.get('spec')}{_changes_note(proposals)} (REEB config "
+             f"{proposals.get('fingerprint')}); ranker: {_ranker_note(proposals, ranker)}"]
     frames, objects = prov.get("frames"), _part(prov, "objects")
     if isinstance(frames, list) and frames:
         folders = prov.get("folders") if isinstance(prov.get("folders"), list) else []
@@ -295,6 +315,25 @@ def _val_lines(val: dict) -> list[str]:
 
 def _is_span(v: Any) -> bool:
     return isinstance(v, list) and len(v) == 2 and all(x is None or isinstance(x, (int, float)) for x in v)
+
+
+def _changes_note(info: dict) -> str:
+    """``", with FIELD=VALUE, ..."``: the REEB fields of a detector file's proposals that
+    differ from its named settings' (``reeb detector fit --set``); empty where none do."""
+    from ..config import get_preset
+    from ..detection import PROPOSALS
+
+    spec = info.get("spec")
+    base = get_preset(spec if spec in PROPOSALS else "default").to_dict()
+    stored = _part(info, "config")
+    changed = [f"{k}={stored[k]}" for k in sorted(stored)
+               if k not in ("ranker", "top_k") and k in base and _plain(stored[k]) != _plain(base[k])]
+    return ", with " + ", ".join(changed) if changed else ""
+
+
+def _plain(value: Any) -> Any:
+    """A config value as JSON writes it (tuples as lists), for comparing a file's with a preset's."""
+    return [_plain(v) for v in value] if isinstance(value, (list, tuple)) else value
 
 
 def _ranker_note(info: dict, ranker: bytes | None) -> str:

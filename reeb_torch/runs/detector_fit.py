@@ -176,7 +176,7 @@ def _on_ray(engine: tuple[str | None, int, float | None], quiet: bool) -> Any:
 def train(dirs: Sequence[str], val: Sequence[str], names: tuple[str, ...], proposals: str, epochs: int, seed: int,
           settings: Any, cache_dir: str | None, limit: int | None, hflip: bool, quiet: bool,
           command: str, auto_crop: bool = False, checkpoints: Path | None = None,
-          steps: int | None = None, factorised_epochs: int = 0,
+          steps: int | None = None, factorised_epochs: int = 0, proposal_changes: dict[str, Any] | None = None,
           engine: tuple[str | None, int, float | None] | None = None) -> tuple[Any, list[str]]:
     """``reeb detector fit``'s work once its inputs are checked: the trained detector (its
     ``--val`` scores in its provenance) and the lines that tell of it."""
@@ -193,7 +193,7 @@ def train(dirs: Sequence[str], val: Sequence[str], names: tuple[str, ...], propo
                                     settings=settings, cache_dir=cache_dir, limit=limit, hflip=hflip,
                                     auto_crop=auto_crop, progress=not quiet, command=command,
                                     training=TrainSettings(max_steps=steps, factorised_epochs=factorised_epochs), checkpoints=checkpoints,
-                                    frames_by=frames_by)
+                                    frames_by=frames_by, proposal_changes=proposal_changes)
     except (ValueError, FileNotFoundError, ImportError) as e:
         raise UsageProblem(" ".join(str(e).split()))
     prov = det.meta["provenance"]

@@ -136,12 +136,15 @@ class FramesActor:
     computes each one's REEB proposals and frozen backbone maps (written to the feature
     cache) and gives back the proposals and the image's digests."""
 
-    def __init__(self, classes: Sequence[str], proposals: str, settings: Any, cache: dict, cpus: float = 1.0) -> None:
+    def __init__(self, classes: Sequence[str], proposals: str, settings: Any, cache: dict, cpus: float = 1.0,
+                 config: dict | None = None) -> None:
+        from ..config import ReebConfig
         from ..detection import ReebDetector
         from ..detection.feature_cache import FeatureCache
 
         _quiet_workers(cpus)
-        self.det = ReebDetector(classes, proposals, settings)
+        self.det = ReebDetector(classes, proposals, settings,
+                                config=ReebConfig.from_dict(config) if config is not None else None)
         self.cache = FeatureCache(**cache)
 
     def __call__(self, batch: dict) -> dict:
@@ -179,6 +182,7 @@ def ray_frames(det: Any, items: Sequence[dict], cache: Any, actors: int, cpus: f
             for i, it in enumerate(items)]
     key = cache.key
     kwargs = dict(classes=det.classes, proposals=det.proposals["spec"], settings=det.settings,
+                  config=det.proposals["config"],  # REEB's settings as the detector has them (--set)
                   cache=dict(root=str(cache.folder.parent.parent), weights=key["weights"], min_size=key["min_size"],
                              max_size=key["max_size"], precision=key["precision"], crop_top=key["crop_top"]),
                   cpus=cpus)
