@@ -321,3 +321,38 @@ def test_settings_default_to_bfloat16_and_a_file_without_the_field_was_float32()
     assert DetectorSettings().precision == "bfloat16"
     assert DetectorSettings.from_dict({}).precision == "float32"
     assert DetectorSettings.from_dict({"precision": "bfloat16"}).precision == "bfloat16"
+
+
+# -- --set: REEB's settings of the proposals --------------------------------------------------
+
+def test_set_changes_the_proposals_it_trains_on_and_the_file_keeps_them(tiny_kitti, detector_cache, tmp_path):
+    out = tmp_path / "set.safetensors"
+    res = _fit(tiny_kitti, "-o", out, "--set", "nms_iou=0.6", "--set", 'class_quota={"Pedestrian": 0.2}',
+               cache=detector_cache)
+    assert res.exit_code == 0, res.output
+    det = ReebDetector.load(out)
+    assert det.config.nms_iou == 0.6 and det.config.class_quota == (("Pedestrian", 0.2),)
+    assert det.config.top_k == 100  # --train-proposals still sets it
+    fingerprint = det.proposals["fingerprint"]
+    assert fingerprint != ReebDetector(settings=det.settings).proposals["fingerprint"]
+    assert list((detector_cache / "proposals").glob(f"reeb-{fingerprint}-*.pt"))  # trained on these proposals
+    assert "--set nms_iou=0.6 --set 'class_quota={\"Pedestrian\": 0.2}'" in det.meta["provenance"]["command"]
+    shown = CliRunner().invoke(main, ["detector", "show", str(out)])
+    assert "proposals: default, with class_quota=[['Pedestrian', 0.2]], nms_iou=0.6 (REEB config" in shown.output
+    plain = CliRunner().invoke(main, ["detector", "show", "kitti"])
+    assert "proposals: default (REEB config" in plain.output, plain.output
+
+
+@pytest.mark.parametrize("pair, reason", [
+    ("nms_iou=2", "ReebConfig.nms_iou must be in (0, 1], got 2.0"),
+    ("bogus=1", "unknown ReebConfig field(s): bogus"),
+    ("nms_iou", "'nms_iou': expected FIELD=VALUE"),
+    ("top_k=5", "REEB's top_k is the detector's proposals per image"),
+    ("ranker=none", "REEB's ranker is the proposals' name or ranker weights file"),
+    ("class_quota=[0.2", "class_quota='[0.2': not valid JSON"),
+])
+def test_a_bad_set_is_refused_before_any_work(tiny_kitti, tmp_path, pair, reason):
+    cache, out = tmp_path / "cache", tmp_path / "det.safetensors"
+    line = _one_line_error(_fit(tiny_kitti, "-o", out, "--set", pair, cache=cache))
+    assert "--set" in line and reason in line, line
+    assert not out.exists() and not cache.exists()
