@@ -4,7 +4,8 @@ detectors, the libraries of runs/ do not import the command, and there is one im
 per name (no compatibility modules). Modules, classes and functions stay under their caps;
 nothing but the command line imports the evaluation (the research wing); the detector's
 inference reaches none of its training; the learned
-ranking has one home (``reeb_torch/ranker/``); click is the one command-line framework; the
+ranking has one home (``reeb_torch/ranker/``); every output is claimed in one place
+(``runs/claim.py``); click is the one command-line framework; the
 package reads no data beside the checkout; and the repository speaks of the product, not of
 the work that made it.
 
@@ -36,7 +37,7 @@ RUNS_LIBRARIES = {"reeb_torch.runs.inputs", "reeb_torch.runs.decoding", "reeb_to
 COMMAND = {"reeb_torch.runs.cli", "reeb_torch.runs.common", "reeb_torch.runs.engine", "reeb_torch.runs.run_output",
            "reeb_torch.runs.side_outputs", "reeb_torch.runs.propose_local", "reeb_torch.runs.propose_ray",
            "reeb_torch.runs.detect_run", "reeb_torch.runs.detector", "reeb_torch.runs.detector_fit",
-           "reeb_torch.runs.calibrate", "reeb_torch.runs.tune",
+           "reeb_torch.runs.calibrate", "reeb_torch.runs.tune", "reeb_torch.runs.claim",
            "reeb_torch.runs.fit"}
 MAX_MODULE_LINES = 700
 MAX_CLASS_LINES = 400
@@ -273,6 +274,15 @@ def test_one_home_for_the_learned_ranking(graph):
     meta = [path for path in (p.relative_to(PACKAGE).as_posix() for p in PACKAGE.rglob("*.py"))
             if not path.startswith("ranker/") and "reeb-ranker" in (PACKAGE / path).read_text(encoding="utf-8")]
     assert not meta, f"the ranking's weights metadata read outside reeb_torch/ranker/: {meta}"
+
+
+def test_every_output_is_claimed_in_one_place():
+    """Outputs are locked only through :func:`reeb_torch.runs.claim.claim` (files written
+    whole also checked there: :func:`~reeb_torch.runs.claim.claim_files`): no other module
+    calls ``lock_output``."""
+    callers = {path for path, tree in _trees() for node in ast.walk(tree)
+               if isinstance(node, ast.Call) and getattr(node.func, "id", getattr(node.func, "attr", None)) == "lock_output"}
+    assert callers == {"runs/claim.py"}, f"outputs locked outside runs/claim.py: {sorted(callers - {'runs/claim.py'})}"
 
 
 def test_click_is_the_one_command_line_framework():

@@ -156,14 +156,10 @@ def check_out(out: Path, picture: bool, overwrite: bool) -> None:
     """``-o`` before any work: a usage error (one line, exit 2) where it is a folder, its
     folder is a file, the picture beside it (``picture``: the labelled route's ``<stem>.png``)
     would be the config itself, or the config or the picture is there already without
-    ``overwrite``."""
+    ``overwrite``; then both are claimed until the command ends (:func:`.claim.claim_files`)."""
+    from .claim import claim_files
     from .common import UsageProblem
 
-    if out.is_dir():
-        raise UsageProblem(f"-o {out}: is a folder; give a file name such as {out / 'camera.json'}")
-    above = next((q for q in out.parents if q.exists()), None)
-    if above is not None and not above.is_dir():
-        raise UsageProblem(f"-o {out}: cannot write, {above} is a file, not a folder")
     targets = [out]
     if picture:
         png = out.with_suffix(".png")
@@ -171,10 +167,7 @@ def check_out(out: Path, picture: bool, overwrite: bool) -> None:
             raise UsageProblem(f"-o {out}: the picture written beside the config is {png}, the same file; name the "
                                f"config {out.with_suffix('.json')}")
         targets.append(png)
-    there = [str(t) for t in targets if t.exists()]
-    if there and not overwrite:
-        raise UsageProblem(f"{' and '.join(there)} exist{'s' if len(there) == 1 else ''}; add --overwrite to replace "
-                           f"{'it' if len(there) == 1 else 'them'}")
+    claim_files(targets, overwrite, example="camera.json")
 
 
 def write_record(out: Path, record: dict) -> None:

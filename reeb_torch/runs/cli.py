@@ -55,6 +55,7 @@ from pathlib import Path  # noqa: E402
 
 import click  # noqa: E402
 
+from .claim import claim_files  # noqa: E402
 from .common import (  # noqa: E402
     CONTEXT,
     Failure,
@@ -68,7 +69,6 @@ from .common import (  # noqa: E402
     config_options,
     label_for,
     read_labels,
-    refuse_existing,
     resolve_device,
     settings_options,
 )
@@ -362,7 +362,7 @@ def export(results, out, fmt, ids_file, id_type, overwrite):
     target = Path(os.path.expanduser(out))
     if os.path.realpath(target) == os.path.realpath(results):
         raise UsageProblem(f"-o {out}: is RESULTS, the file read; give another name")
-    refuse_existing([target], overwrite)
+    claim_files([target], overwrite, example="proposals.pkl")
     try:
         id_map = E.read_id_map(ids_file) if ids_file else None
         rows = E.read_rows(results)

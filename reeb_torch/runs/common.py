@@ -23,7 +23,6 @@ __all__ = [
     "Failure",
     "writable_folder",
     "OUTPUT_RULE",
-    "refuse_existing",
     "FiniteFloat",
     "engine_options",
     "ray_engine",
@@ -81,19 +80,6 @@ OUTPUT_RULE = ("A command never replaces a file that is there already unless giv
 ``tune``, ``calibrate``, ``export``, ``detector fit``); the views made only for looking
 (``reeb show``'s picture, the bare ``reeb propose`` sample's, ``reeb eval``'s report folder)
 are redrawn in place."""
-
-
-def refuse_existing(paths: Sequence[Path], overwrite: bool) -> None:
-    """Before any work: a usage error (one line, exit 2) naming the files of ``paths`` that
-    are there already, unless ``overwrite`` (see :data:`OUTPUT_RULE`); also where one is a
-    folder."""
-    for p in paths:
-        if p.is_dir():
-            raise UsageProblem(f"-o {p}: is a folder; give a file name")
-    there = [str(p) for p in paths if p.exists() or p.is_symlink()]
-    if there and not overwrite:
-        raise UsageProblem(f"{' and '.join(there)} exist{'s' if len(there) == 1 else ''}; add --overwrite to "
-                           f"replace {'it' if len(there) == 1 else 'them'}")
 
 
 class FiniteFloat(click.FloatRange):
@@ -205,20 +191,6 @@ def ray_engine(engine: tuple[str | None, int, float | None], quiet: bool) -> tup
         raise Failure(str(e)) from None
     except ValueError as e:
         raise UsageProblem(str(e)) from None
-
-
-def claim_output(out: str) -> None:
-    """Check that ``out`` can be written and hold its lock (one writer per output) until the
-    command ends; a :class:`UsageProblem` (exit 2, one line) when it cannot, before any work."""
-    from .output_files import OutputError, check_output
-    from .output_lock import lock_output
-
-    try:
-        check_output(out)
-        lock = lock_output(out)
-    except OutputError as e:
-        raise UsageProblem(str(e)) from None
-    click.get_current_context().call_on_close(lock.release)
 
 
 def repo_root() -> Path:

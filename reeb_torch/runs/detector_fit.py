@@ -32,29 +32,14 @@ __all__ = ["claim_weights_out", "SettingRange", "distinct", "check_frames", "che
 
 def claim_weights_out(out: str, overwrite: bool) -> Path:
     """``-o``: a ``.safetensors`` name in a writable folder, not there yet unless ``overwrite``;
-    its lock held until the command ends (a second fit on it exits 2 at once), and the
-    temporary files a killed fit on it left removed."""
-    from .output_files import OutputError, stale_temp_files
-    from .output_lock import lock_output
+    claimed until the command ends (:func:`.claim.claim_files`: a second fit on it exits 2
+    at once, and the temporary files a killed fit on it left are removed)."""
+    from .claim import claim_files
 
     p = Path(os.path.expanduser(out))
     if p.suffix.lower() != ".safetensors":
         raise UsageProblem(f"{out}: a detector is written as safetensors; name it {p.with_suffix('.safetensors')}")
-    if p.is_dir():
-        raise UsageProblem(f"{out}: is a folder; give a file name such as {p / 'det.safetensors'}")
-    parent = p.parent if str(p.parent) else Path(".")
-    if not parent.is_dir() or not os.access(parent, os.W_OK):
-        raise UsageProblem(f"{out}: cannot write there (folder {parent} missing or not writable)")
-    if p.exists() and not overwrite:
-        raise UsageProblem(f"{out} exists; add --overwrite to replace it")
-    try:
-        lock = lock_output(p)
-    except OutputError as e:
-        raise UsageProblem(" ".join(str(e).split())) from None
-    click.get_current_context().call_on_close(lock.release)
-    for stale in stale_temp_files(p):
-        stale.unlink(missing_ok=True)
-    return p
+    return claim_files([p], overwrite, example="det.safetensors")[0][0]
 
 
 class SettingRange(click.ParamType):

@@ -16,10 +16,9 @@ import os
 import shlex
 import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from ..config import ReebConfig
 from ..ranker import frames as F
@@ -185,7 +184,8 @@ class FitOutputs:
     """
 
     def __init__(self, out: str | os.PathLike, overwrite: bool = False) -> None:
-        from .common import UsageProblem, refuse_existing
+        from .claim import check_files
+        from .common import UsageProblem
 
         text = os.fspath(out)
         if not text.strip():
@@ -195,30 +195,22 @@ class FitOutputs:
         if self.weights.suffix.lower() == ".json" or self.config == self.weights:
             raise UsageProblem(f"{self.weights}: the config written beside the weights is {self.config}, the same "
                                f"file; name the weights apart, e.g. -o {self.weights.with_suffix('.safetensors')}")
-        problem = _unwritable(self.weights) or _unwritable(self.config)
-        if problem:
-            raise UsageProblem(problem)
-        refuse_existing([self.weights, self.config], overwrite)
+        check_files([self.weights, self.config], overwrite, example="ranker.safetensors")  # claimed on entering
         self.scratch = self.weights.parent / f"{_hidden(self.weights)}.fit"
         self.store = self.weights.parent / f"{_hidden(self.weights)}.store"
         """The fit's row store, held-out models and training states: kept after a kill (the
         same command goes on from it), removed once the weights are written."""
-        self._locks: list = []
+        self._release: Callable[[], None] = lambda: None
 
     def __enter__(self) -> "FitOutputs":
-        from .output_files import OutputError, stale_temp_files
-        from .output_lock import lock_output
+        from .claim import claim
         from .common import UsageProblem
 
+        self._release = claim([self.weights, self.config], hold=False)  # with the temporary files a kill left
         try:
-            for path in (self.weights, self.config):
-                self._locks.append(lock_output(path))
-            # what a killed fit on this output left: its scratch folder, its temporary files
-            shutil.rmtree(self.scratch, ignore_errors=True)
-            for stale in stale_temp_files(self.weights) + stale_temp_files(self.config):
-                stale.unlink(missing_ok=True)
+            shutil.rmtree(self.scratch, ignore_errors=True)  # what a killed fit on this output left
             self.scratch.mkdir()
-        except (OSError, OutputError) as e:
+        except OSError as e:
             self._release()
             raise UsageProblem(" ".join(str(e).split())) from None
         return self
@@ -226,11 +218,6 @@ class FitOutputs:
     def __exit__(self, *exc: object) -> None:
         shutil.rmtree(self.scratch, ignore_errors=True)
         self._release()
-
-    def _release(self) -> None:
-        for lock in self._locks:
-            lock.release()
-        self._locks = []
 
     def write(self, model: BoxRanker, provenance: dict[str, Any], cfg: ReebConfig) -> None:
         """The weights, then the config, each renamed into place; a one-line
@@ -263,29 +250,6 @@ def _hidden(path: Path) -> str:
     from .output_files import hidden_stem
 
     return hidden_stem(path)
-
-
-def _unwritable(path: Path) -> str | None:
-    """Why ``path`` cannot be written as an output file (its folder made where missing), or None."""
-    if path.is_dir():
-        return f"{path}: is a folder; give a file name such as {path / 'ranker.safetensors'}"
-    parent = path.parent
-    above = next((q for q in (parent, *parent.parents) if q.exists()), None)
-    if above is not None and not above.is_dir():
-        return f"{path}: cannot write, {above} is a file, not a folder"
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        return f"{path}: cannot write, cannot make the folder {parent} ({e.strerror or e})"
-    if path.exists() and not os.access(path, os.W_OK):
-        return f"{path}: cannot write, the file is read-only"
-    try:
-        fd, probe = tempfile.mkstemp(prefix=f"{_hidden(path)}.", suffix=".probe", dir=parent)
-    except OSError as e:
-        return f"{path}: cannot write to the folder {parent} ({e.strerror or e})"
-    os.close(fd)
-    os.unlink(probe)
-    return None
 
 
 def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: RF.FitOptions, folds: int, k: int = 2000,

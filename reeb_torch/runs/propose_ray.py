@@ -25,7 +25,7 @@ from .common import Failure, UsageProblem
 from .engine import closing_tail, count_line, find_inputs, ms_per_img, mismatch_line
 from .inputs import same_file_note
 from .output_files import OutputError, check_output, read_result_dir, result_files
-from .output_lock import lock_output
+from .claim import claim
 from .rows import row_key
 from .run_output import resume_note
 
@@ -151,11 +151,9 @@ class _RayRun:
                                "Parquet files")
         try:
             out_dir.absolute().parent.mkdir(parents=True, exist_ok=True)
-            lock = lock_output(out_dir)
-        except (OSError, OutputError) as e:
-            raise UsageProblem(str(e) if isinstance(e, OutputError) else
-                               f"{out}: cannot write there ({e.strerror or e})")
-        return lock.release
+        except OSError as e:
+            raise UsageProblem(f"{out}: cannot write there ({e.strerror or e})") from None
+        return claim([out_dir], hold=False)
 
     def start_ray(self, address: str | None, actors: int, cpus_per_actor: float | None) -> None:
         """A local Ray instance sized to the machine, or the cluster at ``address``; the CPUs

@@ -17,7 +17,8 @@ from typing import Callable, Sequence
 
 import click
 
-from .common import Failure, UsageProblem, claim_output
+from .claim import claim_run_output
+from .common import Failure, UsageProblem
 from .output_files import (
     OutputError,
     open_writer,
@@ -148,7 +149,7 @@ def plan_output(out: str | None, images: Sequence[Path], *, resume: bool, overwr
         return OutputPlan(None, plan)
     if os.path.islink(out):  # write the file the link points to (and lock that one), keep the link
         out = os.path.realpath(out)
-    claim_output(out)
+    claim_run_output(out)
     exists = Path(out).exists()
     if exists and not (resume or overwrite):
         raise UsageProblem(f"{out} exists; add --resume to continue it or --overwrite to replace it")

@@ -19,6 +19,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+from .claim import claim
 from .common import UsageProblem, writable_folder
 
 __all__ = ["unique_stems", "SideOutputError", "PictureFolder", "KittiFolder"]
@@ -183,19 +184,10 @@ class KittiFolder:
             p.unlink()
 
     def _lock(self) -> None:
-        """One run per folder, as per output file (:func:`.output_lock.lock_output`: a hidden
+        """One run per folder, as per output file (:func:`.claim.claim`: a hidden
         ``.NAME.reeb-lock`` beside it), held until the command ends; a usage error when another
         run holds it."""
-        import click
-
-        from .output_files import OutputError
-        from .output_lock import lock_output
-
-        try:
-            lock = lock_output(self.path)
-        except OutputError as e:
-            raise UsageProblem(f"{self.option} {e}") from None
-        click.get_current_context().call_on_close(lock.release)
+        claim([self.path], option=self.option)
 
     def write(self, stem: str, row: dict) -> None:
         """The result file of an ``ok`` row (its boxes, labels and scores);

@@ -38,9 +38,9 @@ def plot_paths(stem: Path) -> list[Path]:
 def check_out(out: Path, overwrite: bool) -> None:
     """``-o`` before any work: a usage error (one line, exit 2) where it or a plot beside it
     is there already without ``overwrite``, or it is a folder."""
-    from .common import refuse_existing
+    from .claim import claim_files
 
-    refuse_existing([out, *plot_paths(out.with_suffix(""))], overwrite)
+    claim_files([out, *plot_paths(out.with_suffix(""))], overwrite, example="tuned.json")
 
 
 def _save(fig: Any, path: Path) -> None:
