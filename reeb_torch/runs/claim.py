@@ -23,7 +23,7 @@ import click
 
 from .common import UsageProblem
 from .output_files import OutputError, hidden_stem, stale_temp_files
-from .output_lock import lock_output
+from .output_lock import OutputLock, lock_output
 
 __all__ = ["claim", "claim_files", "check_files", "claim_run_output", "unwritable"]
 
@@ -44,7 +44,7 @@ def claim(paths: Sequence[str | os.PathLike], *, option: str = "", hold: bool = 
         UsageProblem: another run holds one of them, or a lock file cannot be made; the locks
             taken so far are released.
     """
-    locks = []
+    locks: list[OutputLock] = []
 
     def release() -> None:
         while locks:
@@ -87,7 +87,7 @@ def check_files(paths: Sequence[str | os.PathLike], overwrite: bool, *, inputs: 
             (:func:`unwritable`), or is there already without ``overwrite``.
     """
     out = []
-    for text in map(os.fspath, paths):
+    for text in (str(os.fspath(p)) for p in paths):
         if not text.strip():
             raise UsageProblem(f"-o/--out is empty: give the file to write, e.g. -o {example}")
         out.append(Path(os.path.expanduser(text)))
