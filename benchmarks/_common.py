@@ -91,10 +91,10 @@ def setting_pairs(text: str) -> list[str]:
 
 def settings_config(text: str) -> Any:
     """The package default with ``FIELD=VALUE;...`` applied, as ``reeb propose --set`` applies
-    them (a :class:`~reeb_torch.ReebConfig`; ``click.ClickException`` for a bad field or value)."""
-    from reeb_torch.runs.common import build_config
+    them (a :class:`~reeb_torch.ReebConfig`; :class:`~reeb_torch.config_text.SettingError` for a bad field or value)."""
+    from reeb_torch.config_text import config_from
 
-    return build_config("default", None, setting_pairs(text), None)
+    return config_from("default", None, setting_pairs(text), None)
 
 
 def run_captured(gen: Any, image: Any) -> tuple[dict, dict]:

@@ -37,7 +37,6 @@ import sys
 import time
 from pathlib import Path
 
-import click
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -160,8 +159,8 @@ def parse_args(argv: list[str] | None) -> tuple[argparse.Namespace, dict]:
     for text in args.variant:
         try:
             extra[", ".join(setting_pairs(text))] = (settings_config(text), "set")
-        except click.ClickException as e:  # an unknown field, a bad value: before any work
-            ap.error(f"--variant {text!r}: {e.format_message()}")
+        except ValueError as e:  # an unknown field, a bad value: before any work
+            ap.error(f"--variant {text!r}: {e}")
     try:
         args.frames_data = load(args.data, args.limit, args.frames)
     except ValueError as e:

@@ -31,7 +31,7 @@ from _common import environment, rerun_line, write_outputs  # noqa: E402
 from reeb_torch.metrics.recall import compare_recall, object_hits, recall_interval  # noqa: E402
 from reeb_torch.eval.methods import CONFIGURED, METHODS, Table3Options  # noqa: E402
 from reeb_torch.eval.table3 import load_frames, run_method  # noqa: E402
-from reeb_torch.runs.common import build_config  # noqa: E402
+from reeb_torch.config_text import config_from  # noqa: E402
 
 ROUTES = ("nothing set", "labels", "intrinsics", "images")
 
@@ -81,7 +81,7 @@ def main() -> None:
         hits, made = {}, {}
         for route in ROUTES:
             sets = () if ranker == "kitti" else (f"ranker={ranker}",)
-            cfg = build_config("default", str(files[route]) if files[route] else None, sets, None)
+            cfg = config_from("default", str(files[route]) if files[route] else None, sets, None)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # the ranker's "fitted with other settings" is the point here
                 boxes, _ = run_method(METHODS[CONFIGURED], frames.images, 2000, 0, config=cfg)

@@ -52,7 +52,7 @@ from reeb_torch.ranker import cv as fit_cv  # noqa: E402
 from reeb_torch.metrics.recall import compare_recall, sign_test  # noqa: E402
 from reeb_torch.tuning import FrameCache, bootstrap_interval  # noqa: E402
 from reeb_torch.ranker import NOT_SEEN_BY_RANKER  # noqa: E402
-from reeb_torch.runs.common import build_config  # noqa: E402
+from reeb_torch.config_text import config_from  # noqa: E402
 
 
 def parse_variant(text: str) -> ReebConfig:
@@ -118,7 +118,7 @@ def parse_refit(text: str) -> tuple[ReebConfig, dict]:
             raise ValueError("--refit fits the fold models itself: no ranker=")
         else:
             pairs.append(pair)
-    return build_config("default", None, pairs, None), opts
+    return config_from("default", None, pairs, None), opts
 
 
 KS = (2000, 500)

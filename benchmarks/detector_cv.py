@@ -126,7 +126,7 @@ def _fold_detector(settings: Any, training: Any, o: dict[str, Any], proposals: s
     from reeb_torch.detection import ReebDetector, proposal_settings
     from reeb_torch.detection.detector_file import read_detector_file
     from reeb_torch.detection.fitting import heads_frames, train_detector, tune_factorised
-    from reeb_torch.runs.common import parse_sets
+    from reeb_torch.config_text import parse_sets
 
     classes = tuple(c.strip() for c in o["classes"].split(",") if c.strip())
     changes = parse_sets(o.get("sets") or ())  # --set: REEB's settings over the proposals'

@@ -109,7 +109,7 @@ def seed_runs(name: str, options: str, seeds: list[int] | None, train: list[Path
 def fit_arm(stem: str, options: str, args: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
     """The detector of these options (fitted, or loaded from ``--work``) and its fit record."""
     from reeb_torch.detection import ReebDetector
-    from reeb_torch.runs.common import parse_sets
+    from reeb_torch.config_text import parse_sets
     from reeb_torch.runs.detector import fit_settings
 
     o = fit_options(args.train, options)

@@ -29,7 +29,6 @@ import tempfile
 from pathlib import Path
 from typing import Callable
 
-import click
 import torch
 from torchvision.ops import box_iou
 
@@ -37,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_dev_dirs, rerun_line, run_captured  # noqa: E402
 
 from reeb_torch import ProposalGenerator  # noqa: E402
-from reeb_torch.runs.common import build_config  # noqa: E402
+from reeb_torch.config_text import config_from  # noqa: E402
 from _common import add_data_option, add_frames_option  # noqa: E402
 from reeb_torch.datasets.folders import folder_splits, load_folders  # noqa: E402
 from reeb_torch.metrics.recall import kitti_difficulty_mask  # noqa: E402
@@ -297,9 +296,9 @@ def main(argv: list[str] | None = None) -> dict:
     except ValueError as e:
         ap.error(str(e))
     try:
-        config = build_config(args.preset, None, args.sets, None)
-    except click.ClickException as e:  # an unknown field, a bad value
-        ap.error(e.format_message())
+        config = config_from(args.preset, None, args.sets, None)
+    except ValueError as e:  # an unknown field, a bad value
+        ap.error(str(e))
     run_for = _generators(ap, args, config)
     acc: dict[str, list[torch.Tensor]] = {s: [] for s in STAGES}
     labels, moderate, frame_of, folder_of, lost, crops = [], [], [], [], [], []

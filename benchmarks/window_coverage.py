@@ -81,9 +81,9 @@ def windows(sets: list[str], size: tuple[int, int]) -> Any:
     import torch
 
     from reeb_torch import ProposalGenerator
-    from reeb_torch.runs.common import build_config
+    from reeb_torch.config_text import config_from
 
-    gen = ProposalGenerator(build_config("default", None, [*sets, "ranker=none"], None))  # the grid: no ranker
+    gen = ProposalGenerator(config_from("default", None, [*sets, "ranker=none"], None))  # the grid: no ranker
     w, h = size
     front = gen.front_end(gen.prepare([torch.zeros(3, h, w, dtype=torch.uint8)]))
     maps = front.maps

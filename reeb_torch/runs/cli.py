@@ -55,7 +55,6 @@ from pathlib import Path  # noqa: E402
 
 import click  # noqa: E402
 
-from .claim import claim_files  # noqa: E402
 from .common import (  # noqa: E402
     CONTEXT,
     Failure,
@@ -358,6 +357,7 @@ def export(results, out, fmt, ids_file, id_type, overwrite):
     DATASETS.PROPOSAL_FILES_TRAIN/TEST. Failed images are left out and named.
     """
     from . import export as E
+    from .claim import claim_files  # imports torch: after the options are read
 
     target = Path(os.path.expanduser(out))
     if os.path.realpath(target) == os.path.realpath(results):

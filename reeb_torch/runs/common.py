@@ -10,7 +10,6 @@ engine's (:mod:`.engine`).
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any, Sequence
@@ -32,9 +31,7 @@ __all__ = [
     "SAMPLE_NAME",
     "repo_root",
     "bundled_sample",
-    "BOOL_WORDS",
     "build_config",
-    "parse_sets",
     "resolve_device",
     "label_for",
     "read_labels",
@@ -210,163 +207,16 @@ def bundled_sample() -> Path:
     return p
 
 
-def _parse_value(text: str, choices: tuple[str, ...] = (), field: str = "") -> Any:
-    """A ``--set`` value: one of the field's ``choices`` (the words of a ``Literal`` field,
-    kept as written even where they read as JSON, such as ``none``), else JSON, else
-    ``none``/``null`` as None, ``true``/``false``, or the bare string. A value that opens as
-    JSON does (``[``, ``{``, ``"``) but does not parse is a usage error naming ``field``."""
-    word = text.strip()
-    if word in choices:
-        return word
-    try:
-        return json.loads(text)
-    except RecursionError:
-        raise click.BadParameter(f"{text[:40]!r}...: nested too deeply to be a setting",
-                                 param_hint="--set") from None
-    except json.JSONDecodeError as e:
-        if word[:1] in ('[', '{', '"'):
-            raise click.BadParameter(f"{field}={text[:60]!r}: not valid JSON ({e.msg} at character {e.pos + 1})",
-                                     param_hint="--set") from None
-        low = word.lower()
-        if low in ("none", "null"):
-            return None
-        if low in ("true", "false"):
-            return low == "true"
-        return text
-
-
-#: The words ``--set`` takes for a bool field of ReebConfig (case-insensitive).
-BOOL_WORDS = {"true": True, "yes": True, "on": True, "1": True,
-              "false": False, "no": False, "off": False, "0": False}
-
-
-def _parse_bool(field: str, text: str) -> bool:
-    """``--set FIELD=WORD`` for a bool field: one of :data:`BOOL_WORDS`, else a usage error."""
-    word = text.strip()
-    if len(word) >= 2 and word[0] == word[-1] and word[0] in "\"'":
-        word = word[1:-1].strip()  # --set 'use_regions="false"'
-    try:
-        return BOOL_WORDS[word.lower()]
-    except KeyError:
-        raise click.BadParameter(
-            f"{field}={text!r}: {field} is a yes/no setting; use true/false, yes/no, on/off "
-            "or 1/0", param_hint="--set") from None
-
-
-def _parse_text(text: str) -> str:
-    """A ``--set`` value for a free-text field (``ranker``): the text as written, a JSON
-    string's quotes removed (``ranker=none`` is the word ``'none'``, not None)."""
-    word = text.strip()
-    try:
-        value = json.loads(word)
-    except (json.JSONDecodeError, RecursionError):
-        return word
-    return value if isinstance(value, str) else word
-
-
-def _field_kinds() -> tuple[set[str], dict[str, tuple[str, ...] | None]]:
-    """Names of the ReebConfig fields whose type is ``bool``, and the words of each field
-    whose type is a ``Literal`` of strings (from the dataclass); a free-text ``str`` field
-    maps to ``None`` in the second (any text, taken as written)."""
-    import dataclasses
-    import typing
-
-    from ..config import ReebConfig
-
-    hints = typing.get_type_hints(ReebConfig)
-    bools: set[str] = set()
-    words: dict[str, tuple[str, ...] | None] = {}
-    for f in dataclasses.fields(ReebConfig):
-        hint = hints.get(f.name)
-        if hint is bool:
-            bools.add(f.name)
-        elif typing.get_origin(hint) is typing.Literal:
-            words[f.name] = tuple(a for a in typing.get_args(hint) if isinstance(a, str))
-        elif hint is str:
-            words[f.name] = None
-    return bools, words
-
-
-def parse_sets(sets: Sequence[str]) -> dict[str, Any]:
-    """``--set FIELD=VALUE`` pairs as ReebConfig field values, parsed by each field's type
-    (:func:`build_config`); whether the fields exist and the values are in range is
-    ReebConfig's to say. A pair without ``=`` is a usage error."""
-    bools, words = _field_kinds() if sets else (set(), {})
-    out: dict[str, Any] = {}
-    for item in sets:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise click.BadParameter(f"{item!r}: expected FIELD=VALUE, e.g. scale=1.0",
-                                     param_hint="--set")
-        name = key.strip()
-        if name in bools:
-            out[name] = _parse_bool(name, value)
-        elif name in words and words[name] is None:
-            out[name] = _parse_text(value)
-        else:
-            out[name] = _parse_value(value, words.get(name) or (), name)
-    return out
-
-
 def build_config(preset: str, config_file: str | None, sets: Sequence[str], top_k: int | None):
     """The ReebConfig from a preset, then a JSON file of fields, then ``--set`` pairs, then
-    ``--top-k`` (each later source overrides the earlier ones).
+    ``--top-k`` (:func:`reeb_torch.config_text.config_from`: each later source overrides the
+    earlier ones); any refusal is a usage error naming the option, exit code 2."""
+    from ..config_text import SettingError, config_from
 
-    A bool field given with ``--set`` takes true/false, yes/no, on/off or 1/0; a field of
-    named choices takes one of its words as written (``shadow_score=none`` is the word
-    ``'none'``, not None), a free-text field its text (``ranker=none``, ``ranker=mine.safetensors``);
-    other fields take JSON (``3``, ``1.5``, ``[1, 2]``, ``null``) or a
-    bare string. Any error (a bad word, an unknown field, a value ReebConfig rejects) is a
-    usage error, exit code 2.
-    """
-    from ..config import ReebConfig, get_preset
-
-    d = get_preset(preset).to_dict()
-    if config_file:
-        try:
-            loaded = json.loads(Path(config_file).read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError) as e:
-            raise click.BadParameter(f"{config_file}: cannot read ({e})", param_hint="--config")
-        except json.JSONDecodeError as e:
-            raise click.BadParameter(f"{config_file}: not valid JSON ({e})", param_hint="--config")
-        except RecursionError:
-            raise click.BadParameter(f"{config_file}: nested too deeply to be a config",
-                                     param_hint="--config") from None
-        if isinstance(loaded, dict) and isinstance(loaded.get("config"), dict):
-            loaded = loaded["config"]  # a saved record with a "config" entry
-        if not isinstance(loaded, dict):
-            raise click.BadParameter(f"{config_file}: expected a JSON object of ReebConfig fields",
-                                     param_hint="--config")
-        d.update(loaded)
-        if isinstance(loaded.get("ranker"), str):
-            d["ranker"] = _ranker_beside(loaded["ranker"], Path(config_file))
-    d.update(parse_sets(sets))
-    if top_k is not None:
-        d["top_k"] = top_k
     try:
-        return ReebConfig.from_dict(d)
-    except RecursionError:
-        raise click.BadParameter("a value is nested too deeply to be a setting",
-                                 param_hint="--config/--set/--top-k") from None
-    except (TypeError, ValueError, ArithmeticError) as e:
-        raise click.BadParameter(" ".join(str(e).split()) or type(e).__name__,
-                                 param_hint="--config/--set/--top-k")
-
-
-def _ranker_beside(ranker: str, config_file: Path) -> str:
-    """A config file's ``ranker``: a relative path is taken from the config file's folder (as
-    ``reeb fit`` writes it), so the config reads from any folder; a path that is found only
-    from the current folder (a config written before) is kept; names and absolute paths
-    are kept."""
-    import os
-
-    from ..ranker import SHIPPED
-
-    path = Path(os.path.expanduser(ranker))
-    if ranker in SHIPPED or ranker == "none" or path.is_absolute():
-        return ranker
-    beside = config_file.parent / path
-    return ranker if path.exists() and not beside.exists() else str(beside)
+        return config_from(preset, config_file, sets, top_k)
+    except SettingError as e:
+        raise click.BadParameter(str(e), param_hint=e.option) from None
 
 
 def resolve_device(name: str):

@@ -27,7 +27,7 @@ from typing import Any
 
 import click
 
-from .common import CONTEXT, Failure, FloatOrAuto, UsageProblem, engine_options, parse_sets
+from .common import CONTEXT, Failure, FloatOrAuto, UsageProblem, engine_options
 from .detector_fit import (SettingRange, check_cache, check_frames, claim_weights_out, distinct, train, training_states,
                            warnings_as_lines)
 
@@ -67,10 +67,11 @@ def proposal_changes(proposals: str, sets: Sequence[str], settings: Any) -> dict
     ``proposals``' settings before any work: a usage error names what is wrong."""
     if not sets:
         return None
+    from ..config_text import parse_sets
     from ..detection import proposal_settings
 
-    changes = parse_sets(sets)
     try:
+        changes = parse_sets(sets)
         proposal_settings(proposals, max(settings.proposals_train, settings.proposals_test), changes)
     except (TypeError, ValueError, ArithmeticError) as e:
         raise click.BadParameter(" ".join(str(e).split()) or type(e).__name__, param_hint="--set") from None
