@@ -55,7 +55,17 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--work", type=Path, help="keep each fold's ranking and each arm's detections here")
     p.add_argument("--cache", type=Path, help="backbone-map and proposal cache [default: reeb's]")
     p.add_argument("--limit", type=int, help="only the first N frames of each folder")
-    return parse_with_arms(p, argv)
+    p.add_argument("--without-native-bf16", nargs="+", default=[], metavar="NAME",
+                   help="these arms' detectors scored again as on a CPU without native bfloat16 "
+                        "(REEB_NATIVE_BF16=0: the backbone in float32, the heads as trained), as arm NAME.nobf16")
+    args = parse_with_arms(p, argv)
+    given = dict(args.arm)
+    unknown = [n for n in args.without_native_bf16 if n not in given]
+    if unknown:
+        p.error(f"--without-native-bf16: no arm named {', '.join(unknown)}")
+    args.nobf16 = {f"{n}.nobf16" for n in args.without_native_bf16}
+    args.arm += [(f"{n}.nobf16", given[n]) for n in args.without_native_bf16]
+    return args
 
 
 def training_sides(items: list[dict], folds: int) -> tuple[list[list[int]], list[list[int]]]:
@@ -118,9 +128,11 @@ are found)."""
 
 
 def _fold_detector(settings: Any, training: Any, o: dict[str, Any], proposals: str, side: list[int],
-                   items: list[dict], args: argparse.Namespace) -> tuple[Any, dict[str, Any] | None]:
+                   items: list[dict], args: argparse.Namespace,
+                   nobf16: bool = False) -> tuple[Any, dict[str, Any] | None]:
     """The fold's detector with the arm's settings: its heads trained here, or read from a fit
-    of the same training settings kept under ``--work`` (record None)."""
+    of the same training settings kept under ``--work`` (record None); with ``nobf16``, built
+    as on a CPU without native bfloat16 (the backbone in float32, the same heads)."""
     import dataclasses
 
     from reeb_torch.detection import ReebDetector, proposal_settings
@@ -155,6 +167,8 @@ def _fold_detector(settings: Any, training: Any, o: dict[str, Any], proposals: s
         if kept is not None:
             kept.parent.mkdir(parents=True, exist_ok=True)
             det.save(kept)
+    if nobf16 and det.precision != "float32":
+        det = _without_native_bf16(det, classes, proposals, full, config)
     if settings.box_head_rank:
         t0 = time.perf_counter()
         frames = (heads_frames(det, [items[i] for i in side], training, args.cache, not args.quiet)
@@ -172,8 +186,32 @@ def _fold_detector(settings: Any, training: Any, o: dict[str, Any], proposals: s
     return det.eval(), record
 
 
+def _without_native_bf16(det: Any, classes: tuple[str, ...], proposals: str, settings: Any, config: Any) -> Any:
+    """``det``'s trained heads on the backbone a CPU without native bfloat16 runs
+    (``REEB_NATIVE_BF16=0`` while it is built: float32)."""
+    import os
+    import warnings
+
+    from reeb_torch.detection import ReebDetector
+    from reeb_torch.detection.detector_file import trained_keys
+
+    before = os.environ.get("REEB_NATIVE_BF16")
+    os.environ["REEB_NATIVE_BF16"] = "0"
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # "this CPU has no native bfloat16": the point
+            cpu = ReebDetector(classes, proposals, settings, config=config)
+    finally:
+        if before is None:
+            del os.environ["REEB_NATIVE_BF16"]
+        else:
+            os.environ["REEB_NATIVE_BF16"] = before
+    cpu.model.load_state_dict(trained_keys(det.model.state_dict()), strict=False)
+    return cpu
+
+
 def run_arm(options: str, seed: int, items: list[dict], blocks: list[list[int]], sides: list[list[int]],
-            rankers: list[str], args: argparse.Namespace) -> tuple[list[dict], dict[str, Any]]:
+            rankers: list[str], args: argparse.Namespace, nobf16: bool = False) -> tuple[list[dict], dict[str, Any]]:
     """The detections of every frame by the arm's detectors (each trained without the frame's
     block), and the fits' record; kept under ``--work`` by options and seed."""
     import torch
@@ -185,7 +223,8 @@ def run_arm(options: str, seed: int, items: list[dict], blocks: list[list[int]],
     o = fit_options(args.roots, options)
     parsed = {k: v for k, v in sorted(o.items()) if k not in ("quiet", "cache_dir", "out", "overwrite")
               and not (k == "sets" and not v)}  # no --set: the key it had before the option
-    key = hashlib.sha256(json.dumps([parsed, seed, args.folds, args.limit, rankers], default=str).encode()
+    key = hashlib.sha256(json.dumps([parsed, seed, args.folds, args.limit, rankers] + (["nobf16"] if nobf16 else []),
+                                    default=str).encode()
                          ).hexdigest()[:16]  # by the options as parsed: a changed default is another arm
     kept = args.work / "detections" / f"{key}.pt" if args.work else None
     if kept is not None and kept.is_file():
@@ -199,7 +238,7 @@ def run_arm(options: str, seed: int, items: list[dict], blocks: list[list[int]],
         proposals = rankers[f] if o["proposals"] == "default" else o["proposals"]
         fold = settings if o["crop_top"] != "auto" else dataclasses.replace(
             settings, crop_top=crop_from_labels([items[i] for i in side]))  # from the fold's training labels
-        det, fitted = _fold_detector(fold, training, o, proposals, side, items, args)
+        det, fitted = _fold_detector(fold, training, o, proposals, side, items, args, nobf16)
         for k, v in (fitted or {"fit_s": 0.0, "train_heads_s": 0.0, "steps": 0}).items():
             record[k].append(v)
         try:
@@ -240,7 +279,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, options in args.arm:
         runs = []
         for seed in args.seeds:
-            dets, record = run_arm(options, seed, items, blocks, sides, rankers, args)
+            dets, record = run_arm(options, seed, items, blocks, sides, rankers, args, name in args.nobf16)
             st = kitti_ap.evaluate(objects, [{**d, "labels": d["labels"] - 1} for d in dets], cls)
             stats.setdefault(name, []).append(st)
             ap = {k: None if v != v else round(100 * v, 2) for k, v in kitti_ap.kitti_ap(st).items()}

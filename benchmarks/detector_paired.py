@@ -74,13 +74,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def parse_with_arms(p: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
     """``p``'s arguments with the options every paired benchmark shares (``--samples``,
-    ``--seed``, ``-q``), checked for two or more ``--arm`` of distinct names."""
+    ``--seed``, ``-q``), checked for two or more arms of distinct names (``--arm``, and those
+    scored again ``--without-native-bf16`` where the benchmark has that option)."""
     p.add_argument("--samples", type=int, default=1000, help="bootstrap draws")
     p.add_argument("--seed", type=int, default=0, help="the bootstrap's seed")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
     names = [n for n, _ in args.arm]
-    if len(args.arm) < 2 or len(set(names)) != len(names):
+    if len(args.arm) + len(getattr(args, "without_native_bf16", [])) < 2 or len(set(names)) != len(names):
         p.error(f"give two or more --arm with distinct names (got {names})")
     return args
 
