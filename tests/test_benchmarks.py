@@ -508,3 +508,19 @@ def test_cuda_check_refuses_a_missing_device(tmp_path, capsys):
     with pytest.raises(SystemExit):
         _script("cuda_check").main(["--out", str(tmp_path)])
     assert "no CUDA device here" in capsys.readouterr().err
+
+
+def test_map_spread_compares_each_case_with_the_first_of_its_precision(tmp_path):
+    """Two float32 cases on one thread compute the same maps: nothing differs; and the
+    comparison counts what a changed value changes."""
+    spread = _script("map_spread")
+    images = tmp_path / "images"
+    images.mkdir()
+    (images / "a.png").write_bytes((REPO / "examples" / "data" / "kitti_000001.png").read_bytes())
+    assert spread.main([str(images), "--limit", "1", "--case", "float32:1", "float32:1",
+                        "--out", str(tmp_path / "out")]) == 0
+    rows = json.loads((tmp_path / "out" / "spread.json").read_text())["rows"]
+    assert [(r["reference"], r["differ_pct"], r["rel_l2"]) for r in rows] == [("float32:1", 0.0, 0.0)] * 2
+    a = {"x": torch.tensor([1.0, 2.0, 3.0, 4.0], dtype=torch.float16)}
+    b = {"x": torch.tensor([1.0, 2.0, 3.0, 4.5], dtype=torch.float16)}
+    assert spread.compare(a, b) == {"differ_pct": 25.0, "max_abs": 0.5, "rel_l2": float(f"{0.5 / 30 ** 0.5:.3g}")}
