@@ -230,7 +230,10 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"# {len(images)} frames of {args.data}, batch {args.batch}, top-{args.top_k}, device {args.device}, "
           f"torch threads {torch.get_num_threads()}; median of {args.repeats} passes, ms per image")
     batches = [args.batch] + ([args.latency_batch] if args.latency_batch and args.latency_batch != args.batch else [])
-    configs = columns(args.presets, args.variant)
+    try:
+        configs = columns(args.presets, args.variant)
+    except ValueError as e:  # a field or value reeb propose --set would refuse
+        raise SystemExit(f"--variant: {e}") from None
     res = measure_all(configs, images, batches, args.top_k, args.repeats, args.device)
     table = _table(res, list(configs), batches)
     print(table)

@@ -13,7 +13,8 @@ import pytest
 import torch
 
 from conftest import DATA
-from reeb_torch.eval import command, table3
+from reeb_torch.eval import table3
+from reeb_torch.runs.cli import main as reeb
 from reeb_torch.datasets.folders import FrameRange, parse_frame_range, select_frames
 
 REPO = Path(__file__).resolve().parents[1]
@@ -36,13 +37,13 @@ def _example_kitti(root: Path, layout: str = "project") -> Path:
 
 def _eval(*args) -> dict:
     """``reeb eval ARGS`` (the folders first), called from Python: its JSON record."""
-    return command.main.main([str(a) for a in args], prog_name="reeb eval", standalone_mode=False)
+    return reeb.main(["eval", *map(str, args)], prog_name="reeb", standalone_mode=False)
 
 
 def _eval_exits(*args) -> int:
     """``reeb eval ARGS`` as from a shell (a usage error is a message and ``SystemExit``)."""
     with pytest.raises(SystemExit) as e:
-        command.main.main([str(a) for a in args], prog_name="reeb eval")
+        reeb.main(["eval", *map(str, args)], prog_name="reeb")
     return e.value.code
 
 
@@ -84,7 +85,7 @@ def test_the_evaluation_is_a_click_command_and_stays_inside_the_package():
     reaches beside the checkout for data or models (BING's folder is an option)."""
     import click
 
-    assert isinstance(command.main, click.Command)
+    assert isinstance(reeb.commands["eval"], click.Command)
     offenders = [f"{p.relative_to(REPO)}: argparse" for p in PACKAGE.rglob("*.py") if "argparse" in p.read_text()]
     offenders += [f"{p.relative_to(REPO)}: {word}" for p in (PACKAGE / "eval").rglob("*.py")
                   for word in ("../shared", '"shared"') if word in p.read_text()]

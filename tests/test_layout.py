@@ -176,7 +176,7 @@ def test_no_compatibility_shims():
     pyproject = (PACKAGE.parent / "pyproject.toml").read_text(encoding="utf-8")
     assert 'reeb = "reeb_torch.runs.cli:main"' in pyproject
     from reeb_torch.detection import ReebRPN, build_cache  # noqa: F401
-    from reeb_torch.eval import main, table3  # noqa: F401
+    from reeb_torch.eval import run_table3, table3  # noqa: F401
     from reeb_torch.runs.cli import main as cli_main  # noqa: F401
     from reeb_torch.runs.distributed import propose_dataset, write_results  # noqa: F401
 

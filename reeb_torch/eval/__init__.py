@@ -26,11 +26,10 @@ Importing this package imports neither torch nor OpenCV (``reeb --help`` stays q
 
 from __future__ import annotations
 
-from .command import main, run_table3
+from .command import run_table3
 from .methods import METHODS, Table3Options
 
 __all__ = [
-    "main",
     "run_table3",
     "Table3Options",
     "METHODS",

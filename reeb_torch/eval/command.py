@@ -8,9 +8,10 @@
     reeb eval data/kitti --frames 0:39 --frames 40:59 --methods reeb-default,reeb-training-free
 
 :mod:`.methods` holds the rows and checks the options (torch is imported only when the
-table is computed). :func:`table3_command` builds the command; ``reeb eval`` takes the folders as arguments, and a
-script may make one that takes them as ``--data DIR`` with defaults of its own
-(``benchmarks/table3.py``). Bad options or unusable data exit with code 2 and a one-line
+table is computed). :func:`table3_parameters` declares the command's parameters and
+:func:`run_command` runs it: ``reeb eval`` (:mod:`reeb_torch.runs.cli`) takes the folders as
+arguments; :func:`table3_command` makes a command that takes them as ``--data DIR`` with
+defaults of its own (``benchmarks/table3.py``). Bad options or unusable data exit with code 2 and a one-line
 message, before any proposal is made.
 """
 
@@ -27,7 +28,8 @@ from ..datasets.folders import FrameRange, parse_frame_range
 from .common import rerun_line
 from .methods import DEFAULT_METHODS, KS, Table3Error, Table3Options
 
-__all__ = ["FrameRanges", "Methods", "BadData", "QUICK_METHODS", "table3_command", "run_table3"]
+__all__ = ["FrameRanges", "Methods", "BadData", "QUICK_METHODS", "TABLE3_HELP", "TABLE3_SHORT_HELP",
+           "table3_parameters", "run_command", "table3_command", "run_table3"]
 
 CONTEXT = dict(help_option_names=["-h", "--help"], max_content_width=100)
 
@@ -176,11 +178,45 @@ joins them where ``--bing-model`` is given; Selective Search, the slowest by far
 ``--methods all`` or by name)."""
 
 
-def _run(data: Sequence[Path], out: Path, methods: tuple[str, ...], config: Any = None, preset: str | None = None,
-         quick: bool = False, **given: Any) -> dict[str, Any]:
-    """The command's callback. ``config``: the caller's settings (``reeb eval --config / --set``,
-    a row of their own); then without ``methods`` the rows are the ``preset``'s and theirs.
-    ``quick``: without ``methods``, :data:`QUICK_METHODS` (and BING given its model), else all."""
+def table3_parameters(data_default: Sequence[str | os.PathLike] | None = None,
+                      bing_default: str | os.PathLike | None = None):
+    """A decorator that gives a click command function the table's parameters, in order (as
+    ``@click.option`` does): the folders (an argument without ``data_default``, else ``--data``
+    options with it), ``--limit``, ``--frames``, ``-o``, ``--methods``, ``--max-proposals``,
+    ``--batch``, ``--exclude-fitted``, ``--cross-validate``, ``--whole-drives``,
+    ``--leave-folder-out``, ``--bing-model`` (default ``bing_default``)."""
+
+    def decorate(f: Any) -> Any:
+        if not hasattr(f, "__click_params__"):
+            f.__click_params__ = []
+        f.__click_params__.extend(reversed(_options(data_default, bing_default)))  # click reverses them
+        return f
+
+    return decorate
+
+
+TABLE3_SHORT_HELP = "Recall table (the paper's Table 3) and plots on KITTI-format folders."
+TABLE3_HELP = (
+    "Recall table (the paper's Table 3) and plots on KITTI-format folders: every table for each folder and for "
+    "all of them together.\n\n"
+    "Recall at IoU 0.3 / 0.5 / 0.7 of the top 100 / 300 / 500 / 1000 / 2000 proposals of REEB and of the "
+    "classical baselines (BING, Selective Search, Edge Boxes), over all and over KITTI-moderate objects, per "
+    "class, AR, the headline's 95 % interval and each row paired with the default; ms per image. Writes "
+    "table3.txt (also printed), table3.csv, table3.json and two plots into --out.")
+"""The table command's help (``reeb eval``'s)."""
+
+
+def run_command(data: Sequence[Path], out: Path, methods: tuple[str, ...], config: Any = None,
+                preset: str | None = None, quick: bool = False, **given: Any) -> dict[str, Any]:
+    """The table command's work, in its click context (the rerun line is read from it): the
+    JSON record. ``config``: the caller's settings (``reeb eval --config / --set``, a row of
+    their own); then without ``methods`` the rows are the ``preset``'s and theirs. ``quick``:
+    without ``methods``, :data:`QUICK_METHODS` (and BING given its model), else all;
+    ``given``: the other parameters of :func:`table3_parameters` and ``device``.
+
+    Raises:
+        BadData: the data do not allow the table (exit code 2, one line).
+    """
     ctx = click.get_current_context()
     if not methods:
         own = {"default": "reeb-default", "training-free": "reeb-training-free", "paper": "reeb-paper"}
@@ -199,28 +235,20 @@ def _run(data: Sequence[Path], out: Path, methods: tuple[str, ...], config: Any 
 
 def table3_command(name: str = "eval", *, data_default: Sequence[str | os.PathLike] | None = None,
                    bing_default: str | os.PathLike | None = None) -> click.Command:
-    """The click command that computes Table 3 and writes its report; it returns the JSON
-    record (``standalone_mode=False``).
+    """A click command that computes Table 3 and writes its report, returning the JSON record
+    (``standalone_mode=False``), for scripts with defaults of their own (``reeb eval`` is
+    :mod:`reeb_torch.runs.cli`'s).
 
     Args:
         name: the command's name.
-        data_default: ``None``: the folders are arguments (``reeb eval KITTI_DIR...``); else
-            they are ``--data DIR`` options, these by default.
+        data_default: ``None``: the folders are arguments (``NAME KITTI_DIR...``); else they
+            are ``--data DIR`` options, these by default.
         bing_default: the default of ``--bing-model`` (none: BING is skipped unless given).
     """
-    import functools
 
-    return click.Command(
-        name, callback=functools.partial(_run, quick=data_default is None), params=_options(data_default, bing_default),
-        context_settings=CONTEXT,
-        short_help="Recall table (the paper's Table 3) and plots on KITTI-format folders.",
-        help="Recall table (the paper's Table 3) and plots on KITTI-format folders: every table for each "
-             "folder and for all of them together.\n\n"
-             "Recall at IoU 0.3 / 0.5 / 0.7 of the top 100 / 300 / 500 / 1000 / 2000 proposals of REEB and "
-             "of the classical baselines (BING, Selective Search, Edge Boxes), over all and over KITTI-moderate "
-             "objects, per class, AR, the headline's 95 % interval and each row paired with the default; "
-             "ms per image. Writes table3.txt (also printed), table3.csv, table3.json and two plots into --out.")
+    @click.command(name, context_settings=CONTEXT, short_help=TABLE3_SHORT_HELP, help=TABLE3_HELP)
+    @table3_parameters(data_default, bing_default)
+    def command(**given: Any) -> dict[str, Any]:
+        return run_command(quick=data_default is None, **given)
 
-
-main = table3_command()
-"""``reeb eval`` (also :func:`reeb_torch.eval.main`)."""
+    return command

@@ -297,20 +297,18 @@ def show(image, label, no_label, top, out, preset, config_file, sets, top_k, dev
 
 # -- reeb eval ---------------------------------------------------------------------------
 
-from ..eval.command import table3_command  # noqa: E402 - a click command: imports click only
-
-_eval = table3_command()
-_n = len(_eval.params)
-config_options(_eval)  # reeb eval takes the settings reeb propose takes
-_eval.params[_n:] = _eval.params[_n:][::-1]  # in reeb propose's order
-_eval_table = _eval.callback
+from ..eval.command import TABLE3_HELP, TABLE3_SHORT_HELP, run_command, table3_parameters  # noqa: E402 - imports click only
 
 
-def _eval_settings(preset, config_file, sets, top_k, device, **given):
-    """``reeb eval``'s ``--preset / --config / --set``: given any, a row with those settings
-    (built as ``reeb propose`` builds them); ``--device``: where the REEB rows run."""
+@main.command("eval", context_settings=CONTEXT, short_help=TABLE3_SHORT_HELP, help=TABLE3_HELP)
+@table3_parameters()
+@config_options  # reeb eval takes the settings reeb propose takes
+def eval_(preset, config_file, sets, top_k, device, **given):
+    """``--preset / --config / --set``: given any, a row with those settings (built as
+    ``reeb propose`` builds them); ``--top-k``: ``--max-proposals`` by its other name;
+    ``--device``: where the REEB rows run."""
     ctx = click.get_current_context()
-    if top_k is not None:  # the proposals kept per image: --max-proposals, by its other name
+    if top_k is not None:
         if top_k < 2000:
             raise UsageProblem(f"--top-k {top_k}: reeb eval needs at least 2000 proposals (Table 3's largest column)")
         if ctx.get_parameter_source("max_proposals") == click.core.ParameterSource.COMMANDLINE and \
@@ -327,11 +325,7 @@ def _eval_settings(preset, config_file, sets, top_k, device, **given):
             load_ranker(cfg.ranker)
         except RankerWeightsError as e:
             raise UsageProblem(" ".join(str(e).split())) from None
-    return _eval_table(config=cfg, preset=preset, device=str(resolve_device(device)), **given)
-
-
-_eval.callback = _eval_settings
-main.add_command(_eval, "eval")
+    return run_command(config=cfg, preset=preset, device=str(resolve_device(device)), quick=True, **given)
 
 
 # -- reeb export -------------------------------------------------------------------------
