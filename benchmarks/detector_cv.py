@@ -55,6 +55,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--work", type=Path, help="keep each fold's ranking and each arm's detections here")
     p.add_argument("--cache", type=Path, help="backbone-map and proposal cache [default: reeb's]")
     p.add_argument("--limit", type=int, help="only the first N frames of each folder")
+    p.add_argument("--other-work", type=Path, metavar="DIR",
+                   help="every arm's detections also read from this --work folder of the same command run "
+                        "elsewhere (another machine or thread count), as arm NAME.other, paired with the rest")
     p.add_argument("--without-native-bf16", nargs="+", default=[], metavar="NAME",
                    help="these arms' detectors scored again as on a CPU without native bfloat16 "
                         "(REEB_NATIVE_BF16=0: the backbone in float32, the heads as trained), as arm NAME.nobf16")
@@ -65,6 +68,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error(f"--without-native-bf16: no arm named {', '.join(unknown)}")
     args.nobf16 = {f"{n}.nobf16" for n in args.without_native_bf16}
     args.arm += [(f"{n}.nobf16", given[n]) for n in args.without_native_bf16]
+    if args.other_work is not None:
+        args.other = {f"{n}.other": n for n, _ in args.arm}
+        args.arm += [(f"{n}.other", o) for n, o in args.arm]
+    else:
+        args.other = {}
     return args
 
 
@@ -215,6 +223,30 @@ def _without_native_bf16(det: Any, classes: tuple[str, ...], proposals: str, set
     return cpu
 
 
+def detections_key(o: dict[str, Any], seed: int, rankers: list[str], args: argparse.Namespace,
+                   nobf16: bool = False) -> str:
+    """The name an arm's detections of one seed are kept under in ``--work/detections``: by the
+    fit's options as parsed (a changed default is another arm), the folds and the rankings."""
+    parsed = {k: v for k, v in sorted(o.items()) if k not in ("quiet", "cache_dir", "out", "overwrite")
+              and not (k == "sets" and not v) and KEYED_WHEN_SET.get(k, ()) != v}  # keys made before them
+    return hashlib.sha256(json.dumps([parsed, seed, args.folds, args.limit, rankers] + (["nobf16"] if nobf16 else []),
+                                     default=str).encode()).hexdigest()[:16]
+
+
+def other_run(name: str, options: str, seed: int, rankers: list[str], args: argparse.Namespace) -> list[dict]:
+    """An arm's detections of one seed from ``--other-work``: the same command run elsewhere
+    (another machine, another thread count), its rankings in that folder."""
+    import torch
+
+    theirs = [str(args.other_work / "rankers" / Path(r).name) for r in rankers]
+    path = args.other_work / "detections" / (
+        f"{detections_key(fit_options(args.roots, options), seed, theirs, args, name in args.nobf16)}.pt")
+    if not path.is_file():
+        raise SystemExit(f"--other-work: no detections of arm {name}, seed {seed} in {path.parent} (run the same "
+                         "command with --work there first)")
+    return torch.load(path, weights_only=True)["detections"]
+
+
 def run_arm(options: str, seed: int, items: list[dict], blocks: list[list[int]], sides: list[list[int]],
             rankers: list[str], args: argparse.Namespace, nobf16: bool = False) -> tuple[list[dict], dict[str, Any]]:
     """The detections of every frame by the arm's detectors (each trained without the frame's
@@ -226,12 +258,7 @@ def run_arm(options: str, seed: int, items: list[dict], blocks: list[list[int]],
     from reeb_torch.runs.detector import fit_settings
 
     o = fit_options(args.roots, options)
-    parsed = {k: v for k, v in sorted(o.items()) if k not in ("quiet", "cache_dir", "out", "overwrite")
-              and not (k == "sets" and not v) and KEYED_WHEN_SET.get(k, ()) != v}  # keys made before them
-    key = hashlib.sha256(json.dumps([parsed, seed, args.folds, args.limit, rankers] + (["nobf16"] if nobf16 else []),
-                                    default=str).encode()
-                         ).hexdigest()[:16]  # by the options as parsed: a changed default is another arm
-    kept = args.work / "detections" / f"{key}.pt" if args.work else None
+    kept = args.work / "detections" / f"{detections_key(o, seed, rankers, args, nobf16)}.pt" if args.work else None
     if kept is not None and kept.is_file():
         saved = torch.load(kept, weights_only=True)
         return saved["detections"], saved["record"]
@@ -284,7 +311,11 @@ def main(argv: list[str] | None = None) -> int:
     for name, options in args.arm:
         runs = []
         for seed in args.seeds:
-            dets, record = run_arm(options, seed, items, blocks, sides, rankers, args, name in args.nobf16)
+            if name in args.other:
+                dets = other_run(args.other[name], options, seed, rankers, args)
+                record = {"fit_s": [0.0], "train_heads_s": [0.0], "steps": [0]}
+            else:
+                dets, record = run_arm(options, seed, items, blocks, sides, rankers, args, name in args.nobf16)
             st = kitti_ap.evaluate(objects, [{**d, "labels": d["labels"] - 1} for d in dets], cls)
             stats.setdefault(name, []).append(st)
             ap = {k: None if v != v else round(100 * v, 2) for k, v in kitti_ap.kitti_ap(st).items()}
