@@ -54,13 +54,13 @@ def batches(paths: list[Path], min_size: int, crop_top: float) -> list[Any]:
     """Each frame as the detector's transform gives it (resized, normalised, padded to 32),
     the rows above ``crop_top`` cut."""
     from reeb_torch.detection import DetectorSettings, ReebDetector
-    from reeb_torch.detection.feature_cache import _as_float, top_rows
+    from reeb_torch.detection.feature_cache import top_rows
     from reeb_torch.io import read_image
 
     transform = ReebDetector(settings=DetectorSettings(min_size=min_size)).model.transform.eval()
     out = []
     for p in paths:
-        batch, _ = transform([_as_float(read_image(p))])
+        batch, _ = transform([read_image(p).float() / 255.0])
         out.append(batch.tensors[:, :, top_rows(crop_top, batch.image_sizes[0][0]):].contiguous())
     return out
 

@@ -276,6 +276,40 @@ def test_one_home_for_the_learned_ranking(graph):
     assert not meta, f"the ranking's weights metadata read outside reeb_torch/ranker/: {meta}"
 
 
+BENCHMARK_INTERNALS = {("kernel_ab.py", "reeb_torch.stages._threads", "serially")}
+"""What a benchmark may take from inside the package: the kernel A/B times internal kernels."""
+
+
+def _public_names(module: str) -> set[str] | None:
+    """The names a package module declares in ``__all__`` (its source read), or None where it
+    declares none; submodules of a package count as its names."""
+    base = PACKAGE.parent / Path(*module.split("."))
+    path = base / "__init__.py" if base.is_dir() else base.with_suffix(".py")
+    names: set[str] = {q.stem for q in base.iterdir() if q.suffix == ".py" or q.is_dir()} if base.is_dir() else set()
+    for node in ast.parse(path.read_text(encoding="utf-8")).body:
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "__all__" for t in node.targets):
+            return names | {ast.literal_eval(e) for e in node.value.elts}  # type: ignore[attr-defined]
+    return None if not names else names
+
+
+def test_benchmarks_import_public_names_only():
+    """The benchmarks use the package as a user's script would: names its modules declare
+    public (``__all__``), from modules that are not private (``_name``)."""
+    wrong = []
+    for path in sorted((PACKAGE.parent / "benchmarks").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if not (isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("reeb_torch")):
+                continue
+            public = _public_names(node.module)
+            for alias in node.names:
+                if (path.name, node.module, alias.name) in BENCHMARK_INTERNALS or alias.name == "__version__":
+                    continue
+                private = any(part.startswith("_") for part in node.module.split(".")) or alias.name.startswith("_")
+                if private or (public is not None and alias.name not in public):
+                    wrong.append(f"{path.name}: from {node.module} import {alias.name}")
+    assert not wrong, wrong
+
+
 def test_every_output_is_claimed_in_one_place():
     """Outputs are locked only through :func:`reeb_torch.runs.claim.claim` (files written
     whole also checked there: :func:`~reeb_torch.runs.claim.claim_files`): no other module

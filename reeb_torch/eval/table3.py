@@ -71,6 +71,7 @@ __all__ = [
     "Frames",
     "Table3",
     "compute",
+    "load_frames",
     "run_method",
     "recall_tables",
     "moderate_masks",

@@ -31,7 +31,7 @@ from .common import CONTEXT, Failure, FloatOrAuto, UsageProblem, engine_options
 from .detector_fit import (SettingRange, check_cache, check_frames, claim_weights_out, distinct, train, training_states,
                            warnings_as_lines)
 
-__all__ = ["detector", "fit", "show", "compress"]
+__all__ = ["detector", "fit", "show", "compress", "SETTINGS_OPTIONS", "fit_settings", "proposal_changes"]
 
 
 # -- reeb detector fit ---------------------------------------------------------------------
