@@ -30,13 +30,15 @@ def test_a_refused_claim_releases_what_it_took(tmp_path):
     held()
 
 
-def test_a_claim_removes_what_a_killed_write_left_and_nothing_else(tmp_path):
+def test_a_claim_clears_what_a_killed_write_left_only_when_asked(tmp_path):
     out = tmp_path / "det.safetensors"
     left = tmp_path / ".det.safetensors.ab12cd34.tmp"
     other = tmp_path / ".other.safetensors.ab12cd34.tmp"
     for p in (left, other):
         p.write_bytes(b"partial")
     claim([out], hold=False)()
+    assert left.exists()  # a run's killed rows: --resume goes on from them
+    claim([out], hold=False, clear=True)()
     assert not left.exists() and other.exists()
 
 

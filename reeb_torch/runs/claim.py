@@ -4,11 +4,13 @@ Every output of every command is claimed through :func:`claim`: files (a ranker'
 the config beside them, a detector, a tuned config and its plots, an export, a run's results)
 and folders (``--viz`` and ``--kitti-dir``, a Ray run's Parquet folder). Each is locked for the
 command's length (:func:`.output_lock.lock_output`: a second run on the same output exits 2 at
-once, naming the first) and the temporary files a killed run on it left are removed.
+once, naming the first).
 
-:func:`claim_files` (:func:`check_files`, then :func:`claim`) is the whole check of files written whole (each renamed into place): not
-a folder, not a file the command reads, a folder it can write to (made where missing), not there
-yet unless ``--overwrite``; then :func:`claim`. Each refusal is a
+:func:`claim_files` (:func:`check_files`, then :func:`claim`) is the whole claim of files
+written whole (each renamed into place): not a folder, not a file the command reads, a folder
+it can write to (made where missing), not there yet unless ``--overwrite``; locked, and the
+temporary files a killed write of them left removed. A run's results file
+(:func:`claim_run_output`) keeps a killed run's rows for ``--resume``. Each refusal is a
 :class:`~.common.UsageProblem`: one line, exit code 2.
 """
 
@@ -28,14 +30,17 @@ from .output_lock import OutputLock, lock_output
 __all__ = ["claim", "claim_files", "check_files", "claim_run_output", "unwritable"]
 
 
-def claim(paths: Sequence[str | os.PathLike], *, option: str = "", hold: bool = True) -> Callable[[], None]:
-    """Lock each of ``paths`` (files or folders) and remove what killed runs on them left.
+def claim(paths: Sequence[str | os.PathLike], *, option: str = "", hold: bool = True,
+          clear: bool = False) -> Callable[[], None]:
+    """Lock each of ``paths`` (files or folders).
 
     Args:
         paths: the outputs.
         option: the option that named them, put before a refusal (``"--viz"``).
         hold: keep the locks until the click command ends (where one runs); otherwise the
             caller releases them.
+        clear: remove the temporary files killed writes of them left (files written whole;
+            not a run's results, whose killed rows ``--resume`` goes on from).
 
     Returns:
         A function that releases the locks (harmless to call twice).
@@ -53,7 +58,7 @@ def claim(paths: Sequence[str | os.PathLike], *, option: str = "", hold: bool = 
     try:
         for path in paths:
             locks.append(lock_output(path))
-            for stale in stale_temp_files(path):  # no live run owns them: the lock is ours
+            for stale in stale_temp_files(path) if clear else ():  # no live run owns them: the lock is ours
                 stale.unlink(missing_ok=True)
     except OutputError as e:
         release()
@@ -69,7 +74,7 @@ def claim_files(paths: Sequence[str | os.PathLike], overwrite: bool, *, inputs: 
     """:func:`check_files`, then :func:`claim`: the paths (``~`` expanded) and the function
     that releases them."""
     out = check_files(paths, overwrite, inputs=inputs, example=example)
-    return out, claim(out, hold=hold)
+    return out, claim(out, hold=hold, clear=True)
 
 
 def check_files(paths: Sequence[str | os.PathLike], overwrite: bool, *, inputs: Sequence[str | os.PathLike] = (),

@@ -206,7 +206,7 @@ class FitOutputs:
         from .claim import claim
         from .common import UsageProblem
 
-        self._release = claim([self.weights, self.config], hold=False)  # with the temporary files a kill left
+        self._release = claim([self.weights, self.config], hold=False, clear=True)  # and what a kill left
         try:
             shutil.rmtree(self.scratch, ignore_errors=True)  # what a killed fit on this output left
             self.scratch.mkdir()
