@@ -134,10 +134,6 @@ UNKEYED = ("box_head_int8",)
 """Inference-only settings left out of the kept heads' key (heads kept before they existed
 are found)."""
 
-KEYED_WHEN_SET = {"train_precision": "same"}
-"""Settings in the kept heads' and detections' keys only where they are not this default
-(heads kept before they existed are found)."""
-
 
 def _fold_detector(settings: Any, training: Any, o: dict[str, Any], proposals: str, side: list[int],
                    items: list[dict], args: argparse.Namespace,
@@ -159,8 +155,7 @@ def _fold_detector(settings: Any, training: Any, o: dict[str, Any], proposals: s
     trained_as = dataclasses.replace(settings, **{k: getattr(type(settings)(), k) for k in INFERENCE_ONLY})
     full_training = dataclasses.replace(training, factorised_epochs=0)  # the passes after factorising come below
     trained_by = {k: v for k, v in dataclasses.asdict(full_training).items() if k != "factorised_epochs"}
-    shape = {k: v for k, v in dataclasses.asdict(trained_as).items()
-             if k not in UNKEYED and KEYED_WHEN_SET.get(k, ()) != v}
+    shape = {k: v for k, v in dataclasses.asdict(trained_as).items() if k not in UNKEYED}
     key = hashlib.sha256(json.dumps([shape, trained_by, classes, top_k,
                                      proposals, sorted(side), args.limit] + ([changes] if changes else []),
                                     default=str).encode()).hexdigest()[:16]
@@ -228,7 +223,7 @@ def detections_key(o: dict[str, Any], seed: int, rankers: list[str], args: argpa
     """The name an arm's detections of one seed are kept under in ``--work/detections``: by the
     fit's options as parsed (a changed default is another arm), the folds and the rankings."""
     parsed = {k: v for k, v in sorted(o.items()) if k not in ("quiet", "cache_dir", "out", "overwrite")
-              and not (k == "sets" and not v) and KEYED_WHEN_SET.get(k, ()) != v}  # keys made before them
+              and not (k == "sets" and not v)}  # no --set: the key it had before the option
     return hashlib.sha256(json.dumps([parsed, seed, args.folds, args.limit, rankers] + (["nobf16"] if nobf16 else []),
                                      default=str).encode()).hexdigest()[:16]
 

@@ -25,7 +25,6 @@ from reeb_torch.runs.cli import main  # noqa: E402
 
 from test_cli import FAST, no_temp_files  # noqa: E402
 from test_detector import (  # noqa: E402
-    TINY,
     TINY_CLI,
     _meta_edit,
     _own,
@@ -357,31 +356,3 @@ def test_a_bad_set_is_refused_before_any_work(tiny_kitti, tmp_path, pair, reason
     line = _one_line_error(_fit(tiny_kitti, "-o", out, "--set", pair, cache=cache))
     assert "--set" in line and reason in line, line
     assert not out.exists() and not cache.exists()
-
-
-# -- --train-precision float32: heads trained on float32 maps, detection in the device's best ----
-
-def test_heads_trained_on_float32_maps_are_a_float32_fits_and_run_on_the_native_backbone(
-        tiny_kitti, detector_cache, monkeypatch):
-    """The reference: a ``precision="float32"`` fit of the same seed trains on the same maps,
-    so its trained tensors are these; the detector then runs its backbone as ``precision``
-    asks where the CPU has native bfloat16, and in float32 without a warning where not."""
-    import dataclasses
-    import warnings
-
-    from reeb_torch.detection.detector_file import trained_keys
-    from reeb_torch.detection.lite0 import native_bfloat16
-
-    on32 = tiny_fit(tiny_kitti, detector_cache, settings=dataclasses.replace(TINY, precision="bfloat16",
-                                                                           train_precision="float32"))
-    ref = tiny_fit(tiny_kitti, detector_cache, settings=dataclasses.replace(TINY, precision="float32"))
-    a, b = trained_keys(on32.model.state_dict()), trained_keys(ref.model.state_dict())
-    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
-    assert on32.settings.precision == "bfloat16" and on32.settings.train_precision == "float32"
-    assert on32.precision == ("bfloat16" if native_bfloat16() else "float32")
-    monkeypatch.setenv("REEB_NATIVE_BF16", "0")
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # no "trained on bfloat16 maps" warning: they were not
-        assert ReebDetector(settings=on32.settings).precision == "float32"
-    with pytest.warns(UserWarning, match="no native bfloat16"):
-        ReebDetector(settings=dataclasses.replace(on32.settings, train_precision="same"))

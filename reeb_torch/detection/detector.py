@@ -90,12 +90,6 @@ class DetectorSettings:
             the heads are trained on the maps it gives, and detection computes them the same
             way where the device computes bfloat16 natively (otherwise in float32, with a
             warning). A file without this field was trained on float32 maps.
-        train_precision: the maps the heads train on: ``"same"`` (the default), those of
-            ``precision`` as this device computes them; ``"float32"``, float32 maps whatever
-            ``precision`` detection runs in. bfloat16 maps depend on the CPU's kernels and
-            thread count, float32 maps barely: a fit on float32 maps gives nearly the same
-            heads on any CPU, and its heads see on a CPU without native bfloat16 the maps
-            they trained on.
         crop_top: the share of the resized image's height, from the top, that the backbone
             skips (rounded down to a multiple of 32 rows; 0: none): rows where no object of
             the classes lies (``ReebDetector.fit(auto_crop=True)`` and ``reeb detector fit``
@@ -118,7 +112,6 @@ class DetectorSettings:
     box_head_rank: int = 0
     box_head_int8: bool = True
     precision: Literal["float32", "bfloat16"] = "bfloat16"
-    train_precision: Literal["same", "float32"] = "same"
     crop_top: float = 0.0
     box_passes: int = 2
     proposals_train: int = 2000
@@ -158,7 +151,6 @@ SETTINGS_RANGES: dict[str, str | None] = {
     "box_head_rank": "[0, 8192]",
     "box_head_int8": None,
     "precision": None,
-    "train_precision": None,
     "crop_top": "[0, 0.9]",
     "box_passes": "[1, 4]",
     "proposals_train": "[1, 20000]",
@@ -267,15 +259,12 @@ def _check_image(image: Tensor) -> None:
         raise ValueError(f"ReebDetector expects uint8 or float images in [0, 1], got {image.dtype}")
 
 
-def _runnable_precision(precision: str, device: str | torch.device, train_precision: str = "same") -> str:
-    """``precision`` where ``device`` computes it natively; ``float32`` where a ``bfloat16``
-    detector meets a device that would only emulate it (with a warning, unless its heads
-    trained on float32 maps: ``train_precision``)."""
+def _runnable_precision(precision: str, device: str | torch.device) -> str:
+    """``precision`` where ``device`` computes it natively; ``float32`` (with a warning
+    saying so) where a ``bfloat16`` detector meets a device that would only emulate it."""
     from .lite0 import native_bfloat16
 
     if precision == "bfloat16" and not native_bfloat16(device):
-        if train_precision == "float32":
-            return "float32"
         warnings.warn(f"this {torch.device(device).type.upper()} has no native bfloat16: the detector's backbone "
                       "runs in float32 instead (its heads were trained on bfloat16 maps; detections may differ "
                       "slightly)", stacklevel=3)
@@ -327,7 +316,7 @@ class ReebDetector(nn.Module):
         self.proposals = _proposal_info(proposals, config, sha)
         self.backbone_sha256 = weights_digest(weights)
         s = settings
-        self.precision = _runnable_precision(s.precision, device, s.train_precision)
+        self.precision = _runnable_precision(s.precision, device)
         self.model = reeb_fasterrcnn_lite0(
             len(self.categories), proposals="reeb", config=config, weights=weights,
             min_size=s.min_size, max_size=s.max_size, neck_channels=s.neck_channels,

@@ -30,7 +30,6 @@ from torch import Tensor
 
 from .._memory import trim_heap
 from .cache import CacheEntry, ProposalCache, StaleCacheError, image_digest
-from .detector_file import trained_keys
 from .feature_cache import FeatureCache, FrameFeatures, cached_features, frozen_features
 from .forward import CachedFrame
 from .head_training import TrainSettings, detect, train_heads
@@ -317,11 +316,8 @@ def train_detector(cls: type, items: Sequence[dict], folders: Sequence[str | os.
     ``proposals``' own (:func:`~reeb_torch.detection.proposal_settings` with ``changes``)."""
     torch.manual_seed(training.seed)  # the heads' initial weights
     rank, int8 = settings.box_head_rank, settings.box_head_int8  # trained in full, made smaller once trained
-    whole = dataclasses.replace(settings, box_head_rank=0, box_head_int8=False)
-    on_float32 = settings.train_precision == "float32" and settings.precision != "float32"
-    det = cls(classes, proposals, dataclasses.replace(whole, precision="float32") if on_float32 else whole,
-              config=config)
-    if not on_float32 and det.precision != settings.precision:  # bfloat16 where it is not native: float32
+    det = cls(classes, proposals, dataclasses.replace(settings, box_head_rank=0, box_head_int8=False), config=config)
+    if det.precision != settings.precision:  # bfloat16 asked for where it is not native: trained in float32
         det.settings = dataclasses.replace(settings, precision=det.precision)
     frames = heads_frames(det, items, training, cache_dir, progress, frames_by)
     train = frames[:len(items)]
@@ -342,13 +338,6 @@ def train_detector(cls: type, items: Sequence[dict], folders: Sequence[str | os.
                 history["factorised"] = tuned
     finally:
         det.model.rpn.cache = None  # new images: REEB runs on them
-    if on_float32:  # the trained heads on the backbone detection runs
-        trained = det
-        det = cls(classes, proposals, whole, config=trained.config)
-        det.model.load_state_dict(trained_keys(trained.model.state_dict()), strict=False)
-        if rank:
-            det.factorise_box_head(rank)
-            det.model.load_state_dict(trained_keys(trained.model.state_dict()), strict=False)
     if int8:
         det.quantise_box_head()
     det.meta = {"provenance": _provenance(items, folders, training, history, det.classes, command)}

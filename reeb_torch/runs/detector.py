@@ -46,8 +46,7 @@ def detector() -> None:
 
 
 SETTINGS_OPTIONS = {"min_size": "min_size", "max_size": "max_size", "train_proposals": "proposals_train",
-                    "test_proposals": "proposals_test", "precision": "precision", "train_precision": "train_precision",
-                    "crop_top": "crop_top",
+                    "test_proposals": "proposals_test", "precision": "precision", "crop_top": "crop_top",
                     "neck_channels": "neck_channels", "head_width": "representation_size",
                     "box_passes": "box_passes", "box_head_rank": "box_head_rank", "int8_box_head": "box_head_int8"}
 """``reeb detector fit``'s options that set :class:`~reeb_torch.detection.DetectorSettings`
@@ -125,10 +124,6 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
 @click.option("--precision", type=click.Choice(["bfloat16", "float32"]), default="bfloat16", show_default=True,
               help="The frozen backbone's precision; the heads train on its maps and detection uses the same "
                    "(bfloat16 where the CPU or GPU computes it natively, float32 elsewhere).")
-@click.option("--train-precision", type=click.Choice(["same", "float32"]), default="same", show_default=True,
-              help="The backbone maps the heads train on: same, those detection computes (--precision, as this "
-                   "CPU computes it); float32, float32 maps whatever detection runs in (a fit that barely depends "
-                   "on the CPU, and heads that see on CPUs without native bfloat16 the maps they trained on).")
 @click.option("--crop-top", type=FloatOrAuto(0, 0.9), default="auto", show_default=True, metavar="SHARE|auto",
               help="Share of the image's height, from the top, the backbone skips (rows where no object lies); "
                    "auto: above the highest object of the training labels, less a margin.")
@@ -156,7 +151,7 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
                 "pip install 'reeb-torch[ray]').", "--engine ray: actors, each holding one detector.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
 def fit(dirs, out, overwrite, proposals, sets, classes, epochs, steps, seed, val, hflip, min_size, max_size, train_proposals,
-        test_proposals, precision, train_precision, crop_top, neck_channels, head_width, box_head_rank, int8_box_head, factorised_epochs,
+        test_proposals, precision, crop_top, neck_channels, head_width, box_head_rank, int8_box_head, factorised_epochs,
         box_passes, cache_dir, limit, engine, address, actors, cpus_per_actor, quiet):
     """Train a detector on labelled KITTI-format folders (DIRS: images/ and labels/, or image_2/ and
     label_2/) and write it to OUT. The backbone's maps and REEB's proposals of each frame are
