@@ -21,7 +21,10 @@ over all frames and per folder.
 
 Writes ``OUT/cv.txt`` (the tables) and ``OUT/cv.json`` (per arm its scores and per seed its
 fits' times; per comparison per class ``a``, ``b``, ``diff``, intervals, ``share_b_better``,
-``verdict``, and the same per folder; the command; the machine). With ``--work``, each
+``verdict``, and the same per folder; ``per_seed``: per comparison and class, each seed's
+B − A over all frames and whether the seeds agree in sign, also under each comparison's
+table: the bootstrap draws frames with the fits fixed, and two fits of one setting (another
+seed, another CPU) differ by more than its interval; the command; the machine). With ``--work``, each
 fold's ranking and each (arm, seed)'s detections are kept there and reused by a later run of
 the same options; arms that differ only in detection settings (``--test-proposals``,
 ``--box-passes``) share their fitted heads there.
@@ -322,8 +325,10 @@ def main(argv: list[str] | None = None) -> int:
                       "runs": runs}
     first = args.arm[0][0]
     comparisons: dict[str, Any] = {}
+    seeds: dict[str, Any] = {}
     for name, _ in args.arm[1:]:
         key = f"{name} vs {first}"
+        seeds[key] = seed_differences(arms[first]["runs"], arms[name]["runs"])
         comparisons[key] = {"all": paired_scores(kitti_ap.paired_bootstrap(stats[first], stats[name],
                                                                            samples=args.samples, seed=args.seed))}
         for fo, idx in by_folder.items():
@@ -345,15 +350,43 @@ def main(argv: list[str] | None = None) -> int:
         b, a = key.split(" vs ")
         for part, table in c.items():
             lines += [f"## paired: {key}, {'all frames' if part == 'all' else part} ({args.samples} draws)",
-                      format_paired(table, a, b), ""]
+                      format_paired(table, a, b)]
+            if part == "all":
+                lines.append(seed_line(seeds[key]))
+            lines.append("")
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "cv.txt").write_text("\n".join(lines))
     (args.out / "cv.json").write_text(json.dumps(
         {"command": command, "roots": list(map(str, args.roots)), "folds": args.folds, "seeds": args.seeds,
-         "arms": arms, "comparisons": comparisons, "samples": args.samples, "environment": environment(),
+         "arms": arms, "comparisons": comparisons, "per_seed": seeds, "samples": args.samples, "environment": environment(),
          "options": {n: shlex.split(o) for n, o in args.arm}}, indent=2) + "\n")
     print("\n".join(lines))
     return 0
+
+
+def seed_differences(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per class, B − A of each seed's AP over all frames (``a``, ``b``: the arms' runs, seed
+    by seed, each with its ``"ap"``) and whether every seed's difference has the same sign:
+    the paired bootstrap draws frames with the fits fixed, and two fits of one setting differ
+    by more than its interval, so a difference the seeds do not agree on is not a result."""
+    out: dict[str, dict[str, Any]] = {}
+    for c in a[0]["ap"]:
+        diffs = [None if ra["ap"][c] is None or rb["ap"][c] is None else round(rb["ap"][c] - ra["ap"][c], 2)
+                 for ra, rb in zip(a, b)]
+        known = [d for d in diffs if d is not None]
+        out[c] = {"per_seed": diffs, "seeds_agree": len(known) > 1 and (all(d > 0 for d in known)
+                                                                          or all(d < 0 for d in known))}
+    return out
+
+
+def seed_line(diffs: dict[str, dict[str, Any]]) -> str:
+    """``per seed, B − A: Car +1.0 / −0.5 (seeds disagree), ...`` of :func:`seed_differences`."""
+    parts = []
+    for c, d in diffs.items():
+        values = " / ".join("-" if v is None else f"{v:+.1f}" for v in d["per_seed"])
+        verdict = "" if len(d["per_seed"]) < 2 else " (seeds agree)" if d["seeds_agree"] else " (seeds disagree)"
+        parts.append(f"{c} {values}{verdict}")
+    return "per seed, B - A: " + ", ".join(parts)
 
 
 def _score_table(a: dict[str, Any]) -> str:

@@ -524,3 +524,15 @@ def test_map_spread_compares_each_case_with_the_first_of_its_precision(tmp_path)
     a = {"x": torch.tensor([1.0, 2.0, 3.0, 4.0], dtype=torch.float16)}
     b = {"x": torch.tensor([1.0, 2.0, 3.0, 4.5], dtype=torch.float16)}
     assert spread.compare(a, b) == {"differ_pct": 25.0, "max_abs": 0.5, "rel_l2": float(f"{0.5 / 30 ** 0.5:.3g}")}
+
+
+def test_detector_cv_says_whether_the_seeds_agree_on_a_difference():
+    cv = _script("detector_cv")
+    a = [{"ap": {"Car": 50.0, "mAP": 40.0}}, {"ap": {"Car": 52.0, "mAP": 41.0}}]
+    b = [{"ap": {"Car": 51.0, "mAP": 38.0}}, {"ap": {"Car": 51.5, "mAP": 40.0}}]
+    d = cv.seed_differences(a, b)
+    assert d == {"Car": {"per_seed": [1.0, -0.5], "seeds_agree": False},
+                 "mAP": {"per_seed": [-2.0, -1.0], "seeds_agree": True}}
+    assert cv.seed_line(d) == "per seed, B - A: Car +1.0 / -0.5 (seeds disagree), mAP -2.0 / -1.0 (seeds agree)"
+    one = cv.seed_differences(a[:1], b[:1])
+    assert one["mAP"] == {"per_seed": [-2.0], "seeds_agree": False} and "agree" not in cv.seed_line(one)
