@@ -59,7 +59,7 @@ def test_claims_made_in_a_command_are_held_until_it_ends(tmp_path):
     ("empty", "-o/--out is empty"),
     ("folder", "is a folder; give a file name such as"),
     ("under a file", "is a file, not a folder"),
-    ("an input", "is a file this command reads"),
+    ("an input", "is RESULTS, the file read; give another name"),
     ("there", "exists; add --overwrite to replace it"),
 ])
 def test_files_are_checked_before_any_work(tmp_path, case, reason):
@@ -68,7 +68,7 @@ def test_files_are_checked_before_any_work(tmp_path, case, reason):
     path = {"empty": " ", "folder": tmp_path, "under a file": there / "x.json", "an input": there,
             "there": there}[case]
     with pytest.raises(UsageProblem, match=reason):
-        check_files([path], overwrite=False, inputs=[there] if case == "an input" else ())
+        check_files([path], overwrite=False, inputs={there: "RESULTS"} if case == "an input" else None)
     assert there.read_text() == "{}"
 
 

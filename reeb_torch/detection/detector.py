@@ -491,7 +491,7 @@ class ReebDetector(nn.Module):
         base = training or TrainSettings()
         train = dataclasses.replace(base, epochs=epochs, seed=seed, hflip=hflip)
         top_k = max(settings.proposals_train, settings.proposals_test)
-        config = proposal_settings(proposals, top_k, proposal_changes)[0] if proposal_changes else None
+        config = _proposal_config(proposals, top_k, proposal_changes) if proposal_changes else None
         return fit_detector(cls, folders, classes=classes, proposals=proposals, settings=settings, training=train,
                             cache_dir=cache_dir, limit=limit, auto_crop=auto_crop, progress=progress,
                             command=command, checkpoints=checkpoints, frames_by=frames_by, config=config)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import click
@@ -69,22 +69,24 @@ def claim(paths: Sequence[str | os.PathLike], *, option: str = "", hold: bool = 
     return release
 
 
-def claim_files(paths: Sequence[str | os.PathLike], overwrite: bool, *, inputs: Sequence[str | os.PathLike] = (),
-                example: str = "out.json", hold: bool = True) -> tuple[list[Path], Callable[[], None]]:
+def claim_files(paths: Sequence[str | os.PathLike], overwrite: bool, *,
+                inputs: Mapping[str | os.PathLike, str] | None = None, example: str = "out.json",
+                hold: bool = True) -> tuple[list[Path], Callable[[], None]]:
     """:func:`check_files`, then :func:`claim`: the paths (``~`` expanded) and the function
     that releases them."""
     out = check_files(paths, overwrite, inputs=inputs, example=example)
     return out, claim(out, hold=hold, clear=True)
 
 
-def check_files(paths: Sequence[str | os.PathLike], overwrite: bool, *, inputs: Sequence[str | os.PathLike] = (),
-                example: str = "out.json") -> list[Path]:
+def check_files(paths: Sequence[str | os.PathLike], overwrite: bool, *,
+                inputs: Mapping[str | os.PathLike, str] | None = None, example: str = "out.json") -> list[Path]:
     """The files a command writes whole, checked before any work: the paths, ``~`` expanded.
 
     Args:
         paths: the files.
         overwrite: whether files already there may be replaced.
-        inputs: files the command reads: none of ``paths`` may be one of them.
+        inputs: the files the command reads, each with the name its usage line gives it
+            (``{path: "RESULTS"}``): none of ``paths`` may be one of them.
         example: a file name for the message where a path is a folder.
 
     Raises:
@@ -96,10 +98,10 @@ def check_files(paths: Sequence[str | os.PathLike], overwrite: bool, *, inputs: 
         if not text.strip():
             raise UsageProblem(f"-o/--out is empty: give the file to write, e.g. -o {example}")
         out.append(Path(os.path.expanduser(text)))
-    read = {os.path.realpath(os.path.expanduser(os.fspath(p))) for p in inputs}
+    read = {os.path.realpath(os.path.expanduser(os.fspath(p))): name for p, name in (inputs or {}).items()}
     for p in out:
         if os.path.realpath(p) in read:
-            raise UsageProblem(f"-o {p}: is a file this command reads; give another name")
+            raise UsageProblem(f"-o {p}: is {read[os.path.realpath(p)]}, the file read; give another name")
         problem = unwritable(p, example)
         if problem:
             raise UsageProblem(problem)

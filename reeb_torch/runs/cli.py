@@ -353,10 +353,7 @@ def export(results, out, fmt, ids_file, id_type, overwrite):
     from . import export as E
     from .claim import claim_files  # imports torch: after the options are read
 
-    target = Path(os.path.expanduser(out))
-    if os.path.realpath(target) == os.path.realpath(results):
-        raise UsageProblem(f"-o {out}: is RESULTS, the file read; give another name")
-    claim_files([target], overwrite, example="proposals.pkl")
+    claim_files([out], overwrite, inputs={results: "RESULTS"}, example="proposals.pkl")
     try:
         id_map = E.read_id_map(ids_file) if ids_file else None
         rows = E.read_rows(results)

@@ -17,7 +17,6 @@ file or output, checked before any work).
 from __future__ import annotations
 
 import hashlib
-import os
 import shlex
 import shutil
 import sys
@@ -177,8 +176,8 @@ def fit(dirs, out, overwrite, proposals, sets, classes, epochs, steps, seed, val
     check_frames(dirs, val, names, limit, named)
     cache_dir = check_cache(cache_dir)
     command = " ".join(["reeb detector fit", *map(shlex.quote, dirs), "-o", shlex.quote(out), "--proposals",
-                        shlex.quote(proposals)] + [a for kv in sets for a in ("--set", shlex.quote(kv))] + ["--classes", shlex.quote(",".join(names)), "--epochs", str(epochs),
-                        "--seed", str(seed)] + (["--steps", str(steps)] if steps else []) + (["--hflip"] if hflip else [])
+                        shlex.quote(proposals), *(a for kv in sets for a in ("--set", shlex.quote(kv))),
+                        "--classes", shlex.quote(",".join(names)), "--epochs", str(epochs), "--seed", str(seed)] + (["--steps", str(steps)] if steps else []) + (["--hflip"] if hflip else [])
                        + (["--factorised-epochs", str(factorised_epochs)] if factorised_epochs else [])
                        + _changed_options(click.get_current_context(), SETTINGS_OPTIONS)
                        + (["--limit", str(limit)] if limit else []))
@@ -257,9 +256,7 @@ def compress(path, out, rank, int8, overwrite):
 
     if not rank and not int8:
         raise click.UsageError("nothing to do: give --rank R, --int8 or both")
-    if os.path.realpath(os.path.expanduser(out)) == os.path.realpath(resolve_detector(path)):
-        raise UsageProblem(f"-o {out}: is PATH, the file read; give another name")
-    target = claim_weights_out(out, overwrite)
+    target = claim_weights_out(out, overwrite, inputs={resolve_detector(path): "PATH"})
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the float32 notice of a CPU without native bfloat16

@@ -17,7 +17,7 @@ import os
 import time
 import warnings
 from collections import Counter
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -30,8 +30,9 @@ __all__ = ["claim_weights_out", "SettingRange", "distinct", "check_frames", "che
            "training_states", "train"]
 
 
-def claim_weights_out(out: str, overwrite: bool) -> Path:
-    """``-o``: a ``.safetensors`` name in a writable folder, not there yet unless ``overwrite``;
+def claim_weights_out(out: str, overwrite: bool, inputs: Mapping[str | os.PathLike, str] | None = None) -> Path:
+    """``-o``: a ``.safetensors`` name in a writable folder, not there yet unless ``overwrite``,
+    none of ``inputs`` (the files the command reads, by name: :func:`.claim.check_files`);
     claimed until the command ends (:func:`.claim.claim_files`: a second fit on it exits 2
     at once, and the temporary files a killed fit on it left are removed)."""
     from .claim import claim_files
@@ -39,7 +40,7 @@ def claim_weights_out(out: str, overwrite: bool) -> Path:
     p = Path(os.path.expanduser(out))
     if p.suffix.lower() != ".safetensors":
         raise UsageProblem(f"{out}: a detector is written as safetensors; name it {p.with_suffix('.safetensors')}")
-    return claim_files([p], overwrite, example="det.safetensors")[0][0]
+    return claim_files([p], overwrite, inputs=inputs, example="det.safetensors")[0][0]
 
 
 class SettingRange(click.ParamType):
