@@ -4,7 +4,7 @@ so the detections are not meaningful: the point is the plumbing)."""
 
 import torch, torchvision
 from reeb_torch import read_image
-from reeb_torch.detection import ReebRPN, reeb_fasterrcnn_mobilenet_v3
+from reeb_torch.detection import ReebRPN
 
 model = torchvision.models.detection.fasterrcnn_mobilenet_v3_large_fpn(
     weights=None, weights_backbone=None, num_classes=4)   # any GeneralizedRCNN
@@ -12,6 +12,5 @@ model = ReebRPN().attach(model).eval()                    # REEB proposals in pl
 img = read_image("examples/data/kitti_000001.png").float() / 255
 with torch.no_grad():
     det = model([img])[0]                                 # boxes, labels, scores
-own = reeb_fasterrcnn_mobilenet_v3(num_classes=4)         # a MobileNetV3 Faster R-CNN on REEB
 
-print({name: tuple(v.shape) for name, v in det.items()}, "from", type(own.rpn).__name__, "proposals")
+print({name: tuple(v.shape) for name, v in det.items()}, "from", type(model.rpn).__name__, "proposals")

@@ -7,14 +7,12 @@
 
 The parts, for those who build their own:
 
->>> from reeb_torch.detection import ReebRPN, reeb_fasterrcnn_mobilenet_v3, build_cache
->>> model = reeb_fasterrcnn_mobilenet_v3(num_classes=5)        # REEB proposals, from scratch
->>> model.rpn                                                    # a ReebRPN, attached
->>> other = torchvision.models.detection.maskrcnn_resnet50_fpn(weights=None,
-...                                                             weights_backbone=None)
->>> ReebRPN().attach(other)                                      # any GeneralizedRCNN
+>>> from reeb_torch.detection import ReebRPN, build_cache
+>>> model = torchvision.models.detection.fasterrcnn_mobilenet_v3_large_fpn(
+...     weights=None, weights_backbone=None, num_classes=5)
+>>> ReebRPN().attach(model)                                      # any GeneralizedRCNN
 >>> cache = build_cache(dataset, "proposals.pt")                # once per data set
->>> model = reeb_fasterrcnn_mobilenet_v3(num_classes=5, cache="proposals.pt")
+>>> ReebRPN(cache="proposals.pt").attach(model)                 # its proposals read back
 
 The pretrained detector (the ``detect`` extra): a frozen ImageNet EfficientNet-Lite0, its
 maps cached per frame, only the heads trained:
@@ -24,7 +22,6 @@ maps cached per frame, only the heads trained:
 >>> train_heads(model, frames); detect(model, frames)
 """
 
-from .builder import load_backbone_weights, reeb_fasterrcnn_mobilenet_v3
 from .detector import PROPOSALS, DetectorSettings, ReebDetector, proposal_settings
 from .detector_file import DetectorFileError
 from .cache import (
@@ -73,8 +70,6 @@ __all__ = [
     "write_results",
     "ReebRPN",
     "map_boxes",
-    "reeb_fasterrcnn_mobilenet_v3",
-    "load_backbone_weights",
     "ProposalCache",
     "CacheEntry",
     "StaleCacheError",

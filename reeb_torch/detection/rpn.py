@@ -21,10 +21,9 @@ they entered the model* instead, and its boxes are mapped to the resized frame w
 ratios ``h_i / H_i``, ``w_i / W_i``, same float32 arithmetic) that maps the ground-truth
 boxes. To see those images the RPN must be attached to its model::
 
-    model.rpn = ReebRPN(config)
-    model.rpn.attach(model)      # a forward pre-hook hands the input images to the RPN
+    ReebRPN(config).attach(model)   # model.rpn; a forward pre-hook hands it the input images
 
-(:func:`reeb_torch.detection.reeb_fasterrcnn_mobilenet_v3` does this.) A ``ReebRPN``
+(:func:`reeb_torch.detection.reeb_fasterrcnn_lite0` does this.) A ``ReebRPN``
 that was not attached still works: it recovers the resized image from the batch
 (``x * std + mean`` over ``image_sizes[i]``, with the ``image_mean``/``image_std`` it was
 given, torchvision's defaults unless told otherwise), computes REEB on it and warns once.

@@ -1,4 +1,8 @@
-"""A light two-stage detector on REEB proposals: the paper's future work (Sec. 5).
+"""The MobileNetV3 detector of ``rpn_arms.py``: the same network on REEB's proposals or on a
+learned RPN, trained from scratch (docs/results.md, "A MobileNetV3 detector from scratch").
+
+The product's detector is ``reeb detector fit``'s (:class:`reeb_torch.detection.ReebDetector`);
+this one is the experiment's, built on the public :class:`~reeb_torch.detection.ReebRPN`.
 
 :func:`reeb_fasterrcnn_mobilenet_v3` builds torchvision's Faster R-CNN with a
 MobileNetV3-Large + FPN backbone (as ``fasterrcnn_mobilenet_v3_large_fpn``),
@@ -26,9 +30,8 @@ from torchvision.models.detection.anchor_utils import AnchorGenerator
 from torchvision.models.detection.backbone_utils import _mobilenet_extractor
 from torchvision.ops import misc as misc_nn_ops
 
-from ..config import ReebConfig
-from .cache import ProposalCache
-from .rpn import ReebRPN
+from reeb_torch import ReebConfig
+from reeb_torch.detection import ProposalCache, ReebRPN
 
 __all__ = ["reeb_fasterrcnn_mobilenet_v3", "load_backbone_weights"]
 
@@ -88,7 +91,7 @@ def reeb_fasterrcnn_mobilenet_v3(
         config: REEB settings (``None``: ``ReebConfig()`` with ``top_k`` = the larger
             post-NMS top-N). Ignored with ``proposals="learned"``.
         cache: precomputed proposals (:class:`ProposalCache` or its file) built with
-            ``config``; see :func:`~reeb_torch.detection.build_cache`.
+            ``config``; see :func:`reeb_torch.detection.build_cache`.
         on_miss: ``ReebRPN``'s policy for images missing from the cache.
         backbone_weights: local state dict of ``mobilenet_v3_large``
             (:func:`load_backbone_weights`); the backbone then uses frozen BatchNorm and
