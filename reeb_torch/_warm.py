@@ -13,9 +13,11 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
+import numpy as np
 import torch
 
-from .stages import _cache
+from .stages import _cache, enclosed, nms, scoring
+from .stages._threads import serially
 
 __all__ = ["warm_picture", "Notice", "COMPILE_ESTIMATE_S", "gc_paused", "start_helper", "stop_helper",
            "compile_helper_part"]
@@ -136,10 +138,6 @@ def compile_helper_part() -> None:
     per-region cut and the window NMS's three), in the order it reaches them, on synthetic
     inputs of the types the pipeline passes them, so that they are cached under the same
     signatures (``tests/test_warmup.py`` checks that they add none)."""
-    import numpy as np
-
-    from .stages import enclosed, nms, scoring
-    from .stages._threads import serially
 
     g = torch.Generator().manual_seed(0)
     n = 9000  # more than 3 · 2000 candidates: the prefix path of the window NMS

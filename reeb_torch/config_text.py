@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from .config import ReebConfig, get_preset
+from .ranker import SHIPPED
 
 __all__ = ["SettingError", "BOOL_WORDS", "config_from", "parse_sets", "read_config_file"]
 
@@ -185,7 +186,6 @@ def _ranker_beside(ranker: str, config_file: Path) -> str:
     ``reeb fit`` writes it), so the config reads from any folder; a path that is found only
     from the current folder (a config written before) is kept; names and absolute paths
     are kept."""
-    from .ranker import SHIPPED
 
     path = Path(os.path.expanduser(ranker))
     if ranker in SHIPPED or ranker == "none" or path.is_absolute():

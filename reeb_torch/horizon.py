@@ -29,6 +29,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Iterable
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -129,7 +130,6 @@ class HorizonEstimate:
 def _grey(image: Tensor | np.ndarray) -> np.ndarray:
     """``uint8 [H, W]`` grey of a ``(3, H, W)`` or ``(1, H, W)`` tensor (uint8, or float in
     [0, 1]) or an ``[H, W, 3]`` RGB / ``[H, W]`` grey array."""
-    import cv2
 
     if isinstance(image, Tensor):
         t = image.detach().cpu()
@@ -159,7 +159,6 @@ def line_segments(image: Tensor | np.ndarray) -> np.ndarray:
     Args:
         image: as :func:`frame_vanishing_point` takes it.
     """
-    import cv2
 
     grey = _grey(image)
     h, w = grey.shape

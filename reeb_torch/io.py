@@ -7,6 +7,7 @@ import os
 import tempfile
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -29,7 +30,6 @@ def to_rgb8(array: np.ndarray, name: str = "image") -> np.ndarray:
     Grey is replicated to three channels, the alpha channel is dropped, 16-bit values are
     scaled by 1/257 (65535 → 255) and floats in [0, 1] by 255.
     """
-    import cv2
 
     a = array
     if a.dtype == np.uint16:
@@ -80,7 +80,6 @@ def read_image(path: str | os.PathLike) -> torch.Tensor:
     :class:`ImageReadError` naming the file when it is missing, empty, truncated, corrupt
     or not an image.
     """
-    import cv2
 
     p = Path(path)
     if not p.exists():

@@ -35,8 +35,10 @@ from torch import Tensor
 
 from ._memory import trim_heap
 from .config import ReebConfig
+from .datasets.folders import load_folders
 from .generator import FRONT_END_FIELDS, Candidates, FrontEnd, ProposalGenerator
 from .metrics.recall import RecallInterval, bootstrap_recalls, object_hits, recall_interval
+from .ranker import SHIPPED, refine_features
 
 __all__ = ["Frames", "FrameCache", "Param", "default_space", "load_space", "Estimate", "CrossValidation",
            "load_frames", "photometric_jitter", "score_config", "objective", "bootstrap_interval", "fold_blocks",
@@ -68,7 +70,6 @@ def load_frames(roots: Sequence[str | os.PathLike], limit: int | None = None) ->
     Raises:
         ValueError: no folder, a folder without labels, or no labelled object at all.
     """
-    from .datasets.folders import load_folders
 
     items, classes = load_folders(roots, limit=limit)
     frames = Frames([it["image"] for it in items], [it["boxes"] for it in items],
@@ -83,7 +84,6 @@ def load_frames(roots: Sequence[str | os.PathLike], limit: int | None = None) ->
 def _weights_stamp(ranker: str) -> tuple[int, int] | None:
     """The modification time and size of the weights file ``ranker`` names; None for none, a
     shipped name, or a file that cannot be read (the generator then says what is wrong)."""
-    from .ranker import SHIPPED
 
     if ranker in ("none", *SHIPPED):
         return None
@@ -184,7 +184,6 @@ class FrameCache:
         """The box refiner's features (:func:`reeb_torch.ranker.refine_features`) of ``boxes``
         (``float [K, 4]`` input pixels) in frame ``i`` (as :meth:`candidates` takes it):
         ``float32 [K, R]``."""
-        from .ranker import refine_features
 
         with torch.no_grad():
             _, _, front = self._front_of(cfg, i, mirrored, photometric)

@@ -145,9 +145,7 @@ def test_detections_alone_in_a_batch_and_cropped(images):
 
 
 def test_bfloat16_without_native_support_runs_float32_and_says_so(monkeypatch, images):
-    from reeb_torch.detection import lite0
-
-    monkeypatch.setattr(lite0, "native_bfloat16", lambda device="cpu": False)
+    monkeypatch.setenv("REEB_NATIVE_BF16", "0")  # as a CPU without it
     with pytest.warns(UserWarning, match="no native bfloat16"):
         det = ReebDetector(settings=DetectorSettings(**{**TINY.__dict__, "precision": "bfloat16"}))
     assert det.precision == "float32" and det.model.backbone.precision == "float32"

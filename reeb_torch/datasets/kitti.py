@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from PIL import Image
 
 from ..camera import read_kitti_calib
 from ..io import IMAGE_EXTENSIONS, read_image
@@ -344,7 +345,6 @@ class KittiDataset(torch.utils.data.Dataset):
 
 def _image_size(path: Path) -> tuple[int, int] | None:
     """``(W, H)`` of an image from its header, or None where it cannot be read that way."""
-    from PIL import Image
 
     try:
         with Image.open(path) as im:

@@ -26,6 +26,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..stages._threads import on_two_cores
+
 __all__ = ["LowRankLinear", "Int8Linear", "factorise_box_head", "quantise_box_head", "quantise_rows", "int8_product"]
 
 
@@ -60,7 +62,6 @@ def quantise_rows(x: Tensor) -> tuple[Tensor, Tensor]:
     """``x`` (``float32 [M, K]``, CPU) as ``(int8 [M, K], float32 [M])``: each row rounded
     (half to even) to int8 with its own scale, its largest magnitude over 127, so that
     ``q * scale[:, None]`` is ``x`` to half a step."""
-    from ..stages._threads import on_two_cores
 
     a = x.detach().float().contiguous().numpy()
     q = np.empty(a.shape, np.int8)

@@ -49,8 +49,11 @@ from typing import Any, Iterable, Mapping
 
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
+from .. import __version__
 from ..config import ReebConfig
+from ..generator import ProposalGenerator
 
 __all__ = [
     "CACHE_FORMAT",
@@ -71,8 +74,6 @@ class StaleCacheError(RuntimeError):
 
 
 def _reeb_version() -> str:
-    from .. import __version__
-
     return __version__
 
 
@@ -288,12 +289,9 @@ def build_cache(
     Returns:
         The :class:`ProposalCache` (also written to ``path``).
     """
-    from tqdm import tqdm
 
     config = config or ReebConfig()
     if generator is None:
-        from ..generator import ProposalGenerator
-
         generator = ProposalGenerator(config)
     device = torch.device(device or "cpu")
     generator = generator.to(device)

@@ -26,20 +26,44 @@ import os
 import re
 import shutil
 import tempfile
+import typing
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 from torch import Tensor, nn
 
-from ..config import ReebConfig
+from ..config import ReebConfig, check_fields, get_preset
 from ..io import replace_file
-from .detector_file import (DetectorFileError, check_tensors, not_a_file, ranker_file_bytes, ranker_parts,
-                            read_detector_file, trained_keys, write_detector_file)
+from ..ranker import (
+    SAME_IMAGE_BITS,
+    SHIPPED,
+    RankerWeightsError,
+    frame_hash,
+    hash_distance,
+    load_ranker,
+    resolve_ranker,
+    seen_hashes,
+)
+from .box_head import factorise_box_head, quantise_box_head
+from .detector_file import (
+    DetectorFileError,
+    check_tensors,
+    not_a_file,
+    ranker_file_bytes,
+    ranker_parts,
+    read_detector_file,
+    trained_keys,
+    write_detector_file,
+)
+from .inference import detect_images
 from .kitti import KITTI_CLASSES
+from .lite0 import native_bfloat16, weights_digest
+from .lite0_detector import reeb_fasterrcnn_lite0
 
 if TYPE_CHECKING:
     from .head_training import TrainSettings
@@ -60,7 +84,6 @@ def resolve_detector(spec: str | os.PathLike) -> Path:
     """The detector file ``spec`` names: a shipped name (:data:`SHIPPED_DETECTORS`) or a path
     (``~`` expanded). Whether the file exists is :func:`~reeb_torch.detection.detector_file.
     read_detector_file`'s to say."""
-    from importlib import resources
 
     if isinstance(spec, str) and spec in SHIPPED_DETECTORS:
         return Path(str(resources.files("reeb_torch.detection").joinpath("weights", SHIPPED_DETECTORS[spec])))
@@ -168,10 +191,6 @@ file from asking for memory no machine has."""
 
 
 def _checked_settings(owner: str, values: dict[str, Any]) -> dict[str, Any]:
-    import typing
-
-    from ..config import check_fields
-
     return check_fields(owner, values, typing.get_type_hints(DetectorSettings), SETTINGS_RANGES)
 
 
@@ -204,8 +223,6 @@ def proposal_settings(spec: str, top_k: int,
 
 
 def _proposal_config(spec: str, top_k: int, changes: Mapping[str, Any] | None = None) -> ReebConfig:
-    from ..config import get_preset
-
     fixed = sorted(set(changes or ()) & set(PROPOSAL_FIXED))
     if fixed:
         raise ValueError(f"REEB's {fixed[0]} is {PROPOSAL_FIXED[fixed[0]]}: it cannot be changed on its own")
@@ -234,7 +251,6 @@ def _ranker_file(config: ReebConfig) -> tuple[str | None, bytes | None]:
     the embedded copy would not have its SHA-256."""
     if config.ranker == "none":
         return None, None
-    from ..ranker import SHIPPED, resolve_ranker
 
     data = resolve_ranker(config.ranker).read_bytes()
     sha = hashlib.sha256(data).hexdigest()
@@ -262,7 +278,6 @@ def _check_image(image: Tensor) -> None:
 def _runnable_precision(precision: str, device: str | torch.device) -> str:
     """``precision`` where ``device`` computes it natively; ``float32`` (with a warning
     saying so) where a ``bfloat16`` detector meets a device that would only emulate it."""
-    from .lite0 import native_bfloat16
 
     if precision == "bfloat16" and not native_bfloat16(device):
         warnings.warn(f"this {torch.device(device).type.upper()} has no native bfloat16: the detector's backbone "
@@ -301,8 +316,6 @@ class ReebDetector(nn.Module):
                  settings: DetectorSettings = DetectorSettings(), *, config: ReebConfig | None = None,
                  weights: str | os.PathLike | None = None, device: str | torch.device = "cpu") -> None:
         super().__init__()
-        from .lite0 import weights_digest
-        from .lite0_detector import reeb_fasterrcnn_lite0
 
         if isinstance(classes, str) or not classes or len(set(classes)) != len(classes):
             raise ValueError(f"classes must be distinct names, at least one; got {classes!r}")
@@ -346,8 +359,6 @@ class ReebDetector(nn.Module):
         return self._ranker_bytes is not None
 
     def forward(self, images: Sequence[Tensor]) -> list[dict[str, Tensor]]:
-        from .inference import detect_images
-
         if isinstance(images, Tensor) and images.dim() == 4:
             images = list(images)
         if not isinstance(images, (list, tuple)):
@@ -366,7 +377,6 @@ class ReebDetector(nn.Module):
         Raises:
             ValueError: ``rank`` below 1, or the layer is factorised or in int8 already.
         """
-        from .box_head import factorise_box_head
 
         if rank < 1:
             raise ValueError(f"rank must be at least 1, got {rank}")
@@ -379,7 +389,6 @@ class ReebDetector(nn.Module):
         """The box head's layers in int8, in place (:func:`~reeb_torch.detection.box_head.
         quantise_box_head`): a quarter of their size in the file, and on the CPU torch's
         int8 kernels; ``settings.box_head_int8`` records it. Returns ``self``."""
-        from .box_head import quantise_box_head
 
         quantise_box_head(self.model)
         self.settings = dataclasses.replace(self.settings, box_head_int8=True)
@@ -416,8 +425,6 @@ class ReebDetector(nn.Module):
                 is gone or unreadable; one line naming the file and what is wrong.
             ImportError: the ``detect`` extra is missing (one line naming it).
         """
-        from ..ranker import RankerWeightsError
-        from .lite0 import weights_digest
 
         p = resolve_detector(path)
         tensors, meta, ranker = read_detector_file(p)
@@ -452,7 +459,6 @@ class ReebDetector(nn.Module):
         (``"folder/id"``, by :func:`reeb_torch.ranker.frame_hash` within
         :data:`~reeb_torch.ranker.SAME_IMAGE_BITS`), or ``None``: where a score measured with
         this detector is in-sample. All ``None`` for a detector without frame hashes."""
-        from ..ranker import SAME_IMAGE_BITS, frame_hash, hash_distance, seen_hashes
 
         known = seen_hashes(self.meta.get("provenance", {}))
         out: list[str | None] = []
@@ -485,7 +491,6 @@ class ReebDetector(nn.Module):
         fields set over ``proposals``' settings (:func:`proposal_settings`' ``changes``;
         ``reeb detector fit --set``), kept in the file."""
         from .fitting import fit_detector
-
         from .head_training import TrainSettings
 
         base = training or TrainSettings()
@@ -504,7 +509,6 @@ def _stored_config(path: Path, info: dict[str, Any], ranker: bytes | None) -> Re
     """REEB's settings a detector file records, with ``config.ranker`` the unpacked copy of
     the ``ranker`` it embeds (:func:`_embedded_ranker`); one line when this installation
     cannot run them."""
-    from ..ranker import RankerWeightsError, resolve_ranker
 
     try:
         config = ReebConfig.from_dict(info["config"])
@@ -549,7 +553,6 @@ def _embedded_ranker(path: Path, info: dict[str, Any], data: bytes) -> str:
     """The weights file of the ranker the detector file ``path`` embeds (``data``): its SHA-256
     checked against the recorded ``ranker_sha256``, unpacked to a private folder, and read by
     the ranker's checked loader (:func:`~reeb_torch.ranker.load_ranker`), each refusal one line."""
-    from ..ranker import RankerWeightsError, load_ranker
 
     sha, recorded = hashlib.sha256(data).hexdigest(), str(info.get("ranker_sha256"))
     if sha != recorded:

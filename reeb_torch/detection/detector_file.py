@@ -34,11 +34,14 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import load, save
 from torch import Tensor
 
 from ..io import replace_file
@@ -71,8 +74,6 @@ def ranker_parts(data: bytes) -> tuple[dict[str, Tensor], dict[str, str]]:
     Raises:
         ValueError: ``data`` is not safetensors.
     """
-    from safetensors import SafetensorError
-    from safetensors.torch import load
 
     try:
         tensors = load(data)
@@ -86,7 +87,6 @@ def ranker_parts(data: bytes) -> tuple[dict[str, Tensor], dict[str, str]]:
 def ranker_file_bytes(tensors: Mapping[str, Tensor], metadata: Mapping[str, str]) -> bytes:
     """The safetensors file of ``tensors`` (dtypes kept) and ``metadata``: a ranker weights
     file's bytes from its :func:`ranker_parts`."""
-    from safetensors.torch import save
 
     return save({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, metadata=dict(metadata))
 
@@ -97,7 +97,6 @@ def write_detector_file(path: str | os.PathLike, tensors: Mapping[str, Tensor], 
     (JSON-able) to ``path`` atomically (a
     temporary file beside it, then renamed); the same inputs give the same bytes. ``ranker``:
     the bytes of a ranker weights file to embed (:data:`RANKER_PREFIX`), or None."""
-    from safetensors.torch import save
 
     info = {"version": VERSION, **meta}
     out = {k: v.detach().to("cpu", v.dtype if v.dtype == torch.int8 else torch.float32).contiguous()
@@ -112,7 +111,6 @@ def not_a_file(path: Path) -> str | None:
     """Why ``path`` is no file to read a detector (or any weights) from, or None: missing, a
     folder, or a special file (a named pipe, a device, a socket), named without opening it
     (opening a named pipe waits for a writer)."""
-    import stat
 
     try:
         mode = path.stat().st_mode
@@ -142,7 +140,6 @@ def read_detector_file(path: str | os.PathLike) -> tuple[dict[str, Tensor], dict
             readable safetensors file, no ``reeb-detector`` metadata or not a JSON object,
             another version, no classes or a class named twice, non-finite tensors.
     """
-    from safetensors import SafetensorError, safe_open
 
     p = Path(os.path.expanduser(str(path)))
     what = not_a_file(p)

@@ -36,6 +36,7 @@ from typing import Any, ContextManager
 
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 from .cache import StaleCacheError, _write_error, image_digest
 
@@ -192,7 +193,6 @@ def frozen_features(model: torch.nn.Module, items: Sequence[Mapping[str, Any]], 
     (:func:`compute_features`) and saved when missing, stale or damaged; a progress bar. A
     cache that cannot be written (a full disk) is one ``RuntimeWarning``, and the maps are
     kept in memory."""
-    from tqdm import tqdm
 
     precision = getattr(getattr(model, "backbone", None), "precision", "float32")
     if precision != cache.key["precision"]:

@@ -27,8 +27,13 @@ from typing import Any
 
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
+from .. import __version__
 from .._memory import trim_heap
+from ..metrics import kitti_ap
+from ..ranker import frame_hash
+from ..ranker.store import Checkpoints
 from .cache import CacheEntry, ProposalCache, StaleCacheError, image_digest
 from .feature_cache import FeatureCache, FrameFeatures, cached_features, frozen_features
 from .forward import CachedFrame
@@ -48,7 +53,6 @@ def default_cache_dir() -> Path:
 def _proposal_cache(det: Any, items: Sequence[dict], root: Path, progress: bool) -> ProposalCache:
     """REEB's proposals of every item, from the cache file of the detector's settings
     (computed and added for the frames it lacks)."""
-    from tqdm import tqdm
 
     rpn = det.model.rpn
     cache, path = _open_proposals(det, root)
@@ -133,9 +137,6 @@ def stored_frames(det: Any, items: Sequence[dict], cache_dir: str | os.PathLike 
     ``frames_by(det, items, feature_cache)``: the per-frame work done elsewhere (on Ray:
     :func:`reeb_torch.runs.fit_ray.ray_frames`), an iterator of ``{"digest", "hash", "size",
     "boxes", "scores"}`` per item in order, the maps written to the feature cache."""
-    from tqdm import tqdm
-
-    from ..ranker import frame_hash
 
     root = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     rpn = det.model.rpn
@@ -211,9 +212,6 @@ def cached_frames(det: Any, items: Sequence[dict], cache_dir: str | os.PathLike 
 
 def _provenance(items: Sequence[dict], folders: Sequence[str | os.PathLike], training: TrainSettings,
                 history: dict, classes: Sequence[str], command: str | None) -> dict[str, Any]:
-    from .. import __version__
-    from ..ranker import frame_hash
-
     names = [f"{it['folder']}/{it['image_id']}" for it in items]
     losses = list(history["losses"])[-20:]
     counts = torch.cat([it["labels"] for it in items]).bincount(minlength=len(classes) + 1).tolist()
@@ -323,8 +321,6 @@ def train_detector(cls: type, items: Sequence[dict], folders: Sequence[str | os.
     train = frames[:len(items)]
     slot = after = None
     if checkpoints is not None:
-        from ..ranker.store import Checkpoints
-
         digests = [getattr(f, "digest", None) or image_digest(f.image) for f in frames]
         states = Checkpoints(checkpoints, [dataclasses.asdict(training), repr(det.settings), list(det.classes),
                                            proposals, digests]
@@ -371,7 +367,6 @@ def detector_stats(det: Any, folders: Sequence[str | os.PathLike], *, limit: int
     Raises:
         ValueError: a class KITTI's evaluation has no overlap threshold for.
     """
-    from ..metrics import kitti_ap
 
     items = load_frames(folders, det.classes, limit)
     try:
@@ -406,7 +401,6 @@ def evaluate_detector(det: Any, folders: Sequence[str | os.PathLike], *, limit: 
 
 def scores_of(det: Any, items: Sequence[dict], stats: dict, samples: int = 1000, seed: int = 0) -> dict[str, Any]:
     """:func:`evaluate_detector`'s result from :func:`detector_stats`' ``(items, stats)``."""
-    from ..metrics import kitti_ap
 
     ap = kitti_ap.kitti_ap(stats)
     interval = kitti_ap.bootstrap(stats, samples=samples, seed=seed)

@@ -28,6 +28,7 @@ from typing import Any, cast
 
 import torch
 from torch import Tensor, nn
+from tqdm import tqdm
 
 from .forward import CachedFrame, frame_forward
 
@@ -118,7 +119,6 @@ def train_heads(model: nn.Module, frames: Sequence[CachedFrame], settings: Train
     Returns:
         ``{"losses": [mean loss per step], "steps": int, "train_s": wall seconds}``.
     """
-    from tqdm import tqdm
 
     if not frames:
         raise ValueError("no training frame")
@@ -169,7 +169,6 @@ def detect(model: nn.Module, frames: Sequence[CachedFrame], progress: bool = Tru
     """Detections of every frame (``boxes [D, 4]`` input pixels, ``labels [D]`` 1..C,
     ``scores [D]``), the model in evaluation mode, the box head run ``passes`` times
     (:func:`frame_forward`)."""
-    from tqdm import tqdm
 
     model.eval()
     return [frame_forward(model, f, passes=passes)

@@ -22,9 +22,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from PIL import Image
 from torch import Tensor
 
-from ..io import replace_file
+from ..datasets.kitti import KittiDataset, read_kitti_labels
+from ..io import read_image, replace_file
+from .head_training import mirror_boxes
 
 __all__ = ["KITTI_CLASSES", "NEIGHBOURS", "load_frames", "image_size", "frame_image", "FolderSurvey", "survey_folder", "distinct_folders",
            "mirrored", "result_lines", "write_results", "write_text"]
@@ -58,7 +61,6 @@ def load_frames(folders: Sequence[str | os.PathLike], classes: Sequence[str] = K
     Raises:
         ValueError: a folder without images or without labels (one line naming it).
     """
-    from ..datasets.kitti import KittiDataset, read_kitti_labels
 
     neighbours = tuple(n for n in NEIGHBOURS if n not in classes)
     items = []
@@ -89,14 +91,12 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
     Raises:
         ValueError: the file is no image that can be read (one line naming it).
     """
-    from PIL import Image
 
     try:
         with Image.open(path) as im:
             w, h = im.size
             return int(h), int(w)
     except Exception:  # noqa: BLE001 - a format PIL does not read: the image reader's turn
-        from ..io import read_image
 
         image = read_image(path)
         return int(image.shape[-2]), int(image.shape[-1])
@@ -107,7 +107,6 @@ def frame_image(item: dict[str, Any]) -> Tensor:
     flipped left to right where it is a lazy mirror, :func:`mirrored`)."""
     if "image" in item:
         return item["image"]
-    from ..io import read_image
 
     image = read_image(item["path"])
     return image.flip(-1).contiguous() if item.get("flipped") else image
@@ -140,7 +139,6 @@ def survey_folder(folder: str | os.PathLike, limit: int | None = None) -> Folder
         ValueError: not a KITTI-format folder, no images, a frame without its label file,
             or a label line that cannot be read (one line naming the file).
     """
-    from ..datasets.kitti import KittiDataset, read_kitti_labels
 
     ds = KittiDataset(folder, classes=(), limit=limit)
     objects: Counter[str] = Counter()
@@ -168,7 +166,6 @@ def distinct_folders(folders: Sequence[str | os.PathLike]) -> tuple[list[str | o
 
 def mirrored(item: dict[str, Any]) -> dict[str, Any]:
     """A training item flipped left to right (the image and every box)."""
-    from .head_training import mirror_boxes
 
     if "image" not in item:  # a lazy item: flipped when decoded (frame_image)
         w = item["size"][1]

@@ -27,6 +27,8 @@ from torch import Tensor
 from torchvision.ops import MultiScaleRoIAlign
 from torchvision.ops.boxes import box_area
 
+from ..stages._threads import on_two_cores
+
 __all__ = ["PyramidRoIAlign", "roi_align_levels"]
 
 
@@ -151,8 +153,6 @@ class _PyramidRoIAlignFn(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, boxes: Tensor, image_size: tuple[int, int], output_size: int, sampling: int,
                 *levels: Tensor) -> Tensor:
-        from ..stages._threads import on_two_cores
-
         n, c = len(boxes), levels[0].shape[1]
         out = np.zeros((n, output_size, output_size, c), np.float32)
         scales, which = _levels_and_scales(levels, boxes, image_size)
@@ -175,8 +175,6 @@ class _PyramidRoIAlignFn(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> tuple[Any, ...]:
-        from ..stages._threads import on_two_cores
-
         (boxes,) = ctx.saved_tensors
         rows = boxes.detach().float().cpu().contiguous().numpy()
         g = grad.detach().float().permute(0, 2, 3, 1).contiguous().numpy()

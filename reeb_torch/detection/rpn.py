@@ -46,6 +46,7 @@ from torchvision.models.detection.transform import resize_boxes
 from torchvision.ops import boxes as box_ops
 
 from ..config import ReebConfig
+from ..generator import ProposalGenerator
 from .cache import ProposalCache, StaleCacheError
 
 __all__ = ["ReebRPN", "map_boxes"]
@@ -147,8 +148,6 @@ class ReebRPN(nn.Module):
             cache.check_config(config)
         self.cache = cache
         if generator is None:
-            from ..generator import ProposalGenerator
-
             generator = ProposalGenerator(config)
         self.generator = generator
         self._inputs: list[Tensor] | None = None

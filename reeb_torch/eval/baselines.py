@@ -52,6 +52,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -139,7 +140,6 @@ def sobel_edges(rgb: np.ndarray, blur_sigma: float = 1.0) -> np.ndarray:
     (``BORDER_REFLECT_101``), magnitude ``sqrt(gx^2 + gy^2)`` divided by its maximum over
     the image (an all-flat image gives all zeros).
     """
-    import cv2
 
     grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255.0
     if blur_sigma > 0:
@@ -154,7 +154,6 @@ def sobel_edges(rgb: np.ndarray, blur_sigma: float = 1.0) -> np.ndarray:
 
 def _conv_tri(image: np.ndarray, r: int) -> np.ndarray:
     """Separable triangle filter of radius ``r`` (kernel ``[1 .. r+1 .. 1] / (r+1)^2``)."""
-    import cv2
 
     if r <= 0:
         return image
@@ -196,7 +195,6 @@ def edge_nms(edges: np.ndarray, orientation: np.ndarray, r: int = 1, m: float = 
     distance ``d in {-r..r} \\ {0}`` along the orientation ``(cos O, sin O)``, bilinearly
     interpolated (border replicated), exceeds ``m * e``.
     """
-    import cv2
 
     e = edges.astype(np.float32)
     h, w = e.shape
@@ -263,8 +261,6 @@ class EdgeBoxesBaseline:
     name: str = "Edge Boxes"
 
     def __post_init__(self) -> None:
-        import cv2
-
         if not hasattr(cv2, "ximgproc"):
             raise ImportError("cv2.ximgproc is missing: install opencv-contrib-python(-headless)")
         self._eb = cv2.ximgproc.createEdgeBoxes(
@@ -374,8 +370,6 @@ class BingBaseline:
         ranking: str = "opencv",
         quiet: bool = True,
     ):
-        import cv2
-
         if not hasattr(cv2, "saliency"):
             raise ImportError("cv2.saliency is missing: install opencv-contrib-python(-headless)")
         self.max_proposals = int(max_proposals)
@@ -404,8 +398,6 @@ class BingBaseline:
         )
 
     def __call__(self, image: Tensor) -> dict[str, Tensor]:
-        import cv2
-
         rgb = _check_image(image)
         h, w = rgb.shape[:2]
         bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
@@ -460,8 +452,6 @@ class SelectiveSearchBaseline:
     name: str = "Selective Search"
 
     def __post_init__(self) -> None:
-        import cv2
-
         if not hasattr(cv2, "ximgproc"):
             raise ImportError("cv2.ximgproc is missing: install opencv-contrib-python(-headless)")
         if not self.scale > 0:
@@ -469,8 +459,6 @@ class SelectiveSearchBaseline:
         self._ss = cv2.ximgproc.segmentation.createSelectiveSearchSegmentation()
 
     def __call__(self, image: Tensor) -> dict[str, Tensor]:
-        import cv2
-
         rgb = _check_image(image)
         h, w = rgb.shape[:2]
         bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)

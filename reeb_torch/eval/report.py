@@ -29,9 +29,10 @@ from typing import Any
 
 import torch
 
-from .common import environment, first_few
 from ..metrics.recall import KITTI_DIFFICULTIES
+from .common import environment, first_few
 from .methods import CROSS_VALIDATED, HEADLINE, IOUS, KS, LEAVE_FOLDER_OUT, TEXT_GRID, WHOLE_DRIVES
+from .plots import plot_curves
 from .table3 import OBJECT_SETS, PAPER_TABLE3, Frames, Table3
 
 __all__ = ["format_table", "format_per_class", "report_text", "write_csv", "record", "write_report"]
@@ -338,7 +339,6 @@ def write_report(table: Table3, out: str | os.PathLike, rerun: str = "") -> dict
     """Print the tables and write ``table3.txt``, ``table3.csv``, ``table3.json`` and the
     plots into ``out`` (made if needed); ``rerun`` is the command line that makes them again.
     Returns the JSON record (:func:`record`)."""
-    from .plots import plot_curves
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -28,11 +28,13 @@ from torch import Tensor
 from torchvision.ops import box_iou
 
 from ..config import ReebConfig
-from ..ranker import BoxRanker, keep_candidates, save_ranker
-from ..ranker.store import Checkpoints, StoredFrames
-from . import frames as F
+from ..metrics.recall import best_iou, object_hits
+from ..ranker import BoxRanker
 from ..ranker import fit as RF
+from ..ranker import keep_candidates, save_ranker
+from ..ranker.store import Checkpoints, StoredFrames
 from ..tuning import FrameCache, fold_blocks, held_out
+from . import frames as F
 
 __all__ = ["FitCrossValidation", "cross_validate", "held_out_outputs", "best_ious", "hinted_classes", "kept_rows"]
 
@@ -100,7 +102,6 @@ class FitCrossValidation:
 def best_ious(outputs: Sequence[dict[str, Tensor]], gts: Sequence[Tensor], ks: Sequence[int]) -> list[Tensor]:
     """Per frame, ``float32 [N_i, len(ks)]``: each object's (``gts[i]``) best IoU with the top
     ``k`` boxes of ``outputs[i]``, for each ``k`` of ``ks``."""
-    from ..metrics.recall import best_iou
 
     return [torch.stack([best_iou(o["boxes"], g, k).float() for k in ks], 1) if len(g)
             else torch.zeros(0, len(ks)) for o, g in zip(outputs, gts)]
@@ -217,7 +218,6 @@ def cross_validate(cache: FrameCache, cfg: ReebConfig, base: ReebConfig, samples
     :func:`~reeb_torch.tuning.held_out`'s. ``keep``: a folder where each block's model
     and its training states stay (:class:`~reeb_torch.ranker.store.Checkpoints`), so a killed
     run started again goes on from them (default: a temporary folder in ``scratch``)."""
-    from ..metrics.recall import object_hits
 
     frames = cache.frames
     names = cache.candidates(cfg.unranked(), 0).feature_names

@@ -28,6 +28,7 @@ from .orientation import ORIENTATION_NAMES
 from .refine import TARGET_SCALE, BoxRefiner, refine_feature_names
 from .store import RowView, StoredFrames
 from .training import Checkpoint, Standardised, class_loss, fit_member, fit_quality, quality_rows, standardised
+from .weights import RankerWeightsError, load_ranker
 
 __all__ = ["FitOptions", "Sample", "fit_ranker", "fit_refiner", "initial_model"]
 
@@ -383,7 +384,6 @@ def initial_model(spec: str, feature_names: Sequence[str]) -> BoxRanker:
         RankerWeightsError: as :func:`~reeb_torch.ranker.load_ranker` (missing, damaged), or
             it reads a column ``feature_names`` lacks.
     """
-    from .weights import RankerWeightsError, load_ranker
 
     shared = load_ranker(spec)  # shared, read-only: tune a copy
     missing = [n for n in shared.feature_names if n not in feature_names]

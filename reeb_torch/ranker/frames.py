@@ -30,12 +30,16 @@ import torch
 from torch import Tensor
 from torchvision.ops import box_iou
 
+from .. import __version__
 from .._memory import trim_heap
 from ..config import ReebConfig
+from ..datasets.folders import folder_names
+from ..datasets.kitti import DEFAULT_CLASSES, KittiDataset, read_kitti_labels
+from ..io import read_image
 from ..ranker import offset_targets, refine_feature_names
 from ..ranker.fit import FitOptions, Sample
 from ..ranker.store import RowStore, StoredFrames
-from ..tuning import FrameCache, Frames
+from ..tuning import FrameCache, Frames, load_frames
 
 __all__ = ["FitFrames", "ImageFiles", "load_fit_frames", "frame_sample", "frame_samples", "mirrored_sample",
            "jitter_of", "row_store", "similar_frames", "training_frames", "drive_of", "other_boxes"]
@@ -73,7 +77,6 @@ class ImageFiles(Sequence[Tensor]):
             return self._kept[i]
         if self._last is not None and self._last[0] == i:
             return self._last[1]
-        from ..io import read_image
 
         image = read_image(self.paths[i])
         self._reads += 1
@@ -104,8 +107,6 @@ def load_fit_frames(roots: Sequence[str | os.PathLike], limit: int | None = None
     Raises:
         ValueError: as :func:`~reeb_torch.tuning.load_frames`.
     """
-    from ..datasets.kitti import KittiDataset
-    from ..tuning import load_frames
 
     if lazy:
         return _lazy_frames(roots, limit)
@@ -120,8 +121,6 @@ def _lazy_frames(roots: Sequence[str | os.PathLike], limit: int | None) -> FitFr
     """:func:`load_fit_frames` with the images left in their files: the labels read as
     :func:`~reeb_torch.datasets.folders.load_kitti` reads them (checked against each image's size
     from its header)."""
-    from ..datasets.folders import folder_names
-    from ..datasets.kitti import DEFAULT_CLASSES, KittiDataset
 
     if not roots:
         raise ValueError("no data folder given")
@@ -159,7 +158,6 @@ def other_boxes(root: str | os.PathLike, image_ids: Sequence[str]) -> list[Tenso
     Raises:
         ValueError: ``root`` has no labels.
     """
-    from ..datasets.kitti import DEFAULT_CLASSES, KittiDataset, read_kitti_labels
 
     label_dir = KittiDataset(root).label_dir
     if label_dir is None:
@@ -269,7 +267,6 @@ def row_store(folder: str | os.PathLike, cache: FrameCache, cfg: ReebConfig, opt
     Raises:
         StoreError: the folder cannot be written.
     """
-    from .. import __version__
 
     frames = cache.frames
     rows_opts = {k: getattr(opts, k) for k in ("negatives", "positive_iou", "negative_iou", "seed", "mirror",

@@ -10,7 +10,10 @@ refines the best output boxes (:meth:`LearnedRanking.refine`, ``ReebConfig.refin
 
 from __future__ import annotations
 
+import copy
+import json
 import math
+import warnings
 from contextlib import nullcontext
 from typing import Callable, ContextManager
 
@@ -28,6 +31,7 @@ from .model import BoxRanker, softmax_rows
 from .orientation import ORIENTATION_NAMES, orientation_features, orientation_integrals
 from .prefilter import prefilter_cpu
 from .refine import merge_refined
+from .weights import load_ranker
 
 __all__ = ["CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANKER", "keep_candidates"]
 
@@ -60,8 +64,6 @@ def _warn_if_fitted_elsewhere(config: ReebConfig, fitted: dict | None) -> None:
     :func:`_same`): it still runs, likely worse."""
     if not fitted:
         return
-    import json
-    import warnings
 
     now = json.loads(json.dumps(config.to_dict(), default=list))
     differ = [k for k, v in now.items() if k in fitted and k not in NOT_SEEN_BY_RANKER and not _same(fitted[k], v)]
@@ -265,8 +267,6 @@ class LearnedRanking(CandidateFeatures):
     """
 
     def __init__(self, config: ReebConfig) -> None:
-        from .weights import load_ranker
-
         # the columns the model reads: with or without the orientation columns
         super().__init__(config, orientation=set(ORIENTATION_NAMES) <= set(load_ranker(config.ranker).feature_names))
         self._models: dict[str, BoxRanker] = {}  # the model's copy per device other than the CPU
@@ -277,18 +277,12 @@ class LearnedRanking(CandidateFeatures):
         """``config.class_quota`` as one share a class of the model's class head
         (:meth:`~reeb_torch.config.ReebConfig.class_shares`), or None: no class quota."""
         if config.class_quota and self.class_share is None:
-            import warnings
-
             warnings.warn(f"ReebConfig.class_quota is ignored: the ranker {config.ranker!r} has no class head "
                           "(fit one with reeb fit, whose models have one by default)", UserWarning, stacklevel=3)
         if config.rank_quality and self.model.quality is None:
-            import warnings
-
             warnings.warn(f"ReebConfig.rank_quality is ignored: the ranker {config.ranker!r} has no quality head "
                           "(FitOptions.quality_hidden fits one)", UserWarning, stacklevel=3)
         if config.refine_top and self.model.refiner is None:
-            import warnings
-
             warnings.warn(f"ReebConfig.refine_top is ignored: the ranker {config.ranker!r} has no box refiner "
                           "(reeb fit --refiner fits one)", UserWarning, stacklevel=3)
         self.refine_class: int | None = None
@@ -441,7 +435,5 @@ class LearnedRanking(CandidateFeatures):
             return self.model
         key = str(device)
         if key not in self._models:
-            import copy
-
             self._models[key] = copy.deepcopy(self.model).to(device)
         return self._models[key]

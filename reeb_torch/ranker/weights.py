@@ -41,10 +41,12 @@ from importlib import resources
 from pathlib import Path
 
 import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save
 from torch import Tensor
 
-from .features import FEATURES_VERSION, cheap_count
 from ..io import replace_file
+from .features import FEATURES_VERSION, cheap_count
 from .model import BoxRanker
 from .refine import refine_feature_names
 
@@ -132,7 +134,6 @@ def _differ(have: tuple[str, ...], want: tuple[str, ...]) -> str:
 def _read(path: Path, spec: str) -> BoxRanker:
     """The model of the file ``path``: its header and metadata checked first (:func:`_shapes`),
     then its tensors read and checked (:func:`_check_values`), then the model made."""
-    from safetensors import SafetensorError, safe_open
 
     where = f"ranker weights {spec!r} ({path})"
     try:
@@ -312,7 +313,6 @@ def ranker_bytes(model: BoxRanker, provenance: dict | None = None, config: dict 
         RankerWeightsError: a tensor holds NaN or infinite values (a fit that diverged), or
             ``scale`` is not positive: such weights are never written.
     """
-    from safetensors.torch import save
 
     info = {"features_version": FEATURES_VERSION, "feature_names": list(model.feature_names),
             "hidden": list(model.hidden), "members": len(model.members),

@@ -14,10 +14,23 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections import Counter
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from ..camera import CameraFit, fit_camera, read_kitti_calib
+import click
+import numpy as np
+from PIL import Image
+from tqdm import tqdm
+
+from ..camera import BOX_HEIGHT_FACTOR, KITTI_CLASS_HEIGHTS_M, Camera, CameraFit, fit_camera, read_kitti_calib
+from ..config import ReebConfig
+from ..datasets.kitti import KittiDataset, find_layout, read_kitti_labels
+from ..horizon import HorizonError, estimate_horizon, frame_vanishing_point
+from ..io import ImageReadError, read_image, replace_file
+from .claim import claim_files
+from .common import UsageProblem
+from .inputs import NoImagesError, scan_images
 
 __all__ = ["check_out", "read_boxes", "calibrate", "format_fit", "plot_fit", "has_labels", "calibrate_images",
            "calibrate_intrinsics", "class_heights", "print_notes"]
@@ -30,9 +43,6 @@ def read_boxes(roots: Sequence[str | os.PathLike]) -> dict[str, Any]:
     Raises:
         ValueError: a folder without a label folder or without images.
     """
-    from PIL import Image
-
-    from ..datasets.kitti import KittiDataset, read_kitti_labels
 
     out: dict[str, Any] = {"boxes": [], "classes": [], "heights": [], "p2_horizon": []}
     for root in roots:
@@ -91,7 +101,6 @@ def plot_fit(fit: CameraFit, out: Path) -> Path | None:
         import matplotlib.pyplot as plt
     except ImportError:
         return None
-    import numpy as np
 
     fig, ax = plt.subplots(figsize=(7, 5))
     names = np.array(fit.classes)
@@ -123,7 +132,6 @@ def calibrate(roots: Sequence[str | os.PathLike], out: str | os.PathLike,
 
     Returns ``(the printed text, the JSON path, the picture's path or None)``.
     """
-    from ..camera import BOX_HEIGHT_FACTOR, KITTI_CLASS_HEIGHTS_M
 
     factor = BOX_HEIGHT_FACTOR if box_height_factor is None else box_height_factor
     heights = dict(KITTI_CLASS_HEIGHTS_M if class_heights is None else class_heights)
@@ -157,8 +165,6 @@ def check_out(out: Path, picture: bool, overwrite: bool) -> None:
     folder is a file, the picture beside it (``picture``: the labelled route's ``<stem>.png``)
     would be the config itself, or the config or the picture is there already without
     ``overwrite``; then both are claimed until the command ends (:func:`.claim.claim_files`)."""
-    from .claim import claim_files
-    from .common import UsageProblem
 
     targets = [out]
     if picture:
@@ -173,7 +179,6 @@ def check_out(out: Path, picture: bool, overwrite: bool) -> None:
 def write_record(out: Path, record: dict) -> None:
     """Write the config file whole or not at all (:func:`reeb_torch.io.replace_file`): a failed
     write leaves the previous file as it was."""
-    from ..io import replace_file
 
     replace_file(out, (json.dumps(record, indent=2) + "\n").encode("utf-8"))
 
@@ -181,7 +186,6 @@ def write_record(out: Path, record: dict) -> None:
 def has_labels(root: str | os.PathLike) -> bool:
     """Whether ``root`` is a KITTI-format folder with a label folder (by its layout alone: a
     frame without its label or calib file is the labelled route's error, named there)."""
-    from ..datasets.kitti import find_layout
 
     try:
         return find_layout(root)[1].is_dir()
@@ -191,7 +195,6 @@ def has_labels(root: str | os.PathLike) -> bool:
 
 def _image_folders(roots: Sequence[str | os.PathLike]) -> list[Path]:
     """The image folder of each root: ``images/`` or ``image_2/`` of a KITTI folder, else the root."""
-    from ..datasets.kitti import find_layout
 
     out = []
     for r in roots:
@@ -203,8 +206,6 @@ def _image_folders(roots: Sequence[str | os.PathLike]) -> list[Path]:
 
 
 def _camera_height(camera_height: float | None) -> float:
-    from ..config import ReebConfig
-
     return ReebConfig().camera_height_m if camera_height is None else float(camera_height)
 
 
@@ -222,11 +223,6 @@ def calibrate_images(roots: Sequence[str | os.PathLike], out: str | os.PathLike,
             ``notes``: the frames left out, and why).
         ValueError: no image in the folders.
     """
-    from tqdm import tqdm
-
-    from ..horizon import HorizonError, estimate_horizon, frame_vanishing_point
-    from ..io import ImageReadError, read_image
-    from .inputs import NoImagesError, scan_images
 
     try:
         found = scan_images(_image_folders(roots))
@@ -266,9 +262,6 @@ def calibrate_images(roots: Sequence[str | os.PathLike], out: str | os.PathLike,
 
 def _heights(roots: Sequence[str | os.PathLike]) -> list[int]:
     """The height in pixels of every image in ``roots`` (read from the files' headers)."""
-    from PIL import Image
-
-    from .inputs import NoImagesError, scan_images
 
     try:
         found = scan_images(_image_folders(roots))
@@ -296,9 +289,6 @@ def calibrate_intrinsics(out: str | os.PathLike, calib: str | os.PathLike | None
     Raises:
         ValueError: no ``P2`` in ``calib``, no height to divide by, or ``cy`` outside the image.
     """
-    from collections import Counter
-
-    from ..camera import Camera
 
     cam = Camera.from_kitti_calib(calib) if calib is not None else None
     row = cam.cy if cam is not None else cy
@@ -330,9 +320,6 @@ def calibrate_intrinsics(out: str | os.PathLike, calib: str | os.PathLike | None
 def class_heights(items: tuple[str, ...]) -> dict[str, float] | None:
     """``--class-height CLASS=METRES`` items over KITTI's class heights (None without any);
     a usage error naming the item that is not CLASS=METRES with metres > 0."""
-    import click
-
-    from ..camera import KITTI_CLASS_HEIGHTS_M
 
     if not items:
         return None
@@ -352,7 +339,6 @@ def class_heights(items: tuple[str, ...]) -> dict[str, float] | None:
 
 def print_notes(notes: list[str], most: int = 10) -> None:
     """The frames left out, one ``note:`` line each on stderr (the first ``most``, then a count)."""
-    import click
 
     for note in notes[:most]:
         click.echo(f"note: {note}", err=True)

@@ -24,7 +24,7 @@ from pathlib import Path
 import click
 
 from .common import UsageProblem
-from .output_files import OutputError, hidden_stem, stale_temp_files
+from .output_files import OutputError, check_output, hidden_stem, stale_temp_files
 from .output_lock import OutputLock, lock_output
 
 __all__ = ["claim", "claim_files", "check_files", "claim_run_output", "unwritable"]
@@ -116,7 +116,6 @@ def claim_run_output(out: str | os.PathLike) -> None:
     """A run's results file (``reeb propose``/``reeb detect -o``, which ``--resume`` goes on
     from): its format and folder checked (:func:`.output_files.check_output`), then
     :func:`claim`ed until the command ends."""
-    from .output_files import check_output
 
     try:
         check_output(out)

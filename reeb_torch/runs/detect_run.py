@@ -29,8 +29,14 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from ..detection import DetectorFileError, ReebDetector
+from ..detection.detector import resolve_detector
+from ..detection.inference import StageClock
 from .common import UsageProblem, resolve_device
+from .decoding import decoded_images
 from .engine import ImageRun
+from .rows import result_row
+from .viz import draw_detections
 
 __all__ = ["run_detect", "load_detector"]
 
@@ -60,7 +66,6 @@ class _DetectRun(ImageRun):
         self.warm: tuple[int, float, dict[str, float]] | None = None
         """(images, detector seconds, stage seconds) of the first batch, which pays the warm-up."""
         self.detect_s = 0.0
-        from ..detection.inference import StageClock
 
         det.clock = StageClock(dev)
         self.stages = det.clock
@@ -70,8 +75,6 @@ class _DetectRun(ImageRun):
                 f"{self.made_by}); use another --out, or --overwrite")
 
     def stream(self, images):
-        from .decoding import decoded_images
-
         return decoded_images(images, self.workers, quiet=self.quiet)
 
     def groups(self, stream):
@@ -88,8 +91,6 @@ class _DetectRun(ImageRun):
             self.warm = (self.stats["ok"], self.detect_s, dict(self.stages.seconds))
 
     def finish(self, item: Any, out: dict) -> None:
-        from .rows import result_row
-
         keep = out["scores"] >= self.min_score
         out = {k: v[keep].cpu() for k, v in out.items()}
         names = [self.det.categories[int(i)] for i in out["labels"]]
@@ -103,8 +104,6 @@ class _DetectRun(ImageRun):
             self.pictures.save(stem, lambda: self._picture(item, out, names))
 
     def _picture(self, item: Any, out: dict, names: list[str]) -> Any:
-        from .viz import draw_detections
-
         shown = (out["scores"] >= self.viz_min_score).nonzero().flatten().tolist()
         title = f"{Path(item.path).name}: {len(shown)} detections scoring {self.viz_min_score:g} or more"
         return draw_detections(item.image, out["boxes"][shown], [names[i] for i in shown], out["scores"][shown],
@@ -132,8 +131,6 @@ def load_detector(path: str, device: str) -> tuple[Any, str, Any]:
     """The detector file at ``path`` loaded on ``device`` (``--device``), what its rows'
     ``config`` holds (``det-`` and the file's SHA-256, first 16 digits) and the device; a
     usage error when it cannot be loaded."""
-    from ..detection import DetectorFileError, ReebDetector
-    from ..detection.detector import resolve_detector
 
     dev = resolve_device(device)
     try:

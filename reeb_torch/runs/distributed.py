@@ -38,8 +38,13 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterable, Sequence, cast
 
+import torch
+
 from ..config import ReebConfig
-from .output_files import result_files
+from ..generator import ProposalGenerator
+from .decoding import ImageFileDataset, size_batches
+from .output_files import ParquetWriter, result_files
+from .rows import error_row, file_error, hint_names, resolved_path, result_row, text_path
 
 if TYPE_CHECKING:  # pragma: no cover
     import ray.data
@@ -109,7 +114,6 @@ def torch_threads(cpus: float) -> int:
 def match_key(path: str | os.PathLike) -> str:
     """The absolute path that rows are matched on for ``--resume``: the single-machine
     path's :func:`reeb_torch.runs.rows.resolved_path` (symlinks resolved)."""
-    from .rows import resolved_path
 
     return resolved_path(path)
 
@@ -129,7 +133,6 @@ def paths_dataset(paths: Iterable[str | os.PathLike]) -> "ray.data.Dataset":
     that is not UTF-8 is ``image`` in the rows' ``\\xNN`` form and read from the exact bytes
     of ``open`` (both columns plain Arrow types, never pickled Python objects).
     """
-    from .rows import text_path
 
     ray = require_ray()
     items = [{"image": text_path(p), "open": os.fsencode(match_key(p))} for p in paths]
@@ -154,10 +157,6 @@ class ProposalActor:
 
     def __init__(self, config: dict, cpus: float = 1.0, device: str = "cpu",
                  group_size: int = 4) -> None:
-        import torch
-
-        from ..generator import ProposalGenerator
-
         torch.set_num_threads(torch_threads(cpus))
         try:
             import cv2
@@ -173,9 +172,6 @@ class ProposalActor:
         self.gen = ProposalGenerator(self.config).to(self.device).eval()
 
     def _decode(self, shown: str, opened: str):
-        from .decoding import ImageFileDataset
-        from .rows import text_path
-
         item = ImageFileDataset([opened], min_side=self.config.min_window)[0]
         item.path = shown
         if item.error is not None and opened != shown:
@@ -183,10 +179,6 @@ class ProposalActor:
         return item
 
     def _run(self, items: list) -> list[dict]:
-        import torch
-
-        from .rows import hint_names, result_row
-
         x = torch.stack([it.image for it in items]).to(self.device)
         with torch.no_grad():
             results = self.gen(x)
@@ -202,15 +194,11 @@ class ProposalActor:
         # a relative path resolved here would name a file in the worker's folder: the
         # driver resolved it (column ``open``)
         if "resolved" in row:
-            from .rows import text_path
-
             row["resolved"] = text_path(opened)
         return row
 
     def rows(self, shown: Sequence[str], opened: Sequence[str]) -> list[dict]:
         """The result rows for ``shown`` paths read from ``opened``, in input order."""
-        from .decoding import size_batches
-        from .rows import error_row, file_error
 
         items = [self._decode(str(s), str(o)) for s, o in zip(shown, opened)]
         for i, it in enumerate(items):
@@ -239,8 +227,6 @@ class ProposalActor:
 
     def __call__(self, batch: dict) -> Any:
         import pyarrow as pa
-
-        from .output_files import ParquetWriter
 
         shown = [_path_text(s) for s in batch["image"]]
         opened = [_path_text(o) for o in batch["open"]] if "open" in batch else shown

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any, Callable, Generator, Iterable, Iterator, Sequence
 
 import click
+from tqdm import tqdm
 
 from .common import UsageProblem
 from .ctrl_c import CriticalSection, caused_by_interrupt
@@ -217,7 +218,6 @@ class ImageRun:
     def run(self) -> None:
         """Compute every image left, write each row in input order; Ctrl-C and SIGTERM stop it
         (what is done is kept), as does a side output that cannot be written."""
-        from tqdm import tqdm
 
         self.prepare()
         self.rows = OrderedWriter(self.output)

@@ -28,11 +28,13 @@ import csv
 import json
 import os
 import pickle
-from pathlib import Path
 import typing
+from pathlib import Path
 from typing import Iterable, Mapping
 
 import numpy as np
+
+from .output_files import OutputError, hidden_stem, read_result_dir, read_results
 
 __all__ = ["XYXY_ABS", "ExportError", "read_rows", "read_id_map", "image_ids", "check_row",
            "detectron2_proposals", "write_detectron2"]
@@ -47,7 +49,6 @@ class ExportError(ValueError):
 
 def read_rows(results: str | os.PathLike) -> list[dict]:
     """The rows of a results file (``.jsonl``/``.parquet``) or a folder of Parquet files."""
-    from .output_files import OutputError, read_result_dir, read_results
 
     p = Path(results)
     if p.is_dir():
@@ -206,7 +207,6 @@ def detectron2_proposals(rows: Iterable[dict], id_map: Mapping[str, object] | No
 def write_detectron2(proposals: dict, out: str | os.PathLike) -> Path:
     """Pickle ``proposals`` to ``out`` (through a temporary file renamed into place; a
     symbolic link at ``out`` stays a link, the file it points to is written)."""
-    from .output_files import hidden_stem
 
     out = Path(os.path.realpath(out) if os.path.islink(out) else out)  # a link stays a link: its target is written
     tmp = out.with_name(f"{hidden_stem(out)}.tmp")

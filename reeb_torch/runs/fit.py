@@ -17,18 +17,29 @@ import shlex
 import shutil
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
+from tqdm import tqdm
+
 from ..config import ReebConfig
-from ..ranker import frames as F
-from ..ranker import fit as RF
-from ..ranker import cv as fit_cv
 from ..datasets.folders import folder_blocks
-from ..metrics.recall import compare_recall
-from ..tuning import FrameCache, bootstrap_interval, fold_blocks, objective
+from ..io import replace_file
+from ..metrics.recall import compare_recall, object_hits
+from ..ranker import SHIPPED, RankerWeightsError
+from ..ranker import cv as fit_cv
 from ..ranker import dropped_columns
+from ..ranker import fit as RF
+from ..ranker import fitted_frames, frame_hash
+from ..ranker import frames as F
+from ..ranker import load_ranker, save_ranker, seen_hashes
 from ..ranker.store import Checkpoints, RowStore, StoredFrames, StoreError
+from ..tuning import FrameCache, bootstrap_interval, fold_blocks, objective
+from .claim import check_files, claim
+from .common import Failure, UsageProblem, ray_engine
+from .fit_ray import ray_rows
+from .output_files import hidden_stem
 
 if TYPE_CHECKING:
     from ..ranker import BoxRanker
@@ -40,8 +51,6 @@ FEW_FRAMES = 20
 
 
 def _bar(total: int, desc: str, quiet: bool) -> Any:
-    from tqdm import tqdm
-
     return tqdm(total=total, desc=desc, disable=True if quiet else None, file=sys.stderr, dynamic_ncols=True)
 
 
@@ -144,7 +153,6 @@ def _hint_report(frames: F.FitFrames, hinted: list, how: str = "cross-validated"
 
 def _shipped_hits(cache: FrameCache, cfg: ReebConfig, k: int, iou: float) -> list | None:
     """The shipped model's hits on the frames, or None where it cannot rank this config's features."""
-    from ..ranker import RankerWeightsError
 
     try:
         return cache.hits(cfg.replace(ranker="kitti"), range(len(cache.frames)), k, iou)
@@ -158,7 +166,6 @@ def _other_folder_hits(cache: FrameCache, cfg: ReebConfig, samples: Sequence[RF.
     """Per frame, the objects the generator finds with a model fitted (or fine-tuned) on the
     other folders only, a block per folder: how a model holds on frames unlike those it saw;
     None for frames of one folder."""
-    from ..metrics.recall import object_hits
 
     blocks = [idx for _, idx in folder_blocks(cache.frames.folders)]
     if not blocks:
@@ -184,9 +191,6 @@ class FitOutputs:
     """
 
     def __init__(self, out: str | os.PathLike, overwrite: bool = False) -> None:
-        from .claim import check_files
-        from .common import UsageProblem
-
         text = os.fspath(out)
         if not text.strip():
             raise UsageProblem("-o/--out is empty: give the weights file to write, e.g. -o ranker.safetensors")
@@ -203,9 +207,6 @@ class FitOutputs:
         self._release: Callable[[], None] = lambda: None
 
     def __enter__(self) -> "FitOutputs":
-        from .claim import claim
-        from .common import UsageProblem
-
         self._release = claim([self.weights, self.config], hold=False, clear=True)  # and what a kill left
         try:
             shutil.rmtree(self.scratch, ignore_errors=True)  # what a killed fit on this output left
@@ -223,9 +224,6 @@ class FitOutputs:
         """The weights, then the config, each renamed into place; a one-line
         :class:`~reeb_torch.runs.common.Failure` (exit code 1) when one cannot be written (the
         files keep what they held) or the weights are not finite (nothing is written)."""
-        from ..ranker import SHIPPED, RankerWeightsError, save_ranker
-        from ..io import replace_file
-        from .common import Failure
 
         name = self.weights.name
         ranker = f"./{name}" if name in SHIPPED or name == "none" else name  # not a shipped name
@@ -247,8 +245,6 @@ class FitOutputs:
 
 
 def _hidden(path: Path) -> str:
-    from .output_files import hidden_stem
-
     return hidden_stem(path)
 
 
@@ -289,7 +285,6 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: RF.FitOptions
         UsageProblem: ``out`` cannot be written, or another fit holds it (exit code 2).
         Failure: the weights cannot be written, or are not finite (exit code 1).
     """
-    import warnings
 
     outputs = FitOutputs(out, overwrite)
     with outputs, warnings.catch_warnings():
@@ -301,7 +296,6 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: RF.FitOptions
             return _run_fit(roots, outputs, cfg, opts, folds, k, iou, limit, quiet, command, whole_drives, val,
                             engine)
         except StoreError as e:  # a full disk under the row store: the weights there stay
-            from .common import Failure
 
             raise Failure(f"{e}; {outputs.weights} is unchanged") from None
 
@@ -309,8 +303,6 @@ def run_fit(roots: Sequence[str], out: str, cfg: ReebConfig, opts: RF.FitOptions
 def _run_fit(roots: Sequence[str], outputs: FitOutputs, cfg: ReebConfig, opts: RF.FitOptions, folds: int, k: int,
              iou: float, limit: int | None, quiet: bool, command: str, whole_drives: bool,
              val: Sequence[str] = (), engine: tuple[str | None, int, float | None] | None = None) -> dict[str, Any]:
-    from ..ranker import frame_hash, load_ranker, seen_hashes
-
     t0 = time.monotonic()
     if opts.init:
         load_ranker(opts.init)  # a file that is no model is refused before the frames are read
@@ -453,12 +445,10 @@ def _validated(scored: F.FitFrames, model: BoxRanker, cfg: ReebConfig, opts: RF.
                outputs: FitOutputs, quiet: bool, clock: _Stages) -> _Estimate:
     """``reeb fit --val``'s estimate: the fitted model on the ``--val`` frames (which it was
     not fitted on) beside training-free and the shipped model, one pass over them."""
-    from ..ranker import save_ranker
 
     cache = FrameCache(scored, budget=FRONT_END_BUDGET)
     weights = save_ranker(model, outputs.store / "validated.safetensors")
     every = range(len(scored))
-    from ..metrics.recall import object_hits
 
     with _bar(2, "--val frames", quiet) as bar:
         base = cache.hits(cfg.training_free(), every, k, iou)
@@ -511,8 +501,6 @@ def _rows(cache: FrameCache, cfg: ReebConfig, opts: F.FitOptions, store: RowStor
         out = F.frame_samples(cache, cfg, opts, progress=_iterate("candidates", quiet), store=store)
         assert isinstance(out, StoredFrames)
         return out
-    from .common import Failure, ray_engine
-    from .fit_ray import ray_rows
 
     actors, cpus = ray_engine(engine, quiet)
     total = len(cache.frames) - len(store)
@@ -536,7 +524,6 @@ def _open_store(outputs: FitOutputs, cache: FrameCache, cfg: ReebConfig, opts: R
                 quiet: bool) -> RowStore:
     """The fit's row store beside its output (:func:`~reeb_torch.ranker.frames.row_store`), with a
     line where a killed fit's rows are gone on from or a store made otherwise is made again."""
-    from .common import Failure
 
     try:
         store = F.row_store(outputs.store, cache, cfg, opts)
@@ -555,7 +542,6 @@ def _seen_note(who: str, model: BoxRanker, frames: F.FitFrames, digest: str, row
     """A line where ``model`` was fitted on some or all of ``frames`` (the same pictures, by
     :func:`~reeb_torch.ranker.fitted_frames`, or the same frame list by its digest, for files
     without frame hashes): there its recall is in-sample."""
-    from ..ranker import fitted_frames
 
     seen = sum(s is not None for s in fitted_frames(model, frames.images))
     if seen == len(frames) or model.meta.get("provenance", {}).get("frames_digest") == digest:

@@ -17,13 +17,23 @@ imported when a run starts.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import pickle
 from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
+import torch
 
+from ..config import ReebConfig
+from ..detection import ReebDetector
+from ..detection.cache import StaleCacheError, image_digest
+from ..detection.feature_cache import FeatureCache, compute_features
+from ..detection.kitti import frame_image
+from ..ranker import frame_hash
+from ..ranker.frames import FitFrames, ImageFiles, frame_samples
+from ..tuning import FrameCache
 from .distributed import actor_cpus, require_ray, torch_threads
 
 __all__ = ["start_ray", "RowsActor", "FramesActor", "ray_rows", "ray_frames"]
@@ -61,8 +71,6 @@ def start_ray(address: str | None, actors: int, cpus_per_actor: float | None, qu
 
 
 def _quiet_workers(cpus: float) -> None:
-    import torch
-
     torch.set_num_threads(torch_threads(cpus))
     try:
         import cv2
@@ -77,18 +85,11 @@ class RowsActor:
     a batch of frame indices, gives each frame's training rows (pickled numpy arrays)."""
 
     def __init__(self, frames: Any, config: dict, opts: Any, cpus: float = 1.0) -> None:
-        from ..config import ReebConfig
-        from ..tuning import FrameCache
-
         _quiet_workers(cpus)
         self.cache = FrameCache(frames, budget=0)
         self.cfg, self.opts = ReebConfig.from_dict(config), opts
 
     def __call__(self, batch: dict) -> dict:
-        import dataclasses
-
-        from ..ranker.frames import frame_samples
-
         indices = [int(i) for i in batch["frame"]]
         blobs = []
         for i in indices:
@@ -111,9 +112,6 @@ def ray_rows(store: Any, frames: Any, config: Any, opts: Any, actors: int, cpus:
              progress: Any = None) -> None:
     """Append the rows of ``frames``' frames the ``store`` lacks, computed on Ray
     (:class:`RowsActor`), in frame order; ``progress`` wraps the loop (a progress bar)."""
-    import torch
-
-    from ..ranker.frames import FitFrames, ImageFiles
 
     ray = require_ray()
     todo = list(range(len(store), len(frames)))
@@ -138,23 +136,12 @@ class FramesActor:
 
     def __init__(self, classes: Sequence[str], proposals: str, settings: Any, cache: dict, cpus: float = 1.0,
                  config: dict | None = None) -> None:
-        from ..config import ReebConfig
-        from ..detection import ReebDetector
-        from ..detection.feature_cache import FeatureCache
-
         _quiet_workers(cpus)
         self.det = ReebDetector(classes, proposals, settings,
                                 config=ReebConfig.from_dict(config) if config is not None else None)
         self.cache = FeatureCache(**cache)
 
     def __call__(self, batch: dict) -> dict:
-        import torch
-
-        from ..detection.cache import StaleCacheError, image_digest
-        from ..detection.feature_cache import compute_features
-        from ..detection.kitti import frame_image
-        from ..ranker import frame_hash
-
         blobs = []
         with torch.no_grad():
             for raw in batch["item"]:

@@ -11,6 +11,7 @@ files (the Ray engine's output) is read by :func:`read_result_dir`."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -54,7 +55,6 @@ def hidden_stem(path: str | os.PathLike) -> str:
     name = os.fsencode(Path(path).name)
     if len(name) <= _PLAIN_NAME_BYTES:
         return f".{Path(path).name}"
-    import hashlib
 
     return f".reeb-{hashlib.sha256(name).hexdigest()[:16]}"
 

@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import errno
+import fcntl
 import os
 from pathlib import Path
 
@@ -33,7 +34,6 @@ def sweep_dead_locks(folder: Path, keep: Path | None = None) -> None:
     after its own ``flock`` and starts again on a new one (:func:`lock_output`), so no two
     runs ever hold one output. Only ``.*.reeb-lock`` files are touched; errors are ignored.
     """
-    import fcntl
 
     try:
         names = [q for q in folder.iterdir() if q.name.startswith(".") and q.name.endswith(LOCK_SUFFIX)]
@@ -94,7 +94,6 @@ def lock_output(path: str | os.PathLike) -> OutputLock:
     therefore fails before any work (it does not wait), and never overwrites the first
     one's rows. Raises :class:`OutputError` when the lock file cannot be created.
     """
-    import fcntl
 
     lock = _lock_path(path)
     while True:

@@ -17,10 +17,14 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
+import torch
+
+from ..generator import ProposalGenerator, _warm_for
 from .common import UsageProblem, box_table, bundled_sample, label_for, read_labels
 from .decoding import decoded_images, size_batches
 from .engine import ImageRun, ms_per_img
 from .rows import hint_names, result_row, text_path
+from .viz import draw_proposals, save_png
 
 __all__ = ["propose_local"]
 
@@ -85,7 +89,6 @@ class _LocalRun(ImageRun):
         """Build the generator and, before the clock starts, compile (or load) the CPU
         kernels; the summary gives that time apart (``compile_s``, with the first batch's
         warm-up: :meth:`run_batch`)."""
-        from ..generator import ProposalGenerator, _warm_for
 
         try:
             self.gen = ProposalGenerator(self.cfg).to(self.dev).eval()
@@ -110,8 +113,6 @@ class _LocalRun(ImageRun):
             self.first_done = (time.perf_counter(), stats["ok"] + stats["failed"], stats["algo_s"])
 
     def run_batch(self, items: list) -> list:
-        import torch
-
         x = torch.stack([it.image for it in items]).to(self.dev, non_blocking=True)
         if not self.sized:  # the tables of the first image size (window grid, score plan), untimed
             t0 = time.perf_counter()
@@ -138,7 +139,6 @@ class _LocalRun(ImageRun):
 
     def _pictures(self, item, boxes, scores, hints=None) -> None:
         """The ``--viz`` picture of an image (and ``reeb_proposals.png`` for the sample)."""
-        from .viz import draw_proposals, save_png
 
         viz_top = self.viz_top
         title = f"{Path(item.path).name}: top {min(viz_top, len(boxes))} of {len(boxes)} proposals"

@@ -12,6 +12,7 @@ resume lines, the closing summary's lines) is shared with it. The Ray engine its
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
 import time
@@ -21,11 +22,11 @@ from typing import Callable, Sequence
 import click
 
 from . import distributed as D
+from .claim import claim
 from .common import Failure, UsageProblem
-from .engine import closing_tail, count_line, find_inputs, ms_per_img, mismatch_line
+from .engine import closing_tail, count_line, find_inputs, mismatch_line, ms_per_img
 from .inputs import same_file_note
 from .output_files import OutputError, check_output, read_result_dir, result_files
-from .claim import claim
 from .rows import row_key
 from .run_output import resume_note
 
@@ -161,7 +162,6 @@ class _RayRun:
         ray, quiet = self.ray, self.quiet
         t0 = time.perf_counter()
         if quiet:  # -q: Ray's and Ray Data's INFO / WARNING lines too
-            import logging
 
             for name in ("ray", "ray.data", "ray._private", "ray.data._internal"):
                 logging.getLogger(name).setLevel(logging.ERROR)

@@ -3,22 +3,26 @@ cross-validate, print, write the tuned config, its record and the plots)."""
 
 from __future__ import annotations
 
+import io
 import json
 import sys
 import time
 from pathlib import Path
 from typing import Any, Sequence
 
-from ..config import ReebConfig
+from tqdm import tqdm
+
 from .. import tuning as T
+from ..config import ReebConfig
+from ..io import replace_file
 from ..metrics.recall import compare_recall
+from .claim import claim_files
 
 __all__ = ["run_tune", "run_score", "plot_study"]
 
 
 def _progress(total: int, quiet: bool) -> Any:
     """The trials' tqdm bar on stderr (silent with ``quiet``), as ``reeb propose``'s."""
-    from tqdm import tqdm
 
     return tqdm(total=total, desc="reeb tune", unit="trial", disable=True if quiet else None, file=sys.stderr,
                 dynamic_ncols=True)
@@ -38,16 +42,11 @@ def plot_paths(stem: Path) -> list[Path]:
 def check_out(out: Path, overwrite: bool) -> None:
     """``-o`` before any work: a usage error (one line, exit 2) where it or a plot beside it
     is there already without ``overwrite``, or it is a folder."""
-    from .claim import claim_files
 
     claim_files([out, *plot_paths(out.with_suffix(""))], overwrite, example="tuned.json")
 
 
 def _save(fig: Any, path: Path) -> None:
-    import io
-
-    from ..io import replace_file
-
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     replace_file(path, buf.getvalue())
@@ -156,7 +155,6 @@ def run_tune(roots: Sequence[str], out: str, base: ReebConfig, space_file: str |
             "all_frames": vars(full), "trials_completed": len([t for t in study.trials if t.value is not None]),
         },
     }
-    from ..io import replace_file
 
     replace_file(Path(out), (json.dumps(record, indent=2, default=str) + "\n").encode("utf-8"))
     pictures = plot_study(study, Path(out).with_suffix("")) if plots else []

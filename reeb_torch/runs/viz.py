@@ -28,10 +28,12 @@ returns).
 
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 from typing import Any, Sequence
 
+import cv2
 import numpy as np
 import torch
 
@@ -151,7 +153,6 @@ def rank_colors(n: int, lo: float = 0.15) -> np.ndarray:
 
     Samples the *plasma* colour map from 1.0 (rank 1) down to ``lo`` (rank n).
     """
-    import cv2
 
     if n <= 0:
         return np.zeros((0, 3), np.uint8)
@@ -178,7 +179,6 @@ def draw_proposals(
     truth boxes are green with their class name. ``title`` goes in a dark band above the
     image. Returns an RGB ``uint8`` array ``(H', W, 3)``.
     """
-    import cv2
 
     canvas = _hwc(image).copy()
     h, w = canvas.shape[:2]
@@ -220,7 +220,6 @@ def draw_detections(image: Any, boxes: Any, labels: Sequence[str], scores: Any, 
     class name and score, one colour per class (the colours follow ``classes``' order, where
     given); labels are moved off each other, the best placed first; an RGB ``uint8`` array
     ``(H', W, 3)`` (a title band on top)."""
-    import cv2
 
     canvas = _hwc(image).copy()
     h, w = canvas.shape[:2]
@@ -261,7 +260,6 @@ def crop_sheet(
     and ``caption`` is written in a dark band under the crop. Tiles fill ``columns`` per
     row. Returns an RGB ``uint8`` array (an empty ``(0, 0, 3)`` one for no crops).
     """
-    import cv2
 
     if columns < 1 or tile[0] < 16 or tile[1] < 16:
         raise ValueError(f"crop_sheet needs columns >= 1 and tiles of at least 16 px, got {columns}, {tile}")
@@ -311,7 +309,6 @@ def crop_sheet(
 
 def save_png(path: str | os.PathLike, rgb: np.ndarray) -> Path:
     """Write an RGB ``uint8`` array as PNG, atomically (temporary file, then rename)."""
-    import cv2
 
     p = Path(path)
     ok, data = cv2.imencode(".png", np.ascontiguousarray(rgb[:, :, ::-1]))
@@ -588,7 +585,6 @@ def _gt_labels(ax, boxes: np.ndarray, gts: list, gt_hex: str, w: int, h: int, la
 
 def save_figure(fig, path: str | os.PathLike, dpi: int = 100) -> Path:
     """Save a matplotlib figure as PNG, atomically, and close it."""
-    import io
 
     import matplotlib.pyplot as plt
 
