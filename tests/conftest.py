@@ -50,7 +50,7 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(scope="session")
 def tiny_kitti(tmp_path_factory) -> Path:
     """The two bundled frames as a KITTI-format folder (images/, labels/, calib/)."""
-    from test_eval import _example_kitti
+    from tests.eval.test_eval import _example_kitti
 
     return _example_kitti(tmp_path_factory.mktemp("det") / "kitti")
 

@@ -270,6 +270,26 @@ def test_imports_are_at_the_top():
     assert "runs/cli.py" in start and not inner, f"imports inside functions: {inner}"
 
 
+WHOLE_PACKAGE_TESTS = {"test_properties.py", "test_typing.py", "test_layout.py", "test_examples.py",
+                       "test_recall_kitti.py", "test_warmup.py"}
+"""Tests of the package as a whole (its contracts, types, layout, examples, recall on KITTI,
+the kernels' warm-up), at the top of ``tests/``."""
+
+
+def test_tests_mirror_the_package():
+    """A test file sits in the folder of what it tests: ``tests/<folder>/`` for a folder of the
+    package (``tests/benchmarks/`` for the benchmark scripts), ``tests/`` for a top-level
+    module (``test_<module>.py``) or the package as a whole (:data:`WHOLE_PACKAGE_TESTS`)."""
+    tests = REPO / "tests"
+    folders = {p.name for p in PACKAGE.iterdir() if p.is_dir() and (p / "__init__.py").exists()} | {"benchmarks"}
+    top = {f"test_{p.stem}.py" for p in PACKAGE.glob("*.py")}
+    wrong = [p.relative_to(tests).as_posix() for p in tests.rglob("test_*.py")
+             if not (p.parent == tests and (p.name in top or p.name in WHOLE_PACKAGE_TESTS)
+                     or p.parent.parent == tests and p.parent.name in folders)]
+    assert not wrong, f"test files outside the folder of what they test: {wrong}"
+    assert {p.parent.name for p in tests.glob("*/test_*.py")} <= folders
+
+
 RANKER_TRAINING = {"reeb_torch.ranker.fit", "reeb_torch.ranker.training", "reeb_torch.ranker.store",
                    "reeb_torch.ranker.frames", "reeb_torch.ranker.cv"}
 """The learned ranking's training (the fit on rows, its loop, the on-disk rows and

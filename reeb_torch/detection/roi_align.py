@@ -11,7 +11,7 @@ two halves of the channels run at once, touching different memory).
 :class:`PyramidRoIAlign` is :class:`~torchvision.ops.MultiScaleRoIAlign` (the FPN level of
 each box, ``aligned=False``) that takes this path for one image's float32 maps on the CPU,
 training included, and torchvision's elsewhere. Both directions give torchvision's numbers
-bit for bit (``tests/test_detection_speed.py``).
+bit for bit (``tests/detection/test_detection_speed.py``).
 """
 
 from __future__ import annotations
