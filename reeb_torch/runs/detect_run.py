@@ -6,7 +6,7 @@
     reeb detect images/ --detector det.safetensors -o dets.jsonl --resume   # after an interruption
 
 The command (:mod:`.cli`) loads the detector (:func:`load_detector`) and hands the images to
-:func:`run_detect`: :class:`_DetectRun`, the detector on :class:`.engine.ImageRun`; everything
+:func:`run_detect`: :class:`DetectStep`, the detector, on :class:`.engine.ImageRun`; everything
 ``reeb propose`` promises about inputs, outputs, ``--resume`` (a killed run's ``.tmp`` rows
 included), Ctrl-C and exit codes holds here too. Rows have ``reeb propose``'s schema:
 ``boxes`` (the detections, xyxy pixels, best first), ``scores``, ``labels`` (the class
@@ -33,12 +33,11 @@ from ..detection import DetectorFileError, ReebDetector
 from ..detection.detector import resolve_detector
 from ..detection.inference import StageClock
 from .common import UsageProblem, resolve_device
-from .decoding import decoded_images
-from .engine import ImageRun
-from .rows import result_row
+from .decoding import decoded_images, default_workers
+from .engine import Found, ImageRun
 from .viz import draw_detections
 
-__all__ = ["run_detect", "load_detector"]
+__all__ = ["run_detect", "load_detector", "DetectStep"]
 
 
 def _chunks(stream: Iterator[Any], size: int) -> Iterator[list[Any]]:
@@ -52,27 +51,32 @@ def _chunks(stream: Iterator[Any], size: int) -> Iterator[list[Any]]:
         yield chunk
 
 
-class _DetectRun(ImageRun):
-    """One ``reeb detect`` run: the detector on :class:`~.engine.ImageRun`."""
+class DetectStep:
+    """A trained detector as a step of the run engine (:class:`~.engine.RunStep`): images in
+    chunks of ``batch_size``, detections scoring ``min_score`` or more, the ``--viz``
+    pictures of those scoring ``viz_min_score`` or more, a clock per stage."""
 
     noun = "detections"
     desc = "detect"
 
-    def __init__(self, det: Any, det_id: str, dev: Any, *, out: str | None, batch_size: int, workers: int | None,
+    def __init__(self, det: Any, det_id: str, dev: Any, *, batch_size: int, workers: int | None,
                  min_score: float, viz_min_score: float, quiet: bool) -> None:
-        super().__init__(made_by=det_id, out=out, batch_size=batch_size, workers=workers, quiet=quiet)
-        self.det, self.dev = det, dev
+        self.det, self.made_by, self.dev = det, det_id, dev
+        self.batch_size, self.quiet = batch_size, quiet
+        self.workers = default_workers() if workers is None else workers
         self.min_score, self.viz_min_score = min_score, viz_min_score
         self.warm: tuple[int, float, dict[str, float]] | None = None
         """(images, detector seconds, stage seconds) of the first batch, which pays the warm-up."""
         self.detect_s = 0.0
-
         det.clock = StageClock(dev)
         self.stages = det.clock
 
     def mismatch(self, out: str, configs: list[str]) -> str:
         return (f"{out} holds detections of another detector ({', '.join(configs)}, this one is "
                 f"{self.made_by}); use another --out, or --overwrite")
+
+    def prepare(self, images: Sequence[Path]) -> None:
+        """Nothing: the detector is loaded (:func:`load_detector`)."""
 
     def stream(self, images):
         return decoded_images(images, self.workers, quiet=self.quiet)
@@ -86,22 +90,15 @@ class _DetectRun(ImageRun):
         self.detect_s += time.perf_counter() - t0
         return outs
 
-    def after_group(self) -> None:
-        if self.warm is None and self.stats["ok"]:
-            self.warm = (self.stats["ok"], self.detect_s, dict(self.stages.seconds))
+    def after_group(self, done: int, ok: int, elapsed: float) -> None:
+        if self.warm is None and ok:
+            self.warm = (ok, self.detect_s, dict(self.stages.seconds))
 
-    def finish(self, item: Any, out: dict) -> None:
+    def found(self, item: Any, out: dict) -> Found:
         keep = out["scores"] >= self.min_score
         out = {k: v[keep].cpu() for k, v in out.items()}
         names = [self.det.categories[int(i)] for i in out["labels"]]
-        h, w = item.image.shape[-2:]
-        row = result_row(item.path, w, h, out["boxes"], out["scores"], self.made_by, labels=names)
-        self.emit(item, row, len(names))
-        stem = self.stem(item)
-        if self.kitti is not None and row["status"] == "ok":
-            self.kitti.write(stem, row)
-        if self.pictures is not None:
-            self.pictures.save(stem, lambda: self._picture(item, out, names))
+        return Found(out["boxes"], out["scores"], names, lambda: self._picture(item, out, names))
 
     def _picture(self, item: Any, out: dict, names: list[str]) -> Any:
         shown = (out["scores"] >= self.viz_min_score).nonzero().flatten().tolist()
@@ -109,10 +106,10 @@ class _DetectRun(ImageRun):
         return draw_detections(item.image, out["boxes"][shown], [names[i] for i in shown], out["scores"][shown],
                                title, self.det.classes)
 
-    def time_lines(self, done: int) -> list[str]:
-        if not self.stats["ok"]:
+    def time_lines(self, done: int, ok: int, wall: float) -> list[str]:
+        if not ok:
             return []
-        n, det_s, stages, note = self.stats["ok"], self.detect_s, self.stages.seconds, ""
+        n, det_s, stages, note = ok, self.detect_s, self.stages.seconds, ""
         if self.warm is not None and n > self.warm[0]:  # after the first batch (warm-up)
             n, det_s = n - self.warm[0], self.detect_s - self.warm[1]
             stages = {k: v - self.warm[2][k] for k, v in stages.items()}
@@ -121,10 +118,16 @@ class _DetectRun(ImageRun):
             note = ", the warm-up included (one batch)"
         per = {k: 1000 * v / n for k, v in stages.items()}
         heads = sum(per[k] for k in ("neck", "roi_align", "box_head", "postprocess"))
-        return [f"time: {self.wall:.1f} s, {1000 * self.wall / max(1, done):.0f} ms/img end to end; in the detector "
+        return [f"time: {wall:.1f} s, {1000 * wall / max(1, done):.0f} ms/img end to end; in the detector "
                 f"{1000 * det_s / n:.0f} ms/img{note} (proposals {per['proposals']:.0f}, resize {per['resize']:.0f}, "
                 f"backbone {per['backbone']:.0f}, heads {heads:.0f} ms; {self.dev}, backbone in "
                 f"{self.det.precision})"]
+
+    def record(self, done: int, ok: int, wall: float) -> dict:
+        return {}
+
+    def extra_lines(self, ok: int) -> list[str]:
+        return []
 
 
 def load_detector(path: str, device: str) -> tuple[Any, str, Any]:
@@ -151,8 +154,9 @@ def run_detect(paths: Sequence[str], det: Any, det_id: str, dev: Any, *, out: st
     the process exits 1 when an image failed or an output could not be written in full, 130
     when interrupted.
     """
-    run = _DetectRun(det, det_id, dev, out=out, batch_size=batch_size, workers=workers, min_score=min_score,
-                     viz_min_score=viz_min_score, quiet=quiet)
+    step = DetectStep(det, det_id, dev, batch_size=batch_size, workers=workers, min_score=min_score,
+                      viz_min_score=viz_min_score, quiet=quiet)
+    run = ImageRun(step, out=out, quiet=quiet)
     run.find_inputs(paths, recursive)  # 1. inputs
     work = run.plan_output(resume, overwrite)  # 2. the output, checked and locked before any work
     run.side_outputs(viz_dir, kitti_dir, det.categories, resume=resume, overwrite=overwrite)  # 3. its folders

@@ -6,11 +6,13 @@
     find_inputs  plan_output      ResumePlan       OrderedWriter      PictureFolder      closing lines
                  (run_output)                                         KittiFolder
 
-:class:`ImageRun` holds a run's steps; a command gives it its model (``reeb propose``:
-:class:`.propose_local._LocalRun`, ``reeb detect``: :class:`.detect_run._DetectRun`), which
-says how images are decoded and grouped (:meth:`ImageRun.stream`, :meth:`ImageRun.groups`),
-computed (:meth:`ImageRun.run_batch`) and turned into a row (:meth:`ImageRun.finish`). The
-engine does the rest the same way for all of them: the inputs (a file named on the command
+:class:`ImageRun` holds a run's steps; a command hands it a :class:`RunStep`, its model
+(``reeb propose``: :class:`.propose_local.ProposeStep`, ``reeb detect``:
+:class:`.detect_run.DetectStep`), which says how images are decoded and grouped
+(:meth:`RunStep.stream`, :meth:`RunStep.groups`), computed (:meth:`RunStep.run_batch`) and
+what each image's result is (:meth:`RunStep.found`: its boxes, scores, labels, picture).
+The engine does the rest the same way for all of them: each image's row, its KITTI file and
+its picture, the inputs (a file named on the command
 line that cannot be read gets its ``error:`` row), the output checked and locked before any
 work, a killed run's rows taken over, rows written in input order inside a
 :class:`~.ctrl_c.CriticalSection`, a failed image retried alone and given its row, Ctrl-C and
@@ -29,20 +31,22 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Generator, Iterable, Iterator, Sequence
+from typing import Any, Callable, Generator, Iterable, Iterator, Protocol, Sequence
 
 import click
+from torch import Tensor
 from tqdm import tqdm
 
 from .common import UsageProblem
 from .ctrl_c import CriticalSection, caused_by_interrupt
-from .decoding import Decoded, default_workers
+from .decoding import Decoded
 from .inputs import NoImagesError, same_file_note, scan_images
-from .rows import error_row, file_error
+from .rows import error_row, file_error, result_row
 from .run_output import OrderedWriter, plan_output
 from .side_outputs import KittiFolder, PictureFolder, SideOutputError, unique_stems
 
-__all__ = ["Inputs", "find_inputs", "count_line", "ms_per_img", "closing_tail", "mismatch_line", "ImageRun"]
+__all__ = ["Inputs", "find_inputs", "count_line", "ms_per_img", "closing_tail", "mismatch_line", "Found", "RunStep",
+           "ImageRun"]
 
 
 @dataclass
@@ -109,19 +113,76 @@ def mismatch_line(out: str, configs: list[str], made_by: str) -> str:
 
 # -- the run ----------------------------------------------------------------------------------
 
+@dataclass
+class Found:
+    """One image's result, as :meth:`RunStep.found` gives it to the engine.
+
+    Attributes:
+        boxes: ``float32 [N, 4]`` xyxy, input pixels, best first; ``scores``: ``[N]``.
+        labels: each box's class name, or ``None`` (no classes).
+        picture: makes the image's ``--viz`` picture (called only when there is a folder).
+        text: printed on stdout (``reeb propose``'s box tables); ``warning``: on stderr.
+    """
+
+    boxes: Tensor
+    scores: Tensor
+    labels: Sequence[str] | None = None
+    picture: Callable[[], Any] | None = None
+    text: str | None = None
+    warning: str | None = None
+
+
+class RunStep(Protocol):
+    """What a command gives the engine: its model, and how images meet it. ``made_by`` is
+    what every row's ``config`` holds (``--resume`` keeps only rows of the same), ``noun``
+    what a row's boxes are (the summary's first line), ``desc`` the progress bar's name."""
+
+    made_by: str
+    noun: str
+    desc: str
+
+    def mismatch(self, out: str, configs: list[str]) -> str:
+        """The usage error for ``--resume`` on an output made by something else."""
+
+    def prepare(self, images: Sequence[Path]) -> None:
+        """Before the clock starts: build the model, warm it up."""
+
+    def stream(self, images: Sequence[Path]) -> Generator[Decoded, None, None]:
+        """The decoded images, in input order (:func:`.decoding.decoded_images`: closing it
+        stops its workers)."""
+
+    def groups(self, stream: Iterator[Decoded]) -> Iterable[list[Decoded]]:
+        """The decoded images in the groups :meth:`run_batch` computes."""
+
+    def run_batch(self, items: list[Decoded]) -> list:
+        """The model's result for each of ``items`` (decoded); raises when it fails."""
+
+    def found(self, item: Decoded, result: Any) -> Found:
+        """What the engine writes of an image's ``result``."""
+
+    def after_group(self, done: int, ok: int, elapsed: float) -> None:
+        """After each group (for the timings): ``done`` images so far, ``ok`` of them without
+        error, ``elapsed`` seconds since the run's clock started."""
+
+    def time_lines(self, done: int, ok: int, wall: float) -> list[str]:
+        """The summary's lines on time (after the counts): ``done`` images, ``ok`` of them
+        without error, in ``wall`` seconds."""
+
+    def record(self, done: int, ok: int, wall: float) -> dict:
+        """What ``--summary-json`` holds besides the counts (the arguments as
+        :meth:`time_lines`')."""
+
+    def extra_lines(self, ok: int) -> list[str]:
+        """Lines on the step's own outputs (after the files written)."""
+
+
 class ImageRun:
-    """One run of a command that turns images into rows, step by step (module doc): the
-    state its steps share. A command subclasses it with its model; ``made_by`` is what every
-    row's ``config`` holds (``--resume`` keeps only rows of the same), ``noun`` what a row's
-    boxes are (the summary's first line)."""
+    """One run of a command that turns images into rows, step by step (module doc), on the
+    ``step`` the command gives it (:class:`RunStep`): the state its steps share."""
 
-    noun = "proposals"
-    desc = "reeb"
-
-    def __init__(self, *, made_by: str, out: str | None, batch_size: int, workers: int | None, quiet: bool,
-                 summary_json: str | None = None) -> None:
-        self.made_by, self.out, self.batch_size, self.quiet = made_by, out, batch_size, quiet
-        self.workers = default_workers() if workers is None else workers
+    def __init__(self, step: RunStep, *, out: str | None, quiet: bool, summary_json: str | None = None) -> None:
+        self.step, self.made_by, self.noun = step, step.made_by, step.noun
+        self.out, self.quiet = out, quiet
         self.summary_json = summary_json
         self.echo_err: Callable[[str], None] = (lambda m: None) if quiet else (lambda m: click.echo(m, err=True))
         self.failures: list[str] = []
@@ -130,11 +191,8 @@ class ImageRun:
         self.stopped: str | None = None  # why a side output stopped the run
         self.pictures: PictureFolder | None = None
         self.kitti: KittiFolder | None = None
+        self.t_start = 0.0
         self.wall = 0.0
-
-    def mismatch(self, out: str, configs: list[str]) -> str:
-        """The usage error for ``--resume`` on an output made by something else."""
-        return mismatch_line(out, configs, self.made_by)
 
     # -- 1. inputs -------------------------------------------------------------------------------
     def find_inputs(self, paths: Sequence[str | Path], recursive: bool) -> None:
@@ -146,7 +204,7 @@ class ImageRun:
         """Lock ``--out``, keep what earlier runs left (``--resume``); False when every image
         is already there."""
         self.output = plan_output(self.out, self.inputs.images, resume=resume, overwrite=overwrite,
-                                  made_by=self.made_by, other_maker=self.mismatch, echo_err=self.echo_err)
+                                  made_by=self.made_by, other_maker=self.step.mismatch, echo_err=self.echo_err)
         self.out, plan = self.output.out, self.output.plan
         self.images = plan.todo_paths()
         # file names of the side outputs: fixed by the whole input list (then the kept rows of
@@ -190,42 +248,18 @@ class ImageRun:
             sys.exit(1)
         click.echo(f"Nothing to do: all {len(self.inputs.images)} images are already in {self.out}.", err=True)
 
-    # -- 4. the run: what a command gives ----------------------------------------------------------
-    def prepare(self) -> None:
-        """Before the clock starts: build the model, warm it up."""
-
-    def stream(self, images: Sequence[Path]) -> Generator[Decoded, None, None]:
-        """The decoded images, in input order (:func:`.decoding.decoded_images`: closing it
-        stops its workers)."""
-        raise NotImplementedError
-
-    def groups(self, stream: Iterator[Decoded]) -> Iterable[list[Decoded]]:
-        """The decoded images in the groups :meth:`run_batch` computes."""
-        raise NotImplementedError
-
-    def run_batch(self, items: list[Decoded]) -> list:
-        """The model's result for each of ``items`` (decoded); raises when it fails."""
-        raise NotImplementedError
-
-    def finish(self, item: Decoded, result: Any) -> None:
-        """Turn ``result`` into the image's row (:meth:`emit`) and its side files."""
-        raise NotImplementedError
-
-    def after_group(self) -> None:
-        """After each group (for the timings)."""
-
     # -- 4. the run: the loop ----------------------------------------------------------------------
     def run(self) -> None:
         """Compute every image left, write each row in input order; Ctrl-C and SIGTERM stop it
         (what is done is kept), as does a side output that cannot be written."""
 
-        self.prepare()
+        self.step.prepare(self.images)
         self.rows = OrderedWriter(self.output)
         self.cs = CriticalSection()  # a row is written whole, and counted, or not at all
         self.bar = tqdm(total=len(self.images), unit="img", disable=True if self.quiet else None, file=sys.stderr,
-                        dynamic_ncols=True, desc=self.desc)
+                        dynamic_ncols=True, desc=self.step.desc)
         self.t_start = time.perf_counter()
-        stream = self.stream(self.images)
+        stream = self.step.stream(self.images)
         self.previous_handlers = self.cs.install()  # Ctrl-C, and a polite kill (SIGTERM) treated like it
         try:
             self._write_kept()
@@ -247,7 +281,7 @@ class ImageRun:
         self.wall = time.perf_counter() - self.t_start
 
     def _loop(self, stream: Iterator[Decoded]) -> None:
-        for group in self.groups(stream):
+        for group in self.step.groups(stream):
             good = [it for it in group if it.ok]
             results = iter(self._compute(good) if good else [])
             for it in group:
@@ -262,27 +296,46 @@ class ImageRun:
                 else:
                     self.finish(it, result)
             self.bar.update(len(group))
-            self.after_group()
+            self.step.after_group(self.stats["ok"] + self.stats["failed"], self.stats["ok"],
+                                  time.perf_counter() - self.t_start)
             if self.stats["failed"]:
                 self.bar.set_postfix(failed=self.stats["failed"], refresh=False)
 
     def _compute(self, group: list[Decoded]) -> list:
-        """:meth:`run_batch` of the group at once, and when it fails one image at a time (the
+        """:meth:`RunStep.run_batch` of the group at once, and when it fails one image at a time (the
         culprits get their error)."""
         try:
-            return self.run_batch(group)
+            return self.step.run_batch(group)
         except (ValueError, TypeError, RuntimeError) as e0:
             if caused_by_interrupt(e0):
                 raise
         out: list = []
         for it in group:
             try:
-                out += self.run_batch([it])
+                out += self.step.run_batch([it])
             except (ValueError, TypeError, RuntimeError) as e1:
                 if caused_by_interrupt(e1):
                     raise
                 out.append(e1)
         return out
+
+    def finish(self, item: Decoded, result: Any) -> None:
+        """An image computed: its row, its KITTI file, its picture, what the step prints."""
+        found = self.step.found(item, result)
+        row = None
+        if (self.rows.writer is not None or self.kitti is not None) and item.image is not None:
+            h, w = item.image.shape[-2:]
+            row = result_row(item.path, w, h, found.boxes, found.scores, self.made_by, labels=found.labels)
+        self.emit(item, row if self.rows.writer is not None else None, len(found.boxes))
+        if found.text:
+            self.bar.write(found.text, file=sys.stdout)
+        if found.warning:
+            self.bar.write(found.warning, file=sys.stderr)
+        stem = self.stem(item)
+        if self.kitti is not None and row is not None and row["status"] == "ok":
+            self.kitti.write(stem, row)
+        if self.pictures is not None and found.picture is not None:
+            self.pictures.save(stem, found.picture)
 
     def emit(self, item: Decoded, row: dict | None, boxes: int) -> None:
         """An image done: its row (None: no output to write) placed in input order, counted."""
@@ -330,18 +383,6 @@ class ImageRun:
         if self.stats["failed"] or self.stopped or (self.pictures is not None and self.pictures.problem):
             sys.exit(1)
 
-    def time_lines(self, done: int) -> list[str]:
-        """The summary's lines on time (after the counts)."""
-        return []
-
-    def record(self, done: int) -> dict:
-        """What ``--summary-json`` holds besides the counts."""
-        return {}
-
-    def extra_lines(self) -> list[str]:
-        """Lines on the command's own outputs (after the files written)."""
-        return []
-
     def summary_lines(self, saved: Path | None) -> list[str]:
         """The closing summary (and ``--summary-json``)."""
         stats, n = self.stats, len(self.images)
@@ -351,7 +392,7 @@ class ImageRun:
         if self.inputs.same_file:
             lines.append(same_file_note(self.inputs.same_file))
         if done:
-            lines += self.time_lines(done)
+            lines += self.step.time_lines(done, stats["ok"], self.wall)
         if saved is not None:
             kept = self.output.plan.kept_written
             lines.append(f"wrote {saved} ({rows.rows_written} rows" + (f", {kept} kept from before" if kept else "")
@@ -360,9 +401,9 @@ class ImageRun:
             lines.append(f"KITTI result files in {self.kitti.path}/")
         if self.pictures is not None:
             lines += self.pictures.summary()
-        lines += self.extra_lines()
+        lines += self.step.extra_lines(stats["ok"])
         summary = dict(images=n, processed=done, ok=stats["ok"], failed=stats["failed"], **{self.noun: stats["boxes"]},
-                       **self.record(done), config=self.made_by, out=str(saved) if saved else None,
+                       **self.step.record(done, stats["ok"], self.wall), config=self.made_by, out=str(saved) if saved else None,
                        rows=rows.rows_written if rows.writer is not None else None,
                        saved=rows.saved_now if rows.writer is not None else None,
                        interrupted=self.interrupted, stopped=self.stopped, same_file=len(self.inputs.same_file))
