@@ -386,6 +386,18 @@ def test_every_output_is_claimed_in_one_place():
     assert callers == {"runs/claim.py"}, f"outputs locked outside runs/claim.py: {sorted(callers - {'runs/claim.py'})}"
 
 
+def test_commands_hand_the_engine_a_step():
+    """The run engine is composed, not inherited: no class anywhere subclasses ``ImageRun``;
+    a command hands it a step (``ImageRun(step, ...)``)."""
+    subclasses = {f"{path}:{node.name}" for path, tree in _trees() for node in ast.walk(tree)
+                  if isinstance(node, ast.ClassDef)
+                  and any(getattr(b, "id", getattr(b, "attr", None)) == "ImageRun" for b in node.bases)}
+    assert not subclasses, f"ImageRun subclassed: {sorted(subclasses)}"
+    made = {path for path, tree in _trees() for node in ast.walk(tree)
+            if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "ImageRun"}
+    assert made == {"runs/propose_local.py", "runs/detect_run.py"}, made
+
+
 def test_click_is_the_one_command_line_framework():
     """No module of the package imports ``argparse`` (or ``optparse``): every command is click."""
     offenders = {path for path, tree in _trees() if _imported_roots(tree) & {"argparse", "optparse"}}
