@@ -12,7 +12,7 @@ training set, the rest (or the next ``--val-frames``) the validation set. Every
   (:func:`reeb_torch.metrics.recall.recall_table`), in the pixels of the input images.
 
 REEB's proposals are computed once into ``--cache`` (default ``OUT/reeb_cache.pt``;
-reused when still valid, see :mod:`reeb_torch.detection.cache`) and read from it during
+reused when still valid, see :mod:`reeb_torch.detection.proposal_cache`) and read from it during
 training and evaluation. The learned arm (``--proposals learned``) is the same network
 with torchvision's RPN. A checkpoint ``OUT/last.pt`` is written every
 ``--checkpoint-every`` iterations and at the end; ``--resume`` continues from it (data

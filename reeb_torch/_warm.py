@@ -16,7 +16,7 @@ from typing import Iterator
 import numpy as np
 import torch
 
-from .stages import _cache, enclosed, nms, scoring
+from .stages import _kernel_cache, enclosed, nms, scoring
 from .stages._threads import serially
 
 __all__ = ["warm_picture", "Notice", "COMPILE_ESTIMATE_S", "gc_paused", "start_helper", "stop_helper",
@@ -49,10 +49,10 @@ def warm_picture(height: int = 160, width: int = 480) -> torch.Tensor:
 
 class Notice:
     """Tells the user, on stderr, that the kernels are being compiled when they are not yet
-    cached (no :func:`reeb_torch.stages._cache.warm_marker`), and leaves the marker after."""
+    cached (no :func:`reeb_torch.stages._kernel_cache.warm_marker`), and leaves the marker after."""
 
     def __init__(self, quiet: bool = False) -> None:
-        self.marker = _cache.warm_marker()
+        self.marker = _kernel_cache.warm_marker()
         self.first = self.marker is not None and not self.marker.exists()
         self.quiet = quiet
         self.t0 = time.perf_counter()
@@ -60,7 +60,7 @@ class Notice:
     def __enter__(self) -> Notice:
         if self.first and not self.quiet:
             print(f"reeb-torch: compiling kernels once for this install, about {COMPILE_ESTIMATE_S} "
-                  f"(cached in {_cache.cache_dir()}; `reeb warmup` does it ahead of time) ...",
+                  f"(cached in {_kernel_cache.cache_dir()}; `reeb warmup` does it ahead of time) ...",
                   file=sys.stderr, flush=True)
         return self
 

@@ -584,7 +584,7 @@ def warmup(*configs: ReebConfig, quiet: bool = False) -> float:
     cached it says so on stderr, unless ``quiet``, and a second Python process compiles
     the kernels the run reaches last meanwhile (numba compiles on one core per process;
     ``$REEB_TORCH_WARM_HELPER`` set: one process only). The cache is per user and survives a
-    reinstall of the same version (:mod:`reeb_torch.stages._cache`; ``$REEB_TORCH_CACHE_DIR``).
+    reinstall of the same version (:mod:`reeb_torch.stages._kernel_cache`; ``$REEB_TORCH_CACHE_DIR``).
     Python's garbage collector is paused while it runs, with one collection at the end
     (:func:`reeb_torch._warm.gc_paused`)."""
     t0 = time.perf_counter()

@@ -23,7 +23,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "reeb_torch"
 REPO = PACKAGE.parent
 
-SELECTION = {"reeb_torch.selection", "reeb_torch.selection.cache", "reeb_torch.selection.cut",
+SELECTION = {"reeb_torch.selection", "reeb_torch.selection.grid_cache", "reeb_torch.selection.cut",
              "reeb_torch.selection.maps",
              "reeb_torch.selection.score", "reeb_torch.selection.suppress"}
 RANKER = {"reeb_torch.ranker", "reeb_torch.ranker.features", "reeb_torch.ranker.model", "reeb_torch.ranker.prefilter",

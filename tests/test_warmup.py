@@ -13,7 +13,7 @@ import reeb_torch
 from reeb_torch import ProposalGenerator, ReebConfig, generator, warmup
 from reeb_torch.config import TRAINING_FREE
 from reeb_torch import _warm
-from reeb_torch.stages import _cache
+from reeb_torch.stages import _kernel_cache
 
 
 def _dispatchers() -> dict[str, object]:
@@ -35,7 +35,7 @@ def _signatures() -> dict[str, int]:
 def test_the_package_kernels_are_cached_in_the_per_user_folder_by_source_hash():
     # by the hash of every kernel source: a kernel's cache entry holds the kernels it calls
     # from other files, so a change to any of them must move every entry
-    root = _cache.cache_dir()
+    root = _kernel_cache.cache_dir()
     if root is None:
         pytest.skip("REEB_TORCH_CACHE_DIR turns the package cache off")
     found = 0
@@ -44,7 +44,7 @@ def test_the_package_kernels_are_cached_in_the_per_user_folder_by_source_hash():
             continue
         path = d._cache._cache_path
         assert path.startswith(str(root)), f"{name} is cached in {path}, not under {root}"
-        assert path.endswith(f"-{_cache.kernels_hash()}"), f"{name} is cached in {path}"
+        assert path.endswith(f"-{_kernel_cache.kernels_hash()}"), f"{name} is cached in {path}"
         found += 1
     assert found >= 8
 
@@ -79,19 +79,19 @@ def test_first_call_reports_its_warm_up_apart(sample_image):
 
 @pytest.mark.slow
 def test_notice_only_while_not_cached(tmp_path, monkeypatch, capsys):
-    monkeypatch.setenv(_cache.ENV, str(tmp_path))
-    assert _cache.cache_dir() == tmp_path
+    monkeypatch.setenv(_kernel_cache.ENV, str(tmp_path))
+    assert _kernel_cache.cache_dir() == tmp_path
     warmup(quiet=False)
     err = capsys.readouterr().err
     assert "compiling kernels once for this install" in err and "kernels compiled in" in err
-    assert _cache.warm_marker().exists()
+    assert _kernel_cache.warm_marker().exists()
     warmup(quiet=False)
     assert "compiling" not in capsys.readouterr().err
 
 
 def test_cache_can_be_turned_off(monkeypatch):
-    monkeypatch.setenv(_cache.ENV, "off")
-    assert _cache.cache_dir() is None and _cache.warm_marker() is None
+    monkeypatch.setenv(_kernel_cache.ENV, "off")
+    assert _kernel_cache.cache_dir() is None and _kernel_cache.warm_marker() is None
 
 
 def test_warm_picture_is_deterministic_uint8():

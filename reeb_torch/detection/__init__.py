@@ -24,7 +24,7 @@ maps cached per frame, only the heads trained:
 
 from .detector import PROPOSALS, DetectorSettings, ReebDetector, proposal_settings
 from .detector_file import DetectorFileError
-from .cache import (
+from .proposal_cache import (
     CACHE_FORMAT,
     CACHE_VERSION,
     CacheEntry,

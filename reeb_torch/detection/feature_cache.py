@@ -38,7 +38,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from .cache import StaleCacheError, _write_error, image_digest
+from .proposal_cache import StaleCacheError, _write_error, image_digest
 
 __all__ = ["FrameFeatures", "FeatureCache", "compute_features", "batch_features", "frozen_features", "cached_features",
            "top_rows"]
@@ -204,7 +204,7 @@ def frozen_features(model: torch.nn.Module, items: Sequence[Mapping[str, Any]], 
 
 def cached_features(model: torch.nn.Module, image: Tensor, digest: str, cache: FeatureCache,
                     writable: list[bool]) -> tuple[FrameFeatures, bool]:
-    """The frozen maps of ``image`` (its :func:`~reeb_torch.detection.cache.image_digest`
+    """The frozen maps of ``image`` (its :func:`~reeb_torch.detection.proposal_cache.image_digest`
     ``digest``) from ``cache``, computed (:func:`compute_features`) and saved where they are
     missing, stale or damaged; and whether the cache holds them. ``writable[0]``: whether
     the cache is still written; the first write that fails (a full disk) is one

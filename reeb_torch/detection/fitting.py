@@ -34,7 +34,7 @@ from .._memory import trim_heap
 from ..metrics import kitti_ap
 from ..ranker import frame_hash
 from ..ranker.store import Checkpoints
-from .cache import CacheEntry, ProposalCache, StaleCacheError, image_digest
+from .proposal_cache import CacheEntry, ProposalCache, StaleCacheError, image_digest
 from .feature_cache import FeatureCache, FrameFeatures, cached_features, frozen_features
 from .forward import CachedFrame
 from .head_training import TrainSettings, detect, train_heads

@@ -29,8 +29,8 @@ that was not attached still works: it recovers the resized image from the batch
 given, torchvision's defaults unless told otherwise), computes REEB on it and warns once.
 
 Proposals come from a :class:`~reeb_torch.ProposalGenerator` (run under ``no_grad``) or,
-with ``cache=``, from a :class:`~reeb_torch.detection.cache.ProposalCache` looked up by
-the content of each input image (:func:`~reeb_torch.detection.cache.image_digest`).
+with ``cache=``, from a :class:`~reeb_torch.detection.proposal_cache.ProposalCache` looked up by
+the content of each input image (:func:`~reeb_torch.detection.proposal_cache.image_digest`).
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ from torchvision.ops import boxes as box_ops
 
 from ..config import ReebConfig
 from ..generator import ProposalGenerator
-from .cache import ProposalCache, StaleCacheError
+from .proposal_cache import ProposalCache, StaleCacheError
 
 __all__ = ["ReebRPN", "map_boxes"]
 

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from ..config import ReebConfig
-from ..selection.cache import GridCache
+from ..selection.grid_cache import GridCache
 from ..selection.maps import ScoreMaps
 from ..stages import windows as _windows
 from ..stages._radix import kth_largest

@@ -198,7 +198,7 @@ def warmup(preset):
     """
     from ..config import get_preset
     from ..generator import warmup as _warmup
-    from ..stages._cache import cache_dir, cache_note
+    from ..stages._kernel_cache import cache_dir, cache_note
 
     try:
         cfg = get_preset(preset)

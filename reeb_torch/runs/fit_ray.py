@@ -28,7 +28,7 @@ import torch
 
 from ..config import ReebConfig
 from ..detection import ReebDetector
-from ..detection.cache import StaleCacheError, image_digest
+from ..detection.proposal_cache import StaleCacheError, image_digest
 from ..detection.feature_cache import FeatureCache, compute_features
 from ..detection.kitti import frame_image
 from ..ranker import frame_hash

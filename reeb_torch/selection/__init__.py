@@ -31,7 +31,7 @@ NMS          ``stages.nms.nms_windows_cpu``                  ``stages.nms.nms_to
 
 from __future__ import annotations
 
-from .cache import PLAN_GRIDS, GridCache
+from .grid_cache import PLAN_GRIDS, GridCache
 from .cut import RegionCut
 from .maps import ScoreMaps
 from .score import WindowScoring

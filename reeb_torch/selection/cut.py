@@ -11,7 +11,7 @@ from ..stages import entropy as _entropy
 from ..stages import regions as _regions
 from ..stages import scoring as _scoring
 from ..stages import windows as _windows
-from .cache import GridCache
+from .grid_cache import GridCache
 
 __all__ = ["RegionCut"]
 

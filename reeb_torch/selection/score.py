@@ -14,7 +14,7 @@ from ..stages import enclosed as _enclosed
 from ..stages import scoring as _scoring
 from ..stages import windows as _windows
 from ..stages.groups import EdgeGroups
-from .cache import GridCache
+from .grid_cache import GridCache
 from .maps import ScoreMaps
 
 __all__ = ["WindowScoring"]

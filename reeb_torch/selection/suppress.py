@@ -9,7 +9,7 @@ from torch import Tensor
 
 from ..stages import windows as _windows
 from ..stages.nms import boxes_valid, nms_top_k_many, nms_windows_cpu
-from .cache import GridCache
+from .grid_cache import GridCache
 from .maps import ScoreMaps
 
 __all__ = ["Suppression"]

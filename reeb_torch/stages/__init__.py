@@ -20,10 +20,10 @@ module                 what it computes
 :mod:`.nms`            Sec. 3.8, eq. 13: greedy NMS that stops at ``top_k``
 ``_radix``             radix sort and selection kernels (scoring, NMS)
 ``_threads``           the one helper thread the compiled kernels split work onto
-``_cache``             where the kernels are cached on disk (per user, by source hash)
+``_kernel_cache``      where the kernels are cached on disk (per user, by source hash)
 =====================  ==================================================================
 
 How the generator calls them, in Table 1's order: :mod:`reeb_torch.generator`.
 """
 
-from . import _cache  # noqa: F401,E402 - before any kernel is defined: where numba caches them
+from . import _kernel_cache  # noqa: F401,E402 - before any kernel is defined: where numba caches them

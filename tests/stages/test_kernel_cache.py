@@ -1,4 +1,4 @@
-"""The kernels' disk cache (stages/_cache.py): it heals itself when its files are
+"""The kernels' disk cache (stages/_kernel_cache.py): it heals itself when its files are
 damaged, it is private (nobody else can write where it loads pickles from), and it says
 where the kernels actually go.
 
@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from reeb_torch import _warm
-from reeb_torch.stages import _cache
+from reeb_torch.stages import _kernel_cache
 
 REPO = Path(__file__).resolve().parents[2]
 SAMPLE = REPO / "examples" / "data" / "kitti_000001.png"
@@ -30,7 +30,7 @@ ROOT_ONLY = pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0,
 @pytest.fixture(autouse=True)
 def fresh_lines(monkeypatch):
     """Each test sees the one-line reports as a new process would (each kind once)."""
-    monkeypatch.setattr(_cache, "_SAID", set(), raising=False)
+    monkeypatch.setattr(_kernel_cache, "_SAID", set(), raising=False)
 
 
 def _mode(p: Path) -> int:
@@ -41,7 +41,7 @@ def _mode(p: Path) -> int:
 
 def test_the_folders_it_makes_are_private(tmp_path):
     folder = tmp_path / "a" / "b" / "numba"
-    assert _cache._choose(str(folder), str(tmp_path / "default")) == (folder, "")
+    assert _kernel_cache._choose(str(folder), str(tmp_path / "default")) == (folder, "")
     assert [_mode(p) for p in (tmp_path / "a", tmp_path / "a" / "b", folder)] == [0o700] * 3
 
 
@@ -51,7 +51,7 @@ def test_a_folder_others_can_write_is_refused_with_one_line(tmp_path, capsys, wh
     shared.mkdir(parents=True)
     (shared if where == "itself" else shared.parent).chmod(0o777)
     default = tmp_path / "home" / "numba"
-    folder, note = _cache._choose(str(shared), str(default))
+    folder, note = _kernel_cache._choose(str(shared), str(default))
     assert folder == default and _mode(default) == 0o700
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("reeb-torch: not caching kernels in ") and str(shared) in err
@@ -64,7 +64,7 @@ def test_a_sticky_parent_such_as_tmp_is_allowed(tmp_path):
     parent = tmp_path / "tmp"
     parent.mkdir()
     parent.chmod(0o1777)  # others may add entries, but not rename or remove this user's
-    assert _cache._choose(str(parent / "mine"), str(tmp_path / "d")) == (parent / "mine", "")
+    assert _kernel_cache._choose(str(parent / "mine"), str(tmp_path / "d")) == (parent / "mine", "")
 
 
 @ROOT_ONLY
@@ -73,41 +73,41 @@ def test_a_folder_another_user_owns_is_refused(tmp_path, capsys, where):
     theirs = tmp_path / "theirs" / "numba"
     theirs.mkdir(parents=True, mode=0o755)
     os.chown(theirs if where == "itself" else theirs.parent, 12345, -1)
-    folder, note = _cache._choose(str(theirs), str(tmp_path / "home"))
+    folder, note = _kernel_cache._choose(str(theirs), str(tmp_path / "home"))
     assert folder == tmp_path / "home" and "uid 12345" in note and note in capsys.readouterr().err
 
 
 def test_a_file_as_the_folder_says_where_the_kernels_go(tmp_path, monkeypatch, capsys):
     afile = tmp_path / "afile"
     afile.write_text("")
-    monkeypatch.setenv(_cache.ENV, str(afile))
+    monkeypatch.setenv(_kernel_cache.ENV, str(afile))
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     default = tmp_path / "xdg" / "reeb-torch" / "numba"
-    assert _cache.cache_dir() == default
+    assert _kernel_cache.cache_dir() == default
     with _warm.Notice():  # the first-run notice names the folder actually used
         pass
     err = capsys.readouterr().err
     assert f"not caching kernels in {afile}: it is not a folder; caching them in {default} instead" in err
     assert f"(cached in {default};" in err and f"cached in {afile}" not in err
-    assert _cache.warm_marker().parent == default and _cache.warm_marker().exists()
+    assert _kernel_cache.warm_marker().parent == default and _kernel_cache.warm_marker().exists()
 
 
 def test_no_private_folder_means_no_cache_said_once(tmp_path, capsys):
     bad = tmp_path / "bad"
     bad.mkdir(mode=0o777)
     bad.chmod(0o777)
-    assert _cache._choose(None, str(bad)).folder is None  # the default itself refused: nothing cached
+    assert _kernel_cache._choose(None, str(bad)).folder is None  # the default itself refused: nothing cached
     assert "compiling them in every process instead" in capsys.readouterr().err
     afile = tmp_path / "afile"
     afile.write_text("")
-    assert _cache._choose(str(afile), str(bad)).folder is None
+    assert _kernel_cache._choose(str(afile), str(bad)).folder is None
     assert capsys.readouterr().err == ""  # once per process
 
 
 def test_off_caches_nothing(monkeypatch):
-    monkeypatch.setenv(_cache.ENV, "off")
-    assert _cache.cache_dir() is None and _cache.warm_marker() is None
-    assert "turns the kernel cache off" in _cache.cache_note()
+    monkeypatch.setenv(_kernel_cache.ENV, "off")
+    assert _kernel_cache.cache_dir() is None and _kernel_cache.warm_marker() is None
+    assert "turns the kernel cache off" in _kernel_cache.cache_note()
 
 
 def _run(code: str, env: dict, timeout: int = 120) -> subprocess.CompletedProcess:
@@ -123,23 +123,23 @@ def test_the_kernels_are_not_cached_in_a_folder_others_can_write(tmp_path):
     code = ("from reeb_torch.stages import nms\n"
             "c = nms._sorted_boxes._cache\n"
             "print(c._cache_path, c._enabled)\n")
-    r = _run(code, {_cache.ENV: str(shared), "XDG_CACHE_HOME": str(tmp_path / "xdg")})
+    r = _run(code, {_kernel_cache.ENV: str(shared), "XDG_CACHE_HOME": str(tmp_path / "xdg")})
     assert r.returncode == 0, r.stderr
     path, enabled = r.stdout.split()
     assert path.startswith(str(tmp_path / "xdg" / "reeb-torch" / "numba")) and enabled == "True"
     assert r.stderr.count("reeb-torch: not caching kernels in") == 1 and str(shared) in r.stderr
     assert not any(shared.iterdir())
-    r = _run(code, {_cache.ENV: "off"})
+    r = _run(code, {_kernel_cache.ENV: "off"})
     assert r.returncode == 0 and r.stdout.split()[1] == "False", r.stderr  # off: nothing loaded or saved
 
 
 # -- the files: sealed, checked, dropped when damaged -------------------------------------------
 
-def _file(tmp_path: Path) -> _cache._CheckedCacheFile:
-    return _cache._CheckedCacheFile(str(tmp_path), "m.kernel-12.py311", source_stamp=b"stamp")
+def _file(tmp_path: Path) -> _kernel_cache._CheckedCacheFile:
+    return _kernel_cache._CheckedCacheFile(str(tmp_path), "m.kernel-12.py311", source_stamp=b"stamp")
 
 
-def _damage(kind: str, f: _cache._CheckedCacheFile, folder: Path) -> None:
+def _damage(kind: str, f: _kernel_cache._CheckedCacheFile, folder: Path) -> None:
     data = folder / "m.kernel-12.py311.1.nbc"
     index = folder / "m.kernel-12.py311.nbi"
     if kind == "truncated data":
@@ -174,7 +174,7 @@ def test_a_cache_file_reads_back_what_was_saved(tmp_path):
     f.save(key, {"library": b"\x00" * 1000, "n": 3})
     assert _file(tmp_path).load(key) == {"library": b"\x00" * 1000, "n": 3}
     assert _file(tmp_path).load(("another key",)) is None
-    other = _cache._CheckedCacheFile(str(tmp_path), "m.kernel-12.py311", source_stamp=b"changed")
+    other = _kernel_cache._CheckedCacheFile(str(tmp_path), "m.kernel-12.py311", source_stamp=b"changed")
     assert other.load(key) is None  # a stale index is a miss, as in numba
 
 
@@ -224,11 +224,11 @@ RUN = ("import hashlib, torch\n"
 def _fill(cache: Path) -> None:
     """The kernels of this source in ``cache``: copied from this user's cache when that has
     them all (``warm-<hash>``), else compiled there by the run itself."""
-    mine = _cache.cache_dir()
-    marker = _cache.warm_marker()
+    mine = _kernel_cache.cache_dir()
+    marker = _kernel_cache.warm_marker()
     if mine is None or marker is None or not marker.exists():
         return
-    for d in mine.glob(f"*-{_cache.kernels_hash()}"):
+    for d in mine.glob(f"*-{_kernel_cache.kernels_hash()}"):
         if d.is_dir():
             shutil.copytree(d, cache / d.name)
     shutil.copy(marker, cache / marker.name)
@@ -239,7 +239,7 @@ def test_a_damaged_cache_heals_itself_with_one_line_and_the_same_boxes(tmp_path)
     cache = tmp_path / "cache"
     cache.mkdir(mode=0o700)
     _fill(cache)
-    env = {_cache.ENV: str(cache)}
+    env = {_kernel_cache.ENV: str(cache)}
     code = RUN.format(sample=str(SAMPLE))
     first = _run(code, env, timeout=900)
     assert first.returncode == 0, first.stderr[-3000:]
