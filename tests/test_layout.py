@@ -230,6 +230,11 @@ SLOW_IMPORTS = {"torchvision"}
 """Imported where used: torchvision's import costs seconds (``torch._dynamo``) that the
 proposals' CPU path, which never needs it, would pay at every start (``tests/test_warmup.py``)."""
 DEFERRED_IMPORTS = {("detection/detector.py", ".fitting"), ("detection/detector.py", ".head_training")}
+CHECKS_FIRST = {"runs/propose_local.py", "runs/detect_run.py", "runs/side_outputs.py", "eval/table3.py"}
+"""Command modules that check a run's inputs and outputs before its work: they import the
+model (the generator, the detector, the ranking's fit) and the pictures when the work starts,
+so that a usage error comes back before those load
+(``tests/runs/test_robust.py::test_a_usage_error_comes_before_the_model_loads``)."""
 """Imports a function may make, with their reason: ``ReebDetector.fit`` loads the training
 when called, so the detector's inference reaches none of it (:func:`test_detection_imports_no_training`)."""
 
@@ -248,12 +253,12 @@ def _command_start() -> set[str]:
 def test_imports_are_at_the_top():
     """A function imports only an optional dependency or torchvision (:data:`SLOW_IMPORTS`),
     inside a ``try`` that names what is missing, in a module ``reeb`` loads at its start (so
-    the command starts without torch), or one of :data:`DEFERRED_IMPORTS`; everything else is
-    imported at the module's top."""
+    the command starts without torch) or one of :data:`CHECKS_FIRST`, or one of
+    :data:`DEFERRED_IMPORTS`; everything else is imported at the module's top."""
     start = _command_start()
     inner = []
     for path, tree in _trees():
-        if path in start:
+        if path in start or path in CHECKS_FIRST:
             continue
         for func in ast.walk(tree):
             if not isinstance(func, (ast.FunctionDef, ast.AsyncFunctionDef)):

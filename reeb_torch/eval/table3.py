@@ -37,10 +37,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import torch
-from tqdm import tqdm
 
-from .. import get_preset
 from ..datasets.folders import folder_names, folder_splits, load_folders
+from .common import first_few
 from ..metrics.recall import (
     AR_IOUS,
     RecallResult,
@@ -53,12 +52,6 @@ from ..metrics.recall import (
     recall_vs_proposals,
     select_objects,
 )
-from ..ranker import fitted_frames, load_ranker
-from ..ranker.cv import held_out_outputs
-from ..ranker.fit import FitOptions
-from ..ranker.frames import FitFrames, frame_samples, other_boxes
-from ..tuning import FrameCache
-from .common import first_few
 from .methods import (
     CROSS_VALIDATED,
     HEADLINE,
@@ -117,6 +110,7 @@ def run_method(
     """Run one method over the images (uint8 ``Tensor[3, H, W]`` each); return its ranked
     boxes per image (``Tensor[N_i, 4]``, CPU, at most ``max_proposals``) and its timings (ms
     per image)."""
+    from tqdm import tqdm
 
     model = method.build(max_proposals, **options)
     _call(method, model, images[:1])  # warm-up, untimed (lazy allocations, caches)
@@ -376,6 +370,13 @@ def cross_validated_boxes(frames: Frames, roots: Sequence[str | os.PathLike], fo
     default's code, whose row times it). ``prepared``: a dict kept between calls on the same
     frames, which holds their candidates and training rows after the first (then not timed
     again)."""
+    from tqdm import tqdm
+
+    from .. import get_preset
+    from ..ranker.fit import FitOptions
+    from ..ranker.frames import FitFrames, frame_samples, other_boxes
+    from ..ranker.cv import held_out_outputs
+    from ..tuning import FrameCache
 
     def bar(desc: str) -> Callable:
         return lambda items: tqdm(items, desc=f"{'cross-validated: ' + desc:<30}", file=sys.stderr, dynamic_ncols=True)
@@ -456,6 +457,8 @@ def in_sample_frames(keys: Sequence[str], frames: Frames,
     the model's name for it}``; rows whose model saw none of them are left out. Its recall
     there is in-sample, not an estimate. ``rankers``: each row's model where it is not its
     preset's (:meth:`~reeb_torch.eval.methods.Table3Options.ranker_of`)."""
+    from .. import get_preset
+    from ..ranker import fitted_frames, load_ranker
 
     out: dict[str, dict[str, str]] = {}
     looked: dict[str, dict[str, str]] = {}

@@ -29,13 +29,9 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from ..detection import DetectorFileError, ReebDetector
-from ..detection.detector import resolve_detector
-from ..detection.inference import StageClock
 from .common import UsageProblem, resolve_device
 from .decoding import decoded_images, default_workers
 from .engine import Found, ImageRun
-from .viz import draw_detections
 
 __all__ = ["run_detect", "load_detector", "DetectStep"]
 
@@ -68,6 +64,8 @@ class DetectStep:
         self.warm: tuple[int, float, dict[str, float]] | None = None
         """(images, detector seconds, stage seconds) of the first batch, which pays the warm-up."""
         self.detect_s = 0.0
+        from ..detection.inference import StageClock
+
         det.clock = StageClock(dev)
         self.stages = det.clock
 
@@ -101,6 +99,8 @@ class DetectStep:
         return Found(out["boxes"], out["scores"], names, lambda: self._picture(item, out, names))
 
     def _picture(self, item: Any, out: dict, names: list[str]) -> Any:
+        from .viz import draw_detections
+
         shown = (out["scores"] >= self.viz_min_score).nonzero().flatten().tolist()
         title = f"{Path(item.path).name}: {len(shown)} detections scoring {self.viz_min_score:g} or more"
         return draw_detections(item.image, out["boxes"][shown], [names[i] for i in shown], out["scores"][shown],
@@ -134,6 +134,8 @@ def load_detector(path: str, device: str) -> tuple[Any, str, Any]:
     """The detector file at ``path`` loaded on ``device`` (``--device``), what its rows'
     ``config`` holds (``det-`` and the file's SHA-256, first 16 digits) and the device; a
     usage error when it cannot be loaded."""
+    from ..detection import DetectorFileError, ReebDetector  # here: a usage error comes before torch loads
+    from ..detection.detector import resolve_detector
 
     dev = resolve_device(device)
     try:

@@ -31,10 +31,9 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Generator, Iterable, Iterator, Protocol, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Generator, Iterable, Iterator, Protocol, Sequence
 
 import click
-from torch import Tensor
 from tqdm import tqdm
 
 from .common import UsageProblem
@@ -44,6 +43,9 @@ from .inputs import NoImagesError, same_file_note, scan_images
 from .rows import error_row, file_error, result_row
 from .run_output import OrderedWriter, plan_output
 from .side_outputs import KittiFolder, PictureFolder, SideOutputError, unique_stems
+
+if TYPE_CHECKING:
+    from torch import Tensor
 
 __all__ = ["Inputs", "find_inputs", "count_line", "ms_per_img", "closing_tail", "mismatch_line", "Found", "RunStep",
            "ImageRun"]

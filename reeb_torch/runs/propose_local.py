@@ -16,14 +16,10 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-import torch
-
-from ..generator import ProposalGenerator, _warm_for
 from .common import UsageProblem, box_table, bundled_sample, label_for, read_labels
 from .decoding import decoded_images, default_workers, size_batches
 from .engine import Found, ImageRun, mismatch_line, ms_per_img
 from .rows import hint_names, text_path
-from .viz import draw_proposals, save_png
 
 __all__ = ["propose_local", "ProposeStep"]
 
@@ -95,6 +91,8 @@ class ProposeStep:
         """Build the generator and, before the clock starts, compile (or load) the CPU
         kernels; the summary gives that time apart (``compile_s``, with the first batch's
         warm-up: :meth:`run_batch`)."""
+        from ..generator import ProposalGenerator, _warm_for  # here: a usage error comes before torch loads
+
         try:
             self.gen = ProposalGenerator(self.cfg).to(self.dev).eval()
         except (TypeError, ValueError, ArithmeticError) as e:
@@ -117,6 +115,8 @@ class ProposeStep:
             self.first_done = (elapsed, done, self.algo_s)
 
     def run_batch(self, items: list) -> list:
+        import torch
+
         x = torch.stack([it.image for it in items]).to(self.dev, non_blocking=True)
         if not self.sized:  # the tables of the first image size (window grid, score plan), untimed
             t0 = time.perf_counter()
@@ -131,6 +131,8 @@ class ProposeStep:
         return results
 
     def found(self, item, result) -> Found:
+        from .viz import draw_proposals, save_png
+
         h, w = item.image.shape[-2:]
         boxes, scores = result["boxes"].cpu(), result["scores"].cpu()
         hints = hint_names(self.gen.classes, result.get("labels"))

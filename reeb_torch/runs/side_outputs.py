@@ -19,12 +19,8 @@ from collections import Counter
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-import torch
-
-from ..detection.kitti import result_lines, write_text
 from .claim import claim
 from .common import UsageProblem, writable_folder
-from .viz import save_png
 
 __all__ = ["unique_stems", "SideOutputError", "PictureFolder", "KittiFolder"]
 
@@ -93,6 +89,7 @@ class PictureFolder:
 
     def save(self, stem: str, picture: Callable[[], Any]) -> None:
         """Write ``picture()`` (an RGB array) as ``<stem>.png``, unless pictures have stopped."""
+        from .viz import save_png
 
         if self.problem is not None:
             self.not_written += 1
@@ -195,6 +192,9 @@ class KittiFolder:
     def write(self, stem: str, row: dict) -> None:
         """The result file of an ``ok`` row (its boxes, labels and scores);
         :class:`SideOutputError` when it cannot be written."""
+        import torch
+
+        from ..detection.kitti import result_lines, write_text
 
         labels = row.get("labels") or []
         lines = result_lines(torch.tensor(row["boxes"], dtype=torch.float64).reshape(-1, 4),

@@ -115,6 +115,26 @@ def test_the_command_starts_without_importing_torch():
     assert r.stdout.strip() == "False", r.stderr
 
 
+@pytest.mark.parametrize("command", ["propose", "detect", "eval"])
+def test_a_usage_error_comes_before_the_model_loads(command, tmp_path):
+    """An empty input folder is refused before the generator, the detector or torchvision
+    is imported (seconds a mistyped path should not cost)."""
+    import subprocess
+    import sys
+
+    code = ("import sys\n"
+            "from reeb_torch.runs.cli import main\n"
+            "try:\n"
+            f"    main([{command!r}, {str(tmp_path)!r}], standalone_mode=False)\n"
+            "except Exception as e:\n"
+            "    print(type(e).__name__)\n"
+            "print(sorted(m for m in ('reeb_torch.generator', 'reeb_torch.detection', 'torchvision') "
+            "if m in sys.modules))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.stdout.splitlines()[-1] == "[]", r.stdout + r.stderr
+    assert r.stdout.splitlines()[-2] in ("UsageProblem", "BadData"), r.stdout
+
+
 def test_ctrl_c_while_torch_imports_exits_130_quietly(tmp_path):
     """SIGINT at the first thing the command does (where torch is imported)."""
     import subprocess
