@@ -359,6 +359,23 @@ class ReebDetector(nn.Module):
         return self._ranker_bytes is not None
 
     def forward(self, images: Sequence[Tensor]) -> list[dict[str, Tensor]]:
+        """Detections of each image, in evaluation mode.
+
+        The stages, as :func:`~reeb_torch.detection.inference.detect_images` runs them:
+        REEB's proposals of every image (``model.rpn``, a :class:`ReebRPN`) → per group of
+        images of one size, the resize, the top rows cut (``settings.crop_top``) and the
+        frozen backbone → per image, the neck, RoI pooling, the box head's passes
+        (``settings.box_passes``) and the postprocess back to input pixels.
+
+        Args:
+            images: ``[3, H, W]`` RGB each, uint8 or float in [0, 1], on the detector's
+                device; sizes may differ. A ``[B, 3, H, W]`` tensor is taken as B images.
+
+        Returns:
+            One dict per image: ``boxes`` ``float32 [D, 4]`` xyxy input pixels, ``labels``
+            ``int64 [D]`` (indices into :attr:`categories`), ``scores`` ``float32 [D]``, best
+            first.
+        """
         if isinstance(images, Tensor) and images.dim() == 4:
             images = list(images)
         if not isinstance(images, (list, tuple)):
