@@ -134,7 +134,7 @@ def load_detector(path: str, device: str) -> tuple[Any, str, Any]:
     """The detector file at ``path`` loaded on ``device`` (``--device``), what its rows'
     ``config`` holds (``det-`` and the file's SHA-256, first 16 digits) and the device; a
     usage error when it cannot be loaded."""
-    from ..detection import DetectorFileError, ReebDetector  # here: a usage error comes before torch loads
+    from ..detection import DetectorFileError, ReebDetector  # here: a usage error comes before the model loads
     from ..detection.detector import resolve_detector
 
     dev = resolve_device(device)

@@ -91,7 +91,7 @@ class ProposeStep:
         """Build the generator and, before the clock starts, compile (or load) the CPU
         kernels; the summary gives that time apart (``compile_s``, with the first batch's
         warm-up: :meth:`run_batch`)."""
-        from ..generator import ProposalGenerator, _warm_for  # here: a usage error comes before torch loads
+        from ..generator import ProposalGenerator, _warm_for  # here: a usage error comes before the model loads
 
         try:
             self.gen = ProposalGenerator(self.cfg).to(self.dev).eval()
