@@ -29,9 +29,7 @@ from torchvision.ops import box_iou
 
 from ..config import ReebConfig
 from ..metrics.recall import best_iou, object_hits
-from ..ranker import BoxRanker
-from ..ranker import fit as RF
-from ..ranker import keep_candidates, save_ranker
+from ..ranker import BoxRanker, fit as RF, keep_candidates, save_ranker
 from ..ranker.store import Checkpoints, StoredFrames
 from ..tuning import FrameCache, fold_blocks, held_out
 from . import frames as F

@@ -27,13 +27,19 @@ from ..config import ReebConfig
 from ..datasets.folders import folder_blocks
 from ..io import replace_file
 from ..metrics.recall import compare_recall, object_hits
-from ..ranker import SHIPPED, RankerWeightsError
-from ..ranker import cv as fit_cv
-from ..ranker import dropped_columns
-from ..ranker import fit as RF
-from ..ranker import fitted_frames, frame_hash
-from ..ranker import frames as F
-from ..ranker import load_ranker, save_ranker, seen_hashes
+from ..ranker import (
+    SHIPPED,
+    RankerWeightsError,
+    cv as fit_cv,
+    dropped_columns,
+    fit as RF,
+    fitted_frames,
+    frame_hash,
+    frames as F,
+    load_ranker,
+    save_ranker,
+    seen_hashes,
+)
 from ..ranker.store import Checkpoints, RowStore, StoredFrames, StoreError
 from ..tuning import FrameCache, bootstrap_interval, fold_blocks, objective
 from .claim import check_files, claim
