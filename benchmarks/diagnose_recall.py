@@ -89,7 +89,7 @@ def lost_details(gen: ProposalGenerator, best: dict[str, torch.Tensor], iou: tor
     own :func:`reeb_torch.stages.nms.nms_top_k` on the candidates, without the top-k cut."""
     cfg = gen.config
     scores, grid, chosen = captured["scores"][0], captured["grid"], captured["chosen"][0]
-    budget = gen.selection.region_budget(captured["share"][0])
+    budget = gen.selection.cut.region_budget(captured["share"][0])
     lost = torch.nonzero(best["final top-k"] < 0.7).squeeze(1).tolist()
     # what the NMS ranks: the learned ranking's candidates and logits, else the cut's and V
     order, cand = (captured["ranked"][0], torch.nonzero(captured["kept"][0]).squeeze(1)) if "kept" in captured \

@@ -33,7 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import default_kitti_dir, rerun_line, run_captured  # noqa: E402
 
 from reeb_torch import ProposalGenerator, ReebConfig  # noqa: E402
-from reeb_torch.selection import WindowSelection  # noqa: E402
+from reeb_torch.config import CameraSettings, RegionSettings  # noqa: E402
+from reeb_torch.selection import GridCache, RegionCut, WindowSelection  # noqa: E402
 from _common import add_frames_option  # noqa: E402
 from reeb_torch.datasets.folders import load_kitti  # noqa: E402
 from reeb_torch.metrics.recall import compare_recall, object_hits  # noqa: E402
@@ -43,11 +44,11 @@ TOP_K, IOU = 2000, 0.7
 FAMILIES = ("region-nms", "narrow-shadow", "ensemble")
 
 
-class RegionNMS(WindowSelection):
+class RegionNMS(RegionCut):
     """The default's ranking, with greedy NMS at ``thr`` inside each region before eq. 9's cut."""
 
-    def __init__(self, config: ReebConfig, thr: float) -> None:
-        super().__init__(config)
+    def __init__(self, regions: RegionSettings, camera: CameraSettings, cache: GridCache, thr: float) -> None:
+        super().__init__(regions, camera, cache)
         self.thr = thr
 
     def region_cut(self, scores, grid, share):
@@ -65,14 +66,15 @@ class RegionNMS(WindowSelection):
         return chosen
 
 
-class NarrowShadow(WindowSelection):
+class NarrowShadow(RegionCut):
     """The default's ranking, with narrow boxes re-scored without the shadow term: ``plain`` (set per
     image: the scores of the same windows with ``shadow_score='none'``) times ``const``, or
     times the term floored at ``const`` (``floor=True``). The scores are changed in place,
     so the region cut and NMS both rank by them."""
 
-    def __init__(self, config: ReebConfig, aspect: float, const: float, floor: bool) -> None:
-        super().__init__(config)
+    def __init__(self, regions: RegionSettings, camera: CameraSettings, cache: GridCache, aspect: float,
+                 const: float, floor: bool) -> None:
+        super().__init__(regions, camera, cache)
         self.aspect, self.const, self.floor = aspect, const, floor
         self.plain: torch.Tensor | None = None
 
@@ -86,10 +88,10 @@ class NarrowShadow(WindowSelection):
         return super().region_cut(scores, grid, share)
 
 
-def with_ranking(selection: WindowSelection) -> ProposalGenerator:
-    """A generator of ``selection``'s config that scores and selects its windows with ``selection``."""
-    gen = ProposalGenerator(selection.config)
-    gen.selection = selection
+def with_cut(config: ReebConfig, cut: type[RegionCut], *args: object) -> ProposalGenerator:
+    """A generator of ``config`` whose region cut is ``cut(config.regions, config.camera, cache, *args)``."""
+    gen = ProposalGenerator(config)
+    gen.selection = WindowSelection.from_config(config, cut=lambda r, c, cache: cut(r, c, cache, *args))
     return gen
 
 
@@ -109,17 +111,17 @@ def variants(family: str, default_boxes: list[torch.Tensor]) -> list[tuple[str, 
     rows: list[tuple[str, Callable]] = []
     if family == "region-nms":
         for thr in (0.9, 0.85, 0.8):
-            gen = with_ranking(RegionNMS(cfg, thr))
+            gen = with_cut(cfg, RegionNMS, thr)
             rows.append((f"NMS {thr} inside each region before the cut", lambda i, im, g=gen: g([im])[0]["boxes"]))
     elif family == "narrow-shadow":
         plain_gen = ProposalGenerator(cfg.replace(shadow_score="none"))
         for aspect in (0.6, 0.8):
             for floor in (True, False):
                 for const in (0.2, 0.35, 0.5):
-                    gen = with_ranking(NarrowShadow(cfg, aspect, const, floor))
+                    gen = with_cut(cfg, NarrowShadow, aspect, const, floor)
 
                     def run(i, im, g=gen):
-                        g.selection.plain = run_captured(plain_gen, im)[1]["scores"]
+                        g.selection.cut.plain = run_captured(plain_gen, im)[1]["scores"]
                         return g([im])[0]["boxes"]
 
                     how = f"term floored at {const}" if floor else f"x {const} instead of the term"

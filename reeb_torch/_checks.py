@@ -15,7 +15,7 @@ from .stages._threads import on_two_cores
 from .stages.edges import working_size
 
 if TYPE_CHECKING:
-    from .config import ReebConfig
+    from .config import FrontEndSettings
 
 __all__ = ["check_images", "check_fits", "check_range", "ImageBatch"]
 
@@ -88,12 +88,12 @@ def _check_one(img: Tensor, where: str, keep_uint8: bool = False, defer_range: b
     return img.float()
 
 
-def check_fits(height: int, width: int, config: ReebConfig, where: str = "image") -> None:
-    """Raise ValueError when ``config`` cannot run on a ``height × width`` image: at the
+def check_fits(height: int, width: int, front_end: FrontEndSettings, where: str = "image") -> None:
+    """Raise ValueError when the front end cannot run on a ``height × width`` image: at the
     working resolution (``scale``) the Gaussian blur (``blur_sigma``; kernel side
     ``2*ceil(2σ)+1``, reflected borders) needs more than ``ceil(2σ)`` pixels per side.
     The message names the image size and both settings."""
-    s, sigma = config.scale, config.blur_sigma
+    s, sigma = front_end.scale, front_end.blur_sigma
     hk, wk = working_size(height, width, s)
     reach = math.ceil(2 * sigma)
     if reach >= min(hk, wk):
@@ -104,7 +104,7 @@ def check_fits(height: int, width: int, config: ReebConfig, where: str = "image"
         )
 
 
-def check_images(images: ImageBatch, min_side: int, config: ReebConfig | None = None,
+def check_images(images: ImageBatch, min_side: int, front_end: FrontEndSettings | None = None,
                  keep_uint8: bool = False, unchecked: list[int] | None = None) -> list[Tensor]:
     """Validate a batch and return a list of float32 ``(3, H, W)`` images in [0, 1]
     (with ``keep_uint8``, uint8 images are returned as they are, for a caller that
@@ -112,7 +112,7 @@ def check_images(images: ImageBatch, min_side: int, config: ReebConfig | None = 
 
     Accepts a ``(B, 3, H, W)`` float/uint8 tensor or a sequence of ``(3, H, W)`` tensors,
     dense, on a real device (a meta tensor is a TypeError). ``min_side`` is the smallest
-    height/width an image may have (the smallest window); with ``config``, each image must
+    height/width an image may have (the smallest window); with ``front_end``, each image must
     also fit its working resolution (:func:`check_fits`). Wrong types raise TypeError,
     wrong shapes, values or sizes ValueError. Given a list ``unchecked``, the values of
     float32 CPU images are not checked here: their indices go into the list, for a caller
@@ -146,7 +146,7 @@ def check_images(images: ImageBatch, min_side: int, config: ReebConfig | None = 
             raise ValueError(
                 f"image {i}: size {w}x{h} (WxH) is smaller than the smallest window ({min_side} px)"
             )
-        if config is not None:
-            check_fits(h, w, config, f"image {i}")
+        if front_end is not None:
+            check_fits(h, w, front_end, f"image {i}")
         out.append(x)
     return out

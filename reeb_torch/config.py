@@ -9,13 +9,17 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
-import types
 import typing
 from dataclasses import dataclass
-from typing import Any, Callable, Literal
+from typing import Any, Literal
 
-__all__ = ["ReebConfig", "PRESETS", "get_preset", "TRAINING_FREE", "FRONT_END_FIELDS", "check_fields"]
+from ._fields import (ASPECT_RANGE, CLASS_HEIGHTS_M, CLASS_QUOTA, CLASS_WEIGHTS, GROUND_BAND, GROUP_CELL, OBJECT_TEMPLATES,
+                      RANKER, ROAD_BAND, ROAD_TOLERANCE, SEED, Check, check_fields, field_plan, interval_check,
+                      quota_by_name, validate_config)
+
+__all__ = ["ReebConfig", "PRESETS", "get_preset", "TRAINING_FREE", "FRONT_END_FIELDS", "PARTS", "PART_FIELDS", "PART_OF",
+           "FrontEndSettings", "CameraSettings", "RegionSettings", "WindowSettings", "ScoreSettings",
+           "RankingSettings", "NmsSettings"]
 
 ScoreNorm = Literal["perimeter", "area"]
 RoadScore = Literal["reward", "none"]
@@ -30,250 +34,13 @@ else:  # what the field holds, and what the checks see (a mapping is made pairs 
     ClassQuota = tuple[tuple[str, float], ...] | tuple[float, ...]
 
 
-# -- validation (ReebConfig.__post_init__) ---------------------------------------------------
-# The type of every field is checked from its annotation, so a new field is checked as soon
-# as it is declared; its range is declared with it (_knob), joint conditions go into _JOINT.
-
-
-_NUMBERS = {bool: bool, int: numbers.Integral, float: numbers.Real}
-
-
-def _conform(value: Any, hint: Any) -> Any:
-    """``value`` checked against the annotation ``hint`` (``bool``, ``int`` and ``float``, never
-    a bool for a number; ``Literal``, unions, ``tuple[X, Y]``, ``tuple[X, ...]`` from a tuple or
-    list, plain classes; other annotations pass) and normalised: floats finite, -0.0 as 0.0,
-    tuples for lists. Raises a bare TypeError (wrong type) or ValueError (not finite, not a
-    choice, wrong tuple length)."""
-    if hint is bool or hint is int or hint is float:
-        exact = type(value) is hint
-        if not exact and (isinstance(value, bool) or not isinstance(value, _NUMBERS[hint])):
-            raise TypeError
-        if hint is not float:
-            return value if exact else int(value)
-        try:
-            x = float(value)
-        except OverflowError:  # an int beyond the float range
-            raise ValueError from None
-        if not math.isfinite(x):
-            raise ValueError
-        return 0.0 if x == 0.0 else value if type(value) is float else x  # -0.0 is 0.0: one fingerprint
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if origin is Literal:
-        for c in args:
-            if type(value) is type(c) and value == c:
-                return value
-        raise ValueError if any(type(value) is type(c) for c in args) else TypeError
-    if origin is typing.Union or origin is types.UnionType:
-        if value is None and type(None) in args:
-            return None
-        kinds = set()
-        for alt in args:
-            try:
-                return _conform(value, alt)
-            except (TypeError, ValueError) as e:
-                kinds.add(type(e))
-        raise ValueError if ValueError in kinds else TypeError
-    if origin is tuple:
-        if not isinstance(value, (tuple, list)):
-            raise TypeError
-        if len(args) == 2 and args[1] is Ellipsis:
-            args = (args[0],) * len(value)
-        elif len(value) != len(args):
-            raise ValueError
-        items = [_conform(v, a) for v, a in zip(value, args)]
-        same = type(value) is tuple and all(a is b for a, b in zip(items, value))
-        return value if same else tuple(items)
-    if not isinstance(hint, type) or isinstance(value, hint):
-        return value  # an annotation this checker does not know is left to the field's range
-    raise TypeError
-
-
-def _describe(hint: Any, plural: bool = False) -> str:
-    """What ``hint`` expects, in words (``"a tuple of 2 finite numbers"``)."""
-    words = {bool: ("True or False (a bool)", "bools (True or False)"), int: ("an int (not a bool)", "ints"),
-             float: ("a finite number", "finite numbers"), str: ("a string", "strings")}
-    if hint in words:
-        return words[hint][plural]
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if origin is Literal:
-        return "one of " + ", ".join(repr(a) for a in args)
-    if origin is typing.Union or origin is types.UnionType:
-        alts = " or ".join(_describe(a) for a in args if a is not type(None))
-        return ("None or " if type(None) in args else "") + alts
-    if origin is tuple:
-        head = "tuples" if plural else "a tuple"
-        if len(args) == 2 and args[1] is Ellipsis:
-            return f"{head} of {_describe(args[0], plural=True)}"
-        if all(a == args[0] for a in args):
-            return f"{head} of {len(args)} {_describe(args[0], plural=True)}"
-        return f"{head} ({', '.join(_describe(a) for a in args)})"
-    return getattr(hint, "__name__", repr(hint))
-
-
-def _show(value: Any, limit: int = 80) -> str:
-    """``repr(value)``, shortened to ``limit`` characters for messages."""
-    r = repr(value)
-    return r if len(r) <= limit else r[: limit - 4] + " ..."
-
-
-_Check = tuple[Callable[[Any], bool], str]  # a range check and what it expects, in words
-
-
-def _range(spec: str | _Check) -> _Check:
-    """A range check and its words: an interval as written in maths (``"(0, 4]"``, ``"> 0"``,
-    ``">= 1"``, after ``"None or "`` where None passes), or a ``(check, words)`` pair as is."""
-    if not isinstance(spec, str):
-        return spec
-    body = spec.removeprefix("None or ")
-    if body[0] in "([":
-        lo, hi = (float(x) for x in body[1:-1].split(","))
-        lo_open, hi_open = body[0] == "(", body[-1] == ")"
-        text = f"in {body[0]}{lo:g}, {hi:g}{body[-1]}"
-        def ok(v: Any) -> bool:
-            return (lo < v if lo_open else lo <= v) and (v < hi if hi_open else v <= hi)
-    else:
-        op, bound = body.split()[0], float(body.split()[1])
-        text = f"{op} {bound:g}"
-        def ok(v: Any) -> bool:
-            return v > bound if op == ">" else v >= bound
-    if body == spec:
-        return ok, text
-    return (lambda v: v is None or ok(v)), "None or " + text
-
-
-def _quota_ok(t: tuple) -> bool:
-    """``class_quota``: all shares or all ``(name, share)`` pairs (distinct names), each share
-    >= 0, summing to at most 1."""
-    named = [isinstance(x, tuple) for x in t]
-    if any(named) and not all(named):
-        return False
-    shares = [x[1] for x in t] if any(named) else list(t)
-    names = [x[0] for x in t] if any(named) else []
-    return all(x >= 0 for x in shares) and sum(shares) <= 1 and len(set(names)) == len(names)
-
-
-def _by_name(quota: object) -> bool:
-    """Whether a ``class_quota`` gives its shares by class name (``(name, share)`` pairs)."""
-    return isinstance(quota, tuple) and bool(quota) and isinstance(quota[0], tuple)
-
-
-_MAX_REGIONS = 1024
-"""Most region strips a camera setting may give (eq. 8); more is a setting error."""
-
-
-def _region_count(c: "ReebConfig") -> int:
-    from .stages.regions import region_count, region_width_fraction
-
-    frac = region_width_fraction(c.camera_height_m, c.vertical_fov_deg, c.horizontal_fov_deg,
-                                 c.max_object_width_m, c.region_width_round)
-    return region_count(frac, c.region_overlap) if frac > 0 else _MAX_REGIONS + 1
-
-
-# Checks that are not intervals, named by the fields that declare them (:func:`_knob`).
-_GROUP_CELL = (lambda v: v is None or v >= 2), "None or an int >= 2"
-_ROAD_BAND = ((lambda b: 0 <= b[0] < b[2] <= 1 and 0 <= b[1] < b[3] <= 1),
-              "fractions (x1, y1, x2, y2) with 0 <= x1 < x2 <= 1 and 0 <= y1 < y2 <= 1")
-_ROAD_TOLERANCE = (lambda t: all(x >= 0 for x in t)), "three non-negative numbers (hue, saturation, value)"
-_SEED = (lambda v: -2**63 <= v < 2**64), "in [-2**63, 2**64) (what torch.Generator.manual_seed takes)"
-_ASPECT_RANGE = (lambda a: 0 < a[0] <= a[1]), "(low, high) with 0 < low <= high"
-_GROUND_BAND = (lambda g: g is None or 0 < g[0] < g[1]), "None or (r_lo, r_hi) with 0 < r_lo < r_hi"
-_OBJECT_TEMPLATES = ((lambda ts: len(ts) > 0 and all(0 < hl <= hh and 0 < wl <= wh for hl, hh, wl, wh in ts)),
-                     "a non-empty tuple of (height_lo, height_hi, width_lo, width_hi) "
-                     "in metres with 0 < height_lo <= height_hi and 0 < width_lo <= width_hi")
-_CLASS_HEIGHTS_M = (lambda t: len(t) > 0 and all(x > 0 for x in t)), "a non-empty tuple of heights > 0"
-_CLASS_WEIGHTS = (lambda t: all(x >= 0 for x in t) and any(x > 0 for x in t)), "weights >= 0, not all 0"
-_CLASS_QUOTA = (_quota_ok, "shares >= 0 that sum to at most 1: one a class in the ranker's order, or "
-                           "(class name, share) pairs ({'Pedestrian': 0.2}) with distinct names")
-_RANKER = (lambda v: v.strip() != ""), "'none', a shipped ranker name ('kitti') or the path of a weights file"
-
-_JOINT: list[tuple[tuple[str, ...], Callable[["ReebConfig"], bool], str]] = [
-    # Conditions between fields: (the fields, the check, what is expected).
-    (("class_heights_m", "class_weights"), lambda c: len(c.class_weights) == len(c.class_heights_m),
-     "of the same length (one weight per class)"),
-    (("class_heights_m", "object_templates"), lambda c: len(c.object_templates) == len(c.class_heights_m),
-     "of the same length (one template per class, in the same order)"),
-    (("class_quota", "ranker"), lambda c: not c.class_quota or c.ranker != "none" or _by_name(c.class_quota),
-     "a ranker (its class head hints each box's class) with class_quota given in the ranker's class order, "
-     "class_quota by class name ({'Pedestrian': 0.2}: ignored without a class head), or class_quota=()"),
-    (("camera_height_m", "vertical_fov_deg", "horizontal_fov_deg", "max_object_width_m",
-      "region_width_round", "region_overlap"), lambda c: _region_count(c) <= _MAX_REGIONS,
-     f"a camera and overlap giving at most {_MAX_REGIONS} regions (eqs. 5-8)"),
-]
-
-_PLANS: dict[type, tuple[dict[str, Any], dict[str, _Check]]] = {}
-
-
-def _plan(cls: type) -> tuple[dict[str, Any], dict[str, _Check]]:
-    """``cls``'s resolved field annotations (the module postpones them) and field ranges."""
-    if cls not in _PLANS:
-        _PLANS[cls] = (typing.get_type_hints(cls),
-                       {f.name: f.metadata["range"] for f in dataclasses.fields(cls) if "range" in f.metadata})
-    return _PLANS[cls]
-
-
-def _validate(cfg: "ReebConfig") -> None:
-    """Check every field of ``cfg`` in place: its type from its annotation (:func:`_conform`,
-    so new fields are checked too), then its declared range (:func:`_knob`), then :data:`_JOINT`.
-
-    Raises TypeError for a value of the wrong type (``top_k=True``, ``seed="a"``) and
-    ValueError for one of the right type out of range (``kappa=200``), both as
-    ``ReebConfig.<name> must be <expected>, got <value>``.
-    """
-    hints, ranges = _plan(type(cfg))
-    if isinstance(cfg.class_quota, typing.Mapping):  # {"Pedestrian": 0.2}: kept as pairs, hashable
-        object.__setattr__(cfg, "class_quota", tuple(cfg.class_quota.items()))
-    for name, hint in hints.items():
-        value = getattr(cfg, name)
-        try:
-            fixed = _conform(value, hint)
-        except (TypeError, ValueError) as e:
-            raise type(e)(f"ReebConfig.{name} must be {_describe(hint)}, got {_show(value)}") from None
-        if fixed is not value:
-            object.__setattr__(cfg, name, fixed)
-    for name, (ok, expected) in ranges.items():
-        if not ok(getattr(cfg, name)):
-            raise ValueError(f"ReebConfig.{name} must be {expected}, got {_show(getattr(cfg, name))}")
-    for names, ok, expected in _JOINT:
-        if all(n in hints for n in names) and not ok(cfg):
-            got = ", ".join(f"{n}={_show(getattr(cfg, n))}" for n in names)
-            fields = ", ".join(f"ReebConfig.{n}" for n in names[:-1]) + f" and ReebConfig.{names[-1]}"
-            raise ValueError(f"{fields} must be {expected}, got {got}")
-
-
-def check_fields(owner: str, values: typing.Mapping[str, Any], hints: typing.Mapping[str, Any],
-                 ranges: typing.Mapping[str, str | None]) -> dict[str, Any]:
-    """``values`` of the fields of another settings class checked as ReebConfig's are: each by
-    its annotation in ``hints`` (a bool is no number, floats finite, a ``Literal``'s words)
-    then by its interval in ``ranges`` (``"[32, 4096]"``, ``"(0, 1]"``, ``">= 1"``; None or
-    absent: none), normalised (ints for integral numbers, tuples for lists).
-
-    Raises:
-        TypeError: a value of the wrong type; ValueError: one out of its range. Both as
-        ``<owner>.<name> must be <expected>, got <value>``.
-    """
-    out = {}
-    for name, value in values.items():
-        hint = hints.get(name, Any)
-        try:
-            fixed = _conform(value, hint)
-        except (TypeError, ValueError) as e:
-            raise type(e)(f"{owner}.{name} must be {_describe(hint)}, got {_show(value)}") from None
-        interval = ranges.get(name)
-        if interval is not None:
-            ok, expected = _range(interval)
-            if not ok(fixed):
-                raise ValueError(f"{owner}.{name} must be {expected}, got {_show(value)}")
-        out[name] = fixed
-    return out
-
-
-def _knob(default: Any, check: str | _Check | None = None, *, front: bool = False) -> Any:
-    """A field's default, with its range once its type is right (:func:`_range`: an interval
+def _knob(default: Any, check: str | Check | None = None, *, front: bool = False) -> Any:
+    """A field's default, with its range once its type is right (:func:`interval_check`: an interval
     such as ``"(0, 4]"``, or a ``(check, words)`` pair) and, with ``front``, a place in
     :data:`FRONT_END_FIELDS` (it changes the edges, groups, road mask or score maps)."""
     meta: dict[str, Any] = {}
     if check is not None:
-        meta["range"] = _range(check)
+        meta["range"] = interval_check(check)
     if front:
         meta["stage"] = "front"
     return dataclasses.field(default=default, metadata=meta)
@@ -306,7 +73,7 @@ class ReebConfig:
     """Drop edge pixels with no edge pixel among their 8 neighbours (Sec. 3.4)."""
 
     # -- Sec. 3.7: edge groups -----------------------------------------------------------
-    group_cell: int | None = _knob(8, _GROUP_CELL, front=True)
+    group_cell: int | None = _knob(8, GROUP_CELL, front=True)
     """The edge groups are the 8-connected components of edge pixels (as printed), cut at
     the borders of tiles of this side, in working pixels (reading 2: long chains are rarely
     enclosed); ``None`` = no bound, plain connected components as printed."""
@@ -314,12 +81,12 @@ class ReebConfig:
     # -- Sec. 3.5, eqs. 3-4: road segmentation -------------------------------------------
     road_samples: int = _knob(300, "[1, 1000000]", front=True)
     """Random pixels sampled to estimate the road colour ("hundreds", Sec. 3.5)."""
-    road_band: tuple[float, float, float, float] = _knob((0.3, 0.8, 0.7, 1.0), _ROAD_BAND, front=True)
+    road_band: tuple[float, float, float, float] = _knob((0.3, 0.8, 0.7, 1.0), ROAD_BAND, front=True)
     """Where road is likely, as fractions of the image (x1, y1, x2, y2): bottom centre."""
-    road_tolerance: tuple[float, float, float] = _knob((0.5, 0.12, 0.12), _ROAD_TOLERANCE, front=True)
+    road_tolerance: tuple[float, float, float] = _knob((0.5, 0.12, 0.12), ROAD_TOLERANCE, front=True)
     """Half-width of the in-range test around the sampled median, per HSV channel
     (hue in radians, circular; saturation and value in [0, 1]). Not given in the paper."""
-    seed: int = _knob(0, _SEED, front=True)
+    seed: int = _knob(0, SEED, front=True)
     """Seed of the road pixel sampling; the same pixels are sampled for every image of a
     given size, so results do not depend on the batch."""
 
@@ -364,9 +131,9 @@ class ReebConfig:
     """Ratio between consecutive window widths (and heights)."""
     window_step: float = _knob(0.15, "(0, 1]")
     """Stride of the sliding windows as a fraction of the window's side."""
-    aspect_range: tuple[float, float] = _knob((0.25, 4.0), _ASPECT_RANGE)
+    aspect_range: tuple[float, float] = _knob((0.25, 4.0), ASPECT_RANGE)
     """Allowed width/height ratios of the windows."""
-    ground_band: tuple[float, float] | None = _knob((0.45, 3.0), _GROUND_BAND)
+    ground_band: tuple[float, float] | None = _knob((0.45, 3.0), GROUND_BAND)
     """Keep only windows whose height h and bottom row y_b satisfy
     r_lo <= h / (y_b − horizon·H) <= r_hi: objects standing on the road (a flat-ground
     camera prior, in the spirit of eq. 11's "lower boxes are bigger"). ``None`` = all rows."""
@@ -379,7 +146,7 @@ class ReebConfig:
         (2.2, 4.5, 1.8, 16.0),  # truck
         (0.9, 2.2, 0.3, 1.4),   # pedestrian (children to adults, arms and legs swinging)
         (1.1, 2.2, 0.4, 2.4),   # cyclist (front to side view)
-    ), _OBJECT_TEMPLATES)
+    ), OBJECT_TEMPLATES)
     """Real extents, in metres, of the 2D boxes of each object class standing on the road:
     ``(height_lo, height_hi, width_lo, width_hi)``. With ``window_geometry='camera'``, a window
     is kept at the rows where some template fits both its height and its width."""
@@ -429,11 +196,11 @@ class ReebConfig:
     row, in [0, 1], at its best over the classes; ``none``: L = 1."""
     horizon: float = _knob(0.47, "(0, 1)")
     """Horizon row as a fraction of the image height, for ``location_score='classes'`` and ``window_geometry='camera'`` (KITTI: the principal point, cy/H ≈ 0.46–0.47)."""
-    class_heights_m: tuple[float, ...] = _knob((1.5, 3.2, 1.72, 1.72), _CLASS_HEIGHTS_M)
+    class_heights_m: tuple[float, ...] = _knob((1.5, 3.2, 1.72, 1.72), CLASS_HEIGHTS_M)
     """Typical real heights (metres) of car, truck, pedestrian and cyclist, for
     ``location_score='classes'``: L is the best fit over the classes of a Gaussian in
     log(b_h / (b_y − horizon·H) / (height / camera_height_m))."""
-    class_weights: tuple[float, ...] = _knob((1.0, 0.7, 1.0, 1.0), _CLASS_WEIGHTS)
+    class_weights: tuple[float, ...] = _knob((1.0, 0.7, 1.0, 1.0), CLASS_WEIGHTS)
     """Weight of each class's fit in ``location_score='classes'`` (same order as
     ``class_heights_m``): rarer classes weigh less, so their windows don't crowd the budget."""
     ground_log_sigma: float = _knob(0.3, "> 0")
@@ -449,7 +216,7 @@ class ReebConfig:
     scale of S depends on the edge map's, so the default only drops S < 0)."""
 
     # -- the learned ranking (not in the paper) --------------------------------------------
-    ranker: str = _knob("kitti", _RANKER)
+    ranker: str = _knob("kitti", RANKER)
     """Orders the region cut's candidates by a small learned model over per-box features in
     place of V, before eq. 13's NMS (not in the paper; scores are then its logits): ``kitti``,
     the shipped model; the path of a weights file ``reeb fit`` wrote for another camera; or
@@ -466,7 +233,7 @@ class ReebConfig:
     each ranked candidate's score is the model's logit plus this times the head's sigmoid,
     how tight the box is on its object were it on one, so that of the boxes on one object the
     tight one goes first into the NMS. ``0``: the logit alone. Not in the paper."""
-    class_quota: ClassQuota = _knob((), _CLASS_QUOTA)
+    class_quota: ClassQuota = _knob((), CLASS_QUOTA)
     """With a ranker that has a class head (``kitti``: Car, Pedestrian, Cyclist, Truck): the
     share of the ``top_k`` proposals a class gets first (the best boxes after NMS the head
     hints as that class), the rest going to the best of the others. By class name,
@@ -506,10 +273,10 @@ class ReebConfig:
     """Proposals returned per image (at most)."""
 
     def __post_init__(self) -> None:
-        """Check every field (:func:`_validate`; TypeError, ValueError). Lists become tuples,
+        """Check every field (:func:`validate_config`; TypeError, ValueError). Lists become tuples,
         ints in float fields floats and -0.0 0.0: equal settings give equal, hashable configs
         with equal fingerprints (JSON round trips included)."""
-        _validate(self)
+        validate_config(self)
 
     # -- presets -------------------------------------------------------------------------
     @classmethod
@@ -532,58 +299,107 @@ class ReebConfig:
         return self.replace(ranker="none", class_quota=())
 
     def class_shares(self, classes: typing.Sequence[str] | None) -> tuple[float, ...] | None:
-        """``class_quota`` as one share per class of a ranker's class head (``classes``, in its
-        order; None without a head), or None for no quota (``class_quota=()``, or by name
-        without a head).
+        """``class_quota`` as one share per class of a ranker's class head
+        (:meth:`RankingSettings.class_shares`)."""
+        return self.ranking.class_shares(classes)
 
-        Raises:
-            ValueError: a share for each class in order, but no head or another number of
-                classes; or a class name the head does not have (both name what it has).
-        """
-        quota = self.class_quota  # a mapping became (name, share) pairs in __post_init__
-        if not quota:
-            return None
-        named = _by_name(quota)
-        if classes is None:
-            if named:
-                return None
-            raise ValueError(f"ReebConfig.class_quota has {len(quota)} shares, one a class in order, but the "
-                             f"ranker {self.ranker!r} has no class head: give the shares by class name "
-                             "({'Pedestrian': 0.2}; ignored without a class head) or class_quota=()")
-        classes = tuple(classes)
-        if not named:
-            shares = typing.cast("tuple[float, ...]", quota)
-            if len(shares) != len(classes):
-                raise ValueError(f"ReebConfig.class_quota has {len(shares)} shares, but the ranker {self.ranker!r} "
-                                 f"has the classes {', '.join(classes)}: give one share a class, in its order, "
-                                 "or the shares by class name")
-            return tuple(float(x) for x in shares)
-        by_name = dict(typing.cast("tuple[tuple[str, float], ...]", quota))
-        unknown = [name for name in by_name if name not in classes]
-        if unknown:
-            raise ValueError(f"ReebConfig.class_quota names {', '.join(map(repr, unknown))}, but the ranker "
-                             f"{self.ranker!r} hints the classes {', '.join(classes)}")
-        return tuple(float(by_name.get(c, 0.0)) for c in classes)
+    # -- each part's settings (PARTS) -------------------------------------------------------
+    @property
+    def front_end(self) -> "FrontEndSettings":
+        """The settings of the edges, edge groups and road mask."""
+        return self._part("front_end")
+
+    @property
+    def camera(self) -> "CameraSettings":
+        """The camera's height, opening angles and horizon row."""
+        return self._part("camera")
+
+    @property
+    def regions(self) -> "RegionSettings":
+        """The region strips, their entropy and the candidate budget (eqs. 2, 5-9)."""
+        return self._part("regions")
+
+    @property
+    def windows(self) -> "WindowSettings":
+        """The sliding windows' sizes, strides and rows (Sec. 3.6)."""
+        return self._part("windows")
+
+    @property
+    def scores(self) -> "ScoreSettings":
+        """The score V of a window and its terms (eqs. 1, 10-12)."""
+        return self._part("scores")
+
+    @property
+    def ranking(self) -> "RankingSettings":
+        """The learned ranking of the candidates, its class quota and box refiner."""
+        return self._part("ranking")
+
+    @property
+    def nms(self) -> "NmsSettings":
+        """Eq. 13's suppression and the number of proposals."""
+        return self._part("nms")
+
+    def _part(self, name: str) -> Any:
+        """The settings of part ``name``, made once per config (every field checked once)."""
+        key = "_part_" + name
+        part = self.__dict__.get(key)
+        if part is None:
+            cls = PARTS[name]
+            part = cls.__new__(cls)  # the fields are this config's, checked already
+            for f in dataclasses.fields(cls):
+                object.__setattr__(part, f.name, getattr(self, f.name))
+            object.__setattr__(self, key, part)
+        return part
 
     def replace(self, **changes: object) -> "ReebConfig":
-        """A copy with ``changes`` applied (validated)."""
-        return dataclasses.replace(self, **changes)  # type: ignore[arg-type]
+        """A copy with ``changes`` applied (validated). A change may be a field
+        (``top_k=1000``) or a part's settings as a whole (``nms=cfg.nms.replace(top_k=1000)``,
+        :data:`PARTS`); a field named beside its part wins."""
+        flat: dict[str, object] = {}
+        for name, value in changes.items():
+            if name in PARTS:
+                if not isinstance(value, PARTS[name]):
+                    raise TypeError(f"ReebConfig.replace({name}=...) takes a {PARTS[name].__name__}, "
+                                    f"got {type(value).__name__}")
+                flat.update({k: v for k, v in value.to_dict().items() if k not in changes})
+            else:
+                flat[name] = value
+        return dataclasses.replace(self, **flat)  # type: ignore[arg-type]
+
+    @classmethod
+    def from_parts(cls, **parts: "_Part") -> "ReebConfig":
+        """The config of part settings (``ReebConfig.from_parts(nms=NmsSettings(...))``), the
+        default's for each part not given (:data:`PARTS`)."""
+        return cls().replace(**parts)
 
     def to_dict(self) -> dict:
+        """Every field by its flat name (what config files, weights' metadata and
+        :meth:`fingerprint` read)."""
         return dataclasses.asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "ReebConfig":
-        """The config of a dict of fields (as :meth:`to_dict` writes it; lists for tuples).
+        """The config of a dict of fields (as :meth:`to_dict` writes it; lists for tuples), or of
+        parts (``{"nms": {"top_k": 1000}}``, :data:`PARTS`), or both.
 
         Raises TypeError when ``d`` is not a mapping, ValueError naming unknown fields, and
         the field checks' TypeError / ValueError (:meth:`__post_init__`)."""
         if not isinstance(d, typing.Mapping):
             raise TypeError(f"ReebConfig.from_dict expects a dict of ReebConfig fields, got {type(d).__name__}")
-        unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
+        flat: dict[str, Any] = {}
+        for k, v in d.items():
+            if k in PARTS and isinstance(v, typing.Mapping):
+                stray = sorted(set(v) - set(PART_FIELDS[k]))
+                if stray:
+                    raise ValueError(f"unknown {PARTS[k].__name__} field(s): {', '.join(map(str, stray))} "
+                                     f"(it has {', '.join(PART_FIELDS[k])})")
+                flat.update(v)
+            else:
+                flat[k] = v
+        unknown = sorted(set(flat) - {f.name for f in dataclasses.fields(cls)})
         if unknown:
             raise ValueError(f"unknown ReebConfig field(s): {', '.join(unknown)}")
-        fixed: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        fixed: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in flat.items()}
         return cls(**fixed)
 
     def with_camera(self, fx: float, fy: float, width: int, height: int,
@@ -620,6 +436,197 @@ class ReebConfig:
         return hashlib.sha256(blob).hexdigest()[:16]
 
 
+# -- each part's settings -------------------------------------------------------------------
+# Each part of the generator is built from its own settings and receives only those; the
+# fields keep ReebConfig's names (one flat name each, PART_OF), types, ranges and docs.
+
+
+@dataclass(frozen=True)
+class _Part:
+    """A part's settings: fields of :class:`ReebConfig` of the same names, checked as it checks
+    them (type, then range; the joint checks need the whole config and run there)."""
+
+    def __post_init__(self) -> None:
+        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        if isinstance(values.get("class_quota"), typing.Mapping):  # {"Pedestrian": 0.2}: kept as pairs
+            values["class_quota"] = tuple(values["class_quota"].items())
+        fixed = check_fields(type(self).__name__, values, field_plan(type(self))[0],
+                             {n: _RANGES[n] for n in values if n in _RANGES})
+        for name, value in fixed.items():
+            if value is not getattr(self, name):
+                object.__setattr__(self, name, value)
+
+    def replace(self, **changes: Any) -> Any:
+        """A copy with ``changes`` applied (checked)."""
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The fields, by their :class:`ReebConfig` names."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
+@dataclass(frozen=True)
+class FrontEndSettings(_Part):
+    """Edges (Sec. 3.4), edge groups (Sec. 3.7) and the road mask (eqs. 3-4) at the working
+    resolution: :class:`ReebConfig`'s fields of these names."""
+
+    scale: float
+    blur_sigma: float
+    edge_threshold: float
+    thin_edges: bool
+    remove_isolated: bool
+    group_cell: int | None
+    road_samples: int
+    road_band: tuple[float, float, float, float]
+    road_tolerance: tuple[float, float, float]
+    seed: int
+
+
+@dataclass(frozen=True)
+class CameraSettings(_Part):
+    """The camera: its height above the road, opening angles and horizon row (eqs. 5-6,
+    :meth:`ReebConfig.with_camera`)."""
+
+    camera_height_m: float
+    vertical_fov_deg: float
+    horizontal_fov_deg: float
+    horizon: float
+
+
+@dataclass(frozen=True)
+class RegionSettings(_Part):
+    """The region strips (eqs. 5-8), their entropy and each one's share of the candidate
+    budget (eqs. 2 and 9)."""
+
+    use_regions: bool
+    max_object_width_m: float
+    region_overlap: float
+    region_width_round: float | None
+    entropy_bins: int
+    entropy_sigma: float
+    candidates_per_region: int
+    candidates_without_regions: int
+
+
+@dataclass(frozen=True)
+class WindowSettings(_Part):
+    """The sliding windows (Sec. 3.6): their sizes, strides, shapes and rows, and which
+    region each counts against."""
+
+    min_window: int
+    size_ratio: float
+    window_step: float
+    aspect_range: tuple[float, float]
+    ground_band: tuple[float, float] | None
+    window_geometry: WindowGeometry
+    object_templates: tuple[tuple[float, float, float, float], ...]
+    region_assign: Literal["contained", "nearest"]
+
+
+@dataclass(frozen=True)
+class ScoreSettings(_Part):
+    """V of a window (eqs. 1, 10-12): the edge score, its road, shadow, vegetation and
+    location terms, and their weights."""
+
+    score_norm: ScoreNorm
+    gamma: float
+    kappa: float
+    center_fraction: float
+    road_score: RoadScore
+    shadow_score: ShadowScore
+    shadow_strip: float
+    shadow_margin: float
+    shadow_power: float
+    shadow_floor: float
+    vegetation_score: VegetationScore
+    vegetation_box: float
+    vegetation_power: int
+    location_score: LocationScore
+    class_heights_m: tuple[float, ...]
+    class_weights: tuple[float, ...]
+    ground_log_sigma: float
+    alpha: float
+    beta: float
+    min_edge_score: float
+
+
+@dataclass(frozen=True)
+class RankingSettings(_Part):
+    """The learned ranking of the candidates (not in the paper): its weights, how many
+    candidates it reads, the class quota and the box refiner."""
+
+    ranker: str
+    ranker_keep: int
+    ranker_v_share: float
+    rank_quality: float
+    class_quota: ClassQuota
+    refine_top: int
+    refine_class: str
+    refine_order: RefineOrder
+    refine_steps: int
+    refine_nms: float
+
+    def class_shares(self, classes: typing.Sequence[str] | None) -> tuple[float, ...] | None:
+        """``class_quota`` as one share per class of a ranker's class head (``classes``, in its
+        order; None without a head), or None for no quota (``class_quota=()``, or by name
+        without a head).
+
+        Raises:
+            ValueError: a share for each class in order, but no head or another number of
+                classes; or a class name the head does not have (both name what it has).
+        """
+        quota = self.class_quota  # a mapping became (name, share) pairs when checked
+        if not quota:
+            return None
+        named = quota_by_name(quota)
+        if classes is None:
+            if named:
+                return None
+            raise ValueError(f"ReebConfig.class_quota has {len(quota)} shares, one a class in order, but the "
+                             f"ranker {self.ranker!r} has no class head: give the shares by class name "
+                             "({'Pedestrian': 0.2}; ignored without a class head) or class_quota=()")
+        classes = tuple(classes)
+        if not named:
+            shares = typing.cast("tuple[float, ...]", quota)
+            if len(shares) != len(classes):
+                raise ValueError(f"ReebConfig.class_quota has {len(shares)} shares, but the ranker {self.ranker!r} "
+                                 f"has the classes {', '.join(classes)}: give one share a class, in its order, "
+                                 "or the shares by class name")
+            return tuple(float(x) for x in shares)
+        by_name = dict(typing.cast("tuple[tuple[str, float], ...]", quota))
+        unknown = [name for name in by_name if name not in classes]
+        if unknown:
+            raise ValueError(f"ReebConfig.class_quota names {', '.join(map(repr, unknown))}, but the ranker "
+                             f"{self.ranker!r} hints the classes {', '.join(classes)}")
+        return tuple(float(by_name.get(c, 0.0)) for c in classes)
+
+
+@dataclass(frozen=True)
+class NmsSettings(_Part):
+    """Eq. 13's greedy NMS and the number of proposals it returns (``top_k``)."""
+
+    nms_iou: float
+    nms_iou_thin: float
+    nms_thin_aspect: float
+    top_k: int
+
+
+PARTS: dict[str, type[_Part]] = {
+    "front_end": FrontEndSettings, "camera": CameraSettings, "regions": RegionSettings,
+    "windows": WindowSettings, "scores": ScoreSettings, "ranking": RankingSettings, "nms": NmsSettings,
+}
+"""Each part's settings, by the :class:`ReebConfig` property that gives them."""
+
+PART_FIELDS: dict[str, tuple[str, ...]] = {name: tuple(f.name for f in dataclasses.fields(cls))
+                                           for name, cls in PARTS.items()}
+"""The flat names of each part's fields."""
+
+PART_OF: dict[str, str] = {field: part for part, names in PART_FIELDS.items() for field in names}
+"""The one mapping of flat names to parts: ``PART_OF["top_k"] == "nms"``. Every
+:class:`ReebConfig` field is in exactly one part (a test checks it), so ``--set FIELD=VALUE``,
+config files, weights' metadata and presets keep their flat names."""
+
+
 TRAINING_FREE: dict[str, object] = {"ranker": "none", "candidates_per_region": 12000, "class_quota": ()}
 """The fields :meth:`ReebConfig.training_free` sets: no learned ranking, and the candidate budget
 with which V alone ranks (``benchmarks/ablations.py``)."""
@@ -639,7 +646,7 @@ FRONT_END_FIELDS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(Ree
 configs equal in these share that work (``reeb tune`` computes it once per frame). A field
 joins by its declaration (``_knob(..., front=True)``)."""
 
-_RANGES: dict[str, _Check] = _plan(ReebConfig)[1]
+_RANGES: dict[str, Check] = field_plan(ReebConfig)[1]
 """The range of each field that declares one (:func:`_knob`), once its type is right."""
 
 PRESETS: dict[str, ReebConfig] = {

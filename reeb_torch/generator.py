@@ -187,14 +187,14 @@ class ProposalGenerator(nn.Module):
         if not isinstance(cfg, ReebConfig):
             raise TypeError(f"config must be a ReebConfig, got {type(cfg).__name__}")
         self.config = cfg.replace(**overrides) if overrides else cfg
-        self.selection = WindowSelection(self.config)
+        self.selection = WindowSelection.from_config(self.config)
         """The :class:`~reeb_torch.selection.WindowSelection` that scores, cuts and
-        suppresses the windows; a subclass put here tries another selection
-        (``benchmarks/selection_variants.py``)."""
-        self.ranker = LearnedRanking(self.config) if self.config.ranker != "none" else None
+        suppresses the windows, each of its parts given its own settings; another selection
+        put here tries another cut (``benchmarks/selection_variants.py``)."""
+        self.ranker = LearnedRanking.from_config(self.config) if self.config.ranker != "none" else None
         """The learned ranking of the candidates (:class:`~reeb_torch.ranker.LearnedRanking`,
         ``config.ranker``), or None (``ranker='none'``)."""
-        self._features = self.ranker if self.ranker is not None else CandidateFeatures(self.config)
+        self._features = self.ranker if self.ranker is not None else CandidateFeatures.from_config(self.config)
         self._traces: list[Trace] | None = None  # what trace() collects while it runs
         self._warned_empty = False  # a config that gives no proposals is warned about once
         self._warned_blank = False  # and so is an image without edges
@@ -247,7 +247,7 @@ class ProposalGenerator(nn.Module):
     @torch.no_grad()
     def forward(self, images: ImageBatch) -> list[dict[str, Tensor]]:
         unchecked: list[int] = []  # float32 CPU images: their values are checked as they are read
-        imgs = check_images(images, self.min_side, self.config, keep_uint8=True, unchecked=unchecked)
+        imgs = check_images(images, self.min_side, self.config.front_end, keep_uint8=True, unchecked=unchecked)
         later = set(unchecked)
         check_at = [i if i in later else None for i in range(len(imgs))] if later else None
         on_cpu = imgs[0].device.type == "cpu"
@@ -298,7 +298,7 @@ class ProposalGenerator(nn.Module):
     @torch.no_grad()
     def inspect(self, image: Tensor) -> Inspection:
         """Run on one ``(3, H, W)`` image and keep the intermediate maps (for pictures)."""
-        (x,) = check_images([image], self.min_side, self.config)
+        (x,) = check_images([image], self.min_side, self.config.front_end)
         out, extra = self._propose_batch([x], keep=True)
         h, w = x.shape[-2:]
         up = lambda t, mode: F.interpolate(t[None].float(), size=(h, w), mode=mode)[0, 0]  # noqa: E731
@@ -334,7 +334,7 @@ class ProposalGenerator(nn.Module):
     def prepare(self, images: ImageBatch) -> list[Tensor]:
         """``images`` checked as :meth:`forward` checks them (raises as it does): a list of
         ``(3, H, W)`` tensors, float32 in [0, 1] or uint8, for :meth:`front_end`."""
-        return check_images(images, self.min_side, self.config, keep_uint8=True)
+        return check_images(images, self.min_side, self.config.front_end, keep_uint8=True)
 
     @torch.no_grad()
     def front_end(self, images: list[Tensor]) -> FrontEnd:
@@ -382,22 +382,21 @@ class ProposalGenerator(nn.Module):
                    check_at: list[int | None] | None = None) -> FrontEnd:
         """:meth:`front_end`; with ``keep``, the road mask too (for :meth:`inspect`);
         ``check_at``: as in :meth:`_edge_map`."""
-        cfg = self.config
+        fe, sc = self.config.front_end, self.config.scores
         dev = images[0].device
-        needs_road = keep or cfg.road_score != "none"
+        needs_road = keep or sc.road_score != "none"
         # Sec. 3.4: Edge_Map = Sobel(Gaussian_Blur(I)), at the working resolution
         with self._stage("edges", dev):
             work = self._edge_map(images, needs_colour=needs_road, check_at=check_at)
         # Sec. 3.7: adjacent edge pixels form edge groups
         with self._stage("groups", dev):
-            groups = _groups.connected_groups(work.edges, cfg.group_cell)
+            groups = _groups.connected_groups(work.edges, fe.group_cell)
         # Sec. 3.5: Road_Mask = Generate_Road_Segmentation(I, HSV); skipped when no score reads it
         road = None
         if needs_road:
             with self._stage("road", dev):
                 assert work.colour is not None  # needs_colour=needs_road made it
-                road = _road.road_mask(work.colour, cfg.road_samples, cfg.road_band, cfg.road_tolerance,
-                                       cfg.seed)
+                road = _road.road_mask(work.colour, fe.road_samples, fe.road_band, fe.road_tolerance, fe.seed)
         maps = ScoreMaps(work.edges, groups, (images[0].shape[-2], images[0].shape[-1]), road=road, green=work.green,
                          grey=work.gray[:, 0])
         return FrontEnd(work, maps)
@@ -409,7 +408,7 @@ class ProposalGenerator(nn.Module):
         work, maps, sel = front.working, front.maps, self.selection
         # one image on the CPU: the groups' tables are built on the other core while this
         # one takes the regions and the integral images, in place of each stage's halves
-        beside = len(images) == 1 and sel.compiled_scoring_may_apply(maps)
+        beside = len(images) == 1 and sel.scoring.compiled_scoring_may_apply(maps)
         try:
             # Sec. 3.6: Regions = Divide_Image_Into_Regions(I, Camera_Params); eqs. 2 and 9
             with self._stage("regions", dev):
@@ -513,25 +512,25 @@ class ProposalGenerator(nn.Module):
         batch, as the error names it) is float32 whose values are not yet checked; the
         compiled front end counts the values outside [0, 1] as it reads them (a float image
         read once, not twice), else :func:`check_range` does."""
-        cfg = self.config
+        fe, sc = self.config.front_end, self.config.scores
         colour: Tensor | None = None
         gray: Tensor | None = None
         green: Tensor | None = None
-        want_green = cfg.vegetation_score != "none"
+        want_green = sc.vegetation_score != "none"
         pending = [(j, i) for j, i in enumerate(check_at or ()) if i is not None]
         if not needs_colour:
             outside: list[int] | None = [] if pending else None
-            front = _edges.working_gray(images, cfg.scale, with_green=want_green, outside=outside)
+            front = _edges.working_gray(images, fe.scale, with_green=want_green, outside=outside)
             if front is not None:
                 gray, green = front
                 pending = [(j, i) for j, i in pending if outside[j] != 0]  # type: ignore[index]
         for j, i in pending:  # values outside [0, 1] (raises), or not looked at yet
             check_range(images[j], f"image {i}")
         if gray is None:
-            colour = _edges.working_images(images, cfg.scale)
+            colour = _edges.working_images(images, fe.scale)
             gray = _edges.to_gray(colour)
             green = _scoring.count_integral(_edges.green_mask(colour)) if want_green else None
-        edges = _edges.edge_map(gray, cfg.blur_sigma, cfg.edge_threshold, cfg.remove_isolated, cfg.thin_edges)
+        edges = _edges.edge_map(gray, fe.blur_sigma, fe.edge_threshold, fe.remove_isolated, fe.thin_edges)
         return Working(gray, edges, colour, green)
 
 

@@ -232,3 +232,64 @@ def test_a_config_too_large_for_the_image_is_a_value_error_at_the_door(overrides
     assert len(g(torch.rand(1, 3, 2 * (reach + 1), 40))) == 1
     with pytest.raises(ValueError, match="blur_sigma"):
         g(torch.rand(1, 3, 2 * reach, 40))
+
+
+# -- each part's settings ---------------------------------------------------------------------
+
+
+def test_every_field_is_in_exactly_one_part():
+    """The parts partition the flat fields: each ``ReebConfig`` field is in one part, with the
+    same annotation, and ``PART_OF`` maps it there."""
+    fields = [f.name for f in dataclasses.fields(ReebConfig)]
+    in_parts = [name for names in _config.PART_FIELDS.values() for name in names]
+    assert sorted(in_parts) == sorted(fields) and len(set(in_parts)) == len(in_parts)
+    hints = typing.get_type_hints(ReebConfig)
+    for part, cls in _config.PARTS.items():
+        for name, hint in typing.get_type_hints(cls).items():
+            assert hint == hints[name], (part, name)
+            assert _config.PART_OF[name] == part
+
+
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+def test_a_configs_parts_hold_its_fields(preset):
+    cfg = get_preset(preset)
+    for part in _config.PARTS:
+        settings = getattr(cfg, part)
+        assert type(settings) is _config.PARTS[part]
+        assert settings.to_dict() == {n: getattr(cfg, n) for n in _config.PART_FIELDS[part]}
+        assert getattr(cfg, part) is settings  # made once per config
+        assert cfg.replace(**{part: settings}) == cfg
+
+
+def test_a_part_replaced_whole_changes_only_its_fields():
+    cfg = ReebConfig()
+    nms = cfg.nms.replace(top_k=123, nms_iou=0.6)
+    out = cfg.replace(nms=nms)
+    assert out.top_k == 123 and out.nms_iou == 0.6 and out.nms == nms
+    assert out.replace(top_k=5, nms=nms).top_k == 5  # a field named beside its part wins
+    assert ReebConfig.from_parts(nms=nms) == out
+    assert out.fingerprint() == ReebConfig(top_k=123, nms_iou=0.6).fingerprint()
+    with pytest.raises(TypeError, match="takes a NmsSettings, got WindowSettings"):
+        cfg.replace(nms=cfg.windows)
+
+
+def test_a_part_checks_its_fields_as_the_config_does():
+    cfg = ReebConfig()
+    with pytest.raises(ValueError, match=r"NmsSettings.nms_iou must be in \(0, 1\], got 2.0"):
+        cfg.nms.replace(nms_iou=2.0)
+    with pytest.raises(TypeError, match="WindowSettings.min_window must be an int"):
+        cfg.windows.replace(min_window=True)
+    assert cfg.windows.replace(aspect_range=[0.5, 2]).aspect_range == (0.5, 2.0)
+    named = cfg.ranking.replace(class_quota={"Pedestrian": 0.2})
+    assert named.class_quota == (("Pedestrian", 0.2),)
+    assert named.class_shares(("Car", "Pedestrian")) == (0.0, 0.2)
+    # the joint checks need the whole config: they run when a part goes back into one
+    with pytest.raises(ValueError, match="class_heights_m and ReebConfig.class_weights"):
+        cfg.replace(scores=cfg.scores.replace(class_weights=(1.0,)))
+
+
+def test_a_config_file_may_give_its_fields_by_part():
+    d = {"nms": {"top_k": 1000}, "windows": {"min_window": 12}, "scale": 1.0}
+    assert ReebConfig.from_dict(d) == ReebConfig(top_k=1000, min_window=12, scale=1.0)
+    with pytest.raises(ValueError, match="unknown NmsSettings field.*min_window"):
+        ReebConfig.from_dict({"nms": {"min_window": 12}})

@@ -177,10 +177,10 @@ def test_quota_splits_the_output_by_share():
     region = torch.tensor([0, 0, 0, 0, 0, 1, 1, 0, 1, 2])
     share = torch.tensor([0.5, 0.5, 0.0])
     # quota: 2 for region 0, 2 for region 1, none for region 2
-    assert gen.selection.quota(keep, region, share).tolist() == [0, 1, 5, 6]
+    assert gen.selection.suppression.quota(keep, region, share).tolist() == [0, 1, 5, 6]
     # a region with too few proposals leaves its places to the best of the rest
     share = torch.tensor([0.25, 0.0, 0.75])
-    assert gen.selection.quota(keep, region, share).tolist() == [0, 1, 2, 9]
+    assert gen.selection.suppression.quota(keep, region, share).tolist() == [0, 1, 2, 9]
 
 
 def test_stage_times_are_recorded(crop):
@@ -231,11 +231,11 @@ def test_batch_equals_single_on_odd_crops(sample_image):
 def test_compiled_scoring_equals_the_tensor_path(sample_image, overrides):
     # the compiled CPU pass gives every window the very same float32 score as the
     # per-size tensor ops, -inf included (so the same candidates, boxes and ranking)
-    from reeb_torch.selection import WindowSelection
+    from reeb_torch.selection import WindowScoring
 
     gen = ProposalGenerator(**overrides)
     seen = {}
-    real = WindowSelection.score
+    real = WindowScoring.score
 
     def spy(self, maps, grid):
         out = real(self, maps, grid)
@@ -245,11 +245,11 @@ def test_compiled_scoring_equals_the_tensor_path(sample_image, overrides):
         return out
 
     crops = torch.stack([sample_image[:, 100:290, 200:800], sample_image[:, 150:340, 500:1100]])
-    WindowSelection.score = spy
+    WindowScoring.score = spy  # type: ignore[method-assign]
     try:
         gen(crops)
     finally:
-        WindowSelection.score = real
+        WindowScoring.score = real  # type: ignore[method-assign]
     assert seen["applies"] and seen["equal"] and seen["finite"] > 1000
 
 
@@ -261,38 +261,38 @@ def test_scoring_falls_back_to_tensor_ops_when_a_term_needs_maps(crop):
     g = connected_groups(e, 8)  # groups inside 8-px tiles: every window (>= 16 px) encloses them exactly
     default = ProposalGenerator(**SMALL)
     maps = ScoreMaps(e, g, (64, 96))
-    grid = default.selection.window_grid(maps, default.selection.region_bounds(96))
-    assert default.selection.compiled_scoring_applies(maps, grid)
+    grid = default.selection.window_grid(maps, default.selection.cut.region_bounds(96))
+    assert default.selection.scoring.compiled_scoring_applies(maps, grid)
     for overrides in ({"road_score": "reward"},):
         gen = ProposalGenerator(**SMALL, **overrides)
-        assert not gen.selection.compiled_scoring_applies(maps, grid), overrides
+        assert not gen.selection.scoring.compiled_scoring_applies(maps, grid), overrides
         assert gen([crop])[0]["boxes"].shape[0] > 0
     unbounded = connected_groups(e, None)  # one big component: no exact prefix-table sums
-    assert not default.selection.compiled_scoring_applies(ScoreMaps(e, unbounded, (64, 96)), grid)
+    assert not default.selection.scoring.compiled_scoring_applies(ScoreMaps(e, unbounded, (64, 96)), grid)
 
 
 def test_compiled_selection_equals_the_tensor_path(sample_image):
     # eq. 9's per-region top-k: the compiled CPU pass and the stable sort choose the same windows
-    from reeb_torch.selection import WindowSelection
+    from reeb_torch.selection import RegionCut
 
     for overrides in ({}, {"use_regions": False}, {"region_assign": "contained"}):
         gen = ProposalGenerator(**overrides)
         seen = {}
-        real = WindowSelection.region_cut
+        real = RegionCut.region_cut
 
         def spy(self, scores, grid, share):
             out = real(self, scores, grid, share)
-            cfg = self.config
-            per = cfg.candidates_per_region if cfg.use_regions else cfg.candidates_without_regions
+            r = self.settings
+            per = r.candidates_per_region if r.use_regions else r.candidates_without_regions
             seen["equal"] = torch.equal(out, self.select_torch(scores, grid, (share * per).round().long()))
             seen["n"] = int(out.sum())
             return out
 
-        WindowSelection.region_cut = spy
+        RegionCut.region_cut = spy  # type: ignore[method-assign]
         try:
             gen([sample_image[:, 100:300, 100:900]])
         finally:
-            WindowSelection.region_cut = real
+            RegionCut.region_cut = real  # type: ignore[method-assign]
         assert seen["equal"] and seen["n"] > 1000, overrides
 
 
@@ -322,7 +322,7 @@ def test_per_size_tables_stay_cached_for_many_image_sizes(crop):
 
     gen = ProposalGenerator(get_preset("default"), top_k=50)
     built: list[tuple] = []
-    caches = (gen.selection, gen.ranker.cache)  # the window selection's tables, the learned ranking's
+    caches = (gen.selection.scoring.cache, gen.ranker.cache)  # the window selection's tables, the learned ranking's
 
     def counting(cached):
         return lambda key, grid, build: cached(key, grid, lambda: built.append((id(grid), key)) or build())

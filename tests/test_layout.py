@@ -403,6 +403,36 @@ def test_commands_hand_the_engine_a_step():
     assert made == {"runs/propose_local.py", "runs/detect_run.py"}, made
 
 
+PARTS_GIVEN_THEIR_OWN = ("selection/", "stages/", "ranker/step.py", "_checks.py")
+"""The generator's parts: each is built from its own settings (``ReebConfig.windows``, ...)."""
+
+
+def test_no_part_is_handed_the_whole_config():
+    """The window selection, the stages, the learned ranking's step and the input checks take
+    their own part's settings: no function of theirs takes a ``ReebConfig``, save the
+    ``from_config`` constructors that hand each part its own, and the check that compares
+    a ranker's fitted settings with the whole config."""
+    takes = []
+    for path, tree in _trees():
+        if not path.startswith(PARTS_GIVEN_THEIR_OWN):
+            continue
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and \
+                    node.name not in ("from_config", "warn_if_fitted_elsewhere"):
+                args = node.args.posonlyargs + node.args.args + node.args.kwonlyargs
+                if any(a.annotation is not None and "ReebConfig" in ast.unparse(a.annotation) for a in args):
+                    takes.append(f"{path}: {node.name}")
+    assert not takes, f"parts handed the whole ReebConfig: {takes}"
+
+
+def test_the_selection_is_composed_not_inherited():
+    """``WindowSelection`` holds its parts (scoring, cut, suppression); no class of the
+    selection inherits from another of them or from the shared cache."""
+    inherits = {f"{path}:{node.name}" for path, tree in _trees() if path.startswith("selection/")
+                for node in ast.walk(tree) if isinstance(node, ast.ClassDef) and node.bases}
+    assert not inherits, f"selection classes with base classes: {sorted(inherits)}"
+
+
 def test_click_is_the_one_command_line_framework():
     """No module of the package imports ``argparse`` (or ``optparse``): every command is click."""
     offenders = {path for path, tree in _trees() if _imported_roots(tree) & {"argparse", "optparse"}}

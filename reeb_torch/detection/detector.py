@@ -37,7 +37,8 @@ from typing import TYPE_CHECKING, Any, Literal
 import torch
 from torch import Tensor, nn
 
-from ..config import ReebConfig, check_fields, get_preset
+from .._fields import check_fields
+from ..config import ReebConfig, get_preset
 from ..io import replace_file
 from ..ranker import (
     SAME_IMAGE_BITS,

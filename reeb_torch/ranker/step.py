@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from ..config import ReebConfig
+from ..config import CameraSettings, RankingSettings, ReebConfig, ScoreSettings, WindowSettings
 from ..selection.grid_cache import GridCache
 from ..selection.maps import ScoreMaps
 from ..stages import windows as _windows
@@ -58,7 +58,7 @@ def _same(a: object, b: object) -> bool:
     return a == b
 
 
-def _warn_if_fitted_elsewhere(config: ReebConfig, fitted: dict | None) -> None:
+def warn_if_fitted_elsewhere(config: ReebConfig, fitted: dict | None) -> None:
     """Warn (once per setting) when ``config`` differs from the one the ranking model was fitted
     with in a field its features or candidates depend on (numbers beyond a rounding:
     :func:`_same`): it still runs, likely worse."""
@@ -147,28 +147,35 @@ class CandidateFeatures:
     what the learned ranking reads and ``reeb fit`` fits on; no model needed.
 
     Args:
-        config: the generator's config.
+        scores: V's settings (the location fit's classes, eq. 1's normaliser).
+        camera: the camera's height and horizon row.
+        windows: the windows' settings (each class's width range, ``object_templates``).
         orientation: also the edge-orientation columns
             (:data:`~reeb_torch.ranker.orientation.ORIENTATION_NAMES`, after the others).
     """
 
-    def __init__(self, config: ReebConfig, orientation: bool = True) -> None:
-        self.config = config
+    def __init__(self, scores: ScoreSettings, camera: CameraSettings, windows: WindowSettings,
+                 orientation: bool = True) -> None:
+        self.scores, self.camera, self.windows = scores, camera, windows
         self.orientation = orientation
-        self.cache = GridCache(config)
+        self.cache = GridCache()
         """The window columns and the prefilter's table per window grid; per-device copies."""
+
+    @classmethod
+    def from_config(cls, config: ReebConfig, orientation: bool = True) -> "CandidateFeatures":
+        """The features of ``config``'s candidates, given the parts' settings they read."""
+        return cls(config.scores, config.camera, config.windows, orientation)
 
     def feature_names(self) -> tuple[str, ...]:
         """The columns of :meth:`features` for this config (one location fit per class)."""
-        names = _features.feature_names(len(self.config.class_heights_m))
+        names = _features.feature_names(len(self.scores.class_heights_m))
         return names + ORIENTATION_NAMES if self.orientation else names
 
     def box_maps(self, maps: ScoreMaps, geometry_only: bool = False) -> _features.BoxMaps:
         """The tables the per-box features read (:class:`~reeb_torch.ranker.features.BoxMaps`);
         with ``geometry_only``, only their sizes (for the window columns: no table is built)."""
-        cfg = self.config
         grey = maps.grey
-        widths = tuple((t[2], t[3]) for t in cfg.object_templates)
+        widths = tuple((t[2], t[3]) for t in self.windows.object_templates)
         ii_edges = ii_grey = ii_grey2 = green = None
         tables = None
         if not geometry_only:
@@ -176,11 +183,11 @@ class CandidateFeatures:
             ii_edges, ii_grey = maps.integral("edges"), maps.integral("grey")
             ii_grey2 = maps.integral_grey_squared()
             green, tables = maps.green, maps.tables()
+        sc, cam = self.scores, self.camera
         return _features.BoxMaps(
-            (maps.edges.shape[-2], maps.edges.shape[-1]), ii_edges, ii_grey, ii_grey2, green, tables, cfg.horizon,
-            cfg.camera_height_m,
-            tuple(h / cfg.camera_height_m for h in cfg.class_heights_m), tuple(cfg.class_weights), widths,
-            cfg.ground_log_sigma, maps.fx, maps.fy, cfg.center_fraction, cfg.score_norm, cfg.kappa, cfg.gamma)
+            (maps.edges.shape[-2], maps.edges.shape[-1]), ii_edges, ii_grey, ii_grey2, green, tables, cam.horizon,
+            cam.camera_height_m, tuple(h / cam.camera_height_m for h in sc.class_heights_m), tuple(sc.class_weights),
+            widths, sc.ground_log_sigma, maps.fx, maps.fy, sc.center_fraction, sc.score_norm, sc.kappa, sc.gamma)
 
     def features(self, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor, chosen: Tensor,
                  share: Tensor, entropy: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -259,44 +266,57 @@ class CandidateFeatures:
 
 
 class LearnedRanking(CandidateFeatures):
-    """One config's learned ranking: its model (``config.ranker``), the class quota's shares,
-    and the candidates, ranked by their features.
+    """The learned ranking: its model (``ranking.ranker``), the class quota's shares, and the
+    candidates, ranked by their features.
 
     Args:
-        config: the generator's config; ``config.ranker`` names the weights (not ``"none"``).
+        ranking: the ranking's settings; ``ranking.ranker`` names the weights (not ``"none"``).
+        scores, camera, windows: what the features read (:class:`CandidateFeatures`).
+        top_k: the proposals of each image (where refined boxes go, :meth:`refine`).
     """
 
-    def __init__(self, config: ReebConfig) -> None:
+    def __init__(self, ranking: RankingSettings, scores: ScoreSettings, camera: CameraSettings,
+                 windows: WindowSettings, top_k: int) -> None:
         # the columns the model reads: with or without the orientation columns
-        super().__init__(config, orientation=set(ORIENTATION_NAMES) <= set(load_ranker(config.ranker).feature_names))
+        orientation = set(ORIENTATION_NAMES) <= set(load_ranker(ranking.ranker).feature_names)
+        super().__init__(scores, camera, windows, orientation=orientation)
+        self.ranking, self.top_k = ranking, top_k
         self._models: dict[str, BoxRanker] = {}  # the model's copy per device other than the CPU
-        self.model: BoxRanker = load_ranker(config.ranker, self.feature_names())
-        """The :class:`~reeb_torch.ranker.BoxRanker` of ``config.ranker``."""
-        _warn_if_fitted_elsewhere(config, self.model.meta.get("config"))
-        self.class_share: tuple[float, ...] | None = config.class_shares(self.model.classes)
-        """``config.class_quota`` as one share a class of the model's class head
-        (:meth:`~reeb_torch.config.ReebConfig.class_shares`), or None: no class quota."""
-        if config.class_quota and self.class_share is None:
-            warnings.warn(f"ReebConfig.class_quota is ignored: the ranker {config.ranker!r} has no class head "
-                          "(fit one with reeb fit, whose models have one by default)", UserWarning, stacklevel=3)
-        if config.rank_quality and self.model.quality is None:
-            warnings.warn(f"ReebConfig.rank_quality is ignored: the ranker {config.ranker!r} has no quality head "
-                          "(FitOptions.quality_hidden fits one)", UserWarning, stacklevel=3)
-        if config.refine_top and self.model.refiner is None:
-            warnings.warn(f"ReebConfig.refine_top is ignored: the ranker {config.ranker!r} has no box refiner "
-                          "(reeb fit --refiner fits one)", UserWarning, stacklevel=3)
+        self.model: BoxRanker = load_ranker(ranking.ranker, self.feature_names())
+        """The :class:`~reeb_torch.ranker.BoxRanker` of ``ranking.ranker``."""
+        self.class_share: tuple[float, ...] | None = ranking.class_shares(self.model.classes)
+        """``ranking.class_quota`` as one share a class of the model's class head
+        (:meth:`~reeb_torch.ranking.ReebConfig.class_shares`), or None: no class quota."""
+        if ranking.class_quota and self.class_share is None:
+            warnings.warn(f"ReebConfig.class_quota is ignored: the ranker {ranking.ranker!r} has no class head "
+                          "(fit one with reeb fit, whose models have one by default)", UserWarning, stacklevel=4)
+        if ranking.rank_quality and self.model.quality is None:
+            warnings.warn(f"ReebConfig.rank_quality is ignored: the ranker {ranking.ranker!r} has no quality head "
+                          "(FitOptions.quality_hidden fits one)", UserWarning, stacklevel=4)
+        if ranking.refine_top and self.model.refiner is None:
+            warnings.warn(f"ReebConfig.refine_top is ignored: the ranker {ranking.ranker!r} has no box refiner "
+                          "(reeb fit --refiner fits one)", UserWarning, stacklevel=4)
         self.refine_class: int | None = None
-        """The class head's index of ``config.refine_class``, or None: every box is refined."""
-        if config.refine_class:
+        """The class head's index of ``ranking.refine_class``, or None: every box is refined."""
+        if ranking.refine_class:
             classes = self.model.classes or ()
-            if config.refine_class not in classes:
-                raise ValueError(f"ReebConfig.refine_class {config.refine_class!r} is not a class of the ranker "
-                                 f"{config.ranker!r}'s class head ({', '.join(classes) or 'it has none'})")
-            self.refine_class = classes.index(config.refine_class)
+            if ranking.refine_class not in classes:
+                raise ValueError(f"ReebConfig.refine_class {ranking.refine_class!r} is not a class of the ranker "
+                                 f"{ranking.ranker!r}'s class head ({', '.join(classes) or 'it has none'})")
+            self.refine_class = classes.index(ranking.refine_class)
+
+    @classmethod
+    def from_config(cls, config: ReebConfig, orientation: bool = True) -> "LearnedRanking":
+        """The ranking of ``config`` (``config.ranker`` not ``"none"``), given the parts' settings
+        it reads; warns where the model was fitted with other settings. (``orientation``: the
+        model's columns decide it.)"""
+        ranking = cls(config.ranking, config.scores, config.camera, config.windows, config.top_k)
+        warn_if_fitted_elsewhere(config, ranking.model.meta.get("config"))
+        return ranking
 
     def refines(self) -> bool:
         """Whether :meth:`refine` changes the output (``refine_top`` > 0 and a refiner)."""
-        return self.config.refine_top > 0 and self.model.refiner is not None
+        return self.ranking.refine_top > 0 and self.model.refiner is not None
 
     def refine(self, maps: ScoreMaps, results: list[dict[str, Tensor]]) -> list[dict[str, Tensor]]:
         """The output dicts of a batch (``boxes float32 [N_i, 4]`` in input pixels, ranked;
@@ -306,7 +326,6 @@ class LearnedRanking(CandidateFeatures):
         batch's integral images) and put beside them (:func:`~reeb_torch.ranker.refine.merge_refined`:
         ``refine_order``, ``refine_nms``), at most ``top_k`` rows each; the dicts as they are
         without a refiner or with ``refine_top`` 0."""
-        cfg = self.config
         if not self.refines() or not results:
             return results
         dev = maps.edges.device
@@ -315,9 +334,9 @@ class LearnedRanking(CandidateFeatures):
         which = []
         for r in results:
             if self.refine_class is not None and "labels" in r:
-                which.append(torch.nonzero(r["labels"] == self.refine_class).squeeze(1)[: cfg.refine_top])
+                which.append(torch.nonzero(r["labels"] == self.refine_class).squeeze(1)[: self.ranking.refine_top])
             else:
-                which.append(torch.arange(min(cfg.refine_top, len(r["boxes"]))))
+                which.append(torch.arange(min(self.ranking.refine_top, len(r["boxes"]))))
         tops = [r["boxes"][w].to(dev) for r, w in zip(results, which)]
         counts = [len(t) for t in tops]
         if not sum(counts):
@@ -326,11 +345,12 @@ class LearnedRanking(CandidateFeatures):
         bi = torch.repeat_interleave(torch.arange(len(tops), device=dev), torch.tensor(counts, device=dev))
         size = (int(maps.edges.shape[-2]), int(maps.edges.shape[-1]))
         refined = refiner.refine(maps.integral("edges"), maps.integral("grey"), torch.cat(tops).float() * to_work, bi,
-                                 cfg.horizon, size, cfg.refine_steps) / to_work
+                                 self.camera.horizon, size, self.ranking.refine_steps) / to_work
         h_in, w_in = maps.input_size
         refined[:, 0::2] = refined[:, 0::2].clamp(0.0, float(w_in))
         refined[:, 1::2] = refined[:, 1::2].clamp(0.0, float(h_in))
-        return [merge_refined(r, part.to(r["boxes"].device), cfg.refine_order, cfg.top_k, cfg.refine_nms, w)
+        rk = self.ranking
+        return [merge_refined(r, part.to(r["boxes"].device), rk.refine_order, self.top_k, rk.refine_nms, w)
                 for r, part, w in zip(results, refined.split(counts), which)]
 
     def rank(self, maps: ScoreMaps, grid: _windows.WindowGrid, scores: Tensor, chosen: Tensor, share: Tensor,
@@ -352,12 +372,12 @@ class LearnedRanking(CandidateFeatures):
         timed = timer if timer is not None else (lambda name, device: nullcontext())
         with timed("ranker.prefilter", dev):
             bi, ni = _chosen(chosen)
-            keep = self.config.ranker_keep
+            keep = self.ranking.ranker_keep
             counts = torch.bincount(bi, minlength=scores.shape[0])
             if model.prefilter is not None and len(bi) and int(counts.max()) > keep:
                 sel = keep_candidates(lambda: _gather(scores, bi, ni, counts),
                                       lambda: self.prefilter(model, maps, grid, scores, share, entropy, bi, ni),
-                                      counts, keep, self.config.ranker_v_share)
+                                      counts, keep, self.ranking.ranker_v_share)
                 bi, ni = bi[sel], ni[sel]
         out = torch.full_like(scores, -math.inf)
         kept = torch.zeros_like(chosen)
@@ -366,8 +386,8 @@ class LearnedRanking(CandidateFeatures):
                 feats = self.features_of(maps, grid, scores, share, entropy, bi, ni)
             with timed("ranker.model", dev):
                 logit = model.rank(feats)
-                if self.config.rank_quality and model.quality is not None:
-                    logit += self.config.rank_quality * torch.sigmoid(model.quality_logits(feats))
+                if self.ranking.rank_quality and model.quality is not None:
+                    logit += self.ranking.rank_quality * torch.sigmoid(model.quality_logits(feats))
                 out[bi, ni] = logit
                 kept[bi, ni] = True
             if features_out is not None:

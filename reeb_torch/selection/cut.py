@@ -7,6 +7,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..config import CameraSettings, RegionSettings
 from ..stages import entropy as _entropy
 from ..stages import regions as _regions
 from ..stages import scoring as _scoring
@@ -16,19 +17,28 @@ from .grid_cache import GridCache
 __all__ = ["RegionCut"]
 
 
-class RegionCut(GridCache):
+class RegionCut:
     """The regions, their entropy and share of the budget, and eq. 9's cut of the scored
-    windows (compiled on the CPU, a stable sort elsewhere)."""
+    windows (compiled on the CPU, a stable sort elsewhere).
+
+    Args:
+        regions: the strips, their entropy and the budget.
+        camera: the camera's height and opening angles (the strips' width, eqs. 5-7).
+        cache: the per-grid tables, shared with the other parts (a new one if None).
+    """
+
+    def __init__(self, regions: RegionSettings, camera: CameraSettings, cache: GridCache | None = None) -> None:
+        self.settings, self.camera = regions, camera
+        self.cache = cache if cache is not None else GridCache()
 
     def regions(self, gray: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Sec. 3.6, eqs. 2 and 9: the region strips ``int64 (R, 2)`` (working columns), each
         image's region entropy ``(B, R)`` and its share of the window budget ``(B, R)``."""
-        cfg = self.config
         b = gray.shape[0]
         bounds = self.region_bounds(gray.shape[-1])
-        if cfg.use_regions:
-            entropy = _entropy.region_entropy(gray, bounds, cfg.entropy_bins)
-            share = _entropy.proposal_share(entropy, cfg.entropy_sigma)
+        if self.settings.use_regions:
+            entropy = _entropy.region_entropy(gray, bounds, self.settings.entropy_bins)
+            share = _entropy.proposal_share(entropy, self.settings.entropy_sigma)
         else:  # one region, the whole image: entropy is not applicable (Sec. 4.2)
             entropy = torch.zeros(b, 1, device=gray.device)
             share = torch.ones(b, 1, device=gray.device)
@@ -37,12 +47,12 @@ class RegionCut(GridCache):
     def region_bounds(self, width: int) -> Tensor:
         """Sec. 3.6, eqs. 5–8: the region strips of an image ``width`` working pixels wide,
         ``int64 (R, 2)`` (first and end column), or one strip without ``use_regions``."""
-        cfg = self.config
-        if not cfg.use_regions:
+        if not self.settings.use_regions:
             return torch.tensor([[0, width]])
-        frac = _regions.region_width_fraction(cfg.camera_height_m, cfg.vertical_fov_deg, cfg.horizontal_fov_deg,
-                                              cfg.max_object_width_m, cfg.region_width_round)
-        return _regions.region_bounds(width, frac, cfg.region_overlap)
+        cam = self.camera
+        frac = _regions.region_width_fraction(cam.camera_height_m, cam.vertical_fov_deg, cam.horizontal_fov_deg,
+                                              self.settings.max_object_width_m, self.settings.region_width_round)
+        return _regions.region_bounds(width, frac, self.settings.region_overlap)
 
     def select(self, scores: Tensor, grid: _windows.WindowGrid, share: Tensor) -> Tensor:
         """The candidates, ``bool [B, N]``, of the windows scored ``scores`` (``float32 [B, N]``)
@@ -63,8 +73,8 @@ class RegionCut(GridCache):
 
     def region_budget(self, share: Tensor) -> Tensor:
         """Eq. 9: the windows each region may pass on, ``int64 (B, R)`` from its ``share``."""
-        cfg = self.config
-        per_region = cfg.candidates_per_region if cfg.use_regions else cfg.candidates_without_regions
+        r = self.settings
+        per_region = r.candidates_per_region if r.use_regions else r.candidates_without_regions
         return (share * per_region).round().long()
 
     def _region_members(self, grid: _windows.WindowGrid) -> tuple[np.ndarray, np.ndarray]:
@@ -74,7 +84,7 @@ class RegionCut(GridCache):
             starts = np.cumsum([0] + [len(x) for x in lists]).astype(np.int64)
             return (np.concatenate(lists) if lists else np.zeros(0, np.int64), starts)
 
-        return self.grid_cached(("members",), grid, build)
+        return self.cache.grid_cached(("members",), grid, build)
 
     def select_torch(self, scores: Tensor, grid: _windows.WindowGrid, budget: Tensor) -> Tensor:
         """:meth:`region_cut` as one stable sort per region (any device). Ties at the cut go to
@@ -85,7 +95,7 @@ class RegionCut(GridCache):
             k = min(int(idx_cpu.numel()), int(budget[:, r].max()))
             if k == 0:
                 continue
-            idx = self.device_tensor(idx_cpu, scores.device)
+            idx = self.cache.device_tensor(idx_cpu, scores.device)
             vals, pos = scores[:, idx].sort(dim=1, descending=True, stable=True)  # ties: lower index first
             vals, pos = vals[:, :k], pos[:, :k]
             ok = torch.isfinite(vals) & (torch.arange(k, device=scores.device)[None] < budget[:, r: r + 1])

@@ -8,7 +8,6 @@ from typing import Callable, TypeVar
 import torch
 from torch import Tensor
 
-from ..config import ReebConfig
 from ..stages import windows as _windows
 
 __all__ = ["GridCache", "PLAN_GRIDS"]
@@ -20,12 +19,10 @@ PLAN_GRIDS = 16
 
 
 class GridCache:
-    """One config's per-grid tables and per-device copies (:meth:`grid_cached`,
-    :meth:`device_tensor`); the base of the window selection's parts and of the learned
-    ranking's step."""
+    """Per-grid tables and per-device copies (:meth:`grid_cached`, :meth:`device_tensor`),
+    shared by the window selection's parts and the learned ranking's features."""
 
-    def __init__(self, config: ReebConfig) -> None:
-        self.config = config
+    def __init__(self) -> None:
         self._device_cache: dict = {}
         self._plan_cache: OrderedDict[int, tuple[_windows.WindowGrid, dict]] = OrderedDict()
 

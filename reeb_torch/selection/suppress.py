@@ -7,6 +7,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..config import NmsSettings
 from ..stages import windows as _windows
 from ..stages.nms import boxes_valid, nms_top_k_many, nms_windows_cpu
 from .grid_cache import GridCache
@@ -15,8 +16,17 @@ from .maps import ScoreMaps
 __all__ = ["Suppression"]
 
 
-class Suppression(GridCache):
-    """The final proposals: NMS (eq. 13), the quotas, the boxes in input pixels."""
+class Suppression:
+    """The final proposals: NMS (eq. 13), the quotas, the boxes in input pixels.
+
+    Args:
+        nms: the IoU thresholds and the number of proposals (``top_k``).
+        cache: the per-grid tables, shared with the other parts (a new one if None).
+    """
+
+    def __init__(self, nms: NmsSettings, cache: GridCache | None = None) -> None:
+        self.nms = nms
+        self.cache = cache if cache is not None else GridCache()
 
     def suppress(self, maps: ScoreMaps, grid: _windows.WindowGrid, chosen: Tensor, scores: Tensor,
                  windows_out: list[Tensor] | None = None,
@@ -32,23 +42,22 @@ class Suppression(GridCache):
         (:func:`reeb_torch.stages.nms.nms_windows_cpu`), elsewhere by
         :func:`reeb_torch.stages.nms.nms_top_k_many`. ``windows_out``, if given, gets each
         image's ``int64 [N]`` window index of each output row."""
-        cfg = self.config
         b, dev = scores.shape[0], scores.device
         fx, fy = maps.fx, maps.fy
         to_input = torch.tensor([fx, fy, fx, fy], device=dev)
-        boxes_in = self.grid_cached(("boxes_in", fx, fy, str(dev)), grid,
-                                    lambda: self.device_tensor(grid.boxes, dev) / to_input)
+        boxes_in = self.cache.grid_cached(("boxes_in", fx, fy, str(dev)), grid,
+                                    lambda: self.cache.device_tensor(grid.boxes, dev) / to_input)
         class_share = (torch.tensor(class_shares, device=dev)
                        if class_of is not None and class_shares is not None else None)
         quota = class_share is not None
-        ok = (self.grid_cached(("boxes_ok", fx, fy), grid, lambda: boxes_valid(boxes_in))
+        ok = (self.cache.grid_cached(("boxes_ok", fx, fy), grid, lambda: boxes_valid(boxes_in))
               if dev.type == "cpu" and boxes_in.dtype == torch.float32 else None)
         groups = need = None  # with a quota: past top_k only until each class has its share of the kept boxes
         if class_share is not None:
             assert class_of is not None  # class_share is made only with it
             groups, need = class_of.long().clamp(min=0), self.quota_counts(class_share)
-        thin = (cfg.nms_iou_thin, cfg.nms_thin_aspect)
-        kept = nms_windows_cpu(chosen, boxes_in, scores, cfg.nms_iou, cfg.top_k, ok, groups, need, thin)
+        thin = (self.nms.nms_iou_thin, self.nms.nms_thin_aspect)
+        kept = nms_windows_cpu(chosen, boxes_in, scores, self.nms.nms_iou, self.nms.top_k, ok, groups, need, thin)
         cands = None
         if kept is not None:
             pairs = [(boxes_in, scores[i]) for i in range(b)]
@@ -56,7 +65,7 @@ class Suppression(GridCache):
         else:
             cands = [torch.nonzero(chosen[i]).squeeze(1) for i in range(b)]
             pairs = [(boxes_in[c], scores[i, c]) for i, c in enumerate(cands)]
-            kept = nms_top_k_many(pairs, cfg.nms_iou, max(len(p[1]) for p in pairs) if quota else cfg.top_k,
+            kept = nms_top_k_many(pairs, self.nms.nms_iou, max(len(p[1]) for p in pairs) if quota else self.nms.top_k,
                                   thin=thin)
             windows = [c[k] for c, k in zip(cands, kept)]
         results = []
@@ -65,7 +74,7 @@ class Suppression(GridCache):
             if class_share is not None:
                 assert class_of is not None  # class_share is made only with it
                 keep_idx = self.quota(keep_idx, class_of[i, win].long().clamp(min=0), class_share,
-                                      whole=True)[: cfg.top_k]
+                                      whole=True)[: self.nms.top_k]
             if windows_out is not None:
                 windows_out.append(keep_idx if cands is None else cands[i][keep_idx])
             # the contract 0 <= x1 < x2 <= W, 0 <= y1 < y2 <= H in input pixels: a window on
@@ -90,7 +99,7 @@ class Suppression(GridCache):
         to the best of the rest. ``keep`` is in descending score order and stays so. With
         ``whole``, the shares are fractions of ``top_k`` as they are (not normalised): the
         class quota (``region`` then each box's class)."""
-        k = self.config.top_k
+        k = self.nms.top_k
         if keep.numel() <= k:
             return keep
         total = 1.0 if whole else float(share.sum())
@@ -108,4 +117,4 @@ class Suppression(GridCache):
     def quota_counts(self, share: Tensor, total: float = 1.0) -> Tensor:
         """``int64 [R]``: how many of the ``top_k`` proposals each share draws in :meth:`quota`
         (``floor(top_k · share / total)``)."""
-        return torch.floor(share * (self.config.top_k / total)).long()
+        return torch.floor(share * (self.nms.top_k / total)).long()

@@ -231,13 +231,13 @@ def test_selection_variants_at_their_neutral_settings_are_the_default(variants_m
     """Each variant reduces to the pipeline itself where it changes nothing: NMS at IoU 1
     inside the regions, no box narrower than 0 × its height, an empty second list."""
     cfg = ReebConfig()
-    base, region, narrow = (ProposalGenerator(cfg), variants_mod.with_ranking(variants_mod.RegionNMS(cfg, 1.0)),
-                            variants_mod.with_ranking(variants_mod.NarrowShadow(cfg, 0.0, 0.2, False)))
+    base, region, narrow = (ProposalGenerator(cfg), variants_mod.with_cut(cfg, variants_mod.RegionNMS, 1.0),
+                            variants_mod.with_cut(cfg, variants_mod.NarrowShadow, 0.0, 0.2, False))
     plain = ProposalGenerator(cfg.replace(shadow_score="none"))
     for im in bundled:
         ref = base([im])[0]["boxes"]
         assert torch.equal(region([im])[0]["boxes"], ref)
-        narrow.selection.plain = variants_mod.run_captured(plain, im)[1]["scores"]
+        narrow.selection.cut.plain = variants_mod.run_captured(plain, im)[1]["scores"]
         assert torch.equal(narrow([im])[0]["boxes"], ref)
         assert torch.equal(variants_mod.interleave(ref, ref[:0], 0.3), ref)
 
@@ -249,16 +249,16 @@ def test_selection_variants_change_the_ranking(variants_mod, bundled):
     more than that (the default's candidates do)."""
     cfg = ReebConfig().training_free()
     plain = ProposalGenerator(cfg.replace(shadow_score="none"))
-    narrow = variants_mod.with_ranking(variants_mod.NarrowShadow(cfg, 0.6, 0.0, False))
+    narrow = variants_mod.with_cut(cfg, variants_mod.NarrowShadow, 0.6, 0.0, False)
     im = bundled[0]
-    narrow.selection.plain = variants_mod.run_captured(plain, im)[1]["scores"]
+    narrow.selection.cut.plain = variants_mod.run_captured(plain, im)[1]["scores"]
     out = narrow([im])[0]
     w, h = out["boxes"][:, 2] - out["boxes"][:, 0], out["boxes"][:, 3] - out["boxes"][:, 1]
     thin = w < 0.6 * h
     assert bool((out["scores"][thin] == 0).all()) and bool((out["scores"][~thin] > 0).all())
     if bool(thin.any()):
         assert int(torch.nonzero(thin)[0]) == int((~thin).sum())  # all of them after the rest
-    for gen, most in ((variants_mod.with_ranking(variants_mod.RegionNMS(cfg, 0.5)), 0.5), (ProposalGenerator(cfg), None)):
+    for gen, most in ((variants_mod.with_cut(cfg, variants_mod.RegionNMS, 0.5), 0.5), (ProposalGenerator(cfg), None)):
         _, cap = variants_mod.run_captured(gen, im)
         worst = 0.0
         for idx in cap["grid"].region_windows:

@@ -23,11 +23,11 @@ def batch(sample_image):
     from reeb_torch.ranker import CandidateFeatures
 
     gen = ProposalGenerator(ReebConfig().training_free().replace(candidates_per_region=30000))
-    x = check_images([sample_image, sample_image.flip(-1)], gen.min_side, gen.config, keep_uint8=True)
+    x = check_images([sample_image, sample_image.flip(-1)], gen.min_side, gen.config.front_end, keep_uint8=True)
     front = gen.front_end(x)
     maps = front.maps
     bounds, entropy, share = gen.selection.regions(front.working.gray)
-    sel, rk = gen.selection, CandidateFeatures(gen.config)
+    sel, rk = gen.selection, CandidateFeatures.from_config(gen.config)
     grid = sel.window_grid(maps, bounds)
     scores = sel.score(maps, grid)
     chosen = sel.select(scores, grid, share)

@@ -47,7 +47,7 @@ def test_enclosed_grid_equals_the_per_size_scatter(sample_image):
 
     gen = ProposalGenerator(road_score="reward")
     seen = {}
-    real = gen.selection.enclosed
+    real = gen.selection.scoring.enclosed
 
     def spy(maps, grid):
         out = real(maps, grid)
@@ -56,7 +56,7 @@ def test_enclosed_grid_equals_the_per_size_scatter(sample_image):
         seen["equal"] = all(torch.equal(x, y) for x, y in zip(out, ref))
         return out
 
-    gen.selection.enclosed = spy  # type: ignore[method-assign]
+    gen.selection.scoring.enclosed = spy  # type: ignore[method-assign]
     gen([sample_image[:, :200, :600]])
     assert seen["n"] > 50 and seen["equal"]
 

@@ -202,7 +202,7 @@ def test_nms_windows_cpu_with_class_needs_stops_where_the_quota_is_decided():
     among the kept boxes: the quota's output is that of the NMS run to the end (NaN and bad
     boxes, the checked path, included), and it stops early where the needs fill."""
     from reeb_torch import ReebConfig
-    from reeb_torch.selection import WindowSelection
+    from reeb_torch.selection import Suppression
     from reeb_torch.stages.nms import nms_windows_cpu
 
     gen = torch.Generator().manual_seed(5)
@@ -212,7 +212,7 @@ def test_nms_windows_cpu_with_class_needs_stops_where_the_quota_is_decided():
     chosen = torch.rand(4, 3000, generator=gen) < 0.6
     classes = torch.multinomial(torch.tensor([0.8, 0.12, 0.06, 0.02]), 4 * 3000, True, generator=gen).view(4, 3000)
     for k, share in ((100, [0.0, 0.3, 0.1, 0.05]), (100, [0.0, 0.0, 0.0, 0.0]), (40, [0.0, 0.2, 0.05, 0.9 / 40])):
-        rk = WindowSelection(ReebConfig(top_k=k))
+        rk = Suppression(ReebConfig(top_k=k).nms)
         share = torch.tensor(share)
         need = rk.quota_counts(share)
         for boxes in (b, b.clone().index_put_((chosen[1].nonzero()[0, 0],), torch.tensor([5.0, 5.0, 1.0, 9.0]))):
@@ -225,7 +225,7 @@ def test_nms_windows_cpu_with_class_needs_stops_where_the_quota_is_decided():
             if boxes is b and not bool(need.any()):  # no quota: k, as without classes (NaN: the checked path)
                 assert len(short[0]) == len(short[1]) == len(short[2]) == k
     # needs per image (each image's groups by its own shares)
-    rk = WindowSelection(ReebConfig(top_k=100))
+    rk = Suppression(ReebConfig(top_k=100).nms)
     shares = torch.tensor([[0.5, 0.3, 0.2, 0.0], [0.1, 0.1, 0.1, 0.7], [0.0, 0.0, 0.0, 1.0], [0.25, 0.25, 0.25, 0.25]])
     need = torch.stack([rk.quota_counts(sh, float(sh.sum())) for sh in shares])
     short = nms_windows_cpu(chosen, b, scores, 0.7, 100, None, classes, need)
