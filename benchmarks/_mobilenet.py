@@ -75,8 +75,8 @@ def reeb_fasterrcnn_mobilenet_v3(
     trainable_backbone_layers: int | None = None,
     min_size: int = 320,
     max_size: int = 1088,
-    rpn_post_nms_top_n_train: int = 1000,
-    rpn_post_nms_top_n_test: int = 300,
+    top_k_train: int = 1000,
+    top_k_test: int = 300,
     **kwargs: Any,
 ) -> FasterRCNN:
     """Faster R-CNN, MobileNetV3-Large FPN backbone, REEB (or learned) proposals.
@@ -99,7 +99,7 @@ def reeb_fasterrcnn_mobilenet_v3(
             it everything is trained from scratch.
         min_size, max_size: the model transform's resize (shorter side, longest side
             bound), in pixels. KITTI's 1242×375 frames become 1060×320 by default.
-        rpn_post_nms_top_n_train, rpn_post_nms_top_n_test: proposals per image handed to
+        top_k_train, top_k_test: proposals per image handed to
             the box head, in training and evaluation, for either arm.
         **kwargs: passed to :class:`~torchvision.models.detection.FasterRCNN` (e.g.
             ``box_detections_per_img``, ``box_score_thresh``, ``image_mean``).
@@ -135,17 +135,17 @@ def reeb_fasterrcnn_mobilenet_v3(
         min_size=min_size,
         max_size=max_size,
         rpn_anchor_generator=AnchorGenerator(anchor_sizes, aspect_ratios),
-        rpn_post_nms_top_n_train=rpn_post_nms_top_n_train,
-        rpn_post_nms_top_n_test=rpn_post_nms_top_n_test,
-        rpn_pre_nms_top_n_train=max(2000, rpn_post_nms_top_n_train),
-        rpn_pre_nms_top_n_test=max(1000, rpn_post_nms_top_n_test),
+        rpn_post_nms_top_n_train=top_k_train,
+        rpn_post_nms_top_n_test=top_k_test,
+        rpn_pre_nms_top_n_train=max(2000, top_k_train),
+        rpn_pre_nms_top_n_test=max(1000, top_k_test),
         **kwargs,
     )
     if proposals == "reeb":
         rpn = ReebRPN(
             config,
-            post_nms_top_n_train=rpn_post_nms_top_n_train,
-            post_nms_top_n_test=rpn_post_nms_top_n_test,
+            top_k_train=top_k_train,
+            top_k_test=top_k_test,
             cache=cache,
             on_miss=on_miss,
             image_mean=model.transform.image_mean,

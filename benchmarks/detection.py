@@ -115,7 +115,7 @@ def build_model(name: str, args: argparse.Namespace, items: list[dict]) -> tuple
     model = reeb_fasterrcnn_lite0(
         len(CLASSES) + 1, proposals="learned" if name == "rpn" else "reeb", generator=generator,
         min_size=args.min_size, max_size=args.max_size,
-        rpn_post_nms_top_n_train=args.proposals_train, rpn_post_nms_top_n_test=args.proposals_test,
+        top_k_train=args.proposals_train, top_k_test=args.proposals_test,
         box_batch_size_per_image=args.rois, box_score_thresh=0.01, box_detections_per_img=100)
     return model, proposal_s, key
 

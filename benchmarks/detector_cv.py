@@ -129,7 +129,7 @@ def fold_rankers(roots: list[Path], items: list[dict], train_sides: list[list[in
     return [str(p) for p in paths]
 
 
-INFERENCE_ONLY = ("proposals_test", "box_passes", "box_head_rank", "box_head_int8")
+INFERENCE_ONLY = ("top_k_test", "box_passes", "box_head_rank", "box_head_int8")
 """The settings that change detection, not training: arms that differ only in them share
 their fitted heads (kept under ``--work``)."""
 
@@ -153,7 +153,7 @@ def _fold_detector(settings: Any, training: Any, o: dict[str, Any], proposals: s
 
     classes = tuple(c.strip() for c in o["classes"].split(",") if c.strip())
     changes = parse_sets(o.get("sets") or ())  # --set: REEB's settings over the proposals'
-    top_k = max(settings.proposals_train, settings.proposals_test)  # REEB's top_k: the training proposals' too
+    top_k = max(settings.top_k_train, settings.top_k_test)  # REEB's top_k: the training proposals' too
     config = proposal_settings(proposals, top_k, changes)[0] if changes else None
     trained_as = dataclasses.replace(settings, **{k: getattr(type(settings)(), k) for k in INFERENCE_ONLY})
     full_training = dataclasses.replace(training, factorised_epochs=0)  # the passes after factorising come below

@@ -144,8 +144,8 @@ def build_model(args: argparse.Namespace, num_classes: int, ks: tuple[int, ...],
         backbone_weights=args.backbone_weights,
         min_size=args.min_size,
         max_size=args.max_size,
-        rpn_post_nms_top_n_train=args.proposals_train,
-        rpn_post_nms_top_n_test=max(args.proposals_test, *ks),
+        top_k_train=args.proposals_train,
+        top_k_test=max(args.proposals_test, *ks),
         box_batch_size_per_image=args.box_batch_size,
         **kwargs,
     )
@@ -154,7 +154,7 @@ def build_model(args: argparse.Namespace, num_classes: int, ks: tuple[int, ...],
 
 def set_test_proposals(model, n: int) -> None:
     """Proposals per image in evaluation, for either kind of proposal stage."""
-    model.rpn._post_nms_top_n["testing"] = n
+    model.rpn._top_k["testing"] = n
     if not isinstance(model.rpn, ReebRPN):
         model.rpn._pre_nms_top_n["testing"] = max(n, model.rpn._pre_nms_top_n["testing"])
 

@@ -122,7 +122,9 @@ class DetectorSettings:
         box_passes: the box head's passes in detection: each after the first pools the boxes
             the last one regressed and averages its class scores in (training is one pass;
             an inference setting, so a file's heads run with any number).
-        proposals_train, proposals_test: REEB proposals per image handed to the box head.
+        top_k_train, top_k_test: REEB proposals per image handed to the box head in training
+            and in detection (files written with the names ``proposals_train`` and
+            ``proposals_test`` load as these).
         rois: RoIs sampled per image for the box head's loss.
         score_thresh: detections below this score are dropped.
         nms_thresh: per-class NMS IoU of the detections.
@@ -138,8 +140,8 @@ class DetectorSettings:
     precision: Literal["float32", "bfloat16"] = "bfloat16"
     crop_top: float = 0.0
     box_passes: int = 2
-    proposals_train: int = 2000
-    proposals_test: int = 1000
+    top_k_train: int = 2000
+    top_k_test: int = 1000
     rois: int = 256
     score_thresh: float = 0.01
     nms_thresh: float = 0.5
@@ -161,11 +163,15 @@ class DetectorSettings:
         """
         if not isinstance(d, dict):
             raise TypeError(f"{owner} must be an object of DetectorSettings fields, got {type(d).__name__}")
+        d = {_FORMER_NAMES.get(k, k): v for k, v in d.items()}
         unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
         if unknown:
             raise ValueError(f"{owner} has fields this version does not know: {', '.join(map(str, unknown))}")
         return cls(**_checked_settings(owner, {"precision": "float32", "box_head_int8": False, **d}))
 
+
+_FORMER_NAMES = {"proposals_train": "top_k_train", "proposals_test": "top_k_test"}
+"""Fields that files written before the number of proposals had one name store by another."""
 
 SETTINGS_RANGES: dict[str, str | None] = {
     "min_size": "[32, 4096]",
@@ -177,8 +183,8 @@ SETTINGS_RANGES: dict[str, str | None] = {
     "precision": None,
     "crop_top": "[0, 0.9]",
     "box_passes": "[1, 4]",
-    "proposals_train": "[1, 20000]",
-    "proposals_test": "[1, 20000]",
+    "top_k_train": "[1, 20000]",
+    "top_k_test": "[1, 20000]",
     "rois": "[1, 4096]",
     "score_thresh": "[0, 1]",
     "nms_thresh": "[0, 1]",
@@ -195,7 +201,7 @@ def _checked_settings(owner: str, values: dict[str, Any]) -> dict[str, Any]:
     return check_fields(owner, values, typing.get_type_hints(DetectorSettings), SETTINGS_RANGES)
 
 
-PROPOSAL_FIXED = {"top_k": "the detector's proposals per image (DetectorSettings.proposals_train/_test)",
+PROPOSAL_FIXED = {"top_k": "the detector's proposals per image (DetectorSettings.top_k_train/_test)",
                   "ranker": "the proposals' name or ranker weights file"}
 """The REEB fields a detector sets itself, which ``changes`` may not: field -> what sets it."""
 
@@ -323,7 +329,7 @@ class ReebDetector(nn.Module):
         self.classes: tuple[str, ...] = tuple(str(c) for c in classes)
         self.categories: tuple[str, ...] = ("__background__", *self.classes)
         self.settings = settings
-        top_k = max(settings.proposals_train, settings.proposals_test)
+        top_k = max(settings.top_k_train, settings.top_k_test)
         if config is None:
             config = _proposal_config(proposals, top_k)
         sha, self._ranker_bytes = _ranker_file(config)
@@ -336,7 +342,7 @@ class ReebDetector(nn.Module):
             min_size=s.min_size, max_size=s.max_size, neck_channels=s.neck_channels,
             representation_size=s.representation_size, box_head_rank=s.box_head_rank,
             box_head_int8=s.box_head_int8, precision=self.precision,
-            rpn_post_nms_top_n_train=s.proposals_train, rpn_post_nms_top_n_test=s.proposals_test,
+            top_k_train=s.top_k_train, top_k_test=s.top_k_test,
             box_batch_size_per_image=s.rois, box_score_thresh=s.score_thresh, box_nms_thresh=s.nms_thresh,
             box_detections_per_img=s.detections_per_img)
         self.meta: dict[str, Any] = {}
@@ -513,7 +519,7 @@ class ReebDetector(nn.Module):
 
         base = training or TrainSettings()
         train = dataclasses.replace(base, epochs=epochs, seed=seed, hflip=hflip)
-        top_k = max(settings.proposals_train, settings.proposals_test)
+        top_k = max(settings.top_k_train, settings.top_k_test)
         config = _proposal_config(proposals, top_k, proposal_changes) if proposal_changes else None
         return fit_detector(cls, folders, classes=classes, proposals=proposals, settings=settings, training=train,
                             cache_dir=cache_dir, limit=limit, auto_crop=auto_crop, progress=progress,

@@ -135,8 +135,8 @@ def reeb_fasterrcnn_lite0(
     box_head_rank: int = 0,
     box_head_int8: bool = False,
     precision: str = "float32",
-    rpn_post_nms_top_n_train: int = 2000,
-    rpn_post_nms_top_n_test: int = 1000,
+    top_k_train: int = 2000,
+    top_k_test: int = 1000,
     **kwargs: Any,
 ) -> FasterRCNN:
     """Faster R-CNN, frozen pretrained EfficientNet-Lite0, REEB (or learned) proposals.
@@ -160,8 +160,8 @@ def reeb_fasterrcnn_lite0(
         box_head_int8: the box head's layers as :class:`~reeb_torch.detection.box_head.
             Int8Linear` (to be loaded with a quantised head's weights; not trainable).
         precision: the frozen body's (``"float32"`` or ``"bfloat16"``; :class:`FrozenLite0`).
-        rpn_post_nms_top_n_train, rpn_post_nms_top_n_test: proposals per image handed to
-            the box head in training and evaluation, for either arm.
+        top_k_train, top_k_test: proposals per image handed to the box head in training and
+            evaluation, for either arm (torchvision's ``rpn_post_nms_top_n_train``/``_test``).
         **kwargs: passed to :class:`FasterRCNN` (``box_batch_size_per_image``,
             ``box_score_thresh``, ``box_detections_per_img``, ...).
 
@@ -177,8 +177,8 @@ def reeb_fasterrcnn_lite0(
         backbone, None, min_size=min_size, max_size=max_size,
         image_mean=list(LITE0_MEAN), image_std=list(LITE0_STD),
         rpn_anchor_generator=anchors, rpn_head=rpn_head,
-        rpn_pre_nms_top_n_train=rpn_post_nms_top_n_train, rpn_pre_nms_top_n_test=rpn_post_nms_top_n_test,
-        rpn_post_nms_top_n_train=rpn_post_nms_top_n_train, rpn_post_nms_top_n_test=rpn_post_nms_top_n_test,
+        rpn_pre_nms_top_n_train=top_k_train, rpn_pre_nms_top_n_test=top_k_test,
+        rpn_post_nms_top_n_train=top_k_train, rpn_post_nms_top_n_test=top_k_test,
         box_roi_pool=PyramidRoIAlign(list(PYRAMID_LEVELS), output_size=7, sampling_ratio=2),
         box_head=TwoMLPHead(neck_channels * 7 * 7, representation_size),
         box_predictor=FastRCNNPredictor(representation_size, num_classes),
@@ -190,7 +190,6 @@ def reeb_fasterrcnn_lite0(
     if box_head_int8:
         quantise_box_head(model)
     if proposals == "reeb":
-        ReebRPN(config, generator=generator, post_nms_top_n_train=rpn_post_nms_top_n_train,
-                post_nms_top_n_test=rpn_post_nms_top_n_test,
+        ReebRPN(config, generator=generator, top_k_train=top_k_train, top_k_test=top_k_test,
                 image_mean=LITE0_MEAN, image_std=LITE0_STD).attach(model)
     return model

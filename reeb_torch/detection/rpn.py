@@ -97,10 +97,10 @@ class ReebRPN(nn.Module):
 
     Args:
         config: settings of the generator; ``None`` = :class:`ReebConfig` defaults with
-            ``top_k = max(post_nms_top_n_train, post_nms_top_n_test)``.
-        post_nms_top_n_train: proposals per image kept in training (torchvision's
+            ``top_k = max(top_k_train, top_k_test)``.
+        top_k_train: proposals per image kept in training (torchvision's
             ``rpn_post_nms_top_n_train``; REEB's output is already NMS-ed and ranked).
-        post_nms_top_n_test: proposals per image kept in evaluation.
+        top_k_test: proposals per image kept in evaluation.
         cache: a :class:`ProposalCache` (or the path of one) built with ``config``; its
             proposals are used instead of running REEB. A cache built with another
             config raises :class:`StaleCacheError` here.
@@ -118,8 +118,8 @@ class ReebRPN(nn.Module):
         self,
         config: ReebConfig | None = None,
         *,
-        post_nms_top_n_train: int = 1000,
-        post_nms_top_n_test: int = 300,
+        top_k_train: int = 1000,
+        top_k_test: int = 300,
         cache: ProposalCache | str | os.PathLike | None = None,
         on_miss: Literal["error", "compute"] = "error",
         min_size: float = 1e-3,
@@ -128,16 +128,16 @@ class ReebRPN(nn.Module):
         generator: nn.Module | None = None,
     ) -> None:
         super().__init__()
-        for name, n in (("post_nms_top_n_train", post_nms_top_n_train),
-                        ("post_nms_top_n_test", post_nms_top_n_test)):
+        for name, n in (("top_k_train", top_k_train),
+                        ("top_k_test", top_k_test)):
             if not (isinstance(n, int) and n >= 1):
                 raise ValueError(f"ReebRPN.{name} must be an int >= 1, got {n!r}")
         if on_miss not in ("error", "compute"):
             raise ValueError(f"ReebRPN.on_miss must be 'error' or 'compute', got {on_miss!r}")
         if config is None:
-            config = ReebConfig().replace(top_k=max(post_nms_top_n_train, post_nms_top_n_test))
+            config = ReebConfig().replace(top_k=max(top_k_train, top_k_test))
         self.config = config
-        self._post_nms_top_n = dict(training=post_nms_top_n_train, testing=post_nms_top_n_test)
+        self._top_k = dict(training=top_k_train, testing=top_k_test)
         self.on_miss = on_miss
         self.min_size = min_size
         self.image_mean = tuple(float(v) for v in image_mean)
@@ -168,13 +168,14 @@ class ReebRPN(nn.Module):
             setattr(model, "_reeb_hooked", True)  # nn.Module's attributes are typed as tensors and modules
         return model
 
-    def post_nms_top_n(self) -> int:
-        return self._post_nms_top_n["training" if self.training else "testing"]
+    def top_k(self) -> int:
+        """The proposals per image kept now: ``top_k_train`` in training, else ``top_k_test``."""
+        return self._top_k["training" if self.training else "testing"]
 
     def place(self, boxes: Tensor, original_size: Sequence[int], new_size: Sequence[int], top: int = 0) -> Tensor:
-        """The first :meth:`post_nms_top_n` of an image's ``boxes`` (input pixels, best first)
+        """The first :meth:`top_k` of an image's ``boxes`` (input pixels, best first)
         in its resized frame (:func:`map_boxes`; ``top``: rows cut above it)."""
-        return map_boxes(boxes[:self.post_nms_top_n()], original_size, new_size, self.min_size, top)
+        return map_boxes(boxes[:self.top_k()], original_size, new_size, self.min_size, top)
 
     # -- proposals ----------------------------------------------------------------------
     @torch.no_grad()
@@ -235,5 +236,5 @@ class ReebRPN(nn.Module):
 
     def extra_repr(self) -> str:
         cache = f", cache={len(self.cache)} images" if self.cache is not None else ""
-        return (f"post_nms_top_n={self._post_nms_top_n}, config={self.config.fingerprint()}"
+        return (f"top_k={self._top_k}, config={self.config.fingerprint()}"
                 f"{cache}, on_miss={self.on_miss!r}")

@@ -10,7 +10,7 @@ Contract (every baseline)::
     out = baseline(image)           # image: uint8 Tensor[3, H, W], RGB
     out["boxes"]                    # float32 Tensor[N, 4], (x1, y1, x2, y2), best first
     out["scores"]                   # float32 Tensor[N], non-increasing
-    N <= baseline.max_proposals
+    N <= baseline.top_k
 
 Box convention (the one torchvision uses, and the one the KITTI labels are read in): boxes
 are continuous pixel coordinates in which pixel ``(row r, column c)`` covers the square
@@ -226,7 +226,7 @@ class EdgeBoxesBaseline:
     Settings (OpenCV's ``createEdgeBoxes`` arguments; defaults are OpenCV's and the Edge
     Boxes paper's "IoU 0.7" setting):
 
-    - ``max_proposals`` (2000) -> ``maxBoxes``: at most this many boxes are kept by the
+    - ``top_k`` (2000) -> ``maxBoxes``: at most this many boxes are kept by the
       Edge Boxes NMS.
     - ``alpha`` (0.65): step size of the sliding-window search (IoU of neighbouring windows).
     - ``beta`` (0.75): NMS IoU threshold between proposals.
@@ -244,7 +244,7 @@ class EdgeBoxesBaseline:
     descending by OpenCV.
     """
 
-    max_proposals: int = 2000
+    top_k: int = 2000
     alpha: float = 0.65
     beta: float = 0.75
     eta: float = 1.0
@@ -268,7 +268,7 @@ class EdgeBoxesBaseline:
             beta=self.beta,
             eta=self.eta,
             minScore=self.min_score,
-            maxBoxes=int(self.max_proposals),
+            maxBoxes=int(self.top_k),
             edgeMinMag=self.edge_min_mag,
             edgeMergeThr=self.edge_merge_thr,
             clusterMinMag=self.cluster_min_mag,
@@ -293,7 +293,7 @@ class EdgeBoxesBaseline:
             return _result(np.zeros((0, 4)), np.zeros(0))
         scores = np.asarray(scores, dtype=np.float32).reshape(-1)
         boxes = edge_boxes_to_xyxy(np.asarray(rects), w, h)
-        order = np.argsort(-scores, kind="stable")[: self.max_proposals]
+        order = np.argsort(-scores, kind="stable")[: self.top_k]
         return _result(boxes[order], scores[order])
 
 
@@ -334,7 +334,7 @@ class BingBaseline:
       (``ObjNessB2W8{MAXBGR,HSV,I}.{idx,wS1,wS2}.yml.gz``, trained on PASCAL VOC 2007; from
       opencv_contrib's ``modules/saliency/samples/ObjectnessTrainedModel``); a missing
       folder or file raises :class:`FileNotFoundError`.
-    - ``max_proposals`` (2000): the first ``max_proposals`` boxes of BING's ranking are
+    - ``top_k`` (2000): the first ``top_k`` boxes of BING's ranking are
       returned. OpenCV proposes up to 250 boxes per window size and colour space
       (``numDetPerSize = 250``, fixed in ``computeSaliencyImpl``), typically ~10 000 in all.
     - ``ranking`` (``"opencv"``): order of the boxes, see *Ranking* below.
@@ -366,13 +366,13 @@ class BingBaseline:
     def __init__(
         self,
         model_dir: str | os.PathLike,
-        max_proposals: int = 2000,
+        top_k: int = 2000,
         ranking: str = "opencv",
         quiet: bool = True,
     ):
         if not hasattr(cv2, "saliency"):
             raise ImportError("cv2.saliency is missing: install opencv-contrib-python(-headless)")
-        self.max_proposals = int(max_proposals)
+        self.top_k = int(top_k)
         self.model_dir = Path(model_dir)
         self.quiet = quiet
         if ranking not in ("opencv", "interleaved"):
@@ -393,7 +393,7 @@ class BingBaseline:
 
     def __repr__(self) -> str:
         return (
-            f"BingBaseline(max_proposals={self.max_proposals}, model_dir={str(self.model_dir)!r}, "
+            f"BingBaseline(top_k={self.top_k}, model_dir={str(self.model_dir)!r}, "
             f"ranking={self.ranking!r})"
         )
 
@@ -411,7 +411,7 @@ class BingBaseline:
             values = np.asarray(self._bing.getobjectnessValues(), dtype=np.float32).reshape(-1)
             if values.shape[0] == boxes.shape[0]:
                 keys = values
-        order = np.argsort(keys, kind="stable")[: self.max_proposals]
+        order = np.argsort(keys, kind="stable")[: self.top_k]
         return _result(bing_to_xyxy(boxes[order], w, h), -keys[order])
 
 
@@ -429,7 +429,7 @@ class SelectiveSearchBaseline:
 
     Settings:
 
-    - ``max_proposals`` (2000): the first boxes of OpenCV's order are kept. OpenCV orders
+    - ``top_k`` (2000): the first boxes of OpenCV's order are kept. OpenCV orders
       the regions by its pseudo-random rank (hierarchy level times a random number, as in
       the original) and removes duplicate boxes; the order is taken as the ranking.
       ``scores`` are ``1 - i / N`` (rank-derived, non-increasing), not a real objectness.
@@ -443,7 +443,7 @@ class SelectiveSearchBaseline:
     Box conversion: plain ``cv::Rect``, see :func:`xywh_to_xyxy`.
     """
 
-    max_proposals: int = 2000
+    top_k: int = 2000
     base_k: int = 150
     inc_k: int = 150
     sigma: float = 0.8
@@ -472,7 +472,7 @@ class SelectiveSearchBaseline:
         rects = self._ss.process()
         if rects is None or len(rects) == 0:
             return _result(np.zeros((0, 4)), np.zeros(0))
-        xywh = np.asarray(rects, dtype=np.float64).reshape(-1, 4)[: self.max_proposals]
+        xywh = np.asarray(rects, dtype=np.float64).reshape(-1, 4)[: self.top_k]
         sh, sw = bgr.shape[:2]
         boxes = xywh_to_xyxy(xywh, sw, sh)
         if self.scale != 1.0:
@@ -486,5 +486,5 @@ BASELINES: dict[str, Callable[..., Callable[..., Any]]] = {
     "bing": BingBaseline,
     "selective-search": SelectiveSearchBaseline,
 }
-"""Registry: baseline name -> class; each class takes ``max_proposals=`` (BING also its
+"""Registry: baseline name -> class; each class takes ``top_k=`` (BING also its
 ``model_dir``) and is called on one ``uint8 (3, H, W)`` RGB tensor."""

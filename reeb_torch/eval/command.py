@@ -108,8 +108,8 @@ def _options(data_default: Sequence[str | os.PathLike] | None,
                           + ("all." if data_default is not None else
                              f"{', '.join(QUICK_METHODS)}, and bing with --bing-model (selective-search, the "
                              f"slowest, only when asked).")),
-        click.Option(["--max-proposals"], type=int, default=max(KS), show_default=True,
-                     help=f"Proposals kept per image (at least {max(KS)})."),
+        click.Option(["--top-k", "--max-proposals", "top_k"], type=int, default=max(KS), show_default=True,
+                     help=f"Proposals kept per image (at least {max(KS)}; --max-proposals is another name)."),
         click.Option(["--batch"], type=click.IntRange(min=0), default=8, show_default=True,
                      help="Also time REEB in batches of this many images (0 or 1: not)."),
         click.Option(["--exclude-fitted"], is_flag=True,
@@ -182,7 +182,7 @@ def table3_parameters(data_default: Sequence[str | os.PathLike] | None = None,
                       bing_default: str | os.PathLike | None = None):
     """A decorator that gives a click command function the table's parameters, in order (as
     ``@click.option`` does): the folders (an argument without ``data_default``, else ``--data``
-    options with it), ``--limit``, ``--frames``, ``-o``, ``--methods``, ``--max-proposals``,
+    options with it), ``--limit``, ``--frames``, ``-o``, ``--methods``, ``--top-k``,
     ``--batch``, ``--exclude-fitted``, ``--cross-validate``, ``--whole-drives``,
     ``--leave-folder-out``, ``--bing-model`` (default ``bing_default``)."""
 

@@ -90,7 +90,7 @@ class Method:
     key: str
     label: str
     build: Callable[..., Callable[..., dict]]
-    """``build(max_proposals, **options)`` -> a callable on one uint8 (3, H, W) image."""
+    """``build(top_k, **options)`` -> a callable on one uint8 (3, H, W) image."""
     batched: bool = False
     """Accepts a list of images (REEB), so batch timing applies."""
     preset: str | None = None
@@ -113,36 +113,36 @@ def _on(gen: Any, device: str | None) -> Callable:
 def _reeb(preset: str, **changes: Any) -> Callable[..., Callable]:
     """The generator of a REEB row: the preset with ``changes`` (``use_regions=False``: the
     rows without the region enhancement), on ``device``."""
-    def build(max_proposals: int, device: str | None = None, **_: Any) -> Callable:
+    def build(top_k: int, device: str | None = None, **_: Any) -> Callable:
         from .. import ProposalGenerator, get_preset
 
-        gen = ProposalGenerator(get_preset(preset).replace(**changes), top_k=max_proposals)
+        gen = ProposalGenerator(get_preset(preset).replace(**changes), top_k=top_k)
         gen.eval()
         return _on(gen, device)
 
     return build
 
 
-def _configured(max_proposals: int, config: Any = None, device: str | None = None, **_: Any) -> Callable:
+def _configured(top_k: int, config: Any = None, device: str | None = None, **_: Any) -> Callable:
     """The generator of the row with the caller's settings (``config``), on ``device``."""
     from .. import ProposalGenerator
 
-    gen = ProposalGenerator(config, top_k=max_proposals)
+    gen = ProposalGenerator(config, top_k=top_k)
     gen.eval()
     return _on(gen, device)
 
 
 def _baseline(name: str) -> Callable[..., Callable]:
-    def build(max_proposals: int, bing_model: str | os.PathLike | None = None, **_: Any) -> Callable:
+    def build(top_k: int, bing_model: str | os.PathLike | None = None, **_: Any) -> Callable:
         from .baselines import BASELINES
 
         if name != "bing":
-            return BASELINES[name](max_proposals=max_proposals)
+            return BASELINES[name](top_k=top_k)
         if bing_model is None:
             raise FileNotFoundError("no BING model folder given (--bing-model DIR: the folder of its nine "
                                     "ObjNessB2W8*.yml.gz files, from opencv_contrib's "
                                     "modules/saliency/samples/ObjectnessTrainedModel)")
-        return BASELINES[name](max_proposals=max_proposals, model_dir=bing_model)
+        return BASELINES[name](top_k=top_k, model_dir=bing_model)
 
     return build
 
@@ -185,7 +185,7 @@ class Table3Options:
         frames: only frames whose numeric id lies in one of these ranges; with two or more,
             every table is also given for each range.
         methods: the rows (keys of :data:`METHODS`), in table order.
-        max_proposals: proposals kept per image (at least 2000, Table 3's largest column).
+        top_k: proposals kept per image (at least 2000, Table 3's largest column).
         batch: REEB is also timed in batches of this many images (0 or 1: not).
         exclude_fitted: leave out the frames a learned ranking among the methods was fitted on
             (the same pictures, whatever their names: :func:`reeb_torch.ranker.fitted_frames`).
@@ -207,7 +207,7 @@ class Table3Options:
     limit: int | None = None
     frames: Sequence[FrameRange] = ()
     methods: Sequence[str] = DEFAULT_METHODS
-    max_proposals: int = max(KS)
+    top_k: int = max(KS)
     batch: int = 8
     exclude_fitted: bool = False
     cross_validate: int = 0
@@ -229,8 +229,8 @@ class Table3Options:
         unknown = [m for m in self.methods if m not in DEFAULT_METHODS]
         if unknown:
             raise Table3Error(f"unknown method {unknown[0]!r}; choose from {', '.join(DEFAULT_METHODS)}")
-        if self.max_proposals < max(KS):
-            raise Table3Error(f"--max-proposals must be >= {max(KS)} for Table 3's columns, got {self.max_proposals}")
+        if self.top_k < max(KS):
+            raise Table3Error(f"--top-k must be at least {max(KS)} for Table 3's columns, got {self.top_k}")
         if self.limit is not None and self.limit < 1:
             raise Table3Error(f"--limit must be >= 1, got {self.limit}")
         if self.batch < 0:

@@ -324,7 +324,7 @@ def record(table: Table3, rerun: str, env: dict[str, Any], plots: Sequence[str] 
         "ious": list(IOUS),
         "moderate": {"min_height": mod_rule.min_height, "max_occlusion": mod_rule.max_occlusion,
                      "max_truncation": mod_rule.max_truncation},
-        "max_proposals": opts.max_proposals,
+        "top_k": opts.top_k,
         "batch": opts.batch,
         "environment": env,
         "methods": table.results,

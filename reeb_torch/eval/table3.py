@@ -103,16 +103,16 @@ def _call(method: Method, model: Callable, images: list[torch.Tensor]) -> list[d
 def run_method(
     method: Method,
     images: list[torch.Tensor],
-    max_proposals: int,
+    top_k: int,
     batch: int,
     **options: Any,
 ) -> tuple[list[torch.Tensor], dict[str, Any]]:
     """Run one method over the images (uint8 ``Tensor[3, H, W]`` each); return its ranked
-    boxes per image (``Tensor[N_i, 4]``, CPU, at most ``max_proposals``) and its timings (ms
+    boxes per image (``Tensor[N_i, 4]``, CPU, at most ``top_k``) and its timings (ms
     per image)."""
     from tqdm import tqdm
 
-    model = method.build(max_proposals, **options)
+    model = method.build(top_k, **options)
     _call(method, model, images[:1])  # warm-up, untimed (lazy allocations, caches)
     boxes: list[torch.Tensor] = []
     seconds: list[float] = []
@@ -120,7 +120,7 @@ def run_method(
         t0 = time.perf_counter()
         (out,) = _call(method, model, [im])
         seconds.append(time.perf_counter() - t0)
-        boxes.append(out["boxes"].detach().cpu()[:max_proposals])
+        boxes.append(out["boxes"].detach().cpu()[:top_k])
     timing: dict[str, Any] = {
         "ms_per_img": 1000.0 * sum(seconds) / len(seconds),
         "ms_median": 1000.0 * sorted(seconds)[len(seconds) // 2],
@@ -331,17 +331,17 @@ def _run_methods(options: Table3Options, frames: Frames, splits: list[tuple[str,
             if method.cross_validated:
                 folds = (options.cross_validate if key in (CROSS_VALIDATED, WHOLE_DRIVES)
                          else [idx for _, idx in folder_splits(frames.items)])
-                boxes, timing = cross_validated_boxes(frames, options.data, folds, options.max_proposals, prepared,
+                boxes, timing = cross_validated_boxes(frames, options.data, folds, options.top_k, prepared,
                                                       whole_drives=key == WHOLE_DRIVES)
             else:
-                boxes, timing = run_method(method, frames.images, options.max_proposals, options.batch,
+                boxes, timing = run_method(method, frames.images, options.top_k, options.batch,
                                            bing_model=options.bing_model, config=options.config,
                                            device=options.device)
         except (FileNotFoundError, ImportError) as e:  # e.g. no BING model folder
             print(f"skipped {method.label}: {e}", flush=True)
             results[key] = {"label": method.label, "skipped": str(e)}
             continue
-        ks_curve, r_k = recall_vs_proposals(boxes, frames.gts, iou=0.7, max_k=options.max_proposals)
+        ks_curve, r_k = recall_vs_proposals(boxes, frames.gts, iou=0.7, max_k=options.top_k)
         ious_curve, r_iou = recall_vs_iou(boxes, frames.gts, k=max(KS), ious=CURVE_IOUS)
         curves[method.label] = {"ks": ks_curve.tolist(), "recall_vs_k": r_k.tolist(),
                                 "ious": ious_curve.tolist(), "recall_vs_iou": r_iou.tolist()}
@@ -357,10 +357,10 @@ def _run_methods(options: Table3Options, frames: Frames, splits: list[tuple[str,
 
 
 def cross_validated_boxes(frames: Frames, roots: Sequence[str | os.PathLike], folds: int | Sequence[Sequence[int]],
-                          max_proposals: int,
+                          top_k: int,
                           prepared: dict[str, Any] | None = None,
                           whole_drives: bool = False) -> tuple[list[torch.Tensor], dict[str, Any]]:
-    """The default's ranked boxes (``Tensor[N_i, 4]``, at most ``max_proposals``) on each of
+    """The default's ranked boxes (``Tensor[N_i, 4]``, at most ``top_k``) on each of
     ``frames`` (read from the folders ``roots``), each ranked by a model fitted without the
     frame's block of ``folds`` (a number of blocks, or the blocks: the frame indices of each;
     :func:`reeb_torch.ranker.cv.held_out_outputs`, with ``reeb fit``'s default options and seed:
@@ -382,7 +382,7 @@ def cross_validated_boxes(frames: Frames, roots: Sequence[str | os.PathLike], fo
         return lambda items: tqdm(items, desc=f"{'cross-validated: ' + desc:<30}", file=sys.stderr, dynamic_ncols=True)
 
     t0 = time.perf_counter()
-    cfg, opts = get_preset("default").replace(top_k=max_proposals), FitOptions()
+    cfg, opts = get_preset("default").replace(top_k=top_k), FitOptions()
     prepared = {} if prepared is None else prepared
     if not prepared:
         root_of = dict(zip(folder_names(roots), roots))
@@ -398,7 +398,7 @@ def cross_validated_boxes(frames: Frames, roots: Sequence[str | os.PathLike], fo
     gap = len(frames.ids) if whole_drives else 2
     outputs = held_out_outputs(prepared["cache"], cfg, prepared["samples"], opts, folds, gap,
                                progress=bar("whole drives" if whole_drives else "folds"))
-    boxes = [o["boxes"][:max_proposals] for o in outputs]
+    boxes = [o["boxes"][:top_k] for o in outputs]
     timing = {"ms_per_img": None, "fit_s": time.perf_counter() - t0,
               "folds": folds if isinstance(folds, int) else len(folds), "whole_drives": whole_drives,
               "batch_size": 1,

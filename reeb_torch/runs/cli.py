@@ -302,19 +302,12 @@ from ..eval.command import TABLE3_HELP, TABLE3_SHORT_HELP, run_command, table3_p
 
 @main.command("eval", context_settings=CONTEXT, short_help=TABLE3_SHORT_HELP, help=TABLE3_HELP)
 @table3_parameters()
-@config_options  # reeb eval takes the settings reeb propose takes
-def eval_(preset, config_file, sets, top_k, device, **given):
+@settings_options(run=False)  # reeb eval takes the settings reeb propose takes
+@device_option
+def eval_(preset, config_file, sets, device, **given):
     """``--preset / --config / --set``: given any, a row with those settings (built as
-    ``reeb propose`` builds them); ``--top-k``: ``--max-proposals`` by its other name;
-    ``--device``: where the REEB rows run."""
+    ``reeb propose`` builds them); ``--device``: where the REEB rows run."""
     ctx = click.get_current_context()
-    if top_k is not None:
-        if top_k < 2000:
-            raise UsageProblem(f"--top-k {top_k}: reeb eval needs at least 2000 proposals (Table 3's largest column)")
-        if ctx.get_parameter_source("max_proposals") == click.core.ParameterSource.COMMANDLINE and \
-                top_k != given["max_proposals"]:
-            raise UsageProblem("give --top-k or --max-proposals, not both")
-        given["max_proposals"] = top_k
     own = any(ctx.get_parameter_source(n) == click.core.ParameterSource.COMMANDLINE
               for n in ("preset", "config_file", "sets"))
     cfg = build_config(preset, config_file, sets, None) if own else None

@@ -44,8 +44,8 @@ def detector() -> None:
     """
 
 
-SETTINGS_OPTIONS = {"min_size": "min_size", "max_size": "max_size", "train_proposals": "proposals_train",
-                    "test_proposals": "proposals_test", "precision": "precision", "crop_top": "crop_top",
+SETTINGS_OPTIONS = {"min_size": "min_size", "max_size": "max_size", "top_k_train": "top_k_train",
+                    "top_k_test": "top_k_test", "precision": "precision", "crop_top": "crop_top",
                     "neck_channels": "neck_channels", "head_width": "representation_size",
                     "box_passes": "box_passes", "box_head_rank": "box_head_rank", "int8_box_head": "box_head_int8"}
 """``reeb detector fit``'s options that set :class:`~reeb_torch.detection.DetectorSettings`
@@ -71,7 +71,7 @@ def proposal_changes(proposals: str, sets: Sequence[str], settings: Any) -> dict
 
     try:
         changes = parse_sets(sets)
-        proposal_settings(proposals, max(settings.proposals_train, settings.proposals_test), changes)
+        proposal_settings(proposals, max(settings.top_k_train, settings.top_k_test), changes)
     except (TypeError, ValueError, ArithmeticError) as e:
         raise click.BadParameter(" ".join(str(e).split()) or type(e).__name__, param_hint="--set") from None
     return changes
@@ -116,10 +116,10 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
                    "and small objects are lost as it shrinks.")
 @click.option("--max-size", type=SettingRange("max_size"), default=2048, show_default=True,
               help="Bound on the longer side of the resized input.")
-@click.option("--train-proposals", type=SettingRange("proposals_train"), default=2000, show_default=True,
-              help="REEB proposals per image in training.")
-@click.option("--test-proposals", type=SettingRange("proposals_test"), default=1000, show_default=True,
-              help="REEB proposals per image in detection (the heads' time grows with it).")
+@click.option("--top-k-train", "--train-proposals", "top_k_train", type=SettingRange("top_k_train"), default=2000,
+              show_default=True, help="REEB proposals per image in training.")
+@click.option("--top-k-test", "--test-proposals", "top_k_test", type=SettingRange("top_k_test"), default=1000,
+              show_default=True, help="REEB proposals per image in detection (the heads' time grows with it).")
 @click.option("--precision", type=click.Choice(["bfloat16", "float32"]), default="bfloat16", show_default=True,
               help="The frozen backbone's precision; the heads train on its maps and detection uses the same "
                    "(bfloat16 where the CPU or GPU computes it natively, float32 elsewhere).")
@@ -149,8 +149,8 @@ def _changed_options(ctx: click.Context, names: dict[str, str]) -> list[str]:
                 "(they write the maps to --cache, which every worker must reach; training runs here; "
                 "pip install 'reeb-torch[ray]').", "--engine ray: actors, each holding one detector.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
-def fit(dirs, out, overwrite, proposals, sets, classes, epochs, steps, seed, val, hflip, min_size, max_size, train_proposals,
-        test_proposals, precision, crop_top, neck_channels, head_width, box_head_rank, int8_box_head, factorised_epochs,
+def fit(dirs, out, overwrite, proposals, sets, classes, epochs, steps, seed, val, hflip, min_size, max_size, top_k_train,
+        top_k_test, precision, crop_top, neck_channels, head_width, box_head_rank, int8_box_head, factorised_epochs,
         box_passes, cache_dir, limit, engine, address, actors, cpus_per_actor, quiet):
     """Train a detector on labelled KITTI-format folders (DIRS: images/ and labels/, or image_2/ and
     label_2/) and write it to OUT. The backbone's maps and REEB's proposals of each frame are

@@ -140,7 +140,7 @@ def test_arm_options_are_the_fit_commands_and_its_own_are_refused(kitti):
     mod = _script("detector_paired")
     name, options = mod.parse_arm("small=--min-size 375 --hflip")
     params = mod.fit_options([kitti], options)
-    assert name == "small" and params["min_size"] == 375 and params["hflip"] and params["test_proposals"] == 1000
+    assert name == "small" and params["min_size"] == 375 and params["hflip"] and params["top_k_test"] == 1000
     for bad in ("x=--val other", "x=--limit 3", "no options", "a b=--hflip"):
         with pytest.raises(argparse.ArgumentTypeError):
             mod.parse_arm(bad)

@@ -135,7 +135,7 @@ def test_proposals_map_exactly_like_the_ground_truth():
     sizes = [(100, 300), (120, 200), (97, 331)]
     gts = {s: random_boxes(*s, n=7, seed=i) for i, s in enumerate(sizes)}
     rpn = ReebRPN(generator=FixedGenerator(lambda im: gts[tuple(im.shape[-2:])]),
-                  post_nms_top_n_train=100)
+                  top_k_train=100)
     model = tiny_faster_rcnn(rpn, min_size=(64, 80, 96), max_size=400)
     seen = {}
     rpn.register_forward_hook(lambda m, args, out: seen.update(args=args, out=out))
@@ -176,9 +176,9 @@ def test_detections_come_back_in_input_pixels():
         torch.testing.assert_close(det["boxes"], gts[s], rtol=0, atol=1e-3)
 
 
-def test_post_nms_top_n_in_training_and_evaluation():
+def test_top_k_in_training_and_evaluation():
     rpn = ReebRPN(generator=FixedGenerator(lambda im: random_boxes(100, 100, 50, 0)),
-                  post_nms_top_n_train=20, post_nms_top_n_test=7)
+                  top_k_train=20, top_k_test=7)
     model = tiny_faster_rcnn(rpn, min_size=100, max_size=100)
     counts = []
     rpn.register_forward_hook(lambda m, a, out: counts.append(len(out[0][0])))
@@ -269,8 +269,8 @@ def test_cache_file_round_trip(cache, config, tmp_path):
 
 def test_cached_proposals_equal_live_reeb(frames, cache, config):
     """The cache holds exactly what the generator computes (same model output either way)."""
-    live = ReebRPN(config, post_nms_top_n_test=300).eval()
-    cached = ReebRPN(config, post_nms_top_n_test=300, cache=cache).eval()
+    live = ReebRPN(config, top_k_test=300).eval()
+    cached = ReebRPN(config, top_k_test=300, cache=cache).eval()
     images = [f["image"].float() / 255.0 for f in frames]
     for a, b in zip(live.propose(images), cached.propose(images)):
         torch.testing.assert_close(a, b)
@@ -382,7 +382,7 @@ def test_drop_ignored_keeps_targets_and_drops_ignore_regions():
 
 
 TINY = dict(min_size=128, max_size=448, neck_channels=32, box_batch_size_per_image=32,
-            rpn_post_nms_top_n_train=100, rpn_post_nms_top_n_test=50, box_score_thresh=0.0)
+            top_k_train=100, top_k_test=50, box_score_thresh=0.0)
 
 
 def stub_boxes(image: torch.Tensor) -> torch.Tensor:

@@ -26,8 +26,8 @@ from reeb_torch.io import read_image  # noqa: E402
 
 from tests.detection.test_detection import EXAMPLES  # noqa: E402
 
-TINY = DetectorSettings(min_size=128, max_size=448, neck_channels=16, representation_size=32, proposals_train=60,
-                        proposals_test=40, score_thresh=0.0)
+TINY = DetectorSettings(min_size=128, max_size=448, neck_channels=16, representation_size=32, top_k_train=60,
+                        top_k_test=40, score_thresh=0.0)
 
 
 @pytest.fixture(scope="module")

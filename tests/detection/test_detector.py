@@ -31,7 +31,7 @@ from reeb_torch.datasets.kitti import read_kitti_labels  # noqa: E402
 from reeb_torch.io import read_image  # noqa: E402
 from reeb_torch.runs.cli import main  # noqa: E402
 
-TINY = DetectorSettings(min_size=128, max_size=448, neck_channels=32, proposals_train=100, proposals_test=50,
+TINY = DetectorSettings(min_size=128, max_size=448, neck_channels=32, top_k_train=100, top_k_test=50,
                         rois=32, score_thresh=0.0, box_head_int8=False)
 TINY_CLI = ["--epochs", "1", "--min-size", "128", "--max-size", "448", "--train-proposals", "100",
             "--test-proposals", "50"]
@@ -231,7 +231,7 @@ def test_detector_fit_command_writes_a_detector_that_loads(data, cache, tmp_path
     assert "2 of these frames are training frames" in res.output  # --val on the training folder
     det = ReebDetector.load(out)
     assert det.meta["provenance"]["command"].startswith(f"reeb detector fit {data} -o {out} --proposals default")
-    assert det.settings.min_size == 128 and det.settings.proposals_test == 50
+    assert det.settings.min_size == 128 and det.settings.top_k_test == 50
     assert det.meta["provenance"]["val"]["frames"] == 2 and "Car" in det.meta["provenance"]["val"]["ap"]
     shown = CliRunner().invoke(main, ["detector", "show", str(out)])
     assert shown.exit_code == 0 and "a detector of Car, Pedestrian, Cyclist" in shown.output, shown.output
@@ -591,3 +591,12 @@ def test_an_int8_box_head_is_a_quarter_the_size_exact_per_row_and_loads_to_the_s
     save_file({**tensors, key: tensors[key].float()}, str(tmp_path / "bad.safetensors"), metadata=meta)
     with pytest.raises(DetectorFileError, match="int8"):
         ReebDetector.load(tmp_path / "bad.safetensors")
+
+
+def test_settings_stored_under_the_former_names_of_the_proposal_counts_load():
+    """Detector files written when the counts were named ``proposals_train``/``_test`` load
+    them as ``top_k_train``/``top_k_test`` (the shipped file among them)."""
+    s = DetectorSettings.from_dict({"proposals_train": 300, "proposals_test": 200})
+    assert (s.top_k_train, s.top_k_test) == (300, 200)
+    with pytest.raises(ValueError, match="settings.top_k_test must be in"):
+        DetectorSettings.from_dict({"proposals_test": 0}, owner="settings")

@@ -142,7 +142,7 @@ TAMPERED = {
     "min_size 100000": ({"settings.min_size": 100000}, "settings.min_size must be in [32, 4096], got 100000"),
     "neck_channels 128.5": ({"settings.neck_channels": 128.5}, "settings.neck_channels must be an int"),
     "neck_channels 1e9": ({"settings.neck_channels": 10 ** 9}, "settings.neck_channels must be in [1, 1024]"),
-    "proposals_test 0": ({"settings.proposals_test": 0}, "settings.proposals_test must be in [1, "),
+    "proposals_test 0": ({"settings.top_k_test": 0}, "settings.top_k_test must be in [1, "),
     "a bool for a number": ({"settings.rois": True}, "settings.rois must be an int"),
     "an unknown setting": ({"settings.anchors": 3}, "fields this version does not know: anchors"),
     "settings a list": ({"settings": [1, 2]}, "no 'settings' object"),

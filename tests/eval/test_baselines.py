@@ -38,12 +38,12 @@ def kitti_image() -> torch.Tensor:
     return read_image(SAMPLE)
 
 
-def _check_contract(out: dict, image: torch.Tensor, max_proposals: int) -> None:
+def _check_contract(out: dict, image: torch.Tensor, top_k: int) -> None:
     boxes, scores = out["boxes"], out["scores"]
     _, h, w = image.shape
     assert boxes.dtype == torch.float32 and boxes.ndim == 2 and boxes.shape[1] == 4
     assert scores.ndim == 1 and scores.shape[0] == boxes.shape[0]
-    assert 0 < boxes.shape[0] <= max_proposals
+    assert 0 < boxes.shape[0] <= top_k
     assert (boxes[:, 0] >= 0).all() and (boxes[:, 1] >= 0).all()
     assert (boxes[:, 2] <= w).all() and (boxes[:, 3] <= h).all()
     assert (boxes[:, 0] < boxes[:, 2]).all() and (boxes[:, 1] < boxes[:, 3]).all()
@@ -55,20 +55,20 @@ def test_registry_names_classes():
     assert BASELINES["edgeboxes"] is EdgeBoxesBaseline
 
 
-@pytest.mark.parametrize("max_proposals", [2000, 50])
-def test_edge_boxes_contract(kitti_image, max_proposals):
-    eb = EdgeBoxesBaseline(max_proposals=max_proposals)
-    _check_contract(eb(kitti_image), kitti_image, max_proposals)
+@pytest.mark.parametrize("top_k", [2000, 50])
+def test_edge_boxes_contract(kitti_image, top_k):
+    eb = EdgeBoxesBaseline(top_k=top_k)
+    _check_contract(eb(kitti_image), kitti_image, top_k)
 
 
 @needs_bing
-@pytest.mark.parametrize("max_proposals", [2000, 50])
-def test_bing_contract(kitti_image, max_proposals):
-    _check_contract(BingBaseline(BING_MODEL, max_proposals=max_proposals)(kitti_image), kitti_image, max_proposals)
+@pytest.mark.parametrize("top_k", [2000, 50])
+def test_bing_contract(kitti_image, top_k):
+    _check_contract(BingBaseline(BING_MODEL, top_k=top_k)(kitti_image), kitti_image, top_k)
 
 
 def test_selective_search_contract(kitti_image):
-    ss = SelectiveSearchBaseline(max_proposals=300, scale=0.5)
+    ss = SelectiveSearchBaseline(top_k=300, scale=0.5)
     _check_contract(ss(kitti_image), kitti_image, 300)
 
 
@@ -128,7 +128,7 @@ def test_edge_boxes_fits_a_rectangle_symmetrically():
     instead of 0: that is what this checks, over random rectangles.
     """
     rng = np.random.default_rng(0)
-    eb = EdgeBoxesBaseline(max_proposals=20)
+    eb = EdgeBoxesBaseline(top_k=20)
     margins = []
     for _ in range(40):
         hh, ww = 240, 320

@@ -247,7 +247,7 @@ def test_table3_usage_errors_exit_2(tmp_path, capsys):
         ([no_labels], "no label folder"),
         ([data, "--frames", "20:30"], "no frame with an id in 20:30"),
         ([data, "--frames", "9:3"], "first id 9 is after last id 3"),
-        ([data, "--max-proposals", "100"], "--max-proposals must be >= 2000"),
+        ([data, "--max-proposals", "100"], "--top-k must be at least 2000"),
         ([data, "--cross-validate", "1"], "--cross-validate needs at least 2 folds, got 1"),
         ([data, "--cross-validate", "3"], "--cross-validate 3 needs at least as many frames, got 2"),
         ([data, "--leave-folder-out"], "--leave-folder-out needs two or more --data folders"),

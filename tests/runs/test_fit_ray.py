@@ -87,8 +87,8 @@ def test_the_detectors_frames_on_ray(tiny_kitti, tmp_path):
         data, tmp = Path(sys.argv[1]), Path(sys.argv[2])
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
         cpus = start_ray(None, 1, None, quiet=True)
-        settings = DetectorSettings(min_size=128, max_size=448, neck_channels=32, proposals_train=100,
-                                    proposals_test=50, rois=32, score_thresh=0.0, precision="float32")
+        settings = DetectorSettings(min_size=128, max_size=448, neck_channels=32, top_k_train=100,
+                                    top_k_test=50, rois=32, score_thresh=0.0, precision="float32")
         det = ReebDetector(("Car", "Pedestrian", "Cyclist"), "default", settings)
         items = load_frames([data], lazy=True)
         here = stored_frames(det, [dict(it) for it in items], tmp / "here", progress=False)

@@ -46,7 +46,7 @@ def test_a_float_option_that_is_not_finite_is_a_usage_error(args, option):
 def _tiny_detector(root: Path) -> Path:
     from reeb_torch.detection import DetectorSettings, ReebDetector
 
-    settings = DetectorSettings(min_size=128, max_size=448, neck_channels=32, proposals_train=100, proposals_test=50,
+    settings = DetectorSettings(min_size=128, max_size=448, neck_channels=32, top_k_train=100, top_k_test=50,
                                 rois=32, score_thresh=0.0)
     det = ReebDetector.fit([_example_kitti(root / "kitti")], epochs=1, settings=settings, cache_dir=root / "cache",
                            progress=False, command="reeb detector fit kitti")
