@@ -33,7 +33,7 @@ from .prefilter import prefilter_cpu
 from .refine import merge_refined
 from .weights import load_ranker
 
-__all__ = ["CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANKER", "keep_candidates"]
+__all__ = ["CandidateFeatures", "LearnedRanking", "NOT_SEEN_BY_RANKER", "keep_candidates", "warn_if_fitted_elsewhere"]
 
 NOT_SEEN_BY_RANKER: tuple[str, ...] = ("top_k", "ranker", "ranker_keep", "ranker_v_share", "nms_iou", "nms_iou_thin",
                                         "nms_thin_aspect", "rank_quality", "class_quota", "refine_top", "refine_class",

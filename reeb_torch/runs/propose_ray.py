@@ -5,8 +5,9 @@ run, with the output a folder of Parquet files written by Ray Data.
 kept from before) before any work, starts or reaches Ray, runs
 :func:`reeb_torch.runs.distributed.propose_dataset` and writes it with
 :func:`~reeb_torch.runs.distributed.write_results`, then prints the closing summary. Ray
-runs the images; what the run engine does for every command (:mod:`.engine`: the inputs, the
-resume lines, the closing summary's lines) is shared with it. The Ray engine itself
+runs the images; what the run engine does for every command is shared with it: the inputs
+(:func:`~.engine.find_inputs`), the output's lock (:func:`~.claim.claim`), the resume plan
+(:func:`~.run_output.resume_from`) and the closing summary's lines (:mod:`.engine`). The Ray engine itself
 (:mod:`.distributed`) is a library and knows nothing of the command.
 """
 
@@ -27,8 +28,7 @@ from .common import Failure, UsageProblem
 from .engine import closing_tail, count_line, find_inputs, mismatch_line, ms_per_img
 from .inputs import same_file_note
 from .output_files import OutputError, check_output, read_result_dir, result_files
-from .rows import row_key
-from .run_output import resume_note
+from .run_output import resume_from
 
 __all__ = ["propose_ray"]
 
@@ -121,14 +121,10 @@ class _RayRun:
             rows = read_result_dir(self.out_dir)
         except OSError as e:
             raise UsageProblem(f"cannot read {out} for --resume: {e}")
-        other = {str(r.get("config")) for r in rows if r.get("status") == "ok"} - {self.fingerprint}
-        if other:
-            raise UsageProblem(mismatch_line(str(out), sorted(other), self.fingerprint))
-        done = {D.row_key(r) for r in rows if r.get("status") == "ok"}
-        self.kept = len(done)
         before = len(self.images)
-        self.images = [p for p in self.images if row_key(p) not in done]
-        click.echo(resume_note(self.kept, str(out), before - len(self.images), len(self.images)), err=True)
+        plan = resume_from(rows, self.images, str(out), self.fingerprint,
+                           lambda where, configs: mismatch_line(where, configs, self.fingerprint))
+        self.kept, self.images = plan.kept, plan.todo_paths()
         if not self.images:
             click.echo(f"Nothing to do: all {before} images are already in {out}.", err=True)
             return False

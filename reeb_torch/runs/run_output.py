@@ -29,7 +29,7 @@ from .output_files import (
 )
 from .rows import row_key
 
-__all__ = ["ResumePlan", "OutputPlan", "plan_output", "OrderedWriter", "resume_note"]
+__all__ = ["ResumePlan", "OutputPlan", "plan_output", "OrderedWriter", "resume_note", "resume_from"]
 
 
 class ResumePlan:
@@ -164,14 +164,24 @@ def plan_output(out: str | None, images: Sequence[Path], *, resume: bool, overwr
             raise UsageProblem(str(e))
         for p in problems:
             echo_err(f"warning: {p}")
-    other = {str(r.get("config")) for r in rows + stale_rows if r.get("status") == "ok"} - {made_by}
+    plan = resume_from(rows + stale_rows, images, out, made_by, other_maker, recovered=len(stale_rows))
+    return OutputPlan(out, plan, stale, work=bool(plan.todo or stale or plan.duplicates))
+
+
+def resume_from(rows: Sequence[dict], images: Sequence[Path], out: str, made_by: str,
+                other_maker: Callable[[str, list[str]], str], recovered: int = 0) -> ResumePlan:
+    """``--resume``'s plan (the local and Ray engines): the inputs ``images`` matched with an
+    earlier run's ``rows`` (:class:`ResumePlan`), its line printed (:func:`resume_note`;
+    ``recovered``: of the rows, those taken from killed runs' files). ``ok`` rows made by
+    another config than ``made_by`` are the usage error ``other_maker(out, configs)``."""
+    other = {str(r.get("config")) for r in rows if r.get("status") == "ok"} - {made_by}
     if other:
         raise UsageProblem(other_maker(out, sorted(other)))
-    before = len(images)
-    plan.keep(rows + stale_rows)
+    plan = ResumePlan(images)
+    plan.keep(rows)
     todo = len(plan.todo)
-    click.echo(resume_note(plan.kept, out, before - todo, todo, len(stale_rows), plan.duplicates), err=True)
-    return OutputPlan(out, plan, stale, work=bool(todo or stale or plan.duplicates))
+    click.echo(resume_note(plan.kept, out, len(images) - todo, todo, recovered, plan.duplicates), err=True)
+    return plan
 
 
 def _stale_rows(out: str, resume: bool, overwrite: bool, echo_err: Callable[[str], None]) -> tuple[list[Path], list[dict]]:

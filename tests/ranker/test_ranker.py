@@ -432,15 +432,15 @@ def test_settings_the_model_was_fitted_with_are_compared_with_a_tolerance():
     import warnings
 
     from reeb_torch import ReebConfig
-    from reeb_torch.ranker.step import _same, _warn_if_fitted_elsewhere
+    from reeb_torch.ranker.step import _same, warn_if_fitted_elsewhere
 
     fitted = json.loads(json.dumps(ReebConfig(camera_height_m=1.67575, horizon=0.4714).to_dict(), default=list))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        _warn_if_fitted_elsewhere(ReebConfig(camera_height_m=1.676, horizon=0.4714), fitted)
-        _warn_if_fitted_elsewhere(ReebConfig(camera_height_m=1.6758, horizon=0.47142), fitted)
+        warn_if_fitted_elsewhere(ReebConfig(camera_height_m=1.676, horizon=0.4714), fitted)
+        warn_if_fitted_elsewhere(ReebConfig(camera_height_m=1.6758, horizon=0.47142), fitted)
     with pytest.warns(UserWarning, match=r"camera_height_m=1\.7 \(fitted with 1\.67575\)"):
-        _warn_if_fitted_elsewhere(ReebConfig(camera_height_m=1.7, horizon=0.4714), fitted)
+        warn_if_fitted_elsewhere(ReebConfig(camera_height_m=1.7, horizon=0.4714), fitted)
     assert _same([1.0, [2.0, 3.0]], [1.0004, [2.0, 3.001]]) and not _same([1.0, 2.0], [1.0, 2.1])
     assert not _same(None, 0.0) and _same("a", "a") and not _same("a", "b") and not _same([1.0], [1.0, 2.0])
 
