@@ -433,6 +433,30 @@ def test_the_selection_is_composed_not_inherited():
     assert not inherits, f"selection classes with base classes: {sorted(inherits)}"
 
 
+OTHER_NAMES_OF_TOP_K = {"max_proposals", "proposals_train", "proposals_test", "post_nms_top_n",
+                        "post_nms_top_n_train", "post_nms_top_n_test"}
+
+
+def test_the_number_of_proposals_has_one_name():
+    """The proposals kept per image are ``top_k`` (``top_k_train``/``top_k_test`` for a detector)
+    wherever the package names them: no argument, keyword, variable or attribute goes by
+    another name (torchvision's own ``rpn_post_nms_top_n_*`` keywords, passed to it, aside)."""
+    found = []
+    for path, tree in _trees():
+        for node in ast.walk(tree):
+            names = []
+            if isinstance(node, ast.arg):
+                names.append(node.arg)
+            elif isinstance(node, ast.keyword) and node.arg:
+                names.append(node.arg)
+            elif isinstance(node, ast.Name):
+                names.append(node.id)
+            elif isinstance(node, ast.Attribute):
+                names.append(node.attr)
+            found += [f"{path}:{node.lineno}: {n}" for n in names if n in OTHER_NAMES_OF_TOP_K]  # type: ignore[attr-defined]
+    assert not found, found
+
+
 def test_click_is_the_one_command_line_framework():
     """No module of the package imports ``argparse`` (or ``optparse``): every command is click."""
     offenders = {path for path, tree in _trees() if _imported_roots(tree) & {"argparse", "optparse"}}
