@@ -8,7 +8,8 @@ What ``reeb propose --preset/--config/--set/--top-k`` reads, for scripts and ben
 A bool field takes true/false, yes/no, on/off or 1/0; a field of named choices takes one of
 its words as written (``shadow_score=none`` is the word ``'none'``, not None); a free-text
 field its text (``ranker=none``, ``ranker=mine.safetensors``); other fields take JSON (``3``,
-``1.5``, ``[1, 2]``, ``null``) or a bare string. A config file's relative ``ranker`` is read
+``1.5``, ``[1, 2]``, ``null``) or a bare string. A field may be named with its part
+(``nms.top_k=500``, :data:`~reeb_torch.config.PART_OF`). A config file's relative ``ranker`` is read
 from the file's folder (as ``reeb fit`` writes it). Every refusal is a :class:`SettingError`
 naming what was wrong.
 """
@@ -23,7 +24,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .config import ReebConfig, get_preset
+from .config import PART_FIELDS, PART_OF, ReebConfig, get_preset
 from .ranker import SHIPPED
 
 __all__ = ["SettingError", "BOOL_WORDS", "config_from", "parse_sets", "read_config_file"]
@@ -106,7 +107,7 @@ def parse_sets(sets: Sequence[str]) -> dict[str, Any]:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
             raise SettingError(f"{item!r}: expected FIELD=VALUE, e.g. scale=1.0", "--set")
-        name = key.strip()
+        name = _flat_name(key.strip())
         if name in bools:
             out[name] = _parse_bool(name, value)
         elif name in words and words[name] is None:
@@ -114,6 +115,21 @@ def parse_sets(sets: Sequence[str]) -> dict[str, Any]:
         else:
             out[name] = _parse_value(value, words.get(name) or (), name)
     return out
+
+
+def _flat_name(name: str) -> str:
+    """The field a ``--set`` names: ``FIELD`` as it is, or ``PART.FIELD`` (``nms.top_k``) checked
+    against its part."""
+    part, dot, field = name.partition(".")
+    if not dot:
+        return name
+    if part not in PART_FIELDS:
+        raise SettingError(f"{name}: {part!r} is not a part of the settings; the parts are "
+                           f"{', '.join(PART_FIELDS)}", "--set")
+    if field not in PART_FIELDS[part]:
+        where = f" (it is in {PART_OF[field]})" if field in PART_OF else ""
+        raise SettingError(f"{name}: the part {part} has no field {field!r}{where}", "--set")
+    return field
 
 
 def _parse_value(text: str, choices: tuple[str, ...] = (), field: str = "") -> Any:

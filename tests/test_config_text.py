@@ -26,6 +26,16 @@ def test_pairs_are_read_by_their_fields_type():
                    "class_quota": {"Pedestrian": 0.2}, "ground_band": None}
 
 
+def test_a_field_may_be_named_with_its_part():
+    assert parse_sets(["nms.top_k=500", "scores.shadow_score=none", "windows.min_window=12"]) == \
+        {"top_k": 500, "shadow_score": "none", "min_window": 12}
+    assert config_from("default", None, ["nms.top_k=7"]).top_k == 7
+    with pytest.raises(SettingError, match="'nmx' is not a part of the settings; the parts are front_end"):
+        parse_sets(["nmx.top_k=1"])
+    with pytest.raises(SettingError, match=r"the part nms has no field 'min_window' \(it is in windows\)"):
+        parse_sets(["nms.min_window=3"])
+
+
 def test_a_saved_record_reads_as_its_config_and_its_ranker_from_beside_it(tmp_path):
     f = tmp_path / "cam.json"
     f.write_text(json.dumps({"config": {"horizon": 0.45, "ranker": "mine.safetensors"}, "fit": {}}))

@@ -128,7 +128,8 @@ def settings_options(purpose: str = "Named settings to start from.", run: bool =
                      help="JSON file of ReebConfig fields applied over the preset (e.g. reeb calibrate's "
                           "camera.json)."),
         click.option("--set", "sets", multiple=True, metavar="FIELD=VALUE",
-                     help="Change one ReebConfig field (repeatable), e.g. --set scale=1.0."),
+                     help="Change one ReebConfig field (repeatable), e.g. --set scale=1.0 or, named with its "
+                          "part, --set nms.top_k=500."),
     ]
     if run:
         options += [
