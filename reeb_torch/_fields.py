@@ -14,7 +14,7 @@ import typing
 from typing import Any, Callable, Literal
 
 __all__ = ["Check", "JOINT", "MAX_REGIONS", "check_fields", "conform", "describe", "field_plan", "interval_check",
-           "quota_by_name", "show", "validate_config"]
+           "quota_by_name", "quota_pairs", "show", "validate_config"]
 
 _NUMBERS = {bool: bool, int: numbers.Integral, float: numbers.Real}
 
@@ -165,6 +165,12 @@ def _quota_ok(t: tuple) -> bool:
     return all(x >= 0 for x in shares) and sum(shares) <= 1 and len(set(names)) == len(names)
 
 
+def quota_pairs(quota: Any) -> Any:
+    """A ``class_quota`` given as a mapping (``{"Pedestrian": 0.2}``) as the ``(name, share)``
+    pairs the field holds (hashable, in the mapping's order); any other value as it is."""
+    return tuple(quota.items()) if isinstance(quota, typing.Mapping) else quota
+
+
 def quota_by_name(quota: object) -> bool:
     """Whether a ``class_quota`` gives its shares by class name (``(name, share)`` pairs)."""
     return isinstance(quota, tuple) and bool(quota) and isinstance(quota[0], tuple)
@@ -233,8 +239,7 @@ def validate_config(cfg: Any) -> None:
     ``ReebConfig.<name> must be <expected>, got <value>``.
     """
     hints, ranges = field_plan(type(cfg))
-    if isinstance(cfg.class_quota, typing.Mapping):  # {"Pedestrian": 0.2}: kept as pairs, hashable
-        object.__setattr__(cfg, "class_quota", tuple(cfg.class_quota.items()))
+    object.__setattr__(cfg, "class_quota", quota_pairs(cfg.class_quota))
     for name, hint in hints.items():
         value = getattr(cfg, name)
         try:

@@ -15,7 +15,7 @@ from typing import Any, Literal
 
 from ._fields import (ASPECT_RANGE, CLASS_HEIGHTS_M, CLASS_QUOTA, CLASS_WEIGHTS, GROUND_BAND, GROUP_CELL, OBJECT_TEMPLATES,
                       RANKER, ROAD_BAND, ROAD_TOLERANCE, SEED, Check, check_fields, field_plan, interval_check,
-                      quota_by_name, validate_config)
+                      quota_by_name, quota_pairs, validate_config)
 
 __all__ = ["ReebConfig", "PRESETS", "get_preset", "TRAINING_FREE", "FRONT_END_FIELDS", "PARTS", "PART_FIELDS", "PART_OF",
            "FrontEndSettings", "CameraSettings", "RegionSettings", "WindowSettings", "ScoreSettings",
@@ -448,8 +448,8 @@ class _Part:
 
     def __post_init__(self) -> None:
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        if isinstance(values.get("class_quota"), typing.Mapping):  # {"Pedestrian": 0.2}: kept as pairs
-            values["class_quota"] = tuple(values["class_quota"].items())
+        if "class_quota" in values:
+            values["class_quota"] = quota_pairs(values["class_quota"])
         fixed = check_fields(type(self).__name__, values, field_plan(type(self))[0],
                              {n: _RANGES[n] for n in values if n in _RANGES})
         for name, value in fixed.items():

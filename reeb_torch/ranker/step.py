@@ -286,7 +286,7 @@ class LearnedRanking(CandidateFeatures):
         """The :class:`~reeb_torch.ranker.BoxRanker` of ``ranking.ranker``."""
         self.class_share: tuple[float, ...] | None = ranking.class_shares(self.model.classes)
         """``ranking.class_quota`` as one share a class of the model's class head
-        (:meth:`~reeb_torch.ranking.ReebConfig.class_shares`), or None: no class quota."""
+        (:meth:`~reeb_torch.config.RankingSettings.class_shares`), or None: no class quota."""
         if ranking.class_quota and self.class_share is None:
             warnings.warn(f"ReebConfig.class_quota is ignored: the ranker {ranking.ranker!r} has no class head "
                           "(fit one with reeb fit, whose models have one by default)", UserWarning, stacklevel=4)
