@@ -43,6 +43,7 @@ __all__ = ["ProposalGenerator", "propose", "Inspection", "Candidates", "Working"
 
 
 _STAGE_LOCK = threading.Lock()  # stage_times is written by both halves of a CPU batch
+_WARN_LOCK = threading.Lock()  # and both halves may find an empty image at once: one warns
 _TIME_SHARE = threading.local()  # .share: the part of a stage's time this thread records
 _WARM: set[tuple] = set()  # kernel keys (_kernel_key) of the configs this process has warmed up
 
@@ -483,13 +484,17 @@ class ProposalGenerator(nn.Module):
         Images of the batch without an edge (``edges[i]`` all 0: a black or constant picture)
         get their own warning, once, and leave the settings' warning for a later image."""
         blank = [i for i in empty if not bool(edges[i].amax() > 0)]
-        if len(blank) == len(empty):
-            if not self._warned_blank:
-                self._warned_blank = True
-                warnings.warn(f"reeb: a {size[1]}×{size[0]} image has no edges (a black or constant picture): "
-                              "it gets no proposals; this is warned once", RuntimeWarning, stacklevel=4)
+        with _WARN_LOCK:  # check and set at once: the two halves of a CPU batch run side by side
+            if len(blank) == len(empty):
+                first, self._warned_blank = not self._warned_blank, True
+            else:
+                first, self._warned_empty = not self._warned_empty, True
+        if not first:
             return
-        self._warned_empty = True
+        if len(blank) == len(empty):
+            warnings.warn(f"reeb: a {size[1]}×{size[0]} image has no edges (a black or constant picture): "
+                          "it gets no proposals; this is warned once", RuntimeWarning, stacklevel=4)
+            return
         if windows == 0:
             why = ("no window fits this image (object_templates, min_window, size_ratio, aspect_range, "
                    "ground_band)")

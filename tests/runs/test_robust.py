@@ -381,6 +381,34 @@ def test_a_config_that_gives_no_proposals_warns_once():
     assert len(msgs) == 1 and "no proposals" in msgs[0] and "share" in msgs[0], msgs
 
 
+def test_the_two_halves_of_a_cpu_batch_warn_once_between_them():
+    """Both halves of a CPU batch may find an empty image at the same moment: one warns."""
+    import threading
+    import warnings
+
+    import torch
+
+    from reeb_torch import ProposalGenerator
+
+    gen = ProposalGenerator(top_k=100)
+    share, edges = torch.zeros(1, 4), torch.ones(1, 8, 8)
+    start = threading.Barrier(8)
+
+    def half() -> None:
+        start.wait()
+        gen._warn_empty((64, 160), 10, share, edges, [0])
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        threads = [threading.Thread(target=half) for _ in range(8)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    msgs = [str(w.message) for w in seen if issubclass(w.category, RuntimeWarning)]
+    assert len(msgs) == 1 and "share of the budget is 0" in msgs[0], msgs
+
+
 # -- -q is quiet --------------------------------------------------------------------------------
 
 @pytest.mark.slow
