@@ -14,8 +14,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import cv2
-import numpy as np
 import pytest
 
 from tests.runs.test_cli import FAST, good_folder, no_temp_files, read_jsonl, reeb
