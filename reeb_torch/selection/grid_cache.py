@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from typing import Callable, TypeVar
 
@@ -16,6 +17,8 @@ T = TypeVar("T")
 
 PLAN_GRIDS = 16
 """Window grids (image sizes) whose per-size tables :class:`GridCache` keeps, the latest used."""
+
+_ORDER = threading.Lock()  # the two halves of a CPU batch share a cache: one of them reorders it at a time
 
 
 class GridCache:
@@ -32,14 +35,15 @@ class GridCache:
         The values of the :data:`PLAN_GRIDS` grids used last are kept, whatever their number
         of keys: a cap on entries cleared every value at each batch once the image sizes
         times the keys per grid (8 for the default) passed it (KITTI's 4 sizes are 32)."""
-        slot = self._plan_cache.get(id(grid))
-        if slot is None or slot[0] is not grid:
-            slot = (grid, {})
-            self._plan_cache[id(grid)] = slot
-            while len(self._plan_cache) > PLAN_GRIDS:
-                self._plan_cache.popitem(last=False)
-        else:
-            self._plan_cache.move_to_end(id(grid))
+        with _ORDER:
+            slot = self._plan_cache.get(id(grid))
+            if slot is None or slot[0] is not grid:
+                slot = (grid, {})
+                self._plan_cache[id(grid)] = slot
+                while len(self._plan_cache) > PLAN_GRIDS:
+                    self._plan_cache.popitem(last=False)
+            else:
+                self._plan_cache.move_to_end(id(grid))
         values = slot[1]
         if key not in values:
             values[key] = build()
