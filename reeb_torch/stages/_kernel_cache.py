@@ -44,6 +44,7 @@ import pickle
 import stat
 import sys
 import tempfile
+import threading
 from pathlib import Path
 from typing import NamedTuple
 
@@ -58,11 +59,14 @@ FORMAT = 2  # of the files (a checksum, the key in the data): part of every fold
 _PACKAGE = Path(__file__).resolve().parents[1]  # reeb_torch/
 _MAGIC = b"reeb-nb2"
 _SAID: set[str] = set()  # what this process has said on stderr (each kind once)
+_SAYING = threading.Lock()  # the two halves of a CPU batch may reach the same line at once
 
 
 def _say(kind: str, line: str) -> None:
-    if kind not in _SAID:
+    with _SAYING:
+        first = kind not in _SAID
         _SAID.add(kind)
+    if first:
         print(f"reeb-torch: {line}", file=sys.stderr, flush=True)
 
 
