@@ -153,6 +153,31 @@ def test_a_mixed_batch_split_between_the_cores_equals_each_image_alone(sample_im
         assert torch.equal(got["boxes"], alone["boxes"]) and torch.equal(got["scores"], alone["scores"])
 
 
+def test_a_mixed_batch_gives_the_same_boxes_when_the_threads_switch_at_every_step(sample_image):
+    # the two halves share the generator's caches: switching threads as often as Python
+    # allows gives a race every chance to show, in the boxes or as an error
+    import sys
+
+    import torch
+
+    from reeb_torch import ProposalGenerator
+
+    crops = [sample_image[:, :200, :400], sample_image[:, 100:300, 300:700], sample_image[:, :180, :360],
+             sample_image[:, 150:350, 600:1000], sample_image[:, 50:230, 800:1160]]
+    gen = ProposalGenerator(top_k=200)
+    alone = [gen([c])[0] for c in crops]
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        for r in range(6):
+            order = [(r + k) % len(crops) for k in range(len(crops))]
+            g = gen if r % 2 else ProposalGenerator(top_k=200)  # warm caches, and cold ones
+            for i, got in zip(order, g([crops[i] for i in order])):
+                assert torch.equal(got["boxes"], alone[i]["boxes"]) and torch.equal(got["scores"], alone[i]["scores"])
+    finally:
+        sys.setswitchinterval(before)
+
+
 def test_one_image_split_by_rows_equals_the_same_image_in_one_piece(sample_image):
     # batch-1 latency: one image's kernels take half its rows (or strips, or
     # regions) each; every part must give the numbers of the whole image in one call
