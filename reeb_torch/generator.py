@@ -483,15 +483,15 @@ class ProposalGenerator(nn.Module):
         proposal, with the likely cause: no window fits, or a zero budget in every region.
         Images of the batch without an edge (``edges[i]`` all 0: a black or constant picture)
         get their own warning, once, and leave the settings' warning for a later image."""
-        blank = [i for i in empty if not bool(edges[i].amax() > 0)]
+        no_edges = all(not bool(edges[i].amax() > 0) for i in empty)
         with _WARN_LOCK:  # check and set at once: the two halves of a CPU batch run side by side
-            if len(blank) == len(empty):
+            if no_edges:
                 first, self._warned_blank = not self._warned_blank, True
             else:
                 first, self._warned_empty = not self._warned_empty, True
         if not first:
             return
-        if len(blank) == len(empty):
+        if no_edges:
             warnings.warn(f"reeb: a {size[1]}×{size[0]} image has no edges (a black or constant picture): "
                           "it gets no proposals; this is warned once", RuntimeWarning, stacklevel=4)
             return
